@@ -1,0 +1,3 @@
+from ermrl.cli import main
+
+raise SystemExit(main())

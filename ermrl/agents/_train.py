@@ -1,0 +1,266 @@
+"""Train one PPO agent on one seed: the inner loop ("development") of ER-MRL.
+
+The environment pipeline is ``gym.make -> ObservationMask -> Monitor -> DummyVecEnv ->
+ReservoirVecEnv`` (the last only for reservoir agents), so episode returns are always the task's
+raw returns.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ermrl.config import BudgetConfig, EncoderConfig, PPOConfig, TaskConfig
+
+__all__ = [
+    "SeedSet",
+    "derive_seeds",
+    "make_vec_env",
+    "RunResult",
+    "TrainingDiverged",
+    "NoEpisodeFinished",
+    "train_agent",
+]
+
+ReportFn = Callable[[int, float], None]
+
+
+class TrainingDiverged(RuntimeError):
+    """Training produced NaN or infinite values (the trial fails; the study goes on)."""
+
+
+class NoEpisodeFinished(RuntimeError):
+    """No training episode ended within the budget, so the ``last`` fitness is undefined."""
+
+
+@dataclass(frozen=True)
+class SeedSet:
+    """Independent seeds derived from one integer seed.
+
+    Attributes:
+        reservoir: Seed of the reservoir weights.
+        env: Seed of the training environments (env ``i`` gets ``env + i``).
+        agent: Seed of PPO (policy initialization, action sampling, minibatch order).
+        eval_env: Seed of the separate evaluation environment.
+    """
+
+    reservoir: int
+    env: int
+    agent: int
+    eval_env: int
+
+
+def derive_seeds(seed: int) -> SeedSet:
+    """Split one seed into independent seeds for weights, envs and the agent."""
+    if seed < 0:
+        raise ValueError(f"seeds must be >= 0, got {seed}")
+    children = np.random.SeedSequence(seed).spawn(4)
+    values = [int(c.generate_state(1, dtype=np.uint32)[0] % (2**31 - 1)) for c in children]
+    return SeedSet(*values)
+
+
+def make_vec_env(
+    task: TaskConfig,
+    n_envs: int,
+    env_seed: int,
+    encoder: EncoderConfig | None = None,
+    reservoir_seed: int = 0,
+    render_mode: str | None = None,
+) -> Any:
+    """Build the (optionally reservoir-encoded) vectorized environment of a task.
+
+    Args:
+        task: Env id and observation mask.
+        n_envs: Number of environments in the ``DummyVecEnv``.
+        env_seed: Env ``i`` is seeded with ``env_seed + i`` at its first reset.
+        encoder: Reservoir encoding, or ``None`` for the raw (masked) observation.
+        reservoir_seed: Seed of the reservoir weights.
+        render_mode: Passed to ``gymnasium.make``.
+
+    Returns:
+        A ``VecEnv`` (a :class:`~ermrl.encoders.ReservoirVecEnv` when ``encoder`` is given).
+    """
+    from stable_baselines3.common.monitor import Monitor
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from ermrl.encoders import ReservoirVecEnv
+    from ermrl.envs import make_env
+
+    def factory() -> Any:
+        return Monitor(make_env(task.env_id, task.observe, render_mode=render_mode))
+
+    venv = DummyVecEnv([factory] * n_envs)
+    venv.seed(env_seed)
+    if encoder is not None:
+        venv = ReservoirVecEnv(venv, encoder, seed=reservoir_seed)
+    return venv
+
+
+@dataclass
+class RunResult:
+    """What one training run produced.
+
+    Attributes:
+        seed: The run's seed.
+        episode_returns: Return of every finished training episode, in order.
+        episode_steps: Training env step at which each of those episodes ended.
+        env_steps: Environment steps actually taken (PPO rounds up to whole rollouts).
+        wall_seconds: Wall-clock time of training (and evaluation).
+        last_return: Mean return of the last ``n_last_episodes`` training episodes.
+        eval_return: Mean return of the deterministic evaluation episodes (if run).
+        eval_returns: The evaluation episodes' returns.
+    """
+
+    seed: int
+    episode_returns: list[float] = field(default_factory=list)
+    episode_steps: list[int] = field(default_factory=list)
+    env_steps: int = 0
+    wall_seconds: float = 0.0
+    last_return: float = math.nan
+    eval_return: float | None = None
+    eval_returns: list[float] = field(default_factory=list)
+
+    @property
+    def steps_per_second(self) -> float:
+        return self.env_steps / self.wall_seconds if self.wall_seconds > 0 else math.nan
+
+    def fitness(self, mode: str) -> float:
+        """The run's return under a fitness measure (``last`` or ``eval``)."""
+        if mode == "eval":
+            return math.nan if self.eval_return is None else self.eval_return
+        return self.last_return
+
+
+def _episode_callback(result: RunResult, budget: BudgetConfig, report: ReportFn | None) -> Any:
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    checkpoints = [
+        budget.training_steps * (k + 1) // (budget.n_reports + 1) for k in range(budget.n_reports)
+    ]
+
+    class EpisodeRecorder(BaseCallback):
+        """Records episode returns from Monitor infos and reports intermediate returns."""
+
+        def _on_step(self) -> bool:
+            for info in self.locals["infos"]:
+                episode = info.get("episode")
+                if episode is not None:
+                    result.episode_returns.append(float(episode["r"]))
+                    result.episode_steps.append(int(self.num_timesteps))
+            while checkpoints and self.num_timesteps >= checkpoints[0]:
+                step = checkpoints.pop(0)
+                if report is not None and result.episode_returns:
+                    recent = result.episode_returns[-budget.n_last_episodes :]
+                    report(step, float(np.mean(recent)))
+            return True
+
+    return EpisodeRecorder()
+
+
+def train_agent(
+    task: TaskConfig,
+    encoder: EncoderConfig | None,
+    ppo: PPOConfig,
+    budget: BudgetConfig,
+    seed: int,
+    *,
+    evaluate: bool | None = None,
+    model_path: str | Path | None = None,
+    report: ReportFn | None = None,
+    tensorboard_log: str | None = None,
+) -> RunResult:
+    """Train ``PPO('MlpPolicy')`` on a task for one seed and measure its returns.
+
+    Args:
+        task: Env id and observation mask.
+        encoder: Reservoir encoding; ``None`` trains plain PPO on the (masked) observation.
+        ppo: PPO settings.
+        budget: Training steps and fitness measure.
+        seed: Seeds the reservoir weights, the environments and PPO (see :func:`derive_seeds`).
+        evaluate: Run deterministic evaluation episodes after training (default: when
+            ``budget.fitness == "eval"``).
+        model_path: Save the trained model there (``.zip``).
+        report: Called as ``report(env_step, mean_recent_return)`` ``budget.n_reports`` times
+            during training (for pruning); it may raise to stop training.
+        tensorboard_log: Directory for SB3's TensorBoard logs.
+
+    Returns:
+        The run's returns and timings.
+
+    Raises:
+        TrainingDiverged: NaN or infinite values appeared in training.
+        NoEpisodeFinished: the ``last`` measure is needed but no episode ended.
+    """
+    import torch
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.evaluation import evaluate_policy
+
+    from ermrl.agents._hyperparams import ppo_kwargs
+
+    torch.set_num_threads(ppo.torch_threads)
+    seeds = derive_seeds(seed)
+    result = RunResult(seed=seed)
+    start = time.perf_counter()
+    env = make_vec_env(task, ppo.n_envs, seeds.env, encoder, seeds.reservoir)
+    try:
+        model = PPO(
+            "MlpPolicy",
+            env,
+            seed=seeds.agent,
+            device=ppo.device,
+            verbose=0,
+            tensorboard_log=tensorboard_log,
+            **ppo_kwargs(ppo),
+        )
+        # PPO(seed=...) reseeds the env with the agent seed; give the envs their own seed.
+        env.seed(seeds.env)
+        try:
+            model.learn(
+                total_timesteps=budget.training_steps,
+                callback=_episode_callback(result, budget, report),
+                progress_bar=False,
+            )
+        except ValueError as err:
+            # torch.distributions raises ValueError when the policy outputs NaN.
+            if "nan" in str(err).lower() or "invalid values" in str(err).lower():
+                raise TrainingDiverged(f"seed {seed}: training diverged ({err})") from err
+            raise
+        result.env_steps = int(model.num_timesteps)
+        if not all(math.isfinite(r) for r in result.episode_returns):
+            raise TrainingDiverged(f"seed {seed}: non-finite episode return")
+        if result.episode_returns:
+            result.last_return = float(np.mean(result.episode_returns[-budget.n_last_episodes :]))
+        elif budget.fitness == "last":
+            raise NoEpisodeFinished(
+                f"seed {seed}: no episode of {task.env_id} ended within "
+                f"{budget.training_steps} training steps; raise --training-steps or use "
+                "--fitness eval"
+            )
+        if evaluate if evaluate is not None else budget.fitness == "eval":
+            eval_env = make_vec_env(task, 1, seeds.eval_env, encoder, seeds.reservoir)
+            try:
+                returns, _ = evaluate_policy(
+                    model,
+                    eval_env,
+                    n_eval_episodes=budget.n_eval_episodes,
+                    deterministic=True,
+                    return_episode_rewards=True,
+                )
+            finally:
+                eval_env.close()
+            result.eval_returns = [float(r) for r in returns]
+            result.eval_return = float(np.mean(returns))
+            if not math.isfinite(result.eval_return):
+                raise TrainingDiverged(f"seed {seed}: non-finite evaluation return")
+        if model_path is not None:
+            model.save(str(model_path))
+    finally:
+        env.close()
+    result.wall_seconds = time.perf_counter() - start
+    return result

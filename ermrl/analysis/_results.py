@@ -1,0 +1,180 @@
+"""Loading test-phase run folders, learning curves on a common grid, and summaries."""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+__all__ = [
+    "RUNS_DIR",
+    "run_dir",
+    "write_run",
+    "load_run_results",
+    "load_curves",
+    "curves_on_grid",
+    "summarize",
+    "write_atomic",
+]
+
+RUNS_DIR = "agents"
+CURVE_COLUMNS = ["agent", "seed", "env_step", "episode_return"]
+
+
+def run_dir(out: str | Path, agent: str, seed: int) -> Path:
+    """Folder of one (agent, seed) run inside a test-phase output folder."""
+    return Path(out) / RUNS_DIR / agent / f"seed_{seed}"
+
+
+def write_atomic(path: str | Path, text: str) -> None:
+    """Write a file so that readers never see it half-written (several SLURM tasks may race)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
+    with os.fdopen(fd, "w") as handle:
+        handle.write(text)
+    os.replace(tmp, path)
+
+
+def write_run(
+    folder: str | Path, agent: str, result: Any, extra: dict[str, Any] | None = None
+) -> None:
+    """Save one run: ``episodes.csv`` (every training episode) and ``result.json`` (written last).
+
+    Args:
+        folder: The run folder.
+        agent: Agent name (``ppo``, ``res-ppo``, ...).
+        result: A :class:`~ermrl.agents.RunResult`.
+        extra: More fields for ``result.json`` (reservoir parameters, ...).
+    """
+    folder = Path(folder)
+    episodes = pd.DataFrame(
+        {"env_step": result.episode_steps, "episode_return": result.episode_returns}
+    )
+    write_atomic(folder / "episodes.csv", episodes.to_csv(index=False))
+    record = {
+        "agent": agent,
+        "seed": result.seed,
+        "env_steps": result.env_steps,
+        "wall_seconds": result.wall_seconds,
+        "steps_per_second": result.steps_per_second,
+        "final_return": None if not np.isfinite(result.last_return) else result.last_return,
+        "eval_return": result.eval_return,
+        "eval_returns": result.eval_returns,
+        "n_episodes": len(result.episode_returns),
+        **(extra or {}),
+    }
+    write_atomic(folder / "result.json", json.dumps(record, indent=2))
+
+
+def load_run_results(out: str | Path) -> pd.DataFrame:
+    """One row per finished run (those with a ``result.json``) under ``out``."""
+    rows = []
+    for path in sorted(Path(out).glob(f"{RUNS_DIR}/*/seed_*/result.json")):
+        rows.append(json.loads(path.read_text()))
+    return pd.DataFrame(rows)
+
+
+def load_curves(out: str | Path) -> pd.DataFrame:
+    """All finished runs' training episodes: columns ``agent, seed, env_step, episode_return``."""
+    frames = []
+    for path in sorted(Path(out).glob(f"{RUNS_DIR}/*/seed_*/result.json")):
+        record = json.loads(path.read_text())
+        episodes = pd.read_csv(path.parent / "episodes.csv")
+        episodes.insert(0, "seed", record["seed"])
+        episodes.insert(0, "agent", record["agent"])
+        frames.append(episodes)
+    if not frames:
+        return pd.DataFrame(columns=CURVE_COLUMNS)
+    return pd.concat(frames, ignore_index=True)[CURVE_COLUMNS]
+
+
+def curves_on_grid(
+    curves: pd.DataFrame, n_points: int = 100, smooth_episodes: int = 10
+) -> pd.DataFrame:
+    """Learning curves of every agent on a common env-step grid, mean and std across seeds.
+
+    Each run's episode returns are smoothed with a trailing mean over ``smooth_episodes``
+    episodes, then read at each grid step as the value of the latest finished episode.
+
+    Args:
+        curves: Columns ``agent, seed, env_step, episode_return``.
+        n_points: Grid size, from the first to the last episode end of all runs.
+        smooth_episodes: Trailing window of the smoothing.
+
+    Returns:
+        Columns ``agent, env_step, mean, std, n_seeds`` (grid points before a run's first
+        episode do not count for that run).
+    """
+    if curves.empty:
+        return pd.DataFrame(columns=["agent", "env_step", "mean", "std", "n_seeds"])
+    grid = np.unique(
+        np.linspace(curves["env_step"].min(), curves["env_step"].max(), n_points).astype(np.int64)
+    )
+    rows = []
+    for agent, group in curves.groupby("agent", sort=False):
+        per_seed = []
+        for _, run in group.groupby("seed"):
+            run = run.sort_values("env_step")
+            smooth = run["episode_return"].rolling(smooth_episodes, min_periods=1).mean().to_numpy()
+            idx = np.searchsorted(run["env_step"].to_numpy(), grid, side="right") - 1
+            values = np.where(idx >= 0, smooth[np.clip(idx, 0, None)], np.nan)
+            per_seed.append(values)
+        stack = np.vstack(per_seed)
+        counts = np.sum(~np.isnan(stack), axis=0)
+        with np.errstate(all="ignore"):
+            mean = np.nanmean(np.where(counts > 0, stack, 0.0), axis=0)
+            std = np.nanstd(np.where(counts > 0, stack, 0.0), axis=0)
+        for step, m, s, c in zip(grid, mean, std, counts):
+            if c > 0:
+                rows.append(
+                    {"agent": agent, "env_step": int(step), "mean": m, "std": s, "n_seeds": int(c)}
+                )
+    return pd.DataFrame(rows)
+
+
+def summarize(results: pd.DataFrame, agents: Sequence[str] | None = None) -> pd.DataFrame:
+    """Final returns per agent: ``agent, n_seeds, final_return_mean, final_return_std, ...``.
+
+    The final return of a run is the mean return of its last training episodes (the fitness
+    measure of evolution); with evaluation episodes, their mean is summarized too.
+    """
+    columns = [
+        "agent",
+        "n_seeds",
+        "final_return_mean",
+        "final_return_std",
+        "eval_return_mean",
+        "eval_return_std",
+        "seeds",
+    ]
+    if results.empty:
+        return pd.DataFrame(columns=columns)
+    rows = []
+    order = list(agents) if agents else list(dict.fromkeys(results["agent"]))
+    for agent in order:
+        group = results[results["agent"] == agent]
+        if group.empty:
+            continue
+        final = group["final_return"].astype(float)
+        evals = (
+            group["eval_return"].astype(float) if "eval_return" in group else pd.Series(dtype=float)
+        )
+        rows.append(
+            {
+                "agent": agent,
+                "n_seeds": len(group),
+                "final_return_mean": final.mean(),
+                "final_return_std": final.std(ddof=0),
+                "eval_return_mean": evals.mean() if evals.notna().any() else np.nan,
+                "eval_return_std": evals.std(ddof=0) if evals.notna().any() else np.nan,
+                "seeds": " ".join(str(s) for s in sorted(group["seed"])),
+            }
+        )
+    return pd.DataFrame(rows, columns=columns)

@@ -1,0 +1,413 @@
+"""``ermrl evolve`` / ``evolve_res.py``: evolve reservoirs for one task."""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+import textwrap
+from collections.abc import Sequence
+
+from ermrl.cli._common import (
+    EXIT_INTERRUPTED,
+    EXIT_TERMINATED,
+    ArgumentParser,
+    HelpFormatter,
+    add_storage_args,
+    fail,
+    nonneg_int,
+    positive_float,
+    positive_int,
+)
+from ermrl.config import (
+    FITNESS_MODES,
+    PRUNERS,
+    RESET_MODES,
+    BudgetConfig,
+    ConfigError,
+    EncoderConfig,
+    EvolveConfig,
+    Problem,
+    Range,
+    ReservoirSpace,
+    SearchConfig,
+    TaskConfig,
+)
+
+__all__ = ["build_evolve_parser", "add_problem_args", "evolve_main"]
+
+DESCRIPTION = textwrap.dedent(
+    """\
+    Evolve reservoir hyperparameters with an Optuna study (CMA-ES by default).
+
+    Each trial samples sr, lr and input_scaling (per reservoir), trains one PPO agent per seed on
+    the reservoir-encoded observations and records the mean return as the trial's fitness.
+    Re-running the same command resumes the study; several workers may share it.
+
+    example:
+      evolve_res.py --env-id Pendulum-v1 --observe positions --n-trials 20 --n-seeds 2 \\
+          --training-steps 20000 --storage sqlite:///ermrl.db
+    """
+)
+
+
+def _range(name: str):  # noqa: ANN202
+    def parse(values: Sequence[str]) -> Range:
+        return Range(float(values[0]), float(values[1]))
+
+    parse.__name__ = name
+    return parse
+
+
+def add_problem_args(parser: argparse.ArgumentParser, *, multi_task: bool = False) -> None:
+    """Arguments shared by single-task and generalization evolution."""
+    if not multi_task:
+        parser.add_argument(
+            "--env-id", required=True, help="gymnasium env id, e.g. Pendulum-v1, HalfCheetah-v5"
+        )
+    parser.add_argument(
+        "--observe",
+        choices=("all", "positions", "velocities"),
+        default="all",
+        help="keep the whole observation, only its positions (velocities hidden) or only its velocities",
+    )
+    g = parser.add_argument_group("inner loop (PPO)")
+    g.add_argument(
+        "--training-steps",
+        type=positive_int,
+        default=300_000,
+        help="env steps per agent (paper: 300000)",
+    )
+    g.add_argument(
+        "--n-seeds",
+        type=positive_int,
+        default=3,
+        help="agents (seeds) per trial; fitness is their mean",
+    )
+    g.add_argument(
+        "--seed",
+        type=nonneg_int,
+        default=0,
+        help="first training seed; a trial uses seed .. seed+n_seeds-1",
+    )
+    g.add_argument(
+        "--fitness",
+        choices=FITNESS_MODES,
+        default="last",
+        help="'last': mean return of the last --n-last-episodes training episodes (paper); "
+        "'eval': mean return of --n-eval-episodes deterministic episodes after training",
+    )
+    g.add_argument(
+        "--n-last-episodes",
+        type=positive_int,
+        default=10,
+        help="training episodes averaged by --fitness last",
+    )
+    g.add_argument(
+        "--n-eval-episodes",
+        type=positive_int,
+        default=5,
+        help="evaluation episodes of --fitness eval",
+    )
+    g.add_argument(
+        "--n-envs",
+        type=positive_int,
+        default=None,
+        help="environments per agent stepped in lockstep (DummyVecEnv); PPO collects n_steps*n_envs "
+        "transitions per update. Default: the packaged table's value for the env, else 1 (paper)",
+    )
+    g.add_argument(
+        "--ppo",
+        nargs="+",
+        default=[],
+        metavar="KEY=VALUE",
+        help="PPO hyperparameter overrides, e.g. --ppo learning_rate=1e-4 n_steps=1024",
+    )
+    g.add_argument(
+        "--hyperparams",
+        default=None,
+        metavar="YAML",
+        help="PPO table keyed by env id (default: ermrl/data/ppo.yml)",
+    )
+    g.add_argument(
+        "--n-procs",
+        type=positive_int,
+        default=1,
+        help="processes that train a trial's seeds in parallel",
+    )
+    g.add_argument(
+        "--torch-threads", type=positive_int, default=1, help="torch threads per training process"
+    )
+
+    r = parser.add_argument_group("reservoirs")
+    r.add_argument(
+        "--n-reservoirs",
+        type=positive_int,
+        default=1,
+        help="reservoirs per agent, each with its own evolved sr, lr, input_scaling",
+    )
+    r.add_argument("--units", type=positive_int, default=100, help="units per reservoir (fixed)")
+    r.add_argument(
+        "--sr-range",
+        nargs=2,
+        type=positive_float,
+        default=[1e-4, 1e2],
+        metavar=("LOW", "HIGH"),
+        help="spectral radius range (log scale)",
+    )
+    r.add_argument(
+        "--lr-range",
+        nargs=2,
+        type=positive_float,
+        default=[1e-2, 1.0],
+        metavar=("LOW", "HIGH"),
+        help="leak rate range (log scale, within (0, 1])",
+    )
+    r.add_argument(
+        "--input-scaling-range",
+        nargs=2,
+        type=positive_float,
+        default=[1e-1, 10.0],
+        metavar=("LOW", "HIGH"),
+        help="input scaling range (log scale)",
+    )
+    r.add_argument(
+        "--fixed-input-scaling",
+        nargs="?",
+        type=positive_float,
+        const=1.0,
+        default=None,
+        metavar="VALUE",
+        help="do not evolve input scaling; fix it at VALUE (1.0 when no value is given)",
+    )
+    r.add_argument(
+        "--rc-connectivity", type=positive_float, default=0.1, help="recurrent connectivity"
+    )
+    r.add_argument(
+        "--input-connectivity", type=positive_float, default=0.1, help="input connectivity"
+    )
+    r.add_argument(
+        "--bias-scaling", type=float, default=0.0, help="Bernoulli bias scale (0: no bias)"
+    )
+    r.add_argument(
+        "--skip-connection",
+        action=argparse.BooleanOptionalAction,
+        default=False,
+        help="the policy also sees [observation, previous action, previous reward]",
+    )
+    r.add_argument(
+        "--reset",
+        choices=RESET_MODES,
+        default="episode",
+        help="reset reservoir states at each episode, or carry them across episodes",
+    )
+    r.add_argument(
+        "--exposed-units",
+        type=positive_int,
+        default=None,
+        help="show the policy only the first N units of each reservoir",
+    )
+    r.add_argument(
+        "--reward-scale",
+        type=float,
+        default=1.0,
+        help="factor applied to the reward fed to the reservoir",
+    )
+    r.add_argument(
+        "--feed-action",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="feed the previous action to the reservoir",
+    )
+    r.add_argument(
+        "--feed-reward",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="feed the previous reward to the reservoir",
+    )
+
+
+def add_search_args(parser: argparse.ArgumentParser) -> None:
+    s = parser.add_argument_group("outer loop (Optuna)")
+    s.add_argument(
+        "--n-trials",
+        type=positive_int,
+        default=100,
+        help="total trials of the study, all workers together",
+    )
+    s.add_argument(
+        "--sampler", choices=("cmaes", "tpe", "random"), default="cmaes", help="search algorithm"
+    )
+    s.add_argument(
+        "--sampler-seed",
+        type=nonneg_int,
+        default=None,
+        help="sampler seed (default: nondeterministic)",
+    )
+    s.add_argument(
+        "--restart",
+        choices=("none", "ipop", "bipop"),
+        default="none",
+        help="CMA-ES restart strategy (larger populations on restart)",
+    )
+    s.add_argument(
+        "--popsize",
+        type=positive_int,
+        default=None,
+        help="CMA-ES population size (default: 4 + 3 ln(dim))",
+    )
+    s.add_argument(
+        "--pruner",
+        choices=PRUNERS,
+        default="none",
+        help="stop unpromising trials early from intermediate training returns",
+    )
+    add_storage_args(parser, study_required=False)
+    parser.add_argument("--quiet", action="store_true", help="no progress lines")
+
+
+def build_evolve_parser(prog: str = "ermrl evolve") -> ArgumentParser:
+    parser = ArgumentParser(prog=prog, description=DESCRIPTION, formatter_class=HelpFormatter)
+    add_problem_args(parser)
+    add_search_args(parser)
+    return parser
+
+
+def space_from_args(args: argparse.Namespace) -> ReservoirSpace:
+    return ReservoirSpace(
+        n_reservoirs=args.n_reservoirs,
+        units=args.units,
+        sr=_range("sr")(args.sr_range),
+        lr=_range("lr")(args.lr_range),
+        input_scaling=None
+        if args.fixed_input_scaling is not None
+        else _range("is")(args.input_scaling_range),
+        fixed_input_scaling=args.fixed_input_scaling or 1.0,
+        rc_connectivity=args.rc_connectivity,
+        input_connectivity=args.input_connectivity,
+        bias_scaling=args.bias_scaling,
+    )
+
+
+def encoder_from_args(args: argparse.Namespace, space: ReservoirSpace) -> EncoderConfig:
+    return EncoderConfig(
+        reservoirs=space.default_reservoirs(),
+        skip_connection=args.skip_connection,
+        reset=args.reset,
+        exposed_units=args.exposed_units,
+        reward_scale=args.reward_scale,
+        feed_action=args.feed_action,
+        feed_reward=args.feed_reward,
+    )
+
+
+def budget_from_args(args: argparse.Namespace) -> BudgetConfig:
+    return BudgetConfig(
+        training_steps=args.training_steps,
+        fitness=args.fitness,
+        n_last_episodes=args.n_last_episodes,
+        n_eval_episodes=args.n_eval_episodes,
+        n_reports=4 if args.pruner != "none" else 0,
+    )
+
+
+def search_from_args(args: argparse.Namespace) -> SearchConfig:
+    return SearchConfig(
+        sampler=args.sampler,
+        sampler_seed=args.sampler_seed,
+        restart=args.restart,
+        popsize=args.popsize,
+        pruner=args.pruner,
+        n_trials=args.n_trials,
+    )
+
+
+def validate_task(env_id: str, observe: str) -> None:
+    """Cheap checks of an env id and mask (no env is built for an unknown id)."""
+    from ermrl.envs import check_env_id, observation_indices
+
+    check_env_id(env_id)
+    observation_indices(env_id, observe)  # type: ignore[arg-type]
+
+
+def config_from_args(args: argparse.Namespace) -> EvolveConfig:
+    """Build and validate the run's configuration (raises ConfigError / env errors)."""
+    from ermrl.agents import parse_overrides, resolve_ppo_config
+
+    validate_task(args.env_id, args.observe)
+    space = space_from_args(args)
+    ppo = resolve_ppo_config(
+        args.env_id,
+        parse_overrides(args.ppo),
+        n_envs=args.n_envs,
+        table_path=args.hyperparams,
+        torch_threads=args.torch_threads,
+    )
+    problem = Problem(
+        task=TaskConfig(env_id=args.env_id, observe=args.observe),
+        encoder=encoder_from_args(args, space),
+        ppo=ppo,
+        budget=budget_from_args(args),
+        seeds=tuple(range(args.seed, args.seed + args.n_seeds)),
+    )
+    return EvolveConfig(
+        problem=problem, space=space, search=search_from_args(args), n_procs=args.n_procs
+    )
+
+
+def evolve_main(argv: Sequence[str] | None = None, prog: str = "ermrl evolve") -> int:
+    """Entry point of ``ermrl evolve`` and ``evolve_res.py``."""
+    from ermrl.envs import UnknownEnvError, UnsupportedObserveError
+    from ermrl.search import Interrupted, create_or_resume_study, run_evolution
+    from ermrl.storage import StorageError
+
+    parser = build_evolve_parser(prog)
+    args = parser.parse_args(argv)
+    try:
+        config = config_from_args(args)
+    except (ConfigError, UnknownEnvError, UnsupportedObserveError) as err:
+        fail(prog, str(err))
+    study_name = args.study_name or config.default_study_name
+    command = shlex.join(
+        [
+            prog.split()[-1] if prog.endswith(".py") else prog,
+            *(argv if argv is not None else sys.argv[1:]),
+        ]
+    )
+    try:
+        study = create_or_resume_study(config, args.storage, study_name, command=command)
+    except (ConfigError, StorageError) as err:
+        fail(prog, str(err))
+    if not args.quiet:
+        print(
+            f"study {study_name!r} in {args.storage}: {config.problem.task.label}, "
+            f"{len(config.problem.seeds)} seeds x {config.problem.budget.training_steps} steps per trial, "
+            f"{config.search.sampler} sampler, {config.search.n_trials} trials",
+            flush=True,
+        )
+    try:
+        summary = run_evolution(config, study, quiet=args.quiet)
+    except Interrupted as err:
+        print(
+            f"{prog}: stopped by {err.args[0]}; the running trial was closed as FAIL",
+            file=sys.stderr,
+        )
+        return EXIT_TERMINATED
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted; the running trial was closed as FAIL", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    if not args.quiet:
+        from ermrl.search import format_params
+
+        best = (
+            "none yet"
+            if summary.best_value is None
+            else f"{summary.best_value:.4g} with {format_params(summary.best_params or {})}"
+        )
+        print(
+            f"done: this worker ran {summary.trials_run} trials ({summary.completed} complete, "
+            f"{summary.pruned} pruned, {summary.failed} failed); best fitness {best}\n"
+            f"next: test.py --study-name {shlex.quote(study_name)} --storage {shlex.quote(args.storage)}",
+            flush=True,
+        )
+    return 0

@@ -1,0 +1,478 @@
+"""Frozen configuration dataclasses shared by every part of ermrl.
+
+A run's whole configuration is one :class:`EvolveConfig`. It is saved as a study user attribute
+(``ermrl_config``) and as ``config.yaml`` next to results, so the test phase and the analysis need
+only the study name and the storage URL.
+
+Derived values are properties, never fields filled in after parsing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, Literal, TypeVar
+
+ObserveMode = Literal["all", "positions", "velocities"]
+FitnessMode = Literal["last", "eval"]
+ResetMode = Literal["episode", "never"]
+PrunerName = Literal["none", "median", "halving"]
+
+FITNESS_MODES: tuple[str, ...] = ("last", "eval")
+RESET_MODES: tuple[str, ...] = ("episode", "never")
+PRUNERS: tuple[str, ...] = ("none", "median", "halving")
+
+
+class ConfigError(ValueError):
+    """A configuration value is invalid. The CLI turns it into a one-line error and exit code 2."""
+
+
+@dataclass(frozen=True)
+class ReservoirParams:
+    """Hyperparameters of one echo state network (reservoirpy ``Reservoir`` arguments).
+
+    The defaults are reservoirpy's own, which is what ``random-res-ppo`` uses as the unevolved
+    reference reservoir.
+
+    Attributes:
+        units: Number of reservoir neurons.
+        sr: Spectral radius of the recurrent matrix ``W``.
+        lr: Leak rate in (0, 1]: ``x <- (1 - lr) x + lr tanh(W x + Win u + b)``.
+        input_scaling: Scale of the input matrix ``Win`` (Bernoulli +-input_scaling entries).
+        rc_connectivity: Density of ``W``.
+        input_connectivity: Density of ``Win``.
+        bias_scaling: Scale of the Bernoulli bias; 0 means no bias (reservoirpy's default).
+    """
+
+    units: int = 100
+    sr: float = 1.0
+    lr: float = 1.0
+    input_scaling: float = 1.0
+    rc_connectivity: float = 0.1
+    input_connectivity: float = 0.1
+    bias_scaling: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.units < 1:
+            raise ConfigError(f"units must be >= 1, got {self.units}")
+        if not (self.sr > 0 and math.isfinite(self.sr)):
+            raise ConfigError(f"spectral radius sr must be positive, got {self.sr}")
+        if not (0 < self.lr <= 1):
+            raise ConfigError(f"leak rate lr must be in (0, 1], got {self.lr}")
+        if not (self.input_scaling > 0 and math.isfinite(self.input_scaling)):
+            raise ConfigError(f"input_scaling must be positive, got {self.input_scaling}")
+        for name in ("rc_connectivity", "input_connectivity"):
+            value = getattr(self, name)
+            if not (0 < value <= 1):
+                raise ConfigError(f"{name} must be in (0, 1], got {value}")
+        if self.bias_scaling < 0:
+            raise ConfigError(f"bias_scaling must be >= 0, got {self.bias_scaling}")
+
+
+@dataclass(frozen=True)
+class EncoderConfig:
+    """How the reservoir(s) turn observations into the policy's input.
+
+    Attributes:
+        reservoirs: One :class:`ReservoirParams` per reservoir; their states are concatenated.
+        skip_connection: The policy sees ``[state, observation, action, reward]``, not only the state.
+        reset: ``"episode"`` zeroes a row's state when its episode ends; ``"never"`` carries it.
+        exposed_units: Expose only the first N units of each reservoir to the policy (``None``: all).
+        reward_scale: Factor applied to the previous reward before it enters the reservoir.
+        feed_action: Feed the previous action (one-hot or scaled to [-1, 1]) to the reservoir.
+        feed_reward: Feed the previous reward to the reservoir.
+    """
+
+    reservoirs: tuple[ReservoirParams, ...] = (ReservoirParams(),)
+    skip_connection: bool = False
+    reset: ResetMode = "episode"
+    exposed_units: int | None = None
+    reward_scale: float = 1.0
+    feed_action: bool = True
+    feed_reward: bool = True
+
+    def __post_init__(self) -> None:
+        if not self.reservoirs:
+            raise ConfigError("an encoder needs at least one reservoir")
+        if self.reset not in RESET_MODES:
+            raise ConfigError(f"reset must be one of {RESET_MODES}, got {self.reset!r}")
+        if self.exposed_units is not None:
+            smallest = min(p.units for p in self.reservoirs)
+            if not (1 <= self.exposed_units <= smallest):
+                raise ConfigError(
+                    f"exposed_units must be in [1, {smallest}] (units per reservoir), "
+                    f"got {self.exposed_units}"
+                )
+        if not math.isfinite(self.reward_scale):
+            raise ConfigError(f"reward_scale must be finite, got {self.reward_scale}")
+
+    @property
+    def n_reservoirs(self) -> int:
+        return len(self.reservoirs)
+
+    @property
+    def total_units(self) -> int:
+        return sum(p.units for p in self.reservoirs)
+
+    @property
+    def exposed_total(self) -> int:
+        if self.exposed_units is None:
+            return self.total_units
+        return self.exposed_units * self.n_reservoirs
+
+    def with_reservoirs(self, reservoirs: tuple[ReservoirParams, ...]) -> EncoderConfig:
+        """Return a copy with other reservoir hyperparameters (same encoding options)."""
+        return dataclasses.replace(self, reservoirs=tuple(reservoirs))
+
+
+@dataclass(frozen=True)
+class TaskConfig:
+    """The environment an agent learns.
+
+    Attributes:
+        env_id: Any registered gymnasium id (``Pendulum-v1``, ``HalfCheetah-v5``, ...).
+        observe: Keep the whole observation, only its position part or only its velocity part.
+    """
+
+    env_id: str
+    observe: ObserveMode = "all"
+
+    @property
+    def label(self) -> str:
+        return self.env_id if self.observe == "all" else f"{self.env_id}[{self.observe}]"
+
+
+@dataclass(frozen=True)
+class PPOConfig:
+    """Stable-Baselines3 PPO settings.
+
+    Attributes:
+        n_envs: Environments stepped in lockstep by one agent (a ``DummyVecEnv``). PPO collects
+            ``n_steps * n_envs`` transitions per update; more envs means fewer, larger updates
+            for the same budget.
+        hyperparams: Keyword arguments for ``PPO(...)`` on top of SB3's defaults, resolved from the
+            packaged YAML table and command-line overrides (see :mod:`ermrl.agents`).
+        torch_threads: ``torch.set_num_threads`` for each training process (1 is fastest for the
+            small MLPs used here and avoids oversubscription when seeds run in parallel).
+        device: Torch device; ermrl runs everything on the CPU by default.
+    """
+
+    n_envs: int = 1
+    hyperparams: Mapping[str, Any] = field(default_factory=dict)
+    torch_threads: int = 1
+    device: str = "cpu"
+
+    def __post_init__(self) -> None:
+        if self.n_envs < 1:
+            raise ConfigError(f"n_envs must be >= 1, got {self.n_envs}")
+        if self.torch_threads < 1:
+            raise ConfigError(f"torch_threads must be >= 1, got {self.torch_threads}")
+
+
+@dataclass(frozen=True)
+class BudgetConfig:
+    """How long one agent trains and how its return is measured.
+
+    Attributes:
+        training_steps: Environment steps per agent (summed over ``n_envs``).
+        fitness: ``"last"``: mean return of the last ``n_last_episodes`` training episodes (the
+            paper's measure); ``"eval"``: mean return of ``n_eval_episodes`` deterministic
+            episodes on a separate environment after training.
+        n_last_episodes: Training episodes averaged by the ``"last"`` measure.
+        n_eval_episodes: Deterministic episodes run by the ``"eval"`` measure.
+        n_reports: Intermediate returns reported to the pruner during training.
+    """
+
+    training_steps: int
+    fitness: FitnessMode = "last"
+    n_last_episodes: int = 10
+    n_eval_episodes: int = 5
+    n_reports: int = 4
+
+    def __post_init__(self) -> None:
+        if self.training_steps < 1:
+            raise ConfigError(f"training steps must be positive, got {self.training_steps}")
+        if self.fitness not in FITNESS_MODES:
+            raise ConfigError(f"fitness must be one of {FITNESS_MODES}, got {self.fitness!r}")
+        if self.n_last_episodes < 1:
+            raise ConfigError(f"n_last_episodes must be >= 1, got {self.n_last_episodes}")
+        if self.n_eval_episodes < 1:
+            raise ConfigError(f"n_eval_episodes must be >= 1, got {self.n_eval_episodes}")
+        if self.n_reports < 0:
+            raise ConfigError(f"n_reports must be >= 0, got {self.n_reports}")
+
+
+@dataclass(frozen=True)
+class Range:
+    """A closed interval searched on a log or linear scale."""
+
+    low: float
+    high: float
+    log: bool = True
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.low) and math.isfinite(self.high)):
+            raise ConfigError(f"range bounds must be finite, got [{self.low}, {self.high}]")
+        if not self.low < self.high:
+            raise ConfigError(
+                f"empty or inverted range [{self.low}, {self.high}]: low must be < high"
+            )
+        if self.log and self.low <= 0:
+            raise ConfigError(f"a log-scale range needs low > 0, got [{self.low}, {self.high}]")
+
+
+@dataclass(frozen=True)
+class ReservoirSpace:
+    """The evolved search space: data, not code. Defaults follow the ER-MRL paper.
+
+    Every range is log-scale. The space has a fixed dimension so that CMA-ES never falls back to
+    independent sampling. With one reservoir the parameters are named ``sr``, ``lr`` and
+    ``input_scaling``; with several, ``sr_0``, ``lr_0``, ``input_scaling_0``, ``sr_1``, ...
+
+    Attributes:
+        n_reservoirs: Reservoirs per agent, each with its own hyperparameters and weights.
+        units: Fixed number of units per reservoir.
+        sr: Spectral-radius range.
+        lr: Leak-rate range (within (0, 1]).
+        input_scaling: Input-scaling range, or ``None`` to fix it at ``fixed_input_scaling``.
+        fixed_input_scaling: The value used when ``input_scaling`` is ``None``.
+        rc_connectivity: Fixed recurrent connectivity.
+        input_connectivity: Fixed input connectivity.
+        bias_scaling: Fixed bias scaling.
+    """
+
+    n_reservoirs: int = 1
+    units: int = 100
+    sr: Range = Range(1e-4, 1e2)
+    lr: Range = Range(1e-2, 1.0)
+    input_scaling: Range | None = Range(1e-1, 10.0)
+    fixed_input_scaling: float = 1.0
+    rc_connectivity: float = 0.1
+    input_connectivity: float = 0.1
+    bias_scaling: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.n_reservoirs < 1:
+            raise ConfigError(f"n_reservoirs must be >= 1, got {self.n_reservoirs}")
+        if self.units < 1:
+            raise ConfigError(f"units must be >= 1, got {self.units}")
+        if self.lr.high > 1:
+            raise ConfigError(f"the leak-rate range must stay within (0, 1], got {self.lr.high}")
+        # Fail early on a bad fixed value.
+        ReservoirParams(
+            units=self.units,
+            input_scaling=self.fixed_input_scaling,
+            rc_connectivity=self.rc_connectivity,
+            input_connectivity=self.input_connectivity,
+            bias_scaling=self.bias_scaling,
+        )
+
+    @property
+    def evolved(self) -> tuple[str, ...]:
+        """Names of the evolved hyperparameters of one reservoir."""
+        base = ("sr", "lr")
+        return base + (("input_scaling",) if self.input_scaling is not None else ())
+
+    def param_name(self, name: str, index: int) -> str:
+        return name if self.n_reservoirs == 1 else f"{name}_{index}"
+
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        return tuple(self.param_name(n, k) for k in range(self.n_reservoirs) for n in self.evolved)
+
+    def ranges(self) -> dict[str, Range]:
+        """Search ranges keyed by Optuna parameter name, in a fixed order."""
+        per: dict[str, Range] = {"sr": self.sr, "lr": self.lr}
+        if self.input_scaling is not None:
+            per["input_scaling"] = self.input_scaling
+        return {self.param_name(n, k): r for k in range(self.n_reservoirs) for n, r in per.items()}
+
+    def reservoirs_from(self, params: Mapping[str, float]) -> tuple[ReservoirParams, ...]:
+        """Build the reservoirs described by a trial's parameters.
+
+        Raises:
+            ConfigError: a parameter of this space is missing.
+        """
+        out = []
+        for k in range(self.n_reservoirs):
+            try:
+                sr = float(params[self.param_name("sr", k)])
+                lr = float(params[self.param_name("lr", k)])
+                if self.input_scaling is None:
+                    input_scaling = self.fixed_input_scaling
+                else:
+                    input_scaling = float(params[self.param_name("input_scaling", k)])
+            except KeyError as err:
+                raise ConfigError(f"parameter {err.args[0]!r} missing from {dict(params)}") from err
+            out.append(
+                ReservoirParams(
+                    units=self.units,
+                    sr=sr,
+                    lr=lr,
+                    input_scaling=input_scaling,
+                    rc_connectivity=self.rc_connectivity,
+                    input_connectivity=self.input_connectivity,
+                    bias_scaling=self.bias_scaling,
+                )
+            )
+        return tuple(out)
+
+    def default_reservoirs(self) -> tuple[ReservoirParams, ...]:
+        """Unevolved reservoirs (reservoirpy defaults for sr, lr and input scaling)."""
+        one = ReservoirParams(
+            units=self.units,
+            input_scaling=self.fixed_input_scaling if self.input_scaling is None else 1.0,
+            rc_connectivity=self.rc_connectivity,
+            input_connectivity=self.input_connectivity,
+            bias_scaling=self.bias_scaling,
+        )
+        return (one,) * self.n_reservoirs
+
+
+@dataclass(frozen=True)
+class SearchConfig:
+    """The outer loop: how candidates are proposed.
+
+    Attributes:
+        sampler: ``cmaes`` (default), ``tpe`` or ``random``.
+        sampler_seed: Seed of the sampler (``None``: nondeterministic).
+        restart: CMA-ES restart strategy: ``none``, ``ipop`` or ``bipop``.
+        popsize: CMA-ES population size (``None``: CMA-ES's default, 4 + 3 ln(dim)).
+        pruner: ``none``, ``median`` or ``halving``; prunes on intermediate training returns.
+        n_trials: Total trials of the study, all workers together.
+    """
+
+    sampler: str = "cmaes"
+    sampler_seed: int | None = None
+    restart: str = "none"
+    popsize: int | None = None
+    pruner: PrunerName = "none"
+    n_trials: int = 100
+
+    def __post_init__(self) -> None:
+        if self.sampler not in ("cmaes", "tpe", "random"):
+            raise ConfigError(f"unknown sampler {self.sampler!r}; choose cmaes, tpe or random")
+        if self.restart not in ("none", "ipop", "bipop"):
+            raise ConfigError(f"unknown restart strategy {self.restart!r}")
+        if self.restart != "none" and self.sampler != "cmaes":
+            raise ConfigError("--restart applies to the cmaes sampler only")
+        if self.popsize is not None and self.popsize < 2:
+            raise ConfigError(f"popsize must be >= 2, got {self.popsize}")
+        if self.pruner not in PRUNERS:
+            raise ConfigError(f"unknown pruner {self.pruner!r}; choose one of {PRUNERS}")
+        if self.n_trials < 1:
+            raise ConfigError(f"n_trials must be positive, got {self.n_trials}")
+
+
+@dataclass(frozen=True)
+class Problem:
+    """How the fitness of a reservoir is computed (independent of how candidates are proposed).
+
+    Attributes:
+        task: The environment.
+        encoder: Encoding options; its ``reservoirs`` are replaced by each candidate's.
+        ppo: Agent settings.
+        budget: Training budget and fitness measure.
+        seeds: Training seeds; fitness is the mean over them.
+    """
+
+    task: TaskConfig
+    encoder: EncoderConfig
+    ppo: PPOConfig
+    budget: BudgetConfig
+    seeds: tuple[int, ...] = (0, 1, 2)
+
+    def __post_init__(self) -> None:
+        if not self.seeds:
+            raise ConfigError("at least one seed is needed")
+        if len(set(self.seeds)) != len(self.seeds):
+            raise ConfigError(f"seeds must be distinct, got {self.seeds}")
+
+
+@dataclass(frozen=True)
+class EvolveConfig:
+    """Everything an evolution run needs; stored in the study so that it can be resumed or tested.
+
+    Attributes:
+        problem: How fitness is computed.
+        space: What is searched.
+        search: How it is searched.
+        n_procs: Processes that train a trial's seeds in parallel.
+    """
+
+    problem: Problem
+    space: ReservoirSpace
+    search: SearchConfig
+    n_procs: int = 1
+
+    def __post_init__(self) -> None:
+        if self.n_procs < 1:
+            raise ConfigError(f"n_procs must be >= 1, got {self.n_procs}")
+        if self.space.n_reservoirs != self.problem.encoder.n_reservoirs:
+            raise ConfigError("the encoder and the search space disagree on n_reservoirs")
+
+    @property
+    def default_study_name(self) -> str:
+        task = self.problem.task
+        parts = [task.env_id, task.observe, f"{self.problem.budget.training_steps}steps"]
+        if self.space.n_reservoirs > 1:
+            parts.append(f"{self.space.n_reservoirs}res")
+        return "__".join(parts)
+
+    def to_dict(self) -> dict[str, Any]:
+        return to_dict(self)
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> EvolveConfig:
+        return from_dict(cls, data)
+
+
+# --------------------------------------------------------------------------------------------
+# (De)serialization of the nested dataclasses to plain JSON/YAML-friendly dicts.
+
+_T = TypeVar("_T")
+
+
+def to_dict(obj: Any) -> Any:
+    """Convert nested frozen dataclasses (and tuples, mappings) to JSON-friendly values."""
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: to_dict(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, Mapping):
+        return {str(k): to_dict(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [to_dict(v) for v in obj]
+    return obj
+
+
+def from_dict(cls: type[_T], data: Mapping[str, Any]) -> _T:
+    """Inverse of :func:`to_dict` for the dataclasses of this module."""
+    hints = {
+        (EvolveConfig, "problem"): Problem,
+        (EvolveConfig, "space"): ReservoirSpace,
+        (EvolveConfig, "search"): SearchConfig,
+        (Problem, "task"): TaskConfig,
+        (Problem, "encoder"): EncoderConfig,
+        (Problem, "ppo"): PPOConfig,
+        (Problem, "budget"): BudgetConfig,
+        (ReservoirSpace, "sr"): Range,
+        (ReservoirSpace, "lr"): Range,
+        (ReservoirSpace, "input_scaling"): Range,
+    }
+    kwargs: dict[str, Any] = {}
+    names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    for key, value in data.items():
+        if key not in names:
+            continue  # tolerate fields added by newer versions
+        sub = hints.get((cls, key))
+        if sub is not None and value is not None:
+            value = from_dict(sub, value)
+        elif cls is EncoderConfig and key == "reservoirs":
+            value = tuple(from_dict(ReservoirParams, v) for v in value)
+        elif cls is Problem and key == "seeds":
+            value = tuple(int(v) for v in value)
+        elif cls is PPOConfig and key == "hyperparams":
+            value = dict(value)
+        kwargs[key] = value
+    return cls(**kwargs)

@@ -1,0 +1,177 @@
+"""Fitness of a reservoir: train one agent per seed and average their returns.
+
+This is the *problem* side of the evolution, independent of how candidates are proposed.
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ermrl.agents import RunResult, train_agent
+from ermrl.config import Problem, ReservoirParams
+
+__all__ = ["FitnessResult", "SeedRunner", "evaluate_reservoir", "library_versions"]
+
+ReportFn = Callable[[int, float], None]
+
+
+def library_versions() -> dict[str, str]:
+    """Versions of the libraries that determine a result."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {}
+    for name in (
+        "ermrl",
+        "gymnasium",
+        "stable-baselines3",
+        "optuna",
+        "reservoirpy",
+        "mujoco",
+        "torch",
+    ):
+        try:
+            out[name.replace("-", "_")] = version(name)
+        except PackageNotFoundError:
+            out[name.replace("-", "_")] = "unknown"
+    return out
+
+
+@dataclass
+class FitnessResult:
+    """The fitness of one candidate and the runs behind it.
+
+    Attributes:
+        fitness: Mean over seeds of each run's return under the problem's fitness measure.
+        mode: ``last`` or ``eval``.
+        runs: One :class:`~ermrl.agents.RunResult` per seed, in seed order.
+        wall_seconds: Wall-clock time of the whole evaluation.
+    """
+
+    fitness: float
+    mode: str
+    runs: list[RunResult] = field(default_factory=list)
+    wall_seconds: float = 0.0
+
+    @property
+    def env_steps(self) -> int:
+        return sum(r.env_steps for r in self.runs)
+
+    @property
+    def steps_per_second(self) -> float:
+        return self.env_steps / self.wall_seconds if self.wall_seconds > 0 else math.nan
+
+    def user_attrs(self) -> dict[str, Any]:
+        """JSON-friendly per-trial record (Optuna trial user attributes)."""
+        return {
+            "fitness_mode": self.mode,
+            "seeds": [r.seed for r in self.runs],
+            "returns_last": [_finite_or_none(r.last_return) for r in self.runs],
+            "returns_eval": [_finite_or_none(r.eval_return) for r in self.runs],
+            "n_episodes": [len(r.episode_returns) for r in self.runs],
+            "env_steps": self.env_steps,
+            "wall_seconds": round(self.wall_seconds, 3),
+            "steps_per_second": round(self.steps_per_second, 1),
+            "versions": library_versions(),
+        }
+
+
+def _finite_or_none(value: float | None) -> float | None:
+    return None if value is None or not math.isfinite(value) else float(value)
+
+
+def _train_one(args: tuple[Any, ...]) -> RunResult:
+    task, encoder, ppo, budget, seed = args
+    return train_agent(task, encoder, ppo, budget, seed)
+
+
+class SeedRunner:
+    """Runs the seeds of a candidate in this process or in a pool of worker processes.
+
+    Worker processes are started once (``spawn``, so no forked torch state) and reused by every
+    trial, which avoids paying the interpreter and import start-up per trial.
+
+    Args:
+        n_procs: Number of processes (1 runs the seeds one after another, in this process).
+    """
+
+    def __init__(self, n_procs: int = 1) -> None:
+        self.n_procs = n_procs
+        self._pool: ProcessPoolExecutor | None = None
+
+    def map(self, args: Sequence[tuple[Any, ...]]) -> list[RunResult]:
+        if self.n_procs == 1 or len(args) == 1:
+            return [_train_one(a) for a in args]
+        if self._pool is None:
+            self._pool = ProcessPoolExecutor(
+                max_workers=self.n_procs, mp_context=multiprocessing.get_context("spawn")
+            )
+        return list(self._pool.map(_train_one, args))
+
+    def close(self, cancel: bool = False) -> None:
+        if self._pool is not None:
+            if cancel:
+                for proc in list(getattr(self._pool, "_processes", {}).values()):
+                    proc.terminate()
+            self._pool.shutdown(wait=not cancel, cancel_futures=True)
+            self._pool = None
+
+    def __enter__(self) -> SeedRunner:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close(cancel=exc[0] is not None)
+
+
+def evaluate_reservoir(
+    reservoirs: Sequence[ReservoirParams] | None,
+    problem: Problem,
+    *,
+    runner: SeedRunner | None = None,
+    report: ReportFn | None = None,
+) -> FitnessResult:
+    """Train one PPO agent per seed on reservoir-encoded observations; return the mean return.
+
+    Args:
+        reservoirs: Hyperparameters of each reservoir; ``None`` trains plain PPO.
+        problem: Task, encoding options, PPO settings, budget and seeds.
+        runner: Where the seeds run (default: one after another in this process).
+        report: Intermediate-return callback for pruning, called as ``report(step, value)``
+            with ``step`` counted across seeds; used only when seeds run in this process.
+
+    Returns:
+        The fitness and the per-seed runs.
+    """
+    encoder = None if reservoirs is None else problem.encoder.with_reservoirs(tuple(reservoirs))
+    start = time.perf_counter()
+    runner = runner or SeedRunner(1)
+    if report is not None and runner.n_procs == 1:
+        runs = []
+        for i, seed in enumerate(problem.seeds):
+            offset = i * problem.budget.training_steps
+
+            def seed_report(step: int, value: float, offset: int = offset) -> None:
+                report(offset + step, value)
+
+            runs.append(
+                train_agent(
+                    problem.task, encoder, problem.ppo, problem.budget, seed, report=seed_report
+                )
+            )
+    else:
+        args = [(problem.task, encoder, problem.ppo, problem.budget, s) for s in problem.seeds]
+        runs = runner.map(args)
+    values = [r.fitness(problem.budget.fitness) for r in runs]
+    return FitnessResult(
+        fitness=float(np.mean(values)),
+        mode=problem.budget.fitness,
+        runs=runs,
+        wall_seconds=time.perf_counter() - start,
+    )

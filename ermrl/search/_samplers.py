@@ -1,0 +1,714 @@
+"""Samplers for the outer (evolutionary) loop, including CMA-ES with real restarts.
+
+Optuna >= 4.4 accepts ``CmaEsSampler(restart_strategy=...)`` but silently falls back to
+``restart_strategy=None`` (only a ``FutureWarning`` is emitted); restarts moved to an OptunaHub
+package, which cannot be downloaded at run time here. :class:`RestartCmaEsSampler` therefore
+re-implements the IPOP (Auger & Hansen 2005) and BIPOP (Hansen 2009) restart strategies on top
+of :class:`optuna.samplers.CmaEsSampler`, in the same way Optuna <= 4.3 did.
+
+Every piece of sampler state lives in the study storage as trial system attributes, so any
+number of worker processes sharing a storage (or a fresh sampler instance on a reloaded study)
+continue the same CMA-ES run, generation and restart. With the default attribute prefix
+``"cma:"`` (``"sepcma:"`` for ``use_separable_cma=True``, ``"cmawm:"`` for
+``with_margin=True``) the keys are:
+
+* On every trial whose parameters were sampled by CMA-ES:
+
+  - ``cma:n_restarts`` (int): restart index ``k`` of the run that sampled the trial
+    (0 for the first run).
+  - ``cma:restart_{k}:generation`` (int): generation of run ``k`` the trial belongs to. The key
+    contains ``k`` so that trials of an earlier run are never told to the optimizer of a later
+    run.
+  - ``cma:popsize`` (int): population size of run ``k``.
+  - ``cma:regime`` (str): ``"large"`` or ``"small"`` (BIPOP regime of run ``k``; the first run
+    and all IPOP runs are ``"large"``).
+
+* On the trial during whose sampling the optimizer was updated (``tell``), additionally:
+
+  - ``cma:optimizer:{i}`` (str): the pickled ``cmaes`` optimizer as hex, split into chunks of at
+    most 2045 characters (as in Optuna).
+  - ``cma:restart_state`` (dict): restart bookkeeping matching that optimizer: ``n_restarts``,
+    ``regime``, ``popsize`` (current run), ``popsize0`` (first run), ``large_popsize`` (last
+    large-regime popsize), ``n_evals_large`` / ``n_evals_small`` (evaluations spent per BIPOP
+    regime by finished runs).
+
+The sampler always restores the optimizer and the restart state from the most recent COMPLETE
+trial carrying ``cma:optimizer:*``; nothing is kept only in process memory (apart from the
+random generator used for seeding, as in Optuna).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import pickle
+import warnings
+from dataclasses import asdict, dataclass, replace
+from typing import TYPE_CHECKING, Any, Literal, cast
+
+import cmaes
+import numpy as np
+import optuna
+from optuna._transform import _SearchSpaceTransform
+from optuna.distributions import FloatDistribution, IntDistribution
+from optuna.samplers import BaseSampler, CmaEsSampler, RandomSampler, TPESampler
+from optuna.study import StudyDirection
+from optuna.trial import TrialState
+
+if TYPE_CHECKING:
+    from optuna.distributions import BaseDistribution
+    from optuna.trial import FrozenTrial
+
+__all__ = [
+    "RESTART_STRATEGIES",
+    "SAMPLERS",
+    "RestartCmaEsSampler",
+    "RestartStrategy",
+    "SamplerName",
+    "cma_generation_info",
+    "make_sampler",
+]
+
+RestartStrategy = Literal["none", "ipop", "bipop"]
+SamplerName = Literal["cmaes", "tpe", "random"]
+SAMPLERS: tuple[str, ...] = ("cmaes", "tpe", "random")
+RESTART_STRATEGIES: tuple[str, ...] = ("none", "ipop", "bipop")
+
+CmaClass = cmaes.CMA | cmaes.SepCMA | cmaes.CMAwM
+
+_logger = logging.getLogger(__name__)
+
+# Same constants as optuna.samplers._cmaes.
+_EPS = 1e-10
+_ATTR_PREFIXES: tuple[str, ...] = ("cma:", "sepcma:", "cmawm:")
+_MIN_POPSIZE = 2
+
+
+@dataclass(frozen=True)
+class _RestartState:
+    """Restart bookkeeping stored next to the pickled optimizer.
+
+    Attributes:
+        n_restarts: Index of the current run (number of restarts done so far).
+        regime: ``"large"`` or ``"small"``; the BIPOP regime of the current run.
+        popsize: Population size of the current run.
+        popsize0: Population size of the first run (default popsize for BIPOP).
+        large_popsize: Population size of the last large-regime run.
+        n_evals_large: Evaluations spent by finished large-regime runs.
+        n_evals_small: Evaluations spent by finished small-regime runs.
+    """
+
+    n_restarts: int
+    regime: str
+    popsize: int
+    popsize0: int
+    large_popsize: int
+    n_evals_large: int = 0
+    n_evals_small: int = 0
+
+    @classmethod
+    def initial(cls, popsize: int) -> _RestartState:
+        """State of the first run.
+
+        Args:
+            popsize: Population size of the first run.
+
+        Returns:
+            The state with no restart done and no budget spent.
+        """
+        return cls(
+            n_restarts=0, regime="large", popsize=popsize, popsize0=popsize, large_popsize=popsize
+        )
+
+    @classmethod
+    def from_dict(cls, raw: dict[str, Any]) -> _RestartState:
+        """Rebuild a state from its stored (JSON) form.
+
+        Args:
+            raw: The dictionary stored under ``{prefix}restart_state``.
+
+        Returns:
+            The restart state.
+        """
+        return cls(
+            n_restarts=int(raw["n_restarts"]),
+            regime=str(raw["regime"]),
+            popsize=int(raw["popsize"]),
+            popsize0=int(raw["popsize0"]),
+            large_popsize=int(raw["large_popsize"]),
+            n_evals_large=int(raw.get("n_evals_large", 0)),
+            n_evals_small=int(raw.get("n_evals_small", 0)),
+        )
+
+
+class RestartCmaEsSampler(CmaEsSampler):
+    """CMA-ES with IPOP / BIPOP restarts implemented locally (Auger & Hansen 2005; Hansen 2009).
+
+    Behaves like :class:`optuna.samplers.CmaEsSampler` (the ``cmaes`` backend) and additionally
+    restarts the optimizer whenever ``optimizer.should_stop()`` is true after an update:
+
+    * ``"ipop"``: every restart starts at a uniformly random point of the search space with the
+      default step size and ``popsize = previous_large_popsize * inc_popsize``.
+    * ``"bipop"``: alternates between a *large* regime (popsize multiplied by ``inc_popsize`` at
+      each large restart) and a *small* regime with
+      ``popsize = floor(popsize0 * (0.5 * large_popsize / popsize0) ** (U1 ** 2))`` and
+      ``sigma = sigma0 * 10 ** (-2 * U2)`` (``U1, U2 ~ U[0, 1]``). The regime with fewer
+      evaluations spent so far is chosen; the first run counts as large.
+    * ``"none"``: never restarts (plain Optuna behaviour).
+
+    All state (optimizer, restart index, popsize, BIPOP budgets and regime) is kept in trial
+    system attributes; see the module docstring for the keys.
+
+    Args:
+        restart_strategy: ``"none"``, ``"ipop"`` or ``"bipop"``.
+        inc_popsize: Multiplier of the large-regime population size at each (large) restart.
+            Must be >= 2.
+        popsize: Population size of the first run; ``None`` uses the ``cmaes`` default
+            ``4 + floor(3 ln n)``. Must be >= 2.
+        seed: Seed for the CMA-ES random generator and the default independent sampler.
+        n_startup_trials: Number of COMPLETE trials sampled by the independent sampler before
+            CMA-ES takes over. The first trial of a study is always sampled independently,
+            because the search space is unknown until one trial has finished.
+        **kwargs: Further keyword arguments of :class:`optuna.samplers.CmaEsSampler`
+            (e.g. ``independent_sampler``, ``consider_pruned_trials``, ``use_separable_cma``,
+            ``with_margin``, ``lr_adapt``). ``restart_strategy``/``inc_popsize`` are never
+            forwarded, so constructing this sampler emits no deprecation warning.
+
+    Raises:
+        ValueError: For an unknown ``restart_strategy``, ``inc_popsize < 2`` or ``popsize < 2``.
+    """
+
+    def __init__(
+        self,
+        *,
+        restart_strategy: RestartStrategy = "none",
+        inc_popsize: int = 2,
+        popsize: int | None = None,
+        seed: int | None = None,
+        n_startup_trials: int = 0,
+        **kwargs: Any,
+    ) -> None:
+        if restart_strategy not in RESTART_STRATEGIES:
+            raise ValueError(
+                f"Unknown restart strategy {restart_strategy!r}; "
+                f"expected one of {RESTART_STRATEGIES}."
+            )
+        if isinstance(inc_popsize, bool) or not isinstance(inc_popsize, int) or inc_popsize < 2:
+            raise ValueError(f"inc_popsize must be an integer >= 2, got {inc_popsize!r}.")
+        _check_popsize(popsize)
+        if n_startup_trials < 0:
+            raise ValueError(f"n_startup_trials must be >= 0, got {n_startup_trials!r}.")
+        super().__init__(seed=seed, n_startup_trials=n_startup_trials, popsize=popsize, **kwargs)
+        self._restart_strategy: RestartStrategy = restart_strategy
+        self._inc_popsize = inc_popsize
+
+    @property
+    def restart_strategy(self) -> RestartStrategy:
+        """The restart strategy (``"none"``, ``"ipop"`` or ``"bipop"``)."""
+        return self._restart_strategy
+
+    @property
+    def inc_popsize(self) -> int:
+        """Multiplier of the large-regime population size at each restart."""
+        return self._inc_popsize
+
+    # ------------------------------------------------------------------ attribute keys
+
+    @property
+    def _attr_key_n_restarts(self) -> str:
+        return self._attr_prefix + "n_restarts"
+
+    @property
+    def _attr_key_popsize(self) -> str:
+        return self._attr_prefix + "popsize"
+
+    @property
+    def _attr_key_regime(self) -> str:
+        return self._attr_prefix + "regime"
+
+    @property
+    def _attr_key_restart_state(self) -> str:
+        return self._attr_prefix + "restart_state"
+
+    def _attr_key_restart_generation(self, n_restarts: int) -> str:
+        return f"{self._attr_prefix}restart_{n_restarts}:generation"
+
+    # ------------------------------------------------------------------ sampling
+
+    def sample_relative(
+        self,
+        study: optuna.Study,
+        trial: FrozenTrial,
+        search_space: dict[str, BaseDistribution],
+    ) -> dict[str, Any]:
+        """Sample all parameters of the relative search space from the current CMA-ES run.
+
+        Restores the optimizer and restart state from the storage, tells it the finished
+        generation if complete (restarting it when it should stop), asks a new point and
+        records the run/generation/popsize of this trial in its system attributes.
+
+        Args:
+            study: The study.
+            trial: The trial being sampled.
+            search_space: The relative search space.
+
+        Returns:
+            The sampled parameters (external representation), or ``{}`` while in the startup
+            phase or when the search space is empty.
+        """
+        self._raise_error_if_multi_objective(study)
+
+        if len(search_space) == 0:
+            return {}
+
+        completed_trials = self._get_trials(study)
+        if len(completed_trials) < self._n_startup_trials:
+            return {}
+
+        # With `with_margin=True`, bounds of discrete dimensions are handled inside `CMAwM`.
+        trans = _SearchSpaceTransform(
+            search_space, transform_step=not self._with_margin, transform_0_1=True
+        )
+
+        optimizer, state = self._restore_state(completed_trials)
+        if optimizer is None or state is None:
+            optimizer = self._init_optimizer(trans, study.direction, population_size=self._popsize)
+            state = _RestartState.initial(optimizer.population_size)
+
+        if optimizer.dim != len(trans.bounds):
+            # Not silent: the search space changed, CMA-ES cannot continue.
+            _logger.warning(
+                "RestartCmaEsSampler: the search space changed (dimension %d -> %d); "
+                "%s is used instead of CMA-ES for trial %d.",
+                optimizer.dim,
+                len(trans.bounds),
+                self._independent_sampler.__class__.__name__,
+                trial.number,
+            )
+            return {}
+
+        solution_trials = self._solution_trials(
+            completed_trials, state.n_restarts, optimizer.generation
+        )
+        if len(solution_trials) >= optimizer.population_size:
+            solutions: list[tuple[np.ndarray, float]] = []
+            for t in solution_trials[: optimizer.population_size]:
+                assert t.value is not None, "completed trials must have a value"
+                if isinstance(optimizer, cmaes.CMAwM):
+                    x = np.array(t.system_attrs["x_for_tell"])
+                else:
+                    x = trans.transform(t.params)
+                y = t.value if study.direction == StudyDirection.MINIMIZE else -t.value
+                solutions.append((x, y))
+            optimizer.tell(solutions)
+
+            if self._restart_strategy != "none" and optimizer.should_stop():
+                optimizer, state = self._restart(optimizer, state, trans, study.direction)
+
+            self._store_state(study, trial, optimizer, state)
+
+        # As in Optuna: reseed the optimizer for every trial.
+        seed = self._cma_rng.rng.randint(1, 2**16) + trial.number
+        optimizer._rng.seed(seed)
+        if isinstance(optimizer, cmaes.CMAwM):
+            params, x_for_tell = optimizer.ask()
+            study._storage.set_trial_system_attr(trial._trial_id, "x_for_tell", x_for_tell.tolist())
+        else:
+            params = optimizer.ask()
+
+        storage = study._storage
+        storage.set_trial_system_attr(trial._trial_id, self._attr_key_n_restarts, state.n_restarts)
+        storage.set_trial_system_attr(
+            trial._trial_id,
+            self._attr_key_restart_generation(state.n_restarts),
+            optimizer.generation,
+        )
+        storage.set_trial_system_attr(
+            trial._trial_id, self._attr_key_popsize, optimizer.population_size
+        )
+        storage.set_trial_system_attr(trial._trial_id, self._attr_key_regime, state.regime)
+
+        return trans.untransform(params)
+
+    def sample_independent(
+        self,
+        study: optuna.Study,
+        trial: FrozenTrial,
+        param_name: str,
+        param_distribution: BaseDistribution,
+    ) -> Any:
+        """Sample a parameter outside the relative search space with the independent sampler.
+
+        Unlike the parent, no warning is logged while no trial has completed yet (the search
+        space is necessarily unknown then); afterwards every fallback is logged (if
+        ``warn_independent_sampling``).
+
+        Args:
+            study: The study.
+            trial: The trial being sampled.
+            param_name: Name of the parameter.
+            param_distribution: Its distribution.
+
+        Returns:
+            The sampled value.
+        """
+        self._raise_error_if_multi_objective(study)
+        if self._warn_independent_sampling:
+            n_complete = len(self._get_trials(study))
+            if n_complete > 0 and n_complete >= self._n_startup_trials:
+                self._log_independent_sampling(trial, param_name)
+        return self._independent_sampler.sample_independent(
+            study, trial, param_name, param_distribution
+        )
+
+    # ------------------------------------------------------------------ helpers
+
+    def _solution_trials(
+        self, trials: list[FrozenTrial], n_restarts: int, generation: int
+    ) -> list[FrozenTrial]:
+        """Completed trials sampled in generation ``generation`` of run ``n_restarts``."""
+        key = self._attr_key_restart_generation(n_restarts)
+        return [t for t in trials if t.system_attrs.get(key, -1) == generation]
+
+    def _restore_state(
+        self, completed_trials: list[FrozenTrial]
+    ) -> tuple[CmaClass | None, _RestartState | None]:
+        """Load the optimizer and restart state of the latest trial that stored them.
+
+        Args:
+            completed_trials: Completed trials, ordered by trial number.
+
+        Returns:
+            ``(optimizer, state)``, or ``(None, None)`` when none was stored yet.
+        """
+        chunk_prefix = self._attr_key_optimizer + ":"
+        for t in reversed(completed_trials):
+            chunks = {k: v for k, v in t.system_attrs.items() if k.startswith(chunk_prefix)}
+            if not chunks:
+                continue
+            optimizer = cast(
+                "CmaClass", pickle.loads(bytes.fromhex(self._concat_optimizer_attrs(chunks)))
+            )
+            raw = t.system_attrs.get(self._attr_key_restart_state)
+            if isinstance(raw, dict):
+                state = _RestartState.from_dict(raw)
+            else:  # Optimizer stored by a plain CmaEsSampler: treat it as the first run.
+                state = _RestartState.initial(optimizer.population_size)
+            return optimizer, state
+        return None, None
+
+    def _store_state(
+        self,
+        study: optuna.Study,
+        trial: FrozenTrial,
+        optimizer: CmaClass,
+        state: _RestartState,
+    ) -> None:
+        """Persist the optimizer (chunked) and the restart state on ``trial``."""
+        attrs: dict[str, Any] = dict(self._split_optimizer_str(pickle.dumps(optimizer).hex()))
+        attrs[self._attr_key_restart_state] = asdict(state)
+        for key, value in attrs.items():
+            study._storage.set_trial_system_attr(trial._trial_id, key, value)
+
+    def _restart(
+        self,
+        optimizer: CmaClass,
+        state: _RestartState,
+        trans: _SearchSpaceTransform,
+        direction: StudyDirection,
+    ) -> tuple[CmaClass, _RestartState]:
+        """Start a new run after ``optimizer`` stopped.
+
+        Args:
+            optimizer: The optimizer that should stop (already told its last generation).
+            state: Restart state of the finished run.
+            trans: Search-space transform.
+            direction: Study direction.
+
+        Returns:
+            The new optimizer (generation 0) and the matching restart state.
+        """
+        n_evals = optimizer.population_size * optimizer.generation
+        if state.regime == "small":
+            state = replace(state, n_evals_small=state.n_evals_small + n_evals)
+        else:
+            state = replace(state, n_evals_large=state.n_evals_large + n_evals)
+
+        sigma_factor = 1.0
+        if self._restart_strategy == "bipop" and state.n_evals_small < state.n_evals_large:
+            rng = self._cma_rng.rng
+            u_popsize, u_sigma = float(rng.uniform()), float(rng.uniform())
+            popsize = math.floor(
+                state.popsize0 * (0.5 * state.large_popsize / state.popsize0) ** (u_popsize**2)
+            )
+            popsize = max(_MIN_POPSIZE, popsize)
+            sigma_factor = 10.0 ** (-2.0 * u_sigma)
+            state = replace(state, n_restarts=state.n_restarts + 1, regime="small", popsize=popsize)
+        else:
+            popsize = state.large_popsize * self._inc_popsize
+            state = replace(
+                state,
+                n_restarts=state.n_restarts + 1,
+                regime="large",
+                popsize=popsize,
+                large_popsize=popsize,
+            )
+
+        _logger.info(
+            "CMA-ES (%s) restart %d after %d generations of popsize %d: new popsize %d (%s)",
+            self._restart_strategy,
+            state.n_restarts,
+            optimizer.generation,
+            optimizer.population_size,
+            popsize,
+            state.regime,
+        )
+        new_optimizer = self._init_optimizer(
+            trans,
+            direction,
+            population_size=popsize,
+            randomize_start_point=True,
+            sigma_factor=sigma_factor,
+        )
+        return new_optimizer, state
+
+    def _init_optimizer(
+        self,
+        trans: _SearchSpaceTransform,
+        direction: StudyDirection,
+        *,
+        population_size: int | None = None,
+        randomize_start_point: bool = False,
+        sigma_factor: float = 1.0,
+    ) -> CmaClass:
+        """Create a ``cmaes`` optimizer (same choices as Optuna's ``CmaEsSampler``).
+
+        Args:
+            trans: Search-space transform (bounds are ``[0, 1]`` per dimension).
+            direction: Study direction (used for warm starting).
+            population_size: Population size; ``None`` for the ``cmaes`` default.
+            randomize_start_point: Draw the mean uniformly within the bounds (restarts). Warm
+                starting from ``source_trials`` and ``x0`` only apply to the first run.
+            sigma_factor: Multiplier of the initial step size (BIPOP small regime).
+
+        Returns:
+            The new optimizer.
+        """
+        lower_bounds = trans.bounds[:, 0]
+        upper_bounds = trans.bounds[:, 1]
+        n_dimension = len(trans.bounds)
+        cov: np.ndarray | None = None
+
+        if self._sigma0 is None:
+            sigma0 = float(np.min((upper_bounds - lower_bounds) / 6))
+        else:
+            sigma0 = float(self._sigma0)
+
+        if randomize_start_point:
+            mean = lower_bounds + (upper_bounds - lower_bounds) * self._cma_rng.rng.rand(
+                n_dimension
+            )
+        elif self._source_trials is not None:
+            expected_states = [TrialState.COMPLETE]
+            if self._consider_pruned_trials:
+                expected_states.append(TrialState.PRUNED)
+            sign = 1 if direction == StudyDirection.MINIMIZE else -1
+            source_solutions = [
+                (trans.transform(t.params), sign * cast("float", t.value))
+                for t in self._source_trials
+                if t.state in expected_states and _is_compatible(trans, t.distributions)
+            ]
+            if len(source_solutions) == 0:
+                raise ValueError("No compatible source_trials")
+            mean, sigma0, cov = cmaes.get_warm_start_mgd(source_solutions)
+        elif self._x0 is not None:
+            mean = trans.transform(self._x0)
+        else:
+            mean = lower_bounds + (upper_bounds - lower_bounds) / 2
+
+        sigma = max(sigma0 * sigma_factor, _EPS)
+        seed = self._cma_rng.rng.randint(1, 2**31 - 2)
+
+        # cmaes divides by the rank-mu learning rate, which is 0 for popsize < 4 (mu = 1); the
+        # resulting inf is discarded by a min(), so the warning is noise.
+        if self._use_separable_cma and n_dimension == 1:
+            warnings.warn(
+                "Separable CMA-ES does not operate meaningfully on single-dimensional search "
+                "spaces. The setting `use_separable_cma=True` will be ignored.",
+                UserWarning,
+                stacklevel=2,
+            )
+        with np.errstate(divide="ignore"):
+            if self._use_separable_cma and n_dimension > 1:
+                return cmaes.SepCMA(
+                    mean=mean,
+                    sigma=sigma,
+                    bounds=trans.bounds,
+                    seed=seed,
+                    n_max_resampling=10 * n_dimension,
+                    population_size=population_size,
+                )
+            if self._with_margin:
+                steps = np.empty(n_dimension, dtype=float)
+                for i, dist in enumerate(trans._search_space.values()):
+                    assert isinstance(dist, (IntDistribution, FloatDistribution))
+                    if dist.step is None or dist.log:
+                        steps[i] = 0.0
+                    elif dist.low == dist.high:
+                        steps[i] = 1.0
+                    else:
+                        steps[i] = dist.step / (dist.high - dist.low)
+                return cmaes.CMAwM(
+                    mean=mean,
+                    sigma=sigma,
+                    bounds=trans.bounds,
+                    steps=steps,
+                    cov=cov,
+                    seed=seed,
+                    n_max_resampling=10 * n_dimension,
+                    population_size=population_size,
+                )
+            return cmaes.CMA(
+                mean=mean,
+                sigma=sigma,
+                cov=cov,
+                bounds=trans.bounds,
+                seed=seed,
+                n_max_resampling=10 * n_dimension,
+                population_size=population_size,
+                lr_adapt=self._lr_adapt,
+            )
+
+
+def _is_compatible(trans: _SearchSpaceTransform, search_space: dict[str, BaseDistribution]) -> bool:
+    """Whether ``search_space`` has exactly the parameters of ``trans``."""
+    names = set(trans._search_space.keys())
+    return names == set(search_space.keys())
+
+
+def _check_popsize(popsize: int | None) -> None:
+    """Raise ``ValueError`` unless ``popsize`` is ``None`` or an integer >= 2."""
+    if popsize is None:
+        return
+    if isinstance(popsize, bool) or not isinstance(popsize, (int, np.integer)):
+        raise ValueError(f"popsize must be an integer >= {_MIN_POPSIZE} or None, got {popsize!r}.")
+    if popsize < _MIN_POPSIZE:
+        raise ValueError(
+            f"popsize must be >= {_MIN_POPSIZE} (CMA-ES needs mu >= 1), got {popsize}."
+        )
+
+
+def make_sampler(
+    name: SamplerName,
+    *,
+    seed: int | None = None,
+    restart: RestartStrategy = "none",
+    popsize: int | None = None,
+    inc_popsize: int = 2,
+) -> BaseSampler:
+    """Build the outer-loop sampler by name.
+
+    Args:
+        name: ``"cmaes"`` (:class:`RestartCmaEsSampler`), ``"tpe"``
+            (:class:`optuna.samplers.TPESampler`) or ``"random"``
+            (:class:`optuna.samplers.RandomSampler`).
+        seed: Random seed.
+        restart: CMA-ES restart strategy; only ``"none"`` is allowed for other samplers.
+        popsize: Initial CMA-ES population size (``None``: ``cmaes`` default); only for
+            ``"cmaes"``.
+        inc_popsize: Population-size multiplier per large restart (>= 2); only used by
+            ``"cmaes"``.
+
+    Returns:
+        The sampler.
+
+    Raises:
+        ValueError: For an unknown sampler or restart strategy, a restart strategy or popsize
+            given with a sampler other than ``"cmaes"``, ``popsize < 2`` or ``inc_popsize < 2``.
+    """
+    if name not in SAMPLERS:
+        raise ValueError(f"Unknown sampler {name!r}; expected one of {SAMPLERS}.")
+    if restart not in RESTART_STRATEGIES:
+        raise ValueError(
+            f"Unknown restart strategy {restart!r}; expected one of {RESTART_STRATEGIES}."
+        )
+    _check_popsize(popsize)
+    if isinstance(inc_popsize, bool) or not isinstance(inc_popsize, int) or inc_popsize < 2:
+        raise ValueError(f"inc_popsize must be an integer >= 2, got {inc_popsize!r}.")
+    if name != "cmaes":
+        if restart != "none":
+            raise ValueError(
+                f"restart={restart!r} is only supported by the 'cmaes' sampler, not {name!r}."
+            )
+        if popsize is not None:
+            raise ValueError(f"popsize is only supported by the 'cmaes' sampler, not {name!r}.")
+    if name == "cmaes":
+        return RestartCmaEsSampler(
+            restart_strategy=restart, popsize=popsize, inc_popsize=inc_popsize, seed=seed
+        )
+    if name == "tpe":
+        return TPESampler(seed=seed)
+    return RandomSampler(seed=seed)
+
+
+def _detect_prefix(system_attrs: dict[str, Any]) -> str | None:
+    for prefix in _ATTR_PREFIXES:
+        if prefix + "n_restarts" in system_attrs:
+            return prefix
+    return None
+
+
+def cma_generation_info(study: optuna.Study) -> list[dict[str, Any]]:
+    """CMA-ES run/generation of every COMPLETE trial, e.g. for a fitness-per-generation plot.
+
+    Args:
+        study: A study optimized (at least partly) with :class:`RestartCmaEsSampler`.
+
+    Returns:
+        One dict per COMPLETE trial, ordered by trial number, with keys:
+
+        * ``"number"`` (int): trial number.
+        * ``"value"`` (float | None): objective value (``None`` for multi-objective studies).
+        * ``"restart"`` (int | None): restart index of the CMA-ES run (0 = first run).
+        * ``"generation"`` (int | None): generation within that run.
+        * ``"global_generation"`` (int | None): 0-based rank of ``(restart, generation)``
+          among the pairs present, i.e. a generation counter running across restarts.
+        * ``"popsize"`` (int | None): population size of that run.
+        * ``"regime"`` (str | None): ``"large"`` or ``"small"`` (BIPOP regime).
+
+        The CMA-ES fields are ``None`` for trials not sampled by CMA-ES (startup / first trial
+        / independent fallback). ``pandas.DataFrame(rows)`` turns the result into a table.
+    """
+    rows: list[dict[str, Any]] = []
+    for t in study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)):
+        attrs = t.system_attrs
+        prefix = _detect_prefix(attrs)
+        value = t.values[0] if t.values is not None and len(t.values) == 1 else None
+        row: dict[str, Any] = {
+            "number": t.number,
+            "value": value,
+            "restart": None,
+            "generation": None,
+            "global_generation": None,
+            "popsize": None,
+            "regime": None,
+        }
+        if prefix is not None:
+            restart = int(attrs[prefix + "n_restarts"])
+            generation = attrs.get(f"{prefix}restart_{restart}:generation")
+            popsize = attrs.get(prefix + "popsize")
+            row.update(
+                restart=restart,
+                generation=None if generation is None else int(generation),
+                popsize=None if popsize is None else int(popsize),
+                regime=attrs.get(prefix + "regime"),
+            )
+        rows.append(row)
+    rows.sort(key=lambda r: r["number"])
+
+    pairs = sorted({(r["restart"], r["generation"]) for r in rows if r["generation"] is not None})
+    rank = {pair: i for i, pair in enumerate(pairs)}
+    for r in rows:
+        if r["generation"] is not None:
+            r["global_generation"] = rank[(r["restart"], r["generation"])]
+    return rows
