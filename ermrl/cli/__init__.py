@@ -1,19 +1,41 @@
-"""The ``ermrl`` command. Each subcommand is also a root script (``evolve_res.py``, ``test.py``)."""
+"""The ``ermrl`` command. Each subcommand is also a root script (``evolve_res.py``, ``test.py``).
+
+Subcommands are imported only when run, so ``ermrl --help`` is instant.
+"""
 
 from __future__ import annotations
 
+import importlib
 import sys
-from collections.abc import Callable, Sequence
-
-from ermrl.cli._evolve import evolve_main
-from ermrl.cli._test import test_main
+from collections.abc import Sequence
+from typing import Any
 
 __all__ = ["main", "evolve_main", "test_main", "COMMANDS"]
 
-COMMANDS: dict[str, tuple[Callable[..., int], str]] = {
-    "evolve": (evolve_main, "evolve reservoirs for one task (evolve_res.py)"),
-    "test": (test_main, "train the best reservoir against PPO baselines (test.py)"),
+# name -> ("module:function", one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "evolve": ("ermrl.cli._evolve:evolve_main", "evolve reservoirs for one task (evolve_res.py)"),
+    "test": (
+        "ermrl.cli._test:test_main",
+        "train the best reservoir against PPO baselines (test.py)",
+    ),
 }
+
+
+def _load(target: str) -> Any:
+    module, _, func = target.partition(":")
+    return getattr(importlib.import_module(module), func)
+
+
+def evolve_main(argv: Sequence[str] | None = None, prog: str = "ermrl evolve") -> int:
+    return int(_load(COMMANDS["evolve"][0])(argv, prog=prog))
+
+
+def test_main(argv: Sequence[str] | None = None, prog: str = "ermrl test") -> int:
+    return int(_load(COMMANDS["test"][0])(argv, prog=prog))
+
+
+test_main.__test__ = False  # type: ignore[attr-defined]  # not a pytest test
 
 
 def _usage() -> str:
@@ -43,8 +65,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 2
-    func, _ = COMMANDS[name]
-    return func(rest, prog=f"ermrl {name}")
+    return int(_load(COMMANDS[name][0])(rest, prog=f"ermrl {name}"))
 
 
 if __name__ == "__main__":

@@ -22,6 +22,13 @@ EXIT_INTERRUPTED = 130
 EXIT_TERMINATED = 143
 
 
+def quiet_libraries() -> None:
+    """Keep the terminal for ermrl's own progress lines: Optuna logs warnings only."""
+    import optuna
+
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+
+
 def fail(prog: str, message: str, code: int = EXIT_USAGE) -> NoReturn:
     """Print a one-line error and exit (code 2: bad input)."""
     print(f"{prog}: error: {message}", file=sys.stderr)

@@ -18,6 +18,7 @@ from ermrl.cli._common import (
     nonneg_int,
     positive_float,
     positive_int,
+    quiet_libraries,
 )
 from ermrl.config import (
     FITNESS_MODES,
@@ -362,6 +363,7 @@ def evolve_main(argv: Sequence[str] | None = None, prog: str = "ermrl evolve") -
     from ermrl.storage import StorageError
 
     parser = build_evolve_parser(prog)
+    quiet_libraries()
     args = parser.parse_args(argv)
     try:
         config = config_from_args(args)

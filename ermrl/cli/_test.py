@@ -19,6 +19,7 @@ from ermrl.cli._common import (
     fail,
     nonneg_int,
     positive_int,
+    quiet_libraries,
 )
 from ermrl.config import ConfigError
 
@@ -136,6 +137,7 @@ def test_main(argv: Sequence[str] | None = None, prog: str = "ermrl test") -> in
     from ermrl.storage import StorageError, StudyNotFound, load_study
 
     parser = build_test_parser(prog)
+    quiet_libraries()
     args = parser.parse_args(argv)
     try:
         study = load_study(args.study_name, args.storage)

@@ -10,7 +10,7 @@ import math
 import signal
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any, TextIO
@@ -19,7 +19,14 @@ import optuna
 from optuna.trial import TrialState
 
 from ermrl.agents import NoEpisodeFinished, TrainingDiverged
-from ermrl.config import ConfigError, EvolveConfig, ReservoirSpace, SearchConfig, to_dict
+from ermrl.config import (
+    ConfigError,
+    EvolveConfig,
+    ReservoirParams,
+    ReservoirSpace,
+    SearchConfig,
+    to_dict,
+)
 from ermrl.search._objective import FitnessResult, SeedRunner, evaluate_reservoir
 from ermrl.storage import open_storage, worker_info
 
@@ -204,6 +211,10 @@ class EvolutionSummary:
     best_params: dict[str, float] | None = None
 
 
+EvaluateFn = Callable[
+    [tuple[ReservoirParams, ...], SeedRunner, Callable[[int, float], None] | None], FitnessResult
+]
+
 _COUNTED = (TrialState.COMPLETE, TrialState.PRUNED, TrialState.RUNNING, TrialState.WAITING)
 
 
@@ -236,6 +247,7 @@ def run_evolution(
     *,
     quiet: bool = False,
     stream: TextIO | None = None,
+    evaluate: EvaluateFn | None = None,
 ) -> EvolutionSummary:
     """Run trials until the study holds ``config.search.n_trials`` counted trials.
 
@@ -249,6 +261,9 @@ def run_evolution(
         study: A study from :func:`create_or_resume_study`.
         quiet: No progress lines.
         stream: Where progress lines go (default ``sys.stdout``).
+        evaluate: Fitness of a candidate, called as ``evaluate(reservoirs, runner, report)``
+            (default: :func:`~ermrl.search.evaluate_reservoir` on ``config.problem``; the
+            generalization pipeline passes a multi-task fitness).
 
     Returns:
         What this worker did.
@@ -285,7 +300,12 @@ def run_evolution(
             result: FitnessResult | None = None
             note = ""
             try:
-                result = evaluate_reservoir(reservoirs, problem, runner=runner, report=use_report)
+                if evaluate is None:
+                    result = evaluate_reservoir(
+                        reservoirs, problem, runner=runner, report=use_report
+                    )
+                else:
+                    result = evaluate(reservoirs, runner, use_report)
                 if not math.isfinite(result.fitness):
                     raise TrainingDiverged(f"non-finite fitness {result.fitness}")
             except optuna.TrialPruned as err:
