@@ -55,10 +55,27 @@ def load_hyperparams_table(path: str | Path | None = None) -> dict[str, dict[str
     table = yaml.safe_load(text) or {}
     if not isinstance(table, dict):
         raise ConfigError(f"hyperparameter file {path} must map env ids to settings")
+    table = {env_id: _coerce(entry or {}) for env_id, entry in table.items()}
     table.setdefault("default", {})
     for env_id, entry in table.items():
         _check_keys(entry or {}, f"{path or 'ppo.yml'}[{env_id}]")
     return table
+
+
+def _coerce(value: Any) -> Any:
+    """Read numeric strings as numbers: PyYAML (YAML 1.1) loads ``1e-4`` as the string "1e-4"."""
+    if isinstance(value, str):
+        for kind in (int, float):
+            try:
+                return kind(value)
+            except ValueError:
+                pass
+        return value
+    if isinstance(value, dict):
+        return {k: _coerce(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_coerce(v) for v in value]
+    return value
 
 
 def _check_keys(entry: Mapping[str, Any], where: str) -> None:
@@ -82,7 +99,7 @@ def parse_overrides(items: Sequence[str]) -> dict[str, Any]:
         if not sep or not key:
             raise ConfigError(f"PPO override {item!r} is not KEY=VALUE")
         try:
-            out[key.strip()] = yaml.safe_load(raw)
+            out[key.strip()] = _coerce(yaml.safe_load(raw))
         except yaml.YAMLError as err:
             raise ConfigError(f"PPO override {item!r}: cannot parse value") from err
     _check_keys(out, "--ppo")

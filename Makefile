@@ -1,0 +1,45 @@
+# ermrl: the two commands of the README quick start, and their helpers.
+#
+#   make demo   set up .venv, evolve reservoirs on Pendulum with velocities hidden, test the best one
+#   make test   set up .venv and run the test suite (what CI runs, with `make test-slow` after it)
+
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.ermrl-installed
+# A CPU build of torch, installed before stable-baselines3 so that pip does not pull a CUDA build.
+TORCH_SPEC ?= torch==2.13.0
+STORAGE ?= sqlite:///ermrl.db
+PYTEST_ARGS ?=
+
+.PHONY: install demo test test-slow lint clean
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --disable-pip-version-check "$(TORCH_SPEC)"
+	$(PY) -m pip install --quiet --disable-pip-version-check -e ".[dev]"
+	touch $(STAMP)
+
+install: $(STAMP)
+
+# A small evolution (8 trials x 2 seeds x 8192 steps, seeds in 2 processes) on a partially
+# observable task, stored in the embedded SQLite database, then the test phase on its best
+# reservoir against PPO and an unevolved reservoir. A few minutes on 2 cores.
+demo: install
+	$(PY) -m ermrl evolve --env-id Pendulum-v1 --observe positions --n-trials 8 --n-seeds 2 \
+		--n-procs 2 --training-steps 8192 --sampler-seed 0 --storage $(STORAGE) --study-name demo
+	$(PY) -m ermrl test --study-name demo --storage $(STORAGE) --training-steps 24576 \
+		--seeds 10 11 12 --n-procs 2 --out runs/demo
+	@echo "results: runs/demo/summary.csv, runs/demo/learning_curves.png"
+
+test: install
+	$(PY) -m pytest -m "not slow" $(PYTEST_ARGS)
+
+test-slow: install
+	$(PY) -m pytest -m slow $(PYTEST_ARGS)
+
+lint: install
+	$(PY) -m ruff check ermrl tests benchmarks evolve_res.py test.py
+
+clean:
+	rm -rf $(VENV) runs reports ermrl.db .pytest_cache

@@ -1,0 +1,175 @@
+"""The fitness of a reservoir and the evolution loop over a real SQLite study."""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+
+import optuna
+import pytest
+from optuna.trial import TrialState
+
+import tests.test_agents  # noqa: F401  (registers the ErmrlNaN-v0 env)
+from ermrl.config import (
+    BudgetConfig,
+    ConfigError,
+    EncoderConfig,
+    EvolveConfig,
+    PPOConfig,
+    Problem,
+    Range,
+    ReservoirParams,
+    ReservoirSpace,
+    SearchConfig,
+    TaskConfig,
+)
+from ermrl.search import (
+    SeedRunner,
+    create_or_resume_study,
+    evaluate_reservoir,
+    run_evolution,
+    study_config,
+)
+
+TINY_PPO = PPOConfig(n_envs=1, hyperparams={"n_steps": 128, "batch_size": 64, "n_epochs": 2})
+
+
+def make_config(
+    env_id: str = "Pendulum-v1",
+    observe: str = "positions",
+    n_trials: int = 3,
+    seeds: tuple[int, ...] = (0, 1),
+    steps: int = 256,
+    **search: object,
+) -> EvolveConfig:
+    space = ReservoirSpace(units=20)
+    problem = Problem(
+        task=TaskConfig(env_id, observe),  # type: ignore[arg-type]
+        encoder=EncoderConfig(reservoirs=space.default_reservoirs()),
+        ppo=TINY_PPO,
+        budget=BudgetConfig(training_steps=steps, n_last_episodes=2),
+        seeds=seeds,
+    )
+    return EvolveConfig(
+        problem=problem, space=space, search=SearchConfig(n_trials=n_trials, sampler_seed=0, **search)
+    )
+
+
+def test_config_round_trip_and_names() -> None:
+    config = make_config()
+    assert EvolveConfig.from_dict(config.to_dict()) == config
+    assert config.default_study_name == "Pendulum-v1__positions__256steps"
+    multi = ReservoirSpace(n_reservoirs=2, input_scaling=None)
+    assert multi.param_names == ("sr_0", "lr_0", "sr_1", "lr_1")
+    assert ReservoirSpace().param_names == ("sr", "lr", "input_scaling")
+    res = multi.reservoirs_from({"sr_0": 1.0, "lr_0": 0.5, "sr_1": 2.0, "lr_1": 0.1})
+    assert [r.sr for r in res] == [1.0, 2.0] and all(r.input_scaling == 1.0 for r in res)
+
+
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: Range(10.0, 1.0),
+        lambda: Range(1.0, 1.0),
+        lambda: Range(0.0, 1.0),
+        lambda: BudgetConfig(training_steps=0),
+        lambda: SearchConfig(n_trials=0),
+        lambda: SearchConfig(sampler="tpe", restart="ipop"),
+        lambda: ReservoirSpace(lr=Range(0.1, 2.0)),
+        lambda: ReservoirParams(lr=0.0),
+    ],
+)
+def test_bad_configs_raise(make) -> None:  # noqa: ANN001
+    with pytest.raises(ConfigError):
+        make()
+
+
+def test_same_trial_same_seed_same_fitness_in_and_across_processes() -> None:
+    problem = make_config().problem
+    reservoirs = (ReservoirParams(units=20, sr=0.7, lr=0.3, input_scaling=2.0),)
+    a = evaluate_reservoir(reservoirs, problem)
+    b = evaluate_reservoir(reservoirs, problem)
+    with SeedRunner(2) as runner:
+        c = evaluate_reservoir(reservoirs, problem, runner=runner)
+    assert a.fitness == b.fitness == c.fitness
+    assert [r.episode_returns for r in a.runs] == [r.episode_returns for r in c.runs]
+    other = evaluate_reservoir((dataclasses.replace(reservoirs[0], sr=5.0),), problem)
+    assert other.fitness != a.fitness
+    assert a.fitness == pytest.approx(sum(r.last_return for r in a.runs) / 2)
+
+
+def test_evolution_records_trials_and_resumes(tmp_path) -> None:  # noqa: ANN001
+    url = f"sqlite:///{tmp_path}/s.db"
+    config = make_config(n_trials=2)
+    study = create_or_resume_study(config, url, "s", command="evolve_res.py --x")
+    out = io.StringIO()
+    summary = run_evolution(config, study, stream=out)
+    assert summary.completed == 2
+    lines = out.getvalue().splitlines()
+    assert len(lines) == 2 and "fitness" in lines[0] and "best" in lines[0] and "ETA" in lines[0]
+
+    trials = study.get_trials(states=[TrialState.COMPLETE])
+    assert len(trials) == 2
+    attrs = trials[0].user_attrs
+    assert set(trials[0].params) == {"sr", "lr", "input_scaling"}
+    assert attrs["seeds"] == [0, 1] and len(attrs["returns_last"]) == 2
+    assert attrs["env_steps"] == 512 and attrs["steps_per_second"] > 0
+    assert {"ermrl", "gymnasium", "stable_baselines3"} <= set(attrs["versions"])
+    assert attrs["worker_pid"] > 0 and attrs["worker_hostname"]
+    assert trials[0].value == pytest.approx(sum(attrs["returns_last"]) / 2)
+
+    # the study stores its config and command: the test phase needs nothing else
+    reloaded = optuna.load_study(study_name="s", storage=url)
+    assert study_config(reloaded) == config
+    assert reloaded.user_attrs["ermrl_command"] == "evolve_res.py --x"
+
+    # the same command with a larger budget resumes; quiet prints nothing
+    bigger = dataclasses.replace(config, search=dataclasses.replace(config.search, n_trials=3))
+    study2 = create_or_resume_study(bigger, url, "s")
+    out2 = io.StringIO()
+    assert run_evolution(bigger, study2, stream=out2, quiet=True).completed == 1
+    assert out2.getvalue() == ""
+    assert len(study2.get_trials(states=[TrialState.COMPLETE])) == 3
+
+
+def test_resuming_with_another_problem_is_refused(tmp_path) -> None:  # noqa: ANN001
+    url = f"sqlite:///{tmp_path}/s.db"
+    create_or_resume_study(make_config(), url, "s")
+    with pytest.raises(ConfigError, match="training_steps"):
+        create_or_resume_study(make_config(steps=512), url, "s")
+
+
+def test_diverging_trial_fails_and_the_run_goes_on(tmp_path) -> None:  # noqa: ANN001
+    config = make_config(env_id="ErmrlNaN-v0", observe="all", n_trials=2, seeds=(0,))
+    study = create_or_resume_study(config, f"sqlite:///{tmp_path}/s.db", "nan")
+    summary = run_evolution(config, study, quiet=True)
+    assert summary.failed == 2
+    failed = study.get_trials(states=[TrialState.FAIL])
+    assert len(failed) == 2 and "diverged" in failed[0].user_attrs["fail_reason"]
+
+
+def test_ctrl_c_closes_the_running_trial_and_keeps_the_rest(tmp_path) -> None:  # noqa: ANN001
+    config = make_config(n_trials=5, seeds=(0,))
+    study = create_or_resume_study(config, f"sqlite:///{tmp_path}/s.db", "s")
+    calls = []
+
+    def evaluate(reservoirs, runner, report):  # noqa: ANN001, ANN202
+        calls.append(reservoirs)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return evaluate_reservoir(reservoirs, config.problem, runner=runner)
+
+    with pytest.raises(KeyboardInterrupt):
+        run_evolution(config, study, quiet=True, evaluate=evaluate)
+    states = [t.state for t in study.get_trials()]
+    assert states == [TrialState.COMPLETE, TrialState.COMPLETE, TrialState.FAIL]
+    assert study.get_trials()[2].user_attrs["fail_reason"] == "interrupted"
+
+
+def test_cmaes_restart_option_reaches_the_study(tmp_path) -> None:  # noqa: ANN001
+    config = make_config(restart="ipop", popsize=4)
+    study = create_or_resume_study(config, f"sqlite:///{tmp_path}/s.db", "s")
+    from ermrl.search import RestartCmaEsSampler
+
+    assert isinstance(study.sampler, RestartCmaEsSampler)
+    assert study.sampler.restart_strategy == "ipop"
