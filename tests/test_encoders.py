@@ -126,6 +126,7 @@ def _venv(action_space: spaces.Space, n_envs: int = 1, episode_len: int = 5) -> 
 
 
 def _encoder(**kwargs: object) -> EncoderConfig:
+    kwargs.setdefault("dtype", "float64")  # exact comparisons below; float32 is tested separately
     return EncoderConfig(reservoirs=(ReservoirParams(units=20, sr=0.9, lr=0.5),), **kwargs)  # type: ignore[arg-type]
 
 
@@ -275,6 +276,7 @@ def test_exposed_units_and_multiple_reservoirs() -> None:
     config = EncoderConfig(
         reservoirs=(ReservoirParams(units=10, sr=0.5), ReservoirParams(units=10, sr=2.0, lr=0.3)),
         exposed_units=4,
+        dtype="float64",
     )
     env = ReservoirVecEnv(_venv(spaces.Discrete(2)), config, seed=0)
     assert env.observation_space.shape == (8,)
@@ -291,3 +293,34 @@ def test_exposed_units_and_multiple_reservoirs() -> None:
 def test_reservoir_seeds_are_distinct_and_stable() -> None:
     assert reservoir_seeds(5, 3) == reservoir_seeds(5, 3)
     assert len(set(reservoir_seeds(5, 3))) == 3
+
+
+def test_float32_encoder_tracks_float64() -> None:
+    space = spaces.Box(-2.0, 2.0, shape=(1,), dtype=np.float32)
+    actions = np.random.default_rng(0).uniform(-2, 2, size=(30, 2, 1)).astype(np.float32)
+    states = {}
+    for dtype in ("float64", "float32"):
+        env = ReservoirVecEnv(_venv(space, n_envs=2, episode_len=7), _encoder(dtype=dtype), seed=0)
+        assert env.bank.M.dtype == np.dtype(dtype) and env.states.dtype == np.dtype(dtype)
+        env.reset()
+        for a in actions:
+            obs, *_ = env.step(a)
+        assert obs.dtype == np.float32
+        states[dtype] = env.get_states()
+    np.testing.assert_allclose(states["float32"], states["float64"], atol=1e-5)
+    with pytest.raises(ConfigError):
+        _encoder(dtype="float16")
+
+
+def test_unit_box_fast_path_matches_general_scaling() -> None:
+    unit = ActionEncoder(spaces.Box(-1.0, 1.0, shape=(3,), dtype=np.float32), dtype=np.float32)
+    general = ActionEncoder(
+        spaces.Box(-1.0, 1.000001, shape=(3,), dtype=np.float32), dtype=np.float32
+    )
+    assert unit._encode == unit._unit_box and general._encode == general._box
+    actions = np.array([[0.5, -2.0, 1.0], [0.0, 0.25, 3.0]], dtype=np.float32)
+    a, b = np.zeros((2, 3), np.float32), np.zeros((2, 3), np.float32)
+    unit(actions, a)
+    general(actions, b)
+    np.testing.assert_allclose(a, [[0.5, -1.0, 1.0], [0.0, 0.25, 1.0]])
+    np.testing.assert_allclose(a, b, atol=1e-5)

@@ -107,19 +107,22 @@ class ReservoirBank:
     """Several reservoirs fused into one batched leaky-ESN update.
 
     The fused system has ``N = sum(units)`` units: ``W`` is block-diagonal, the input matrices
-    are stacked and the leak rate is a per-unit vector.
+    are stacked and the leak rate is a per-unit vector. Recurrent and input weights are stacked
+    into one matrix ``M = [W.T; Win.T]`` of shape ``(N + input_dim, N)``, so a step is a single
+    matrix product of the buffer ``[x | u]`` (shape ``(n, N + input_dim)``) with ``M``.
 
     Args:
         weights: One :class:`ReservoirWeights` per reservoir, all with the same ``input_dim``.
         dtype: Floating type of the state and weights (float64 matches reservoirpy exactly).
     """
 
-    def __init__(self, weights: Sequence[ReservoirWeights], dtype: type = np.float64) -> None:
+    def __init__(self, weights: Sequence[ReservoirWeights], dtype: type | str = np.float64) -> None:
         if not weights:
             raise ValueError("a ReservoirBank needs at least one reservoir")
         dims = {w.input_dim for w in weights}
         if len(dims) != 1:
             raise ValueError(f"all reservoirs must share input_dim, got {sorted(dims)}")
+        self.dtype = np.dtype(dtype)
         self.units = tuple(w.units for w in weights)
         self.n_units = sum(self.units)
         self.input_dim = dims.pop()
@@ -128,14 +131,42 @@ class ReservoirBank:
         for w in weights:
             W[start : start + w.units, start : start + w.units] = w.W
             start += w.units
-        # Row-vector convention: X (n, N) @ W.T (N, N) + U (n, D) @ Win.T (D, N).
-        self.W_T = np.ascontiguousarray(W.T, dtype=dtype)
-        self.Win_T = np.ascontiguousarray(np.vstack([w.Win for w in weights]).T, dtype=dtype)
-        self.bias = np.concatenate([w.bias for w in weights]).astype(dtype)
-        self.leak = np.concatenate([np.full(w.units, w.lr) for w in weights]).astype(dtype)
-        self.keep = (1.0 - self.leak).astype(dtype)
-        self.dtype = dtype
+        Win = np.vstack([w.Win for w in weights])
+        # Row-vector convention: [x | u] (n, N + D) @ M (N + D, N) = x W.T + u Win.T.
+        self.M = np.ascontiguousarray(np.vstack([W.T, Win.T]), dtype=self.dtype)
+        self.bias = np.concatenate([w.bias for w in weights]).astype(self.dtype)
+        self.leak = np.concatenate([np.full(w.units, w.lr) for w in weights]).astype(self.dtype)
+        self.keep = (1.0 - self.leak).astype(self.dtype)
         self._has_bias = bool(np.any(self.bias))
+
+    @property
+    def W_T(self) -> np.ndarray:
+        """The fused recurrent matrix, transposed: shape ``(N, N)``."""
+        return self.M[: self.n_units]
+
+    @property
+    def Win_T(self) -> np.ndarray:
+        """The stacked input matrix, transposed: shape ``(input_dim, N)``."""
+        return self.M[self.n_units :]
+
+    def buffer(self, n: int) -> np.ndarray:
+        """A zeroed ``[x | u]`` buffer for ``n`` rows, shape ``(n, N + input_dim)``."""
+        return np.zeros((n, self.n_units + self.input_dim), self.dtype)
+
+    def step_buffer(self, xu: np.ndarray) -> None:
+        """Advance the states held in ``xu[:, :N]`` by one step on the inputs in ``xu[:, N:]``.
+
+        Args:
+            xu: Shape ``(n, N + input_dim)``; its state columns are updated in place.
+        """
+        pre = xu @ self.M
+        if self._has_bias:
+            pre += self.bias
+        np.tanh(pre, out=pre)
+        pre *= self.leak
+        x = xu[:, : self.n_units]
+        x *= self.keep
+        x += pre
 
     def step(self, states: np.ndarray, inputs: np.ndarray) -> np.ndarray:
         """Advance every state row by one step, in place.
@@ -147,14 +178,9 @@ class ReservoirBank:
         Returns:
             ``states``.
         """
-        pre = states @ self.W_T
-        pre += inputs @ self.Win_T
-        if self._has_bias:
-            pre += self.bias
-        np.tanh(pre, out=pre)
-        pre *= self.leak
-        states *= self.keep
-        states += pre
+        xu = np.concatenate([states, inputs], axis=1).astype(self.dtype, copy=False)
+        self.step_buffer(xu)
+        states[:] = xu[:, : self.n_units]
         return states
 
     def run(self, inputs: np.ndarray, state: np.ndarray | None = None) -> np.ndarray:
@@ -167,8 +193,12 @@ class ReservoirBank:
         Returns:
             States, shape ``(T, N)``.
         """
-        x = np.zeros((1, self.n_units), self.dtype) if state is None else state[None].copy()
+        xu = self.buffer(1)
+        if state is not None:
+            xu[0, : self.n_units] = state
         out = np.empty((len(inputs), self.n_units), self.dtype)
         for t, u in enumerate(np.asarray(inputs, self.dtype)):
-            out[t] = self.step(x, u[None])[0]
+            xu[0, self.n_units :] = u
+            self.step_buffer(xu)
+            out[t] = xu[0, : self.n_units]
         return out

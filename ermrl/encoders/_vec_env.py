@@ -32,52 +32,75 @@ __all__ = ["ActionEncoder", "ReservoirVecEnv"]
 class ActionEncoder:
     """Turns a batch of actions into reservoir inputs.
 
+    A ``Discrete`` action becomes one-hot, ``MultiDiscrete`` a concatenation of one-hots,
+    ``MultiBinary`` stays 0/1, and a ``Box`` action is scaled to [-1, 1] (unbounded dimensions
+    pass through unscaled).
+
     Args:
         space: The action space of one environment.
+        dtype: Float type of the output (that of the reservoir buffer), so that the hot path
+            does no type conversion.
     """
 
-    def __init__(self, space: spaces.Space) -> None:
+    def __init__(self, space: spaces.Space, dtype: type | str = np.float64) -> None:
         self.space = space
+        dtype = np.dtype(dtype)
+        self.low, self.high = 0.0, 1.0
         if isinstance(space, spaces.Discrete):
             self.dim = int(space.n)
             self._eye = np.eye(self.dim)
-            self.low, self.high = 0.0, 1.0
+            self._start = int(space.start)
+            self._encode = self._discrete
         elif isinstance(space, spaces.MultiDiscrete):
             self._nvec = np.asarray(space.nvec).ravel()
             self._offsets = np.concatenate([[0], np.cumsum(self._nvec)[:-1]])
             self.dim = int(self._nvec.sum())
-            self.low, self.high = 0.0, 1.0
+            self._encode = self._multi_discrete
         elif isinstance(space, spaces.MultiBinary):
             self.dim = int(np.prod(space.shape))
-            self.low, self.high = 0.0, 1.0
+            self._encode = self._multi_binary
         elif isinstance(space, spaces.Box):
             self.dim = int(np.prod(space.shape))
             low = np.asarray(space.low, np.float64).ravel()
             high = np.asarray(space.high, np.float64).ravel()
             bounded = np.isfinite(low) & np.isfinite(high)
-            self._center = np.where(bounded, (high + low) / 2, 0.0)
-            self._half = np.where(bounded, (high - low) / 2, 1.0)
-            self._bounded = bounded
+            self._center = np.where(bounded, (high + low) / 2, 0.0).astype(dtype)
+            self._inv_half = (1.0 / np.where(bounded, (high - low) / 2, 1.0)).astype(dtype)
+            self._upper = np.where(bounded, 1.0, np.inf).astype(dtype)
+            self._lower = -self._upper
             self.low, self.high = -1.0, 1.0
+            unit_box = bool(bounded.all() and np.all(low == -1.0) and np.all(high == 1.0))
+            self._encode = self._unit_box if unit_box else self._box
         else:
             raise TypeError(f"unsupported action space {space!r}")
 
     def __call__(self, actions: np.ndarray, out: np.ndarray) -> None:
         """Write encoded ``actions`` (a batch) into ``out`` of shape ``(n, dim)``."""
-        space = self.space
-        if isinstance(space, spaces.Discrete):
-            out[:] = self._eye[np.asarray(actions, dtype=np.int64).ravel() - int(space.start)]
-        elif isinstance(space, spaces.MultiDiscrete):
-            out[:] = 0.0
-            idx = np.asarray(actions, dtype=np.int64).reshape(len(out), -1) + self._offsets
-            np.put_along_axis(out, idx, 1.0, axis=1)
-        elif isinstance(space, spaces.MultiBinary):
-            out[:] = np.asarray(actions).reshape(len(out), -1)
-        else:
-            a = np.asarray(actions, dtype=np.float64).reshape(len(out), -1)
-            np.subtract(a, self._center, out=out)
-            out /= self._half
-            np.clip(out, -1.0, 1.0, out=out, where=self._bounded[None, :])
+        self._encode(actions, out)
+
+    def _discrete(self, actions: np.ndarray, out: np.ndarray) -> None:
+        out[:] = self._eye[np.asarray(actions, dtype=np.int64).ravel() - self._start]
+
+    def _multi_discrete(self, actions: np.ndarray, out: np.ndarray) -> None:
+        out[:] = 0.0
+        idx = np.asarray(actions, dtype=np.int64).reshape(len(out), -1) + self._offsets
+        np.put_along_axis(out, idx, 1.0, axis=1)
+
+    def _multi_binary(self, actions: np.ndarray, out: np.ndarray) -> None:
+        out[:] = np.asarray(actions).reshape(len(out), -1)
+
+    def _unit_box(self, actions: np.ndarray, out: np.ndarray) -> None:
+        # Bounds already [-1, 1] (all MuJoCo locomotion tasks): scaling is the identity.
+        np.minimum(np.reshape(actions, out.shape), self._upper, out=out, casting="unsafe")
+        np.maximum(out, self._lower, out=out)
+
+    def _box(self, actions: np.ndarray, out: np.ndarray) -> None:
+        # PPO already clips actions to the bounds; clipping again guards other callers.
+        # (np.minimum/np.maximum: np.clip costs several times more at this size.)
+        np.subtract(np.reshape(actions, out.shape), self._center, out=out, casting="unsafe")
+        out *= self._inv_half
+        np.minimum(out, self._upper, out=out, casting="unsafe")
+        np.maximum(out, self._lower, out=out, casting="unsafe")
 
 
 class ReservoirVecEnv(VecEnvWrapper):
@@ -99,7 +122,7 @@ class ReservoirVecEnv(VecEnvWrapper):
         self.config = config
         self.reservoir_seed = seed
         self.obs_dim = int(obs_space.shape[0])
-        self.action_encoder = ActionEncoder(venv.action_space)
+        self.action_encoder = ActionEncoder(venv.action_space, dtype=config.dtype)
         self.act_dim = self.action_encoder.dim if config.feed_action else 0
         self.rew_dim = 1 if config.feed_reward else 0
         self.input_dim = self.obs_dim + self.act_dim + self.rew_dim
@@ -109,14 +132,24 @@ class ReservoirVecEnv(VecEnvWrapper):
             reservoir_weights(p, self.input_dim, s)
             for p, s in zip(config.reservoirs, self.weight_seeds)
         ]
-        self.bank = ReservoirBank(self.weights)
+        self.bank = ReservoirBank(self.weights, dtype=config.dtype)
 
         n = venv.num_envs
-        self.states = np.zeros((n, self.bank.n_units))
-        self._inputs = np.zeros((n, self.input_dim))
-        # Skip-connection extras, always tracked so that terminal encodings are right.
-        self._act_enc = np.zeros((n, self.action_encoder.dim))
-        self._rew = np.zeros((n, 1))
+        N, d_obs, d_act = self.bank.n_units, self.obs_dim, self.action_encoder.dim
+        # One [x | u] buffer, u = [obs | action | reward]: a step is one matrix product (see
+        # ReservoirBank). Observation, action and reward are written straight into views of it.
+        self._xu = self.bank.buffer(n)
+        self.states = self._xu[:, :N]
+        self._inputs = self._xu[:, N:]
+        self._obs_in = self._xu[:, N : N + d_obs]
+        # The encoded action and scaled reward are also shown by the skip connection, so they are
+        # kept even when they are not fed to the reservoir (then in arrays of their own).
+        if config.feed_action:
+            self._act_in = self._xu[:, N + d_obs : N + d_obs + d_act]
+        else:
+            self._act_in = np.zeros((n, d_act), self.bank.dtype)
+        self._rew_in = self._xu[:, -1:] if config.feed_reward else np.zeros((n, 1), self.bank.dtype)
+        self._reward_scale = float(config.reward_scale)
         self._actions: np.ndarray | None = None
 
         if config.exposed_units is None:
@@ -139,32 +172,35 @@ class ReservoirVecEnv(VecEnvWrapper):
         super().__init__(venv, observation_space=observation_space)
 
     # -- encoding --------------------------------------------------------------------------
-    def _fill_inputs(self, rows: slice | np.ndarray, obs: np.ndarray) -> None:
-        u = self._inputs
-        u[rows, : self.obs_dim] = obs
-        if self.act_dim:
-            u[rows, self.obs_dim : self.obs_dim + self.act_dim] = self._act_enc[rows]
-        if self.rew_dim:
-            u[rows, -1:] = self._rew[rows] * self.config.reward_scale
-
-    def _policy_obs(
-        self, states: np.ndarray, obs: np.ndarray, rows: Any = slice(None)
-    ) -> np.ndarray:
-        x = states if self._exposed is None else states[:, self._exposed]
+    def _policy_obs(self, rows: Any = slice(None), obs: np.ndarray | None = None) -> np.ndarray:
+        """The policy's float32 observation for ``rows`` (always a fresh array: SB3 keeps it)."""
+        x = self.states[rows]
+        if self._exposed is not None:
+            x = x[:, self._exposed]
         if not self.config.skip_connection:
             return x.astype(np.float32)
-        scaled_rew = self._rew[rows] * self.config.reward_scale
-        return np.concatenate([x, obs, self._act_enc[rows], scaled_rew], axis=1).astype(np.float32)
+        parts = [
+            x,
+            self._obs_in[rows] if obs is None else obs,
+            self._act_in[rows],
+            self._rew_in[rows],
+        ]
+        return np.concatenate(parts, axis=1).astype(np.float32)
+
+    def _set_reward(self, rewards: np.ndarray) -> None:
+        self._rew_in[:, 0] = rewards
+        if self._reward_scale != 1.0:
+            self._rew_in *= self._reward_scale
 
     # -- VecEnv API --------------------------------------------------------------------------
     def reset(self) -> VecEnvObs:
-        obs = np.asarray(self.venv.reset(), dtype=np.float64)
-        self.states[:] = 0.0
-        self._act_enc[:] = 0.0
-        self._rew[:] = 0.0
-        self._fill_inputs(slice(None), obs)
-        self.bank.step(self.states, self._inputs)
-        return self._policy_obs(self.states, obs)
+        obs = self.venv.reset()
+        self._xu[:] = 0.0
+        self._act_in[:] = 0.0
+        self._rew_in[:] = 0.0
+        self._obs_in[:] = obs
+        self.bank.step_buffer(self._xu)
+        return self._policy_obs()
 
     def step_async(self, actions: np.ndarray) -> None:
         self._actions = actions
@@ -172,40 +208,38 @@ class ReservoirVecEnv(VecEnvWrapper):
 
     def step_wait(self) -> VecEnvStepReturn:
         obs, rewards, dones, infos = self.venv.step_wait()
-        obs = np.asarray(obs, dtype=np.float64)
         assert self._actions is not None, "step_async must be called before step_wait"
-        self.action_encoder(self._actions, self._act_enc)
-        self._rew[:, 0] = rewards
+        self.action_encoder(self._actions, self._act_in)
+        self._set_reward(rewards)
 
-        done_rows = np.flatnonzero(dones)
-        if len(done_rows) == 0:
-            self._fill_inputs(slice(None), obs)
-            self.bank.step(self.states, self._inputs)
-            return self._policy_obs(self.states, obs), rewards, dones, infos
+        if not dones.any():
+            self._obs_in[:] = obs
+            self.bank.step_buffer(self._xu)
+            return self._policy_obs(), rewards, dones, infos
 
         # Terminal step: feed the true last observation of each finished episode.
-        step_obs = obs.copy()
+        done_rows = np.flatnonzero(dones)
+        self._obs_in[:] = obs
         for i in done_rows:
             terminal = infos[i].get("terminal_observation")
             if terminal is not None:
-                step_obs[i] = terminal
-        self._fill_inputs(slice(None), step_obs)
-        self.bank.step(self.states, self._inputs)
-        terminal_enc = self._policy_obs(self.states[done_rows], step_obs[done_rows], done_rows)
+                self._obs_in[i] = terminal
+        self.bank.step_buffer(self._xu)
+        terminal_enc = self._policy_obs(done_rows)
         for j, i in enumerate(done_rows):
             if "terminal_observation" in infos[i]:
                 infos[i]["terminal_observation"] = terminal_enc[j]
 
-        # First step of the next episode for the finished rows.
+        # First step of the next episode for the finished rows: no previous action or reward.
+        self._act_in[done_rows] = 0.0
+        self._rew_in[done_rows] = 0.0
+        self._obs_in[done_rows] = np.asarray(obs)[done_rows]
+        rows = self._xu[done_rows]  # a copy (fancy indexing): step it, then write it back
         if self.config.reset == "episode":
-            self.states[done_rows] = 0.0
-        self._act_enc[done_rows] = 0.0
-        self._rew[done_rows] = 0.0
-        sub_states = self.states[done_rows]
-        self._fill_inputs(done_rows, obs[done_rows])
-        self.bank.step(sub_states, self._inputs[done_rows])
-        self.states[done_rows] = sub_states
-        return self._policy_obs(self.states, obs), rewards, dones, infos
+            rows[:, : self.bank.n_units] = 0.0
+        self.bank.step_buffer(rows)
+        self._xu[done_rows] = rows
+        return self._policy_obs(), rewards, dones, infos
 
     # -- helpers for analysis ------------------------------------------------------------------
     def get_states(self) -> np.ndarray:
