@@ -51,7 +51,9 @@ def make_config(
         seeds=seeds,
     )
     return EvolveConfig(
-        problem=problem, space=space, search=SearchConfig(n_trials=n_trials, sampler_seed=0, **search)
+        problem=problem,
+        space=space,
+        search=SearchConfig(n_trials=n_trials, sampler_seed=0, **search),
     )
 
 
@@ -173,3 +175,30 @@ def test_cmaes_restart_option_reaches_the_study(tmp_path) -> None:  # noqa: ANN0
 
     assert isinstance(study.sampler, RestartCmaEsSampler)
     assert study.sampler.restart_strategy == "ipop"
+
+
+class AlwaysPrune(optuna.pruners.BasePruner):
+    def prune(self, study: optuna.Study, trial: optuna.trial.FrozenTrial) -> bool:
+        return True
+
+
+def test_pruned_trials_report_returns_and_record_env_steps(tmp_path) -> None:  # noqa: ANN001
+    config = make_config(n_trials=2, seeds=(0, 1), steps=512, pruner="median")
+    config = dataclasses.replace(
+        config,
+        problem=dataclasses.replace(
+            config.problem, budget=dataclasses.replace(config.problem.budget, n_reports=1)
+        ),
+    )
+    study = create_or_resume_study(config, f"sqlite:///{tmp_path}/s.db", "s")
+    assert isinstance(study.pruner, optuna.pruners.MedianPruner)
+    study.pruner = AlwaysPrune()
+    summary = run_evolution(config, study, quiet=True)
+    assert summary.pruned == 2 and summary.completed == 0
+    trial = study.get_trials()[0]
+    assert trial.state == TrialState.PRUNED
+    ((step, value),) = trial.intermediate_values.items()  # pruned at the first report
+    assert step == 256 and trial.user_attrs["env_steps"] == step  # half of the first seed
+    assert value == pytest.approx(trial.intermediate_values[256])
+    with pytest.raises(ConfigError, match="--n-procs 1"):
+        dataclasses.replace(config, n_procs=2)

@@ -1,17 +1,30 @@
 """The outer loop: search spaces, samplers (CMA-ES with real restarts, TPE, random), the fitness
-of a reservoir, and the evolution loop over an Optuna study."""
+of a reservoir, the multi-task (generalization) fitness and its reference scores, and the evolution
+loop over an Optuna study."""
 
 from ermrl.search._evolve import (
     STUDY_COMMAND_ATTR,
     STUDY_CONFIG_ATTR,
     EvolutionSummary,
     Interrupted,
+    PopulationWarning,
+    cma_popsize,
     create_or_resume_study,
     format_params,
     make_pruner,
     run_evolution,
     sample_params,
     study_config,
+)
+from ermrl.search._generalization import (
+    GeneralizationFitness,
+    TaskOutcome,
+    create_or_resume_generalization_study,
+    evaluate_generalization,
+    generalization_config,
+    generalization_evaluator,
+    generalization_study_name,
+    generalization_tasks,
 )
 from ermrl.search._objective import FitnessResult, SeedRunner, evaluate_reservoir, library_versions
 from ermrl.search._samplers import (
@@ -21,6 +34,16 @@ from ermrl.search._samplers import (
     cma_generation_info,
     make_sampler,
 )
+from ermrl.search._scores import (
+    MissingScoreError,
+    RandomScore,
+    ReferenceScore,
+    load_scores,
+    measure_random_returns,
+    reference_returns,
+    scores_path,
+    update_scores,
+)
 
 __all__ = [
     "RESTART_STRATEGIES",
@@ -29,17 +52,35 @@ __all__ = [
     "STUDY_CONFIG_ATTR",
     "EvolutionSummary",
     "FitnessResult",
+    "GeneralizationFitness",
     "Interrupted",
+    "PopulationWarning",
+    "cma_popsize",
+    "MissingScoreError",
+    "RandomScore",
+    "ReferenceScore",
     "RestartCmaEsSampler",
     "SeedRunner",
+    "TaskOutcome",
     "cma_generation_info",
+    "create_or_resume_generalization_study",
     "create_or_resume_study",
     "evaluate_reservoir",
+    "evaluate_generalization",
     "format_params",
+    "generalization_config",
+    "generalization_evaluator",
+    "generalization_study_name",
+    "generalization_tasks",
     "library_versions",
+    "load_scores",
     "make_pruner",
     "make_sampler",
+    "measure_random_returns",
+    "reference_returns",
     "run_evolution",
     "sample_params",
+    "scores_path",
     "study_config",
+    "update_scores",
 ]

@@ -1,22 +1,44 @@
 """The outer loop: an Optuna study that proposes reservoirs and records their fitness.
 
-One call of :func:`run_evolution` is one *worker*. Any number of workers may share a study: the
-trial budget is the study's total, and re-running the same command resumes the study.
+One call of :func:`run_evolution` is one *worker*. Any number of workers (processes, machines,
+SLURM array tasks) may share a study:
+
+- **Exact budget.** ``n_trials`` is the study's total of COMPLETE, PRUNED, RUNNING and WAITING
+  trials. A worker *claims* a trial (counts, then ``study.ask()``) under the storage's
+  inter-process lock (:func:`ermrl.storage.study_lock`), so the workers never overshoot.
+- **Dead workers.** RUNNING trials send heartbeats. Before each claim, a worker fails the trials
+  whose heartbeat stopped (``grace_period``) and queues a WAITING copy with the same parameters
+  (:class:`ermrl.storage.RetryStaleTrial`), which the next claim picks up. When the budget is
+  reached while other workers' trials still run, a worker waits for them, so that a trial whose
+  worker died is still retried.
+- **SIGTERM** (SLURM time limit, preemption) closes the running trial as FAIL, queues its retry
+  and raises :class:`Interrupted`; Ctrl-C closes it as FAIL and raises ``KeyboardInterrupt``.
+  Signals that arrive while a worker talks to the storage are handled right after, so a claim or
+  a ``tell`` is never cut in half.
+
+Re-running the same command resumes the study.
 """
 
 from __future__ import annotations
 
 import math
+import os
 import signal
 import sys
+import threading
 import time
+import warnings
 from collections.abc import Callable, Iterator
+from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any, TextIO
 
 import optuna
-from optuna.trial import TrialState
+from optuna.exceptions import ExperimentalWarning, UpdateFinishedTrialError
+from optuna.storages import fail_stale_trials
+from optuna.storages._heartbeat import get_heartbeat_thread, is_heartbeat_enabled
+from optuna.trial import FrozenTrial, TrialState
 
 from ermrl.agents import NoEpisodeFinished, TrainingDiverged
 from ermrl.config import (
@@ -28,13 +50,24 @@ from ermrl.config import (
     to_dict,
 )
 from ermrl.search._objective import FitnessResult, SeedRunner, evaluate_reservoir
-from ermrl.storage import open_storage, worker_info
+from ermrl.storage import (
+    DEFAULT_GRACE_PERIOD,
+    DEFAULT_HEARTBEAT_INTERVAL,
+    DEFAULT_MAX_RETRY,
+    RetryStaleTrial,
+    open_storage,
+    storage_lock,
+    study_lock,
+    worker_info,
+)
+from ermrl.storage._heartbeat import base_storage
 
 __all__ = [
     "STUDY_CONFIG_ATTR",
     "STUDY_COMMAND_ATTR",
     "EvolutionSummary",
     "Interrupted",
+    "PopulationWarning",
     "make_pruner",
     "sample_params",
     "create_or_resume_study",
@@ -56,6 +89,69 @@ class Interrupted(KeyboardInterrupt):
     def __init__(self, signum: int) -> None:
         super().__init__(signal.Signals(signum).name)
         self.signum = signum
+
+
+class PopulationWarning(UserWarning):
+    """More workers evaluate a study at once than the CMA-ES population size."""
+
+
+class _SignalGuard:
+    """SIGTERM -> :class:`Interrupted`, SIGINT -> ``KeyboardInterrupt``, deferred in critical
+    sections (claiming a trial, telling a result) and raised at the next :meth:`check`.
+
+    A second signal while one is already pending is raised at once (a way out of a hung storage).
+    """
+
+    def __init__(self) -> None:
+        self.pending: int | None = None
+        self._depth = 0
+
+    def _handler(self, signum: int, frame: Any) -> None:
+        second = self.pending is not None
+        if not second:
+            self.pending = signum
+        if self._depth == 0 or second:
+            self.check()
+
+    def error(self) -> BaseException | None:
+        """The exception of the pending signal, if any."""
+        if self.pending is None:
+            return None
+        if self.pending == signal.SIGINT:
+            return KeyboardInterrupt()
+        return Interrupted(self.pending)
+
+    def check(self) -> None:
+        """Raise the pending signal's exception, if any."""
+        error = self.error()
+        if error is not None:
+            raise error
+
+    def wait(self, seconds: float) -> None:
+        """Give a signal already on its way (e.g. to the whole process group) time to arrive."""
+        deadline = time.monotonic() + seconds
+        while self.pending is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+
+    @contextmanager
+    def deferred(self) -> Iterator[None]:
+        self._depth += 1
+        try:
+            yield
+        finally:
+            self._depth = max(self._depth - 1, 0)
+
+    @contextmanager
+    def installed(self) -> Iterator[None]:
+        if threading.current_thread() is not threading.main_thread():
+            yield
+            return
+        previous = {s: signal.signal(s, self._handler) for s in (signal.SIGTERM, signal.SIGINT)}
+        try:
+            yield
+        finally:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
 
 
 @contextmanager
@@ -128,52 +224,78 @@ def _config_diff(a: Any, b: Any, path: str = "") -> list[str]:
 
 
 def create_or_resume_study(
-    config: EvolveConfig,
+    config: EvolveConfig | None,
     storage_url: str,
     study_name: str,
     *,
     command: str | None = None,
     kind: str = "evolve",
-    heartbeat_interval: int | None = None,
-    grace_period: int | None = None,
+    heartbeat_interval: int | None = DEFAULT_HEARTBEAT_INTERVAL,
+    grace_period: int | None = DEFAULT_GRACE_PERIOD,
+    max_retry: int | None = DEFAULT_MAX_RETRY,
 ) -> optuna.Study:
     """Create the study, or load it when it exists with the same problem and search space.
+
+    Safe with many workers starting at once: the schema and the study are created under the
+    storage's inter-process lock, and the first worker stores the configuration.
+
+    Args:
+        config: The run's configuration (``None``: create or load a bare study; the first
+            worker that brings a configuration stores it).
+        storage_url: Where the study lives (see :func:`ermrl.storage.open_storage`).
+        study_name: The study's name.
+        command: Launch command stored with the configuration (default: ``sys.argv``).
+        kind: ``"evolve"`` or ``"generalization"``, stored as the ``ermrl_kind`` attribute.
+        heartbeat_interval: Seconds between heartbeats of running trials (``None``: off).
+        grace_period: Seconds without heartbeat before a running trial is failed and retried.
+        max_retry: Retries of a trial whose worker died or was preempted (0: none; ``None``:
+            no limit).
+
+    Returns:
+        The study.
 
     Raises:
         ConfigError: a study of that name exists with another configuration.
         StorageError: the storage cannot be opened.
     """
     storage = open_storage(
-        storage_url, heartbeat_interval=heartbeat_interval, grace_period=grace_period
+        storage_url,
+        heartbeat_interval=heartbeat_interval,
+        grace_period=grace_period,
+        max_retry=max_retry,
     )
-    sampler = make_study_sampler(config.search)
-    pruner = make_pruner(config.search.pruner)
-    study = optuna.create_study(
-        study_name=study_name,
-        storage=storage,
-        sampler=sampler,
-        pruner=pruner,
-        direction="maximize",
-        load_if_exists=True,
-    )
-    new = to_dict(config)
-    stored = study.user_attrs.get(STUDY_CONFIG_ATTR)
-    if stored is None:
-        study.set_user_attr(STUDY_CONFIG_ATTR, new)
-        study.set_user_attr(STUDY_KIND_ATTR, kind)
-        study.set_user_attr(STUDY_COMMAND_ATTR, command or " ".join(sys.argv))
-        from ermrl import __version__
+    search = config.search if config is not None else SearchConfig()
+    sampler = make_study_sampler(search)
+    pruner = make_pruner(search.pruner)
+    with storage_lock(storage_url, study_name):
+        study = optuna.create_study(
+            study_name=study_name,
+            storage=storage,
+            sampler=sampler,
+            pruner=pruner,
+            direction="maximize",
+            load_if_exists=True,
+        )
+        if config is None:
+            return study
+        new = to_dict(config)
+        stored = study.user_attrs.get(STUDY_CONFIG_ATTR)
+        if stored is None:
+            study.set_user_attr(STUDY_CONFIG_ATTR, new)
+            study.set_user_attr(STUDY_KIND_ATTR, kind)
+            study.set_user_attr(STUDY_COMMAND_ATTR, command or " ".join(sys.argv))
+            from ermrl import __version__
 
-        study.set_user_attr("ermrl_version", __version__)
-    else:
-        diffs = [d for key in _MUST_MATCH for d in _config_diff(new[key], stored.get(key), key)]
-        if diffs:
-            raise ConfigError(
-                f"study {study_name!r} already exists with another configuration ("
-                + "; ".join(diffs[:4])
-                + (" ..." if len(diffs) > 4 else "")
-                + "); pick another --study-name"
-            )
+            study.set_user_attr("ermrl_version", __version__)
+            return study
+    diffs = [d for key in _MUST_MATCH for d in _config_diff(new[key], stored.get(key), key)]
+    if diffs:
+        raise ConfigError(
+            f"study {study_name!r} already exists with another configuration ("
+            + "; ".join(diffs[:4])
+            + (" ..." if len(diffs) > 4 else "")
+            + "); pick another --study-name"
+        )
     return study
 
 
@@ -236,9 +358,83 @@ def _pruning_reporter(trial: optuna.Trial):  # noqa: ANN202
     def report(step: int, value: float) -> None:
         trial.report(value, step)
         if trial.should_prune():
+            # Seeds run one after another, so `step` counts the env steps the trial used.
+            trial.set_user_attr("env_steps", int(step))
             raise optuna.TrialPruned(f"pruned at step {step} (return {value:.4g})")
 
     return report
+
+
+def cma_popsize(config: EvolveConfig) -> int | None:
+    """The first CMA-ES population size of a run (``None`` for other samplers)."""
+    if config.search.sampler != "cmaes":
+        return None
+    if config.search.popsize is not None:
+        return config.search.popsize
+    return 4 + math.floor(3 * math.log(len(config.space.param_names)))
+
+
+def _popsize_message(popsize: int, workers: int, what: str) -> str:
+    return (
+        f"{what} {workers} but the CMA-ES population size is {popsize}: a generation is told "
+        f"its first {popsize} COMPLETE trials, so the others are evaluated for little use. "
+        f"Pass --popsize {workers} or more, or run at most {popsize} workers"
+    )
+
+
+def _retry_policy(study: optuna.Study) -> RetryStaleTrial | None:
+    """The retry callback the study's storage was opened with (see ``open_storage``)."""
+    callback = getattr(base_storage(study._storage), "heartbeat_stale_trial_callback", None)
+    return callback if isinstance(callback, RetryStaleTrial) else None
+
+
+@dataclass
+class _Claim:
+    """The outcome of one claim: a trial, or why there is none."""
+
+    trial: optuna.Trial | None
+    params: dict[str, float]
+    running: int
+    retry_of: int | None = None
+
+
+def _claim(study: optuna.Study, space: ReservoirSpace, n_trials: int, stale_check: bool) -> _Claim:
+    """Under the study lock: fail stale trials, count, and ask for a trial if the budget allows.
+
+    WAITING trials (retries, enqueued trials) are counted and are always claimable.
+    """
+    with study_lock(study), warnings.catch_warnings():
+        warnings.simplefilter("ignore", ExperimentalWarning)
+        # study.ask() warns that heartbeats are meant for study.optimize(); this loop runs them.
+        warnings.filterwarnings("ignore", message=".*Heartbeat.*", category=UserWarning)
+        if stale_check:
+            fail_stale_trials(study)
+        trials = study.get_trials(deepcopy=False, states=_COUNTED)
+        waiting = any(t.state == TrialState.WAITING for t in trials)
+        running = sum(t.state == TrialState.RUNNING for t in trials)
+        if len(trials) >= n_trials and not waiting:
+            return _Claim(None, {}, running)
+        trial = study.ask()
+        params = sample_params(trial, space)
+        for key, value in worker_info().items():
+            trial.set_user_attr(f"worker_{key}", value)
+        retry_of = trial.user_attrs.get("retry_of") if waiting else None
+    return _Claim(trial, params, running + 1, retry_of)
+
+
+def _requeue(study: optuna.Study, trial_id: int, retry: RetryStaleTrial | None) -> int | None:
+    """Queue a WAITING copy of a running trial (before it is closed: the count never drops).
+
+    Returns:
+        The number of the original trial of the retry chain, or ``None`` if not retried.
+    """
+    if retry is None:
+        return None
+    frozen: FrozenTrial = study._storage.get_trial(trial_id)
+    if not retry.would_retry(frozen):
+        return None
+    retry(study, frozen)
+    return int(frozen.system_attrs.get("failed_trial", frozen.number))
 
 
 def run_evolution(
@@ -248,13 +444,19 @@ def run_evolution(
     quiet: bool = False,
     stream: TextIO | None = None,
     evaluate: EvaluateFn | None = None,
+    wait_for_running: bool = True,
+    requeue_interrupted: bool = True,
+    n_workers: int | None = None,
 ) -> EvolutionSummary:
     """Run trials until the study holds ``config.search.n_trials`` counted trials.
 
-    COMPLETE, PRUNED, RUNNING and WAITING trials count towards the budget, so several workers
-    sharing a study stop together. A trial whose training diverges (NaN) or finishes no episode is
-    marked FAIL and the worker goes on. Ctrl-C or SIGTERM marks the running trial FAIL and
-    re-raises, so that the process exits without losing anything else.
+    COMPLETE, PRUNED, RUNNING and WAITING trials count towards the budget, and trials are claimed
+    under the storage's lock, so several workers sharing a study stop together at exactly the
+    budget. A trial whose training diverges (NaN) or finishes no episode is marked FAIL and the
+    worker goes on (a FAIL trial does not count: another one replaces it), unless its last
+    ``n_trials`` trials all failed (a broken problem must not loop forever). Ctrl-C marks the
+    running trial FAIL and re-raises; SIGTERM does the same, queues a retry of the trial with the
+    same parameters and raises :class:`Interrupted`. Nothing else is lost either way.
 
     Args:
         config: The run's configuration.
@@ -264,42 +466,90 @@ def run_evolution(
         evaluate: Fitness of a candidate, called as ``evaluate(reservoirs, runner, report)``
             (default: :func:`~ermrl.search.evaluate_reservoir` on ``config.problem``; the
             generalization pipeline passes a multi-task fitness).
+        wait_for_running: When the budget is reached but trials of other workers still run, wait
+            for them (with heartbeats on): a trial whose worker died is then failed and retried
+            here, and the study ends with ``n_trials`` finished trials.
+        requeue_interrupted: On SIGTERM, queue a WAITING copy of the interrupted trial (within
+            the storage's ``max_retry``).
+        n_workers: Workers expected to share the study, for the population-size warning
+            (default: ``SLURM_ARRAY_TASK_COUNT`` when set).
 
     Returns:
         What this worker did.
+
+    Raises:
+        Interrupted: SIGTERM arrived (the running trial was closed).
+        KeyboardInterrupt: Ctrl-C (the running trial was closed).
     """
     out = stream or sys.stdout
     summary = EvolutionSummary()
     n_trials = config.search.n_trials
     problem = config.problem
     durations: list[float] = []
+    heartbeats = is_heartbeat_enabled(study._storage)
+    # Waiting for other workers' trials at the end: poll often, a claim is cheap.
+    interval = float(study._storage.get_heartbeat_interval() or 1) if heartbeats else 1.0
+    poll = min(max(interval / 2, 0.5), 5.0)
+    retry = _retry_policy(study)
+    popsize = cma_popsize(config)
+    warned_popsize = False
 
     def say(line: str) -> None:
         if not quiet:
             print(line, file=out, flush=True)
+
+    expected = n_workers or int(os.environ.get("SLURM_ARRAY_TASK_COUNT", "0") or 0)
+    if popsize is not None and expected > popsize:
+        warnings.warn(
+            _popsize_message(popsize, expected, "this study expects up to"),
+            PopulationWarning,
+            stacklevel=2,
+        )
+        warned_popsize = True
 
     done_before = _n_counted(study)
     if done_before >= n_trials:
         say(
             f"study {study.study_name!r} already has {done_before}/{n_trials} trials: nothing to do"
         )
-    with SeedRunner(config.n_procs) as runner, sigterm_as_interrupt():
+    guard = _SignalGuard()
+    waiting_said = False
+    failed_in_a_row = 0
+    with SeedRunner(config.n_procs) as runner, guard.installed():
         while True:
-            if _n_counted(study) >= n_trials:
+            guard.check()
+            with guard.deferred():
+                claim = _claim(study, config.space, n_trials, heartbeats)
+            if claim.trial is None:
+                if wait_for_running and heartbeats and claim.running > 0:
+                    if not waiting_said:
+                        say(
+                            f"budget reached; waiting for {claim.running} running trial(s) of "
+                            "other workers (a trial whose worker died is retried here)"
+                        )
+                        waiting_said = True
+                    time.sleep(poll)
+                    continue
                 break
-            trial = study.ask()
-            params = sample_params(trial, config.space)
-            for key, value in worker_info().items():
-                trial.set_user_attr(f"worker_{key}", value)
-            reservoirs = config.space.reservoirs_from(params)
+            trial, params = claim.trial, claim.params
+            if popsize is not None and claim.running > popsize and not warned_popsize:
+                warnings.warn(
+                    _popsize_message(popsize, claim.running, "trials running at once:"),
+                    PopulationWarning,
+                    stacklevel=2,
+                )
+                warned_popsize = True
+            heartbeat = get_heartbeat_thread(trial._trial_id, study._storage)
+            heartbeat.start()
             summary.trials_run += 1
             started = time.perf_counter()
-
             use_report = _pruning_reporter(trial) if config.search.pruner != "none" else None
             state = TrialState.COMPLETE
             result: FitnessResult | None = None
             note = ""
             try:
+                guard.check()  # a signal that arrived during the claim
+                reservoirs = config.space.reservoirs_from(params)
                 if evaluate is None:
                     result = evaluate_reservoir(
                         reservoirs, problem, runner=runner, report=use_report
@@ -312,32 +562,29 @@ def run_evolution(
                 state, note = TrialState.PRUNED, str(err)
             except (TrainingDiverged, NoEpisodeFinished) as err:
                 state, note = TrialState.FAIL, str(err)
-                trial.set_user_attr("fail_reason", note)
             except BaseException as err:
-                # Ctrl-C, SIGTERM or a bug: close the trial as FAIL, then let the error end the run.
-                reason = "interrupted" if isinstance(err, KeyboardInterrupt) else repr(err)
-                try:
-                    trial.set_user_attr("fail_reason", reason)
-                    study.tell(trial, state=TrialState.FAIL)
-                finally:
-                    runner.close(cancel=True)
-                say(f"[trial {trial.number}] closed as FAIL ({reason})")
+                _close_interrupted(
+                    study, trial, err, guard, runner, heartbeat, say,
+                    retry if requeue_interrupted else None,
+                )  # fmt: skip
                 raise
-            elapsed = time.perf_counter() - started
-            durations.append(elapsed)
-            if result is not None:
-                for key, value in result.user_attrs().items():
-                    trial.set_user_attr(key, value)
+            with guard.deferred():
+                heartbeat.join()
+                elapsed = time.perf_counter() - started
+                durations.append(elapsed)
+                closed = _record(study, trial, state, result, note)
+            if closed is None:
+                say(f"[trial {trial.number}] was closed by another worker (stale); result dropped")
+                continue
             if state == TrialState.COMPLETE:
-                assert result is not None
-                study.tell(trial, result.fitness)
                 summary.completed += 1
+                failed_in_a_row = 0
             elif state == TrialState.PRUNED:
-                study.tell(trial, state=TrialState.PRUNED)
                 summary.pruned += 1
+                failed_in_a_row = 0
             else:
-                study.tell(trial, state=TrialState.FAIL)
                 summary.failed += 1
+                failed_in_a_row += 1
 
             best_value, best_number, _ = _best(study)
             counted = _n_counted(study)
@@ -350,10 +597,86 @@ def run_evolution(
                 outcome = f"{state.name} ({note})"
                 speed = f"{elapsed:.0f}s"
             best = "-" if best_value is None else f"{best_value:.4g} (#{best_number})"
+            retried = "" if claim.retry_of is None else f" | retry of #{claim.retry_of}"
             say(
-                f"[trial {trial.number} | {counted}/{n_trials}] {format_params(params)} | "
+                f"[trial {trial.number} | {counted}/{n_trials}{retried}] {format_params(params)} | "
                 f"{outcome} | best {best} | {speed} | ETA {_fmt_duration(eta)}"
             )
+            if failed_in_a_row >= n_trials:
+                say(
+                    f"stopping: the last {failed_in_a_row} trials of this worker failed "
+                    "(FAIL trials do not count towards the budget; is the problem broken?)"
+                )
+                break
 
     summary.best_value, _, summary.best_params = _best(study)
     return summary
+
+
+def _record(
+    study: optuna.Study,
+    trial: optuna.Trial,
+    state: TrialState,
+    result: FitnessResult | None,
+    note: str,
+) -> FrozenTrial | None:
+    """Store a finished trial's attributes and state (``None``: another worker closed it)."""
+    try:
+        if state == TrialState.FAIL:
+            trial.set_user_attr("fail_reason", note)
+        if result is not None:
+            for key, value in result.user_attrs().items():
+                trial.set_user_attr(key, value)
+        if state == TrialState.COMPLETE:
+            assert result is not None
+            return study.tell(trial, result.fitness)
+        return study.tell(trial, state=state)
+    except UpdateFinishedTrialError:
+        return None
+    except ValueError as err:  # tell on a trial failed as stale by another worker
+        if "Cannot tell a" in str(err):
+            return None
+        raise
+
+
+def _close_interrupted(
+    study: optuna.Study,
+    trial: optuna.Trial,
+    err: BaseException,
+    guard: _SignalGuard,
+    runner: SeedRunner,
+    heartbeat: Any,
+    say: Callable[[str], None],
+    retry: RetryStaleTrial | None,
+) -> None:
+    """Close a trial cut short by a signal or an error as FAIL (SIGTERM: and queue its retry).
+
+    When SLURM signals a whole job, the seed processes may die before this process receives its
+    own SIGTERM; a broken process pool therefore waits a moment for that signal.
+    """
+    with guard.deferred():
+        if isinstance(err, BrokenProcessPool) and guard.pending is None:
+            guard.wait(2.0)
+        runner.close(cancel=True)
+        heartbeat.join()
+        signum = err.signum if isinstance(err, Interrupted) else guard.pending
+        if isinstance(err, KeyboardInterrupt) and not isinstance(err, Interrupted):
+            signum = signal.SIGINT
+        if signum is None:
+            reason = repr(err)
+        elif signum == signal.SIGINT:
+            reason = "interrupted"
+        else:
+            reason = f"interrupted by {signal.Signals(signum).name}"
+        retry_of = None
+        try:
+            if signum is not None and signum != signal.SIGINT:
+                retry_of = _requeue(study, trial._trial_id, retry)
+            trial.set_user_attr("fail_reason", reason)
+            study.tell(trial, state=TrialState.FAIL)
+        except (UpdateFinishedTrialError, ValueError):
+            pass  # already closed by another worker as stale
+        queued = "" if retry_of is None else f"; queued again (retry of #{retry_of})"
+        say(f"[trial {trial.number}] closed as FAIL ({reason}){queued}")
+    if signum is not None and not isinstance(err, KeyboardInterrupt):
+        raise guard.error() or Interrupted(signum) from err

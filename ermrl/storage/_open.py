@@ -2,33 +2,69 @@
 
 Accepted URLs:
 
-- ``sqlite:///path.db``: the embedded default (one machine; see README for concurrency notes);
-- ``postgresql://user@host/db`` and ``mysql+pymysql://...``: shared RDB servers for clusters;
-- ``journal:///path.log`` or any path ending in ``.log``: an append-only journal file;
-- ``redis://host:port``: Optuna's journal over Redis (needs the ``redis`` package).
+- ``sqlite:///path.db``: the embedded default (one machine, local disk; see README for
+  concurrency notes and why not on NFS);
+- ``postgresql://user@host/db`` and ``mysql://...`` / ``mysql+pymysql://...``: shared RDB servers
+  for clusters;
+- ``journal:///path.log`` or any path ending in ``.log``: an append-only journal file (works on
+  NFS);
+- ``redis://host:port[/db][?prefix=NAME]``: Optuna's journal over Redis (``prefix`` keeps
+  several journals apart in one database).
+
+Every storage is opened with the same guarantees: the schema is created under an inter-process
+lock (no ``table studies already exists`` when many workers start at once on a fresh file),
+SQLite waits up to 60 s for a busy database, and RUNNING trials get heartbeats (Optuna's for RDB
+storages, :class:`~ermrl.storage.HeartbeatJournalStorage` for journals) so that the trial of a
+dead worker is failed and retried.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
-from pathlib import Path
+import warnings
+import weakref
+from collections.abc import Iterator
 from typing import Any
 
 import optuna
+from optuna.exceptions import ExperimentalWarning
 from optuna.storages import BaseStorage
+
+from ermrl.storage._heartbeat import HeartbeatJournalStorage, RetryStaleTrial, base_storage
+from ermrl.storage._locks import (
+    LOCK_TIMEOUT_S,
+    journal_path,
+    redis_parts,
+    sqlite_path,
+    storage_lock,
+)
 
 __all__ = [
     "StorageError",
     "StudyNotFound",
     "DEFAULT_STORAGE",
+    "DEFAULT_HEARTBEAT_INTERVAL",
+    "DEFAULT_GRACE_PERIOD",
+    "DEFAULT_MAX_RETRY",
     "storage_kind",
+    "normalize_url",
     "open_storage",
+    "storage_url",
+    "study_lock",
     "load_study",
     "study_names",
+    "worker_info",
 ]
 
 DEFAULT_STORAGE = "sqlite:///ermrl.db"
 SQLITE_BUSY_TIMEOUT_S = 60
+DEFAULT_HEARTBEAT_INTERVAL = 60
+DEFAULT_GRACE_PERIOD = 300
+DEFAULT_MAX_RETRY = 3
+
+# URL each storage was opened from (the claim lock of a study is found from its storage).
+_URLS: weakref.WeakKeyDictionary[BaseStorage, str] = weakref.WeakKeyDictionary()
 
 
 class StorageError(RuntimeError):
@@ -48,23 +84,55 @@ def storage_kind(url: str) -> str:
         return "postgresql" if scheme == "postgres" else scheme
     raise StorageError(
         f"unsupported storage URL {url!r}; use sqlite:///file.db, postgresql://..., "
-        "mysql+pymysql://..., journal:///file.log (or file.log) or redis://host:port"
+        "mysql://..., journal:///file.log (or file.log) or redis://host:port"
     )
 
 
-def _journal_path(url: str) -> Path:
-    return Path(url[len("journal://") :] if url.startswith("journal://") else url)
+def normalize_url(url: str) -> str:
+    """The SQLAlchemy URL of an RDB storage URL.
+
+    ``postgres://`` becomes ``postgresql://``; a URL without a driver uses one that is installed:
+    ``postgresql://`` psycopg2 unless psycopg 3 (SQLAlchemy 2.1's default) is there, ``mysql://``
+    PyMySQL unless ``mysqlclient`` is. Other URLs are returned unchanged.
+    """
+    if url.startswith("postgres://"):
+        url = "postgresql://" + url[len("postgres://") :]
+    if url.startswith("postgresql://"):
+        try:
+            import psycopg  # noqa: F401
+        except ImportError:
+            return "postgresql+psycopg2://" + url[len("postgresql://") :]
+        return url
+    if url.startswith("mysql://"):
+        try:
+            import MySQLdb  # noqa: F401
+        except ImportError:
+            return "mysql+pymysql://" + url[len("mysql://") :]
+    return url
+
+
+def _short(err: BaseException) -> str:
+    text = str(err).strip()
+    return text.splitlines()[0] if text else type(err).__name__
 
 
 def open_storage(
-    url: str, *, heartbeat_interval: int | None = None, grace_period: int | None = None
+    url: str,
+    *,
+    heartbeat_interval: int | None = None,
+    grace_period: int | None = None,
+    max_retry: int | None = DEFAULT_MAX_RETRY,
 ) -> BaseStorage:
-    """Open (and for RDB storages create the schema of) a storage.
+    """Open a storage, creating its schema under an inter-process lock.
 
     Args:
         url: A storage URL (see module docstring).
-        heartbeat_interval: Seconds between heartbeats of running trials (RDB storages only).
-        grace_period: Seconds without a heartbeat after which a running trial is stale.
+        heartbeat_interval: Seconds between heartbeats of running trials (``None``: no
+            heartbeat, so a dead worker's trial stays RUNNING until ``ermrl study fail-stale``).
+        grace_period: Seconds without a heartbeat after which a running trial is stale
+            (``None``: twice the interval, Optuna's default).
+        max_retry: How many times a stale trial is retried (a WAITING copy with the same
+            parameters; ``None``: no limit, 0: never).
 
     Returns:
         An Optuna storage.
@@ -73,44 +141,95 @@ def open_storage(
         StorageError: the URL is malformed or the storage is unreachable.
     """
     kind = storage_kind(url)
-    try:
-        if kind == "journal":
-            from optuna.storages import JournalStorage
-            from optuna.storages.journal import JournalFileBackend
-
-            path = _journal_path(url)
-            if not path.parent.exists():
-                raise StorageError(f"directory {path.parent} of journal {path} does not exist")
-            return JournalStorage(JournalFileBackend(str(path)))
-        if kind == "redis":
-            from optuna.storages import JournalStorage
-            from optuna.storages.journal import JournalRedisBackend
-
-            storage = JournalStorage(JournalRedisBackend(url))
-            storage.get_all_studies()  # fail now if the server is unreachable
-            return storage
-        engine_kwargs: dict[str, Any] = {}
-        if kind == "sqlite":
-            path_part = url.split("///", 1)[1] if "///" in url else ""
-            if path_part and path_part != ":memory:":
-                parent = Path(path_part).expanduser().resolve().parent
-                if not parent.exists():
-                    raise StorageError(f"directory {parent} of SQLite database does not exist")
-            engine_kwargs["connect_args"] = {"timeout": SQLITE_BUSY_TIMEOUT_S}
-        else:
-            engine_kwargs["pool_pre_ping"] = True
-            engine_kwargs["connect_args"] = {"connect_timeout": 10}
-        return optuna.storages.RDBStorage(
-            url,
-            engine_kwargs=engine_kwargs,
-            heartbeat_interval=heartbeat_interval,
-            grace_period=grace_period,
+    if heartbeat_interval is not None and heartbeat_interval <= 0:
+        raise StorageError(f"heartbeat interval must be positive, got {heartbeat_interval}")
+    if grace_period is not None and grace_period <= 0:
+        raise StorageError(f"grace period must be positive, got {grace_period}")
+    if (
+        heartbeat_interval is not None
+        and grace_period is not None
+        and grace_period <= heartbeat_interval
+    ):
+        raise StorageError(
+            f"grace period ({grace_period} s) must be longer than the heartbeat interval "
+            f"({heartbeat_interval} s)"
         )
+    retry = RetryStaleTrial(max_retry) if max_retry is None or max_retry > 0 else None
+    heartbeat: dict[str, Any] = {
+        "heartbeat_interval": heartbeat_interval,
+        "grace_period": grace_period if heartbeat_interval is not None else None,
+        # Also kept without heartbeats: it is the retry policy of SIGTERM-interrupted trials.
+        "heartbeat_stale_trial_callback": retry,
+    }
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ExperimentalWarning)
+            storage = _open(url, kind, heartbeat)
     except StorageError:
         raise
     except Exception as err:  # sqlalchemy / driver / redis errors: keep the message short
-        message = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise StorageError(f"cannot open storage {url}: {message}") from err
+        raise StorageError(f"cannot open storage {url}: {_short(err)}") from err
+    _URLS[storage] = url
+    return storage
+
+
+def _open(url: str, kind: str, heartbeat: dict[str, Any]) -> BaseStorage:
+    if kind == "journal":
+        from optuna.storages.journal import JournalFileBackend
+
+        path = journal_path(url)
+        if not path.parent.exists():
+            raise StorageError(f"directory {path.parent} of journal {path} does not exist")
+        return HeartbeatJournalStorage(JournalFileBackend(str(path)), **heartbeat)
+    if kind == "redis":
+        from optuna.storages.journal import JournalRedisBackend
+
+        clean, prefix = redis_parts(url)
+        storage = HeartbeatJournalStorage(JournalRedisBackend(clean, prefix=prefix), **heartbeat)
+        storage.get_all_studies()  # fail now if the server is unreachable
+        return storage
+    engine_kwargs: dict[str, Any] = {}
+    if kind == "sqlite":
+        path = sqlite_path(url)
+        if path is not None:
+            parent = path.resolve().parent
+            if not parent.exists():
+                raise StorageError(f"directory {parent} of SQLite database does not exist")
+        # Python's sqlite3 waits this long for a lock before "database is locked".
+        engine_kwargs["connect_args"] = {"timeout": SQLITE_BUSY_TIMEOUT_S}
+    else:
+        engine_kwargs["pool_pre_ping"] = True
+        engine_kwargs["connect_args"] = {"connect_timeout": 10}
+    rdb_url = normalize_url(url)
+    # Many workers starting at once on a fresh database race on CREATE TABLE: one at a time.
+    with storage_lock(rdb_url, "schema"):
+        return optuna.storages.RDBStorage(rdb_url, engine_kwargs=engine_kwargs, **heartbeat)
+
+
+def storage_url(storage: BaseStorage) -> str | None:
+    """The URL a storage was opened from with :func:`open_storage` (``None`` if unknown)."""
+    for candidate in (storage, base_storage(storage)):
+        url = _URLS.get(candidate)
+        if url is not None:
+            return url
+    inner = base_storage(storage)
+    return getattr(inner, "url", None) if isinstance(inner, optuna.storages.RDBStorage) else None
+
+
+@contextlib.contextmanager
+def study_lock(study: optuna.Study, timeout: float = LOCK_TIMEOUT_S) -> Iterator[bool]:
+    """Hold the inter-process lock of a study's storage (see :func:`storage_lock`).
+
+    Workers hold it while they count the study's trials and ask for a new one, which makes the
+    trial budget exact. Yields ``False`` (and locks nothing) for storages not opened by
+    :func:`open_storage`, e.g. Optuna's in-memory storage.
+    """
+    url = storage_url(study._storage)
+    if url is None:
+        yield False
+        return
+    with storage_lock(url, study.study_name, timeout=timeout):
+        yield True
 
 
 def study_names(storage: BaseStorage) -> list[str]:

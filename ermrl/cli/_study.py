@@ -1,0 +1,441 @@
+"""``ermrl study``: create, list, show, export, delete studies and fail stale trials.
+
+Before a SLURM array starts many workers on one storage, create the study once with
+``ermrl study create`` (same options as ``ermrl evolve``): the configuration is checked before
+any job is queued, and no worker races on a fresh database.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+import sys
+import textwrap
+import time
+from collections import Counter
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from ermrl.cli._common import (
+    ArgumentParser,
+    HelpFormatter,
+    add_storage_args,
+    fail,
+    nonneg_int,
+    quiet_libraries,
+)
+
+__all__ = ["build_study_parser", "study_main", "parse_duration"]
+
+DESCRIPTION = textwrap.dedent(
+    """\
+    Manage the studies of a storage (sqlite:///file.db, postgresql://..., mysql://...,
+    journal:///file.log or file.log, redis://host:port).
+
+    examples:
+      ermrl study create --storage postgresql://me@db/ermrl --study-name pendulum \\
+          --env-id Pendulum-v1 --observe positions --n-trials 500 --training-steps 300000
+      ermrl study list --storage sqlite:///ermrl.db
+      ermrl study show --storage sqlite:///ermrl.db --study-name pendulum
+      ermrl study export --storage sqlite:///ermrl.db --study-name pendulum --out trials.parquet
+      ermrl study fail-stale --storage studies.log --study-name pendulum --older-than 2h
+      ermrl study delete --storage sqlite:///ermrl.db --study-name pendulum --yes
+    """
+)
+
+_STATES = ("COMPLETE", "PRUNED", "RUNNING", "WAITING", "FAIL")
+_UNITS = {"s": 1, "m": 60, "h": 3600, "d": 86400}
+
+
+def parse_duration(text: str) -> float:
+    """Seconds in ``90``, ``90s``, ``30m``, ``2h`` or ``1.5d``.
+
+    Raises:
+        argparse.ArgumentTypeError: not a positive duration.
+    """
+    match = re.fullmatch(r"\s*(\d+(?:\.\d*)?)\s*([smhd]?)\s*", text.lower())
+    if not match:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a duration such as 90s, 30m, 2h or 1d")
+    seconds = float(match.group(1)) * _UNITS[match.group(2) or "s"]
+    if seconds <= 0:
+        raise argparse.ArgumentTypeError(f"duration must be positive, got {text}")
+    return seconds
+
+
+def _study_parser(sub: Any, name: str, help_: str, *, study_required: bool = True) -> Any:
+    parser = sub.add_parser(name, help=help_, description=help_, formatter_class=HelpFormatter)
+    add_storage_args(parser, study_required=study_required)
+    return parser
+
+
+def build_study_parser(prog: str = "ermrl study") -> ArgumentParser:
+    parser = ArgumentParser(prog=prog, description=DESCRIPTION, formatter_class=HelpFormatter)
+    sub = parser.add_subparsers(dest="action", metavar="ACTION", parser_class=ArgumentParser)
+    sub.required = True
+
+    from ermrl.cli._evolve import add_problem_args, add_search_args
+
+    create = sub.add_parser(
+        "create",
+        help="create the schema and a study before workers start (takes ermrl evolve's options)",
+        description="Create the storage's schema and the study, once, before many workers "
+        "start. With --env-id (and any other ermrl evolve option) the configuration is checked "
+        "and stored, so every worker must match it; without, the first worker stores its own.",
+        formatter_class=HelpFormatter,
+    )
+    create.add_argument("--env-id", default=None, help="gymnasium env id (stores a configuration)")
+    add_problem_args(create, multi_task=True)
+    add_search_args(create)
+
+    listing = sub.add_parser(
+        "list", help="studies of a storage with trial counts", formatter_class=HelpFormatter
+    )
+    add_storage_args(listing, study_required=False)
+
+    show = _study_parser(sub, "show", "best trial, trials by state, workers, running trials")
+    show.add_argument("--json", action="store_true", help="print one JSON document")
+
+    export = _study_parser(sub, "export", "all trials with params and user attributes")
+    export.add_argument(
+        "--out",
+        required=True,
+        help="output file: .csv, .parquet, or - for CSV on stdout",
+    )
+
+    delete = _study_parser(sub, "delete", "delete a study and all its trials")
+    delete.add_argument("--yes", action="store_true", help="really delete (required)")
+
+    stale = _study_parser(
+        sub,
+        "fail-stale",
+        "mark FAIL the RUNNING trials with no sign of life, and retry them (journal storages "
+        "have no automatic heartbeat check without running workers)",
+    )
+    stale.add_argument(
+        "--older-than",
+        type=parse_duration,
+        required=True,
+        metavar="DURATION",
+        help="no heartbeat (or, without heartbeats, no start) for this long: 90s, 30m, 2h, 1d",
+    )
+    stale.add_argument(
+        "--max-retry",
+        type=nonneg_int,
+        default=3,
+        help="retries of one trial at most (a WAITING copy with the same parameters); 0: none",
+    )
+    stale.add_argument(
+        "--dry-run", action="store_true", help="only list the trials that would be failed"
+    )
+    return parser
+
+
+def _counts(trials: Sequence[Any]) -> dict[str, int]:
+    counter = Counter(t.state.name for t in trials)
+    return {state: counter.get(state, 0) for state in _STATES}
+
+
+def _budget(study: Any) -> int | None:
+    config = study.user_attrs.get("ermrl_config") or {}
+    value = (config.get("search") or {}).get("n_trials")
+    return int(value) if value is not None else None
+
+
+def _best(study: Any) -> Any:
+    try:
+        return study.best_trial
+    except ValueError:
+        return None
+
+
+def _worker(trial: Any) -> str:
+    attrs = trial.user_attrs
+    host = attrs.get("worker_hostname", "?")
+    pid = attrs.get("worker_pid", "?")
+    job = attrs.get("worker_slurm_array_job_id") or attrs.get("worker_slurm_job_id")
+    task = attrs.get("worker_slurm_array_task_id")
+    slurm = f" job {job}" + (f"_{task}" if task is not None else "") if job else ""
+    return f"{host}:{pid}{slurm}"
+
+
+def _fmt(value: float | None) -> str:
+    return "-" if value is None or not math.isfinite(value) else f"{value:.6g}"
+
+
+def _open_study(args: argparse.Namespace, prog: str) -> Any:
+    from ermrl.storage import StorageError, StudyNotFound, load_study
+
+    try:
+        return load_study(args.study_name, args.storage)
+    except (StorageError, StudyNotFound) as err:
+        fail(prog, str(err))
+
+
+def _create(args: argparse.Namespace, prog: str) -> int:
+    from ermrl.cli._evolve import config_from_args
+    from ermrl.config import ConfigError
+    from ermrl.envs import UnknownEnvError, UnsupportedObserveError
+    from ermrl.search import create_or_resume_study
+    from ermrl.storage import LockTimeout, StorageError
+
+    if not args.study_name:
+        fail(prog, "--study-name is required")
+    config = None
+    if args.env_id is not None:
+        try:
+            config = config_from_args(args)
+        except (ConfigError, UnknownEnvError, UnsupportedObserveError) as err:
+            fail(prog, str(err))
+    try:
+        from ermrl.storage import load_study
+
+        existed = True
+        try:
+            load_study(args.study_name, args.storage)
+        except LookupError:
+            existed = False
+        study = create_or_resume_study(
+            config,
+            args.storage,
+            args.study_name,
+            command=" ".join(["ermrl", "study", "create", *sys.argv[1:]]),
+        )
+    except (ConfigError, StorageError, LockTimeout) as err:
+        fail(prog, str(err))
+    n = len(study.get_trials(deepcopy=False))
+    what = "exists" if existed else "created"
+    configured = "with" if "ermrl_config" in study.user_attrs else "without"
+    if not args.quiet:
+        print(
+            f"study {args.study_name!r} {what} in {args.storage} ({n} trials, {configured} an "
+            "ermrl configuration)"
+        )
+    return 0
+
+
+def _list(args: argparse.Namespace, prog: str) -> int:
+    import optuna
+
+    from ermrl.storage import StorageError, open_storage
+
+    try:
+        storage = open_storage(args.storage)
+    except StorageError as err:
+        fail(prog, str(err))
+    studies = storage.get_all_studies()
+    if not studies:
+        print(f"no study in {args.storage}")
+        return 0
+    rows = []
+    for frozen in studies:
+        study = optuna.load_study(study_name=frozen.study_name, storage=storage)
+        trials = study.get_trials(deepcopy=False)
+        counts = _counts(trials)
+        best = _best(study)
+        budget = _budget(study)
+        rows.append(
+            [
+                frozen.study_name,
+                str(study.user_attrs.get("ermrl_kind", "-")),
+                f"{counts['COMPLETE'] + counts['PRUNED']}/{budget if budget else '?'}",
+                *(str(counts[s]) for s in _STATES),
+                _fmt(best.value if best else None),
+            ]
+        )
+    header = ["study", "kind", "done/budget", *(s.lower() for s in _STATES), "best"]
+    widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
+    for row in [header, *rows]:
+        print("  ".join(cell.ljust(w) for cell, w in zip(row, widths)).rstrip())
+    return 0
+
+
+def _summary(study: Any) -> dict[str, Any]:
+    from ermrl.storage import last_seen
+
+    trials = study.get_trials(deepcopy=False)
+    best = _best(study)
+    now = time.time()
+    config = study.user_attrs.get("ermrl_config") or {}
+    task = (config.get("problem") or {}).get("task") or {}
+    budget_steps = ((config.get("problem") or {}).get("budget") or {}).get("training_steps")
+    workers = Counter(_worker(t) for t in trials if "worker_pid" in t.user_attrs)
+    return {
+        "study": study.study_name,
+        "kind": study.user_attrs.get("ermrl_kind"),
+        "env_id": task.get("env_id"),
+        "observe": task.get("observe"),
+        "training_steps": budget_steps,
+        "budget": _budget(study),
+        "counts": _counts(trials),
+        "retried": sum(1 for t in trials if "retry_of" in t.user_attrs),
+        "best": None
+        if best is None
+        else {
+            "number": best.number,
+            "value": best.value,
+            "params": best.params,
+            "worker": _worker(best),
+        },
+        "workers": dict(workers.most_common()),
+        "running": [
+            {
+                "number": t.number,
+                "worker": _worker(t),
+                "seconds_since_heartbeat": round(now - last_seen(t), 1),
+            }
+            for t in trials
+            if t.state.name == "RUNNING"
+        ],
+    }
+
+
+def _show(args: argparse.Namespace, prog: str) -> int:
+    study = _open_study(args, prog)
+    info = _summary(study)
+    if args.json:
+        print(json.dumps(info, indent=2, default=str))
+        return 0
+    counts = info["counts"]
+    done = counts["COMPLETE"] + counts["PRUNED"]
+    task = (
+        f"{info['env_id']} [{info['observe']}], {info['training_steps']} steps"
+        if info["env_id"]
+        else "no ermrl configuration yet"
+    )
+    print(f"study {info['study']!r} ({info['kind'] or '-'}): {task}")
+    print(
+        f"trials: {done}/{info['budget'] or '?'} done | "
+        + ", ".join(f"{counts[s]} {s.lower()}" for s in _STATES)
+        + f" | {info['retried']} retries"
+    )
+    best = info["best"]
+    if best is None:
+        print("best: none yet")
+    else:
+        params = " ".join(f"{k}={v:.4g}" for k, v in best["params"].items())
+        print(
+            f"best: trial {best['number']} fitness {_fmt(best['value'])} ({params}) by {best['worker']}"
+        )
+    if info["workers"]:
+        print(f"workers ({len(info['workers'])}):")
+        for worker, n in info["workers"].items():
+            print(f"  {worker}: {n} trials")
+    for run in info["running"]:
+        print(
+            f"running: trial {run['number']} on {run['worker']}, "
+            f"last heartbeat {run['seconds_since_heartbeat']:.0f} s ago"
+        )
+    return 0
+
+
+def _json_cell(value: Any) -> Any:
+    if isinstance(value, (list, dict, tuple)):
+        return json.dumps(value, default=str)
+    return value
+
+
+def trials_frame(study: Any) -> Any:
+    """All trials of a study as a DataFrame: number, state, value, times, params, user attrs.
+
+    Lists and dicts in user attributes (per-seed returns, versions) are JSON strings, so the
+    frame writes to CSV and Parquet alike.
+    """
+    import pandas as pd
+
+    rows = []
+    for t in study.get_trials(deepcopy=False):
+        duration = (
+            (t.datetime_complete - t.datetime_start).total_seconds()
+            if t.datetime_start and t.datetime_complete
+            else None
+        )
+        row: dict[str, Any] = {
+            "number": t.number,
+            "state": t.state.name,
+            "value": t.value,
+            "datetime_start": t.datetime_start,
+            "datetime_complete": t.datetime_complete,
+            "duration_s": duration,
+            "retry_of": t.system_attrs.get("failed_trial"),
+        }
+        row.update({f"params_{k}": v for k, v in t.params.items()})
+        row.update({f"user_attrs_{k}": _json_cell(v) for k, v in t.user_attrs.items()})
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def _export(args: argparse.Namespace, prog: str) -> int:
+    study = _open_study(args, prog)
+    frame = trials_frame(study)
+    if args.out == "-":
+        frame.to_csv(sys.stdout, index=False)
+        return 0
+    out = Path(args.out)
+    suffix = out.suffix.lower()
+    if suffix not in (".csv", ".parquet"):
+        fail(prog, f"--out must end in .csv or .parquet, got {args.out!r}")
+    if not out.parent.exists():
+        fail(prog, f"directory {out.parent} does not exist")
+    if suffix == ".csv":
+        frame.to_csv(out, index=False)
+    else:
+        try:
+            frame.to_parquet(out, index=False)
+        except ImportError as err:
+            fail(prog, f"Parquet needs pyarrow ({err}); write .csv instead")
+    print(f"wrote {len(frame)} trials of {args.study_name!r} to {out}")
+    return 0
+
+
+def _delete(args: argparse.Namespace, prog: str) -> int:
+    import optuna
+
+    from ermrl.storage import storage_lock
+
+    study = _open_study(args, prog)
+    n = len(study.get_trials(deepcopy=False))
+    if not args.yes:
+        fail(prog, f"study {args.study_name!r} has {n} trials; pass --yes to delete it")
+    with storage_lock(args.storage, args.study_name):
+        optuna.delete_study(study_name=args.study_name, storage=study._storage)
+    print(f"deleted study {args.study_name!r} ({n} trials) from {args.storage}")
+    return 0
+
+
+def _fail_stale(args: argparse.Namespace, prog: str) -> int:
+    from ermrl.storage import RetryStaleTrial, fail_stale, storage_lock
+
+    study = _open_study(args, prog)
+    retry = RetryStaleTrial(args.max_retry) if args.max_retry > 0 else None
+    with storage_lock(args.storage, args.study_name):
+        done = fail_stale(study, args.older_than, retry=retry, dry_run=args.dry_run)
+    verb = "would fail" if args.dry_run else "failed"
+    for trial, retried in done:
+        then = " and retry" if retried else ""
+        print(f"{verb}{then} trial {trial.number} (worker {_worker(trial)})")
+    print(
+        f"{len(done)} stale trial(s) older than {args.older_than:.0f} s in {args.study_name!r}"
+        + (" (dry run)" if args.dry_run else "")
+    )
+    return 0
+
+
+_ACTIONS = {
+    "create": _create,
+    "list": _list,
+    "show": _show,
+    "export": _export,
+    "delete": _delete,
+    "fail-stale": _fail_stale,
+}
+
+
+def study_main(argv: Sequence[str] | None = None, prog: str = "ermrl study") -> int:
+    """Entry point of ``ermrl study``."""
+    parser = build_study_parser(prog)
+    quiet_libraries()
+    args = parser.parse_args(argv)
+    return _ACTIONS[args.action](args, f"{prog} {args.action}")

@@ -1,0 +1,127 @@
+"""Shared fixtures: fresh databases on the local PostgreSQL / MariaDB / Redis servers.
+
+Tests that need a server are marked ``services``. When the server cannot be reached they are
+skipped with the reason, unless ``ERMRL_REQUIRE_SERVICES=1`` (CI), where they fail instead.
+Server addresses can be changed with ``ERMRL_TEST_POSTGRES``, ``ERMRL_TEST_MYSQL`` and
+``ERMRL_TEST_REDIS`` (admin URLs; each test gets its own database or key prefix).
+"""
+
+from __future__ import annotations
+
+import os
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+from urllib.parse import urlsplit, urlunsplit
+
+import pytest
+
+POSTGRES_ADMIN = os.environ.get("ERMRL_TEST_POSTGRES", "postgresql://postgres@127.0.0.1:5432/test")
+MYSQL_ADMIN = os.environ.get("ERMRL_TEST_MYSQL", "mysql+pymysql://root@127.0.0.1:3306/test")
+REDIS_URL = os.environ.get("ERMRL_TEST_REDIS", "redis://127.0.0.1:6379/0")
+
+
+def services_required() -> bool:
+    """Whether a missing server is an error (CI sets ``ERMRL_REQUIRE_SERVICES=1``)."""
+    return os.environ.get("ERMRL_REQUIRE_SERVICES", "") == "1"
+
+
+def unavailable(reason: str) -> None:
+    """Skip the test, or fail it when services are required."""
+    if services_required():
+        pytest.fail(f"{reason} (ERMRL_REQUIRE_SERVICES=1: not skipping)", pytrace=False)
+    pytest.skip(reason)
+
+
+def _with_database(url: str, name: str) -> str:
+    parts = urlsplit(url)
+    return urlunsplit(parts._replace(path=f"/{name}"))
+
+
+@pytest.fixture
+def postgres_url() -> Iterator[str]:
+    """A fresh, empty PostgreSQL database (dropped after the test)."""
+    try:
+        import psycopg2
+
+        admin = psycopg2.connect(POSTGRES_ADMIN, connect_timeout=3)
+    except Exception as err:  # driver missing or server down
+        unavailable(f"PostgreSQL unreachable at {POSTGRES_ADMIN}: {str(err).strip()}")
+    admin.autocommit = True
+    name = f"ermrl_test_{uuid.uuid4().hex[:12]}"
+    with admin.cursor() as cur:
+        cur.execute(f"CREATE DATABASE {name}")
+    try:
+        yield _with_database(POSTGRES_ADMIN, name)
+    finally:
+        with admin.cursor() as cur:
+            cur.execute(f"DROP DATABASE IF EXISTS {name} WITH (FORCE)")
+        admin.close()
+
+
+@pytest.fixture
+def mysql_url() -> Iterator[str]:
+    """A fresh, empty MySQL/MariaDB database (dropped after the test)."""
+    parts = urlsplit(MYSQL_ADMIN)
+    try:
+        import pymysql
+
+        admin = pymysql.connect(
+            host=parts.hostname or "127.0.0.1",
+            port=parts.port or 3306,
+            user=parts.username or "root",
+            password=parts.password or "",
+            connect_timeout=3,
+            autocommit=True,
+        )
+    except Exception as err:
+        unavailable(f"MySQL/MariaDB unreachable at {MYSQL_ADMIN}: {str(err).strip()}")
+    name = f"ermrl_test_{uuid.uuid4().hex[:12]}"
+    with admin.cursor() as cur:
+        cur.execute(f"CREATE DATABASE {name}")
+    try:
+        yield _with_database(MYSQL_ADMIN, name)
+    finally:
+        with admin.cursor() as cur:
+            cur.execute(f"DROP DATABASE IF EXISTS {name}")
+        admin.close()
+
+
+@pytest.fixture
+def redis_url() -> Iterator[str]:
+    """A Redis journal URL with a fresh key prefix (its keys are deleted after the test)."""
+    try:
+        import redis
+
+        client = redis.Redis.from_url(REDIS_URL, socket_connect_timeout=3)
+        client.ping()
+    except Exception as err:
+        unavailable(f"Redis unreachable at {REDIS_URL}: {str(err).strip()}")
+    prefix = f"ermrl_test_{uuid.uuid4().hex[:12]}"
+    try:
+        yield f"{REDIS_URL}?prefix={prefix}"
+    finally:
+        for key in client.scan_iter(f"{prefix}:*"):
+            client.delete(key)
+        client.close()
+
+
+@pytest.fixture
+def fresh_storage(request: pytest.FixtureRequest, tmp_path: Path) -> str:
+    """A fresh storage URL of the kind given by indirect parametrization.
+
+    ``sqlite``, ``journal`` (file), ``postgresql``, ``mysql`` or ``redis``; mark the server
+    kinds with ``pytest.mark.services``.
+    """
+    kind = getattr(request, "param", "sqlite")
+    if kind == "sqlite":
+        return f"sqlite:///{tmp_path}/study.db"
+    if kind == "journal":
+        return f"journal:///{tmp_path}/study.log"
+    if kind == "postgresql":
+        return request.getfixturevalue("postgres_url")
+    if kind == "mysql":
+        return request.getfixturevalue("mysql_url")
+    if kind == "redis":
+        return request.getfixturevalue("redis_url")
+    raise ValueError(f"unknown storage kind {kind!r}")

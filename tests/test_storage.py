@@ -1,0 +1,422 @@
+"""ermrl.storage: URLs, locks, heartbeats and retries on every backend; the ``ermrl study`` CLI."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import threading
+import time
+import warnings
+from pathlib import Path
+
+import optuna
+import pandas as pd
+import pytest
+from optuna.distributions import FloatDistribution
+from optuna.storages import fail_stale_trials
+from optuna.trial import TrialState, create_trial
+
+from ermrl.cli._study import parse_duration, study_main
+from ermrl.config import (
+    BudgetConfig,
+    EncoderConfig,
+    EvolveConfig,
+    PPOConfig,
+    Problem,
+    ReservoirSpace,
+    SearchConfig,
+    TaskConfig,
+)
+from ermrl.search import FitnessResult, Interrupted, create_or_resume_study, run_evolution
+from ermrl.search._evolve import PopulationWarning, cma_popsize
+from ermrl.storage import (
+    HEARTBEAT_ATTR,
+    LockTimeout,
+    RetryStaleTrial,
+    StorageError,
+    fail_stale,
+    find_stale_trials,
+    normalize_url,
+    open_storage,
+    storage_kind,
+    storage_lock,
+    storage_url,
+)
+
+optuna.logging.set_verbosity(optuna.logging.WARNING)
+
+SERVER_KINDS = [
+    pytest.param("postgresql", marks=pytest.mark.services),
+    pytest.param("mysql", marks=pytest.mark.services),
+    pytest.param("redis", marks=pytest.mark.services),
+]
+ALL_KINDS = ["sqlite", "journal", *SERVER_KINDS]
+
+
+def tiny_config(n_trials: int = 4, **search: object) -> EvolveConfig:
+    """A configuration whose fitness the tests compute with a stub (nothing is trained)."""
+    space = ReservoirSpace(units=10)
+    problem = Problem(
+        task=TaskConfig("Pendulum-v1", "positions"),
+        encoder=EncoderConfig(reservoirs=space.default_reservoirs()),
+        ppo=PPOConfig(hyperparams={"n_steps": 128, "batch_size": 64}),
+        budget=BudgetConfig(training_steps=256),
+        seeds=(0,),
+    )
+    return EvolveConfig(
+        problem=problem, space=space, search=SearchConfig(n_trials=n_trials, **search)
+    )
+
+
+def stub_fitness(delay: float = 0.0, hook=None):  # noqa: ANN001, ANN201
+    """An ``evaluate`` for run_evolution: a smooth function of sr, after ``delay`` seconds."""
+
+    def evaluate(reservoirs, runner, report):  # noqa: ANN001, ANN202
+        if hook is not None:
+            hook()
+        time.sleep(delay)
+        value = -((math.log10(reservoirs[0].sr) - 0.0) ** 2)
+        return FitnessResult(fitness=value, mode="last", runs=[], wall_seconds=max(delay, 1e-3))
+
+    return evaluate
+
+
+# -- URLs ---------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("url", "kind"),
+    [
+        ("sqlite:///x.db", "sqlite"),
+        ("postgresql://u@h/db", "postgresql"),
+        ("postgres://u@h/db", "postgresql"),
+        ("postgresql+psycopg2://u@h/db", "postgresql"),
+        ("mysql://root@h/db", "mysql"),
+        ("mysql+pymysql://root@h/db", "mysql"),
+        ("journal:///tmp/x.log", "journal"),
+        ("studies.log", "journal"),
+        ("redis://localhost:6379", "redis"),
+    ],
+)
+def test_storage_kind(url: str, kind: str) -> None:
+    assert storage_kind(url) == kind
+
+
+def test_bad_urls_and_paths_give_one_line_errors(tmp_path: Path) -> None:
+    with pytest.raises(StorageError, match="unsupported storage URL"):
+        storage_kind("ftp://x")
+    with pytest.raises(StorageError, match="does not exist"):
+        open_storage(f"sqlite:///{tmp_path}/missing/s.db")
+    with pytest.raises(StorageError, match="does not exist"):
+        open_storage(f"{tmp_path}/missing/s.log")
+    with pytest.raises(StorageError, match="longer than the heartbeat"):
+        open_storage(f"sqlite:///{tmp_path}/s.db", heartbeat_interval=10, grace_period=5)
+    with pytest.raises(StorageError, match="cannot open storage"):
+        open_storage("postgresql://nobody@127.0.0.1:1/none")
+
+
+def test_normalize_url() -> None:
+    assert normalize_url("postgres://u@h/db").startswith("postgresql")
+    assert normalize_url("postgres://u@h/db").endswith("://u@h/db")
+    assert normalize_url("mysql://root@h/db").startswith("mysql+")
+    assert normalize_url("sqlite:///x.db") == "sqlite:///x.db"
+
+
+@pytest.mark.parametrize("fresh_storage", ALL_KINDS, indirect=True)
+def test_every_backend_opens_with_heartbeats_and_retries(fresh_storage: str) -> None:
+    storage = open_storage(fresh_storage, heartbeat_interval=1, grace_period=2, max_retry=2)
+    assert storage_url(storage) == fresh_storage
+    study = optuna.create_study(study_name="s", storage=storage, direction="maximize")
+    assert storage_url(study._storage) == fresh_storage  # also through Optuna's cache wrapper
+    assert study._storage.get_heartbeat_interval() == 1
+    callback = study._storage.get_heartbeat_stale_trial_callback()
+    assert isinstance(callback, RetryStaleTrial) and callback.max_retry == 2
+    study.optimize(lambda t: t.suggest_float("x", 0, 1), n_trials=2)
+    assert len(study.get_trials(states=[TrialState.COMPLETE])) == 2
+
+
+@pytest.mark.parametrize("fresh_storage", ALL_KINDS, indirect=True)
+def test_storage_lock_is_exclusive(fresh_storage: str) -> None:
+    open_storage(fresh_storage)  # creates the file or schema
+    held, release = threading.Event(), threading.Event()
+
+    def hold() -> None:
+        with storage_lock(fresh_storage, "study-a"):
+            held.set()
+            release.wait(10)
+
+    thread = threading.Thread(target=hold)
+    thread.start()
+    assert held.wait(10)
+    try:
+        if storage_kind(fresh_storage) != "journal":  # the symlink lock has no timeout
+            with pytest.raises(LockTimeout):
+                with storage_lock(fresh_storage, "study-a", timeout=0.3):
+                    pass
+    finally:
+        release.set()
+        thread.join()
+    with storage_lock(fresh_storage, "study-a", timeout=5):
+        pass
+
+
+# -- heartbeats and retries ---------------------------------------------------------------------
+
+
+def _running_trial(study: optuna.Study) -> int:
+    """A RUNNING trial with two parameters and CMA-ES-like system attributes."""
+    trial = study.ask()
+    trial.suggest_float("sr", 1e-4, 1e2, log=True)
+    trial.suggest_float("lr", 1e-2, 1.0, log=True)
+    study._storage.set_trial_system_attr(trial._trial_id, "cma:restart_0:generation", 3)
+    study._storage.set_trial_system_attr(trial._trial_id, "cma:optimizer:0", "deadbeef")
+    trial.set_user_attr("worker_pid", 12345)
+    trial.set_user_attr("fail_reason", "old")
+    return trial.number
+
+
+@pytest.mark.parametrize(
+    "fresh_storage",
+    ["journal", "sqlite", pytest.param("postgresql", marks=pytest.mark.services)],
+    indirect=True,
+)
+def test_stale_trial_is_failed_and_retried_with_the_same_params(fresh_storage: str) -> None:
+    storage = open_storage(fresh_storage, heartbeat_interval=1, grace_period=2, max_retry=1)
+    study = optuna.create_study(study_name="s", storage=storage)
+    # SQLite's CURRENT_TIMESTAMP (the heartbeat clock) has a resolution of one second.
+    beyond_grace = 3.1 if storage_kind(fresh_storage) == "sqlite" else 2.3
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        number = _running_trial(study)
+        storage.record_heartbeat(study.trials[number]._trial_id)
+        fail_stale_trials(study)
+        assert study.trials[number].state == TrialState.RUNNING  # heartbeat is fresh
+        time.sleep(beyond_grace)
+        fail_stale_trials(study)
+    trials = study.get_trials()
+    assert [t.state for t in trials] == [TrialState.FAIL, TrialState.WAITING]
+    failed, retry = trials
+    assert retry.params == failed.params
+    assert retry.system_attrs["failed_trial"] == number
+    assert retry.system_attrs["cma:restart_0:generation"] == 3
+    assert not any(":optimizer:" in k or k == HEARTBEAT_ATTR for k in retry.system_attrs)
+    assert retry.user_attrs["retry_of"] == number and "fail_reason" not in retry.user_attrs
+    assert "worker_pid" not in retry.user_attrs  # the worker that runs it records itself
+
+    # The retry is picked by the next ask(); with max_retry=1 it is not retried again.
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        again = study.ask()
+        assert again.number == retry.number and again.params == failed.params
+        storage.record_heartbeat(again._trial_id)
+        time.sleep(beyond_grace)
+        fail_stale_trials(study)
+    assert [t.state for t in study.get_trials()] == [TrialState.FAIL, TrialState.FAIL]
+
+
+def test_fail_stale_uses_heartbeats_else_start_time(tmp_path: Path) -> None:
+    url = f"sqlite:///{tmp_path}/s.db"
+    study = optuna.create_study(study_name="s", storage=open_storage(url, heartbeat_interval=60))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        alive = study.ask()
+        study._storage.record_heartbeat(alive._trial_id)
+        silent = study.ask()
+    silent.suggest_float("x", 0, 1)
+    time.sleep(1.5)
+    study._storage.record_heartbeat(alive._trial_id)
+    stale = find_stale_trials(study, older_than=1.0)
+    assert [t.number for t in stale] == [silent.number]
+    dry = fail_stale(study, 1.0, retry=RetryStaleTrial(3), dry_run=True)
+    assert [(t.number, r) for t, r in dry] == [(silent.number, True)]
+    assert study.trials[silent.number].state == TrialState.RUNNING
+    done = fail_stale(study, 1.0, retry=RetryStaleTrial(3))
+    assert [(t.number, r) for t, r in done] == [(silent.number, True)]
+    states = [t.state for t in study.get_trials()]
+    assert states == [TrialState.RUNNING, TrialState.FAIL, TrialState.WAITING]
+    assert study.trials[silent.number].user_attrs["fail_reason"].startswith("stale")
+
+
+# -- the worker loop ----------------------------------------------------------------------------
+
+
+def test_budget_is_exact_and_waiting_trials_are_claimed(tmp_path: Path) -> None:
+    url = f"journal:///{tmp_path}/s.log"
+    config = tiny_config(n_trials=4, sampler="random", sampler_seed=0)
+    study = create_or_resume_study(config, url, "s", heartbeat_interval=1, grace_period=3)
+    dist = {"sr": FloatDistribution(1e-4, 1e2, log=True)}
+    study.add_trial(
+        create_trial(
+            state=TrialState.WAITING,
+            params={"sr": 2.0},
+            distributions=dist,
+        )
+    )
+    summary = run_evolution(config, study, quiet=True, evaluate=stub_fitness())
+    trials = study.get_trials()
+    assert summary.completed == 4 and len(trials) == 4
+    assert all(t.state == TrialState.COMPLETE for t in trials)
+    assert trials[0].params["sr"] == 2.0  # the WAITING trial ran first
+    # Nothing left to do: a second worker stops at once.
+    assert run_evolution(config, study, quiet=True, evaluate=stub_fitness()).trials_run == 0
+
+
+def test_worker_waits_for_a_dead_workers_trial_and_retries_it(tmp_path: Path) -> None:
+    url = f"journal:///{tmp_path}/s.log"
+    config = tiny_config(n_trials=2, sampler="random", sampler_seed=0)
+    study = create_or_resume_study(config, url, "s", heartbeat_interval=1, grace_period=2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        dead = _running_trial(study)  # a worker that died: it never sends a heartbeat
+        study._storage.record_heartbeat(study.trials[dead]._trial_id)
+    lines = []
+
+    class Stream:
+        def write(self, text: str) -> None:
+            lines.append(text)
+
+        def flush(self) -> None:
+            pass
+
+    summary = run_evolution(config, study, stream=Stream(), evaluate=stub_fitness())  # type: ignore[arg-type]
+    states = [t.state for t in study.get_trials()]
+    assert states.count(TrialState.COMPLETE) == 2 and states.count(TrialState.FAIL) == 1
+    assert summary.completed == 2
+    assert any("waiting for 1 running trial" in line for line in lines)
+    assert any(f"retry of #{dead}" in line for line in lines)
+
+
+def test_sigterm_closes_the_trial_queues_it_again_and_exits(tmp_path: Path) -> None:
+    url = f"sqlite:///{tmp_path}/s.db"
+    config = tiny_config(n_trials=3, sampler="random", sampler_seed=0)
+    study = create_or_resume_study(config, url, "s")
+    calls = []
+
+    def terminate() -> None:
+        calls.append(1)
+        if len(calls) == 2:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    with pytest.raises(Interrupted):
+        run_evolution(config, study, quiet=True, evaluate=stub_fitness(0.5, terminate))
+    trials = study.get_trials()
+    assert [t.state for t in trials] == [TrialState.COMPLETE, TrialState.FAIL, TrialState.WAITING]
+    assert trials[1].user_attrs["fail_reason"] == "interrupted by SIGTERM"
+    assert trials[2].params == trials[1].params
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # handler restored
+
+    # A restarted worker runs the queued trial first and finishes the budget.
+    run_evolution(config, study, quiet=True, evaluate=stub_fitness())
+    states = [t.state for t in study.get_trials()]
+    assert states.count(TrialState.COMPLETE) == 3 and states.count(TrialState.FAIL) == 1
+    assert study.get_trials()[2].params == trials[1].params
+
+
+def test_popsize_smaller_than_workers_warns(tmp_path: Path) -> None:
+    config = tiny_config(n_trials=1, popsize=4)
+    assert cma_popsize(config) == 4
+    assert cma_popsize(tiny_config()) == 4 + math.floor(3 * math.log(3))
+    assert cma_popsize(tiny_config(sampler="tpe")) is None
+    study = create_or_resume_study(config, f"sqlite:///{tmp_path}/s.db", "s")
+    with pytest.warns(PopulationWarning, match="--popsize 20"):
+        run_evolution(config, study, quiet=True, evaluate=stub_fitness(), n_workers=20)
+
+
+# -- the ermrl study CLI ------------------------------------------------------------------------
+
+
+def test_parse_duration() -> None:
+    assert parse_duration("90") == 90
+    assert parse_duration("30m") == 1800
+    assert parse_duration("2h") == 7200
+    assert parse_duration("1.5d") == 1.5 * 86400
+
+
+def _filled_study(url: str) -> optuna.Study:
+    config = tiny_config(n_trials=3, sampler="random", sampler_seed=0)
+    study = create_or_resume_study(config, url, "demo")
+    run_evolution(config, study, quiet=True, evaluate=stub_fitness())
+    return study
+
+
+def test_study_cli_create_list_show_export_delete(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    url = f"sqlite:///{tmp_path}/s.db"
+    assert study_main(["create", "--storage", url, "--study-name", "bare"]) == 0
+    assert "created" in capsys.readouterr().out
+    _filled_study(url)
+
+    assert study_main(["list", "--storage", url]) == 0
+    out = capsys.readouterr().out
+    assert "bare" in out and "demo" in out and "3/3" in out
+
+    assert study_main(["show", "--storage", url, "--study-name", "demo"]) == 0
+    out = capsys.readouterr().out
+    assert "3/3 done" in out and "best: trial" in out and "workers (1)" in out
+    assert study_main(["show", "--storage", url, "--study-name", "demo", "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["counts"]["COMPLETE"] == 3 and info["budget"] == 3
+
+    for name in ("t.csv", "t.parquet"):
+        assert (
+            study_main(
+                ["export", "--storage", url, "--study-name", "demo", "--out", str(tmp_path / name)]
+            )
+            == 0
+        )
+    capsys.readouterr()
+    csv = pd.read_csv(tmp_path / "t.csv")
+    parquet = pd.read_parquet(tmp_path / "t.parquet")
+    for frame in (csv, parquet):
+        assert len(frame) == 3 and set(frame["state"]) == {"COMPLETE"}
+        assert {"params_sr", "params_lr", "user_attrs_worker_pid", "value"} <= set(frame.columns)
+
+    with pytest.raises(SystemExit) as err:
+        study_main(["delete", "--storage", url, "--study-name", "demo"])
+    assert err.value.code == 2 and "--yes" in capsys.readouterr().err
+    assert study_main(["delete", "--storage", url, "--study-name", "demo", "--yes"]) == 0
+    assert optuna.get_all_study_names(url) == ["bare"]
+
+
+def test_study_cli_create_with_a_configuration_and_errors(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    url = f"sqlite:///{tmp_path}/s.db"
+    args = ["create", "--storage", url, "--study-name", "p", "--env-id", "Pendulum-v1"]
+    assert study_main([*args, "--training-steps", "256", "--n-trials", "5"]) == 0
+    study = optuna.load_study(study_name="p", storage=url)
+    assert study.user_attrs["ermrl_config"]["search"]["n_trials"] == 5
+    for bad in (
+        [*args, "--training-steps", "512"],  # another configuration
+        ["show", "--storage", url, "--study-name", "nope"],
+        ["fail-stale", "--storage", url, "--study-name", "p", "--older-than", "soon"],
+        ["export", "--storage", url, "--study-name", "p", "--out", str(tmp_path / "t.xlsx")],
+    ):
+        with pytest.raises(SystemExit) as err:
+            study_main(bad)
+        assert err.value.code == 2
+        message = capsys.readouterr().err.strip()
+        assert message.startswith("ermrl study") and "\n" not in message
+
+
+def test_study_cli_fail_stale_on_a_journal(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    url = f"{tmp_path}/s.log"
+    study = optuna.create_study(study_name="j", storage=open_storage(url))
+    number = _running_trial(study)
+    assert (
+        study_main(["fail-stale", "--storage", url, "--study-name", "j", "--older-than", "1h"]) == 0
+    )
+    assert "0 stale trial(s)" in capsys.readouterr().out
+    time.sleep(1.2)
+    argv = ["fail-stale", "--storage", url, "--study-name", "j", "--older-than", "1s"]
+    assert study_main([*argv, "--dry-run"]) == 0
+    assert f"would fail and retry trial {number}" in capsys.readouterr().out
+    assert study_main(argv) == 0
+    assert f"failed and retry trial {number}" in capsys.readouterr().out
+    states = [t.state for t in optuna.load_study(study_name="j", storage=open_storage(url)).trials]
+    assert states == [TrialState.FAIL, TrialState.WAITING]
