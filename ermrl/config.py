@@ -493,6 +493,11 @@ class EvolveConfig:
     def __post_init__(self) -> None:
         if self.n_procs < 1:
             raise ConfigError(f"n_procs must be >= 1, got {self.n_procs}")
+        if self.search.pruner != "none" and self.n_procs > 1:
+            raise ConfigError(
+                "pruning reads intermediate returns while a trial's seeds train one after "
+                "another: use --n-procs 1 with --pruner (or run more workers instead)"
+            )
         if self.space.n_reservoirs != self.problem.encoder.n_reservoirs:
             raise ConfigError("the encoder and the search space disagree on n_reservoirs")
         if self.generalization is not None and self.problem.task not in (

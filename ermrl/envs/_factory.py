@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Mapping
 from typing import Any
 
@@ -26,6 +27,32 @@ from ermrl.envs._masks import (
 )
 
 __all__ = ["make_env"]
+
+# MuJoCo >= 3.3 warns, on every model load, that gymnasium's own XML files use the deprecated
+# `settotalmass` attribute. Nothing ermrl or its users can fix; it would flood progress output.
+_HARMLESS_MUJOCO_WARNINGS = ("'settotalmass' is deprecated",)
+_mujoco_handler_installed = False
+
+
+def _filter_mujoco_warnings() -> None:
+    """Route MuJoCo's C-level warnings through Python warnings, minus the known harmless ones."""
+    global _mujoco_handler_installed
+    if _mujoco_handler_installed:
+        return
+    try:
+        import mujoco
+    except ImportError:
+        return
+
+    def handler(message: str) -> None:
+        if not any(text in message for text in _HARMLESS_MUJOCO_WARNINGS):
+            warnings.warn(f"MuJoCo: {message}", RuntimeWarning, stacklevel=2)
+
+    mujoco.set_mju_user_warning(handler)
+    _mujoco_handler_installed = True
+
+
+_filter_mujoco_warnings()
 
 
 def _split_for(env_id: str, env_kwargs: Mapping[str, Any]) -> ObservationSplit:

@@ -1,0 +1,611 @@
+"""``ermrl evolve-generalization`` / ``ermrl test-generalization``: evolve on a set of tasks, test
+on a task the reservoirs never saw."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import shlex
+import sys
+import textwrap
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from ermrl.cli._common import (
+    EXIT_INTERRUPTED,
+    EXIT_TERMINATED,
+    ArgumentParser,
+    HelpFormatter,
+    add_storage_args,
+    fail,
+    nonneg_int,
+    positive_int,
+    quiet_libraries,
+)
+from ermrl.cli._evolve import (
+    add_problem_args,
+    add_search_args,
+    budget_from_args,
+    encoder_from_args,
+    search_from_args,
+    space_from_args,
+)
+from ermrl.cli._test import select_seeds
+from ermrl.config import ConfigError, EvolveConfig, PPOConfig
+
+__all__ = [
+    "build_evolve_generalization_parser",
+    "build_test_generalization_parser",
+    "evolve_generalization_main",
+    "generalization_config_from_args",
+    "test_generalization_main",
+]
+
+_TARGET_COLUMNS = ("target", "provisional_target")
+
+EVOLVE_DESCRIPTION = textwrap.dedent(
+    """\
+    Evolve reservoir hyperparameters on a set of tasks (the ER-MRL generalization experiment).
+
+    Each trial samples sr, lr and input_scaling per reservoir, trains one PPO agent per seed on
+    every task with the same reservoirs, and records as fitness the mean over tasks of the
+    normalized return (R - R_random) / (R_target - R_random), where R is the task's return
+    averaged over seeds. R_random (a random policy's episodic return) and R_target (PPO at 1M
+    steps, rl-baselines3-zoo) come from ermrl/data/scores.csv or --scores.
+
+    "The same reservoir" on every task: the same hyperparameters and, for a given seed, the
+    same recurrent weights W and bias; the input weights Win are drawn per task from that seed
+    (their shape depends on the task's observation and action sizes).
+
+    examples:
+      evolve_generalization.py --suite no_halfcheetah --n-reservoirs 2 --n-trials 100 \\
+          --training-steps 300000 --storage sqlite:///ermrl.db
+      evolve_generalization.py --env-ids Swimmer-v5 Hopper-v5 --n-trials 2 --n-seeds 1 \\
+          --training-steps 2048 --storage sqlite:///ermrl.db --study-name demo
+    """
+)
+
+TEST_DESCRIPTION = textwrap.dedent(
+    """\
+    Generalization test: train PPO, PPO on the reservoirs evolved on a set of tasks (res-ppo)
+    and PPO on unevolved reservoirs (random-res-ppo) on another task, and write curves.csv,
+    summary.csv, learning_curves.png, the models, config.yaml and command.txt to --out.
+
+    The encoding options come from the study; the PPO settings of the test env come from the
+    PPO table and the study's --ppo overrides. When the env has reference scores, summary.csv
+    also has normalized returns. A loud WARNING is printed when the test env was one of the
+    evolution tasks (then this is not a generalization test). SLURM_ARRAY_TASK_ID selects one
+    seed of the list, as in test.py.
+
+    example:
+      test_generalization.py --study-name S --storage sqlite:///ermrl.db --env-id HalfCheetah-v5 \\
+          --training-steps 1000000 --seeds 10 11 12
+    """
+)
+
+
+# -- evolve-generalization ----------------------------------------------------------------------
+
+
+def build_evolve_generalization_parser(
+    prog: str = "ermrl evolve-generalization",
+) -> ArgumentParser:
+    parser = ArgumentParser(
+        prog=prog, description=EVOLVE_DESCRIPTION, formatter_class=HelpFormatter
+    )
+    g = parser.add_argument_group("tasks")
+    which = g.add_mutually_exclusive_group(required=True)
+    which.add_argument(
+        "--env-ids", nargs="+", metavar="ENV_ID", help="the task set, e.g. Ant-v5 Swimmer-v5"
+    )
+    which.add_argument(
+        "--suite",
+        default=None,
+        help="a named task set: ant_swimmer, ant_cheetah, cheetah_swimmer, no_ant, "
+        "no_halfcheetah, no_hopper, no_swimmer, no_walker2d, forward_mujoco, or one of "
+        "--suites-file",
+    )
+    g.add_argument(
+        "--suites-file",
+        default=None,
+        metavar="YAML",
+        help="your own suites (same format as ermrl/data/suites.yml), added to the packaged ones",
+    )
+    g.add_argument(
+        "--env-version",
+        default=None,
+        metavar="vN",
+        help="with --suite: use this version of every env (the packaged suites are v5)",
+    )
+    g.add_argument(
+        "--scores",
+        default=None,
+        metavar="CSV",
+        help="reference table of random and target returns (default: ermrl/data/scores.csv)",
+    )
+    g.add_argument(
+        "--target-column",
+        choices=_TARGET_COLUMNS,
+        default="target",
+        help="R_target: 'target' (PPO at 1M steps, rl-baselines3-zoo) or 'provisional_target' "
+        "(the original ER-MRL code's values)",
+    )
+    add_problem_args(parser, multi_task=True)
+    add_search_args(parser)
+    return parser
+
+
+def generalization_config_from_args(args: argparse.Namespace) -> EvolveConfig:
+    """Build and validate a multi-task configuration (raises ConfigError / env errors)."""
+    from ermrl.agents import parse_overrides
+    from ermrl.envs import get_suite
+    from ermrl.search import generalization_config, generalization_tasks
+
+    suite = None
+    if args.suite is not None:
+        found = get_suite(args.suite, args.suites_file, env_version=args.env_version)
+        env_ids: Sequence[str] = found.env_ids
+        suite = found.name
+    else:
+        if args.env_version is not None:
+            raise ConfigError("--env-version applies to --suite only; write the ids in full")
+        env_ids = args.env_ids or ()
+    overrides = parse_overrides(args.ppo)
+    tasks = generalization_tasks(
+        env_ids,
+        observe=args.observe,
+        ppo_overrides=overrides,
+        n_envs=args.n_envs,
+        hyperparams=args.hyperparams,
+        torch_threads=args.torch_threads,
+        scores=args.scores,
+        target_column=args.target_column,
+    )
+    space = space_from_args(args)
+    return generalization_config(
+        tasks,
+        encoder=encoder_from_args(args, space),
+        budget=budget_from_args(args),
+        seeds=tuple(range(args.seed, args.seed + args.n_seeds)),
+        space=space,
+        search=search_from_args(args),
+        n_procs=args.n_procs,
+        suite=suite,
+        scores=None if args.scores is None else str(Path(args.scores).resolve()),
+        target_column=args.target_column,
+        ppo_overrides=overrides,
+        n_envs=args.n_envs,
+        hyperparams=args.hyperparams,
+    )
+
+
+def _command(prog: str, argv: Sequence[str] | None) -> str:
+    return shlex.join(
+        [
+            prog.split()[-1] if prog.endswith(".py") else prog,
+            *(argv if argv is not None else sys.argv[1:]),
+        ]
+    )
+
+
+_LEFT_OUT = {
+    "no_ant": "Ant",
+    "no_halfcheetah": "HalfCheetah",
+    "no_hopper": "Hopper",
+    "no_swimmer": "Swimmer",
+    "no_walker2d": "Walker2d",
+}
+
+
+def _suggested_test_env(config: EvolveConfig) -> str:
+    """The left-out task of a leave-one-out suite (same version), else a placeholder."""
+    gen = config.generalization
+    family = _LEFT_OUT.get(gen.suite or "") if gen is not None else None
+    if family is None:
+        return "ENV_ID"
+    version = config.problem.task.env_id.rpartition("-")[2]
+    return f"{family}-{version}"
+
+
+def evolve_generalization_main(
+    argv: Sequence[str] | None = None, prog: str = "ermrl evolve-generalization"
+) -> int:
+    """Entry point of ``ermrl evolve-generalization`` and ``evolve_generalization.py``."""
+    from ermrl.envs import UnknownEnvError, UnsupportedObserveError
+    from ermrl.search import (
+        Interrupted,
+        create_or_resume_generalization_study,
+        format_params,
+        generalization_evaluator,
+        generalization_study_name,
+        run_evolution,
+    )
+    from ermrl.storage import LockTimeout, StorageError
+
+    parser = build_evolve_generalization_parser(prog)
+    quiet_libraries()
+    args = parser.parse_args(argv)
+    try:
+        config = generalization_config_from_args(args)
+    except (ConfigError, UnknownEnvError, UnsupportedObserveError) as err:
+        fail(prog, str(err))
+    assert config.generalization is not None
+    study_name = args.study_name or generalization_study_name(config)
+    # Cluster options of add_search_args (heartbeats, retries), forwarded like ermrl evolve does.
+    study_kwargs: dict[str, Any] = {}
+    if getattr(args, "heartbeat_interval", None) is not None:
+        study_kwargs["heartbeat_interval"] = args.heartbeat_interval or None
+    for name in ("grace_period", "max_retry"):
+        if hasattr(args, name):
+            study_kwargs[name] = getattr(args, name)
+    run_kwargs: dict[str, Any] = {}
+    if hasattr(args, "wait_for_running"):
+        run_kwargs["wait_for_running"] = args.wait_for_running
+    try:
+        study = create_or_resume_generalization_study(
+            config, args.storage, study_name, command=_command(prog, argv), **study_kwargs
+        )
+    except (ConfigError, StorageError, LockTimeout) as err:
+        fail(prog, str(err))
+    gen = config.generalization
+    if not args.quiet:
+        suite = f" (suite {gen.suite})" if gen.suite else ""
+        print(
+            f"study {study_name!r} in {args.storage}: {len(gen.tasks)} tasks{suite}, "
+            f"{len(config.problem.seeds)} seeds x {config.problem.budget.training_steps} steps "
+            f"per task per trial, {config.space.n_reservoirs} reservoir(s), "
+            f"{config.search.sampler} sampler, {config.search.n_trials} trials",
+            flush=True,
+        )
+        for t in gen.tasks:
+            print(
+                f"  {t.task.label}: R_random {t.random_return:.4g}, R_target "
+                f"{t.target_return:.4g} ({gen.target_column}), n_envs {t.ppo.n_envs}",
+                flush=True,
+            )
+    try:
+        summary = run_evolution(
+            config,
+            study,
+            quiet=args.quiet,
+            evaluate=generalization_evaluator(config, quiet=args.quiet),
+            **run_kwargs,
+        )
+    except Interrupted as err:
+        print(
+            f"{prog}: stopped by {err.args[0]}; the running trial was closed as FAIL "
+            "and queued again",
+            file=sys.stderr,
+        )
+        return EXIT_TERMINATED
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted; the running trial was closed as FAIL", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    if not args.quiet:
+        best = (
+            "none yet"
+            if summary.best_value is None
+            else f"{summary.best_value:.4g} with {format_params(summary.best_params or {})}"
+        )
+        print(
+            f"done: this worker ran {summary.trials_run} trials ({summary.completed} complete, "
+            f"{summary.pruned} pruned, {summary.failed} failed); best normalized fitness {best}\n"
+            f"next: test_generalization.py --study-name {shlex.quote(study_name)} "
+            f"--storage {shlex.quote(args.storage)} --env-id {_suggested_test_env(config)}",
+            flush=True,
+        )
+    return 0
+
+
+# -- test-generalization ------------------------------------------------------------------------
+
+
+def build_test_generalization_parser(prog: str = "ermrl test-generalization") -> ArgumentParser:
+    parser = ArgumentParser(prog=prog, description=TEST_DESCRIPTION, formatter_class=HelpFormatter)
+    add_storage_args(parser, study_required=True)
+    parser.add_argument(
+        "--env-id", required=True, help="the test task, e.g. HalfCheetah-v5 (one outside the set)"
+    )
+    parser.add_argument(
+        "--observe",
+        choices=("all", "positions", "velocities"),
+        default=None,
+        help="observation mask of the test task (default: the study's)",
+    )
+    parser.add_argument(
+        "--training-steps",
+        type=positive_int,
+        default=1_000_000,
+        help="env steps per run (paper: 1000000)",
+    )
+    parser.add_argument(
+        "--seeds",
+        nargs="+",
+        type=nonneg_int,
+        default=None,
+        help="test seeds (default: 5 seeds after the largest seed evolution trained on)",
+    )
+    parser.add_argument(
+        "--agents",
+        nargs="+",
+        choices=("ppo", "res-ppo", "random-res-ppo"),
+        default=["ppo", "res-ppo", "random-res-ppo"],
+        help="agents to train",
+    )
+    parser.add_argument(
+        "--out", default=None, help="output folder (default: runs/<study name>__<env id>)"
+    )
+    parser.add_argument(
+        "--trial",
+        type=nonneg_int,
+        default=None,
+        help="test this trial's reservoirs instead of the best ones",
+    )
+    parser.add_argument(
+        "--n-procs", type=positive_int, default=1, help="runs trained in parallel processes"
+    )
+    parser.add_argument(
+        "--eval",
+        action=argparse.BooleanOptionalAction,
+        default=False,
+        help="also run deterministic evaluation episodes after training",
+    )
+    parser.add_argument(
+        "--n-eval-episodes", type=positive_int, default=10, help="evaluation episodes with --eval"
+    )
+    parser.add_argument(
+        "--ppo",
+        nargs="+",
+        default=[],
+        metavar="KEY=VALUE",
+        help="PPO overrides on top of the table's and the study's, e.g. --ppo learning_rate=1e-4",
+    )
+    parser.add_argument(
+        "--n-envs",
+        type=positive_int,
+        default=None,
+        help="environments per agent (default: the study's --n-envs, else the PPO table's)",
+    )
+    parser.add_argument(
+        "--hyperparams",
+        default=None,
+        metavar="YAML",
+        help="PPO table keyed by env id (default: the study's, else ermrl/data/ppo.yml)",
+    )
+    parser.add_argument(
+        "--scores",
+        default=None,
+        metavar="CSV",
+        help="reference table for the normalized returns (default: the study's)",
+    )
+    parser.add_argument(
+        "--save-models",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="save each trained model as model.zip",
+    )
+    parser.add_argument(
+        "--overwrite", action="store_true", help="retrain runs that already have results"
+    )
+    parser.add_argument("--quiet", action="store_true", help="no progress lines")
+    return parser
+
+
+def _evolution_env_ids(config: EvolveConfig) -> tuple[str, ...]:
+    if config.generalization is not None:
+        return config.generalization.env_ids
+    return (config.problem.task.env_id,)
+
+
+def overlap_warning(env_id: str, evolution_ids: Sequence[str], study_name: str) -> str | None:
+    """The WARNING text when the test env (or another version of it) was an evolution task."""
+    from ermrl.search._scores import env_family
+
+    listed = ", ".join(evolution_ids)
+    if env_id in evolution_ids:
+        return (
+            f"WARNING: {env_id} was one of the evolution tasks of study {study_name!r} "
+            f"({listed}): this is NOT a generalization test"
+        )
+    same_body = [e for e in evolution_ids if env_family(e) == env_family(env_id)]
+    if same_body:
+        return (
+            f"WARNING: {env_id} is another version of evolution task {same_body[0]} of study "
+            f"{study_name!r} ({listed}): this is NOT a test on an unseen body"
+        )
+    return None
+
+
+def _shout(message: str) -> None:
+    bar = "!" * min(len(message), 100)
+    print(f"{bar}\n{message}\n{bar}", file=sys.stderr, flush=True)
+
+
+def _test_ppo(config: EvolveConfig, env_id: str, args: argparse.Namespace) -> PPOConfig:
+    """PPO settings of the test env: the study's for an evolution task, else table + overrides."""
+    from ermrl.agents import parse_overrides, resolve_ppo_config
+
+    cli = parse_overrides(args.ppo)
+    gen = config.generalization
+    known: PPOConfig | None = None
+    if gen is not None:
+        known = next((t.ppo for t in gen.tasks if t.task.env_id == env_id), None)
+    elif config.problem.task.env_id == env_id:
+        known = config.problem.ppo
+    if known is not None and args.n_envs is None and args.hyperparams is None:
+        return dataclasses.replace(known, hyperparams={**known.hyperparams, **cli})
+    study_overrides = dict(gen.ppo_overrides) if gen is not None else {}
+    n_envs = args.n_envs if args.n_envs is not None else (gen.n_envs if gen is not None else None)
+    table = args.hyperparams or (gen.hyperparams if gen is not None else None)
+    return resolve_ppo_config(
+        env_id,
+        {**study_overrides, **cli},
+        n_envs=n_envs,
+        table_path=table,
+        torch_threads=config.problem.ppo.torch_threads,
+    )
+
+
+def _normalize_summary(summary: Any, out: Path, reference: tuple[float, float] | None) -> Any:
+    """Add normalized-return columns to ``summary.csv`` when the env has reference scores."""
+    from ermrl.analysis import write_atomic
+
+    if reference is None or summary.empty:
+        return summary
+    random_return, target_return = reference
+    scale = target_return - random_return
+    summary = summary.copy()
+    summary["final_return_normalized_mean"] = (summary["final_return_mean"] - random_return) / scale
+    summary["final_return_normalized_std"] = summary["final_return_std"] / abs(scale)
+    write_atomic(out / "summary.csv", summary.to_csv(index=False))
+    return summary
+
+
+def test_generalization_main(
+    argv: Sequence[str] | None = None, prog: str = "ermrl test-generalization"
+) -> int:
+    """Entry point of ``ermrl test-generalization`` and ``test_generalization.py``."""
+    from ermrl.envs import (
+        UnknownEnvError,
+        UnsupportedObserveError,
+        check_env_id,
+        observation_indices,
+    )
+    from ermrl.experiments import (
+        AgentSpec,
+        TestSettings,
+        default_test_seeds,
+        run_comparison,
+        study_reservoirs,
+    )
+    from ermrl.search import study_config
+    from ermrl.search._scores import load_scores, reference_returns
+    from ermrl.storage import StorageError, StudyNotFound, load_study
+
+    parser = build_test_generalization_parser(prog)
+    quiet_libraries()
+    args = parser.parse_args(argv)
+    warning: str | None = None
+    try:
+        study = load_study(args.study_name, args.storage)
+        config = study_config(study)
+        problem = config.problem
+        gen = config.generalization
+        observe = args.observe or problem.task.observe
+        check_env_id(args.env_id)
+        observation_indices(args.env_id, observe)
+        evolution_ids = _evolution_env_ids(config)
+        warning = overlap_warning(args.env_id, evolution_ids, args.study_name)
+        seeds = tuple(args.seeds) if args.seeds else default_test_seeds(problem.seeds)
+        reused = sorted(set(seeds) & set(problem.seeds))
+        if reused:
+            warnings.warn(
+                f"test seeds {reused} were also used by evolution; results on them are not "
+                "independent of the selection",
+                stacklevel=1,
+            )
+        seeds = select_seeds(seeds, os.environ.get("SLURM_ARRAY_TASK_ID"))
+        agents = []
+        params: dict[str, float] = {}
+        trial_number = None
+        if "res-ppo" in args.agents:
+            params, reservoirs, trial_number = study_reservoirs(study, config, args.trial)
+        for name in args.agents:
+            if name == "ppo":
+                agents.append(AgentSpec("ppo", None))
+            elif name == "res-ppo":
+                agents.append(AgentSpec("res-ppo", reservoirs))
+            else:
+                agents.append(AgentSpec("random-res-ppo", config.space.default_reservoirs()))
+        ppo = _test_ppo(config, args.env_id, args)
+        task = dataclasses.replace(problem.task, env_id=args.env_id, observe=observe)
+        out = Path(args.out) if args.out else Path("runs") / f"{args.study_name}__{args.env_id}"
+        settings = TestSettings(
+            training_steps=args.training_steps,
+            seeds=seeds,
+            out=out,
+            n_procs=args.n_procs,
+            evaluate=args.eval,
+            n_eval_episodes=args.n_eval_episodes,
+            n_last_episodes=problem.budget.n_last_episodes,
+            save_models=args.save_models,
+            overwrite=args.overwrite,
+        )
+        scores = args.scores
+        if scores is None and gen is not None and gen.scores != "packaged":
+            scores = gen.scores if Path(gen.scores).exists() else None
+        target_column = gen.target_column if gen is not None else "target"
+        table = load_scores(scores)
+        try:
+            reference: tuple[float, float] | None = reference_returns(
+                args.env_id, table, target_column=target_column, path=scores
+            )
+        except ConfigError:
+            reference = None
+    except (
+        ConfigError,
+        StorageError,
+        StudyNotFound,
+        UnknownEnvError,
+        UnsupportedObserveError,
+    ) as err:
+        fail(prog, str(err))
+    if warning:
+        _shout(warning)
+    if not args.quiet:
+        best = (
+            f"trial {trial_number} ({', '.join(f'{k}={v:.3g}' for k, v in params.items())})"
+            if trial_number is not None
+            else "-"
+        )
+        print(
+            f"generalization test of {args.study_name!r} (evolved on {', '.join(evolution_ids)}) "
+            f"on {task.label}: agents {' '.join(args.agents)}, seeds {' '.join(map(str, seeds))}, "
+            f"{args.training_steps} steps each; reservoirs: {best}; out: {out}",
+            flush=True,
+        )
+    metadata = {
+        "study_name": args.study_name,
+        "storage": args.storage,
+        "trial": trial_number,
+        "params": params,
+        "evolution_env_ids": list(evolution_ids),
+        "evolution_suite": gen.suite if gen is not None else None,
+        "test_env_id": args.env_id,
+        "in_evolution_set": args.env_id in evolution_ids,
+        "reference_returns": None
+        if reference is None
+        else {"random": reference[0], "target": reference[1], "column": target_column},
+    }
+    try:
+        summary = run_comparison(
+            task,
+            problem.encoder,
+            ppo,
+            agents,
+            settings,
+            metadata=metadata,
+            quiet=args.quiet,
+        )
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted; finished runs are kept in {out}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    summary = _normalize_summary(summary, out, reference)
+    if not args.quiet:
+        print(
+            summary.drop(columns=["seeds"]).to_string(
+                index=False, float_format=lambda v: f"{v:.4g}"
+            )
+        )
+        if reference is None:
+            print(f"note: no reference scores for {args.env_id}: summary.csv has raw returns only")
+        print(f"wrote {out}/summary.csv, curves.csv, learning_curves.png", flush=True)
+        if warning:  # again, below the progress lines
+            _shout(warning)
+    return 0
+
+
+test_generalization_main.__test__ = False  # type: ignore[attr-defined]  # not a pytest test

@@ -1,0 +1,436 @@
+"""Multi-task fitness: evolve one set of reservoirs on several tasks (the generalization question).
+
+A candidate (the hyperparameters of ``K`` reservoirs) is trained on every task of the set, once
+per seed. Its fitness is the mean over tasks of the normalized return
+
+    (R_task - R_random) / (R_target - R_random),
+
+where ``R_task`` is the task's return averaged over seeds (see :mod:`ermrl.search._scores` for
+the references). 0 means "as good as a random policy" and 1 "as good as the target".
+
+"The same reservoir" on two tasks means: the same hyperparameters (``sr``, ``lr``,
+``input_scaling`` per reservoir) and, for a given training seed, the same recurrent matrix ``W``
+and bias. Only the input matrix ``Win`` differs, because its shape ``(units, obs + action + 1)``
+depends on the task; it is drawn from the same seed (reservoirpy spawns separate generators
+for ``Win``, ``W`` and the bias, so ``W`` does not depend on the input size).
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, TextIO
+
+import numpy as np
+import optuna
+
+from ermrl.agents import RunResult, train_agent
+from ermrl.config import (
+    BudgetConfig,
+    ConfigError,
+    EncoderConfig,
+    EvolveConfig,
+    GeneralizationConfig,
+    GeneralizationTask,
+    Problem,
+    ReservoirParams,
+    ReservoirSpace,
+    SearchConfig,
+    TaskConfig,
+    to_dict,
+)
+from ermrl.search._evolve import STUDY_CONFIG_ATTR, EvaluateFn, create_or_resume_study
+from ermrl.search._objective import FitnessResult, SeedRunner, _finite_or_none, library_versions
+from ermrl.search._scores import load_scores, reference_returns
+
+__all__ = [
+    "GeneralizationFitness",
+    "TaskOutcome",
+    "create_or_resume_generalization_study",
+    "evaluate_generalization",
+    "generalization_config",
+    "generalization_evaluator",
+    "generalization_study_name",
+    "generalization_tasks",
+]
+
+ReportFn = Callable[[int, float], None]
+
+
+@dataclass
+class TaskOutcome:
+    """What one task contributed to a candidate's fitness.
+
+    Attributes:
+        spec: The task and its references.
+        runs: One run per seed, in seed order.
+        mode: The fitness measure (``last`` or ``eval``).
+    """
+
+    spec: GeneralizationTask
+    runs: list[RunResult]
+    mode: str
+
+    @property
+    def env_id(self) -> str:
+        return self.spec.task.env_id
+
+    @property
+    def seed_returns(self) -> list[float]:
+        """Each seed's return under the fitness measure."""
+        return [r.fitness(self.mode) for r in self.runs]
+
+    @property
+    def mean_return(self) -> float:
+        """The task's raw return: the mean over seeds."""
+        return float(np.mean(self.seed_returns))
+
+    @property
+    def normalized(self) -> float:
+        """``(mean_return - R_random) / (R_target - R_random)``."""
+        return self.spec.normalize(self.mean_return)
+
+
+@dataclass
+class GeneralizationFitness(FitnessResult):
+    """The multi-task fitness of one candidate: the mean normalized return over tasks.
+
+    Attributes:
+        tasks: One :class:`TaskOutcome` per task, in the task set's order.
+    """
+
+    tasks: list[TaskOutcome] = field(default_factory=list)
+
+    def user_attrs(self) -> dict[str, Any]:
+        """JSON-friendly per-trial record, keyed by env id for each per-task value.
+
+        Keys: ``fitness`` (mean normalized return), ``tasks`` (env ids in order),
+        ``task_returns`` ({env_id: raw return, mean over seeds}), ``task_normalized``
+        ({env_id: normalized return}), ``task_seed_returns`` ({env_id: [raw return per seed]}),
+        ``task_random_returns`` / ``task_target_returns`` (the references), ``task_n_episodes``,
+        ``task_env_steps``, plus ``fitness_mode``, ``seeds``, ``env_steps``, ``wall_seconds``,
+        ``steps_per_second`` and ``versions``.
+        """
+        return {
+            "fitness": _finite_or_none(self.fitness),
+            "fitness_mode": self.mode,
+            "seeds": [r.seed for r in self.tasks[0].runs] if self.tasks else [],
+            "tasks": [t.env_id for t in self.tasks],
+            "task_returns": {t.env_id: _finite_or_none(t.mean_return) for t in self.tasks},
+            "task_normalized": {t.env_id: _finite_or_none(t.normalized) for t in self.tasks},
+            "task_seed_returns": {
+                t.env_id: [_finite_or_none(v) for v in t.seed_returns] for t in self.tasks
+            },
+            "task_random_returns": {t.env_id: t.spec.random_return for t in self.tasks},
+            "task_target_returns": {t.env_id: t.spec.target_return for t in self.tasks},
+            "task_n_episodes": {
+                t.env_id: [len(r.episode_returns) for r in t.runs] for t in self.tasks
+            },
+            "task_env_steps": {t.env_id: sum(r.env_steps for r in t.runs) for t in self.tasks},
+            "env_steps": self.env_steps,
+            "wall_seconds": round(self.wall_seconds, 3),
+            "steps_per_second": round(self.steps_per_second, 1),
+            "versions": library_versions(),
+        }
+
+    def describe(self) -> str:
+        """One line per trial: each task's raw and normalized return."""
+        return " | ".join(
+            f"{t.env_id}: {t.mean_return:.4g} (norm {t.normalized:.3g})" for t in self.tasks
+        )
+
+
+def evaluate_generalization(
+    reservoirs: Sequence[ReservoirParams] | None,
+    problem: Problem,
+    tasks: Sequence[GeneralizationTask],
+    *,
+    runner: SeedRunner | None = None,
+    report: ReportFn | None = None,
+) -> GeneralizationFitness:
+    """Train one PPO agent per (task, seed) with the same reservoirs; return the mean normalized return.
+
+    Args:
+        reservoirs: Hyperparameters of each reservoir; ``None`` trains plain PPO.
+        problem: Shared encoding options, budget and seeds (its ``task`` and ``ppo`` are
+            ignored: each task brings its own).
+        tasks: The tasks with their PPO settings and reference returns.
+        runner: Where the runs go (a pool trains all tasks' seeds in parallel).
+        report: Intermediate normalized returns for pruning, ``report(step, value)``; steps are
+            counted across tasks then seeds (task ``i``, seed ``j`` starts at
+            ``(i * n_seeds + j) * training_steps``). Used only when runs stay in this process.
+
+    Returns:
+        The fitness, with every run and per-task values.
+    """
+    if not tasks:
+        raise ConfigError("a generalization problem needs at least one task")
+    encoder: EncoderConfig | None = (
+        None if reservoirs is None else problem.encoder.with_reservoirs(tuple(reservoirs))
+    )
+    budget = problem.budget
+    start = time.perf_counter()
+    runner = runner or SeedRunner(1)
+    n_seeds = len(problem.seeds)
+    if report is not None and runner.n_procs == 1:
+        per_task: list[list[RunResult]] = []
+        for i, spec in enumerate(tasks):
+            runs = []
+            for j, seed in enumerate(problem.seeds):
+                offset = (i * n_seeds + j) * budget.training_steps
+
+                def run_report(
+                    step: int, value: float, offset: int = offset, spec: GeneralizationTask = spec
+                ) -> None:
+                    report(offset + step, spec.normalize(value))
+
+                runs.append(
+                    train_agent(spec.task, encoder, spec.ppo, budget, seed, report=run_report)
+                )
+            per_task.append(runs)
+    else:
+        args = [
+            (spec.task, encoder, spec.ppo, budget, seed) for spec in tasks for seed in problem.seeds
+        ]
+        flat = runner.map(args)
+        per_task = [flat[i * n_seeds : (i + 1) * n_seeds] for i in range(len(tasks))]
+    outcomes = [TaskOutcome(spec, runs, budget.fitness) for spec, runs in zip(tasks, per_task)]
+    fitness = float(np.mean([o.normalized for o in outcomes]))
+    return GeneralizationFitness(
+        fitness=fitness,
+        mode=budget.fitness,
+        runs=[r for runs in per_task for r in runs],
+        wall_seconds=time.perf_counter() - start,
+        tasks=outcomes,
+    )
+
+
+def generalization_evaluator(
+    config: EvolveConfig, *, quiet: bool = False, stream: TextIO | None = None
+) -> EvaluateFn:
+    """The ``evaluate`` hook of :func:`~ermrl.search.run_evolution` for a multi-task config.
+
+    Args:
+        config: A config with ``generalization`` set.
+        quiet: No per-task progress line.
+        stream: Where the per-task line goes (default ``sys.stdout``).
+
+    Raises:
+        ConfigError: the config has no task set.
+    """
+    if config.generalization is None:
+        raise ConfigError("this configuration has no generalization task set")
+    tasks = config.generalization.tasks
+
+    def evaluate(
+        reservoirs: tuple[ReservoirParams, ...], runner: SeedRunner, report: ReportFn | None
+    ) -> FitnessResult:
+        result = evaluate_generalization(
+            reservoirs, config.problem, tasks, runner=runner, report=report
+        )
+        if not quiet:
+            print(f"  {result.describe()}", file=stream or sys.stdout, flush=True)
+        return result
+
+    return evaluate
+
+
+def generalization_tasks(
+    env_ids: Sequence[str],
+    *,
+    observe: str = "all",
+    ppo_overrides: Mapping[str, Any] | None = None,
+    n_envs: int | None = None,
+    hyperparams: str | None = None,
+    torch_threads: int = 1,
+    scores: str | None = None,
+    target_column: str = "target",
+) -> tuple[GeneralizationTask, ...]:
+    """Validate env ids and attach each one's PPO settings and reference returns.
+
+    Args:
+        env_ids: The task set (distinct registered ids).
+        observe: Observation mask applied to every task.
+        ppo_overrides: ``--ppo`` overrides on top of each env's PPO table entry.
+        n_envs: Explicit environments per agent (``None``: the table's value per env).
+        hyperparams: Alternative PPO table.
+        torch_threads: Torch threads per training process.
+        scores: Reference table (``None``: the packaged ``ermrl/data/scores.csv``).
+        target_column: ``target`` or ``provisional_target``.
+
+    Raises:
+        ConfigError: an empty or repeated task set, or a missing reference score.
+        UnknownEnvError: an unregistered id.
+        UnsupportedObserveError: a mask the env does not support.
+    """
+    from ermrl.agents import resolve_ppo_config
+    from ermrl.envs import check_env_id, observation_indices
+
+    if not env_ids:
+        raise ConfigError("the task set is empty: give --env-ids or --suite")
+    repeated = sorted({e for e in env_ids if list(env_ids).count(e) > 1})
+    if repeated:
+        raise ConfigError(f"each task may appear once; repeated: {', '.join(repeated)}")
+    for env_id in env_ids:
+        check_env_id(env_id)
+        observation_indices(env_id, observe)  # type: ignore[arg-type]
+    table = load_scores(scores)
+    out = []
+    for env_id in env_ids:
+        random_return, target_return = reference_returns(
+            env_id, table, target_column=target_column, path=scores
+        )
+        ppo = resolve_ppo_config(
+            env_id,
+            ppo_overrides,
+            n_envs=n_envs,
+            table_path=hyperparams,
+            torch_threads=torch_threads,
+        )
+        out.append(
+            GeneralizationTask(
+                task=TaskConfig(env_id=env_id, observe=observe),  # type: ignore[arg-type]
+                ppo=ppo,
+                random_return=random_return,
+                target_return=target_return,
+            )
+        )
+    return tuple(out)
+
+
+def generalization_config(
+    tasks: Sequence[GeneralizationTask],
+    *,
+    encoder: EncoderConfig,
+    budget: BudgetConfig,
+    seeds: Sequence[int],
+    space: ReservoirSpace,
+    search: SearchConfig,
+    n_procs: int = 1,
+    suite: str | None = None,
+    scores: str | None = None,
+    target_column: str = "target",
+    ppo_overrides: Mapping[str, Any] | None = None,
+    n_envs: int | None = None,
+    hyperparams: str | None = None,
+) -> EvolveConfig:
+    """The configuration of a multi-task evolution.
+
+    The result's ``problem`` holds the shared encoder, budget and seeds; its ``task`` and
+    ``ppo`` are the first task's, so code that reads a single-task config still finds a valid
+    one. ``generalization`` holds every task with its PPO settings and reference returns.
+
+    Args:
+        tasks: From :func:`generalization_tasks`.
+        encoder: Encoding options shared by all tasks.
+        budget: Training budget per (task, seed).
+        seeds: Training seeds, the same on every task.
+        space: The evolved search space.
+        search: The sampler and trial budget.
+        n_procs: Processes that train a trial's runs in parallel.
+        suite: The suite name, if the tasks come from one.
+        scores: The reference table used (``None``: the packaged one).
+        target_column: The table column used as R_target.
+        ppo_overrides: The ``--ppo`` overrides (kept to configure a test env the same way).
+        n_envs: Explicit ``--n-envs``.
+        hyperparams: The PPO table used (``None``: the packaged one).
+    """
+    if not tasks:
+        raise ConfigError("the task set is empty: give --env-ids or --suite")
+    problem = Problem(
+        task=tasks[0].task,
+        encoder=encoder,
+        ppo=tasks[0].ppo,
+        budget=budget,
+        seeds=tuple(seeds),
+    )
+    return EvolveConfig(
+        problem=problem,
+        space=space,
+        search=search,
+        n_procs=n_procs,
+        generalization=GeneralizationConfig(
+            tasks=tuple(tasks),
+            suite=suite,
+            scores="packaged" if scores is None else str(scores),
+            target_column=target_column,
+            ppo_overrides=dict(ppo_overrides or {}),
+            n_envs=n_envs,
+            hyperparams=hyperparams,
+        ),
+    )
+
+
+def generalization_study_name(config: EvolveConfig) -> str:
+    """Default study name: ``gen__<suite or ids>__<observe>__<steps>steps[__<K>res]``."""
+    if config.generalization is None:
+        return config.default_study_name
+    gen = config.generalization
+    what = gen.suite or "+".join(gen.env_ids)
+    parts = [
+        "gen",
+        what,
+        config.problem.task.observe,
+        f"{config.problem.budget.training_steps}steps",
+    ]
+    if config.space.n_reservoirs > 1:
+        parts.append(f"{config.space.n_reservoirs}res")
+    return "__".join(parts)
+
+
+def create_or_resume_generalization_study(
+    config: EvolveConfig,
+    storage_url: str,
+    study_name: str,
+    *,
+    command: str | None = None,
+    **kwargs: Any,
+) -> optuna.Study:
+    """:func:`~ermrl.search.create_or_resume_study` for a multi-task config.
+
+    Beyond the problem and the search space, a resumed study must have the same task set,
+    PPO settings per task, reference returns, target column and ``--ppo``/``--n-envs`` options
+    (the paths of the score table and PPO table may differ).
+
+    Raises:
+        ConfigError: the study exists with another configuration.
+        StorageError: the storage cannot be opened.
+    """
+    if config.generalization is None:
+        raise ConfigError("this configuration has no generalization task set")
+    study = create_or_resume_study(
+        config, storage_url, study_name, command=command, kind="evolve-generalization", **kwargs
+    )
+    stored = (study.user_attrs.get(STUDY_CONFIG_ATTR) or {}).get("generalization")
+    if stored is None:
+        raise ConfigError(
+            f"study {study_name!r} already exists and is not a generalization study; "
+            "pick another --study-name"
+        )
+    # The table and PPO-file paths are provenance only: their values are compared per task.
+    provenance = ("scores", "hyperparams")
+    new = {k: v for k, v in to_dict(config.generalization).items() if k not in provenance}
+    old = {k: v for k, v in stored.items() if k not in provenance}
+    diffs = _diff(new, old, "generalization")
+    if diffs:
+        raise ConfigError(
+            f"study {study_name!r} already exists with another configuration ("
+            + "; ".join(diffs[:4])
+            + (" ..." if len(diffs) > 4 else "")
+            + "); pick another --study-name"
+        )
+    return study
+
+
+def _diff(a: Any, b: Any, path: str) -> list[str]:
+    """Differences between two JSON-like values, recursing into dicts and lists."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        out = []
+        for key in sorted(set(a) | set(b)):
+            out += _diff(a.get(key), b.get(key), f"{path}.{key}")
+        return out
+    if isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
+        return [d for i, (x, y) in enumerate(zip(a, b)) for d in _diff(x, y, f"{path}[{i}]")]
+    return [] if a == b else [f"{path}: {b!r} in the study, {a!r} now"]
