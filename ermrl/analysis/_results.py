@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import tempfile
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -21,10 +22,14 @@ __all__ = [
     "curves_on_grid",
     "summarize",
     "write_atomic",
+    "load_run_config",
+    "t_quantile",
 ]
 
 RUNS_DIR = "agents"
 CURVE_COLUMNS = ["agent", "seed", "env_step", "episode_return"]
+GRID_COLUMNS = ["agent", "env_step", "mean", "std", "sem", "ci95", "n_seeds"]
+CONFIG_FILE = "config.yaml"
 
 
 def run_dir(out: str | Path, agent: str, seed: int) -> Path:
@@ -109,11 +114,14 @@ def curves_on_grid(
         smooth_episodes: Trailing window of the smoothing.
 
     Returns:
-        Columns ``agent, env_step, mean, std, n_seeds`` (grid points before a run's first
-        episode do not count for that run).
+        Columns ``agent, env_step, mean, std, sem, ci95, n_seeds``: ``std`` is the sample
+        standard deviation across seeds (``ddof=1``; 0 with one seed), ``sem`` the standard error
+        of the mean and ``ci95`` the half-width of the Student-t 95% confidence interval of the
+        mean (NaN with one seed). Grid points before a run's first episode do not count for
+        that run.
     """
     if curves.empty:
-        return pd.DataFrame(columns=["agent", "env_step", "mean", "std", "n_seeds"])
+        return pd.DataFrame(columns=GRID_COLUMNS)
     grid = np.unique(
         np.linspace(curves["env_step"].min(), curves["env_step"].max(), n_points).astype(np.int64)
     )
@@ -128,22 +136,45 @@ def curves_on_grid(
             per_seed.append(values)
         stack = np.vstack(per_seed)
         counts = np.sum(~np.isnan(stack), axis=0)
-        with np.errstate(all="ignore"):
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
             mean = np.nanmean(np.where(counts > 0, stack, 0.0), axis=0)
-            std = np.nanstd(np.where(counts > 0, stack, 0.0), axis=0)
-        for step, m, s, c in zip(grid, mean, std, counts):
+            std = np.nanstd(np.where(counts > 0, stack, 0.0), axis=0, ddof=1)
+        std = np.where(counts > 1, std, 0.0)
+        sem = np.where(counts > 1, std / np.sqrt(np.maximum(counts, 1)), np.nan)
+        ci95 = sem * t_quantile(counts - 1)
+        for step, m, s, e, h, c in zip(grid, mean, std, sem, ci95, counts):
             if c > 0:
                 rows.append(
-                    {"agent": agent, "env_step": int(step), "mean": m, "std": s, "n_seeds": int(c)}
+                    {
+                        "agent": agent,
+                        "env_step": int(step),
+                        "mean": m,
+                        "std": s,
+                        "sem": e,
+                        "ci95": h,
+                        "n_seeds": int(c),
+                    }
                 )
-    return pd.DataFrame(rows)
+    return pd.DataFrame(rows, columns=GRID_COLUMNS)
+
+
+def t_quantile(dof: np.ndarray | int, confidence: float = 0.95) -> np.ndarray:
+    """Two-sided Student-t quantile for ``dof`` degrees of freedom (NaN where ``dof < 1``)."""
+    from scipy import stats
+
+    dof_arr = np.asarray(dof, dtype=float)
+    with np.errstate(all="ignore"):
+        q = stats.t.ppf(0.5 + confidence / 2, np.where(dof_arr >= 1, dof_arr, 1.0))
+    return np.where(dof_arr >= 1, q, np.nan)
 
 
 def summarize(results: pd.DataFrame, agents: Sequence[str] | None = None) -> pd.DataFrame:
     """Final returns per agent: ``agent, n_seeds, final_return_mean, final_return_std, ...``.
 
     The final return of a run is the mean return of its last training episodes (the fitness
-    measure of evolution); with evaluation episodes, their mean is summarized too.
+    measure of evolution); with evaluation episodes, their mean is summarized too. Standard
+    deviations are sample standard deviations across seeds (``ddof=1``; 0 with one seed).
     """
     columns = [
         "agent",
@@ -171,10 +202,30 @@ def summarize(results: pd.DataFrame, agents: Sequence[str] | None = None) -> pd.
                 "agent": agent,
                 "n_seeds": len(group),
                 "final_return_mean": final.mean(),
-                "final_return_std": final.std(ddof=0),
+                "final_return_std": final.std(ddof=1) if len(final) > 1 else 0.0,
                 "eval_return_mean": evals.mean() if evals.notna().any() else np.nan,
-                "eval_return_std": evals.std(ddof=0) if evals.notna().any() else np.nan,
+                "eval_return_std": (
+                    (evals.std(ddof=1) if evals.notna().sum() > 1 else 0.0)
+                    if evals.notna().any()
+                    else np.nan
+                ),
                 "seeds": " ".join(str(s) for s in sorted(group["seed"])),
             }
         )
     return pd.DataFrame(rows, columns=columns)
+
+
+def load_run_config(out: str | Path) -> dict[str, Any]:
+    """The ``config.yaml`` of a test-phase folder (task, encoder, agents, study, ...).
+
+    Raises:
+        FileNotFoundError: ``out`` has no ``config.yaml`` (not a test-phase folder).
+    """
+    import yaml
+
+    path = Path(out) / CONFIG_FILE
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"{path} not found: {out} is not a test-phase folder (made by `ermrl test --out`)"
+        )
+    return dict(yaml.safe_load(path.read_text()) or {})

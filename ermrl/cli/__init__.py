@@ -15,9 +15,25 @@ __all__ = ["main", "evolve_main", "test_main", "COMMANDS"]
 # name -> ("module:function", one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "evolve": ("ermrl.cli._evolve:evolve_main", "evolve reservoirs for one task (evolve_res.py)"),
+    "study": ("ermrl.cli._study:study_main", "create, list, show, export, delete, fail-stale"),
     "test": (
         "ermrl.cli._test:test_main",
         "train the best reservoir against PPO baselines (test.py)",
+    ),
+    "report": ("ermrl.cli._report:report_main", "figures, tables and report.md of a study"),
+    "dynamics": ("ermrl.cli._dynamics:dynamics_main", "reservoir states and spectra of an episode"),
+    "video": ("ermrl.cli._video:video_main", "MP4/GIF of a trained agent's episode (headless)"),
+    "evolve-generalization": (
+        "ermrl.cli._generalization:evolve_generalization_main",
+        "evolve reservoirs on a set of tasks (evolve_generalization.py)",
+    ),
+    "test-generalization": (
+        "ermrl.cli._generalization:test_generalization_main",
+        "test evolved reservoirs on another task (test_generalization.py)",
+    ),
+    "scores": (
+        "ermrl.cli._scores:scores_main",
+        "measure random-policy returns for the normalized fitness",
     ),
 }
 

@@ -99,6 +99,13 @@ def build_test_parser(prog: str = "ermrl test") -> ArgumentParser:
     parser.add_argument(
         "--overwrite", action="store_true", help="retrain runs that already have results"
     )
+    parser.add_argument(
+        "--tensorboard",
+        default=None,
+        metavar="DIR",
+        help="also log training curves for TensorBoard under DIR/<agent>/seed_<s> "
+        "(needs: pip install tensorboard)",
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
     return parser
 
@@ -139,9 +146,23 @@ def test_main(argv: Sequence[str] | None = None, prog: str = "ermrl test") -> in
     parser = build_test_parser(prog)
     quiet_libraries()
     args = parser.parse_args(argv)
+    if args.tensorboard:
+        import importlib.util
+
+        if importlib.util.find_spec("tensorboard") is None:
+            fail(
+                prog,
+                "--tensorboard needs the tensorboard package, which is not installed "
+                "(pip install tensorboard)",
+            )
     try:
         study = load_study(args.study_name, args.storage)
         config = study_config(study)
+        if getattr(config, "generalization", None) is not None:
+            raise ConfigError(
+                f"study {args.study_name!r} evolved on several tasks; test it on an unseen task "
+                "with test_generalization.py --env-id ENV"
+            )
         problem = config.problem
         seeds = tuple(args.seeds) if args.seeds else default_test_seeds(problem.seeds)
         reused = sorted(set(seeds) & set(problem.seeds))
@@ -177,6 +198,7 @@ def test_main(argv: Sequence[str] | None = None, prog: str = "ermrl test") -> in
             n_last_episodes=problem.budget.n_last_episodes,
             save_models=args.save_models,
             overwrite=args.overwrite,
+            tensorboard=Path(args.tensorboard) if args.tensorboard else None,
         )
     except (ConfigError, StorageError, StudyNotFound) as err:
         fail(prog, str(err))

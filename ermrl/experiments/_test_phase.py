@@ -85,6 +85,8 @@ class TestSettings:
         n_last_episodes: Training episodes averaged into a run's final return.
         save_models: Save each trained model as ``model.zip`` in its run folder.
         overwrite: Retrain runs that already have results (default: skip them, i.e. resume).
+        tensorboard: Log training curves for TensorBoard under ``<tensorboard>/<agent>/seed_<s>``
+            (needs the ``tensorboard`` package).
     """
 
     __test__ = False  # not a pytest test class
@@ -98,6 +100,7 @@ class TestSettings:
     n_last_episodes: int = 10
     save_models: bool = True
     overwrite: bool = False
+    tensorboard: Path | None = None
 
     def __post_init__(self) -> None:
         if self.training_steps < 1:
@@ -139,8 +142,17 @@ def study_reservoirs(
 
 
 def _train_job(args: tuple[Any, ...]) -> RunResult:
-    task, encoder, ppo, budget, seed, evaluate, model_path = args
-    return train_agent(task, encoder, ppo, budget, seed, evaluate=evaluate, model_path=model_path)
+    task, encoder, ppo, budget, seed, evaluate, model_path, tensorboard_log = args
+    return train_agent(
+        task,
+        encoder,
+        ppo,
+        budget,
+        seed,
+        evaluate=evaluate,
+        model_path=model_path,
+        tensorboard_log=tensorboard_log,
+    )
 
 
 def _say(stream: TextIO | None, quiet: bool, line: str) -> None:
@@ -207,8 +219,13 @@ def run_comparison(
             folder.mkdir(parents=True, exist_ok=True)
             enc = None if agent.reservoirs is None else encoder.with_reservoirs(agent.reservoirs)
             model_path = str(folder / "model.zip") if settings.save_models else None
+            tb_log = (
+                None
+                if settings.tensorboard is None
+                else str(Path(settings.tensorboard) / agent.name / f"seed_{seed}")
+            )
             jobs.append(
-                (agent, seed, (task, enc, ppo, budget, seed, settings.evaluate, model_path))
+                (agent, seed, (task, enc, ppo, budget, seed, settings.evaluate, model_path, tb_log))
             )
 
     started = time.perf_counter()

@@ -1,0 +1,269 @@
+"""Replaying a trained agent of a test-phase folder: the same env, mask and reservoir weights.
+
+A run folder ``<out>/agents/<agent>/seed_<s>/`` holds ``model.zip`` and ``result.json``; the
+folder's ``config.yaml`` holds the task and encoding options. The reservoir weights are
+re-created from the run's seed exactly as in training (:func:`ermrl.agents.derive_seeds`), so
+the replayed policy sees the states it was trained on.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ermrl.analysis._results import RUNS_DIR, load_run_config, run_dir
+
+__all__ = ["Rollout", "TrainedAgent", "available_runs", "load_trained_agent", "rollout"]
+
+
+@dataclass(frozen=True)
+class TrainedAgent:
+    """A trained agent of a test-phase folder and everything needed to replay it.
+
+    Attributes:
+        run: The test-phase folder.
+        agent: Agent name (``ppo``, ``res-ppo``, ``random-res-ppo``).
+        seed: The run's seed.
+        env_id: Gymnasium id.
+        observe: Observation mask.
+        encoder: The reservoir encoding as a plain dict (``None`` for plain PPO).
+        model_path: The saved SB3 model.
+    """
+
+    run: Path
+    agent: str
+    seed: int
+    env_id: str
+    observe: str
+    encoder: dict[str, Any] | None
+    model_path: Path
+
+    @property
+    def has_reservoir(self) -> bool:
+        return self.encoder is not None
+
+
+@dataclass
+class Rollout:
+    """One episode of a trained agent.
+
+    Attributes:
+        observations: Raw (masked) observations seen before each action, shape ``(T, obs_dim)``.
+        actions: Actions taken, shape ``(T, act_dim)`` (``(T, 1)`` for discrete actions).
+        rewards: Rewards received, shape ``(T,)``.
+        states: Reservoir states the policy saw before each action, shape ``(T, units)``
+            (``(T, 0)`` for plain PPO).
+        frames: RGB frames, shape ``(height, width, 3)`` each (empty unless rendered).
+        dt: Seconds of simulated time per step (``None`` when the env does not say).
+        fps: Frames per second of real-time playback.
+        ended: Whether the episode ended (terminated or truncated) rather than hit ``max_steps``.
+    """
+
+    observations: np.ndarray
+    actions: np.ndarray
+    rewards: np.ndarray
+    states: np.ndarray
+    frames: list[np.ndarray] = field(default_factory=list)
+    dt: float | None = None
+    fps: float = 30.0
+    ended: bool = True
+
+    @property
+    def n_steps(self) -> int:
+        return int(len(self.rewards))
+
+    @property
+    def episode_return(self) -> float:
+        return float(np.sum(self.rewards))
+
+
+def available_runs(run: str | Path, agent: str | None = None) -> list[tuple[str, int]]:
+    """``(agent, seed)`` of every run of a test-phase folder that saved a model, sorted."""
+    found = []
+    for path in sorted(Path(run).glob(f"{RUNS_DIR}/*/seed_*/model.zip")):
+        name = path.parent.parent.name
+        if agent is not None and name != agent:
+            continue
+        try:
+            found.append((name, int(path.parent.name.removeprefix("seed_"))))
+        except ValueError:
+            continue
+    return sorted(found, key=lambda p: (p[0], p[1]))
+
+
+def load_trained_agent(
+    run: str | Path, agent: str = "res-ppo", seed: int | None = None
+) -> TrainedAgent:
+    """Find a trained agent in a test-phase folder.
+
+    Args:
+        run: The test-phase folder (``--out`` of ``ermrl test``).
+        agent: Agent name.
+        seed: The run's seed (default: the smallest seed with a saved model).
+
+    Returns:
+        The agent, ready for :func:`rollout`.
+
+    Raises:
+        FileNotFoundError: no such folder, no ``config.yaml``, or no saved model for that agent
+            and seed (the message lists the available ones).
+    """
+    run = Path(run)
+    if not run.is_dir():
+        raise FileNotFoundError(f"test-phase folder {run} does not exist")
+    config = load_run_config(run)
+    models = available_runs(run)
+    if seed is None:
+        seeds = [s for a, s in models if a == agent]
+        if not seeds:
+            raise FileNotFoundError(
+                f"no saved model of agent {agent!r} in {run}; available: {_describe(models)}"
+            )
+        seed = seeds[0]
+    folder = run_dir(run, agent, seed)
+    model_path = folder / "model.zip"
+    if not model_path.is_file():
+        raise FileNotFoundError(
+            f"{model_path} not found (was the test phase run with --no-save-models?); "
+            f"available: {_describe(models)}"
+        )
+    reservoirs = None
+    result_path = folder / "result.json"
+    if result_path.is_file():
+        reservoirs = json.loads(result_path.read_text()).get("reservoirs")
+    agents = config.get("agents") or {}
+    if reservoirs is None and agent in agents:
+        reservoirs = agents[agent]
+    encoder = None
+    if reservoirs is not None:
+        encoder = {**dict(config.get("encoder") or {}), "reservoirs": reservoirs}
+    task = config.get("task") or {}
+    return TrainedAgent(
+        run=run,
+        agent=agent,
+        seed=int(seed),
+        env_id=str(task["env_id"]),
+        observe=str(task.get("observe", "all")),
+        encoder=encoder,
+        model_path=model_path,
+    )
+
+
+def rollout(
+    trained: TrainedAgent,
+    *,
+    max_steps: int | None = None,
+    deterministic: bool = True,
+    env_seed: int | None = None,
+    render: bool = False,
+    fast_render: bool = False,
+) -> Rollout:
+    """Run one episode of a trained agent and record what happened.
+
+    The environment is built as in training (mask, ``Monitor``, reservoir with the run's
+    weights). The episode is seeded with the run's evaluation seed unless ``env_seed`` is given.
+
+    Args:
+        trained: From :func:`load_trained_agent`.
+        max_steps: Stop after this many steps (default: the whole episode).
+        deterministic: Use the policy's mean action (``False``: sample).
+        env_seed: Seed of the episode's initial state.
+        render: Record RGB frames (MuJoCo needs a GL backend: see
+            :func:`~ermrl.analysis.select_gl_backend`).
+        fast_render: Turn off MuJoCo's shadows and reflections (about 5x faster with a
+            software renderer).
+
+    Returns:
+        The recorded episode.
+    """
+    from stable_baselines3 import PPO
+
+    from ermrl.agents import derive_seeds, make_vec_env
+    from ermrl.config import EncoderConfig, TaskConfig, from_dict
+
+    seeds = derive_seeds(trained.seed)
+    task = TaskConfig(env_id=trained.env_id, observe=trained.observe)  # type: ignore[arg-type]
+    encoder = None if trained.encoder is None else from_dict(EncoderConfig, trained.encoder)
+    venv = make_vec_env(
+        task,
+        1,
+        seeds.eval_env if env_seed is None else env_seed,
+        encoder,
+        seeds.reservoir,
+        render_mode="rgb_array" if render else None,
+    )
+    try:
+        model = PPO.load(str(trained.model_path), device="cpu")
+        base = venv.venv if encoder is not None else venv
+        unwrapped = base.envs[0].unwrapped
+        dt = _env_dt(unwrapped)
+        fps = float(base.envs[0].metadata.get("render_fps") or (1 / dt if dt else 30.0))
+        obs = venv.reset()
+        if render and fast_render:
+            _plain_scene(unwrapped)
+        observations, actions, rewards, states, frames = [], [], [], [], []
+        ended = False
+        step = 0
+        while max_steps is None or step < max_steps:
+            if encoder is not None:
+                observations.append(venv.get_inputs()[0, : venv.obs_dim].copy())
+                states.append(venv.get_states()[0].copy())
+            else:
+                observations.append(np.asarray(obs[0], dtype=np.float64).copy())
+            if render:
+                frames.append(np.asarray(base.envs[0].render()).copy())
+            action, _ = model.predict(obs, deterministic=deterministic)
+            obs, reward, done, _ = venv.step(action)
+            actions.append(np.atleast_1d(np.asarray(action[0], dtype=np.float64)))
+            rewards.append(float(reward[0]))
+            step += 1
+            if done[0]:
+                ended = True
+                break
+    finally:
+        venv.close()
+    n = len(rewards)
+    n_units = encoder.total_units if encoder is not None else 0
+    return Rollout(
+        observations=np.asarray(observations, dtype=np.float64).reshape(n, -1),
+        actions=np.asarray(actions, dtype=np.float64).reshape(n, -1),
+        rewards=np.asarray(rewards, dtype=np.float64),
+        states=np.asarray(states, dtype=np.float64).reshape(n, n_units),
+        frames=frames,
+        dt=dt,
+        fps=fps,
+        ended=ended,
+    )
+
+
+def _plain_scene(env: Any) -> None:
+    """Turn off shadows and reflections of a MuJoCo env's offscreen renderer (best effort)."""
+    renderer = getattr(env, "mujoco_renderer", None)
+    if renderer is None:
+        return
+    try:
+        import mujoco
+
+        viewer = renderer._get_viewer("rgb_array")
+        viewer.scn.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
+        viewer.scn.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
+    except Exception:  # another renderer layout: keep the default look
+        return
+
+
+def _env_dt(env: Any) -> float | None:
+    for name in ("dt", "tau"):
+        value = getattr(env, name, None)
+        if isinstance(value, (int, float)) and value > 0:
+            return float(value)
+    return None
+
+
+def _describe(models: list[tuple[str, int]]) -> str:
+    if not models:
+        return "none (no model.zip under agents/*/seed_*/)"
+    return ", ".join(f"{a} seed {s}" for a, s in models)

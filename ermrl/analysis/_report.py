@@ -1,0 +1,751 @@
+"""``ermrl report``: every figure and table of a study and its test phase, gathered in one page.
+
+The report is built from the study storage and the test-phase folder alone::
+
+    reports/<study>/
+      report.md, report.html          the page (same content; the HTML opens offline)
+      trials.csv, best_params.csv     the search, one row per trial / parameter
+      evolution/*.png                 history, importances, slices, contour, CMA-ES generations
+      interactive/*.html              the same, interactive (Optuna's plotly figures)
+      test/*.png, test/*.csv          learning curves, final returns, statistics
+      generalization/*.png, *.csv     per-task normalized scores (generalization studies)
+      dynamics/*.png, *.npz, *.json   an episode of res-ppo: states, spectra, dominant frequency
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import html
+import math
+import os
+import re
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TextIO
+
+import pandas as pd
+
+from ermrl.analysis._style import save_figure, task_title
+
+__all__ = ["ReportResult", "notebook_parameters", "write_report"]
+
+AGENT_ORDER = ("ppo", "res-ppo", "random-res-ppo")
+ENV_STUDY = "ERMRL_STUDY_NAME"
+ENV_STORAGE = "ERMRL_STORAGE"
+ENV_RUNS = "ERMRL_RUNS"
+
+
+@dataclass(frozen=True)
+class ReportResult:
+    """What :func:`write_report` wrote.
+
+    Attributes:
+        out: The report folder.
+        markdown: ``report.md``.
+        html: ``report.html`` (``None`` with ``html=False``).
+        figures: ``{name: path}`` of every PNG.
+        tables: ``{name: path}`` of every CSV.
+        notes: Sections left out, with the reason (no test-phase folder, single-task study...).
+    """
+
+    out: Path
+    markdown: Path
+    html: Path | None
+    figures: dict[str, Path] = field(default_factory=dict)
+    tables: dict[str, Path] = field(default_factory=dict)
+    notes: tuple[str, ...] = ()
+
+
+def notebook_parameters(
+    study_name: str, storage: str, runs: str | None = None
+) -> tuple[str, str, str | None]:
+    """The study, storage and test-phase folder a notebook analyses.
+
+    The notebook's first cell names them; the environment variables ``ERMRL_STUDY_NAME``,
+    ``ERMRL_STORAGE`` and ``ERMRL_RUNS`` override them (this is how CI runs the notebooks on
+    a tiny study). ``runs`` defaults to ``runs/<study name>``.
+
+    Returns:
+        ``(study_name, storage, runs)``.
+    """
+    study_name = os.environ.get(ENV_STUDY) or study_name
+    storage = os.environ.get(ENV_STORAGE) or storage
+    runs = os.environ.get(ENV_RUNS) or runs or str(Path("runs") / study_name)
+    print(f"study {study_name!r} in {storage}; test-phase folder: {runs}")
+    return study_name, storage, runs
+
+
+# ---------------------------------------------------------------------------------------------
+# A tiny document model rendered both as Markdown and as HTML.
+
+
+@dataclass
+class _Doc:
+    blocks: list[tuple[str, Any]] = field(default_factory=list)
+
+    def h(self, level: int, text: str) -> None:
+        self.blocks.append(("h", (level, text)))
+
+    def p(self, text: str) -> None:
+        self.blocks.append(("p", text))
+
+    def img(self, path: str, alt: str) -> None:
+        self.blocks.append(("img", (path, alt)))
+
+    def table(self, frame: pd.DataFrame) -> None:
+        self.blocks.append(("table", frame))
+
+    def code(self, text: str, lang: str = "") -> None:
+        self.blocks.append(("code", (lang, text)))
+
+    def bullets(self, items: Sequence[str]) -> None:
+        self.blocks.append(("ul", list(items)))
+
+    def markdown(self) -> str:
+        out: list[str] = []
+        for kind, value in self.blocks:
+            if kind == "h":
+                out.append("#" * value[0] + " " + value[1])
+            elif kind == "p":
+                out.append(value)
+            elif kind == "img":
+                out.append(f"![{value[1]}]({value[0]})")
+            elif kind == "table":
+                out.append(_md_table(value))
+            elif kind == "code":
+                out.append(f"```{value[0]}\n{value[1].rstrip()}\n```")
+            elif kind == "ul":
+                out.append("\n".join(f"- {item}" for item in value))
+        return "\n\n".join(out) + "\n"
+
+    def html(self, title: str) -> str:
+        body: list[str] = []
+        for kind, value in self.blocks:
+            if kind == "h":
+                body.append(f"<h{value[0]}>{_inline(value[1])}</h{value[0]}>")
+            elif kind == "p":
+                body.append(f"<p>{_inline(value)}</p>")
+            elif kind == "img":
+                src, alt = (html.escape(v) for v in value)
+                body.append(
+                    f'<figure><a href="{src}"><img src="{src}" alt="{alt}"></a>'
+                    f"<figcaption>{alt}</figcaption></figure>"
+                )
+            elif kind == "table":
+                body.append(_html_table(value))
+            elif kind == "code":
+                body.append(f"<pre><code>{html.escape(value[1].rstrip())}</code></pre>")
+            elif kind == "ul":
+                body.append("<ul>" + "".join(f"<li>{_inline(i)}</li>" for i in value) + "</ul>")
+        style = (
+            "body{font-family:system-ui,sans-serif;max-width:60rem;margin:2rem auto;padding:0 1rem;"
+            "line-height:1.45;color:#222}img{max-width:100%;border:1px solid #ddd}"
+            "figure{margin:1rem 0}figcaption{color:#555;font-size:.9rem}"
+            "table{border-collapse:collapse;margin:.5rem 0}td,th{border:1px solid #ccc;"
+            "padding:.25rem .5rem;text-align:right}th{background:#f3f3f3}"
+            "td:first-child,th:first-child{text-align:left}"
+            "pre{background:#f6f6f6;padding:.75rem;overflow-x:auto;font-size:.85rem}"
+            "code{font-size:.9em}"
+        )
+        return (
+            '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
+            f"<title>{html.escape(title)}</title><style>{style}</style></head><body>\n"
+            + "\n".join(body)
+            + "\n</body></html>\n"
+        )
+
+
+def _fmt(value: Any) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, float):
+        if math.isnan(value):
+            return "–"
+        if value != 0 and (abs(value) >= 1e5 or abs(value) < 1e-3):
+            return f"{value:.3e}"
+        return f"{value:.4g}"
+    return str(value)
+
+
+def _md_table(frame: pd.DataFrame) -> str:
+    header = "| " + " | ".join(str(c) for c in frame.columns) + " |"
+    rule = "|" + "|".join("---" for _ in frame.columns) + "|"
+    rows = [
+        "| " + " | ".join(_fmt(v).replace("|", "\\|") for v in row) + " |"
+        for row in frame.itertuples(index=False)
+    ]
+    return "\n".join([header, rule, *rows])
+
+
+def _html_table(frame: pd.DataFrame) -> str:
+    head = "".join(f"<th>{html.escape(str(c))}</th>" for c in frame.columns)
+    rows = "".join(
+        "<tr>" + "".join(f"<td>{_inline(_fmt(v))}</td>" for v in row) + "</tr>"
+        for row in frame.itertuples(index=False)
+    )
+    return f"<table><thead><tr>{head}</tr></thead><tbody>{rows}</tbody></table>"
+
+
+def _inline(text: str) -> str:
+    escaped = html.escape(text)
+    escaped = re.sub(r"`([^`]+)`", r"<code>\1</code>", escaped)
+    escaped = re.sub(r"\*\*([^*]+)\*\*", r"<strong>\1</strong>", escaped)
+    return re.sub(r"\[([^\]]+)\]\(([^)]+)\)", r'<a href="\2">\1</a>', escaped)
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+class _Progress:
+    """One line per report step with elapsed time and an ETA (silenced by ``quiet``)."""
+
+    def __init__(self, total: int, quiet: bool, stream: TextIO | None) -> None:
+        self.total = total
+        self.quiet = quiet
+        self.stream = stream
+        self.done = 0
+        self.started = time.perf_counter()
+
+    def step(self, name: str, func: Callable[[], Any]) -> Any:
+        began = time.perf_counter()
+        result = func()
+        self.done += 1
+        if not self.quiet:
+            elapsed = time.perf_counter() - self.started
+            eta = elapsed / self.done * (self.total - self.done)
+            print(
+                f"[report {self.done}/{self.total}] {name} | {time.perf_counter() - began:.1f}s"
+                f" | ETA {eta:.0f}s",
+                file=self.stream or sys.stdout,
+                flush=True,
+            )
+        return result
+
+
+def write_report(
+    study_name: str,
+    storage: str,
+    *,
+    runs: str | Path | None = None,
+    out: str | Path | None = None,
+    band: str = "ci95",
+    dynamics: bool = True,
+    interactive: bool = True,
+    html_page: bool = True,
+    quiet: bool = True,
+    stream: TextIO | None = None,
+) -> ReportResult:
+    """Write the figures, tables and ``report.md`` of a study and its test phase.
+
+    Args:
+        study_name: The study.
+        storage: Its storage URL.
+        runs: The test-phase folder (default ``runs/<study_name>`` when it exists).
+        out: Report folder (default ``reports/<study_name>``).
+        band: Learning-curve band: ``ci95``, ``std``, ``sem`` or ``none``.
+        dynamics: Record an episode of ``res-ppo`` (and ``random-res-ppo``) for the reservoir
+            dynamics section when the test phase saved models.
+        interactive: Also write Optuna's interactive plotly figures as HTML.
+        html_page: Also write ``report.html``.
+        quiet: No progress lines.
+        stream: Where progress lines go.
+
+    Returns:
+        What was written.
+
+    Raises:
+        ermrl.storage.StudyNotFound: no such study.
+    """
+    from ermrl import __version__
+    from ermrl.analysis._study import open_study
+
+    out = Path(out) if out is not None else Path("reports") / study_name
+    runs_path = Path(runs) if runs is not None else Path("runs") / study_name
+    runs_given = runs is not None
+    out.mkdir(parents=True, exist_ok=True)
+    study = open_study(study_name, storage)
+    state = _State(out=out, study=study, storage=storage)
+    has_runs = (runs_path / "agents").is_dir()
+    if not has_runs:
+        why = "does not exist" if not runs_path.exists() else "has no agents/ folder"
+        state.notes.append(
+            f"test phase: {runs_path} {why}"
+            + ("" if runs_given else " (pass --runs, or run `ermrl test` first)")
+        )
+    steps: list[tuple[str, Callable[[], Any]]] = [
+        ("study and trials", lambda: _study_section(state)),
+        ("evolution figures", lambda: _evolution_section(state)),
+    ]
+    if interactive:
+        steps.append(("interactive HTML figures", lambda: _interactive_section(state)))
+    steps.append(("generalization", lambda: _generalization_section(state)))
+    if has_runs:
+        steps.append(
+            ("test-phase figures and statistics", lambda: _test_section(state, runs_path, band))
+        )
+        if dynamics:
+            steps.append(("reservoir dynamics", lambda: _dynamics_section(state, runs_path)))
+    progress = _Progress(len(steps) + 1, quiet, stream)
+    for name, func in steps:
+        progress.step(name, func)
+
+    def finish() -> tuple[Path, Path | None]:
+        doc = _Doc()
+        doc.h(1, f"Report: study `{study_name}`")
+        doc.p(
+            f"Generated {_dt.datetime.now().isoformat(timespec='seconds')} by ermrl "
+            f"{__version__} from `{storage}`" + (f" and `{runs_path}`" if has_runs else "") + "."
+        )
+        if state.notes:
+            doc.p("Left out:")
+            doc.bullets(state.notes)
+        for section in [*state.sections, *([state.appendix] if state.appendix else [])]:
+            for kind, value in section.blocks:
+                doc.blocks.append((kind, value))
+        md_path = out / "report.md"
+        md_path.write_text(doc.markdown())
+        html_path = None
+        if html_page:
+            html_path = out / "report.html"
+            html_path.write_text(doc.html(f"ermrl report: {study_name}"))
+        return md_path, html_path
+
+    md_path, html_path = progress.step("report.md", finish)
+    return ReportResult(
+        out=out,
+        markdown=md_path,
+        html=html_path,
+        figures=dict(state.figures),
+        tables=dict(state.tables),
+        notes=tuple(state.notes),
+    )
+
+
+@dataclass
+class _State:
+    out: Path
+    study: Any
+    storage: str
+    notes: list[str] = field(default_factory=list)
+    figures: dict[str, Path] = field(default_factory=dict)
+    tables: dict[str, Path] = field(default_factory=dict)
+    sections: list[_Doc] = field(default_factory=list)
+    config: Any = None
+    frame: pd.DataFrame | None = None
+    title: str = ""
+    params: list[str] = field(default_factory=list)
+    evolution_doc: _Doc | None = None
+    appendix: _Doc | None = None
+
+    def figure(self, name: str, fig: Any, rel: str) -> str:
+        self.figures[name] = save_figure(fig, self.out / rel)
+        return rel
+
+    def csv(self, name: str, frame: pd.DataFrame, rel: str) -> str:
+        path = self.out / rel
+        path.parent.mkdir(parents=True, exist_ok=True)
+        frame.to_csv(path, index=False)
+        self.tables[name] = path
+        return rel
+
+
+def _study_section(state: _State) -> None:
+    import yaml
+
+    from ermrl.analysis._study import (
+        best_params_table,
+        param_names,
+        study_config_or_none,
+        study_overview,
+        trials_frame,
+    )
+
+    study = state.study
+    overview = study_overview(study)
+    config = study_config_or_none(study)
+    state.config = config
+    state.frame = trials_frame(study)
+    state.params = param_names(study, config)
+    state.title = task_title(overview.env_id, overview.observe) or overview.name
+    trials_rel = state.csv("trials", state.frame, "trials.csv")
+    best = best_params_table(study, config)
+    state.csv("best_params", best, "best_params.csv")
+
+    doc = _Doc()
+    doc.h(2, "Study")
+    counts = ", ".join(f"{n} {s}" for s, n in overview.counts.items() if n) or "none"
+    rows = [
+        ("Study", f"`{overview.name}`"),
+        ("Storage", f"`{state.storage}`"),
+        ("Kind", overview.kind),
+        ("Task", state.title if overview.env_id else "several tasks (see the configuration)"),
+        ("Trials", f"{overview.n_trials} ({counts}); table: [{trials_rel}]({trials_rel})"),
+    ]
+    if config is not None:
+        search = config.search
+        budget = config.problem.budget
+        rows += [
+            (
+                "Sampler",
+                f"{search.sampler} (restart {search.restart}, popsize "
+                f"{search.popsize or 'default'}), target {search.n_trials} trials",
+            ),
+            (
+                "Fitness",
+                f"{budget.fitness}: mean over {len(config.problem.seeds)} seed(s) of "
+                + (
+                    f"the last {budget.n_last_episodes} training episodes"
+                    if budget.fitness == "last"
+                    else f"{budget.n_eval_episodes} evaluation episodes"
+                )
+                + f", {budget.training_steps} training steps per seed",
+            ),
+            ("Reservoir", f"{config.space.n_reservoirs} x {config.space.units} units"),
+        ]
+    if overview.best_number is not None:
+        rows.append(("Best trial", f"#{overview.best_number}, fitness {overview.best_value:.4g}"))
+    if overview.command:
+        rows.append(("Command", f"`{overview.command}`"))
+    if overview.version:
+        rows.append(("ermrl version", overview.version))
+    doc.table(pd.DataFrame(rows, columns=["", "value"]))
+    doc.h(3, "Trials by state")
+    doc.table(pd.DataFrame([overview.counts]))
+    doc.h(3, "Best parameters")
+    if best.empty:
+        doc.p("No COMPLETE trial yet.")
+    else:
+        doc.table(best)
+    state.sections.append(doc)
+    appendix = _Doc()
+    appendix.h(2, "Appendix: the study's configuration")
+    if overview.config:
+        appendix.p("As stored in the study (user attribute `ermrl_config`).")
+        appendix.code(yaml.safe_dump(overview.config, sort_keys=False), "yaml")
+    else:
+        appendix.p("The study has no `ermrl_config` attribute (not created by ermrl).")
+    state.appendix = appendix
+
+
+def _evolution_section(state: _State) -> None:
+    from ermrl.analysis._study import (
+        fitness_label,
+        generations_figure,
+        generations_frame,
+        optimization_history_figure,
+        param_contour_figure,
+        param_importances,
+        param_importances_figure,
+        param_ranges,
+        param_slices_figure,
+    )
+
+    study, frame, config = state.study, state.frame, state.config
+    assert frame is not None
+    ylabel = fitness_label(config)
+    ranges = param_ranges(study, config)
+    doc = _Doc()
+    doc.h(2, "Evolution")
+    rel = state.figure(
+        "optimization_history",
+        optimization_history_figure(frame, title=state.title, ylabel=ylabel),
+        "evolution/optimization_history.png",
+    )
+    doc.img(rel, "Fitness of every trial and the best so far")
+    importances = param_importances(study)
+    rel = state.figure(
+        "param_importances",
+        param_importances_figure(importances, title=state.title),
+        "evolution/param_importances.png",
+    )
+    doc.img(rel, "Parameter importances (PED-ANOVA)")
+    rel = state.figure(
+        "param_slices",
+        param_slices_figure(frame, state.params, ranges=ranges, title=state.title, ylabel=ylabel),
+        "evolution/param_slices.png",
+    )
+    doc.img(rel, "Fitness against each evolved hyperparameter")
+    main = [k for k in importances if k in state.params][:2] or state.params[:2]
+    if len(main) == 2:
+        rel = state.figure(
+            "param_contour",
+            param_contour_figure(
+                frame,
+                main[1],
+                main[0],
+                ranges=ranges,
+                title=state.title,
+                zlabel=ylabel.replace("\n", " "),
+            ),
+            "evolution/param_contour.png",
+        )
+        doc.img(rel, f"Fitness over the two most important parameters ({main[0]}, {main[1]})")
+    else:
+        state.notes.append("contour: fewer than two evolved parameters")
+    gens = generations_frame(study)
+    rel = state.figure(
+        "cma_generations",
+        generations_figure(gens, title=state.title, ylabel=ylabel),
+        "evolution/cma_generations.png",
+    )
+    doc.img(rel, "Fitness per CMA-ES generation")
+    if importances:
+        doc.p(
+            "Importances: "
+            + ", ".join(f"`{k}` {v:.2f}" for k, v in importances.items())
+            + " (PED-ANOVA; unreliable with few trials)."
+        )
+    state.evolution_doc = doc
+    state.sections.append(doc)
+
+
+def _interactive_section(state: _State) -> None:
+    from ermrl.analysis._study import write_interactive_evolution
+
+    written = write_interactive_evolution(
+        state.study, state.out / "interactive", state.params or None
+    )
+    links = [
+        f"[{name.replace('_', ' ')}](interactive/{Path(v).name})"
+        for name, v in written.items()
+        if isinstance(v, Path)
+    ]
+    missing = [f"{name}: {v}" for name, v in written.items() if not isinstance(v, Path)]
+    doc = state.evolution_doc or _Doc()
+    if links:
+        doc.p("Interactive versions (open in a browser, offline): " + ", ".join(links) + ".")
+    for item in missing:
+        state.notes.append(f"interactive {item}")
+    if state.evolution_doc is None:
+        state.sections.append(doc)
+
+
+def _generalization_section(state: _State) -> None:
+    from ermrl.analysis._generalization import (
+        is_generalization_study,
+        task_scores_figure,
+        task_scores_frame,
+    )
+
+    if not is_generalization_study(state.study):
+        state.notes.append("generalization: single-task study (no per-task normalized scores)")
+        return
+    scores = task_scores_frame(state.study)
+    doc = _Doc()
+    doc.h(2, "Generalization")
+    state.csv("task_scores", scores, "generalization/task_scores.csv")
+    rel = state.figure(
+        "task_scores",
+        task_scores_figure(scores, title=f"Study {state.study.study_name}: per-task scores"),
+        "generalization/task_scores.png",
+    )
+    doc.img(rel, "Per-task normalized scores")
+    complete = scores[(scores["state"] == "COMPLETE") & scores["value"].notna()]
+    if not complete.empty:
+        best_number = complete.sort_values("value").iloc[-1]["number"]
+        best = complete[complete["number"] == best_number][["env_id", "normalized", "return"]]
+        doc.p(f"Best trial #{int(best_number)}, per task:")
+        doc.table(best.rename(columns={"normalized": "normalized score", "return": "mean return"}))
+    state.sections.append(doc)
+
+
+def _test_section(state: _State, runs: Path, band: str) -> None:
+    from ermrl.analysis._plots import final_returns_figure, learning_curves_figure
+    from ermrl.analysis._results import (
+        curves_on_grid,
+        load_curves,
+        load_run_config,
+        load_run_results,
+    )
+    from ermrl.analysis._stats import compare_agents, final_returns_table
+
+    results = load_run_results(runs)
+    curves = load_curves(runs)
+    try:
+        run_config = load_run_config(runs)
+    except FileNotFoundError:
+        run_config = {}
+    task = run_config.get("task") or {}
+    title = task_title(task.get("env_id"), task.get("observe")) or state.title
+    present = list(dict.fromkeys(results["agent"])) if not results.empty else []
+    order = [a for a in AGENT_ORDER if a in present] + [a for a in present if a not in AGENT_ORDER]
+    doc = _Doc()
+    doc.h(2, f"Test phase (`{runs}`)")
+    settings = run_config.get("settings") or {}
+    facts = []
+    if run_config.get("trial") is not None:
+        params = run_config.get("params") or {}
+        facts.append(
+            f"`res-ppo` uses trial #{run_config['trial']}: "
+            + ", ".join(f"`{k}` = {v:.4g}" for k, v in params.items())
+        )
+    if settings:
+        facts.append(
+            f"{settings.get('training_steps')} training steps per run, seeds "
+            f"{' '.join(str(s) for s in settings.get('seeds', []))}"
+        )
+    if facts:
+        doc.bullets(facts)
+    if results.empty:
+        doc.p("No finished run yet.")
+        state.sections.append(doc)
+        return
+    smooth = 10
+    grid = curves_on_grid(curves, smooth_episodes=smooth)
+    rel = state.figure(
+        "learning_curves",
+        learning_curves_figure(
+            grid,
+            title=title,
+            agents=order,
+            band=band,  # type: ignore[arg-type]
+            smooth_episodes=smooth,
+        ),
+        "test/learning_curves.png",
+    )
+    doc.img(rel, "Learning curves (training episodes)")
+    rel = state.figure(
+        "final_returns",
+        final_returns_figure(results, agents=order, title=title),
+        "test/final_returns.png",
+    )
+    doc.img(rel, "Final return of every run")
+    table = final_returns_table(results, order)
+    state.csv("final_returns", table, "test/final_returns.csv")
+    doc.h(3, "Final returns")
+    doc.p(
+        "Final return of a run: mean return of its last training episodes. "
+        "Mean, sample std and Student-t 95% CI of the mean across seeds."
+    )
+    doc.table(
+        table[["agent", "n_seeds", "mean", "std", "ci95_low", "ci95_high", "median"]].rename(
+            columns={"n_seeds": "seeds", "ci95_low": "95% CI low", "ci95_high": "95% CI high"}
+        )
+    )
+    if (
+        "eval_return" in results
+        and pd.to_numeric(results["eval_return"], errors="coerce").notna().any()
+    ):
+        eval_table = final_returns_table(results, order, metric="eval_return")
+        state.csv("eval_returns", eval_table, "test/eval_returns.csv")
+        doc.h(3, "Evaluation returns (deterministic episodes)")
+        doc.table(
+            eval_table[["agent", "n_seeds", "mean", "std", "ci95_low", "ci95_high"]].rename(
+                columns={"n_seeds": "seeds", "ci95_low": "95% CI low", "ci95_high": "95% CI high"}
+            )
+        )
+    comparison = compare_agents(results, "res-ppo", [a for a in order if a != "res-ppo"])
+    state.csv("comparison", comparison, "test/comparison.csv")
+    doc.h(3, "`res-ppo` against the baselines")
+    if comparison.empty:
+        doc.p("Needs finished runs of `res-ppo` and of a baseline.")
+    else:
+        doc.table(
+            comparison[
+                [
+                    "baseline",
+                    "n_candidate",
+                    "n_baseline",
+                    "mean_diff",
+                    "boot_ci_low",
+                    "boot_ci_high",
+                    "welch_t",
+                    "welch_dof",
+                    "p_value",
+                ]
+            ].rename(
+                columns={
+                    "n_candidate": "seeds res-ppo",
+                    "n_baseline": "seeds baseline",
+                    "mean_diff": "mean difference",
+                    "boot_ci_low": "95% bootstrap CI low",
+                    "boot_ci_high": "95% bootstrap CI high",
+                    "welch_t": "Welch t",
+                    "welch_dof": "dof",
+                    "p_value": "p (two-sided)",
+                }
+            )
+        )
+        doc.p(
+            "Mean difference = mean(`res-ppo`) − mean(baseline) of the final returns; percentile "
+            "bootstrap (10 000 resamples) and Welch's unequal-variance t-test. With few seeds "
+            "both are rough: report them with the number of seeds."
+        )
+    state.sections.append(doc)
+
+
+def _dynamics_section(state: _State, runs: Path) -> None:
+    from ermrl.analysis._dynamics import (
+        record_dynamics,
+        spectrum_comparison_figure,
+        spectrum_summary,
+        write_dynamics,
+    )
+    from ermrl.analysis._replay import available_runs
+
+    models = available_runs(runs)
+    seeds = sorted(s for a, s in models if a == "res-ppo")
+    if not seeds:
+        state.notes.append(
+            f"reservoir dynamics: no saved res-ppo model in {runs} (test phase run with "
+            "--no-save-models, or without res-ppo)"
+        )
+        return
+    seed = seeds[0]
+    recordings = {"res-ppo": record_dynamics(runs, "res-ppo", seed)}
+    if ("random-res-ppo", seed) in models:
+        recordings["random-res-ppo"] = record_dynamics(runs, "random-res-ppo", seed)
+    doc = _Doc()
+    doc.h(2, "Reservoir dynamics")
+    rec = recordings["res-ppo"]
+    doc.p(
+        f"One deterministic episode of `res-ppo`, seed {seed} ({rec.n_steps} steps, return "
+        f"{rec.episode_return:.4g}); arrays in `dynamics/` (`.npz`: observations, actions, "
+        "rewards, reservoir states)."
+    )
+    rows = []
+    for agent, recording in recordings.items():
+        paths = write_dynamics(recording, state.out / "dynamics")
+        for key in ("dynamics", "spectrum"):
+            state.figures[f"{agent}_{key}"] = paths[key]
+        if agent == "res-ppo":
+            doc.img(
+                f"dynamics/{paths['dynamics'].name}",
+                "Observations, actions and the first 20 reservoir units",
+            )
+            doc.img(f"dynamics/{paths['spectrum'].name}", "Power spectra of one episode")
+        summary = spectrum_summary(recording)
+        unit = summary["frequency_unit"]
+        for name, info in summary["signals"].items():
+            f = info["dominant_frequency"]
+            rows.append(
+                {
+                    "agent": agent,
+                    "signal": name,
+                    f"dominant frequency ({unit})": f if f is not None else math.nan,
+                    f"period ({'s' if unit == 'Hz' else 'steps'})": info["dominant_period"]
+                    if info["dominant_period"] is not None
+                    else math.nan,
+                }
+            )
+    if len(recordings) > 1:
+        rel = state.figure(
+            "spectrum_comparison",
+            spectrum_comparison_figure(recordings),
+            "dynamics/spectrum_comparison.png",
+        )
+        doc.img(rel, "Reservoir spectra, evolved against unevolved reservoir")
+    table = pd.DataFrame(rows)
+    state.csv("dominant_frequencies", table, "dynamics/dominant_frequencies.csv")
+    doc.h(3, "Dominant frequencies")
+    doc.table(table)
+    doc.p(
+        "Welch spectra of linearly detrended 256-step Hann segments, averaged over dimensions; "
+        "the dominant frequency is the strongest spectral peak (a local maximum at least twice "
+        "its surroundings), so a decaying start-of-episode transient is not taken for an "
+        "oscillation."
+    )
+    state.sections.append(doc)

@@ -1,0 +1,236 @@
+"""Statistics of final returns: per-agent tables and tests of one agent against another."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from ermrl.analysis._results import t_quantile
+
+__all__ = [
+    "WelchResult",
+    "bootstrap_mean_diff_ci",
+    "compare_agents",
+    "final_returns_table",
+    "welch_t_test",
+]
+
+METRICS = ("final_return", "eval_return")
+
+
+@dataclass(frozen=True)
+class WelchResult:
+    """Welch's unequal-variance t-test of ``mean(a) - mean(b)``.
+
+    Attributes:
+        statistic: The t statistic (NaN when undefined: fewer than 2 values in a group, or
+            both groups without variance).
+        dof: Welch-Satterthwaite degrees of freedom.
+        p_value: Two-sided p-value.
+    """
+
+    statistic: float
+    dof: float
+    p_value: float
+
+
+def welch_t_test(a: Sequence[float] | np.ndarray, b: Sequence[float] | np.ndarray) -> WelchResult:
+    """Welch's t-test (two-sided) of the difference of means of two independent samples.
+
+    Args:
+        a: Values of the first group, shape ``(n_a,)`` (NaNs are dropped).
+        b: Values of the second group, shape ``(n_b,)``.
+
+    Returns:
+        The statistic, degrees of freedom and p-value (all NaN when undefined).
+
+    Example:
+        >>> round(welch_t_test([1.0, 2.0, 3.0], [4.0, 5.0, 6.0]).statistic, 3)
+        -3.674
+    """
+    from scipy import stats
+
+    x = _clean(a)
+    y = _clean(b)
+    nan = WelchResult(math.nan, math.nan, math.nan)
+    if len(x) < 2 or len(y) < 2:
+        return nan
+    vx, vy = x.var(ddof=1) / len(x), y.var(ddof=1) / len(y)
+    if vx + vy == 0:
+        return nan
+    result = stats.ttest_ind(x, y, equal_var=False)
+    dof = (vx + vy) ** 2 / (vx**2 / (len(x) - 1) + vy**2 / (len(y) - 1))
+    return WelchResult(float(result.statistic), float(dof), float(result.pvalue))
+
+
+def bootstrap_mean_diff_ci(
+    a: Sequence[float] | np.ndarray,
+    b: Sequence[float] | np.ndarray,
+    *,
+    confidence: float = 0.95,
+    n_resamples: int = 10_000,
+    seed: int = 0,
+) -> tuple[float, float]:
+    """Percentile bootstrap confidence interval of ``mean(a) - mean(b)``.
+
+    Each group is resampled with replacement independently (the seeds of two agents are
+    independent runs).
+
+    Args:
+        a: Values of the first group, shape ``(n_a,)`` (NaNs are dropped).
+        b: Values of the second group, shape ``(n_b,)``.
+        confidence: Coverage of the interval.
+        n_resamples: Bootstrap resamples.
+        seed: Seed of the resampling generator (the interval is reproducible).
+
+    Returns:
+        ``(low, high)``; ``(nan, nan)`` when a group is empty.
+    """
+    x = _clean(a)
+    y = _clean(b)
+    if len(x) == 0 or len(y) == 0:
+        return math.nan, math.nan
+    rng = np.random.default_rng(seed)
+    mx = x[rng.integers(0, len(x), size=(n_resamples, len(x)))].mean(axis=1)
+    my = y[rng.integers(0, len(y), size=(n_resamples, len(y)))].mean(axis=1)
+    alpha = (1 - confidence) / 2
+    low, high = np.quantile(mx - my, [alpha, 1 - alpha])
+    return float(low), float(high)
+
+
+def final_returns_table(
+    results: pd.DataFrame, agents: Sequence[str] | None = None, metric: str = "final_return"
+) -> pd.DataFrame:
+    """Per-agent statistics of the runs' final returns.
+
+    Args:
+        results: Output of :func:`~ermrl.analysis.load_run_results` (one row per run).
+        agents: Order of the rows (default: order of appearance).
+        metric: ``final_return`` (mean of the last training episodes) or ``eval_return``.
+
+    Returns:
+        Columns ``agent, n_seeds, mean, std, sem, ci95_low, ci95_high, median, min, max``
+        (sample std; Student-t 95% interval of the mean).
+    """
+    columns = [
+        "agent",
+        "n_seeds",
+        "mean",
+        "std",
+        "sem",
+        "ci95_low",
+        "ci95_high",
+        "median",
+        "min",
+        "max",
+    ]
+    if results.empty or metric not in results:
+        return pd.DataFrame(columns=columns)
+    rows = []
+    for agent in _agent_order(results, agents):
+        values = _clean(results.loc[results["agent"] == agent, metric])
+        if len(values) == 0:
+            continue
+        n = len(values)
+        std = float(values.std(ddof=1)) if n > 1 else math.nan
+        sem = std / math.sqrt(n) if n > 1 else math.nan
+        half = sem * float(t_quantile(n - 1)) if n > 1 else math.nan
+        mean = float(values.mean())
+        rows.append(
+            {
+                "agent": agent,
+                "n_seeds": n,
+                "mean": mean,
+                "std": std,
+                "sem": sem,
+                "ci95_low": mean - half,
+                "ci95_high": mean + half,
+                "median": float(np.median(values)),
+                "min": float(values.min()),
+                "max": float(values.max()),
+            }
+        )
+    return pd.DataFrame(rows, columns=columns)
+
+
+def compare_agents(
+    results: pd.DataFrame,
+    candidate: str = "res-ppo",
+    baselines: Sequence[str] = ("ppo", "random-res-ppo"),
+    *,
+    metric: str = "final_return",
+    confidence: float = 0.95,
+    n_resamples: int = 10_000,
+    seed: int = 0,
+) -> pd.DataFrame:
+    """Test ``candidate`` against each baseline on the runs' final returns.
+
+    Args:
+        results: Output of :func:`~ermrl.analysis.load_run_results`.
+        candidate: The agent tested (default the evolved reservoir, ``res-ppo``).
+        baselines: Agents it is compared with (missing ones are skipped).
+        metric: ``final_return`` or ``eval_return``.
+        confidence: Coverage of the bootstrap interval.
+        n_resamples: Bootstrap resamples.
+        seed: Seed of the bootstrap.
+
+    Returns:
+        One row per baseline: ``candidate, baseline, n_candidate, n_baseline, mean_diff,
+        boot_ci_low, boot_ci_high, welch_t, welch_dof, p_value``, where ``mean_diff`` is
+        ``mean(candidate) - mean(baseline)``.
+    """
+    columns = [
+        "candidate",
+        "baseline",
+        "n_candidate",
+        "n_baseline",
+        "mean_diff",
+        "boot_ci_low",
+        "boot_ci_high",
+        "welch_t",
+        "welch_dof",
+        "p_value",
+    ]
+    if results.empty or metric not in results:
+        return pd.DataFrame(columns=columns)
+    a = _clean(results.loc[results["agent"] == candidate, metric])
+    rows = []
+    for baseline in baselines:
+        b = _clean(results.loc[results["agent"] == baseline, metric])
+        if len(a) == 0 or len(b) == 0:
+            continue
+        low, high = bootstrap_mean_diff_ci(
+            a, b, confidence=confidence, n_resamples=n_resamples, seed=seed
+        )
+        test = welch_t_test(a, b)
+        rows.append(
+            {
+                "candidate": candidate,
+                "baseline": baseline,
+                "n_candidate": len(a),
+                "n_baseline": len(b),
+                "mean_diff": float(a.mean() - b.mean()),
+                "boot_ci_low": low,
+                "boot_ci_high": high,
+                "welch_t": test.statistic,
+                "welch_dof": test.dof,
+                "p_value": test.p_value,
+            }
+        )
+    return pd.DataFrame(rows, columns=columns)
+
+
+def _clean(values: Sequence[float] | np.ndarray | pd.Series) -> np.ndarray:
+    arr = np.asarray(pd.to_numeric(pd.Series(values), errors="coerce"), dtype=float)
+    return arr[np.isfinite(arr)]
+
+
+def _agent_order(results: pd.DataFrame, agents: Sequence[str] | None) -> list[str]:
+    present = list(dict.fromkeys(results["agent"]))
+    if agents is None:
+        return present
+    return [a for a in agents if a in present] + [a for a in present if a not in agents]

@@ -1,0 +1,114 @@
+"""``ermrl dynamics``: record an episode of a trained reservoir agent and analyse its states."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import textwrap
+from collections.abc import Sequence
+from pathlib import Path
+
+from ermrl.cli._common import (
+    EXIT_INTERRUPTED,
+    ArgumentParser,
+    HelpFormatter,
+    fail,
+    nonneg_int,
+    positive_int,
+)
+
+__all__ = ["build_dynamics_parser", "dynamics_main"]
+
+DESCRIPTION = textwrap.dedent(
+    """\
+    Run a trained agent of a test-phase folder for one episode (same env, mask and reservoir
+    weights as in training) and record its observations, actions, rewards and reservoir states.
+    Writes <agent>_seed<seed>_episode.npz (the arrays), _dynamics.png (observations, actions and
+    the first reservoir units over time), _spectrum.png (power spectra) and _spectrum.json
+    (dominant frequencies).
+
+    example:
+      ermrl dynamics --run runs/S --agent res-ppo --seed 10
+    """
+)
+
+
+def build_dynamics_parser(prog: str = "ermrl dynamics") -> ArgumentParser:
+    parser = ArgumentParser(prog=prog, description=DESCRIPTION, formatter_class=HelpFormatter)
+    parser.add_argument("--run", required=True, help="test-phase folder (--out of ermrl test)")
+    parser.add_argument(
+        "--agent",
+        default="res-ppo",
+        help="agent whose model is replayed (res-ppo, random-res-ppo, ppo)",
+    )
+    parser.add_argument(
+        "--seed",
+        type=nonneg_int,
+        default=None,
+        help="run seed (default: the smallest seed with a saved model)",
+    )
+    parser.add_argument("--out", default=None, help="output folder (default: <run>/dynamics)")
+    parser.add_argument(
+        "--max-steps", type=positive_int, default=None, help="stop the episode after N steps"
+    )
+    parser.add_argument(
+        "--units", type=positive_int, default=20, help="reservoir units shown over time"
+    )
+    parser.add_argument(
+        "--window-steps",
+        type=positive_int,
+        default=200,
+        help="steps shown in the time plot (the spectrum uses the whole episode)",
+    )
+    parser.add_argument(
+        "--env-seed",
+        type=nonneg_int,
+        default=None,
+        help="seed of the episode (default: the run's evaluation seed)",
+    )
+    parser.add_argument(
+        "--deterministic",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="take the policy's mean action (--no-deterministic samples)",
+    )
+    parser.add_argument("--quiet", action="store_true", help="no summary lines")
+    return parser
+
+
+def dynamics_main(argv: Sequence[str] | None = None, prog: str = "ermrl dynamics") -> int:
+    """Entry point of ``ermrl dynamics``."""
+    parser = build_dynamics_parser(prog)
+    args = parser.parse_args(argv)
+    from ermrl.analysis import record_dynamics, spectrum_summary, write_dynamics
+
+    try:
+        recording = record_dynamics(
+            args.run,
+            args.agent,
+            args.seed,
+            max_steps=args.max_steps,
+            deterministic=args.deterministic,
+            env_seed=args.env_seed,
+        )
+    except FileNotFoundError as err:
+        fail(prog, str(err))
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    out = Path(args.out) if args.out else Path(args.run) / "dynamics"
+    paths = write_dynamics(recording, out, n_units=args.units, window_steps=args.window_steps)
+    if not args.quiet:
+        summary = spectrum_summary(recording)
+        unit = summary["frequency_unit"]
+        print(
+            f"{recording.agent} seed {recording.seed}: {recording.n_steps} steps, return "
+            f"{recording.episode_return:.4g}"
+        )
+        for name, info in summary["signals"].items():
+            f = info["dominant_frequency"]
+            shown = "n/a" if f is None or not math.isfinite(f) else f"{f:.3g} {unit}"
+            print(f"  dominant frequency of the {name}: {shown}")
+        print("wrote " + ", ".join(str(p) for p in paths.values()), flush=True)
+    return 0

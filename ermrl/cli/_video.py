@@ -1,0 +1,121 @@
+"""``ermrl video``: render an episode of a trained agent to MP4 (and GIF), headless."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import textwrap
+from collections.abc import Sequence
+
+from ermrl.cli._common import (
+    EXIT_INTERRUPTED,
+    ArgumentParser,
+    HelpFormatter,
+    fail,
+    nonneg_int,
+    positive_int,
+)
+
+__all__ = ["build_video_parser", "video_main"]
+
+EXIT_NO_GL = 3
+
+DESCRIPTION = textwrap.dedent(
+    """\
+    Render one episode of a trained agent of a test-phase folder with MuJoCo's offscreen
+    renderer, on the CPU without a display, and write it as MP4 (H.264) and optionally GIF.
+    The OpenGL backend (EGL or OSMesa from Mesa) is chosen automatically by trying a tiny render;
+    --gl forces one. Exit code 3 when no backend works (the message says what to install).
+
+    example:
+      ermrl video --run runs/S --agent res-ppo --seed 10
+    """
+)
+
+
+def build_video_parser(prog: str = "ermrl video") -> ArgumentParser:
+    parser = ArgumentParser(prog=prog, description=DESCRIPTION, formatter_class=HelpFormatter)
+    parser.add_argument("--run", required=True, help="test-phase folder (--out of ermrl test)")
+    parser.add_argument(
+        "--agent", default="res-ppo", help="agent to film (res-ppo, ppo, random-res-ppo)"
+    )
+    parser.add_argument(
+        "--seed",
+        type=nonneg_int,
+        default=None,
+        help="run seed (default: the smallest seed with a saved model)",
+    )
+    parser.add_argument(
+        "--out", default=None, help="MP4 path (default: <run>/videos/<agent>_seed<seed>.mp4)"
+    )
+    parser.add_argument(
+        "--max-steps", type=positive_int, default=None, help="stop the episode after N steps"
+    )
+    parser.add_argument(
+        "--gif",
+        action=argparse.BooleanOptionalAction,
+        default=False,
+        help="also write a GIF (half size, every other frame) next to the MP4",
+    )
+    parser.add_argument(
+        "--gl",
+        choices=("auto", "egl", "osmesa", "glfw"),
+        default="auto",
+        help="OpenGL backend (auto: the first of MUJOCO_GL, egl, osmesa that renders)",
+    )
+    parser.add_argument(
+        "--fast",
+        action="store_true",
+        help="no shadows or reflections: about 5x faster with Mesa's software renderer",
+    )
+    parser.add_argument(
+        "--env-seed",
+        type=nonneg_int,
+        default=None,
+        help="seed of the episode (default: the run's evaluation seed)",
+    )
+    parser.add_argument(
+        "--deterministic",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="take the policy's mean action (--no-deterministic samples)",
+    )
+    parser.add_argument("--quiet", action="store_true", help="no summary line")
+    return parser
+
+
+def video_main(argv: Sequence[str] | None = None, prog: str = "ermrl video") -> int:
+    """Entry point of ``ermrl video``."""
+    parser = build_video_parser(prog)
+    args = parser.parse_args(argv)
+    from ermrl.analysis import GLBackendError, record_video
+
+    try:
+        result = record_video(
+            args.run,
+            args.agent,
+            args.seed,
+            args.out,
+            max_steps=args.max_steps,
+            gif=args.gif,
+            deterministic=args.deterministic,
+            env_seed=args.env_seed,
+            gl=None if args.gl == "auto" else args.gl,
+            fast=args.fast,
+        )
+    except GLBackendError as err:
+        fail(prog, str(err), code=EXIT_NO_GL)
+    except FileNotFoundError as err:
+        fail(prog, str(err))
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    if not args.quiet:
+        height, width = result.size
+        print(
+            f"{result.n_frames} frames ({width}x{height}, {result.fps:g} fps, GL backend "
+            f"{result.backend or 'none needed'}), episode return {result.episode_return:.4g}; "
+            "wrote " + ", ".join(str(p) for p in result.paths),
+            flush=True,
+        )
+    return 0

@@ -1,0 +1,405 @@
+"""ermrl.analysis without training: statistics, grids, spectra, study tables and figures."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import optuna
+import pandas as pd
+import pytest
+from matplotlib.figure import Figure
+from matplotlib.text import Text
+
+import ermrl.analysis as analysis
+from ermrl.analysis import (
+    DynamicsRecording,
+    GLBackendError,
+    PaperFigure,
+    bootstrap_mean_diff_ci,
+    compare_agents,
+    curves_on_grid,
+    dominant_frequency,
+    dynamics_figure,
+    final_returns_figure,
+    final_returns_table,
+    generations_figure,
+    generations_frame,
+    is_generalization_study,
+    learning_curves_figure,
+    notebook_parameters,
+    optimization_history_figure,
+    param_contour_figure,
+    param_importances,
+    param_importances_figure,
+    param_slices_figure,
+    power_spectrum,
+    spectrum_figure,
+    spectrum_summary,
+    study_overview,
+    summarize,
+    task_scores_figure,
+    task_scores_frame,
+    trials_frame,
+    welch_t_test,
+    write_gif,
+    write_mp4,
+)
+from ermrl.config import (
+    BudgetConfig,
+    EncoderConfig,
+    EvolveConfig,
+    PPOConfig,
+    Problem,
+    ReservoirSpace,
+    SearchConfig,
+    TaskConfig,
+    to_dict,
+)
+
+optuna.logging.set_verbosity(optuna.logging.WARNING)
+AGENTS = ("ppo", "res-ppo", "random-res-ppo")
+
+
+# -- helpers -----------------------------------------------------------------------------------
+
+
+def _texts(fig: Figure) -> list[Text]:
+    return [t for t in fig.findobj(Text) if t.get_text().strip() and t.get_visible()]
+
+
+def assert_paper_ready(fig: Figure, *labels: str) -> None:
+    """Every visible text is >= 9 pt and the figure renders as PNG with the expected labels."""
+    assert isinstance(fig, PaperFigure)
+    png = fig._repr_png_()  # draws the figure: tick labels exist only after a draw
+    assert png.startswith(b"\x89PNG")
+    texts = _texts(fig)
+    small = [(t.get_text(), t.get_fontsize()) for t in texts if t.get_fontsize() < 9]
+    assert not small, f"text below 9 pt: {small}"
+    joined = "\n".join(t.get_text() for t in texts)
+    for label in labels:
+        assert label in joined, f"{label!r} not in the figure's texts"
+
+
+def fake_results() -> pd.DataFrame:
+    rng = np.random.default_rng(0)
+    rows = []
+    for offset, agent in zip((0.0, 50.0, 10.0), AGENTS):
+        for seed in range(5):
+            rows.append(
+                {
+                    "agent": agent,
+                    "seed": 10 + seed,
+                    "final_return": 100 + offset + rng.normal(0, 5),
+                    "eval_return": None,
+                }
+            )
+    return pd.DataFrame(rows)
+
+
+def fake_curves() -> pd.DataFrame:
+    rows = []
+    for agent in AGENTS:
+        for seed in range(3):
+            for k in range(1, 21):
+                rows.append(
+                    {
+                        "agent": agent,
+                        "seed": seed,
+                        "env_step": 1000 * k + seed,
+                        "episode_return": k * (2 + AGENTS.index(agent)) + seed,
+                    }
+                )
+    return pd.DataFrame(rows)
+
+
+def make_study(n_trials: int = 12, *, generalization: bool = False) -> optuna.Study:
+    """An in-memory study shaped like an ermrl one, with synthetic trials."""
+    config = EvolveConfig(
+        problem=Problem(
+            task=TaskConfig("HalfCheetah-v5", "velocities"),
+            encoder=EncoderConfig(),
+            ppo=PPOConfig(),
+            budget=BudgetConfig(training_steps=1000),
+            seeds=(0,),
+        ),
+        space=ReservoirSpace(units=20),
+        search=SearchConfig(n_trials=n_trials),
+    )
+    study = optuna.create_study(direction="maximize", study_name="fake")
+    study.set_user_attr("ermrl_config", to_dict(config))
+    study.set_user_attr("ermrl_kind", "evolve-generalization" if generalization else "evolve")
+    dists = {
+        name: optuna.distributions.FloatDistribution(r.low, r.high, log=r.log)
+        for name, r in config.space.ranges().items()
+    }
+    rng = np.random.default_rng(1)
+    for k in range(n_trials):
+        params = {
+            "sr": float(10 ** rng.uniform(-4, 2)),
+            "lr": float(10 ** rng.uniform(-2, 0)),
+            "input_scaling": float(10 ** rng.uniform(-1, 1)),
+        }
+        value = -abs(math.log10(params["sr"])) * 10 + params["lr"] + rng.normal()
+        attrs = {}
+        if generalization:
+            attrs = {
+                "task_normalized": {"HalfCheetah-v5": value / 10, "Ant-v5": value / 20},
+                "task_returns": {"HalfCheetah-v5": value * 10, "Ant-v5": value * 5},
+            }
+        state = optuna.trial.TrialState.FAIL if k == 3 else optuna.trial.TrialState.COMPLETE
+        study.add_trial(
+            optuna.trial.create_trial(
+                params=params,
+                distributions=dists,
+                value=value if state == optuna.trial.TrialState.COMPLETE else None,
+                state=state,
+                user_attrs=attrs,
+            )
+        )
+    return study
+
+
+# -- statistics --------------------------------------------------------------------------------
+
+
+def test_welch_matches_the_formula_and_is_nan_when_undefined() -> None:
+    a, b = [1.0, 2.0, 3.0, 4.0], [2.0, 4.0, 6.0]
+    result = welch_t_test(a, b)
+    va, vb = np.var(a, ddof=1) / 4, np.var(b, ddof=1) / 3
+    assert result.statistic == pytest.approx((np.mean(a) - np.mean(b)) / math.sqrt(va + vb))
+    assert result.dof == pytest.approx((va + vb) ** 2 / (va**2 / 3 + vb**2 / 2))
+    assert 0 < result.p_value < 1
+    assert math.isnan(welch_t_test([1.0], [2.0, 3.0]).p_value)
+    assert math.isnan(welch_t_test([1.0, 1.0], [2.0, 2.0]).statistic)
+
+
+def test_bootstrap_ci_is_reproducible_and_covers_the_difference() -> None:
+    rng = np.random.default_rng(0)
+    a, b = rng.normal(10, 1, 30), rng.normal(0, 1, 30)
+    low, high = bootstrap_mean_diff_ci(a, b, seed=3)
+    assert (low, high) == bootstrap_mean_diff_ci(a, b, seed=3)
+    assert low < a.mean() - b.mean() < high
+    assert 8 < low and high < 12
+    assert all(math.isnan(v) for v in bootstrap_mean_diff_ci([], [1.0]))
+
+
+def test_final_returns_table_and_comparison() -> None:
+    results = fake_results()
+    table = final_returns_table(results, list(AGENTS))
+    assert list(table["agent"]) == list(AGENTS)
+    assert (table["n_seeds"] == 5).all()
+    row = table.set_index("agent").loc["res-ppo"]
+    assert row["ci95_low"] < row["mean"] < row["ci95_high"]
+    comparison = compare_agents(results, "res-ppo", ["ppo", "random-res-ppo", "missing"])
+    assert list(comparison["baseline"]) == ["ppo", "random-res-ppo"]
+    vs_ppo = comparison.set_index("baseline").loc["ppo"]
+    assert vs_ppo["mean_diff"] == pytest.approx(50, abs=10)
+    assert vs_ppo["boot_ci_low"] > 0 and vs_ppo["p_value"] < 0.001
+
+
+def test_summarize_uses_the_sample_std() -> None:
+    results = fake_results()
+    summary = summarize(results, list(AGENTS)).set_index("agent")
+    values = results.loc[results["agent"] == "ppo", "final_return"]
+    assert summary.loc["ppo", "final_return_std"] == pytest.approx(values.std(ddof=1))
+
+
+def test_curves_on_grid_has_ci_columns() -> None:
+    grid = curves_on_grid(fake_curves(), n_points=20, smooth_episodes=1)
+    assert {"mean", "std", "sem", "ci95", "n_seeds"} <= set(grid.columns)
+    last = grid[grid["agent"] == "ppo"].iloc[-1]
+    assert last["n_seeds"] == 3
+    # Seeds differ by 1 return unit: std 1, sem 1/sqrt(3), t(0.975, 2) = 4.303.
+    assert last["std"] == pytest.approx(1.0)
+    assert last["ci95"] == pytest.approx(4.3027 / math.sqrt(3), rel=1e-3)
+    one = curves_on_grid(fake_curves().query("seed == 0"), n_points=5)
+    assert one["ci95"].isna().all() and (one["std"] == 0).all()
+
+
+# -- figures -----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("band", ["std", "ci95", "none"])
+def test_learning_curves_figure(band: str) -> None:
+    grid = curves_on_grid(fake_curves(), n_points=30)
+    fig = learning_curves_figure(grid, title="HalfCheetah-v5, velocities only", band=band)  # type: ignore[arg-type]
+    assert_paper_ready(fig, "Environment steps", "Episode return", "RES-PPO (evolved reservoir)")
+
+
+def test_plot_learning_curves_keeps_its_signature(tmp_path: Path) -> None:
+    path = analysis.plot_learning_curves(
+        curves_on_grid(fake_curves()), tmp_path / "c.png", title="t", agents=list(AGENTS)
+    )
+    assert path.read_bytes().startswith(b"\x89PNG")
+
+
+def test_final_returns_figure() -> None:
+    fig = final_returns_figure(fake_results(), agents=list(AGENTS), title="Env")
+    assert_paper_ready(fig, "Final return", "PPO", "mean")
+
+
+def test_study_tables_and_figures() -> None:
+    study = make_study()
+    overview = study_overview(study)
+    assert overview.counts["COMPLETE"] == 11 and overview.counts["FAIL"] == 1
+    assert overview.env_id == "HalfCheetah-v5" and overview.best_number is not None
+    frame = trials_frame(study)
+    assert {"number", "state", "value", "sr", "lr", "input_scaling", "generation"} <= set(frame)
+    importances = param_importances(study)
+    assert set(importances) == {"sr", "lr", "input_scaling"}
+    assert sum(importances.values()) == pytest.approx(1.0)
+    ranges = analysis.param_ranges(study, analysis.study_config_or_none(study))
+    assert ranges["sr"] == (1e-4, 1e2, True)
+    assert_paper_ready(optimization_history_figure(frame, title="t"), "Trial number", "best so far")
+    assert_paper_ready(param_importances_figure(importances), "Spectral radius sr")
+    assert_paper_ready(
+        param_slices_figure(frame, ["sr", "lr", "input_scaling"], ranges=ranges),
+        "Leak rate lr (log scale)",
+        "Trial number",
+    )
+    assert_paper_ready(
+        param_contour_figure(frame, "lr", "sr", ranges=ranges), "Spectral radius sr (log scale)"
+    )
+    # No CMA-ES generations in a synthetic study: the figure says so instead of failing.
+    assert_paper_ready(generations_figure(generations_frame(study)), "no trial was sampled")
+
+
+def test_figures_of_an_empty_study_say_why() -> None:
+    study = optuna.create_study(direction="maximize")
+    frame = trials_frame(study)
+    assert param_importances(study) == {}
+    assert_paper_ready(optimization_history_figure(frame), "no COMPLETE trial yet")
+    assert_paper_ready(param_importances_figure({}), "at least 2 COMPLETE trials")
+
+
+def test_generalization_scores() -> None:
+    single = make_study(4)
+    assert not is_generalization_study(single)
+    assert task_scores_frame(single).empty
+    assert_paper_ready(task_scores_figure(task_scores_frame(single)), "single-task study")
+    multi = make_study(6, generalization=True)
+    assert is_generalization_study(multi)
+    scores = task_scores_frame(multi)
+    assert set(scores["env_id"]) == {"HalfCheetah-v5", "Ant-v5"}
+    assert len(scores) == 12
+    assert_paper_ready(task_scores_figure(scores, title="g"), "Normalized score", "Ant-v5")
+
+
+# -- dynamics ------------------------------------------------------------------------------------
+
+
+def synthetic_recording(n: int = 600, dt: float = 0.05, hz: float = 2.0) -> DynamicsRecording:
+    t = np.arange(n) * dt
+    wave = np.sin(2 * np.pi * hz * t)
+    transient = np.exp(-t / 1.5)
+    states = np.stack([0.3 * wave * (k % 3 + 1) + transient for k in range(25)], axis=1)
+    return DynamicsRecording(
+        observations=np.stack([wave, 2 * wave + transient], axis=1),
+        actions=np.stack([0.5 * wave], axis=1),
+        rewards=np.ones(n),
+        states=np.tanh(states),
+        dt=dt,
+        env_id="HalfCheetah-v5",
+        observe="velocities",
+        agent="res-ppo",
+        seed=10,
+        obs_indices=np.array([8, 9]),
+    )
+
+
+def test_dominant_frequency_ignores_the_transient() -> None:
+    rec = synthetic_recording()
+    freqs, power = power_spectrum(rec.states, rec.dt)
+    assert freqs[-1] == pytest.approx(10.0)  # Nyquist of dt = 0.05 s
+    assert dominant_frequency(freqs, power) == pytest.approx(2.0, abs=0.1)
+    summary = spectrum_summary(rec)
+    assert summary["frequency_unit"] == "Hz"
+    for info in summary["signals"].values():
+        assert info["dominant_frequency"] == pytest.approx(2.0, abs=0.1)
+        assert info["dominant_period"] == pytest.approx(0.5, abs=0.03)
+    assert math.isnan(dominant_frequency(*power_spectrum(np.ones((100, 2)))))
+
+
+def test_recording_round_trip_and_figures(tmp_path: Path) -> None:
+    rec = synthetic_recording()
+    back = DynamicsRecording.load(rec.save(tmp_path / "episode.npz"))
+    np.testing.assert_array_equal(back.states, rec.states)
+    assert (back.agent, back.seed, back.dt, back.env_id) == ("res-ppo", 10, 0.05, "HalfCheetah-v5")
+    assert_paper_ready(dynamics_figure(rec), "Time (s)", "Reservoir unit", "obs[8]")
+    assert_paper_ready(spectrum_figure(rec), "Frequency (Hz)", "peak 2.03 Hz")
+
+
+# -- notebooks, video helpers ------------------------------------------------------------------
+
+
+def test_notebook_parameters_are_overridden_by_the_environment(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    for var in ("ERMRL_STUDY_NAME", "ERMRL_STORAGE", "ERMRL_RUNS"):
+        monkeypatch.delenv(var, raising=False)
+    assert notebook_parameters("s", "sqlite:///a.db") == ("s", "sqlite:///a.db", "runs/s")
+    monkeypatch.setenv("ERMRL_STUDY_NAME", "other")
+    monkeypatch.setenv("ERMRL_RUNS", "/x/runs")
+    assert notebook_parameters("s", "sqlite:///a.db", "r") == ("other", "sqlite:///a.db", "/x/runs")
+
+
+def test_no_gl_backend_error_says_what_to_install(monkeypatch: pytest.MonkeyPatch) -> None:
+    from ermrl.analysis import _video
+
+    monkeypatch.setattr(_video, "_selected", None)
+    monkeypatch.setattr(_video, "_opengl_loaded", lambda: False)
+    monkeypatch.setattr(_video, "_probe", lambda backend, timeout: (False, f"{backend} broken"))
+    with pytest.raises(GLBackendError) as err:
+        _video.select_gl_backend(candidates=["egl", "osmesa"])
+    message = str(err.value)
+    assert "egl: egl broken" in message and "osmesa: osmesa broken" in message
+    assert "apt-get install" in message and "libosmesa6" in message
+    with pytest.raises(ValueError, match="unknown GL backend"):
+        _video.select_gl_backend("vulkan")
+
+
+def test_mp4_and_gif_writers_round_trip(tmp_path: Path) -> None:
+    import imageio.v2 as imageio
+
+    frames = [np.full((64, 96, 3), 20 * k, dtype=np.uint8) for k in range(10)]
+    mp4 = write_mp4(frames, tmp_path / "clip.mp4", fps=20)
+    reader = imageio.get_reader(str(mp4))
+    read = [frame for frame in reader]
+    reader.close()
+    assert len(read) == 10 and read[0].shape == (64, 96, 3)
+    gif = write_gif(frames, tmp_path / "clip.gif", fps=20)
+    assert imageio.mimread(str(gif))[0].shape[:2] == (32, 48)
+
+
+# -- report without training -------------------------------------------------------------------
+
+
+def _copy_to_sqlite(study: optuna.Study, storage: str, name: str) -> None:
+    target = optuna.create_study(storage=storage, study_name=name, direction="maximize")
+    for key, value in study.user_attrs.items():
+        target.set_user_attr(key, value)
+    target.add_trials(study.get_trials())
+
+
+def test_report_of_a_generalization_study(tmp_path: Path) -> None:
+    storage = f"sqlite:///{tmp_path / 'g.db'}"
+    _copy_to_sqlite(make_study(8, generalization=True), storage, "gen")
+    result = analysis.write_report(
+        "gen", storage, runs=tmp_path / "none", out=tmp_path / "r", interactive=False
+    )
+    md = result.markdown.read_text()
+    assert "## Generalization" in md and "Ant-v5" in md
+    assert result.figures["task_scores"].read_bytes().startswith(b"\x89PNG")
+    assert (tmp_path / "r" / "generalization" / "task_scores.csv").exists()
+
+
+def test_report_of_a_study_without_trials(tmp_path: Path) -> None:
+    storage = f"sqlite:///{tmp_path / 'e.db'}"
+    optuna.create_study(storage=storage, study_name="empty", direction="maximize")
+    result = analysis.write_report("empty", storage, out=tmp_path / "r", interactive=True)
+    md = result.markdown.read_text()
+    assert "No COMPLETE trial yet." in md
+    assert "not created by ermrl" in md
+    assert result.figures["optimization_history"].exists()
