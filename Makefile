@@ -12,7 +12,7 @@ TORCH_SPEC ?= torch==2.13.0
 STORAGE ?= sqlite:///ermrl.db
 PYTEST_ARGS ?=
 
-.PHONY: install demo test test-slow lint clean
+.PHONY: install system-deps demo test test-slow lint clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -21,6 +21,10 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 install: $(STAMP)
+
+# Debian packages for headless MuJoCo rendering (ermrl video); needs root, skipped when present.
+system-deps:
+	bash scripts/install_system_deps.sh
 
 # A small evolution (8 trials x 2 seeds x 8192 steps, seeds in 2 processes) on a partially
 # observable task, stored in the embedded SQLite database, then the test phase on its best
@@ -39,7 +43,7 @@ test-slow: install
 	$(PY) -m pytest -m slow $(PYTEST_ARGS)
 
 lint: install
-	$(PY) -m ruff check ermrl tests benchmarks evolve_res.py test.py
+	$(PY) -m ruff check ermrl tests benchmarks *.py
 
 clean:
 	rm -rf $(VENV) runs reports ermrl.db .pytest_cache

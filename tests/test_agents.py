@@ -19,7 +19,14 @@ from ermrl.agents import (
     resolve_ppo_config,
     train_agent,
 )
-from ermrl.config import BudgetConfig, ConfigError, EncoderConfig, PPOConfig, ReservoirParams, TaskConfig
+from ermrl.config import (
+    BudgetConfig,
+    ConfigError,
+    EncoderConfig,
+    PPOConfig,
+    ReservoirParams,
+    TaskConfig,
+)
 from ermrl.encoders import ReservoirVecEnv
 
 TINY_PPO = PPOConfig(n_envs=1, hyperparams={"n_steps": 128, "batch_size": 64, "n_epochs": 2})
@@ -102,7 +109,11 @@ def test_derived_seeds_are_independent_and_stable() -> None:
         "Pendulum-v1",
         "MountainCarContinuous-v0",
         "LunarLander-v3",
-        *[f"{name}-{v}" for name in ("Ant", "HalfCheetah", "Swimmer", "Hopper", "Walker2d") for v in ("v4", "v5")],
+        *[
+            f"{name}-{v}"
+            for name in ("Ant", "HalfCheetah", "Swimmer", "Hopper", "Walker2d")
+            for v in ("v4", "v5")
+        ],
     ],
 )
 def test_encoded_env_runs_on_every_supported_task(env_id: str) -> None:
@@ -137,8 +148,12 @@ def test_same_seed_same_returns_different_seed_differs() -> None:
 def test_eval_fitness_runs_deterministic_episodes(tmp_path) -> None:  # noqa: ANN001
     task = TaskConfig("CartPole-v1", "positions")
     budget = BudgetConfig(training_steps=256, fitness="eval", n_eval_episodes=3)
-    result = train_agent(task, SMALL_ENCODER, TINY_PPO, budget, seed=0, model_path=tmp_path / "m.zip")
-    assert len(result.eval_returns) == 3 and result.eval_return == pytest.approx(np.mean(result.eval_returns))
+    result = train_agent(
+        task, SMALL_ENCODER, TINY_PPO, budget, seed=0, model_path=tmp_path / "m.zip"
+    )
+    assert len(result.eval_returns) == 3 and result.eval_return == pytest.approx(
+        np.mean(result.eval_returns)
+    )
     assert result.fitness("eval") == result.eval_return
     assert (tmp_path / "m.zip").exists()
 
@@ -152,9 +167,13 @@ def test_plain_ppo_without_encoder() -> None:
 
 def test_nan_training_raises_training_diverged() -> None:
     with pytest.raises(TrainingDiverged):
-        train_agent(TaskConfig("ErmrlNaN-v0"), None, TINY_PPO, BudgetConfig(training_steps=256), seed=0)
+        train_agent(
+            TaskConfig("ErmrlNaN-v0"), None, TINY_PPO, BudgetConfig(training_steps=256), seed=0
+        )
 
 
 def test_no_finished_episode_is_a_clear_error() -> None:
     with pytest.raises(NoEpisodeFinished, match="raise --training-steps"):
-        train_agent(TaskConfig("HalfCheetah-v5"), None, TINY_PPO, BudgetConfig(training_steps=128), seed=0)
+        train_agent(
+            TaskConfig("HalfCheetah-v5"), None, TINY_PPO, BudgetConfig(training_steps=128), seed=0
+        )

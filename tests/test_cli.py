@@ -33,7 +33,16 @@ def evolved(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
     proc = run(
         str(ROOT / "evolve_res.py"),
         *("--env-id", "Pendulum-v1", "--observe", "positions", "--n-trials", "3", "--n-seeds", "2"),
-        *("--training-steps", "400", "--storage", url, "--study-name", "check", "--sampler-seed", "1"),
+        *(
+            "--training-steps",
+            "400",
+            "--storage",
+            url,
+            "--study-name",
+            "check",
+            "--sampler-seed",
+            "1",
+        ),
         *TINY,
         cwd=tmp,
     )
@@ -78,7 +87,13 @@ def test_test_phase_writes_all_outputs(evolved: tuple[Path, str]) -> None:
         "-c",
         "import os, sys; os.environ['SLURM_ARRAY_TASK_ID'] = '1'; sys.argv = ['test.py'] + sys.argv[1:];"
         "from ermrl.cli import test_main; raise SystemExit(test_main(prog='test.py'))",
-        *args[:-1], str(tmp / "slurm_run"), "--seeds", "20", "21", "--agents", "ppo",
+        *args[:-1],
+        str(tmp / "slurm_run"),
+        "--seeds",
+        "20",
+        "21",
+        "--agents",
+        "ppo",
         cwd=tmp,
     )
     assert env_task.returncode == 0, env_task.stderr
@@ -116,11 +131,16 @@ def _n_trials(db: Path) -> int:
         (["--env-id", "Pendulum-v1", "--n-trials", "-3"], "must be positive"),
         (["--env-id", "Pendulum-v1", "--observe", "hidden"], "invalid choice"),
         (["--env-id", "Pendulum-v1", "--ppo", "lerning_rate=3"], "unknown PPO hyperparameter"),
-        (["--env-id", "Pendulum-v1", "--storage", "postgresql://nobody@127.0.0.1:1/none"], "cannot open storage"),
+        (
+            ["--env-id", "Pendulum-v1", "--storage", "postgresql://nobody@127.0.0.1:1/none"],
+            "cannot open storage",
+        ),
         (["--env-id", "Pendulum-v1", "--storage", "sqlite:////no/such/dir/x.db"], "does not exist"),
     ],
 )
-def test_bad_evolve_input_is_one_line_exit_2_and_writes_nothing(tmp_path: Path, args: list[str], message: str) -> None:
+def test_bad_evolve_input_is_one_line_exit_2_and_writes_nothing(
+    tmp_path: Path, args: list[str], message: str
+) -> None:
     db = tmp_path / "s.db"
     if "--storage" not in args:
         args = [*args, "--storage", f"sqlite:///{db}"]
@@ -137,11 +157,16 @@ def test_bad_test_input(evolved: tuple[Path, str], tmp_path: Path) -> None:
     cases = [
         (["--study-name", "nope", "--storage", url], "no study named 'nope'; studies there: check"),
         (["--study-name", "check", "--storage", url, "--training-steps", "0"], "must be positive"),
-        (["--study-name", "check", "--storage", "postgresql://nobody@127.0.0.1:1/x"], "cannot open storage"),
+        (
+            ["--study-name", "check", "--storage", "postgresql://nobody@127.0.0.1:1/x"],
+            "cannot open storage",
+        ),
         (["--study-name", "check", "--storage", url, "--trial", "99"], "has no trial 99"),
     ]
     for args, message in cases:
-        proc = run(str(ROOT / "test.py"), *args, "--out", str(tmp_path / "o"), cwd=tmp_path, timeout=120)
+        proc = run(
+            str(ROOT / "test.py"), *args, "--out", str(tmp_path / "o"), cwd=tmp_path, timeout=120
+        )
         lines = proc.stderr.strip().splitlines()
         assert proc.returncode == 2 and len(lines) == 1 and message in lines[0], (args, proc.stderr)
     assert not (tmp_path / "o").exists()
@@ -154,6 +179,7 @@ def test_help_and_root_scripts_are_the_same_entry_points(tmp_path: Path) -> None
         root = run(str(ROOT / script), "--help", cwd=tmp_path)
         sub = run("-m", "ermrl", command, "--help", cwd=tmp_path)
         assert root.returncode == sub.returncode == 0
+
         def words(text: str, script: str = script, command: str = command) -> list[str]:
             return text.replace(f"ermrl {command}", "PROG").replace(script, "PROG").split()
 
@@ -167,10 +193,25 @@ def test_help_and_root_scripts_are_the_same_entry_points(tmp_path: Path) -> None
 def test_ctrl_c_marks_the_running_trial_failed_and_exits(tmp_path: Path) -> None:
     url = f"sqlite:///{tmp_path}/s.db"
     cmd = [
-        sys.executable, str(ROOT / "evolve_res.py"), "--env-id", "Pendulum-v1", "--n-trials", "50",
-        "--n-seeds", "1", "--training-steps", "100000", "--storage", url, "--study-name", "c", *TINY,
+        sys.executable,
+        str(ROOT / "evolve_res.py"),
+        "--env-id",
+        "Pendulum-v1",
+        "--n-trials",
+        "50",
+        "--n-seeds",
+        "1",
+        "--training-steps",
+        "100000",
+        "--storage",
+        url,
+        "--study-name",
+        "c",
+        *TINY,
     ]
-    proc = subprocess.Popen(cmd, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        cmd, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
     deadline = time.time() + 120
     while time.time() < deadline and _n_trials(tmp_path / "s.db") == 0:
         time.sleep(0.5)

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import threadpoolctl
 
 from ermrl.config import BudgetConfig, EncoderConfig, PPOConfig, TaskConfig
 
@@ -204,6 +205,9 @@ def train_agent(
     from ermrl.agents._hyperparams import ppo_kwargs
 
     torch.set_num_threads(ppo.torch_threads)
+    # BLAS (numpy's matrix products in the encoder) gets the same thread budget: with several
+    # training processes on a few cores, extra spinning BLAS threads only steal CPU time.
+    threadpoolctl.threadpool_limits(ppo.torch_threads)
     seeds = derive_seeds(seed)
     result = RunResult(seed=seed)
     start = time.perf_counter()

@@ -1,0 +1,196 @@
+"""Benchmarks 2 and 3: whole-trial throughput and parallel scaling.
+
+Benchmark 2 (throughput): env steps per second of a whole trial (3 seeds, default PPO settings, one
+env) with ermrl's encoder, against plain SB3 PPO with no reservoir at the same settings, and against
+the original ER-MRL pattern (a reservoirpy node called per step, seeds one after another).
+
+Benchmark 3 (scaling): a trial's seeds in 1 process against 2 processes (``--n-procs``), with torch
+and BLAS pinned to one thread per process, and the unpinned single process for reference; and 1
+evolution worker against 2 workers sharing one SQLite study (trials per minute).
+
+    python benchmarks/bench_trial.py            # HalfCheetah-v5, 3 seeds x 8192 steps, 3 repeats
+    python benchmarks/bench_trial.py --quick    # tiny version (CI)
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks._harness import alternate, median, table, write_json  # noqa: E402
+
+TARGET_THROUGHPUT = 0.95
+TARGET_SCALING = 1.7
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _plain_ppo_seed(
+    env_id: str, steps: int, seed: int, node_units: int | None, threads: int
+) -> int:
+    """Plain SB3 PPO (optionally on the original per-step node wrapper); returns env steps."""
+    import gymnasium as gym
+    import torch
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.monitor import Monitor
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    torch.set_num_threads(threads)
+
+    def factory() -> gym.Env:
+        env = Monitor(gym.make(env_id))
+        if node_units is not None:
+            from benchmarks.bench_encoder import PerStepNodeWrapper
+
+            env = PerStepNodeWrapper(env, node_units, seed)
+        return env
+
+    model = PPO("MlpPolicy", DummyVecEnv([factory]), seed=seed, device="cpu")
+    model.learn(steps)
+    return int(model.num_timesteps)
+
+
+def _ermrl_trial(
+    env_id: str, steps: int, seeds: tuple[int, ...], n_procs: int, threads: int, runner
+):  # noqa: ANN001, ANN202
+    from ermrl.config import (
+        BudgetConfig,
+        EncoderConfig,
+        PPOConfig,
+        Problem,
+        ReservoirParams,
+        TaskConfig,
+    )
+    from ermrl.search import evaluate_reservoir
+
+    reservoirs = (ReservoirParams(units=100, sr=0.9, lr=0.3),)
+    problem = Problem(
+        task=TaskConfig(env_id),
+        encoder=EncoderConfig(reservoirs=reservoirs),
+        ppo=PPOConfig(n_envs=1, torch_threads=threads),
+        budget=BudgetConfig(training_steps=steps),
+        seeds=seeds,
+    )
+    result = evaluate_reservoir(reservoirs, problem, runner=runner)
+    return result.env_steps
+
+
+def throughput_and_scaling(env_id: str, steps: int, repeats: int) -> list[dict]:
+    import torch
+
+    from ermrl.search import SeedRunner
+
+    seeds = (0, 1, 2)
+    default_threads = torch.get_num_threads()
+    pool = SeedRunner(2)
+
+    def rate(fn) -> float:  # noqa: ANN001
+        start = time.perf_counter()
+        n = fn()
+        return n / (time.perf_counter() - start)
+
+    variants = {
+        "plain-ppo": lambda: rate(
+            lambda: sum(_plain_ppo_seed(env_id, steps, s, None, 1) for s in seeds)
+        ),
+        "ermrl-1proc": lambda: rate(lambda: _ermrl_trial(env_id, steps, seeds, 1, 1, None)),
+        "original-pattern": lambda: rate(
+            lambda: sum(_plain_ppo_seed(env_id, steps, s, 100, 1) for s in seeds)
+        ),
+        "ermrl-2procs": lambda: rate(lambda: _ermrl_trial(env_id, steps, seeds, 2, 1, pool)),
+        "ermrl-1proc-unpinned": lambda: rate(
+            lambda: _ermrl_trial(env_id, steps, seeds, 1, default_threads, None)
+        ),
+    }
+    try:
+        rates = alternate(variants, repeats, warmup=False)
+    finally:
+        pool.close()
+    med = {k: median(v) for k, v in rates.items()}
+    return [
+        {"comparison": "ermrl trial / plain PPO (1 proc)", "ratio": med["ermrl-1proc"] / med["plain-ppo"],
+         "target": f">= {TARGET_THROUGHPUT}", "a_steps_s": med["ermrl-1proc"], "b_steps_s": med["plain-ppo"]},
+        {"comparison": "ermrl trial / original pattern (1 proc)", "ratio": med["ermrl-1proc"] / med["original-pattern"],
+         "target": "", "a_steps_s": med["ermrl-1proc"], "b_steps_s": med["original-pattern"]},
+        {"comparison": "ermrl trial 2 procs / original pattern", "ratio": med["ermrl-2procs"] / med["original-pattern"],
+         "target": "", "a_steps_s": med["ermrl-2procs"], "b_steps_s": med["original-pattern"]},
+        {"comparison": "ermrl seeds 2 procs / 1 proc (pinned)", "ratio": med["ermrl-2procs"] / med["ermrl-1proc"],
+         "target": f">= {TARGET_SCALING}", "a_steps_s": med["ermrl-2procs"], "b_steps_s": med["ermrl-1proc"]},
+        {"comparison": f"ermrl 1 proc pinned / unpinned ({default_threads} threads)",
+         "ratio": med["ermrl-1proc"] / med["ermrl-1proc-unpinned"], "target": "",
+         "a_steps_s": med["ermrl-1proc"], "b_steps_s": med["ermrl-1proc-unpinned"]},
+        {"comparison": "raw rates (steps/s)", "ratio": float("nan"), "target": "", "rates": rates},
+    ]  # fmt: skip
+
+
+def workers_scaling(n_trials: int, steps: int, repeats: int) -> list[dict]:
+    """Trials per minute of 1 and 2 evolution workers sharing one fresh SQLite study."""
+    tiny = ["--n-envs", "1", "--ppo", "n_steps=256", "batch_size=64", "--units", "50"]
+
+    def run_workers(n_workers: int) -> float:
+        with tempfile.TemporaryDirectory() as tmp:
+            url = f"sqlite:///{tmp}/s.db"
+            base = [
+                sys.executable, str(ROOT / "evolve_res.py"), "--env-id", "Pendulum-v1", "--observe", "positions",
+                "--n-trials", str(n_trials), "--n-seeds", "1", "--training-steps", str(steps),
+                "--storage", url, "--study-name", "w", "--quiet", *tiny,
+            ]  # fmt: skip
+            start = time.perf_counter()
+            procs = [subprocess.Popen(base, env={**os.environ}) for _ in range(n_workers)]
+            for p in procs:
+                p.wait()
+            return n_trials / ((time.perf_counter() - start) / 60)
+
+    rates = alternate(
+        {"1 worker": lambda: run_workers(1), "2 workers": lambda: run_workers(2)},
+        repeats,
+        warmup=False,
+    )
+    one, two = median(rates["1 worker"]), median(rates["2 workers"])
+    return [
+        {"comparison": "2 workers / 1 worker (trials per minute, one SQLite study)", "ratio": two / one,
+         "target": f">= {TARGET_SCALING}", "a_steps_s": two, "b_steps_s": one, "rates": rates},
+    ]  # fmt: skip
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--quick", action="store_true", help="tiny budgets, one repeat (CI)")
+    parser.add_argument("--env-id", default="HalfCheetah-v5")
+    parser.add_argument("--steps", type=int, default=None, help="training steps per seed")
+    parser.add_argument("--repeats", type=int, default=None)
+    parser.add_argument("--out", default="benchmarks/results/trial.json")
+    args = parser.parse_args(argv)
+    steps = args.steps or (1024 if args.quick else 8192)
+    repeats = args.repeats or (1 if args.quick else 3)
+    rows = throughput_and_scaling(args.env_id, steps, repeats)
+    rows += workers_scaling(
+        n_trials=2 if args.quick else 8, steps=512 if args.quick else 4096, repeats=repeats
+    )
+    printable = [r for r in rows if "comparison" in r and r["comparison"] != "raw rates (steps/s)"]
+    print(f"{args.env_id}, 3 seeds x {steps} steps per trial, {repeats} repeats (medians; a/b):")
+    print(table(printable, ["comparison", "ratio", "target", "a_steps_s", "b_steps_s"]))
+    path = write_json(
+        args.out,
+        {
+            "benchmark": "trial",
+            "env_id": args.env_id,
+            "steps": steps,
+            "repeats": repeats,
+            "rows": rows,
+        },
+    )
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

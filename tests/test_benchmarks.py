@@ -1,0 +1,41 @@
+"""The benchmarks keep working: CI runs them in quick mode (timings are not asserted)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.slow
+def test_benchmarks_run_in_quick_mode(tmp_path: Path) -> None:
+    proc = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "benchmarks" / "run_all.py"),
+            "--quick",
+            "--results",
+            str(tmp_path),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=1500,
+    )
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    for name in ("encoder", "trial", "pruning", "workers"):
+        data = json.loads((tmp_path / f"{name}.json").read_text())
+        assert data["machine"]["cpus"] >= 1
+    encoder = json.loads((tmp_path / "encoder.json").read_text())["rows"][0]
+    assert (
+        encoder["raw_steps_s"] > 0 and encoder["ermrl_steps_s"] > 0 and encoder["node_steps_s"] > 0
+    )
+    assert "target" in proc.stdout  # thresholds are printed, not enforced
+    pruning = json.loads((tmp_path / "pruning.json").read_text())
+    assert {s["pruner"] for s in pruning["summary"]} == {"none", "median", "halving"}
+    assert all(r["env_steps"] > 0 for r in pruning["rows"])
