@@ -5,7 +5,7 @@ fitness reached with and without pruning (``--pruner median|halving|none``). Eac
 runs with several sampler seeds; the CMA-ES proposals of a seed are the same until pruning
 changes what the sampler is told.
 
-    python benchmarks/bench_pruning.py            # CartPole-v1 (velocities hidden), 12 trials
+    python benchmarks/bench_pruning.py            # CartPole-v1 (velocities hidden), 12 trials x 8192 steps
     python benchmarks/bench_pruning.py --quick    # tiny version (CI)
 """
 
@@ -82,9 +82,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--pruners", nargs="+", default=["none", "median", "halving"])
     parser.add_argument("--out", default="benchmarks/results/pruning.json")
     args = parser.parse_args(argv)
-    n_trials = args.n_trials or (6 if args.quick else 16)
-    steps = args.steps or (1024 if args.quick else 12288)
-    n_seeds = args.n_seeds or (1 if args.quick else 2)
+    n_trials = args.n_trials or (6 if args.quick else 12)
+    steps = args.steps or (1024 if args.quick else 8192)
+    n_seeds = args.n_seeds or 1
     sampler_seeds = args.sampler_seeds or ([0] if args.quick else [0, 1])
 
     rows = []

@@ -117,7 +117,10 @@ def _n_trials(db: Path) -> int:
     if not db.exists():
         return 0
     with sqlite3.connect(db) as con:
-        return con.execute("select count(*) from trials").fetchone()[0]
+        try:
+            return con.execute("select count(*) from trials").fetchone()[0]
+        except sqlite3.OperationalError:  # the file exists before its schema does
+            return 0
 
 
 @pytest.mark.parametrize(
