@@ -225,14 +225,18 @@ def test_fail_stale_uses_heartbeats_else_start_time(tmp_path: Path) -> None:
         study._storage.record_heartbeat(alive._trial_id)
         silent = study.ask()
     silent.suggest_float("x", 0, 1)
-    time.sleep(1.5)
+    time.sleep(2.5)
+    # The alive trial's heartbeat is refreshed right before each look, so that a slow machine
+    # cannot age it past the threshold between two calls.
     study._storage.record_heartbeat(alive._trial_id)
-    stale = find_stale_trials(study, older_than=1.0)
+    stale = find_stale_trials(study, older_than=2.0)
     assert [t.number for t in stale] == [silent.number]
-    dry = fail_stale(study, 1.0, retry=RetryStaleTrial(3), dry_run=True)
+    study._storage.record_heartbeat(alive._trial_id)
+    dry = fail_stale(study, 2.0, retry=RetryStaleTrial(3), dry_run=True)
     assert [(t.number, r) for t, r in dry] == [(silent.number, True)]
     assert study.trials[silent.number].state == TrialState.RUNNING
-    done = fail_stale(study, 1.0, retry=RetryStaleTrial(3))
+    study._storage.record_heartbeat(alive._trial_id)
+    done = fail_stale(study, 2.0, retry=RetryStaleTrial(3))
     assert [(t.number, r) for t, r in done] == [(silent.number, True)]
     states = [t.state for t in study.get_trials()]
     assert states == [TrialState.RUNNING, TrialState.FAIL, TrialState.WAITING]
