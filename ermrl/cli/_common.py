@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from typing import NoReturn
+from typing import Any, NoReturn
 
 from ermrl.storage import DEFAULT_STORAGE
 
@@ -12,6 +12,8 @@ __all__ = [
     "ArgumentParser",
     "fail",
     "add_storage_args",
+    "add_run_folder_args",
+    "run_folder_kwargs",
     "positive_int",
     "nonneg_int",
     "positive_float",
@@ -90,3 +92,62 @@ def add_storage_args(parser: argparse.ArgumentParser, *, study_required: bool) -
         help="study name"
         + ("" if study_required else " (default: derived from env, mask and budget)"),
     )
+
+
+def add_run_folder_args(parser: argparse.ArgumentParser, *, agent_help: str, out_help: str) -> None:
+    """Add the options that pick one episode of a trained agent in a test-phase folder.
+
+    Shared by ``ermrl dynamics`` and ``ermrl video``. Adds, in this order: ``--run``,
+    ``--agent``, ``--seed``, ``--out``, ``--max-steps``, ``--env-seed`` and
+    ``--deterministic/--no-deterministic``.
+
+    Args:
+        parser: the command's parser.
+        agent_help: help of ``--agent`` (what the command does with the agent).
+        out_help: help of ``--out`` (each command writes its own kind of output).
+    """
+    parser.add_argument("--run", required=True, help="test-phase folder (--out of ermrl test)")
+    parser.add_argument("--agent", default="res-ppo", help=agent_help)
+    parser.add_argument(
+        "--seed",
+        type=nonneg_int,
+        default=None,
+        help="run seed (default: the smallest seed with a saved model)",
+    )
+    parser.add_argument("--out", default=None, help=out_help)
+    parser.add_argument(
+        "--max-steps", type=positive_int, default=None, help="stop the episode after N steps"
+    )
+    parser.add_argument(
+        "--env-seed",
+        type=nonneg_int,
+        default=None,
+        help="seed of the episode (default: the run's evaluation seed)",
+    )
+    parser.add_argument(
+        "--deterministic",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="take the policy's mean action (--no-deterministic samples)",
+    )
+
+
+def run_folder_kwargs(args: argparse.Namespace) -> dict[str, Any]:
+    """The options of :func:`add_run_folder_args` (except ``--out``) as keyword arguments.
+
+    Args:
+        args: parsed arguments of a parser given :func:`add_run_folder_args`.
+
+    Returns:
+        ``run``, ``agent``, ``seed``, ``max_steps``, ``deterministic`` and ``env_seed``, the
+        keyword arguments shared by :func:`ermrl.analysis.record_dynamics` and
+        :func:`ermrl.analysis.record_video`.
+    """
+    return {
+        "run": args.run,
+        "agent": args.agent,
+        "seed": args.seed,
+        "max_steps": args.max_steps,
+        "deterministic": args.deterministic,
+        "env_seed": args.env_seed,
+    }

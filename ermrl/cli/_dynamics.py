@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 import math
 import sys
 import textwrap
@@ -13,9 +12,10 @@ from ermrl.cli._common import (
     EXIT_INTERRUPTED,
     ArgumentParser,
     HelpFormatter,
+    add_run_folder_args,
     fail,
-    nonneg_int,
     positive_int,
+    run_folder_kwargs,
 )
 
 __all__ = ["build_dynamics_parser", "dynamics_main"]
@@ -36,21 +36,10 @@ DESCRIPTION = textwrap.dedent(
 
 def build_dynamics_parser(prog: str = "ermrl dynamics") -> ArgumentParser:
     parser = ArgumentParser(prog=prog, description=DESCRIPTION, formatter_class=HelpFormatter)
-    parser.add_argument("--run", required=True, help="test-phase folder (--out of ermrl test)")
-    parser.add_argument(
-        "--agent",
-        default="res-ppo",
-        help="agent whose model is replayed (res-ppo, random-res-ppo, ppo)",
-    )
-    parser.add_argument(
-        "--seed",
-        type=nonneg_int,
-        default=None,
-        help="run seed (default: the smallest seed with a saved model)",
-    )
-    parser.add_argument("--out", default=None, help="output folder (default: <run>/dynamics)")
-    parser.add_argument(
-        "--max-steps", type=positive_int, default=None, help="stop the episode after N steps"
+    add_run_folder_args(
+        parser,
+        agent_help="agent whose model is replayed (res-ppo, random-res-ppo, ppo)",
+        out_help="output folder (default: <run>/dynamics)",
     )
     parser.add_argument(
         "--units", type=positive_int, default=20, help="reservoir units shown over time"
@@ -60,18 +49,6 @@ def build_dynamics_parser(prog: str = "ermrl dynamics") -> ArgumentParser:
         type=positive_int,
         default=200,
         help="steps shown in the time plot (the spectrum uses the whole episode)",
-    )
-    parser.add_argument(
-        "--env-seed",
-        type=nonneg_int,
-        default=None,
-        help="seed of the episode (default: the run's evaluation seed)",
-    )
-    parser.add_argument(
-        "--deterministic",
-        action=argparse.BooleanOptionalAction,
-        default=True,
-        help="take the policy's mean action (--no-deterministic samples)",
     )
     parser.add_argument("--quiet", action="store_true", help="no summary lines")
     return parser
@@ -84,14 +61,7 @@ def dynamics_main(argv: Sequence[str] | None = None, prog: str = "ermrl dynamics
     from ermrl.analysis import record_dynamics, spectrum_summary, write_dynamics
 
     try:
-        recording = record_dynamics(
-            args.run,
-            args.agent,
-            args.seed,
-            max_steps=args.max_steps,
-            deterministic=args.deterministic,
-            env_seed=args.env_seed,
-        )
+        recording = record_dynamics(**run_folder_kwargs(args))
     except FileNotFoundError as err:
         fail(prog, str(err))
     except KeyboardInterrupt:

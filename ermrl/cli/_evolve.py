@@ -7,6 +7,7 @@ import shlex
 import sys
 import textwrap
 from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
 
 from ermrl.cli._common import (
     EXIT_INTERRUPTED,
@@ -35,7 +36,10 @@ from ermrl.config import (
     TaskConfig,
 )
 
-__all__ = ["build_evolve_parser", "add_problem_args", "evolve_main"]
+if TYPE_CHECKING:
+    import optuna
+
+__all__ = ["build_evolve_parser", "add_problem_args", "evolve_main", "run_and_report"]
 
 DESCRIPTION = textwrap.dedent(
     """\
@@ -392,10 +396,68 @@ def config_from_args(args: argparse.Namespace) -> EvolveConfig:
     )
 
 
+def run_and_report(
+    prog: str,
+    config: EvolveConfig,
+    study: optuna.Study,
+    *,
+    quiet: bool,
+    fitness_name: str,
+    next_command: str,
+    **run_kwargs: Any,
+) -> int:
+    """Run this worker's trials of ``study`` and print how it ended; return the exit code.
+
+    Shared by ``ermrl evolve`` and ``ermrl evolve-generalization``. On SIGTERM or Ctrl-C, one
+    line on stderr says what became of the running trial.
+
+    Args:
+        prog: program name that starts the stderr lines.
+        config: the study's configuration.
+        study: the created or resumed study.
+        quiet: no progress lines and no summary (the stderr lines are still printed).
+        fitness_name: what the summary calls the best value, e.g. ``"normalized fitness"``.
+        next_command: the test command the summary suggests next.
+        **run_kwargs: passed on to :func:`ermrl.search.run_evolution` (``evaluate``,
+            ``wait_for_running``).
+
+    Returns:
+        0 when the worker finished, ``EXIT_TERMINATED`` (143) when stopped by a signal,
+        ``EXIT_INTERRUPTED`` (130) on Ctrl-C.
+    """
+    from ermrl.search import Interrupted, format_params, run_evolution
+
+    try:
+        summary = run_evolution(config, study, quiet=quiet, **run_kwargs)
+    except Interrupted as err:
+        print(
+            f"{prog}: stopped by {err.args[0]}; the running trial was closed as FAIL "
+            "and queued again",
+            file=sys.stderr,
+        )
+        return EXIT_TERMINATED
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted; the running trial was closed as FAIL", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    if not quiet:
+        best = (
+            "none yet"
+            if summary.best_value is None
+            else f"{summary.best_value:.4g} with {format_params(summary.best_params or {})}"
+        )
+        print(
+            f"done: this worker ran {summary.trials_run} trials ({summary.completed} complete, "
+            f"{summary.pruned} pruned, {summary.failed} failed); best {fitness_name} {best}\n"
+            f"next: {next_command}",
+            flush=True,
+        )
+    return 0
+
+
 def evolve_main(argv: Sequence[str] | None = None, prog: str = "ermrl evolve") -> int:
     """Entry point of ``ermrl evolve`` and ``evolve_res.py``."""
     from ermrl.envs import UnknownEnvError, UnsupportedObserveError
-    from ermrl.search import Interrupted, create_or_resume_study, run_evolution
+    from ermrl.search import create_or_resume_study
     from ermrl.storage import LockTimeout, StorageError
 
     parser = build_evolve_parser(prog)
@@ -431,32 +493,13 @@ def evolve_main(argv: Sequence[str] | None = None, prog: str = "ermrl evolve") -
             f"{config.search.sampler} sampler, {config.search.n_trials} trials",
             flush=True,
         )
-    try:
-        summary = run_evolution(
-            config, study, quiet=args.quiet, wait_for_running=args.wait_for_running
-        )
-    except Interrupted as err:
-        print(
-            f"{prog}: stopped by {err.args[0]}; the running trial was closed as FAIL "
-            "and queued again",
-            file=sys.stderr,
-        )
-        return EXIT_TERMINATED
-    except KeyboardInterrupt:
-        print(f"{prog}: interrupted; the running trial was closed as FAIL", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    if not args.quiet:
-        from ermrl.search import format_params
-
-        best = (
-            "none yet"
-            if summary.best_value is None
-            else f"{summary.best_value:.4g} with {format_params(summary.best_params or {})}"
-        )
-        print(
-            f"done: this worker ran {summary.trials_run} trials ({summary.completed} complete, "
-            f"{summary.pruned} pruned, {summary.failed} failed); best fitness {best}\n"
-            f"next: test.py --study-name {shlex.quote(study_name)} --storage {shlex.quote(args.storage)}",
-            flush=True,
-        )
-    return 0
+    return run_and_report(
+        prog,
+        config,
+        study,
+        quiet=args.quiet,
+        fitness_name="fitness",
+        next_command=f"test.py --study-name {shlex.quote(study_name)} "
+        f"--storage {shlex.quote(args.storage)}",
+        wait_for_running=args.wait_for_running,
+    )

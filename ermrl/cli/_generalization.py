@@ -16,12 +16,10 @@ from typing import Any
 
 from ermrl.cli._common import (
     EXIT_INTERRUPTED,
-    EXIT_TERMINATED,
     ArgumentParser,
     HelpFormatter,
     add_storage_args,
     fail,
-    nonneg_int,
     positive_int,
     quiet_libraries,
 )
@@ -30,10 +28,11 @@ from ermrl.cli._evolve import (
     add_search_args,
     budget_from_args,
     encoder_from_args,
+    run_and_report,
     search_from_args,
     space_from_args,
 )
-from ermrl.cli._test import select_seeds
+from ermrl.cli._test import add_test_args, select_seeds
 from ermrl.config import ConfigError, EvolveConfig, PPOConfig
 
 __all__ = [
@@ -216,12 +215,9 @@ def evolve_generalization_main(
     """Entry point of ``ermrl evolve-generalization`` and ``evolve_generalization.py``."""
     from ermrl.envs import UnknownEnvError, UnsupportedObserveError
     from ermrl.search import (
-        Interrupted,
         create_or_resume_generalization_study,
-        format_params,
         generalization_evaluator,
         generalization_study_name,
-        run_evolution,
     )
     from ermrl.storage import LockTimeout, StorageError
 
@@ -266,38 +262,17 @@ def evolve_generalization_main(
                 f"{t.target_return:.4g} ({gen.target_column}), n_envs {t.ppo.n_envs}",
                 flush=True,
             )
-    try:
-        summary = run_evolution(
-            config,
-            study,
-            quiet=args.quiet,
-            evaluate=generalization_evaluator(config, quiet=args.quiet),
-            **run_kwargs,
-        )
-    except Interrupted as err:
-        print(
-            f"{prog}: stopped by {err.args[0]}; the running trial was closed as FAIL "
-            "and queued again",
-            file=sys.stderr,
-        )
-        return EXIT_TERMINATED
-    except KeyboardInterrupt:
-        print(f"{prog}: interrupted; the running trial was closed as FAIL", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    if not args.quiet:
-        best = (
-            "none yet"
-            if summary.best_value is None
-            else f"{summary.best_value:.4g} with {format_params(summary.best_params or {})}"
-        )
-        print(
-            f"done: this worker ran {summary.trials_run} trials ({summary.completed} complete, "
-            f"{summary.pruned} pruned, {summary.failed} failed); best normalized fitness {best}\n"
-            f"next: test_generalization.py --study-name {shlex.quote(study_name)} "
-            f"--storage {shlex.quote(args.storage)} --env-id {_suggested_test_env(config)}",
-            flush=True,
-        )
-    return 0
+    return run_and_report(
+        prog,
+        config,
+        study,
+        quiet=args.quiet,
+        fitness_name="normalized fitness",
+        next_command=f"test_generalization.py --study-name {shlex.quote(study_name)} "
+        f"--storage {shlex.quote(args.storage)} --env-id {_suggested_test_env(config)}",
+        evaluate=generalization_evaluator(config, quiet=args.quiet),
+        **run_kwargs,
+    )
 
 
 # -- test-generalization ------------------------------------------------------------------------
@@ -315,53 +290,12 @@ def build_test_generalization_parser(prog: str = "ermrl test-generalization") ->
         default=None,
         help="observation mask of the test task (default: the study's)",
     )
-    parser.add_argument(
-        "--training-steps",
-        type=positive_int,
-        default=1_000_000,
-        help="env steps per run (paper: 1000000)",
-    )
-    parser.add_argument(
-        "--seeds",
-        nargs="+",
-        type=nonneg_int,
-        default=None,
-        help="test seeds (default: 5 seeds after the largest seed evolution trained on)",
-    )
-    parser.add_argument(
-        "--agents",
-        nargs="+",
-        choices=("ppo", "res-ppo", "random-res-ppo"),
-        default=["ppo", "res-ppo", "random-res-ppo"],
-        help="agents to train",
-    )
-    parser.add_argument(
-        "--out", default=None, help="output folder (default: runs/<study name>__<env id>)"
-    )
-    parser.add_argument(
-        "--trial",
-        type=nonneg_int,
-        default=None,
-        help="test this trial's reservoirs instead of the best ones",
-    )
-    parser.add_argument(
-        "--n-procs", type=positive_int, default=1, help="runs trained in parallel processes"
-    )
-    parser.add_argument(
-        "--eval",
-        action=argparse.BooleanOptionalAction,
-        default=False,
-        help="also run deterministic evaluation episodes after training",
-    )
-    parser.add_argument(
-        "--n-eval-episodes", type=positive_int, default=10, help="evaluation episodes with --eval"
-    )
-    parser.add_argument(
-        "--ppo",
-        nargs="+",
-        default=[],
-        metavar="KEY=VALUE",
-        help="PPO overrides on top of the table's and the study's, e.g. --ppo learning_rate=1e-4",
+    add_test_args(
+        parser,
+        out_help="output folder (default: runs/<study name>__<env id>)",
+        trial_help="test this trial's reservoirs instead of the best ones",
+        ppo_help="PPO overrides on top of the table's and the study's, "
+        "e.g. --ppo learning_rate=1e-4",
     )
     parser.add_argument(
         "--n-envs",
@@ -380,15 +314,6 @@ def build_test_generalization_parser(prog: str = "ermrl test-generalization") ->
         default=None,
         metavar="CSV",
         help="reference table for the normalized returns (default: the study's)",
-    )
-    parser.add_argument(
-        "--save-models",
-        action=argparse.BooleanOptionalAction,
-        default=True,
-        help="save each trained model as model.zip",
-    )
-    parser.add_argument(
-        "--overwrite", action="store_true", help="retrain runs that already have results"
     )
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
     return parser

@@ -23,7 +23,7 @@ from ermrl.cli._common import (
 )
 from ermrl.config import ConfigError
 
-__all__ = ["build_test_parser", "test_main", "select_seeds"]
+__all__ = ["add_test_args", "build_test_parser", "test_main", "select_seeds"]
 
 DESCRIPTION = textwrap.dedent(
     """\
@@ -41,9 +41,21 @@ DESCRIPTION = textwrap.dedent(
 )
 
 
-def build_test_parser(prog: str = "ermrl test") -> ArgumentParser:
-    parser = ArgumentParser(prog=prog, description=DESCRIPTION, formatter_class=HelpFormatter)
-    add_storage_args(parser, study_required=True)
+def add_test_args(
+    parser: argparse.ArgumentParser, *, out_help: str, trial_help: str, ppo_help: str
+) -> None:
+    """Add the test-phase options shared by ``ermrl test`` and ``ermrl test-generalization``.
+
+    Adds, in this order: ``--training-steps``, ``--seeds``, ``--agents``, ``--out``, ``--trial``,
+    ``--n-procs``, ``--eval/--no-eval``, ``--n-eval-episodes``, ``--ppo``,
+    ``--save-models/--no-save-models`` and ``--overwrite``.
+
+    Args:
+        parser: the command's parser.
+        out_help: help of ``--out`` (each command has its own default folder).
+        trial_help: help of ``--trial`` (one reservoir or several).
+        ppo_help: help of ``--ppo`` (the PPO settings the overrides go on top of).
+    """
     parser.add_argument(
         "--training-steps",
         type=positive_int,
@@ -64,13 +76,8 @@ def build_test_parser(prog: str = "ermrl test") -> ArgumentParser:
         default=["ppo", "res-ppo", "random-res-ppo"],
         help="agents to train",
     )
-    parser.add_argument("--out", default=None, help="output folder (default: runs/<study name>)")
-    parser.add_argument(
-        "--trial",
-        type=nonneg_int,
-        default=None,
-        help="test this trial's reservoir instead of the best one",
-    )
+    parser.add_argument("--out", default=None, help=out_help)
+    parser.add_argument("--trial", type=nonneg_int, default=None, help=trial_help)
     parser.add_argument(
         "--n-procs", type=positive_int, default=1, help="runs trained in parallel processes"
     )
@@ -83,13 +90,7 @@ def build_test_parser(prog: str = "ermrl test") -> ArgumentParser:
     parser.add_argument(
         "--n-eval-episodes", type=positive_int, default=10, help="evaluation episodes with --eval"
     )
-    parser.add_argument(
-        "--ppo",
-        nargs="+",
-        default=[],
-        metavar="KEY=VALUE",
-        help="PPO overrides on top of the study's, e.g. --ppo learning_rate=1e-4",
-    )
+    parser.add_argument("--ppo", nargs="+", default=[], metavar="KEY=VALUE", help=ppo_help)
     parser.add_argument(
         "--save-models",
         action=argparse.BooleanOptionalAction,
@@ -98,6 +99,17 @@ def build_test_parser(prog: str = "ermrl test") -> ArgumentParser:
     )
     parser.add_argument(
         "--overwrite", action="store_true", help="retrain runs that already have results"
+    )
+
+
+def build_test_parser(prog: str = "ermrl test") -> ArgumentParser:
+    parser = ArgumentParser(prog=prog, description=DESCRIPTION, formatter_class=HelpFormatter)
+    add_storage_args(parser, study_required=True)
+    add_test_args(
+        parser,
+        out_help="output folder (default: runs/<study name>)",
+        trial_help="test this trial's reservoir instead of the best one",
+        ppo_help="PPO overrides on top of the study's, e.g. --ppo learning_rate=1e-4",
     )
     parser.add_argument(
         "--tensorboard",

@@ -11,9 +11,9 @@ from ermrl.cli._common import (
     EXIT_INTERRUPTED,
     ArgumentParser,
     HelpFormatter,
+    add_run_folder_args,
     fail,
-    nonneg_int,
-    positive_int,
+    run_folder_kwargs,
 )
 
 __all__ = ["build_video_parser", "video_main"]
@@ -35,21 +35,10 @@ DESCRIPTION = textwrap.dedent(
 
 def build_video_parser(prog: str = "ermrl video") -> ArgumentParser:
     parser = ArgumentParser(prog=prog, description=DESCRIPTION, formatter_class=HelpFormatter)
-    parser.add_argument("--run", required=True, help="test-phase folder (--out of ermrl test)")
-    parser.add_argument(
-        "--agent", default="res-ppo", help="agent to film (res-ppo, ppo, random-res-ppo)"
-    )
-    parser.add_argument(
-        "--seed",
-        type=nonneg_int,
-        default=None,
-        help="run seed (default: the smallest seed with a saved model)",
-    )
-    parser.add_argument(
-        "--out", default=None, help="MP4 path (default: <run>/videos/<agent>_seed<seed>.mp4)"
-    )
-    parser.add_argument(
-        "--max-steps", type=positive_int, default=None, help="stop the episode after N steps"
+    add_run_folder_args(
+        parser,
+        agent_help="agent to film (res-ppo, ppo, random-res-ppo)",
+        out_help="MP4 path (default: <run>/videos/<agent>_seed<seed>.mp4)",
     )
     parser.add_argument(
         "--gif",
@@ -68,18 +57,6 @@ def build_video_parser(prog: str = "ermrl video") -> ArgumentParser:
         action="store_true",
         help="no shadows or reflections: about 5x faster with Mesa's software renderer",
     )
-    parser.add_argument(
-        "--env-seed",
-        type=nonneg_int,
-        default=None,
-        help="seed of the episode (default: the run's evaluation seed)",
-    )
-    parser.add_argument(
-        "--deterministic",
-        action=argparse.BooleanOptionalAction,
-        default=True,
-        help="take the policy's mean action (--no-deterministic samples)",
-    )
     parser.add_argument("--quiet", action="store_true", help="no summary line")
     return parser
 
@@ -92,16 +69,11 @@ def video_main(argv: Sequence[str] | None = None, prog: str = "ermrl video") -> 
 
     try:
         result = record_video(
-            args.run,
-            args.agent,
-            args.seed,
-            args.out,
-            max_steps=args.max_steps,
+            out=args.out,
             gif=args.gif,
-            deterministic=args.deterministic,
-            env_seed=args.env_seed,
             gl=None if args.gl == "auto" else args.gl,
             fast=args.fast,
+            **run_folder_kwargs(args),
         )
     except GLBackendError as err:
         fail(prog, str(err), code=EXIT_NO_GL)
