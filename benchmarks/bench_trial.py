@@ -4,8 +4,12 @@ Benchmark 2 (throughput): env steps per second of a whole trial (3 seeds, defaul
 env) with ermrl's encoder, against plain SB3 PPO with no reservoir at the same settings, and against
 the original ER-MRL pattern (a reservoirpy node called per step, seeds one after another).
 
-Benchmark 3 (scaling): a trial's seeds in 1 process against 2 processes (``--n-procs``), with torch
-and BLAS pinned to one thread per process, and the unpinned single process for reference; and 1
+Benchmark 3 (scaling): a trial's seeds in 1 process against 2 cores. ``--n-procs 2`` with 3 seeds
+runs 3 single-threaded processes that time-share the 2 cores (:func:`ermrl.search.pool_size`);
+a pool of exactly 2 processes is measured beside it (capped at 1.5x: the third seed trains
+alone), and so is an even 2-seed trial. Torch and BLAS are pinned to one thread per process;
+the same runs with torch's default threads show what pinning does. Pools are started before
+timing (a worker starts its pool once); their start-up time is reported on its own. Last, 1
 evolution worker against 2 workers sharing one SQLite study (trials per minute).
 
     python benchmarks/bench_trial.py            # HalfCheetah-v5, 3 seeds x 8192 steps, 3 repeats
@@ -88,7 +92,27 @@ def throughput_and_scaling(env_id: str, steps: int, repeats: int) -> list[dict]:
 
     seeds = (0, 1, 2)
     default_threads = torch.get_num_threads()
-    pool = SeedRunner(2)
+    # Pools are started before timing: a worker starts its pool once, not per trial.
+    fixed = SeedRunner(2, balance=False)  # exactly 2 processes
+    balanced = SeedRunner(2)  # --n-procs 2: 3 processes time-share the 2 cores
+    balanced_unpinned = SeedRunner(2)
+    # Start-up paid once per worker: the pool's processes, then a first short trial in each
+    # (MuJoCo model compilation, torch's first operations), and the same first trial here.
+    startup = {}
+    start = time.perf_counter()
+    _ermrl_trial(env_id, 2048, seeds, 1, 1, None)
+    startup["this process, first trial"] = time.perf_counter() - start
+    for name, runner, threads in (
+        ("fixed", fixed, 1),
+        ("balanced", balanced, 1),
+        ("unpinned", balanced_unpinned, default_threads),
+    ):
+        start = time.perf_counter()
+        runner.start(len(seeds))
+        startup[f"{name} pool"] = time.perf_counter() - start
+        start = time.perf_counter()
+        _ermrl_trial(env_id, 2048, seeds, 2, threads, runner)
+        startup[f"{name} pool, first trial"] = time.perf_counter() - start
 
     def rate(fn) -> float:  # noqa: ANN001
         start = time.perf_counter()
@@ -103,28 +127,45 @@ def throughput_and_scaling(env_id: str, steps: int, repeats: int) -> list[dict]:
         "original-pattern": lambda: rate(
             lambda: sum(_plain_ppo_seed(env_id, steps, s, 100, 1) for s in seeds)
         ),
-        "ermrl-2procs": lambda: rate(lambda: _ermrl_trial(env_id, steps, seeds, 2, 1, pool)),
+        "ermrl-2procs-fixed": lambda: rate(lambda: _ermrl_trial(env_id, steps, seeds, 2, 1, fixed)),
+        "ermrl-n-procs-2": lambda: rate(lambda: _ermrl_trial(env_id, steps, seeds, 2, 1, balanced)),
+        "ermrl-n-procs-2-unpinned": lambda: rate(
+            lambda: _ermrl_trial(env_id, steps, seeds, 2, default_threads, balanced_unpinned)
+        ),
         "ermrl-1proc-unpinned": lambda: rate(
             lambda: _ermrl_trial(env_id, steps, seeds, 1, default_threads, None)
+        ),
+        "ermrl-2seeds-1proc": lambda: rate(
+            lambda: _ermrl_trial(env_id, steps, seeds[:2], 1, 1, None)
+        ),
+        "ermrl-2seeds-2procs": lambda: rate(
+            lambda: _ermrl_trial(env_id, steps, seeds[:2], 2, 1, fixed)
         ),
     }
     try:
         rates = alternate(variants, repeats, warmup=False)
     finally:
-        pool.close()
+        for runner in (fixed, balanced, balanced_unpinned):
+            runner.close()
     med = {k: median(v) for k, v in rates.items()}
+
+    def row(label: str, a: str, b: str, target: str = "") -> dict:
+        return {"comparison": label, "ratio": med[a] / med[b], "target": target,
+                "a_steps_s": med[a], "b_steps_s": med[b]}  # fmt: skip
+
+    scaling = f">= {TARGET_SCALING}"
     return [
-        {"comparison": "ermrl trial / plain PPO (1 proc)", "ratio": med["ermrl-1proc"] / med["plain-ppo"],
-         "target": f">= {TARGET_THROUGHPUT}", "a_steps_s": med["ermrl-1proc"], "b_steps_s": med["plain-ppo"]},
-        {"comparison": "ermrl trial / original pattern (1 proc)", "ratio": med["ermrl-1proc"] / med["original-pattern"],
-         "target": "", "a_steps_s": med["ermrl-1proc"], "b_steps_s": med["original-pattern"]},
-        {"comparison": "ermrl trial 2 procs / original pattern", "ratio": med["ermrl-2procs"] / med["original-pattern"],
-         "target": "", "a_steps_s": med["ermrl-2procs"], "b_steps_s": med["original-pattern"]},
-        {"comparison": "ermrl seeds 2 procs / 1 proc (pinned)", "ratio": med["ermrl-2procs"] / med["ermrl-1proc"],
-         "target": f">= {TARGET_SCALING}", "a_steps_s": med["ermrl-2procs"], "b_steps_s": med["ermrl-1proc"]},
-        {"comparison": f"ermrl 1 proc pinned / unpinned ({default_threads} threads)",
-         "ratio": med["ermrl-1proc"] / med["ermrl-1proc-unpinned"], "target": "",
-         "a_steps_s": med["ermrl-1proc"], "b_steps_s": med["ermrl-1proc-unpinned"]},
+        row("ermrl trial / plain PPO (1 proc)", "ermrl-1proc", "plain-ppo", f">= {TARGET_THROUGHPUT}"),
+        row("ermrl trial / original pattern (1 proc)", "ermrl-1proc", "original-pattern"),
+        row("ermrl trial --n-procs 2 / original pattern", "ermrl-n-procs-2", "original-pattern"),
+        row("3 seeds: --n-procs 2 (3 procs on 2 cores) / 1 proc", "ermrl-n-procs-2", "ermrl-1proc", scaling),
+        row("3 seeds: exactly 2 procs / 1 proc (cap 1.5)", "ermrl-2procs-fixed", "ermrl-1proc"),
+        row("2 seeds: 2 procs / 1 proc", "ermrl-2seeds-2procs", "ermrl-2seeds-1proc", scaling),
+        row(f"--n-procs 2: pinned / unpinned ({default_threads} threads each)", "ermrl-n-procs-2",
+            "ermrl-n-procs-2-unpinned"),
+        row(f"1 proc: pinned / unpinned ({default_threads} threads)", "ermrl-1proc", "ermrl-1proc-unpinned"),
+        {"comparison": "pool start-up, once per worker (s)", "ratio": float("nan"), "target": "",
+         "startup_s": startup},
         {"comparison": "raw rates (steps/s)", "ratio": float("nan"), "target": "", "rates": rates},
     ]  # fmt: skip
 
@@ -175,9 +216,14 @@ def main(argv: list[str] | None = None) -> int:
     rows += workers_scaling(
         n_trials=2 if args.quick else 8, steps=512 if args.quick else 4096, repeats=repeats
     )
-    printable = [r for r in rows if "comparison" in r and r["comparison"] != "raw rates (steps/s)"]
+    printable = [r for r in rows if "a_steps_s" in r]
     print(f"{args.env_id}, 3 seeds x {steps} steps per trial, {repeats} repeats (medians; a/b):")
     print(table(printable, ["comparison", "ratio", "target", "a_steps_s", "b_steps_s"]))
+    startup = next(r["startup_s"] for r in rows if "startup_s" in r)
+    print(
+        "pool start-up (s, paid once per worker): "
+        + ", ".join(f"{k} {v:.1f}" for k, v in startup.items())
+    )
     path = write_json(
         args.out,
         {

@@ -27,6 +27,7 @@ from ermrl.search import (
     SeedRunner,
     create_or_resume_study,
     evaluate_reservoir,
+    pool_size,
     run_evolution,
     study_config,
 )
@@ -98,6 +99,67 @@ def test_same_trial_same_seed_same_fitness_in_and_across_processes() -> None:
     other = evaluate_reservoir((dataclasses.replace(reservoirs[0], sr=5.0),), problem)
     assert other.fitness != a.fitness
     assert a.fitness == pytest.approx(sum(r.last_return for r in a.runs) / 2)
+
+
+def _waves(n_jobs: int, n_procs: int, q: int) -> float:
+    """Run-times that ``n_jobs`` equal runs take in a pool of ``q`` processes on ``n_procs`` cores."""
+    waves, rest = divmod(n_jobs, q)
+    return waves * max(1.0, q / n_procs) + (max(1.0, rest / n_procs) if rest else 0.0)
+
+
+@pytest.mark.parametrize(
+    ("n_jobs", "n_procs", "expected"),
+    [
+        (3, 1, 1),  # one core: runs stay in this process
+        (1, 4, 1),  # one run: no pool
+        (2, 2, 2),
+        (3, 4, 3),  # never more processes than runs
+        (3, 2, 3),  # the paper's 3 seeds on 2 cores: no core idles during the third seed
+        (4, 2, 2),  # divides evenly: one process per core
+        (6, 2, 2),
+        (5, 2, 3),
+        (7, 2, 4),
+        (10, 4, 5),
+        (15, 2, 3),  # 5 tasks x 3 seeds: capped at twice the cores
+    ],
+)
+def test_pool_size_keeps_cores_busy(n_jobs: int, n_procs: int, expected: int) -> None:
+    q = pool_size(n_jobs, n_procs)
+    assert q == expected
+    assert q <= max(1, min(n_jobs, 2 * n_procs))
+    if n_procs > 1 and n_jobs > 1:
+        # Never slower than one process per core, and optimal among pools up to 2x the cores.
+        plain = min(n_procs, n_jobs)
+        assert _waves(n_jobs, n_procs, q) <= _waves(n_jobs, n_procs, plain)
+        pools = range(min(n_procs, n_jobs), min(n_jobs, 2 * n_procs) + 1)
+        best = min(_waves(n_jobs, n_procs, k) for k in pools)
+        assert _waves(n_jobs, n_procs, q) == pytest.approx(best)
+
+
+def test_seed_runner_balances_three_seeds_on_two_cores() -> None:
+    """3 seeds on 2 cores run in 3 processes, with the same fitness as in this process."""
+    problem = dataclasses.replace(make_config().problem, seeds=(0, 1, 2))
+    reservoirs = (ReservoirParams(units=20, sr=0.7, lr=0.3),)
+    here = evaluate_reservoir(reservoirs, problem)
+    with SeedRunner(2) as runner:
+        assert runner.processes_for(3) == 3 and runner.processes_for(4) == 2
+        assert runner.start(3) == 3
+        assert len(runner._pool._processes) == 3  # type: ignore[union-attr]  # all started
+        pool = evaluate_reservoir(reservoirs, problem, runner=runner)
+        assert runner.n_processes == 3
+    assert runner.n_processes == 0  # closed
+    assert [r.episode_returns for r in pool.runs] == [r.episode_returns for r in here.runs]
+    assert pool.fitness == here.fitness
+    with SeedRunner(2, balance=False) as fixed:
+        assert fixed.processes_for(3) == 2
+
+
+def test_evolution_says_how_seeds_are_placed(tmp_path) -> None:  # noqa: ANN001
+    config = dataclasses.replace(make_config(n_trials=1, seeds=(0, 1, 2)), n_procs=2)
+    study = create_or_resume_study(config, f"sqlite:///{tmp_path}/s.db", "s")
+    out = io.StringIO()
+    assert run_evolution(config, study, stream=out).completed == 1
+    assert "3 training runs per trial on 2 cores: 3 single-threaded processes" in out.getvalue()
 
 
 def test_evolution_records_trials_and_resumes(tmp_path) -> None:  # noqa: ANN001

@@ -26,7 +26,13 @@ from ermrl.search._generalization import (
     generalization_study_name,
     generalization_tasks,
 )
-from ermrl.search._objective import FitnessResult, SeedRunner, evaluate_reservoir, library_versions
+from ermrl.search._objective import (
+    FitnessResult,
+    SeedRunner,
+    evaluate_reservoir,
+    library_versions,
+    pool_size,
+)
 from ermrl.search._samplers import (
     RESTART_STRATEGIES,
     SAMPLERS,
@@ -61,6 +67,7 @@ __all__ = [
     "ReferenceScore",
     "RestartCmaEsSampler",
     "SeedRunner",
+    "pool_size",
     "TaskOutcome",
     "cma_generation_info",
     "create_or_resume_generalization_study",

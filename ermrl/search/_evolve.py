@@ -516,6 +516,20 @@ def run_evolution(
     waiting_said = False
     failed_in_a_row = 0
     with SeedRunner(config.n_procs) as runner, guard.installed():
+        if config.n_procs > 1 and done_before < n_trials:
+            n_tasks = len(config.generalization.tasks) if config.generalization else 1
+            n_runs = n_tasks * len(problem.seeds)
+            with guard.deferred():
+                size = runner.start(n_runs)
+            say(
+                f"{n_runs} training runs per trial on {config.n_procs} cores: "
+                f"{size} single-threaded processes"
+                + (
+                    " (more processes than cores keeps every core busy)"
+                    if size > config.n_procs
+                    else ""
+                )
+            )
         while True:
             guard.check()
             with guard.deferred():

@@ -18,7 +18,7 @@ import numpy as np
 from ermrl.agents import RunResult, train_agent
 from ermrl.config import Problem, ReservoirParams
 
-__all__ = ["FitnessResult", "SeedRunner", "evaluate_reservoir", "library_versions"]
+__all__ = ["FitnessResult", "SeedRunner", "evaluate_reservoir", "library_versions", "pool_size"]
 
 ReportFn = Callable[[int, float], None]
 
@@ -87,32 +87,102 @@ def _finite_or_none(value: float | None) -> float | None:
     return None if value is None or not math.isfinite(value) else float(value)
 
 
+def _warm_up() -> None:
+    """Import the training stack in a new worker process (paid once per process)."""
+    import stable_baselines3  # noqa: F401
+
+    import ermrl.agents  # noqa: F401
+    import ermrl.envs  # noqa: F401
+
+
 def _train_one(args: tuple[Any, ...]) -> RunResult:
     task, encoder, ppo, budget, seed = args
     return train_agent(task, encoder, ppo, budget, seed)
+
+
+def pool_size(n_jobs: int, n_procs: int) -> int:
+    """Processes that finish ``n_jobs`` equally long runs soonest on ``n_procs`` cores.
+
+    A pool of exactly ``n_procs`` processes leaves cores idle when the runs do not divide evenly
+    (3 seeds on 2 cores: the third seed trains alone, so the trial is at most 1.5x faster than
+    in one process). Single-threaded training processes time-share a core at little cost, so a
+    few more processes than cores keep every core busy to the end (3 seeds on 2 cores: 3
+    processes, up to 2x). Runs go in waves of ``q`` processes; a wave of ``k`` runs takes
+    ``max(1, k / n_procs)`` run-times. The smallest pool in ``[n_procs, 2 * n_procs]`` with the
+    shortest total wins, so the pool never holds more than twice as many processes as cores.
+
+    Args:
+        n_jobs: Runs per call (a trial's seeds; tasks x seeds in a generalization trial).
+        n_procs: Cores the runs may use.
+
+    Returns:
+        The number of worker processes (1 means: run in this process).
+    """
+    if n_procs <= 1 or n_jobs <= 1:
+        return 1
+    if n_jobs <= n_procs:
+        return n_jobs
+
+    def wall(q: int) -> float:
+        waves, rest = divmod(n_jobs, q)
+        total = waves * max(1.0, q / n_procs)
+        return total + (max(1.0, rest / n_procs) if rest else 0.0)
+
+    candidates = range(n_procs, min(n_jobs, 2 * n_procs) + 1)
+    return min(candidates, key=lambda q: (round(wall(q), 9), q))
 
 
 class SeedRunner:
     """Runs the seeds of a candidate in this process or in a pool of worker processes.
 
     Worker processes are started once (``spawn``, so no forked torch state) and reused by every
-    trial, which avoids paying the interpreter and import start-up per trial.
+    trial, which avoids paying the interpreter and import start-up per trial. The pool's size
+    comes from :func:`pool_size`: ``n_procs`` cores, and one process per run up to twice that
+    when the runs do not divide evenly among the cores (``balance=False``: exactly ``n_procs``).
 
     Args:
-        n_procs: Number of processes (1 runs the seeds one after another, in this process).
+        n_procs: Cores for the runs (1 runs them one after another, in this process).
+        balance: Size the pool with :func:`pool_size` (``False``: ``n_procs`` processes).
     """
 
-    def __init__(self, n_procs: int = 1) -> None:
+    def __init__(self, n_procs: int = 1, *, balance: bool = True) -> None:
         self.n_procs = n_procs
+        self.balance = balance
+        self.n_processes = 0
         self._pool: ProcessPoolExecutor | None = None
 
-    def map(self, args: Sequence[tuple[Any, ...]]) -> list[RunResult]:
-        if self.n_procs == 1 or len(args) == 1:
-            return [_train_one(a) for a in args]
+    def processes_for(self, n_jobs: int) -> int:
+        """How many processes :meth:`map` uses for ``n_jobs`` runs (1: this process)."""
+        if self.n_procs == 1 or n_jobs <= 1:
+            return 1
+        return pool_size(n_jobs, self.n_procs) if self.balance else min(self.n_procs, n_jobs)
+
+    def start(self, n_jobs: int) -> int:
+        """Start (or resize) the pool for ``n_jobs`` runs ahead of the first trial.
+
+        Returns:
+            The number of worker processes (1: runs stay in this process; no pool).
+        """
+        size = self.processes_for(n_jobs)
+        if size == 1:
+            return 1
+        if self._pool is not None and self.n_processes != size:
+            self.close()
         if self._pool is None:
             self._pool = ProcessPoolExecutor(
-                max_workers=self.n_procs, mp_context=multiprocessing.get_context("spawn")
+                max_workers=size,
+                mp_context=multiprocessing.get_context("spawn"),
+                initializer=_warm_up,
             )
+            self.n_processes = size
+            # Start every process (one task each spawns them all) before the first trial.
+            list(self._pool.map(abs, range(size)))
+        return size
+
+    def map(self, args: Sequence[tuple[Any, ...]]) -> list[RunResult]:
+        if self.start(len(args)) == 1:
+            return [_train_one(a) for a in args]
+        assert self._pool is not None
         return list(self._pool.map(_train_one, args))
 
     def close(self, cancel: bool = False) -> None:
@@ -122,6 +192,7 @@ class SeedRunner:
                     proc.terminate()
             self._pool.shutdown(wait=not cancel, cancel_futures=True)
             self._pool = None
+            self.n_processes = 0
 
     def __enter__(self) -> SeedRunner:
         return self
