@@ -39,3 +39,10 @@ def test_benchmarks_run_in_quick_mode(tmp_path: Path) -> None:
     pruning = json.loads((tmp_path / "pruning.json").read_text())
     assert {s["pruner"] for s in pruning["summary"]} == {"none", "median", "halving"}
     assert all(r["env_steps"] > 0 for r in pruning["rows"])
+    # Each study's best parameters are re-trained on fresh seeds (the unbiased comparison).
+    assert all(len(r["reeval_returns"]) == len(pruning["reeval_seeds"]) for r in pruning["rows"])
+    assert all(isinstance(r["best_reevaluated"], float) for r in pruning["rows"])
+    trial = json.loads((tmp_path / "trial.json").read_text())["rows"]
+    comparisons = {r["comparison"] for r in trial}
+    assert "3 seeds: --n-procs 2 (3 procs on 2 cores) / 1 proc" in comparisons
+    assert all(r["a_steps_s"] > 0 and r["b_steps_s"] > 0 for r in trial if "a_steps_s" in r)

@@ -342,3 +342,46 @@ def test_sampler_errors() -> None:
         RestartCmaEsSampler(popsize=1)
     with pytest.raises(ValueError, match="inc_popsize"):
         RestartCmaEsSampler(restart_strategy="ipop", inc_popsize=0)
+
+
+# --------------------------------------------------------------------------- pruned trials
+
+
+def _generations(study: optuna.Study) -> set[int]:
+    """CMA-ES generations (run 0) that sampled some trial, COMPLETE or PRUNED."""
+    key = "cma:restart_0:generation"
+    return {int(t.system_attrs[key]) for t in study.trials if key in t.system_attrs}
+
+
+@pytest.mark.parametrize("consider", [False, True])
+def test_pruned_trials_fill_generations_only_when_considered(consider: bool) -> None:
+    """Half the trials pruned (as with --pruner): CMA-ES must still move from generation to
+    generation, using a pruned trial's last intermediate value as its fitness."""
+
+    def objective(trial: Trial) -> float:
+        value = sphere(trial)
+        trial.report(value + 1.0, step=1)  # worse earlier in "training"
+        if trial.number % 2 == 1:
+            raise optuna.TrialPruned()
+        return value
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no experimental-argument warning leaks to users
+        sampler = make_sampler("cmaes", seed=0, popsize=POPSIZE, consider_pruned_trials=consider)
+    study = run(sampler, objective, 1 + 6 * POPSIZE)
+    generations = _generations(study)
+    if consider:
+        # Trial 0 is independent; then every POPSIZE trials make a generation, pruned or not.
+        assert generations == set(range(6))
+        assert [t.state for t in study.trials].count(optuna.trial.TrialState.PRUNED) == 12
+    else:
+        # Only the 12 COMPLETE trials count: about half as many generations.
+        assert max(generations) <= 3
+
+
+def test_study_sampler_considers_pruned_trials_with_a_pruner() -> None:
+    from ermrl.config import SearchConfig
+    from ermrl.search._evolve import make_study_sampler
+
+    assert make_study_sampler(SearchConfig(pruner="median"))._consider_pruned_trials
+    assert not make_study_sampler(SearchConfig())._consider_pruned_trials

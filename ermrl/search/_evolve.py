@@ -191,6 +191,7 @@ def make_study_sampler(search: SearchConfig) -> optuna.samplers.BaseSampler:
         seed=search.sampler_seed,
         restart=search.restart,  # type: ignore[arg-type]
         popsize=search.popsize,
+        consider_pruned_trials=search.pruner != "none",
     )
 
 

@@ -605,6 +605,7 @@ def make_sampler(
     restart: RestartStrategy = "none",
     popsize: int | None = None,
     inc_popsize: int = 2,
+    consider_pruned_trials: bool = False,
 ) -> BaseSampler:
     """Build the outer-loop sampler by name.
 
@@ -618,6 +619,10 @@ def make_sampler(
             ``"cmaes"``.
         inc_popsize: Population-size multiplier per large restart (>= 2); only used by
             ``"cmaes"``.
+        consider_pruned_trials: ``"cmaes"`` only: a PRUNED trial counts as a member of its
+            generation with its last intermediate value (turn it on with a pruner: otherwise a
+            generation waits for ``popsize`` COMPLETE trials, and a study whose trials are mostly
+            pruned hardly moves). TPE uses pruned trials on its own; random search ignores them.
 
     Returns:
         The sampler.
@@ -643,9 +648,16 @@ def make_sampler(
         if popsize is not None:
             raise ValueError(f"popsize is only supported by the 'cmaes' sampler, not {name!r}.")
     if name == "cmaes":
-        return RestartCmaEsSampler(
-            restart_strategy=restart, popsize=popsize, inc_popsize=inc_popsize, seed=seed
-        )
+        with warnings.catch_warnings():
+            # consider_pruned_trials is marked experimental in Optuna.
+            warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+            return RestartCmaEsSampler(
+                restart_strategy=restart,
+                popsize=popsize,
+                inc_popsize=inc_popsize,
+                seed=seed,
+                consider_pruned_trials=consider_pruned_trials,
+            )
     if name == "tpe":
         return TPESampler(seed=seed)
     return RandomSampler(seed=seed)
