@@ -149,11 +149,14 @@ def _episode_callback(result: RunResult, budget: BudgetConfig, report: ReportFn 
         """Records episode returns from Monitor infos and reports intermediate returns."""
 
         def _on_step(self) -> bool:
-            for info in self.locals["infos"]:
-                episode = info.get("episode")
-                if episode is not None:
-                    result.episode_returns.append(float(episode["r"]))
-                    result.episode_steps.append(int(self.num_timesteps))
+            # Called on every env step: look at the infos only when an episode ended (Monitor
+            # writes info["episode"] exactly then; np.count_nonzero is a cheap C call).
+            if np.count_nonzero(self.locals["dones"]):
+                for info in self.locals["infos"]:
+                    episode = info.get("episode")
+                    if episode is not None:
+                        result.episode_returns.append(float(episode["r"]))
+                        result.episode_steps.append(int(self.num_timesteps))
             while checkpoints and self.num_timesteps >= checkpoints[0]:
                 step = checkpoints.pop(0)
                 if report is not None and result.episode_returns:

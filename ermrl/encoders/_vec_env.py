@@ -91,13 +91,14 @@ class ActionEncoder:
 
     def _unit_box(self, actions: np.ndarray, out: np.ndarray) -> None:
         # Bounds already [-1, 1] (all MuJoCo locomotion tasks): scaling is the identity.
-        np.minimum(np.reshape(actions, out.shape), self._upper, out=out, casting="unsafe")
-        np.maximum(out, self._lower, out=out)
+        # (The ndarray method: np.reshape costs ~1.5 us more per call, on every env step.)
+        np.minimum(np.asarray(actions).reshape(out.shape), 1.0, out=out, casting="unsafe")
+        np.maximum(out, -1.0, out=out)
 
     def _box(self, actions: np.ndarray, out: np.ndarray) -> None:
         # PPO already clips actions to the bounds; clipping again guards other callers.
         # (np.minimum/np.maximum: np.clip costs several times more at this size.)
-        np.subtract(np.reshape(actions, out.shape), self._center, out=out, casting="unsafe")
+        np.subtract(np.asarray(actions).reshape(out.shape), self._center, out=out, casting="unsafe")
         out *= self._inv_half
         np.minimum(out, self._upper, out=out, casting="unsafe")
         np.maximum(out, self._lower, out=out, casting="unsafe")
@@ -151,6 +152,9 @@ class ReservoirVecEnv(VecEnvWrapper):
         self._rew_in = self._xu[:, -1:] if config.feed_reward else np.zeros((n, 1), self.bank.dtype)
         self._reward_scale = float(config.reward_scale)
         self._actions: np.ndarray | None = None
+        # The default policy observation is the state rows as they are (no skip connection, all
+        # units): step_wait then copies them directly instead of assembling parts.
+        self._state_only = config.exposed_units is None and not config.skip_connection
 
         if config.exposed_units is None:
             self._exposed = None
@@ -212,9 +216,13 @@ class ReservoirVecEnv(VecEnvWrapper):
         self.action_encoder(self._actions, self._act_in)
         self._set_reward(rewards)
 
-        if not dones.any():
+        # Every step pays for this path: each numpy call here costs ~0.3-2 us (np.count_nonzero
+        # is a C function; ndarray.any goes through Python and costs ~4x more).
+        if not np.count_nonzero(dones):
             self._obs_in[:] = obs
             self.bank.step_buffer(self._xu)
+            if self._state_only:
+                return self.states.astype(np.float32), rewards, dones, infos
             return self._policy_obs(), rewards, dones, infos
 
         # Terminal step: feed the true last observation of each finished episode.
