@@ -292,6 +292,33 @@ def test_worker_waits_for_a_dead_workers_trial_and_retries_it(tmp_path: Path) ->
     assert any(f"retry of #{dead}" in line for line in lines)
 
 
+def test_waiting_worker_sees_another_workers_trial_end_within_a_second(tmp_path: Path) -> None:
+    """At the budget, a worker waits for the others' running trials; it must notice one that
+    ends soon at once (it used to sleep half the heartbeat interval, up to 5 s, per look)."""
+    url = f"sqlite:///{tmp_path}/s.db"
+    config = tiny_config(n_trials=1, sampler="random", sampler_seed=0)
+    study = create_or_resume_study(config, url, "s", heartbeat_interval=60, grace_period=300)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        number = _running_trial(study)  # the other worker's live trial
+        other = study.trials[number]
+        study._storage.record_heartbeat(other._trial_id)
+
+    def other_worker_finishes() -> None:
+        time.sleep(1.0)
+        study._storage.set_trial_state_values(other._trial_id, TrialState.COMPLETE, [1.0])
+
+    finisher = threading.Thread(target=other_worker_finishes)
+    start = time.monotonic()
+    finisher.start()
+    summary = run_evolution(config, study, quiet=True, evaluate=stub_fitness())
+    elapsed = time.monotonic() - start
+    finisher.join()
+    assert summary.trials_run == 0
+    assert study.trials[other.number].state == TrialState.COMPLETE
+    assert 1.0 <= elapsed < 3.0, f"the waiting worker exited {elapsed:.2f} s after the start"
+
+
 def test_sigterm_closes_the_trial_queues_it_again_and_exits(tmp_path: Path) -> None:
     url = f"sqlite:///{tmp_path}/s.db"
     config = tiny_config(n_trials=3, sampler="random", sampler_seed=0)

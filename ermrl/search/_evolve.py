@@ -338,6 +338,7 @@ EvaluateFn = Callable[
     [tuple[ReservoirParams, ...], SeedRunner, Callable[[int, float], None] | None], FitnessResult
 ]
 
+_FIRST_POLL = 0.5  # seconds between the first claims while waiting for other workers' trials
 _COUNTED = (TrialState.COMPLETE, TrialState.PRUNED, TrialState.RUNNING, TrialState.WAITING)
 
 
@@ -488,7 +489,8 @@ def run_evolution(
     problem = config.problem
     durations: list[float] = []
     heartbeats = is_heartbeat_enabled(study._storage)
-    # Waiting for other workers' trials at the end: poll often, a claim is cheap.
+    # Waiting for other workers' trials at the end: a claim is cheap, so poll at 0.5 s first (a
+    # trial about to end is seen at once) and back off to at most `poll` for long waits.
     interval = float(study._storage.get_heartbeat_interval() or 1) if heartbeats else 1.0
     poll = min(max(interval / 2, 0.5), 5.0)
     retry = _retry_policy(study)
@@ -515,6 +517,7 @@ def run_evolution(
         )
     guard = _SignalGuard()
     waiting_said = False
+    wait = _FIRST_POLL
     failed_in_a_row = 0
     with SeedRunner(config.n_procs) as runner, guard.installed():
         if config.n_procs > 1 and done_before < n_trials:
@@ -543,10 +546,12 @@ def run_evolution(
                             "other workers (a trial whose worker died is retried here)"
                         )
                         waiting_said = True
-                    time.sleep(poll)
+                    time.sleep(wait)
+                    wait = min(wait * 1.5, poll)
                     continue
                 break
             trial, params = claim.trial, claim.params
+            wait = _FIRST_POLL
             if popsize is not None and claim.running > popsize and not warned_popsize:
                 warnings.warn(
                     _popsize_message(popsize, claim.running, "trials running at once:"),
