@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import dataclasses
 import io
+import subprocess
+import sys
+import time
 
 import optuna
 import pytest
@@ -264,3 +267,39 @@ def test_pruned_trials_report_returns_and_record_env_steps(tmp_path) -> None:  #
     assert value == pytest.approx(trial.intermediate_values[256])
     with pytest.raises(ConfigError, match="--n-procs 1"):
         dataclasses.replace(config, n_procs=2)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux-only")
+def test_training_processes_die_with_their_worker(tmp_path) -> None:  # noqa: ANN001
+    """kill -9 of a worker (or the OOM killer) must not leave its seed processes training."""
+    script = tmp_path / "worker.py"
+    script.write_text(
+        "import multiprocessing, time\n"
+        "from ermrl.search import SeedRunner\n"
+        "if __name__ == '__main__':\n"
+        "    runner = SeedRunner(2)\n"
+        "    runner.start(3)\n"
+        "    pids = [p.pid for p in multiprocessing.active_children()]\n"
+        "    print(' '.join(map(str, pids)), flush=True)\n"
+        "    time.sleep(120)\n"
+    )
+    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
+    try:
+        children = [int(pid) for pid in proc.stdout.readline().split()]  # type: ignore[union-attr]
+        assert len(children) == 3
+        assert all(_alive(pid) for pid in children)
+    finally:
+        proc.kill()  # SIGKILL: no Python cleanup runs in the worker
+        proc.wait()
+    deadline = time.monotonic() + 10
+    while any(_alive(pid) for pid in children) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(_alive(pid) for pid in children), "orphaned training processes"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split()[2] != "Z"  # a zombie has exited
+    except FileNotFoundError:
+        return False

@@ -7,6 +7,7 @@ from ermrl.agents._hyperparams import (
     ppo_kwargs,
     resolve_ppo_config,
 )
+from ermrl.agents._pool import pool_size, training_pool
 from ermrl.agents._train import (
     NoEpisodeFinished,
     RunResult,
@@ -27,7 +28,9 @@ __all__ = [
     "load_hyperparams_table",
     "make_vec_env",
     "parse_overrides",
+    "pool_size",
     "ppo_kwargs",
     "resolve_ppo_config",
     "train_agent",
+    "training_pool",
 ]

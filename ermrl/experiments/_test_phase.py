@@ -14,12 +14,11 @@ is interrupted, or split across SLURM array tasks, resumes and merges: the aggre
 from __future__ import annotations
 
 import dataclasses
-import multiprocessing
 import shlex
 import sys
 import time
 from collections.abc import Mapping, Sequence
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, Future, wait
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
@@ -28,7 +27,7 @@ import optuna
 import pandas as pd
 import yaml
 
-from ermrl.agents import RunResult, train_agent
+from ermrl.agents import RunResult, pool_size, train_agent, training_pool
 from ermrl.analysis import (
     curves_on_grid,
     load_curves,
@@ -79,7 +78,8 @@ class TestSettings:
         training_steps: Steps per run.
         seeds: Seeds; each agent trains once per seed.
         out: Output folder.
-        n_procs: Runs trained in parallel processes.
+        n_procs: Cores for the runs (single-threaded processes; see
+            :func:`~ermrl.agents.pool_size`).
         evaluate: Also run deterministic evaluation episodes after training.
         n_eval_episodes: Their number.
         n_last_episodes: Training episodes averaged into a run's final return.
@@ -254,9 +254,7 @@ def run_comparison(
         for agent, seed, args in jobs:
             finished(agent, seed, _train_job(args))
     else:
-        with ProcessPoolExecutor(
-            max_workers=settings.n_procs, mp_context=multiprocessing.get_context("spawn")
-        ) as pool:
+        with training_pool(pool_size(len(jobs), settings.n_procs)) as pool:
             pending: dict[Future[RunResult], tuple[AgentSpec, int]] = {
                 pool.submit(_train_job, args): (agent, seed) for agent, seed, args in jobs
             }

@@ -6,7 +6,6 @@ This is the *problem* side of the evolution, independent of how candidates are p
 from __future__ import annotations
 
 import math
-import multiprocessing
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -15,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from ermrl.agents import RunResult, train_agent
+from ermrl.agents import RunResult, pool_size, train_agent, training_pool
 from ermrl.config import Problem, ReservoirParams
 
 __all__ = ["FitnessResult", "SeedRunner", "evaluate_reservoir", "library_versions", "pool_size"]
@@ -87,49 +86,9 @@ def _finite_or_none(value: float | None) -> float | None:
     return None if value is None or not math.isfinite(value) else float(value)
 
 
-def _warm_up() -> None:
-    """Import the training stack in a new worker process (paid once per process)."""
-    import stable_baselines3  # noqa: F401
-
-    import ermrl.agents  # noqa: F401
-    import ermrl.envs  # noqa: F401
-
-
 def _train_one(args: tuple[Any, ...]) -> RunResult:
     task, encoder, ppo, budget, seed = args
     return train_agent(task, encoder, ppo, budget, seed)
-
-
-def pool_size(n_jobs: int, n_procs: int) -> int:
-    """Processes that finish ``n_jobs`` equally long runs soonest on ``n_procs`` cores.
-
-    A pool of exactly ``n_procs`` processes leaves cores idle when the runs do not divide evenly
-    (3 seeds on 2 cores: the third seed trains alone, so the trial is at most 1.5x faster than
-    in one process). Single-threaded training processes time-share a core at little cost, so a
-    few more processes than cores keep every core busy to the end (3 seeds on 2 cores: 3
-    processes, up to 2x). Runs go in waves of ``q`` processes; a wave of ``k`` runs takes
-    ``max(1, k / n_procs)`` run-times. The smallest pool in ``[n_procs, 2 * n_procs]`` with the
-    shortest total wins, so the pool never holds more than twice as many processes as cores.
-
-    Args:
-        n_jobs: Runs per call (a trial's seeds; tasks x seeds in a generalization trial).
-        n_procs: Cores the runs may use.
-
-    Returns:
-        The number of worker processes (1 means: run in this process).
-    """
-    if n_procs <= 1 or n_jobs <= 1:
-        return 1
-    if n_jobs <= n_procs:
-        return n_jobs
-
-    def wall(q: int) -> float:
-        waves, rest = divmod(n_jobs, q)
-        total = waves * max(1.0, q / n_procs)
-        return total + (max(1.0, rest / n_procs) if rest else 0.0)
-
-    candidates = range(n_procs, min(n_jobs, 2 * n_procs) + 1)
-    return min(candidates, key=lambda q: (round(wall(q), 9), q))
 
 
 class SeedRunner:
@@ -169,11 +128,7 @@ class SeedRunner:
         if self._pool is not None and self.n_processes != size:
             self.close()
         if self._pool is None:
-            self._pool = ProcessPoolExecutor(
-                max_workers=size,
-                mp_context=multiprocessing.get_context("spawn"),
-                initializer=_warm_up,
-            )
+            self._pool = training_pool(size)
             self.n_processes = size
             # Start every process (one task each spawns them all) before the first trial.
             list(self._pool.map(abs, range(size)))
