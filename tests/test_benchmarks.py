@@ -35,6 +35,11 @@ def test_benchmarks_run_in_quick_mode(tmp_path: Path) -> None:
     assert (
         encoder["raw_steps_s"] > 0 and encoder["ermrl_steps_s"] > 0 and encoder["node_steps_s"] > 0
     )
+    # The encoder's and the node wrapper's own costs, measured over a replayed trajectory.
+    assert encoder["ermrl_alone_us"] > 0 and encoder["node_alone_us"] > 0
+    assert encoder["alone_cheaper_x"] == pytest.approx(
+        encoder["node_alone_us"] / encoder["ermrl_alone_us"]
+    )
     assert "target" in proc.stdout  # thresholds are printed, not enforced
     pruning = json.loads((tmp_path / "pruning.json").read_text())
     assert {s["pruner"] for s in pruning["summary"]} == {"none", "median", "halving"}
