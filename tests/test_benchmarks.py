@@ -50,4 +50,9 @@ def test_benchmarks_run_in_quick_mode(tmp_path: Path) -> None:
     trial = json.loads((tmp_path / "trial.json").read_text())["rows"]
     comparisons = {r["comparison"] for r in trial}
     assert "3 seeds: --n-procs 2 (3 procs on 2 cores) / 1 proc" in comparisons
+    # Workers: launch to exit, and the steady rate read back from the study's trial times.
+    assert {
+        "2 workers / 1 worker (trials/min, one SQLite study, launch to exit)",
+        "2 workers / 1 worker (trials/min, first trial start to last end)",
+    } <= comparisons
     assert all(r["a_steps_s"] > 0 and r["b_steps_s"] > 0 for r in trial if "a_steps_s" in r)

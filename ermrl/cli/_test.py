@@ -79,7 +79,10 @@ def add_test_args(
     parser.add_argument("--out", default=None, help=out_help)
     parser.add_argument("--trial", type=nonneg_int, default=None, help=trial_help)
     parser.add_argument(
-        "--n-procs", type=positive_int, default=1, help="cores for the runs, trained in parallel single-threaded processes"
+        "--n-procs",
+        type=positive_int,
+        default=1,
+        help="cores for the runs, trained in parallel single-threaded processes",
     )
     parser.add_argument(
         "--eval",
