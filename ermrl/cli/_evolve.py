@@ -138,7 +138,9 @@ def add_problem_args(parser: argparse.ArgumentParser, *, multi_task: bool = Fals
         "--n-procs",
         type=positive_int,
         default=1,
-        help="processes that train a trial's seeds in parallel",
+        help="cores that train a trial's runs in parallel (one single-threaded process per "
+        "core, or per run up to twice the cores when the runs do not divide evenly: 3 seeds "
+        "on 2 cores run in 3 processes so that no core idles; needs --pruner none)",
     )
     g.add_argument(
         "--torch-threads", type=positive_int, default=1, help="torch threads per training process"
