@@ -24,6 +24,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import ermrl.envs  # noqa: E402, F401  (silences MuJoCo's per-load 'settotalmass' notice)
 from benchmarks._harness import alternate, median, table, timed_rate, write_json  # noqa: E402
 from ermrl.config import EncoderConfig, ReservoirParams  # noqa: E402
 from ermrl.encoders import ReservoirVecEnv  # noqa: E402
