@@ -18,7 +18,8 @@ with its last intermediate return (``consider_pruned_trials``).
 
 Studies run in ``--jobs`` processes at once (this benchmark counts env steps, not seconds).
 
-    python benchmarks/bench_pruning.py            # CartPole-v1 (velocities hidden), 24 trials x 8192 steps
+    python benchmarks/bench_pruning.py            # CartPole-v1 (velocities hidden), 24 trials x 8192
+                                                  # steps, sampler seeds 0-5 (~14 min on 2 cores)
     python benchmarks/bench_pruning.py --quick    # tiny version (CI)
 """
 
@@ -171,7 +172,7 @@ def main(argv: list[str] | None = None) -> int:
     n_trials = args.n_trials or (6 if args.quick else 24)
     steps = args.steps or (1024 if args.quick else 8192)
     n_seeds = args.n_seeds or 1
-    sampler_seeds = args.sampler_seeds or ([0] if args.quick else [0, 1, 2])
+    sampler_seeds = args.sampler_seeds or ([0] if args.quick else [0, 1, 2, 3, 4, 5])
     reeval_seeds = tuple(args.reeval_seeds or ([1000] if args.quick else [1000, 1001, 1002, 1003]))
     jobs = args.jobs or (1 if args.quick else 2)
 
