@@ -19,7 +19,7 @@ with its last intermediate return (``consider_pruned_trials``).
 Studies run in ``--jobs`` processes at once (this benchmark counts env steps, not seconds).
 
     python benchmarks/bench_pruning.py            # CartPole-v1 (velocities hidden), 24 trials x 8192
-                                                  # steps, sampler seeds 0-5 (~14 min on 2 cores)
+                                                  # steps, sampler seeds 0-5 (~7 min on 2 cores)
     python benchmarks/bench_pruning.py --quick    # tiny version (CI)
 """
 
