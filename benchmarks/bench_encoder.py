@@ -62,7 +62,11 @@ class PerStepNodeWrapper(gym.Wrapper):
 
 
 def record_trajectory(env_id: str, steps: int) -> dict:
-    """``steps`` transitions of a real env under random actions, for :class:`ReplayEnv`."""
+    """``steps`` transitions of a real env under random actions, for :class:`ReplayEnv`.
+
+    Episode ends are recorded as ordinary steps, so a replay never ends an episode: it measures
+    the steady per-step path (the rare terminal-step path is in the with-physics figures).
+    """
     env = gym.make(env_id)
     env.action_space.seed(0)
     reset_obs, _ = env.reset(seed=0)

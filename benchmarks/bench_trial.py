@@ -157,18 +157,19 @@ def throughput_and_scaling(env_id: str, steps: int, repeats: int) -> list[dict]:
                 "a_steps_s": med[a], "b_steps_s": med[b]}  # fmt: skip
 
     scaling = f">= {TARGET_SCALING}"
+    three_seeds = row("3 seeds: --n-procs 2 (3 procs on 2 cores) / 1 proc", "ermrl-n-procs-2",
+                      "ermrl-1proc", scaling)  # fmt: skip
+    two_seeds = row("2 seeds: 2 procs / 1 proc (what 2 cores give now)", "ermrl-2seeds-2procs",
+                    "ermrl-2seeds-1proc", scaling)  # fmt: skip
     return [
         row("ermrl trial / plain PPO (1 proc)", "ermrl-1proc", "plain-ppo", f">= {TARGET_THROUGHPUT}"),
         row("ermrl trial / original pattern (1 proc)", "ermrl-1proc", "original-pattern"),
         row("ermrl trial --n-procs 2 / original pattern", "ermrl-n-procs-2", "original-pattern"),
-        row("3 seeds: --n-procs 2 (3 procs on 2 cores) / 1 proc", "ermrl-n-procs-2", "ermrl-1proc", scaling),
+        three_seeds,
         row("3 seeds: exactly 2 procs / 1 proc (cap 1.5)", "ermrl-2procs-fixed", "ermrl-1proc"),
-        row("2 seeds: 2 procs / 1 proc (what 2 cores give now)", "ermrl-2seeds-2procs",
-            "ermrl-2seeds-1proc", scaling),
-        {"comparison": "3 seeds --n-procs 2, share of what 2 cores give now",
-         "ratio": (med["ermrl-n-procs-2"] / med["ermrl-1proc"])
-         / (med["ermrl-2seeds-2procs"] / med["ermrl-2seeds-1proc"]),
-         "target": "", "a_steps_s": med["ermrl-n-procs-2"], "b_steps_s": med["ermrl-1proc"]},
+        two_seeds,
+        {**three_seeds, "comparison": "3 seeds --n-procs 2, share of what 2 cores give now",
+         "ratio": three_seeds["ratio"] / two_seeds["ratio"], "target": ""},
         row(f"--n-procs 2: pinned / unpinned ({default_threads} threads each)", "ermrl-n-procs-2",
             "ermrl-n-procs-2-unpinned"),
         row(f"1 proc: pinned / unpinned ({default_threads} threads)", "ermrl-1proc", "ermrl-1proc-unpinned"),
