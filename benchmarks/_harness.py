@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import platform
 import statistics
+import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -16,27 +17,41 @@ from typing import Any
 
 
 def alternate(
-    variants: dict[str, Callable[[], float]], repeats: int, warmup: bool = True
+    variants: dict[str, Callable[[], float]],
+    repeats: int,
+    warmup: bool = True,
+    label: str = "",
 ) -> dict[str, list[float]]:
     """Run each variant ``repeats`` times, rotating the order every repeat.
+
+    Each measurement is reported on stderr as it ends (full runs take many minutes), so
+    stdout keeps only the result tables.
 
     Args:
         variants: name -> function returning a rate (higher is better, e.g. steps per second).
         repeats: Measurements per variant.
         warmup: Run every variant once first, unmeasured.
+        label: Prefix of the progress lines (e.g. the grid cell being measured).
 
     Returns:
         name -> the measured rates.
     """
     names = list(variants)
+    prefix = f"{label} " if label else ""
     if warmup:
         for name in names:
             variants[name]()
+        print(f"{prefix}warm-up done", file=sys.stderr, flush=True)
     rates: dict[str, list[float]] = {name: [] for name in names}
     for r in range(repeats):
         order = names[r % len(names) :] + names[: r % len(names)]
         for name in order:
             rates[name].append(variants[name]())
+            print(
+                f"{prefix}repeat {r + 1}/{repeats} {name}: {rates[name][-1]:.4g}",
+                file=sys.stderr,
+                flush=True,
+            )
     return rates
 
 

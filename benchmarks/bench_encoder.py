@@ -180,7 +180,11 @@ def main(argv: list[str] | None = None) -> int:
 
     rows = []
     for env_id, units, n_envs in grid:
-        rates = alternate(make_variants(env_id, units, n_envs, steps), repeats)
+        rates = alternate(
+            make_variants(env_id, units, n_envs, steps),
+            repeats,
+            label=f"{env_id} {units} units {n_envs} envs",
+        )
         raw, ours, ours64, node = (
             median(rates[k]) for k in ("raw", "ermrl", "ermrl-f64", "node-per-step")
         )

@@ -146,7 +146,7 @@ def throughput_and_scaling(env_id: str, steps: int, repeats: int) -> list[dict]:
         ),
     }
     try:
-        rates = alternate(variants, repeats, warmup=False)
+        rates = alternate(variants, repeats, warmup=False, label=f"trial {env_id}")
     finally:
         for runner in (fixed, balanced, balanced_unpinned):
             runner.close()
@@ -217,6 +217,7 @@ def workers_scaling(n_trials: int, steps: int, repeats: int) -> list[dict]:
         {"1 worker": lambda: run_workers(1), "2 workers": lambda: run_workers(2)},
         repeats,
         warmup=False,
+        label="workers (trials/min)",
     )
     one, two = median(rates["1 worker"]), median(rates["2 workers"])
     one_s, two_s = median(steady["1 worker"]), median(steady["2 workers"])
