@@ -16,12 +16,19 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks import bench_encoder, bench_pruning, bench_trial, bench_workers  # noqa: E402
+from benchmarks import (  # noqa: E402
+    bench_encoder,
+    bench_pruning,
+    bench_science,
+    bench_trial,
+    bench_workers,
+)
 
 BENCHMARKS = {
     "encoder": (bench_encoder.main, [], []),
     "trial": (bench_trial.main, [], []),
     "pruning": (bench_pruning.main, [], []),
+    "science": (bench_science.main, [], []),
     "workers": (
         bench_workers.main,
         ["--n-trials", "12"],

@@ -19,14 +19,77 @@ ObserveMode = Literal["all", "positions", "velocities"]
 FitnessMode = Literal["last", "eval"]
 ResetMode = Literal["episode", "never"]
 PrunerName = Literal["none", "median", "halving"]
+StartName = Literal["reference", "center"]
+BiasInit = Literal["none", "original"]
 
 FITNESS_MODES: tuple[str, ...] = ("last", "eval")
 RESET_MODES: tuple[str, ...] = ("episode", "never")
 PRUNERS: tuple[str, ...] = ("none", "median", "halving")
+STARTS: tuple[str, ...] = ("reference", "center")
+BIAS_INITS: tuple[str, ...] = ("none", "original")
 
 
 class ConfigError(ValueError):
     """A configuration value is invalid. The CLI turns it into a one-line error and exit code 2."""
+
+
+# Upper limits: a value beyond them is a typo (``--units 1e9``, ``--training-steps 1e30``) that
+# would exhaust memory or never finish; it is refused before anything is written.
+MAX_UNITS = 10_000  # units of all reservoirs of one agent together
+MAX_TRAINING_STEPS = 10**10  # env steps per agent
+MAX_TRIALS = 1_000_000  # trials of one study
+MAX_SEEDS = 1_000  # seeds (agents) per trial
+MAX_N_ENVS = 1_024  # environments per agent
+MAX_EPISODES = 100_000  # episodes averaged by a fitness measure
+
+
+def _check_units(units: int) -> None:
+    if not 1 <= units <= MAX_UNITS:
+        raise ConfigError(f"units must be in [1, {MAX_UNITS}], got {units}")
+
+
+def _check_steps(name: str, steps: int) -> None:
+    if not 1 <= steps <= MAX_TRAINING_STEPS:
+        raise ConfigError(f"{name} must be in [1, {MAX_TRAINING_STEPS:.0e}], got {steps}")
+
+
+@dataclass(frozen=True)
+class AgentKind:
+    """What a test-phase agent is: its reservoirs and what it observes.
+
+    Attributes:
+        reservoirs: ``"none"`` (plain PPO), ``"evolved"`` (the selected trial's) or
+            ``"unevolved"`` (reservoirpy's defaults, :meth:`ReservoirSpace.default_reservoirs`).
+        observe: The agent's own observation mask (``None``: the test task's).
+        description: One line for ``--help`` and the docs.
+    """
+
+    reservoirs: Literal["none", "evolved", "unevolved"]
+    observe: ObserveMode | None
+    description: str
+
+
+# The registry of test-phase agents (ermrl.experiments builds them): CLI choices, defaults and
+# the analysis' agent order are read from it.
+AGENT_KINDS: Mapping[str, AgentKind] = {
+    "ppo": AgentKind("none", None, "PPO on the raw (masked) observation"),
+    "ppo-full": AgentKind(
+        "none", "all", "PPO on the full, unmasked observation: the ceiling memory should approach"
+    ),
+    "res-ppo": AgentKind("evolved", None, "PPO on the selected evolved reservoir(s)"),
+    "random-res-ppo": AgentKind(
+        "unevolved",
+        None,
+        "PPO on unevolved reservoirs (reservoirpy's defaults): what evolution adds",
+    ),
+}
+AGENTS: tuple[str, ...] = tuple(AGENT_KINDS)
+
+
+def default_agents(observe: str) -> tuple[str, ...]:
+    """Every agent, less those whose own mask is the task's: ``ppo-full`` on an unmasked task
+    would repeat ``ppo`` run for run."""
+    return tuple(a for a in AGENTS if AGENT_KINDS[a].observe != observe)
 
 
 @dataclass(frozen=True)
@@ -43,7 +106,12 @@ class ReservoirParams:
         input_scaling: Scale of the input matrix ``Win`` (Bernoulli +-input_scaling entries).
         rc_connectivity: Density of ``W``.
         input_connectivity: Density of ``Win``.
-        bias_scaling: Scale of the Bernoulli bias; 0 means no bias (reservoirpy's default).
+        bias_scaling: Scale of a dense Bernoulli bias (every unit +-bias_scaling); 0 means no
+            bias (reservoirpy 0.4's default).
+        bias_init: ``"none"``: the bias above. ``"original"``: reservoirpy 0.3's default bias,
+            which the original ER-MRL code used: Bernoulli +-1 on ``input_connectivity`` of
+            the units (10 of 100), zero elsewhere; needs ``bias_scaling`` 0. Left out of
+            :func:`to_dict` while ``"none"``, so configs stored before it existed are unchanged.
     """
 
     units: int = 100
@@ -53,10 +121,17 @@ class ReservoirParams:
     rc_connectivity: float = 0.1
     input_connectivity: float = 0.1
     bias_scaling: float = 0.0
+    bias_init: BiasInit = field(default="none", metadata={"omit_if_default": True})
 
     def __post_init__(self) -> None:
-        if self.units < 1:
-            raise ConfigError(f"units must be >= 1, got {self.units}")
+        if self.bias_init not in BIAS_INITS:
+            raise ConfigError(f"bias_init must be one of {BIAS_INITS}, got {self.bias_init!r}")
+        if self.bias_init == "original" and self.bias_scaling > 0:
+            raise ConfigError(
+                "bias_init 'original' draws reservoirpy 0.3's +-1 sparse bias; it cannot be "
+                f"combined with bias_scaling {self.bias_scaling} (a dense bias)"
+            )
+        _check_units(self.units)
         if not (self.sr > 0 and math.isfinite(self.sr)):
             raise ConfigError(f"spectral radius sr must be positive, got {self.sr}")
         if not (0 < self.lr <= 1):
@@ -67,8 +142,8 @@ class ReservoirParams:
             value = getattr(self, name)
             if not (0 < value <= 1):
                 raise ConfigError(f"{name} must be in (0, 1], got {value}")
-        if self.bias_scaling < 0:
-            raise ConfigError(f"bias_scaling must be >= 0, got {self.bias_scaling}")
+        if not (self.bias_scaling >= 0 and math.isfinite(self.bias_scaling)):
+            raise ConfigError(f"bias_scaling must be finite and >= 0, got {self.bias_scaling}")
 
 
 @dataclass(frozen=True)
@@ -84,8 +159,13 @@ class EncoderConfig:
         feed_action: Feed the previous action (one-hot or scaled to [-1, 1]) to the reservoir.
         feed_reward: Feed the previous reward to the reservoir.
         dtype: Float type of the reservoir state and weights. ``float32`` (default) is about
-            twice as cheap per step and agrees with float64 to ~1e-5 (the policy sees float32
-            anyway); ``float64`` reproduces reservoirpy's own states to 1e-10.
+            twice as cheap per step. How closely it follows float64 depends on the dynamics
+            (100 units, lr 1, 100 steps of N(0, 1) input, worst of 5 seeds): within ~1e-6 up to
+            sr 1.5, up to 6e-4 at sr 2, and from sr ~2.5 the two trajectories decorrelate
+            (sr 3: 3e-2 apart by step 50, 2.0, the whole tanh range, by step 100). There the
+            reservoir is chaotic and any rounding change separates trajectories; the states
+            stay statistically alike but are not reservoirpy's. ``float64`` reproduces
+            reservoirpy's own states to 1e-10.
     """
 
     reservoirs: tuple[ReservoirParams, ...] = (ReservoirParams(),)
@@ -102,6 +182,11 @@ class EncoderConfig:
             raise ConfigError(f"dtype must be float64 or float32, got {self.dtype!r}")
         if not self.reservoirs:
             raise ConfigError("an encoder needs at least one reservoir")
+        if self.total_units > MAX_UNITS:
+            raise ConfigError(
+                f"the reservoirs have {self.total_units} units together; at most {MAX_UNITS} "
+                "are allowed"
+            )
         if self.reset not in RESET_MODES:
             raise ConfigError(f"reset must be one of {RESET_MODES}, got {self.reset!r}")
         if self.exposed_units is not None:
@@ -151,6 +236,47 @@ class TaskConfig:
 
 
 @dataclass(frozen=True)
+class NormalizeConfig:
+    """Running normalization of observations and rewards (SB3's ``VecNormalize``).
+
+    rl-baselines3-zoo's ``normalize`` key: ``true`` means these defaults, a mapping sets some of
+    them. The wrapper is the outermost one, so with a reservoir it normalizes the reservoir
+    states the policy sees; episode returns are still recorded raw. Reward normalization uses
+    PPO's own ``gamma`` for its running discounted return, as the zoo does. Evaluation and
+    replays use the statistics reached at the end of training, frozen, with raw rewards.
+
+    Attributes:
+        norm_obs: Normalize the policy's input by a running mean and variance.
+        norm_reward: Divide rewards by the running standard deviation of the discounted return.
+        clip_obs: Clip normalized observations to ``[-clip_obs, clip_obs]``.
+        clip_reward: Clip normalized rewards to ``[-clip_reward, clip_reward]``.
+        epsilon: Added to variances before the square root.
+    """
+
+    norm_obs: bool = True
+    norm_reward: bool = True
+    clip_obs: float = 10.0
+    clip_reward: float = 10.0
+    epsilon: float = 1e-8
+
+    def __post_init__(self) -> None:
+        for name in ("norm_obs", "norm_reward"):
+            value = getattr(self, name)
+            if not isinstance(value, bool):
+                raise ConfigError(f"normalize: {name} must be true or false, got {value!r}")
+        if not (self.norm_obs or self.norm_reward):
+            raise ConfigError(
+                "normalize: norm_obs and norm_reward are both false; use normalize: false instead"
+            )
+        for name in ("clip_obs", "clip_reward", "epsilon"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ConfigError(f"normalize: {name} must be a number, got {value!r}")
+            if not (value > 0 and math.isfinite(value)):
+                raise ConfigError(f"normalize: {name} must be positive, got {value}")
+
+
+@dataclass(frozen=True)
 class PPOConfig:
     """Stable-Baselines3 PPO settings.
 
@@ -163,16 +289,20 @@ class PPOConfig:
         torch_threads: ``torch.set_num_threads`` for each training process (1 is fastest for the
             small MLPs used here and avoids oversubscription when seeds run in parallel).
         device: Torch device; ermrl runs everything on the CPU by default.
+        normalize: Wrap the environment in ``VecNormalize`` (rl-baselines3-zoo's ``normalize``
+            key); ``None``: no normalization. Left out of :meth:`to_dict` while ``None``, so
+            configs stored before it existed are unchanged.
     """
 
     n_envs: int = 1
     hyperparams: Mapping[str, Any] = field(default_factory=dict)
     torch_threads: int = 1
     device: str = "cpu"
+    normalize: NormalizeConfig | None = field(default=None, metadata={"omit_if_default": True})
 
     def __post_init__(self) -> None:
-        if self.n_envs < 1:
-            raise ConfigError(f"n_envs must be >= 1, got {self.n_envs}")
+        if not 1 <= self.n_envs <= MAX_N_ENVS:
+            raise ConfigError(f"n_envs must be in [1, {MAX_N_ENVS}], got {self.n_envs}")
         if self.torch_threads < 1:
             raise ConfigError(f"torch_threads must be >= 1, got {self.torch_threads}")
 
@@ -198,14 +328,13 @@ class BudgetConfig:
     n_reports: int = 4
 
     def __post_init__(self) -> None:
-        if self.training_steps < 1:
-            raise ConfigError(f"training steps must be positive, got {self.training_steps}")
+        _check_steps("training steps", self.training_steps)
         if self.fitness not in FITNESS_MODES:
             raise ConfigError(f"fitness must be one of {FITNESS_MODES}, got {self.fitness!r}")
-        if self.n_last_episodes < 1:
-            raise ConfigError(f"n_last_episodes must be >= 1, got {self.n_last_episodes}")
-        if self.n_eval_episodes < 1:
-            raise ConfigError(f"n_eval_episodes must be >= 1, got {self.n_eval_episodes}")
+        for name in ("n_last_episodes", "n_eval_episodes"):
+            value = getattr(self, name)
+            if not 1 <= value <= MAX_EPISODES:
+                raise ConfigError(f"{name} must be in [1, {MAX_EPISODES}], got {value}")
         if self.n_reports < 0:
             raise ConfigError(f"n_reports must be >= 0, got {self.n_reports}")
 
@@ -247,6 +376,7 @@ class ReservoirSpace:
         rc_connectivity: Fixed recurrent connectivity.
         input_connectivity: Fixed input connectivity.
         bias_scaling: Fixed bias scaling.
+        bias_init: Fixed bias initialization (:attr:`ReservoirParams.bias_init`).
     """
 
     n_reservoirs: int = 1
@@ -258,12 +388,17 @@ class ReservoirSpace:
     rc_connectivity: float = 0.1
     input_connectivity: float = 0.1
     bias_scaling: float = 0.0
+    bias_init: BiasInit = field(default="none", metadata={"omit_if_default": True})
 
     def __post_init__(self) -> None:
         if self.n_reservoirs < 1:
             raise ConfigError(f"n_reservoirs must be >= 1, got {self.n_reservoirs}")
-        if self.units < 1:
-            raise ConfigError(f"units must be >= 1, got {self.units}")
+        _check_units(self.units)
+        if self.n_reservoirs * self.units > MAX_UNITS:
+            raise ConfigError(
+                f"{self.n_reservoirs} reservoirs of {self.units} units: at most {MAX_UNITS} "
+                "units are allowed in all"
+            )
         if self.lr.high > 1:
             raise ConfigError(f"the leak-rate range must stay within (0, 1], got {self.lr.high}")
         # Fail early on a bad fixed value.
@@ -273,6 +408,7 @@ class ReservoirSpace:
             rc_connectivity=self.rc_connectivity,
             input_connectivity=self.input_connectivity,
             bias_scaling=self.bias_scaling,
+            bias_init=self.bias_init,
         )
 
     @property
@@ -321,9 +457,32 @@ class ReservoirSpace:
                     rc_connectivity=self.rc_connectivity,
                     input_connectivity=self.input_connectivity,
                     bias_scaling=self.bias_scaling,
+                    bias_init=self.bias_init,
                 )
             )
         return tuple(out)
+
+    def reference_params(self) -> dict[str, float]:
+        """The unevolved reference reservoirs (:meth:`default_reservoirs`) as trial parameters."""
+        out: dict[str, float] = {}
+        for k, res in enumerate(self.default_reservoirs()):
+            for name in self.evolved:
+                out[self.param_name(name, k)] = float(getattr(res, name))
+        return out
+
+    def contains(self, params: Mapping[str, float]) -> bool:
+        """Whether ``params`` name exactly this space's parameters, each within its range."""
+        ranges = self.ranges()
+        return set(params) == set(ranges) and all(
+            r.low <= params[name] <= r.high for name, r in ranges.items()
+        )
+
+    def center_params(self) -> dict[str, float]:
+        """The centre of the box (geometric mean of the bounds on a log scale): the paper's start."""
+        return {
+            name: math.sqrt(r.low * r.high) if r.log else (r.low + r.high) / 2
+            for name, r in self.ranges().items()
+        }
 
     def default_reservoirs(self) -> tuple[ReservoirParams, ...]:
         """Unevolved reservoirs (reservoirpy defaults for sr, lr and input scaling)."""
@@ -333,6 +492,7 @@ class ReservoirSpace:
             rc_connectivity=self.rc_connectivity,
             input_connectivity=self.input_connectivity,
             bias_scaling=self.bias_scaling,
+            bias_init=self.bias_init,
         )
         return (one,) * self.n_reservoirs
 
@@ -348,6 +508,18 @@ class SearchConfig:
         popsize: CMA-ES population size (``None``: CMA-ES's default, 4 + 3 ln(dim)).
         pruner: ``none``, ``median`` or ``halving``; prunes on intermediate training returns.
         n_trials: Total trials of the study, all workers together.
+        start: Where CMA-ES starts: ``center`` (the centre of the log-scaled box, as the
+            ER-MRL paper's code did; the default, which did at least as well as ``reference``
+            in the science benchmark once the reference competes as a trial) or ``reference``
+            (the unevolved reference reservoir, reservoirpy's defaults sr = lr = input_scaling
+            = 1, clipped into the box; better for a handful of trials).
+        reference_trial: Queue the unevolved reference reservoir as the study's first trial, so
+            that it competes with the evolved candidates (and is told to CMA-ES like them).
+        reevaluate_top: After the budget, re-train the ``reevaluate_top`` best trials (and the
+            reference trial) on fresh seeds; the test phase then uses that ranking. 0: off.
+        reevaluate_seeds: Seeds per re-evaluated candidate.
+        reevaluate_steps: Training steps of a re-evaluation run (``None``: the evolution
+            budget; the test budget removes the budget mismatch at a higher cost).
     """
 
     sampler: str = "cmaes"
@@ -356,6 +528,11 @@ class SearchConfig:
     popsize: int | None = None
     pruner: PrunerName = "none"
     n_trials: int = 100
+    start: StartName = "center"
+    reference_trial: bool = True
+    reevaluate_top: int = 0
+    reevaluate_seeds: int = 3
+    reevaluate_steps: int | None = None
 
     def __post_init__(self) -> None:
         if self.sampler not in ("cmaes", "tpe", "random"):
@@ -368,8 +545,18 @@ class SearchConfig:
             raise ConfigError(f"popsize must be >= 2, got {self.popsize}")
         if self.pruner not in PRUNERS:
             raise ConfigError(f"unknown pruner {self.pruner!r}; choose one of {PRUNERS}")
-        if self.n_trials < 1:
-            raise ConfigError(f"n_trials must be positive, got {self.n_trials}")
+        if not 1 <= self.n_trials <= MAX_TRIALS:
+            raise ConfigError(f"n_trials must be in [1, {MAX_TRIALS}], got {self.n_trials}")
+        if self.start not in STARTS:
+            raise ConfigError(f"unknown CMA-ES start {self.start!r}; choose one of {STARTS}")
+        if self.reevaluate_top < 0:
+            raise ConfigError(f"reevaluate_top must be >= 0, got {self.reevaluate_top}")
+        if not 1 <= self.reevaluate_seeds <= MAX_SEEDS:
+            raise ConfigError(
+                f"reevaluate_seeds must be in [1, {MAX_SEEDS}], got {self.reevaluate_seeds}"
+            )
+        if self.reevaluate_steps is not None:
+            _check_steps("reevaluate_steps", self.reevaluate_steps)
 
 
 @dataclass(frozen=True)
@@ -393,6 +580,8 @@ class Problem:
     def __post_init__(self) -> None:
         if not self.seeds:
             raise ConfigError("at least one seed is needed")
+        if len(self.seeds) > MAX_SEEDS:
+            raise ConfigError(f"at most {MAX_SEEDS} seeds are allowed, got {len(self.seeds)}")
         if len(set(self.seeds)) != len(self.seeds):
             raise ConfigError(f"seeds must be distinct, got {self.seeds}")
 
@@ -559,9 +748,14 @@ def from_dict(cls: type[_T], data: Mapping[str, Any]) -> _T:
         (EvolveConfig, "generalization"): GeneralizationConfig,
         (GeneralizationTask, "task"): TaskConfig,
         (GeneralizationTask, "ppo"): PPOConfig,
+        (PPOConfig, "normalize"): NormalizeConfig,
     }
     kwargs: dict[str, Any] = {}
     names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    if cls is SearchConfig:
+        # Studies stored before these options existed started at the box centre, without the
+        # reference trial: read them as what they were.
+        data = {"start": "center", "reference_trial": False, **data}
     for key, value in data.items():
         if key not in names:
             continue  # tolerate fields added by newer versions

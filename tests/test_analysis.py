@@ -331,6 +331,60 @@ def test_recording_round_trip_and_figures(tmp_path: Path) -> None:
     assert_paper_ready(spectrum_figure(rec), "Frequency (Hz)", "peak 2.03 Hz")
 
 
+def test_replay_normalizes_like_training(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A run trained with ``normalize`` replays with training's final statistics, frozen."""
+    from stable_baselines3 import PPO
+
+    import ermrl.agents._normalize as normalize_module
+    from ermrl.config import NormalizeConfig, ReservoirParams
+    from ermrl.experiments import AgentSpec, TestSettings, run_comparison
+
+    saved: list = []  # the training VecNormalize, as training left it
+    save = normalize_module.save_normalize_stats
+
+    def keep(venv, path):  # noqa: ANN001, ANN202
+        saved.append(venv)
+        save(venv, path)
+
+    monkeypatch.setattr(normalize_module, "save_normalize_stats", keep)
+    task = TaskConfig("Pendulum-v1", "positions")
+    reservoirs = (ReservoirParams(units=20, sr=0.9, lr=0.5),)
+    ppo = PPOConfig(
+        hyperparams={"n_steps": 128, "batch_size": 64, "n_epochs": 2},
+        normalize=NormalizeConfig(),
+    )
+    run_comparison(
+        task,
+        EncoderConfig(reservoirs=reservoirs),
+        ppo,
+        [AgentSpec("res-ppo", reservoirs)],
+        TestSettings(training_steps=512, seeds=(3,), out=tmp_path),
+        quiet=True,
+    )
+    assert len(saved) == 1 and (tmp_path / "agents/res-ppo/seed_3/vecnormalize.json").is_file()
+
+    seen: list[np.ndarray] = []  # what the replayed policy is given
+    predict = PPO.predict
+
+    def spy(self, observation, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+        seen.append(np.array(observation, copy=True))
+        return predict(self, observation, *args, **kwargs)
+
+    monkeypatch.setattr(PPO, "predict", spy)
+    trained = analysis.load_trained_agent(tmp_path, "res-ppo", 3)
+    episode = analysis.rollout(trained, max_steps=5)
+    assert len(seen) == 5
+    for state, given in zip(episode.states, seen):
+        expected = saved[0].normalize_obs(state[None].astype(np.float32))
+        np.testing.assert_array_equal(given, expected)  # exactly what training would give
+        assert not np.allclose(given, state)  # and not the raw states
+    assert np.all(episode.rewards < 0)  # raw Pendulum rewards, not normalized ones
+
+    (tmp_path / "agents/res-ppo/seed_3/vecnormalize.json").unlink()
+    with pytest.raises(FileNotFoundError, match="trained with normalize"):
+        analysis.load_trained_agent(tmp_path, "res-ppo", 3)
+
+
 # -- notebooks, video helpers ------------------------------------------------------------------
 
 

@@ -28,7 +28,7 @@ def test_benchmarks_run_in_quick_mode(tmp_path: Path) -> None:
         timeout=1500,
     )
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    for name in ("encoder", "trial", "pruning", "workers"):
+    for name in ("encoder", "trial", "pruning", "workers", "science"):
         data = json.loads((tmp_path / f"{name}.json").read_text())
         assert data["machine"]["cpus"] >= 1
     encoder = json.loads((tmp_path / "encoder.json").read_text())["rows"][0]
@@ -50,6 +50,20 @@ def test_benchmarks_run_in_quick_mode(tmp_path: Path) -> None:
     # Each study's best parameters are re-trained on fresh seeds (the unbiased comparison).
     assert all(len(r["reeval_returns"]) == len(pruning["reeval_seeds"]) for r in pruning["rows"])
     assert all(isinstance(r["best_reevaluated"], float) for r in pruning["rows"])
+    # Science: evolve then test per task; the table and the targets are reported, never enforced.
+    science = json.loads((tmp_path / "science.json").read_text())
+    assert [t["env_id"] for t in science["tasks"]] == ["Pendulum-v1", "CartPole-v1"]
+    for task in science["tasks"]:
+        agents = task["test"]["agents"]
+        assert set(agents) == {"ppo", "ppo-full", "random-res-ppo", "res-ppo"}
+        assert all(len(a["final_returns"]) == 2 for a in agents.values())
+        low, high = task["test"]["res_minus_random"]["ci95"]
+        assert low <= task["test"]["res_minus_random"]["diff"] <= high
+        assert task["evolution"]["reevaluation"]["complete"]
+        assert task["evolution"]["selected"]["how"].startswith("re-evaluated best")
+        assert task["env_steps"] > 0 and task["wall_seconds"] > 0
+    assert "res − random [95% CI]" in science["table"]
+    assert "targets:" in science["table"]
     trial = json.loads((tmp_path / "trial.json").read_text())["rows"]
     comparisons = {r["comparison"] for r in trial}
     assert "3 seeds: --n-procs 2 (3 procs on 2 cores) / 1 proc" in comparisons

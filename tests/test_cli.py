@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import sqlite3
@@ -69,18 +70,19 @@ def test_test_phase_writes_all_outputs(evolved: tuple[Path, str]) -> None:
     proc = run(str(ROOT / "test.py"), *args, "--seeds", "10", "11", cwd=tmp)
     assert proc.returncode == 0, proc.stderr
     summary = pd.read_csv(out / "summary.csv")
-    assert list(summary["agent"]) == ["ppo", "res-ppo", "random-res-ppo"]
+    # The study hides velocities, so the defaults include ppo-full.
+    assert list(summary["agent"]) == ["ppo", "ppo-full", "res-ppo", "random-res-ppo"]
     assert set(summary["n_seeds"]) == {2}
     curves = pd.read_csv(out / "curves.csv")
     assert list(curves.columns) == ["agent", "seed", "env_step", "episode_return"]
-    assert set(curves["seed"]) == {10, 11} and len(curves) == 3 * 2 * 2
+    assert set(curves["seed"]) == {10, 11} and len(curves) == 4 * 2 * 2
     assert (out / "learning_curves.png").stat().st_size > 10_000
     assert (out / "config.yaml").exists() and "test.py" in (out / "command.txt").read_text()
     assert (out / "agents" / "res-ppo" / "seed_10" / "model.zip").exists()
 
     # Re-running resumes: finished runs are skipped, not retrained.
     again = run(str(ROOT / "test.py"), *args, "--seeds", "10", "11", cwd=tmp)
-    assert again.returncode == 0 and again.stdout.count("[skip]") == 6
+    assert again.returncode == 0 and again.stdout.count("[skip]") == 8
 
     # A SLURM array task runs the seed at its index.
     env_task = run(
@@ -98,6 +100,100 @@ def test_test_phase_writes_all_outputs(evolved: tuple[Path, str]) -> None:
     )
     assert env_task.returncode == 0, env_task.stderr
     assert [p.name for p in (tmp / "slurm_run" / "agents" / "ppo").iterdir()] == ["seed_21"]
+
+
+def test_agent_registry_drives_choices_defaults_and_labels() -> None:
+    from ermrl.analysis._style import AGENT_COLORS, AGENT_LABELS, AGENT_SHORT_LABELS
+    from ermrl.cli._test import build_test_parser
+    from ermrl.config import AGENTS, ConfigError, default_agents
+    from ermrl.experiments import agent_specs
+
+    assert AGENTS == ("ppo", "ppo-full", "res-ppo", "random-res-ppo")
+    assert set(AGENT_LABELS) == set(AGENT_SHORT_LABELS) == set(AGENT_COLORS) == set(AGENTS)
+    action = next(a for a in build_test_parser()._actions if a.dest == "agents")
+    assert tuple(action.choices) == AGENTS
+    assert default_agents("velocities") == AGENTS
+    assert default_agents("all") == ("ppo", "res-ppo", "random-res-ppo")  # ppo-full == ppo there
+    specs = agent_specs(["ppo-full", "random-res-ppo"], None, ())
+    assert [(s.name, s.reservoirs, s.observe) for s in specs] == [
+        ("ppo-full", None, "all"),
+        ("random-res-ppo", (), None),
+    ]
+    with pytest.raises(ConfigError, match="needs the evolved reservoirs"):
+        agent_specs(["res-ppo"], None, ())
+
+
+def test_ppo_full_sees_the_unmasked_observation(evolved: tuple[Path, str]) -> None:
+    from stable_baselines3 import PPO
+
+    from ermrl.analysis import load_trained_agent, rollout
+
+    tmp, url = evolved
+    out = tmp / "full"
+    proc = run(
+        str(ROOT / "test.py"),
+        *("--study-name", "check", "--storage", url, "--out", str(out), "--seeds", "12"),
+        *("--training-steps", "256", "--agents", "ppo", "ppo-full"),
+        cwd=tmp,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert list(pd.read_csv(out / "summary.csv")["agent"]) == ["ppo", "ppo-full"]
+    shapes = {}
+    for agent in ("ppo", "ppo-full"):
+        folder = out / "agents" / agent / "seed_12"
+        shapes[agent] = PPO.load(folder / "model.zip", device="cpu").observation_space.shape
+        result = json.loads((folder / "result.json").read_text())
+        settings = json.loads((folder / "settings.json").read_text())
+        assert result["observe"] == settings["observe"]
+    # Pendulum with velocities hidden: [cos, sin] for ppo, [cos, sin, theta_dot] for ppo-full.
+    assert shapes == {"ppo": (2,), "ppo-full": (3,)}
+    assert json.loads((out / "agents/ppo-full/seed_12/result.json").read_text())["observe"] == "all"
+    replayed = rollout(load_trained_agent(out, "ppo-full", 12), max_steps=3)
+    assert replayed.observations.shape == (3, 3)  # the replay rebuilds the unmasked env
+
+
+def test_rerun_with_other_settings_is_refused(evolved: tuple[Path, str]) -> None:
+    tmp, url = evolved
+    out = tmp / "rerun"
+    base = ["--study-name", "check", "--storage", url, "--out", str(out), "--agents", "ppo"]
+    base += ["--training-steps", "256", "--no-save-models"]
+    first = run(str(ROOT / "test.py"), *base, "--seeds", "10", cwd=tmp)
+    assert first.returncode == 0, first.stderr
+    record = json.loads((out / "agents/ppo/seed_10/settings.json").read_text())
+    assert record["agent"] == "ppo" and record["seed"] == 10 and record["ppo"]["hyperparams"]
+
+    # Same settings: skipped; another seed with the same settings merges (SLURM array tasks).
+    same = run(str(ROOT / "test.py"), *base, "--seeds", "10", "11", cwd=tmp)
+    assert same.returncode == 0, same.stderr
+    assert "[skip] ppo seed 10" in same.stdout and "[run 1/1] ppo seed 11" in same.stdout
+
+    # Other settings: refused, one line, exit 2, naming the key; nothing is retrained.
+    before = (out / "agents/ppo/seed_10/result.json").read_text()
+    other = run(
+        str(ROOT / "test.py"), *base, "--seeds", "10", "--ppo", "learning_rate=1e-4", cwd=tmp
+    )
+    lines = other.stderr.strip().splitlines()
+    assert other.returncode == 2 and len(lines) == 1, other.stderr
+    assert "ppo seed 10 differs in ppo.hyperparams.learning_rate" in lines[0]
+    assert "use another --out, or --overwrite" in lines[0]
+    assert "not ppo seed 11" in lines[0]  # seed 11 is not retrained by this call
+    longer = run(str(ROOT / "test.py"), *base, "--seeds", "11", "--training-steps", "400", cwd=tmp)
+    assert longer.returncode == 2 and "budget.training_steps" in longer.stderr
+
+    # --overwrite retrains the asked-for runs with the new settings.
+    both = ["--seeds", "10", "11", "--ppo", "learning_rate=1e-4", "--overwrite"]
+    again = run(str(ROOT / "test.py"), *base, *both, cwd=tmp)
+    assert again.returncode == 0, again.stderr
+    assert again.stdout.count("[run ") == 2 and "[skip]" not in again.stdout
+    assert (out / "agents/ppo/seed_10/result.json").read_text() != before
+    record = json.loads((out / "agents/ppo/seed_10/settings.json").read_text())
+    assert record["ppo"]["hyperparams"]["learning_rate"] == pytest.approx(1e-4)
+
+    # A run written before settings were recorded: unknown, so refused too.
+    (out / "agents/ppo/seed_11/settings.json").unlink()
+    old = run(str(ROOT / "test.py"), *base, *both[:-1], cwd=tmp)
+    assert old.returncode == 2 and "written by an older ermrl" in old.stderr, old.stderr
+    assert "--overwrite" in old.stderr
 
 
 def test_default_test_seeds_avoid_evolution_seeds(evolved: tuple[Path, str]) -> None:
@@ -134,6 +230,11 @@ def _n_trials(db: Path) -> int:
         (["--env-id", "Pendulum-v1", "--n-trials", "-3"], "must be positive"),
         (["--env-id", "Pendulum-v1", "--observe", "hidden"], "invalid choice"),
         (["--env-id", "Pendulum-v1", "--ppo", "lerning_rate=3"], "unknown PPO hyperparameter"),
+        (["--env-id", "Pendulum-v1", "--ppo", "normalize=3"], "normalize must be true, false"),
+        (
+            ["--env-id", "Pendulum-v1", "--bias-init", "original", "--bias-scaling", "0.5"],
+            "cannot be combined with bias_scaling",
+        ),
         (
             ["--env-id", "Pendulum-v1", "--storage", "postgresql://nobody@127.0.0.1:1/none"],
             "cannot open storage",
@@ -226,3 +327,33 @@ def test_ctrl_c_marks_the_running_trial_failed_and_exits(tmp_path: Path) -> None
     states = [t.state for t in study.get_trials()]
     assert states == [optuna.trial.TrialState.FAIL]
     assert study.get_trials()[0].user_attrs["fail_reason"] == "interrupted"
+
+
+def test_run_or_exit_turns_a_test_phases_expected_failures_into_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import errno
+
+    from ermrl.cli._test import run_or_exit
+    from ermrl.config import ConfigError
+
+    assert run_or_exit("ermrl test", tmp_path, lambda: "summary") == "summary"
+
+    def raises(err: BaseException):  # noqa: ANN202
+        def run() -> None:
+            raise err
+
+        return run
+
+    assert run_or_exit("ermrl test", tmp_path, raises(KeyboardInterrupt())) is None
+    assert (
+        f"ermrl test: interrupted; finished runs are kept in {tmp_path}" in capsys.readouterr().err
+    )
+    for err in (ConfigError("holds finished runs made with other settings"),
+                OSError(errno.ENOSPC, "No space left on device")):  # fmt: skip
+        with pytest.raises(SystemExit) as exited:
+            run_or_exit("ermrl test", tmp_path, raises(err))
+        assert exited.value.code == 2
+        assert len(capsys.readouterr().err.strip().splitlines()) == 1
+    with pytest.raises(OSError):  # not a write failure: a bug, shown as such
+        run_or_exit("ermrl test", tmp_path, raises(OSError(errno.EBADF, "bad file descriptor")))

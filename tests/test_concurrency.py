@@ -47,7 +47,7 @@ TINY = [
 ]  # fmt: skip
 
 
-def stub_config(n_trials: int) -> EvolveConfig:
+def stub_config(n_trials: int, sampler_seed: int | None = None) -> EvolveConfig:
     space = ReservoirSpace(units=10)
     problem = Problem(
         task=TaskConfig("Pendulum-v1", "positions"),
@@ -56,10 +56,11 @@ def stub_config(n_trials: int) -> EvolveConfig:
         budget=BudgetConfig(training_steps=256),
         seeds=(0,),
     )
-    return EvolveConfig(problem=problem, space=space, search=SearchConfig(n_trials=n_trials))
+    search = SearchConfig(n_trials=n_trials, sampler_seed=sampler_seed)
+    return EvolveConfig(problem=problem, space=space, search=search)
 
 
-def _stub_worker(url: str, n_trials: int, delay: float, go, errors, heartbeat) -> None:  # noqa: ANN001
+def _stub_worker(url: str, n_trials: int, delay: float, go, errors, heartbeat, seed=None) -> None:  # noqa: ANN001
     """One worker process: wait for the start signal, then the real create + worker loop."""
 
     def evaluate(reservoirs, runner, report):  # noqa: ANN001, ANN202
@@ -69,7 +70,7 @@ def _stub_worker(url: str, n_trials: int, delay: float, go, errors, heartbeat) -
 
     try:
         go.wait(60)
-        config = stub_config(n_trials)
+        config = stub_config(n_trials, seed)
         study = create_or_resume_study(
             config, url, "race", heartbeat_interval=heartbeat[0], grace_period=heartbeat[1]
         )
@@ -80,13 +81,16 @@ def _stub_worker(url: str, n_trials: int, delay: float, go, errors, heartbeat) -
 
 
 def start_stub_workers(
-    url: str, n_workers: int, n_trials: int, delay: float, heartbeat: tuple[int, int] = (60, 300)
+    url: str,
+    n_workers: int,
+    n_trials: int,
+    delay: float,
+    heartbeat: tuple[int, int] = (60, 300),
+    sampler_seed: int | None = None,
 ) -> tuple[list, object]:  # noqa: ANN001
     go, errors = FORK.Event(), FORK.Queue()
-    procs = [
-        FORK.Process(target=_stub_worker, args=(url, n_trials, delay, go, errors, heartbeat))
-        for _ in range(n_workers)
-    ]
+    args = (url, n_trials, delay, go, errors, heartbeat, sampler_seed)
+    procs = [FORK.Process(target=_stub_worker, args=args) for _ in range(n_workers)]
     for proc in procs:
         proc.start()
     go.set()  # all at the same instant
@@ -241,10 +245,37 @@ def test_sigterm_mid_trial_with_a_process_pool_exits_fast_and_loses_nothing(
     assert any(t.user_attrs.get("retry_of") == trial.number for t in final)
 
 
+def assert_cma_first_points(trials: list[optuna.trial.FrozenTrial], n_workers: int) -> None:
+    """Every trial was sampled (or, for the reference, told) by CMA-ES; each worker's first
+    point differs from the others'."""
+    missing = [t.number for t in trials if "cma:restart_0:generation" not in t.system_attrs]
+    assert missing == [], f"trials without CMA-ES attributes: {missing}"
+    first: dict[int, tuple[float, ...]] = {}
+    for t in sorted(trials, key=lambda t: t.number):
+        first.setdefault(t.user_attrs["worker_pid"], tuple(sorted(t.params.items())))
+    assert len(first) == n_workers, first
+    assert len(set(first.values())) == n_workers, first
+    references = [t for t in trials if t.user_attrs.get("reference")]
+    assert len(references) == 1
+    assert references[0].params == {"sr": 1.0, "lr": 1.0, "input_scaling": 1.0}
+
+
+def test_four_workers_with_one_sampler_seed_draw_distinct_cma_points(tmp_path: Path) -> None:
+    # Each trial takes long enough that all four workers ask before any trial completes: with
+    # Optuna's fallback these first points came from one random sampler seeded alike.
+    url = f"sqlite:///{tmp_path}/s.db"
+    procs, errors = start_stub_workers(url, 4, 8, delay=1.5, sampler_seed=0)
+    join_all(procs, timeout=120)
+    assert drain(errors) == []
+    trials = assert_exactly(load(url), 8)
+    assert_cma_first_points(trials, 4)
+
+
 @pytest.mark.slow
 def test_four_cli_workers_at_once_on_a_fresh_sqlite_study(tmp_path: Path) -> None:
     url = f"sqlite:///{tmp_path}/s.db"
     args = ["--study-name", "t", "--n-trials", "8", "--training-steps", "256"]
+    args += ["--sampler-seed", "0"]
     workers = [start_cli_worker(url, tmp_path / f"w{i}.log", *args) for i in range(4)]
     codes = [w.wait(600) for w in workers]
     logs = "".join((tmp_path / f"w{i}.log").read_text() for i in range(4))
@@ -252,6 +283,12 @@ def test_four_cli_workers_at_once_on_a_fresh_sqlite_study(tmp_path: Path) -> Non
     assert not any(e in logs for e in LOCK_ERRORS), logs
     trials = assert_exactly(load(url, "t"), 8)
     assert len({t.user_attrs["worker_pid"] for t in trials}) >= 2
+    assert all("cma:restart_0:generation" in t.system_attrs for t in trials)
+    # Workers that start together draw distinct first points.
+    first = {}
+    for t in sorted(trials, key=lambda t: t.number):
+        first.setdefault(t.user_attrs["worker_pid"], tuple(sorted(t.params.items())))
+    assert len(set(first.values())) == len(first), first
 
 
 @pytest.mark.slow

@@ -26,6 +26,7 @@ from ermrl.encoders import (
         ReservoirParams(units=50, sr=0.9, lr=0.3, input_scaling=1.0),
         ReservoirParams(units=30, sr=5.0, lr=1.0, input_scaling=0.2, bias_scaling=0.5),
         ReservoirParams(units=40, sr=1e-3, lr=0.01, input_scaling=8.0, rc_connectivity=0.3),
+        ReservoirParams(units=60, sr=1.2, lr=0.5, bias_init="original"),
     ],
 )
 def test_states_equal_reservoirpy_reservoir(params: ReservoirParams) -> None:
@@ -56,6 +57,40 @@ def test_spectral_radius_and_connectivity_follow_params() -> None:
     assert set(np.unique(np.abs(w.Win[w.Win != 0]))) == {3.0}
     assert 0.05 < np.mean(w.W != 0) < 0.15  # rc_connectivity 0.1
     assert w.Win.shape == (100, 10) and w.bias.shape == (100,)
+
+
+def test_original_bias_is_reservoirpy_0_3s_sparse_bernoulli() -> None:
+    """reservoirpy 0.3's default bias: +-1 on input_connectivity (10%) of the units."""
+    for seed in (0, 1, 2):
+        bias = reservoir_weights(ReservoirParams(bias_init="original"), 4, seed=seed).bias
+        nonzero = bias[bias != 0]
+        assert len(nonzero) == 10  # 10% of 100 units
+        assert set(np.abs(nonzero)) == {1.0} and set(np.sign(nonzero)) == {-1.0, 1.0}
+    denser = ReservoirParams(bias_init="original", input_connectivity=0.3)
+    assert np.count_nonzero(reservoir_weights(denser, 4, seed=0).bias) == 30
+    # --bias-scaling, by contrast, is dense: every unit +-scale.
+    dense = reservoir_weights(ReservoirParams(bias_scaling=0.5), 4, seed=0).bias
+    assert set(np.abs(dense)) == {0.5}
+    assert not np.any(reservoir_weights(ReservoirParams(), 4, seed=0).bias)  # default: none
+
+
+def test_bias_init_is_validated_and_absent_from_old_configs() -> None:
+    from ermrl.config import ReservoirSpace, from_dict, to_dict
+
+    assert "bias_init" not in to_dict(ReservoirParams())  # stored configs stay as they were
+    assert "bias_init" not in to_dict(ReservoirSpace())
+    original = ReservoirParams(bias_init="original")
+    assert to_dict(original)["bias_init"] == "original"
+    assert from_dict(ReservoirParams, to_dict(original)) == original
+    space = ReservoirSpace(bias_init="original")
+    assert all(r.bias_init == "original" for r in space.default_reservoirs())
+    assert space.reservoirs_from({"sr": 1.0, "lr": 0.5, "input_scaling": 1.0})[0].bias_init == (
+        "original"
+    )
+    with pytest.raises(ConfigError, match="cannot be combined with bias_scaling"):
+        ReservoirParams(bias_init="original", bias_scaling=0.5)
+    with pytest.raises(ConfigError, match="bias_init must be one of"):
+        ReservoirParams(bias_init="dense")  # type: ignore[arg-type]
 
 
 def test_same_seed_same_recurrent_weights_for_any_input_dim() -> None:

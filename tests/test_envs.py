@@ -43,6 +43,7 @@ ERMRL_VELOCITY_INDICES = {
     "MountainCar-v0": (1,),
     "Pendulum-v1": (2,),
     "LunarLander-v3": (2, 3, 5),
+    "LunarLanderContinuous-v3": (2, 3, 5),
 }
 
 FAMILIES = ("Ant", "HalfCheetah", "Hopper", "Swimmer", "Walker2d")
@@ -188,6 +189,20 @@ def test_lunar_lander_continuous_kwarg_keeps_layout(observe: str) -> None:
         assert isinstance(env.action_space, spaces.Box)
         obs, _ = env.reset(seed=0)
         assert obs.shape == (len(observation_indices("LunarLander-v3", observe)),)  # type: ignore[arg-type]
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize("observe", ["positions", "velocities"])
+def test_lunar_lander_continuous_id_masks_like_lunar_lander(observe: Any) -> None:
+    # The id of its own (the zoo's PPO table has an entry for it) keeps LunarLander's layout.
+    split = observation_indices("LunarLanderContinuous-v3", observe)
+    assert split == observation_indices("LunarLander-v3", observe)
+    env = make_env("LunarLanderContinuous-v3", observe)
+    try:
+        assert isinstance(env.action_space, spaces.Box) and env.action_space.shape == (2,)
+        obs, _ = env.reset(seed=0)
+        assert obs.shape == (len(split),)
     finally:
         env.close()
 

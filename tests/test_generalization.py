@@ -350,3 +350,26 @@ def test_test_cli_warns_loudly_on_an_evolution_task(
     out = tmp_path / "runs" / "g__Hopper-v5"
     assert "in_evolution_set: true" in (out / "config.yaml").read_text()
     assert pd.read_csv(out / "summary.csv")["seeds"].tolist() == [2]
+
+
+def test_test_cli_refuses_a_rerun_with_other_settings(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    storage = f"sqlite:///{tmp_path / 'g.db'}"
+    create_or_resume_generalization_study(
+        _config(generalization_tasks(TASKS, ppo_overrides=TINY)), storage, "g"
+    )
+    out = tmp_path / "out"
+    args = ["--study-name", "g", "--storage", storage, "--env-id", "Walker2d-v5", "--agents", "ppo"]
+    args += ["--seeds", "4", "--training-steps", "256", "--out", str(out), "--no-save-models"]
+    args += ["--quiet", "--ppo", "n_steps=256"]
+    assert test_generalization_main(args) == 0
+    assert (out / "agents/ppo/seed_4/settings.json").is_file()
+    assert test_generalization_main(args) == 0  # same settings: skipped
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exit_info:
+        test_generalization_main([*args, "gamma=0.9"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert exit_info.value.code == 2 and len(err) == 1
+    assert "ppo seed 4 differs in ppo.hyperparams.gamma" in err[0]
+    assert test_generalization_main([*args, "gamma=0.9", "--overwrite"]) == 0

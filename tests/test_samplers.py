@@ -2,16 +2,21 @@
 
 from __future__ import annotations
 
+import json
 import math
 import pickle
 import warnings
 from pathlib import Path
 from typing import Any
 
+import cmaes
+import numpy as np
 import optuna
 import pytest
-from optuna.distributions import BaseDistribution
+from optuna._transform import _SearchSpaceTransform
+from optuna.distributions import BaseDistribution, FloatDistribution
 from optuna.samplers import CmaEsSampler, RandomSampler, TPESampler
+from optuna.study import StudyDirection
 from optuna.trial import FrozenTrial, Trial
 
 from ermrl.search._samplers import (
@@ -20,6 +25,8 @@ from ermrl.search._samplers import (
     RestartCmaEsSampler,
     cma_generation_info,
     make_sampler,
+    optimizer_state,
+    restore_optimizer,
 )
 
 optuna.logging.set_verbosity(optuna.logging.WARNING)
@@ -64,9 +71,7 @@ def first_row_of_restart(rows: list[dict[str, Any]], restart: int) -> dict[str, 
 
 
 def stored_optimizer(trial: FrozenTrial, prefix: str = "cma:") -> Any:
-    chunks = {k: v for k, v in trial.system_attrs.items() if k.startswith(prefix + "optimizer:")}
-    text = "".join(chunks[f"{prefix}optimizer:{i}"] for i in range(len(chunks)))
-    return pickle.loads(bytes.fromhex(text))
+    return _stored_optimizer(trial.system_attrs, prefix)
 
 
 # --------------------------------------------------------------------------- restarts
@@ -385,3 +390,213 @@ def test_study_sampler_considers_pruned_trials_with_a_pruner() -> None:
 
     assert make_study_sampler(SearchConfig(pruner="median"))._consider_pruned_trials
     assert not make_study_sampler(SearchConfig())._consider_pruned_trials
+
+
+# -- a fixed search space, per-trial streams, restarts shared by concurrent workers -----------
+
+SPACE = {
+    "sr": FloatDistribution(1e-4, 1e2, log=True),
+    "lr": FloatDistribution(1e-2, 1.0, log=True),
+}
+
+
+def _system_attrs(study: optuna.Study, trial: Trial) -> dict[str, Any]:
+    return study._storage.get_trial(trial._trial_id).system_attrs
+
+
+def _stored_optimizer(attrs: dict[str, Any], prefix: str = "cma:") -> Any:
+    assert not any(k.startswith(prefix + "optimizer:") for k in attrs)  # no pickle is stored
+    chunks = {k: v for k, v in attrs.items() if k.startswith(prefix + "state:")}
+    text = "".join(chunks[f"{prefix}state:{i}"] for i in range(len(chunks)))
+    return restore_optimizer(json.loads(text))
+
+
+def test_fixed_space_first_trials_come_from_cma_es_and_differ_per_trial() -> None:
+    # Four workers (samplers) with the same seed ask before any trial has completed.
+    storage = optuna.storages.InMemoryStorage()
+    samplers = [RestartCmaEsSampler(seed=0, search_space=SPACE) for _ in range(4)]
+    first = optuna.create_study(storage=storage, sampler=samplers[0], study_name="s")
+    studies = [first] + [
+        optuna.load_study(study_name="s", storage=storage, sampler=s) for s in samplers[1:]
+    ]
+    trials = [study.ask(SPACE) for study in studies]
+    for study, trial in zip(studies, trials):
+        attrs = _system_attrs(study, trial)
+        assert attrs["cma:restart_0:generation"] == 0
+        assert attrs["cma:n_restarts"] == 0
+    points = {tuple(t.params.values()) for t in trials}
+    assert len(points) == 4, points
+
+
+def test_same_seed_and_trial_number_give_the_same_point() -> None:
+    def first_points(seed: int) -> list[tuple[float, ...]]:
+        study = optuna.create_study(sampler=RestartCmaEsSampler(seed=seed, search_space=SPACE))
+        return [tuple(study.ask(SPACE).params.values()) for _ in range(3)]
+
+    assert first_points(0) == first_points(0)
+    assert first_points(0) != first_points(1)
+
+
+def test_start_point_is_the_given_x0() -> None:
+    x0 = {"sr": 1.0, "lr": 1.0}
+    sampler = RestartCmaEsSampler(seed=0, search_space=SPACE, x0=x0)
+    trans = _SearchSpaceTransform(SPACE, transform_0_1=True)
+    optimizer = sampler._init_optimizer(trans, StudyDirection.MAXIMIZE)
+    np.testing.assert_allclose(optimizer._mean, trans.transform(x0))
+    centre = RestartCmaEsSampler(seed=0, search_space=SPACE)._init_optimizer(
+        trans, StudyDirection.MAXIMIZE
+    )
+    np.testing.assert_allclose(centre._mean, [0.5, 0.5])
+    with pytest.raises(ValueError, match="x0 must name"):
+        RestartCmaEsSampler(search_space=SPACE, x0={"sr": 1.0})
+
+
+@pytest.mark.parametrize("strategy", ["ipop", "bipop"])
+def test_workers_restarting_at_once_build_the_same_run(
+    strategy: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Two workers without a seed both find generation 0 complete and both restart before
+    # either of their trials completes. Each must build the same restart (start point, popsize,
+    # step size), so that every trial labelled "restart 1, generation 0" has one distribution.
+    monkeypatch.setattr(cmaes.CMA, "should_stop", lambda self: True)
+    storage = optuna.storages.InMemoryStorage()
+    a = RestartCmaEsSampler(restart_strategy=strategy, popsize=4, search_space=SPACE)
+    b = RestartCmaEsSampler(restart_strategy=strategy, popsize=4, search_space=SPACE)
+    study_a = optuna.create_study(storage=storage, sampler=a, study_name="s")
+    study_b = optuna.load_study(study_name="s", storage=storage, sampler=b)
+    for i in range(4):
+        trial = study_a.ask(SPACE)
+        study_a.tell(trial, float(i))
+    trial_a, trial_b = study_a.ask(SPACE), study_b.ask(SPACE)
+    attrs_a, attrs_b = _system_attrs(study_a, trial_a), _system_attrs(study_b, trial_b)
+    for attrs in (attrs_a, attrs_b):
+        assert attrs["cma:n_restarts"] == 1
+        assert attrs["cma:restart_1:generation"] == 0
+    assert attrs_a["cma:restart_state"] == attrs_b["cma:restart_state"]
+    opt_a, opt_b = _stored_optimizer(attrs_a), _stored_optimizer(attrs_b)
+    np.testing.assert_array_equal(opt_a._mean, opt_b._mean)
+    assert opt_a._sigma == opt_b._sigma
+    assert opt_a.population_size == opt_b.population_size
+    # ... while their points still come from each trial's own stream.
+    assert trial_a.params != trial_b.params
+
+
+# --------------------------------------------------------------------------- plain-data state
+
+
+def _told_optimizers() -> list[Any]:
+    bounds = np.array([[0.0, 1.0]] * 3)
+    cma = cmaes.CMA(mean=np.full(3, 0.5), sigma=0.2, bounds=bounds, seed=1, lr_adapt=True)
+    sep = cmaes.SepCMA(mean=np.full(3, 0.5), sigma=0.2, bounds=bounds, seed=2)
+    margin = cmaes.CMAwM(
+        mean=np.full(3, 0.5), sigma=0.2, bounds=bounds, steps=np.array([0.0, 0.1, 0.0]), seed=3
+    )
+    for optimizer in (cma, sep, margin):
+        for _ in range(3):  # a few generations
+            told = []
+            for _ in range(optimizer.population_size):
+                x = optimizer.ask()
+                x_tell = x[1] if isinstance(x, tuple) else x
+                told.append((x_tell, float(np.sum((x_tell - 0.3) ** 2))))
+            optimizer.tell(told)
+    return [cma, sep, margin]
+
+
+@pytest.mark.parametrize("index", [0, 1, 2], ids=["CMA", "SepCMA", "CMAwM"])
+def test_plain_state_continues_exactly_like_the_pickled_optimizer(index: int) -> None:
+    original = _told_optimizers()[index]
+    text = json.dumps(optimizer_state(original), allow_nan=False)  # plain JSON, nothing else
+    restored = restore_optimizer(json.loads(text))
+    pickled = pickle.loads(pickle.dumps(original))  # what the old storage format gave back
+    assert type(restored) is type(original)
+    for optimizer in (original, restored, pickled):
+        optimizer._rng.seed(7)  # the sampler reseeds for every trial
+    for _ in range(2):
+        told = []
+        for _ in range(original.population_size):
+            a, b, c = original.ask(), restored.ask(), pickled.ask()
+            for x, y in ((a, b), (a, c)):
+                for u, v in zip(np.atleast_1d(x), np.atleast_1d(y)):  # CMAwM: (x, x_for_tell)
+                    np.testing.assert_allclose(u, v, rtol=0, atol=1e-12)
+            x_tell = a[1] if isinstance(a, tuple) else a
+            told.append((x_tell, float(np.sum(x_tell**2))))
+        for optimizer in (original, restored, pickled):
+            optimizer.tell(told)
+    inner = (lambda o: o._cma) if index == 2 else (lambda o: o)
+    for name in ("_mean", "_C", "_p_sigma", "_pc"):
+        np.testing.assert_allclose(
+            getattr(inner(restored), name), getattr(inner(original), name), rtol=0, atol=1e-12
+        )
+    assert inner(restored)._sigma == inner(original)._sigma
+    assert restored.generation == original.generation == 5
+
+
+def test_plain_state_keeps_the_random_generator() -> None:
+    original = _told_optimizers()[0]
+    restored = restore_optimizer(json.loads(json.dumps(optimizer_state(original))))
+    np.testing.assert_array_equal(restored.ask(), original.ask())
+
+
+@pytest.mark.parametrize(
+    "state",
+    [
+        {"__cmaes__": "Popen", "attrs": {}},
+        {"__ndarray__": "", "dtype": "O", "shape": [0]},
+        {"__pickle__": "80"},
+        [1, 2],
+    ],
+)
+def test_restore_refuses_anything_but_plain_optimizer_state(state: Any) -> None:
+    with pytest.raises(ValueError):
+        restore_optimizer(state if isinstance(state, dict) else {"__list__": state})
+
+
+class _Marker:
+    """Unpickling an instance creates a file: stands for code an attacker stored."""
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (Path.touch, (Path(self.path),))
+
+
+def test_pickled_optimizer_in_the_storage_is_never_unpickled(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # A study as an older ermrl wrote it (or as anyone with write access to the storage can
+    # write it): the optimizer pickled in `cma:optimizer:*` on the latest trial.
+    marker = tmp_path / "executed"
+    study = optuna.create_study(sampler=RestartCmaEsSampler(seed=0, search_space=SPACE))
+    old_run = {"n_restarts": 2, "regime": "large", "popsize": 4, "popsize0": 4, "large_popsize": 4}
+    for i in range(3):
+        attrs: dict[str, Any] = {
+            "cma:n_restarts": 2,
+            "cma:restart_2:generation": 5,
+            "cma:popsize": 4,
+            "cma:regime": "large",
+        }
+        if i == 2:
+            attrs["cma:optimizer:0"] = pickle.dumps(_Marker(str(marker))).hex()
+            attrs["cma:restart_state"] = old_run
+        study.add_trial(
+            optuna.trial.create_trial(
+                params={"sr": 1.0, "lr": 0.1}, distributions=SPACE, value=1.0, system_attrs=attrs
+            )
+        )
+
+    with caplog.at_level("WARNING", logger="ermrl.search._samplers"):
+        trial = study.ask(SPACE)
+    assert not marker.exists()
+    assert "pickled by an older ermrl" in caplog.text and "never unpickled" in caplog.text
+    new_attrs = _system_attrs(study, trial)
+    assert new_attrs["cma:n_restarts"] == 3 and new_attrs["cma:restart_3:generation"] == 0
+    assert new_attrs["cma:popsize"] == 4
+    study.tell(trial, 0.5)
+    # The study goes on: the new run completes a generation and stores plain state.
+    for _ in range(4):
+        study.tell(study.ask(SPACE), 0.5)
+    assert not marker.exists()
+    told = [t for t in study.get_trials(deepcopy=False) if "cma:state:0" in t.system_attrs]
+    assert len(told) == 1 and stored_optimizer(told[0]).generation == 1
+    assert told[0].system_attrs["cma:restart_state"]["n_restarts"] == 3

@@ -262,7 +262,10 @@ def test_budget_is_exact_and_waiting_trials_are_claimed(tmp_path: Path) -> None:
     trials = study.get_trials()
     assert summary.completed == 4 and len(trials) == 4
     assert all(t.state == TrialState.COMPLETE for t in trials)
-    assert trials[0].params["sr"] == 2.0  # the WAITING trial ran first
+    # The queued trials ran first: the reference reservoir (queued when the study was created),
+    # then the one added here.
+    assert trials[0].user_attrs["reference"] is True and trials[0].params["sr"] == 1.0
+    assert trials[1].params["sr"] == 2.0
     # Nothing left to do: a second worker stops at once.
     assert run_evolution(config, study, quiet=True, evaluate=stub_fitness()).trials_run == 0
 
@@ -290,6 +293,32 @@ def test_worker_waits_for_a_dead_workers_trial_and_retries_it(tmp_path: Path) ->
     assert summary.completed == 2
     assert any("waiting for 1 running trial" in line for line in lines)
     assert any(f"retry of #{dead}" in line for line in lines)
+
+
+@pytest.mark.parametrize("fresh_storage", ["journal", "sqlite"], indirect=True)
+@pytest.mark.parametrize("max_retry", [1, 0])
+def test_a_dead_workers_trial_is_failed_with_a_reason(fresh_storage: str, max_retry: int) -> None:
+    config = tiny_config(n_trials=2, sampler="random", sampler_seed=0)
+    study = create_or_resume_study(
+        config, fresh_storage, "s", heartbeat_interval=1, grace_period=2, max_retry=max_retry
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        dead = _running_trial(study)  # a worker killed with kill -9: no more heartbeats
+        study._storage.record_heartbeat(study.trials[dead]._trial_id)
+    time.sleep(3.1)  # SQLite's heartbeat clock has a resolution of one second
+    run_evolution(config, study, quiet=True, evaluate=stub_fitness())
+    trials = study.get_trials()
+    failed = trials[dead]
+    assert failed.state == TrialState.FAIL
+    if max_retry:
+        (retry,) = [t for t in trials if t.user_attrs.get("retry_of") == dead]
+        assert retry.state == TrialState.COMPLETE
+        expected = f"heartbeat lost (none for 2 s), retried as trial {retry.number}"
+    else:
+        assert not any("retry_of" in t.user_attrs for t in trials)
+        expected = "heartbeat lost (none for 2 s), not retried"
+    assert failed.user_attrs["fail_reason"] == expected
 
 
 def test_waiting_worker_sees_another_workers_trial_end_within_a_second(tmp_path: Path) -> None:
@@ -410,6 +439,26 @@ def test_study_cli_create_list_show_export_delete(
     assert err.value.code == 2 and "--yes" in capsys.readouterr().err
     assert study_main(["delete", "--storage", url, "--study-name", "demo", "--yes"]) == 0
     assert optuna.get_all_study_names(url) == ["bare"]
+
+
+def test_study_show_when_workers_ran_with_different_budgets(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    url = f"sqlite:///{tmp_path}/s.db"
+    small = tiny_config(n_trials=1, sampler="random", sampler_seed=0)
+    study = create_or_resume_study(small, url, "demo")  # the first worker stores n_trials=1
+    run_evolution(small, study, quiet=True, evaluate=stub_fitness())
+    run_evolution(tiny_config(n_trials=4), study, quiet=True, evaluate=stub_fitness())
+
+    assert study_main(["show", "--storage", url, "--study-name", "demo"]) == 0
+    out = capsys.readouterr().out
+    assert "4/1" not in out and "trials: 4 done" in out
+    assert "--n-trials 4 (3 trials), 1 (1 trial); the study's configuration says 1" in out
+    assert study_main(["show", "--storage", url, "--study-name", "demo", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["worker_budgets"] == {"4": 3, "1": 1}
+    assert study_main(["list", "--storage", url]) == 0
+    assert "4/1,4" in capsys.readouterr().out
+    assert [t.user_attrs["worker_n_trials"] for t in study.trials] == [1, 4, 4, 4]
 
 
 def test_study_cli_create_with_a_configuration_and_errors(

@@ -1,12 +1,24 @@
 """The inner loop: Stable-Baselines3 PPO on raw or reservoir-encoded observations."""
 
 from ermrl.agents._hyperparams import (
+    check_ppo_config,
     linear_schedule,
     load_hyperparams_table,
+    parse_normalize,
     parse_overrides,
     ppo_kwargs,
     resolve_ppo_config,
+    with_overrides,
 )
+from ermrl.agents._normalize import (
+    frozen_normalize_env,
+    load_normalize_stats,
+    normalize_env,
+    normalize_stats,
+    save_normalize_stats,
+    stats_path,
+)
+from ermrl.agents._policy_io import POLICY_FILE, load_policy, policy_path, save_policy
 from ermrl.agents._pool import pool_size, training_pool
 from ermrl.agents._train import (
     NoEpisodeFinished,
@@ -19,18 +31,31 @@ from ermrl.agents._train import (
 )
 
 __all__ = [
+    "POLICY_FILE",
     "NoEpisodeFinished",
     "RunResult",
     "SeedSet",
     "TrainingDiverged",
+    "check_ppo_config",
     "derive_seeds",
+    "frozen_normalize_env",
     "linear_schedule",
     "load_hyperparams_table",
+    "load_normalize_stats",
+    "load_policy",
     "make_vec_env",
+    "normalize_env",
+    "normalize_stats",
+    "parse_normalize",
     "parse_overrides",
+    "policy_path",
     "pool_size",
     "ppo_kwargs",
     "resolve_ppo_config",
+    "save_normalize_stats",
+    "save_policy",
+    "stats_path",
     "train_agent",
     "training_pool",
+    "with_overrides",
 ]

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import inspect
+import math
 from collections.abc import Callable, Mapping, Sequence
 from importlib import resources
 from pathlib import Path
@@ -11,14 +13,23 @@ from typing import Any
 import yaml
 from stable_baselines3 import PPO
 
-from ermrl.config import ConfigError, PPOConfig
+from ermrl.config import (
+    ConfigError,
+    EncoderConfig,
+    NormalizeConfig,
+    PPOConfig,
+    TaskConfig,
+)
 
 __all__ = [
     "load_hyperparams_table",
+    "parse_normalize",
     "parse_overrides",
     "resolve_ppo_config",
+    "with_overrides",
     "ppo_kwargs",
     "linear_schedule",
+    "check_ppo_config",
 ]
 
 # Keys of PPO(...) that a table or an override may set. `policy`, `env`, `seed`, `device`,
@@ -33,7 +44,51 @@ _PPO_KEYS = set(inspect.signature(PPO.__init__).parameters) - {
     "tensorboard_log",
     "_init_setup_model",
 }
-_ERMRL_KEYS = {"n_envs"}
+# Keys that ermrl itself reads (never passed to PPO(...)): the number of envs, and
+# rl-baselines3-zoo's `normalize` (VecNormalize).
+_ERMRL_KEYS = {"n_envs", "normalize"}
+_NORMALIZE_KEYS = tuple(f.name for f in dataclasses.fields(NormalizeConfig))
+
+
+def parse_normalize(value: Any, where: str = "normalize") -> NormalizeConfig | None:
+    """Read rl-baselines3-zoo's ``normalize`` value.
+
+    Args:
+        value: ``true``/``false``, ``null``, or a mapping of :class:`~ermrl.config.NormalizeConfig`
+            fields (``{norm_obs: true, norm_reward: false}``). A string is read as YAML, so the
+            zoo's quoted form ``"{'norm_obs': False, 'norm_reward': True}"`` works too.
+        where: Where the value comes from, for error messages.
+
+    Returns:
+        The settings, or ``None`` for no normalization.
+
+    Raises:
+        ConfigError: any other value, or an unknown or invalid field.
+    """
+    if isinstance(value, str):
+        try:
+            value = yaml.safe_load(value)
+        except yaml.YAMLError:
+            pass  # reported below as not a mapping
+    if value is None or value is False:
+        return None
+    if value is True:
+        return NormalizeConfig()
+    if not isinstance(value, Mapping):
+        raise ConfigError(
+            f"{where}: normalize must be true, false or a mapping such as "
+            f"{{norm_obs: true, norm_reward: false}}, got {value!r}"
+        )
+    unknown = sorted(set(map(str, value)) - set(_NORMALIZE_KEYS))
+    if unknown:
+        raise ConfigError(
+            f"{where}: unknown normalize key(s) {unknown}; valid keys: {list(_NORMALIZE_KEYS)} "
+            "(the discount of reward normalization is PPO's gamma)"
+        )
+    try:
+        return NormalizeConfig(**{str(k): _coerce(v) for k, v in value.items()})
+    except ConfigError as err:
+        raise ConfigError(f"{where}: {err}") from None
 
 
 def load_hyperparams_table(path: str | Path | None = None) -> dict[str, dict[str, Any]]:
@@ -52,14 +107,32 @@ def load_hyperparams_table(path: str | Path | None = None) -> dict[str, dict[str
             text = Path(path).read_text()
         except OSError as err:
             raise ConfigError(f"cannot read hyperparameter file {path}: {err.strerror}") from err
-    table = yaml.safe_load(text) or {}
+        except UnicodeDecodeError:
+            raise ConfigError(f"hyperparameter file {path} is not a text (UTF-8) file") from None
+    try:
+        table = yaml.safe_load(text) or {}
+    except yaml.YAMLError as err:  # malformed, or a tag such as !!python/object (refused)
+        raise ConfigError(
+            f"hyperparameter file {path} is not valid plain YAML: {_one_line(err)}"
+        ) from None
     if not isinstance(table, dict):
         raise ConfigError(f"hyperparameter file {path} must map env ids to settings")
+    for env_id, entry in table.items():
+        if entry is not None and not isinstance(entry, dict):
+            raise ConfigError(
+                f"hyperparameter file {path}: the entry of {env_id!r} must be a mapping of PPO "
+                f"settings, got {entry!r}"
+            )
     table = {env_id: _coerce(entry or {}) for env_id, entry in table.items()}
     table.setdefault("default", {})
     for env_id, entry in table.items():
         _check_keys(entry or {}, f"{path or 'ppo.yml'}[{env_id}]")
     return table
+
+
+def _one_line(err: BaseException) -> str:
+    """An exception's message on one line."""
+    return " ".join(str(err).split()) or type(err).__name__
 
 
 def _coerce(value: Any) -> Any:
@@ -85,6 +158,8 @@ def _check_keys(entry: Mapping[str, Any], where: str) -> None:
             f"{where}: unknown PPO hyperparameter(s) {sorted(unknown)}; "
             f"valid keys: {sorted(_PPO_KEYS | _ERMRL_KEYS)}"
         )
+    if "normalize" in entry:
+        parse_normalize(entry["normalize"], where)
 
 
 def parse_overrides(items: Sequence[str]) -> dict[str, Any]:
@@ -116,6 +191,9 @@ def resolve_ppo_config(
 ) -> PPOConfig:
     """Resolve an env's PPO settings: SB3 defaults < table ``default`` < table[env_id] < overrides.
 
+    ``n_envs`` and ``normalize`` go to their own :class:`~ermrl.config.PPOConfig` fields; every
+    other key is a ``PPO(...)`` argument.
+
     Args:
         env_id: Gymnasium id.
         overrides: Command-line overrides.
@@ -127,12 +205,40 @@ def resolve_ppo_config(
     merged: dict[str, Any] = dict(table.get("default") or {})
     merged.update(table.get(env_id) or {})
     merged.update(overrides or {})
-    table_n_envs = int(merged.pop("n_envs", 1))
+    table_n_envs = _int_n_envs(merged.pop("n_envs", 1))
     return PPOConfig(
         n_envs=n_envs if n_envs is not None else table_n_envs,
         hyperparams=merged,
         torch_threads=torch_threads,
+        normalize=parse_normalize(merged.pop("normalize", None), env_id),
     )
+
+
+def with_overrides(config: PPOConfig, overrides: Mapping[str, Any]) -> PPOConfig:
+    """``config`` with ``--ppo`` overrides applied (``n_envs`` and ``normalize`` to their fields).
+
+    Args:
+        config: Resolved settings (a study's, for example).
+        overrides: From :func:`parse_overrides`.
+    """
+    rest = dict(overrides)
+    changes: dict[str, Any] = {}
+    if "n_envs" in rest:
+        changes["n_envs"] = _int_n_envs(rest.pop("n_envs"))
+    if "normalize" in rest:
+        changes["normalize"] = parse_normalize(rest.pop("normalize"), "--ppo")
+    return dataclasses.replace(config, hyperparams={**config.hyperparams, **rest}, **changes)
+
+
+def _int_n_envs(value: Any) -> int:
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, (int, float))
+        or not math.isfinite(value)
+        or value != int(value)
+    ):
+        raise ConfigError(f"n_envs must be a whole number, got {value!r}")
+    return int(value)
 
 
 def linear_schedule(initial: float) -> Callable[[float], float]:
@@ -148,7 +254,97 @@ def ppo_kwargs(config: PPOConfig) -> dict[str, Any]:
     """Keyword arguments for ``PPO(...)`` from a config (``lin_X`` strings become schedules)."""
     kwargs: dict[str, Any] = {}
     for key, value in config.hyperparams.items():
+        if key in _ERMRL_KEYS:
+            continue  # read by ermrl (PPOConfig fields), not a PPO(...) argument
         if isinstance(value, str) and value.startswith("lin_"):
-            value = linear_schedule(float(value[4:]))
+            try:
+                value = linear_schedule(float(value[4:]))
+            except ValueError:
+                raise ConfigError(
+                    f"PPO {key}={value!r}: a linear schedule is lin_<number>, e.g. lin_3e-4"
+                ) from None
         kwargs[key] = value
     return kwargs
+
+
+# Ranges of numeric PPO(...) arguments that SB3 itself does not check at construction (a bad
+# value would only fail, or silently misbehave, in the middle of training).
+_NUMBER_RANGES: dict[str, tuple[float, float, bool]] = {
+    # key: (low, high, low is exclusive)
+    "learning_rate": (0.0, math.inf, True),
+    "clip_range": (0.0, math.inf, True),
+    "gamma": (0.0, 1.0, False),
+    "gae_lambda": (0.0, 1.0, False),
+    "ent_coef": (0.0, math.inf, False),
+    "vf_coef": (0.0, math.inf, False),
+    "max_grad_norm": (0.0, math.inf, True),
+}
+_INT_RANGES: dict[str, int] = {"n_steps": 1, "batch_size": 2, "n_epochs": 1}
+# n_steps * n_envs transitions fill PPO's rollout buffer, allocated when the agent is built.
+MAX_ROLLOUT = 10_000_000
+
+
+def _check_values(config: PPOConfig) -> None:
+    for key, value in config.hyperparams.items():
+        if key in _INT_RANGES:
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise ConfigError(f"PPO {key} must be an integer, got {value!r}")
+            if value < _INT_RANGES[key]:
+                raise ConfigError(f"PPO {key} must be >= {_INT_RANGES[key]}, got {value}")
+        elif key in _NUMBER_RANGES:
+            low, high, open_low = _NUMBER_RANGES[key]
+            number = value
+            if isinstance(value, str) and value.startswith("lin_"):
+                number = _coerce(value[4:])
+            if isinstance(number, bool) or not isinstance(number, (int, float)):
+                raise ConfigError(
+                    f"PPO {key} must be a number"
+                    + (" or lin_<number>" if key in ("learning_rate", "clip_range") else "")
+                    + f", got {value!r}"
+                )
+            above = number > low if open_low else number >= low
+            if not (math.isfinite(number) and above and number <= high):
+                bound = f"{'>' if open_low else '>='} {low:g}"
+                if math.isfinite(high):
+                    bound += f" and <= {high:g}"
+                raise ConfigError(f"PPO {key} must be {bound}, got {value!r}")
+    n_steps = config.hyperparams.get("n_steps", 2048)
+    if n_steps * config.n_envs > MAX_ROLLOUT:
+        raise ConfigError(
+            f"n_steps * n_envs = {n_steps * config.n_envs} transitions per rollout; at most "
+            f"{MAX_ROLLOUT} are allowed"
+        )
+
+
+def check_ppo_config(
+    task: TaskConfig, encoder: EncoderConfig | None, ppo: PPOConfig, where: str = "PPO"
+) -> None:
+    """Refuse PPO settings that would fail or misbehave only once training runs.
+
+    Checks the ranges of the common numeric settings, then builds the agent as training does
+    (the real env, the reservoir encoder and normalization, ``PPO("MlpPolicy", ...)`` with its
+    policy network) without taking a step, so that whatever Stable-Baselines3 or torch refuses
+    (``n_steps=1``, ``policy_kwargs={net_arch: foo}``, ...) is reported before a study or a run
+    folder is touched.
+
+    Args:
+        task: Env id and observation mask.
+        encoder: Reservoir encoding (``None``: plain PPO).
+        ppo: The resolved settings.
+        where: Names the settings in the message (``"PPO"``, an env id, ...).
+
+    Raises:
+        ConfigError: a setting is refused, with a one-line reason.
+    """
+    from ermrl.agents._normalize import normalize_env
+    from ermrl.agents._train import make_vec_env
+
+    _check_values(ppo)
+    kwargs = ppo_kwargs(ppo)
+    env = normalize_env(make_vec_env(task, ppo.n_envs, 0, encoder, 0), ppo)
+    try:
+        PPO("MlpPolicy", env, seed=0, device=ppo.device, verbose=0, **kwargs)
+    except Exception as err:  # noqa: BLE001 - any refusal is bad input; its text says which
+        raise ConfigError(f"{where} settings refused: {_one_line(err)}") from None
+    finally:
+        env.close()

@@ -1,13 +1,14 @@
 """Train one PPO agent on one seed: the inner loop ("development") of ER-MRL.
 
 The environment pipeline is ``gym.make -> ObservationMask -> Monitor -> DummyVecEnv ->
-ReservoirVecEnv`` (the last only for reservoir agents), so episode returns are always the task's
-raw returns.
+ReservoirVecEnv -> VecNormalize`` (the reservoir only for reservoir agents, ``VecNormalize`` only
+when the PPO settings say ``normalize``), so episode returns are always the task's raw returns.
 """
 
 from __future__ import annotations
 
 import math
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -189,7 +190,10 @@ def train_agent(
         seed: Seeds the reservoir weights, the environments and PPO (see :func:`derive_seeds`).
         evaluate: Run deterministic evaluation episodes after training (default: when
             ``budget.fitness == "eval"``).
-        model_path: Save the trained model there (``.zip``).
+        model_path: Save the trained model there (``.zip``, SB3's format), its policy's
+            weights as plain tensors (:func:`~ermrl.agents.policy_path`, the file ermrl reads
+            back) and, with ``ppo.normalize``, the normalization statistics as JSON
+            (:func:`~ermrl.agents.stats_path`).
         report: Called as ``report(env_step, mean_recent_return)`` ``budget.n_reports`` times
             during training (for pruning); it may raise to stop training.
         tensorboard_log: Directory for SB3's TensorBoard logs.
@@ -206,6 +210,14 @@ def train_agent(
     from stable_baselines3.common.evaluation import evaluate_policy
 
     from ermrl.agents._hyperparams import ppo_kwargs
+    from ermrl.agents._normalize import (
+        frozen_normalize_env,
+        normalize_env,
+        normalize_stats,
+        save_normalize_stats,
+        stats_path,
+    )
+    from ermrl.agents._policy_io import policy_path, save_policy
 
     torch.set_num_threads(ppo.torch_threads)
     # BLAS (numpy's matrix products in the encoder) gets the same thread budget: with several
@@ -214,7 +226,8 @@ def train_agent(
     seeds = derive_seeds(seed)
     result = RunResult(seed=seed)
     start = time.perf_counter()
-    env = make_vec_env(task, ppo.n_envs, seeds.env, encoder, seeds.reservoir)
+    # VecNormalize (ppo.normalize) is the outermost wrapper: it sees the reservoir states.
+    env = normalize_env(make_vec_env(task, ppo.n_envs, seeds.env, encoder, seeds.reservoir), ppo)
     try:
         model = PPO(
             "MlpPolicy",
@@ -251,6 +264,9 @@ def train_agent(
             )
         if evaluate if evaluate is not None else budget.fitness == "eval":
             eval_env = make_vec_env(task, 1, seeds.eval_env, encoder, seeds.reservoir)
+            if ppo.normalize is not None:
+                # Training's final statistics, frozen; rewards stay raw.
+                eval_env = frozen_normalize_env(eval_env, normalize_stats(env))
             try:
                 returns, _ = evaluate_policy(
                     model,
@@ -266,7 +282,20 @@ def train_agent(
             if not math.isfinite(result.eval_return):
                 raise TrainingDiverged(f"seed {seed}: non-finite evaluation return")
         if model_path is not None:
-            model.save(str(model_path))
+            # model.zip is SB3's format (pickles, never read by ermrl); policy.pt holds the
+            # weights as plain tensors, the only file ermrl reads a policy from.
+            # Saved under a temporary name, renamed once complete: a full disk never leaves a
+            # truncated model.zip under its final name.
+            partial = Path(f"{model_path}.partial")
+            try:
+                with partial.open("wb") as handle:
+                    model.save(handle)
+                os.replace(partial, model_path)
+            finally:
+                partial.unlink(missing_ok=True)
+            save_policy(model, policy_path(model_path))
+            if ppo.normalize is not None:
+                save_normalize_stats(env, stats_path(model_path))
     finally:
         env.close()
     result.wall_seconds = time.perf_counter() - start

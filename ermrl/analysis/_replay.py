@@ -1,9 +1,16 @@
 """Replaying a trained agent of a test-phase folder: the same env, mask and reservoir weights.
 
-A run folder ``<out>/agents/<agent>/seed_<s>/`` holds ``model.zip`` and ``result.json``; the
-folder's ``config.yaml`` holds the task and encoding options. The reservoir weights are
+A run folder ``<out>/agents/<agent>/seed_<s>/`` holds ``policy.pt``, ``model.zip``,
+``result.json`` and ``settings.json``; the folder's ``config.yaml`` holds the task and encoding
+options. The policy is read only from ``policy.pt`` (plain tensors, ``torch.load`` with
+``weights_only=True``) and rebuilt from the run's PPO settings (``settings.json``, else
+``config.yaml``) and the environment's spaces (:func:`ermrl.agents.load_policy`). ``model.zip``
+is never read: SB3 unpickles it, and a crafted one runs code. A run saved before ``policy.pt``
+existed is refused; re-train it. The reservoir weights are
 re-created from the run's seed exactly as in training (:func:`ermrl.agents.derive_seeds`), so
-the replayed policy sees the states it was trained on.
+the replayed policy sees the states it was trained on. A run trained with ``normalize`` also
+has ``vecnormalize.json`` beside its model: the replay normalizes the policy's input with those
+statistics, frozen, as training's own evaluation did.
 """
 
 from __future__ import annotations
@@ -26,12 +33,16 @@ class TrainedAgent:
 
     Attributes:
         run: The test-phase folder.
-        agent: Agent name (``ppo``, ``res-ppo``, ``random-res-ppo``).
+        agent: Agent name (``ppo``, ``ppo-full``, ``res-ppo``, ``random-res-ppo``).
         seed: The run's seed.
         env_id: Gymnasium id.
         observe: Observation mask.
         encoder: The reservoir encoding as a plain dict (``None`` for plain PPO).
-        model_path: The saved SB3 model.
+        model_path: The run's SB3 model (``model.zip``); never read (see the module docstring).
+        normalize_path: The run's normalization statistics (JSON), when it trained with
+            ``normalize`` (``None`` otherwise).
+        policy_path: The policy's weights as plain tensors (``policy.pt``).
+        ppo: The run's PPO settings as plain data (:class:`~ermrl.config.PPOConfig`'s dict).
     """
 
     run: Path
@@ -41,6 +52,9 @@ class TrainedAgent:
     observe: str
     encoder: dict[str, Any] | None
     model_path: Path
+    normalize_path: Path | None = None
+    policy_path: Path | None = None
+    ppo: dict[str, Any] | None = None
 
     @property
     def has_reservoir(self) -> bool:
@@ -82,9 +96,17 @@ class Rollout:
 
 
 def available_runs(run: str | Path, agent: str | None = None) -> list[tuple[str, int]]:
-    """``(agent, seed)`` of every run of a test-phase folder that saved a model, sorted."""
+    """``(agent, seed)`` of every run of a test-phase folder that saved its policy, sorted.
+
+    Only runs with ``policy.pt`` count: a run with only SB3's ``model.zip`` (saved by an older
+    ermrl) cannot be replayed, since ermrl never unpickles it.
+    """
+    return _runs_with(Path(run), "policy.pt", agent)
+
+
+def _runs_with(run: Path, filename: str, agent: str | None) -> list[tuple[str, int]]:
     found = []
-    for path in sorted(Path(run).glob(f"{RUNS_DIR}/*/seed_*/model.zip")):
+    for path in run.glob(f"{RUNS_DIR}/*/seed_*/{filename}"):
         name = path.parent.parent.name
         if agent is not None and name != agent:
             continue
@@ -110,7 +132,9 @@ def load_trained_agent(
 
     Raises:
         FileNotFoundError: no such folder, no ``config.yaml``, or no saved model for that agent
-            and seed (the message lists the available ones).
+            and seed (the message lists the available ones), or only an SB3 ``model.zip``
+            without ``policy.pt`` (made before ermrl saved plain weights: it is never
+            unpickled; re-train the run).
     """
     run = Path(run)
     if not run.is_dir():
@@ -119,6 +143,12 @@ def load_trained_agent(
     models = available_runs(run)
     if seed is None:
         seeds = [s for a, s in models if a == agent]
+        if not seeds and _runs_with(run, "model.zip", agent):
+            raise FileNotFoundError(
+                f"the {agent!r} runs in {run} have only model.zip, SB3's pickled format, which "
+                "ermrl never loads (a crafted one runs code); re-train them with "
+                "`ermrl test --overwrite`"
+            )
         if not seeds:
             raise FileNotFoundError(
                 f"no saved model of agent {agent!r} in {run}; available: {_describe(models)}"
@@ -126,30 +156,63 @@ def load_trained_agent(
         seed = seeds[0]
     folder = run_dir(run, agent, seed)
     model_path = folder / "model.zip"
-    if not model_path.is_file():
+    from ermrl.agents import policy_path, stats_path
+
+    weights = policy_path(model_path)
+    if not weights.is_file():
+        if model_path.is_file():
+            raise FileNotFoundError(
+                f"{weights} not found: {model_path} alone is SB3's pickled format, which ermrl "
+                "never loads (a crafted one runs code); re-train this run with "
+                "`ermrl test --overwrite`"
+            )
         raise FileNotFoundError(
-            f"{model_path} not found (was the test phase run with --no-save-models?); "
+            f"{weights} not found (was the test phase run with --no-save-models?); "
             f"available: {_describe(models)}"
         )
+
+    normalize_path: Path | None = stats_path(model_path)
+    if not normalize_path.is_file():  # type: ignore[union-attr]
+        if (config.get("ppo") or {}).get("normalize"):
+            raise FileNotFoundError(
+                f"{normalize_path} not found: the run trained with normalize (VecNormalize), "
+                "and its policy cannot be replayed without the statistics"
+            )
+        normalize_path = None
     reservoirs = None
+    task = config.get("task") or {}
+    # The mask this agent trained with: its own (ppo-full: "all"), else the folder's task's.
+    observe = (config.get("agent_observe") or {}).get(agent) or task.get("observe", "all")
+    settings_path = folder / "settings.json"
+    settings = json.loads(settings_path.read_text()) if settings_path.is_file() else {}
+    ppo = settings.get("ppo") or config.get("ppo")
+    if not isinstance(ppo, dict):
+        raise FileNotFoundError(
+            f"no PPO settings for {folder} (neither its settings.json nor {run}/config.yaml "
+            "has a 'ppo' entry): the policy cannot be rebuilt"
+        )
     result_path = folder / "result.json"
     if result_path.is_file():
-        reservoirs = json.loads(result_path.read_text()).get("reservoirs")
+        result = json.loads(result_path.read_text())
+        reservoirs = result.get("reservoirs")
+        observe = result.get("observe") or observe
     agents = config.get("agents") or {}
     if reservoirs is None and agent in agents:
         reservoirs = agents[agent]
     encoder = None
     if reservoirs is not None:
         encoder = {**dict(config.get("encoder") or {}), "reservoirs": reservoirs}
-    task = config.get("task") or {}
     return TrainedAgent(
         run=run,
         agent=agent,
         seed=int(seed),
         env_id=str(task["env_id"]),
-        observe=str(task.get("observe", "all")),
+        observe=str(observe),
         encoder=encoder,
         model_path=model_path,
+        normalize_path=normalize_path,
+        policy_path=weights,
+        ppo=dict(ppo),
     )
 
 
@@ -180,10 +243,18 @@ def rollout(
     Returns:
         The recorded episode.
     """
-    from stable_baselines3 import PPO
+    from ermrl.agents import (
+        derive_seeds,
+        frozen_normalize_env,
+        load_normalize_stats,
+        load_policy,
+        make_vec_env,
+    )
+    from ermrl.config import EncoderConfig, PPOConfig, TaskConfig, from_dict
 
-    from ermrl.agents import derive_seeds, make_vec_env
-    from ermrl.config import EncoderConfig, TaskConfig, from_dict
+    if trained.policy_path is None or trained.ppo is None:
+        raise ValueError("rollout needs the plain policy file and PPO settings")
+    ppo = from_dict(PPOConfig, trained.ppo)
 
     seeds = derive_seeds(trained.seed)
     task = TaskConfig(env_id=trained.env_id, observe=trained.observe)  # type: ignore[arg-type]
@@ -196,13 +267,19 @@ def rollout(
         seeds.reservoir,
         render_mode="rgb_array" if render else None,
     )
+    # The policy sees what it saw in training: with normalize, through VecNormalize frozen at
+    # the statistics training ended with (the rollout still records raw observations/rewards).
+    policy_env = venv
+    normalized = trained.normalize_path is not None
     try:
-        model = PPO.load(str(trained.model_path), device="cpu")
+        if trained.normalize_path is not None:
+            policy_env = frozen_normalize_env(venv, load_normalize_stats(trained.normalize_path))
+        model = load_policy(trained.policy_path, ppo, policy_env)
         base = venv.venv if encoder is not None else venv
         unwrapped = base.envs[0].unwrapped
         dt = _env_dt(unwrapped)
         fps = float(base.envs[0].metadata.get("render_fps") or (1 / dt if dt else 30.0))
-        obs = venv.reset()
+        obs = policy_env.reset()
         if render and fast_render:
             _plain_scene(unwrapped)
         observations, actions, rewards, states, frames = [], [], [], [], []
@@ -213,11 +290,14 @@ def rollout(
                 observations.append(venv.get_inputs()[0, : venv.obs_dim].copy())
                 states.append(venv.get_states()[0].copy())
             else:
-                observations.append(np.asarray(obs[0], dtype=np.float64).copy())
+                raw = policy_env.get_original_obs() if normalized else obs
+                observations.append(np.asarray(raw[0], dtype=np.float64).copy())
             if render:
                 frames.append(np.asarray(base.envs[0].render()).copy())
             action, _ = model.predict(obs, deterministic=deterministic)
-            obs, reward, done, _ = venv.step(action)
+            obs, reward, done, _ = policy_env.step(action)
+            if normalized:
+                reward = policy_env.get_original_reward()  # VecNormalize casts to float32
             actions.append(np.atleast_1d(np.asarray(action[0], dtype=np.float64)))
             rewards.append(float(reward[0]))
             step += 1
@@ -225,7 +305,7 @@ def rollout(
                 ended = True
                 break
     finally:
-        venv.close()
+        policy_env.close()
     n = len(rewards)
     n_units = encoder.total_units if encoder is not None else 0
     return Rollout(
@@ -265,5 +345,5 @@ def _env_dt(env: Any) -> float | None:
 
 def _describe(models: list[tuple[str, int]]) -> str:
     if not models:
-        return "none (no model.zip under agents/*/seed_*/)"
+        return "none (no policy.pt under agents/*/seed_*/)"
     return ", ".join(f"{a} seed {s}" for a, s in models)

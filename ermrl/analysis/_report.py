@@ -29,10 +29,11 @@ from typing import Any, TextIO
 import pandas as pd
 
 from ermrl.analysis._style import save_figure, task_title
+from ermrl.config import AGENTS
 
 __all__ = ["ReportResult", "notebook_parameters", "write_report"]
 
-AGENT_ORDER = ("ppo", "res-ppo", "random-res-ppo")
+AGENT_ORDER = AGENTS  # ppo, ppo-full, res-ppo, random-res-ppo
 ENV_STUDY = "ERMRL_STUDY_NAME"
 ENV_STORAGE = "ERMRL_STORAGE"
 ENV_RUNS = "ERMRL_RUNS"
@@ -265,8 +266,8 @@ def write_report(
     out = Path(out) if out is not None else Path("reports") / study_name
     runs_path = Path(runs) if runs is not None else Path("runs") / study_name
     runs_given = runs is not None
+    study = open_study(study_name, storage)  # first: no empty report folder for a bad study
     out.mkdir(parents=True, exist_ok=True)
-    study = open_study(study_name, storage)
     state = _State(out=out, study=study, storage=storage)
     has_runs = (runs_path / "agents").is_dir()
     if not has_runs:
@@ -690,8 +691,9 @@ def _dynamics_section(state: _State, runs: Path) -> None:
     seeds = sorted(s for a, s in models if a == "res-ppo")
     if not seeds:
         state.notes.append(
-            f"reservoir dynamics: no saved res-ppo model in {runs} (test phase run with "
-            "--no-save-models, or without res-ppo)"
+            f"reservoir dynamics: no saved res-ppo policy.pt in {runs} (test phase run with "
+            "--no-save-models, without res-ppo, or by an older ermrl that saved only model.zip, "
+            "which is never unpickled: re-train)"
         )
         return
     seed = seeds[0]

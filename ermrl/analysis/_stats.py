@@ -160,7 +160,7 @@ def final_returns_table(
 def compare_agents(
     results: pd.DataFrame,
     candidate: str = "res-ppo",
-    baselines: Sequence[str] = ("ppo", "random-res-ppo"),
+    baselines: Sequence[str] = ("ppo", "ppo-full", "random-res-ppo"),
     *,
     metric: str = "final_return",
     confidence: float = 0.95,

@@ -32,18 +32,26 @@ __all__ = [
     "task_title",
 ]
 
+# One entry per agent of ermrl.config.AGENTS (a test checks that none is missing).
 AGENT_LABELS = {
     "ppo": "PPO (raw observation)",
+    "ppo-full": "PPO (full observation)",
     "res-ppo": "RES-PPO (evolved reservoir)",
     "random-res-ppo": "RES-PPO (unevolved reservoir)",
 }
 AGENT_SHORT_LABELS = {
     "ppo": "PPO",
+    "ppo-full": "PPO\n(full obs.)",
     "res-ppo": "RES-PPO\n(evolved)",
     "random-res-ppo": "RES-PPO\n(unevolved)",
 }
-AGENT_COLORS = {"ppo": "tab:blue", "res-ppo": "tab:orange", "random-res-ppo": "tab:green"}
-_EXTRA_COLORS = ("tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:gray", "tab:olive")
+AGENT_COLORS = {
+    "ppo": "tab:blue",
+    "ppo-full": "tab:gray",
+    "res-ppo": "tab:orange",
+    "random-res-ppo": "tab:green",
+}
+_EXTRA_COLORS = ("tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:olive", "tab:cyan")
 
 # Sizes are in points at the saved size (figures are saved at their nominal size in inches).
 PAPER_RC: dict[str, Any] = {
@@ -128,7 +136,7 @@ def save_figure(fig: Figure, path: str | Path) -> Path:
 
 
 def agent_color(agent: str, index: int = 0) -> str:
-    """The agent's color (fixed for ``ppo``, ``res-ppo``, ``random-res-ppo``)."""
+    """The agent's color (fixed for the test-phase agents, :data:`AGENT_COLORS`)."""
     return AGENT_COLORS.get(agent, _EXTRA_COLORS[index % len(_EXTRA_COLORS)])
 
 

@@ -12,6 +12,7 @@ __all__ = [
     "ArgumentParser",
     "fail",
     "add_storage_args",
+    "storage_arg",
     "add_run_folder_args",
     "run_folder_kwargs",
     "positive_int",
@@ -51,7 +52,7 @@ class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescript
 def positive_int(text: str) -> int:
     try:
         value = int(float(text)) if "e" in text.lower() else int(text)
-    except ValueError as err:
+    except (ValueError, OverflowError) as err:  # OverflowError: "1e400" is infinite
         raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from err
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be positive, got {text}")
@@ -78,9 +79,24 @@ def positive_float(text: str) -> float:
     return value
 
 
+def storage_arg(text: str) -> str:
+    """An ``argparse`` type for ``--storage``: a supported URL, not an in-memory database.
+
+    Checked while parsing, so that a bad URL stops a command before it builds anything.
+    """
+    from ermrl.storage import StorageError, storage_kind
+
+    try:
+        storage_kind(text)
+    except StorageError as err:
+        raise argparse.ArgumentTypeError(str(err)) from err
+    return text
+
+
 def add_storage_args(parser: argparse.ArgumentParser, *, study_required: bool) -> None:
     parser.add_argument(
         "--storage",
+        type=storage_arg,
         default=DEFAULT_STORAGE,
         help="Optuna storage URL: sqlite:///file.db (embedded default), postgresql://user@host/db, "
         "mysql+pymysql://..., journal:///file.log (or file.log), redis://host:port",

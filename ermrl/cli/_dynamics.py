@@ -38,7 +38,7 @@ def build_dynamics_parser(prog: str = "ermrl dynamics") -> ArgumentParser:
     parser = ArgumentParser(prog=prog, description=DESCRIPTION, formatter_class=HelpFormatter)
     add_run_folder_args(
         parser,
-        agent_help="agent whose model is replayed (res-ppo, random-res-ppo, ppo)",
+        agent_help="agent whose model is replayed (res-ppo, random-res-ppo, ppo, ppo-full)",
         out_help="output folder (default: <run>/dynamics)",
     )
     parser.add_argument(

@@ -22,9 +22,11 @@ from ermrl.cli._common import (
     quiet_libraries,
 )
 from ermrl.config import (
+    BIAS_INITS,
     FITNESS_MODES,
     PRUNERS,
     RESET_MODES,
+    STARTS,
     BudgetConfig,
     ConfigError,
     EncoderConfig,
@@ -39,7 +41,15 @@ from ermrl.config import (
 if TYPE_CHECKING:
     import optuna
 
-__all__ = ["build_evolve_parser", "add_problem_args", "evolve_main", "run_and_report"]
+    from ermrl.search import Interrupted
+
+__all__ = [
+    "build_evolve_parser",
+    "add_problem_args",
+    "command_line",
+    "evolve_main",
+    "run_and_report",
+]
 
 DESCRIPTION = textwrap.dedent(
     """\
@@ -194,7 +204,18 @@ def add_problem_args(parser: argparse.ArgumentParser, *, multi_task: bool = Fals
         "--input-connectivity", type=positive_float, default=0.1, help="input connectivity"
     )
     r.add_argument(
-        "--bias-scaling", type=float, default=0.0, help="Bernoulli bias scale (0: no bias)"
+        "--bias-scaling",
+        type=float,
+        default=0.0,
+        help="dense Bernoulli bias: every unit +-scale (0: no bias, reservoirpy 0.4's default)",
+    )
+    r.add_argument(
+        "--bias-init",
+        choices=BIAS_INITS,
+        default="none",
+        help="'original': reservoirpy 0.3's default bias, which the ER-MRL code had: +-1 on "
+        "--input-connectivity of the units (10%%), zero elsewhere (needs --bias-scaling 0); "
+        "'none': the bias of --bias-scaling",
     )
     r.add_argument(
         "--skip-connection",
@@ -276,6 +297,44 @@ def add_search_args(parser: argparse.ArgumentParser) -> None:
         default="none",
         help="stop unpromising trials early from intermediate training returns",
     )
+    s.add_argument(
+        "--cma-start",
+        choices=STARTS,
+        default="center",
+        help="first CMA-ES mean: 'center' = the centre of the log-scaled box, as in the ER-MRL "
+        "paper's code (with the reference trial competing, it did at least as well in "
+        "benchmarks/bench_science.py); 'reference' = the unevolved reservoir (reservoirpy "
+        "defaults sr = lr = input_scaling = 1, clipped into the box), better for a handful of "
+        "trials",
+    )
+    s.add_argument(
+        "--reference-trial",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="queue the unevolved reference reservoir as the study's first trial, so that the "
+        "study's best can never be worse than it without showing it",
+    )
+    s.add_argument(
+        "--reevaluate-top",
+        type=nonneg_int,
+        default=0,
+        metavar="K",
+        help="when the budget is spent, re-train the K best trials and the reference trial on "
+        "fresh seeds (study '<name>.reeval'); the test phase then uses that ranking (0: off)",
+    )
+    s.add_argument(
+        "--reevaluate-seeds",
+        type=positive_int,
+        default=3,
+        help="fresh seeds per re-evaluated candidate (seed + 1000 and up)",
+    )
+    s.add_argument(
+        "--reevaluate-steps",
+        type=positive_int,
+        default=None,
+        help="training steps of a re-evaluation run (default: --training-steps; the test "
+        "budget removes the evolution/test budget mismatch)",
+    )
     add_storage_args(parser, study_required=False)
     w = parser.add_argument_group("workers sharing a study (crash and preemption recovery)")
     w.add_argument(
@@ -328,6 +387,7 @@ def space_from_args(args: argparse.Namespace) -> ReservoirSpace:
         rc_connectivity=args.rc_connectivity,
         input_connectivity=args.input_connectivity,
         bias_scaling=args.bias_scaling,
+        bias_init=args.bias_init,
     )
 
 
@@ -362,6 +422,11 @@ def search_from_args(args: argparse.Namespace) -> SearchConfig:
         popsize=args.popsize,
         pruner=args.pruner,
         n_trials=args.n_trials,
+        start=args.cma_start,
+        reference_trial=args.reference_trial,
+        reevaluate_top=args.reevaluate_top,
+        reevaluate_seeds=args.reevaluate_seeds,
+        reevaluate_steps=args.reevaluate_steps,
     )
 
 
@@ -375,7 +440,7 @@ def validate_task(env_id: str, observe: str) -> None:
 
 def config_from_args(args: argparse.Namespace) -> EvolveConfig:
     """Build and validate the run's configuration (raises ConfigError / env errors)."""
-    from ermrl.agents import parse_overrides, resolve_ppo_config
+    from ermrl.agents import check_ppo_config, parse_overrides, resolve_ppo_config
 
     validate_task(args.env_id, args.observe)
     space = space_from_args(args)
@@ -393,8 +458,42 @@ def config_from_args(args: argparse.Namespace) -> EvolveConfig:
         budget=budget_from_args(args),
         seeds=tuple(range(args.seed, args.seed + args.n_seeds)),
     )
-    return EvolveConfig(
+    config = EvolveConfig(
         problem=problem, space=space, search=search_from_args(args), n_procs=args.n_procs
+    )
+    # Whatever PPO or the encoder would refuse in the first trial is refused now, before the
+    # study (and a FAIL trial) exists.
+    check_ppo_config(problem.task, problem.encoder, ppo)
+    return config
+
+
+def command_line(prog: str, argv: Sequence[str] | None) -> str:
+    """The command as it can be pasted back into a shell (stored in the study).
+
+    Each word of ``prog`` stays a word (``ermrl evolve --env-id ...``, not
+    ``'ermrl evolve' --env-id ...``); a root script keeps its file name only.
+
+    Args:
+        prog: the program name, e.g. ``"ermrl evolve"`` or ``"evolve_res.py"``.
+        argv: the arguments (``None``: ``sys.argv[1:]``).
+    """
+    words = prog.split()
+    return shlex.join(
+        [
+            *(words[-1:] if prog.endswith(".py") else words),
+            *(argv if argv is not None else sys.argv[1:]),
+        ]
+    )
+
+
+def interrupted_message(err: Interrupted) -> str:
+    """What a signal did to this worker's trial, in words (after ``prog: ``)."""
+    signame = err.args[0]
+    if err.trial_number is None:
+        return f"stopped by {signame} between trials; no trial of this worker was running"
+    requeued = " and queued again" if err.requeued else " (its retries are spent; not queued again)"
+    return (
+        f"stopped by {signame}; the running trial #{err.trial_number} was closed as FAIL{requeued}"
     )
 
 
@@ -406,6 +505,9 @@ def run_and_report(
     quiet: bool,
     fitness_name: str,
     next_command: str,
+    storage_url: str | None = None,
+    study_kwargs: dict[str, Any] | None = None,
+    evaluator_factory: Any = None,
     **run_kwargs: Any,
 ) -> int:
     """Run this worker's trials of ``study`` and print how it ended; return the exit code.
@@ -420,6 +522,10 @@ def run_and_report(
         quiet: no progress lines and no summary (the stderr lines are still printed).
         fitness_name: what the summary calls the best value, e.g. ``"normalized fitness"``.
         next_command: the test command the summary suggests next.
+        storage_url: the study's storage, where its re-evaluation study lives (``None``: no
+            re-evaluation).
+        study_kwargs: heartbeat and retry options of the re-evaluation study.
+        evaluator_factory: builds the fitness of the re-evaluation config (multi-task runs).
         **run_kwargs: passed on to :func:`ermrl.search.run_evolution` (``evaluate``,
             ``wait_for_running``).
 
@@ -427,19 +533,31 @@ def run_and_report(
         0 when the worker finished, ``EXIT_TERMINATED`` (143) when stopped by a signal,
         ``EXIT_INTERRUPTED`` (130) on Ctrl-C.
     """
-    from ermrl.search import Interrupted, format_params, run_evolution
+    from ermrl.search import Interrupted, format_params, reevaluate_study, run_evolution
 
     try:
         summary = run_evolution(config, study, quiet=quiet, **run_kwargs)
+        if storage_url is not None and config.search.reevaluate_top > 0:
+            reevaluate_study(
+                config,
+                study,
+                storage_url,
+                evaluator_factory=evaluator_factory,
+                quiet=quiet,
+                wait_for_running=run_kwargs.get("wait_for_running", True),
+                **(study_kwargs or {}),
+            )
     except Interrupted as err:
-        print(
-            f"{prog}: stopped by {err.args[0]}; the running trial was closed as FAIL "
-            "and queued again",
-            file=sys.stderr,
-        )
+        print(f"{prog}: {interrupted_message(err)}", file=sys.stderr)
         return EXIT_TERMINATED
-    except KeyboardInterrupt:
-        print(f"{prog}: interrupted; the running trial was closed as FAIL", file=sys.stderr)
+    except KeyboardInterrupt as err:
+        number = getattr(err, "trial_number", None)
+        closed = (
+            "between trials; no trial of this worker was running"
+            if number is None
+            else f"; the running trial #{number} was closed as FAIL"
+        )
+        print(f"{prog}: interrupted{' ' if number is None else ''}{closed}", file=sys.stderr)
         return EXIT_INTERRUPTED
     if not quiet:
         best = (
@@ -470,21 +588,15 @@ def evolve_main(argv: Sequence[str] | None = None, prog: str = "ermrl evolve") -
     except (ConfigError, UnknownEnvError, UnsupportedObserveError) as err:
         fail(prog, str(err))
     study_name = args.study_name or config.default_study_name
-    command = shlex.join(
-        [
-            prog.split()[-1] if prog.endswith(".py") else prog,
-            *(argv if argv is not None else sys.argv[1:]),
-        ]
-    )
+    command = command_line(prog, argv)
+    study_kwargs = {
+        "heartbeat_interval": args.heartbeat_interval or None,
+        "grace_period": args.grace_period,
+        "max_retry": args.max_retry,
+    }
     try:
         study = create_or_resume_study(
-            config,
-            args.storage,
-            study_name,
-            command=command,
-            heartbeat_interval=args.heartbeat_interval or None,
-            grace_period=args.grace_period,
-            max_retry=args.max_retry,
+            config, args.storage, study_name, command=command, **study_kwargs
         )
     except (ConfigError, StorageError, LockTimeout) as err:
         fail(prog, str(err))
@@ -503,5 +615,7 @@ def evolve_main(argv: Sequence[str] | None = None, prog: str = "ermrl evolve") -
         fitness_name="fitness",
         next_command=f"test.py --study-name {shlex.quote(study_name)} "
         f"--storage {shlex.quote(args.storage)}",
+        storage_url=args.storage,
+        study_kwargs=study_kwargs,
         wait_for_running=args.wait_for_running,
     )

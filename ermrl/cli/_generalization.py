@@ -27,13 +27,14 @@ from ermrl.cli._evolve import (
     add_problem_args,
     add_search_args,
     budget_from_args,
+    command_line,
     encoder_from_args,
     run_and_report,
     search_from_args,
     space_from_args,
 )
-from ermrl.cli._test import add_test_args, select_seeds
-from ermrl.config import ConfigError, EvolveConfig, PPOConfig
+from ermrl.cli._test import add_test_args, run_or_exit, select_seeds
+from ermrl.config import ConfigError, EvolveConfig, PPOConfig, default_agents
 
 __all__ = [
     "build_evolve_generalization_parser",
@@ -69,8 +70,9 @@ EVOLVE_DESCRIPTION = textwrap.dedent(
 
 TEST_DESCRIPTION = textwrap.dedent(
     """\
-    Generalization test: train PPO, PPO on the reservoirs evolved on a set of tasks (res-ppo)
-    and PPO on unevolved reservoirs (random-res-ppo) on another task, and write curves.csv,
+    Generalization test: train PPO (ppo), PPO on the full, unmasked observation (ppo-full, when
+    --observe hides something), PPO on the reservoirs evolved on a set of tasks (res-ppo) and
+    PPO on unevolved reservoirs (random-res-ppo) on another task, and write curves.csv,
     summary.csv, learning_curves.png, the models, config.yaml and command.txt to --out.
 
     The encoding options come from the study; the PPO settings of the test env come from the
@@ -139,7 +141,7 @@ def build_evolve_generalization_parser(
 
 def generalization_config_from_args(args: argparse.Namespace) -> EvolveConfig:
     """Build and validate a multi-task configuration (raises ConfigError / env errors)."""
-    from ermrl.agents import parse_overrides
+    from ermrl.agents import check_ppo_config, parse_overrides
     from ermrl.envs import get_suite
     from ermrl.search import generalization_config, generalization_tasks
 
@@ -164,7 +166,7 @@ def generalization_config_from_args(args: argparse.Namespace) -> EvolveConfig:
         target_column=args.target_column,
     )
     space = space_from_args(args)
-    return generalization_config(
+    config = generalization_config(
         tasks,
         encoder=encoder_from_args(args, space),
         budget=budget_from_args(args),
@@ -179,15 +181,14 @@ def generalization_config_from_args(args: argparse.Namespace) -> EvolveConfig:
         n_envs=args.n_envs,
         hyperparams=args.hyperparams,
     )
+    # What PPO or the encoder would refuse in the first trial is refused before the study exists.
+    for task in tasks:
+        check_ppo_config(task.task, config.problem.encoder, task.ppo, where=task.task.env_id)
+    return config
 
 
 def _command(prog: str, argv: Sequence[str] | None) -> str:
-    return shlex.join(
-        [
-            prog.split()[-1] if prog.endswith(".py") else prog,
-            *(argv if argv is not None else sys.argv[1:]),
-        ]
-    )
+    return command_line(prog, argv)
 
 
 _LEFT_OUT = {
@@ -271,6 +272,9 @@ def evolve_generalization_main(
         next_command=f"test_generalization.py --study-name {shlex.quote(study_name)} "
         f"--storage {shlex.quote(args.storage)} --env-id {_suggested_test_env(config)}",
         evaluate=generalization_evaluator(config, quiet=args.quiet),
+        storage_url=args.storage,
+        study_kwargs=study_kwargs,
+        evaluator_factory=lambda c: generalization_evaluator(c, quiet=args.quiet),
         **run_kwargs,
     )
 
@@ -351,7 +355,7 @@ def _shout(message: str) -> None:
 
 def _test_ppo(config: EvolveConfig, env_id: str, args: argparse.Namespace) -> PPOConfig:
     """PPO settings of the test env: the study's for an evolution task, else table + overrides."""
-    from ermrl.agents import parse_overrides, resolve_ppo_config
+    from ermrl.agents import parse_overrides, resolve_ppo_config, with_overrides
 
     cli = parse_overrides(args.ppo)
     gen = config.generalization
@@ -361,7 +365,7 @@ def _test_ppo(config: EvolveConfig, env_id: str, args: argparse.Namespace) -> PP
     elif config.problem.task.env_id == env_id:
         known = config.problem.ppo
     if known is not None and args.n_envs is None and args.hyperparams is None:
-        return dataclasses.replace(known, hyperparams={**known.hyperparams, **cli})
+        return with_overrides(known, cli)
     study_overrides = dict(gen.ppo_overrides) if gen is not None else {}
     n_envs = args.n_envs if args.n_envs is not None else (gen.n_envs if gen is not None else None)
     table = args.hyperparams or (gen.hyperparams if gen is not None else None)
@@ -393,6 +397,7 @@ def test_generalization_main(
     argv: Sequence[str] | None = None, prog: str = "ermrl test-generalization"
 ) -> int:
     """Entry point of ``ermrl test-generalization`` and ``test_generalization.py``."""
+    from ermrl.agents import check_ppo_config
     from ermrl.envs import (
         UnknownEnvError,
         UnsupportedObserveError,
@@ -400,12 +405,14 @@ def test_generalization_main(
         observation_indices,
     )
     from ermrl.experiments import (
-        AgentSpec,
         TestSettings,
         default_test_seeds,
+        describe_selection,
         run_comparison,
-        study_reservoirs,
+        selection_metadata,
+        study_agents,
     )
+    from ermrl.experiments._test_phase import check_out_folder
     from ermrl.search import study_config
     from ermrl.search._scores import load_scores, reference_returns
     from ermrl.storage import StorageError, StudyNotFound, load_study
@@ -433,21 +440,14 @@ def test_generalization_main(
                 stacklevel=1,
             )
         seeds = select_seeds(seeds, os.environ.get("SLURM_ARRAY_TASK_ID"))
-        agents = []
-        params: dict[str, float] = {}
-        trial_number = None
-        if "res-ppo" in args.agents:
-            params, reservoirs, trial_number = study_reservoirs(study, config, args.trial)
-        for name in args.agents:
-            if name == "ppo":
-                agents.append(AgentSpec("ppo", None))
-            elif name == "res-ppo":
-                agents.append(AgentSpec("res-ppo", reservoirs))
-            else:
-                agents.append(AgentSpec("random-res-ppo", config.space.default_reservoirs()))
+        args.agents = args.agents or list(default_agents(observe))
+        agents, chosen = study_agents(study, config, args.agents, args.trial)
         ppo = _test_ppo(config, args.env_id, args)
         task = dataclasses.replace(problem.task, env_id=args.env_id, observe=observe)
+        # The test env's settings (the study's, a table's, --ppo): refused now, not by a run.
+        check_ppo_config(task, problem.encoder, ppo, where=args.env_id)
         out = Path(args.out) if args.out else Path("runs") / f"{args.study_name}__{args.env_id}"
+        check_out_folder(out)
         settings = TestSettings(
             training_steps=args.training_steps,
             seeds=seeds,
@@ -481,11 +481,7 @@ def test_generalization_main(
     if warning:
         _shout(warning)
     if not args.quiet:
-        best = (
-            f"trial {trial_number} ({', '.join(f'{k}={v:.3g}' for k, v in params.items())})"
-            if trial_number is not None
-            else "-"
-        )
+        best = describe_selection(chosen)
         print(
             f"generalization test of {args.study_name!r} (evolved on {', '.join(evolution_ids)}) "
             f"on {task.label}: agents {' '.join(args.agents)}, seeds {' '.join(map(str, seeds))}, "
@@ -495,8 +491,7 @@ def test_generalization_main(
     metadata = {
         "study_name": args.study_name,
         "storage": args.storage,
-        "trial": trial_number,
-        "params": params,
+        **selection_metadata(chosen),
         "evolution_env_ids": list(evolution_ids),
         "evolution_suite": gen.suite if gen is not None else None,
         "test_env_id": args.env_id,
@@ -505,20 +500,25 @@ def test_generalization_main(
         if reference is None
         else {"random": reference[0], "target": reference[1], "column": target_column},
     }
-    try:
-        summary = run_comparison(
-            task,
-            problem.encoder,
-            ppo,
-            agents,
-            settings,
-            metadata=metadata,
-            quiet=args.quiet,
-        )
-    except KeyboardInterrupt:
-        print(f"{prog}: interrupted; finished runs are kept in {out}", file=sys.stderr)
+    summary = run_or_exit(
+        prog,
+        out,
+        lambda: _normalize_summary(
+            run_comparison(
+                task,
+                problem.encoder,
+                ppo,
+                agents,
+                settings,
+                metadata=metadata,
+                quiet=args.quiet,
+            ),
+            out,
+            reference,
+        ),
+    )
+    if summary is None:
         return EXIT_INTERRUPTED
-    summary = _normalize_summary(summary, out, reference)
     if not args.quiet:
         print(
             summary.drop(columns=["seeds"]).to_string(

@@ -6,6 +6,7 @@ import argparse
 import sys
 import textwrap
 from collections.abc import Sequence
+from pathlib import Path
 
 from ermrl.cli._common import (
     EXIT_INTERRUPTED,
@@ -73,13 +74,26 @@ def build_report_parser(prog: str = "ermrl report") -> ArgumentParser:
 
 def report_main(argv: Sequence[str] | None = None, prog: str = "ermrl report") -> int:
     """Entry point of ``ermrl report``."""
+    import optuna
+
     from ermrl.analysis import write_report
-    from ermrl.storage import StorageError, StudyNotFound
+    from ermrl.storage import StorageError, StudyNotFound, load_study
 
     parser = build_report_parser(prog)
     quiet_libraries()
     args = parser.parse_args(argv)
+    if args.runs is not None and not Path(args.runs).is_dir():
+        fail(prog, f"--runs {args.runs}: no such folder (the --out of ermrl test)")
     try:
+        study = load_study(args.study_name, args.storage)
+        if not study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,)):
+            states = [t.state.name for t in study.get_trials(deepcopy=False)]
+            found = ", ".join(f"{states.count(s)} {s}" for s in sorted(set(states))) or "none"
+            fail(
+                prog,
+                f"study {args.study_name!r} has no completed trial yet (trials: {found}); "
+                "nothing to report: run ermrl evolve (or wait for its first trial)",
+            )
         result = write_report(
             args.study_name,
             args.storage,

@@ -1,4 +1,5 @@
-"""``ermrl study``: create, list, show, export, delete studies and fail stale trials.
+"""``ermrl study``: create, list, show, export, delete studies, fail stale trials, repair
+journals.
 
 Before a SLURM array starts many workers on one storage, create the study once with
 ``ermrl study create`` (same options as ``ermrl evolve``): the configuration is checked before
@@ -26,6 +27,7 @@ from ermrl.cli._common import (
     fail,
     nonneg_int,
     quiet_libraries,
+    storage_arg,
 )
 
 __all__ = ["build_study_parser", "study_main", "parse_duration"]
@@ -43,6 +45,7 @@ DESCRIPTION = textwrap.dedent(
       ermrl study export --storage sqlite:///ermrl.db --study-name pendulum --out trials.parquet
       ermrl study fail-stale --storage studies.log --study-name pendulum --older-than 2h
       ermrl study delete --storage sqlite:///ermrl.db --study-name pendulum --yes
+      ermrl study repair --storage studies.log
     """
 )
 
@@ -130,6 +133,18 @@ def build_study_parser(prog: str = "ermrl study") -> ArgumentParser:
     stale.add_argument(
         "--dry-run", action="store_true", help="only list the trials that would be failed"
     )
+
+    repair = sub.add_parser(
+        "repair",
+        help="set aside the partial last record of a journal file (full disk, dead node)",
+        description="A journal whose last write was cut short ends with a partial record. "
+        "Move it to FILE.torn-<UTC time> and cut the journal back to its last complete "
+        "record (workers also do this when they open the journal).",
+        formatter_class=HelpFormatter,
+    )
+    repair.add_argument(
+        "--storage", type=storage_arg, required=True, help="journal:///file.log or file.log"
+    )
     return parser
 
 
@@ -142,6 +157,20 @@ def _budget(study: Any) -> int | None:
     config = study.user_attrs.get("ermrl_config") or {}
     value = (config.get("search") or {}).get("n_trials")
     return int(value) if value is not None else None
+
+
+def _worker_budgets(trials: Sequence[Any]) -> dict[int, int]:
+    """How many trials were claimed under each worker's ``--n-trials`` (largest first)."""
+    counter = Counter(
+        int(t.user_attrs["worker_n_trials"]) for t in trials if "worker_n_trials" in t.user_attrs
+    )
+    return dict(sorted(counter.items(), reverse=True))
+
+
+def _budget_text(budget: int | None, worker_budgets: dict[int, int]) -> str:
+    """``"9"``, or ``"1,10"`` when workers and the stored configuration disagree."""
+    values = sorted({*worker_budgets, *([budget] if budget else [])})
+    return ",".join(map(str, values)) if values else "?"
 
 
 def _best(study: Any) -> Any:
@@ -165,11 +194,11 @@ def _fmt(value: float | None) -> str:
     return "-" if value is None or not math.isfinite(value) else f"{value:.6g}"
 
 
-def _open_study(args: argparse.Namespace, prog: str) -> Any:
+def _open_study(args: argparse.Namespace, prog: str, mode: str = "read") -> Any:
     from ermrl.storage import StorageError, StudyNotFound, load_study
 
     try:
-        return load_study(args.study_name, args.storage)
+        return load_study(args.study_name, args.storage, mode=mode)  # type: ignore[arg-type]
     except (StorageError, StudyNotFound) as err:
         fail(prog, str(err))
 
@@ -195,7 +224,7 @@ def _create(args: argparse.Namespace, prog: str) -> int:
         existed = True
         try:
             load_study(args.study_name, args.storage)
-        except LookupError:
+        except (LookupError, StorageError):  # no such study, or no such file yet
             existed = False
         study = create_or_resume_study(
             config,
@@ -222,7 +251,7 @@ def _list(args: argparse.Namespace, prog: str) -> int:
     from ermrl.storage import StorageError, open_storage
 
     try:
-        storage = open_storage(args.storage)
+        storage = open_storage(args.storage, mode="read")
     except StorageError as err:
         fail(prog, str(err))
     studies = storage.get_all_studies()
@@ -240,7 +269,8 @@ def _list(args: argparse.Namespace, prog: str) -> int:
             [
                 frozen.study_name,
                 str(study.user_attrs.get("ermrl_kind", "-")),
-                f"{counts['COMPLETE'] + counts['PRUNED']}/{budget if budget else '?'}",
+                f"{counts['COMPLETE'] + counts['PRUNED']}/"
+                + _budget_text(budget, _worker_budgets(trials)),
                 *(str(counts[s]) for s in _STATES),
                 _fmt(best.value if best else None),
             ]
@@ -269,6 +299,7 @@ def _summary(study: Any) -> dict[str, Any]:
         "observe": task.get("observe"),
         "training_steps": budget_steps,
         "budget": _budget(study),
+        "worker_budgets": _worker_budgets(trials),
         "counts": _counts(trials),
         "retried": sum(1 for t in trials if "retry_of" in t.user_attrs),
         "best": None
@@ -295,6 +326,7 @@ def _summary(study: Any) -> dict[str, Any]:
 def _show(args: argparse.Namespace, prog: str) -> int:
     study = _open_study(args, prog)
     info = _summary(study)
+    info["reevaluation"] = study.user_attrs.get("ermrl_reevaluation")
     if args.json:
         print(json.dumps(info, indent=2, default=str))
         return 0
@@ -306,11 +338,20 @@ def _show(args: argparse.Namespace, prog: str) -> int:
         else "no ermrl configuration yet"
     )
     print(f"study {info['study']!r} ({info['kind'] or '-'}): {task}")
+    budgets = info["worker_budgets"]
+    agreed = _budget_text(info["budget"], budgets)
     print(
-        f"trials: {done}/{info['budget'] or '?'} done | "
+        (f"trials: {done}/{agreed} done | " if "," not in agreed else f"trials: {done} done | ")
         + ", ".join(f"{counts[s]} {s.lower()}" for s in _STATES)
         + f" | {info['retried']} retries"
     )
+    if "," in agreed:  # workers were started with different --n-trials
+        used = ", ".join(f"{n} ({k} trial{'s' if k != 1 else ''})" for n, k in budgets.items())
+        stored = info["budget"] or "none"
+        print(
+            f"budgets differ: workers ran with --n-trials {used or '-'}; "
+            f"the study's configuration says {stored}"
+        )
     best = info["best"]
     if best is None:
         print("best: none yet")
@@ -319,6 +360,21 @@ def _show(args: argparse.Namespace, prog: str) -> int:
         print(
             f"best: trial {best['number']} fitness {_fmt(best['value'])} ({params}) by {best['worker']}"
         )
+    reevaluation = info["reevaluation"]
+    if isinstance(reevaluation, dict) and reevaluation.get("candidates"):
+        seeds = reevaluation["seeds"]
+        state = "" if reevaluation.get("complete") else " (incomplete)"
+        print(
+            f"re-evaluated{state} on {len(seeds)} fresh seeds x "
+            f"{reevaluation['training_steps']} steps (study {reevaluation['study']!r}):"
+        )
+        for row in reevaluation["candidates"]:
+            tag = " (reference)" if row.get("reference") else ""
+            params = " ".join(f"{k}={v:.4g}" for k, v in row["params"].items())
+            print(
+                f"  trial {row['trial']}{tag}: {_fmt(row['fitness'])} "
+                f"[evolution {_fmt(row['evolution_fitness'])}] ({params})"
+            )
     if info["workers"]:
         print(f"workers ({len(info['workers'])}):")
         for worker, n in info["workers"].items():
@@ -395,7 +451,7 @@ def _delete(args: argparse.Namespace, prog: str) -> int:
 
     from ermrl.storage import storage_lock
 
-    study = _open_study(args, prog)
+    study = _open_study(args, prog, mode="write")
     n = len(study.get_trials(deepcopy=False))
     if not args.yes:
         fail(prog, f"study {args.study_name!r} has {n} trials; pass --yes to delete it")
@@ -408,7 +464,7 @@ def _delete(args: argparse.Namespace, prog: str) -> int:
 def _fail_stale(args: argparse.Namespace, prog: str) -> int:
     from ermrl.storage import RetryStaleTrial, fail_stale, storage_lock
 
-    study = _open_study(args, prog)
+    study = _open_study(args, prog, mode="write")
     retry = RetryStaleTrial(args.max_retry) if args.max_retry > 0 else None
     with storage_lock(args.storage, args.study_name):
         done = fail_stale(study, args.older_than, retry=retry, dry_run=args.dry_run)
@@ -423,6 +479,30 @@ def _fail_stale(args: argparse.Namespace, prog: str) -> int:
     return 0
 
 
+def _repair(args: argparse.Namespace, prog: str) -> int:
+    from ermrl.storage import StorageError, repair_journal, storage_kind
+    from ermrl.storage._locks import journal_path
+
+    try:
+        kind = storage_kind(args.storage)
+    except StorageError as err:
+        fail(prog, str(err))
+    if kind != "journal":
+        fail(prog, f"only journal files can be repaired, not {kind} storages ({args.storage})")
+    path = journal_path(args.storage)
+    if not path.is_file():
+        fail(prog, f"no journal file {path}")
+    try:
+        aside = repair_journal(path)
+    except OSError as err:
+        fail(prog, f"cannot set aside the partial record of {path}: {err.strerror or err}")
+    if aside is None:
+        print(f"{path}: intact, nothing to repair")
+    else:
+        print(f"{path}: moved a partial last record ({aside.stat().st_size} bytes) to {aside}")
+    return 0
+
+
 _ACTIONS = {
     "create": _create,
     "list": _list,
@@ -430,6 +510,7 @@ _ACTIONS = {
     "export": _export,
     "delete": _delete,
     "fail-stale": _fail_stale,
+    "repair": _repair,
 }
 
 

@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import os
 import sys
 import textwrap
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TypeVar
 
 from ermrl.cli._common import (
     EXIT_INTERRUPTED,
@@ -21,19 +21,25 @@ from ermrl.cli._common import (
     positive_int,
     quiet_libraries,
 )
-from ermrl.config import ConfigError
+from ermrl.config import AGENT_KINDS, AGENTS, ConfigError, default_agents
 
-__all__ = ["add_test_args", "build_test_parser", "test_main", "select_seeds"]
+T = TypeVar("T")
+
+__all__ = ["add_test_args", "build_test_parser", "run_or_exit", "test_main", "select_seeds"]
 
 DESCRIPTION = textwrap.dedent(
     """\
-    Test phase: train PPO, PPO on the best evolved reservoir (res-ppo) and PPO on an unevolved
-    reservoir (random-res-ppo) on every seed, and write curves.csv, summary.csv,
-    learning_curves.png, the models, config.yaml and command.txt to --out.
+    Test phase: train PPO (ppo), PPO on the full, unmasked observation (ppo-full), PPO on the
+    best evolved reservoir (res-ppo) and PPO on an unevolved reservoir (random-res-ppo) on every
+    seed, and write curves.csv, summary.csv, learning_curves.png, the models, config.yaml and
+    command.txt to --out.
 
     The env, observation mask, encoding and PPO settings come from the study. When
     SLURM_ARRAY_TASK_ID is set, it selects one seed of the list (task i -> i-th seed). Finished
-    runs are kept: re-running resumes, and array tasks sharing --out merge their results.
+    runs are kept: re-running with the same settings resumes, and array tasks sharing --out
+    merge their results. Each run records its settings (settings.json); a rerun into the same
+    --out with other settings (--ppo, --trial, --training-steps, --eval, ...) is refused: use
+    another --out, or --overwrite to retrain.
 
     example:
       test.py --study-name S --storage sqlite:///ermrl.db --training-steps 1000000 --seeds 10 11 12
@@ -72,9 +78,11 @@ def add_test_args(
     parser.add_argument(
         "--agents",
         nargs="+",
-        choices=("ppo", "res-ppo", "random-res-ppo"),
-        default=["ppo", "res-ppo", "random-res-ppo"],
-        help="agents to train",
+        choices=AGENTS,
+        default=None,
+        help="agents to train (default: all; ppo-full only when the mask hides something, "
+        "since on the full observation it would repeat ppo): "
+        + "; ".join(f"{name}: {kind.description}" for name, kind in AGENT_KINDS.items()),
     )
     parser.add_argument("--out", default=None, help=out_help)
     parser.add_argument("--trial", type=nonneg_int, default=None, help=trial_help)
@@ -101,7 +109,10 @@ def add_test_args(
         help="save each trained model as model.zip",
     )
     parser.add_argument(
-        "--overwrite", action="store_true", help="retrain runs that already have results"
+        "--overwrite",
+        action="store_true",
+        help="retrain the asked-for runs that already have results (a rerun into an --out "
+        "whose runs were made with other settings is refused without it)",
     )
 
 
@@ -145,16 +156,52 @@ def select_seeds(seeds: Sequence[int], task_id: str | None) -> tuple[int, ...]:
     return (seeds[index],)
 
 
+def run_or_exit(prog: str, out: Path, run: Callable[[], T]) -> T | None:
+    """Run a test phase; its expected failures become one line on stderr.
+
+    Shared by ``ermrl test`` and ``ermrl test-generalization``.
+
+    Args:
+        prog: program name that starts the error line.
+        out: the output folder (named in the messages).
+        run: the test phase.
+
+    Returns:
+        What ``run`` returned, or ``None`` after Ctrl-C (finished runs are kept; the caller
+        exits with ``EXIT_INTERRUPTED``).
+
+    Raises:
+        SystemExit: exit code 2 when ``--out`` holds runs made with other settings, or when a
+            full disk, a quota or a read-only folder stops a write.
+    """
+    from ermrl.experiments._test_phase import WRITE_ERRNOS, write_error_message
+
+    try:
+        return run()
+    except ConfigError as err:  # --out holds runs made with other settings
+        fail(prog, str(err))
+    except OSError as err:  # a full disk, a quota, a read-only folder
+        if err.errno not in WRITE_ERRNOS:
+            raise
+        fail(prog, write_error_message(err, out))
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted; finished runs are kept in {out}", file=sys.stderr)
+        return None
+
+
 def test_main(argv: Sequence[str] | None = None, prog: str = "ermrl test") -> int:
     """Entry point of ``ermrl test`` and ``test.py``."""
-    from ermrl.agents import parse_overrides
+    from ermrl.agents import check_ppo_config, parse_overrides, with_overrides
+    from ermrl.envs import UnknownEnvError, UnsupportedObserveError
     from ermrl.experiments import (
-        AgentSpec,
         TestSettings,
         default_test_seeds,
+        describe_selection,
         run_comparison,
-        study_reservoirs,
+        selection_metadata,
+        study_agents,
     )
+    from ermrl.experiments._test_phase import check_out_folder
     from ermrl.search import study_config
     from ermrl.storage import StorageError, StudyNotFound, load_study
 
@@ -188,21 +235,14 @@ def test_main(argv: Sequence[str] | None = None, prog: str = "ermrl test") -> in
                 stacklevel=1,
             )
         seeds = select_seeds(seeds, os.environ.get("SLURM_ARRAY_TASK_ID"))
-        agents = []
-        params: dict[str, float] = {}
-        trial_number = None
-        if "res-ppo" in args.agents:
-            params, reservoirs, trial_number = study_reservoirs(study, config, args.trial)
-        for name in args.agents:
-            if name == "ppo":
-                agents.append(AgentSpec("ppo", None))
-            elif name == "res-ppo":
-                agents.append(AgentSpec("res-ppo", reservoirs))
-            else:
-                agents.append(AgentSpec("random-res-ppo", config.space.default_reservoirs()))
+        args.agents = args.agents or list(default_agents(problem.task.observe))
+        agents, chosen = study_agents(study, config, args.agents, args.trial)
         overrides = parse_overrides(args.ppo)
-        ppo = dataclasses.replace(problem.ppo, hyperparams={**problem.ppo.hyperparams, **overrides})
+        ppo = with_overrides(problem.ppo, overrides)
+        if overrides:  # refused now rather than by the first run
+            check_ppo_config(problem.task, problem.encoder, ppo, where="--ppo")
         out = Path(args.out) if args.out else Path("runs") / args.study_name
+        check_out_folder(out)
         settings = TestSettings(
             training_steps=args.training_steps,
             seeds=seeds,
@@ -215,14 +255,16 @@ def test_main(argv: Sequence[str] | None = None, prog: str = "ermrl test") -> in
             overwrite=args.overwrite,
             tensorboard=Path(args.tensorboard) if args.tensorboard else None,
         )
-    except (ConfigError, StorageError, StudyNotFound) as err:
+    except (
+        ConfigError,
+        StorageError,
+        StudyNotFound,
+        UnknownEnvError,
+        UnsupportedObserveError,
+    ) as err:
         fail(prog, str(err))
     if not args.quiet:
-        best = (
-            f"trial {trial_number} ({', '.join(f'{k}={v:.3g}' for k, v in params.items())})"
-            if trial_number is not None
-            else "-"
-        )
+        best = describe_selection(chosen)
         print(
             f"test phase of {args.study_name!r}: {problem.task.label}, agents {' '.join(args.agents)}, "
             f"seeds {' '.join(map(str, seeds))}, {args.training_steps} steps each; reservoir: {best}; out: {out}",
@@ -231,11 +273,12 @@ def test_main(argv: Sequence[str] | None = None, prog: str = "ermrl test") -> in
     metadata = {
         "study_name": args.study_name,
         "storage": args.storage,
-        "trial": trial_number,
-        "params": params,
+        **selection_metadata(chosen),
     }
-    try:
-        summary = run_comparison(
+    summary = run_or_exit(
+        prog,
+        out,
+        lambda: run_comparison(
             problem.task,
             problem.encoder,
             ppo,
@@ -243,9 +286,9 @@ def test_main(argv: Sequence[str] | None = None, prog: str = "ermrl test") -> in
             settings,
             metadata=metadata,
             quiet=args.quiet,
-        )
-    except KeyboardInterrupt:
-        print(f"{prog}: interrupted; finished runs are kept in {out}", file=sys.stderr)
+        ),
+    )
+    if summary is None:
         return EXIT_INTERRUPTED
     if not args.quiet:
         print(

@@ -37,7 +37,7 @@ def build_video_parser(prog: str = "ermrl video") -> ArgumentParser:
     parser = ArgumentParser(prog=prog, description=DESCRIPTION, formatter_class=HelpFormatter)
     add_run_folder_args(
         parser,
-        agent_help="agent to film (res-ppo, ppo, random-res-ppo)",
+        agent_help="agent to film (res-ppo, ppo, ppo-full, random-res-ppo)",
         out_help="MP4 path (default: <run>/videos/<agent>_seed<seed>.mp4)",
     )
     parser.add_argument(

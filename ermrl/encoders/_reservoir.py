@@ -56,13 +56,19 @@ def reservoir_node(params: ReservoirParams, input_dim: int, seed: int) -> Reserv
     """An initialized reservoirpy ``Reservoir`` with these hyperparameters and seed.
 
     Its initializers are reservoirpy's defaults: ``W`` normal then rescaled to spectral radius
-    ``sr``, ``Win`` Bernoulli(+-input_scaling), the bias Bernoulli(+-bias_scaling) or zero.
-    reservoirpy spawns independent generators for ``Win``, ``W`` and the bias from ``seed``, so
-    the same seed gives the same ``W`` and bias for any ``input_dim`` (this is what "the same
-    reservoir on another task" means in ermrl).
+    ``sr``, ``Win`` Bernoulli(+-input_scaling) on ``input_connectivity`` of its entries, and the
+    bias zero, or dense Bernoulli(+-bias_scaling) on every unit (reservoirpy 0.4 calls the bias
+    initializer with ``connectivity=1``), or with ``bias_init="original"`` reservoirpy 0.3's
+    default: Bernoulli(+-1) on ``input_connectivity`` of the units, zero elsewhere (0.3 drew the
+    bias with ``bias_scaling=1`` and the input connectivity; a connectivity given to the
+    initializer itself wins over the one 0.4 passes). reservoirpy spawns independent generators
+    for ``Win``, ``W`` and the bias from ``seed``, so the same seed gives the same ``W`` and bias
+    for any ``input_dim`` (this is what "the same reservoir on another task" means in ermrl).
     """
     bias: object = 0.0
-    if params.bias_scaling > 0:
+    if params.bias_init == "original":
+        bias = mat_gen.bernoulli(input_scaling=1.0, connectivity=params.input_connectivity)
+    elif params.bias_scaling > 0:
         bias = mat_gen.bernoulli(input_scaling=params.bias_scaling)
     node = Reservoir(
         units=params.units,

@@ -142,6 +142,11 @@ def _registered_spec(env_id: str) -> EnvSpec | None:
     name = env_id
     if ":" in env_id:
         module, name = env_id.split(":", 1)
+        if not all(part.isidentifier() for part in module.split(".")):
+            raise UnknownEnvError(
+                f"unknown env id {env_id!r}: {module!r} before ':' is not a module name "
+                "(use module.path:Env-v0, or the id alone)"
+            )
         try:
             importlib.import_module(module)
         except ImportError as exc:

@@ -115,10 +115,14 @@ def load_suites(path: str | os.PathLike[str] | None = None) -> dict[str, Suite]:
             user_text = Path(path).read_text()
         except OSError as err:
             raise ConfigError(f"cannot read suite file {path}: {err.strerror}") from err
+        except UnicodeDecodeError:
+            raise ConfigError(f"suite file {path} is not a text (UTF-8) file") from None
         try:
             user = yaml.safe_load(user_text)
         except yaml.YAMLError as err:
-            raise ConfigError(f"suite file {path} is not valid YAML: {err}") from err
+            # PyYAML's message spans several lines (the offending line and a caret).
+            message = " ".join(str(err).split())
+            raise ConfigError(f"suite file {path} is not valid YAML: {message}") from None
         suites.update(_parse(user, str(path)))
     return suites
 

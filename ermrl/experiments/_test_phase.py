@@ -3,17 +3,24 @@
 Agents:
 
 - ``ppo``: PPO on the raw (masked) observation;
+- ``ppo-full``: PPO on the full, unmasked observation (the ceiling memory should approach);
 - ``res-ppo``: PPO on the states of the best evolved reservoir(s);
 - ``random-res-ppo``: PPO on reservoirs with default, unevolved hyperparameters (what evolution adds).
 
 Every (agent, seed) run is saved in its own folder as soon as it finishes, so a test phase that
 is interrupted, or split across SLURM array tasks, resumes and merges: the aggregated
 ``curves.csv``, ``summary.csv`` and ``learning_curves.png`` are rebuilt from all finished runs.
+Each run also records the settings that produced it (``settings.json``, :func:`run_settings`),
+so that a rerun never mixes runs made with other settings into one folder: it skips finished
+runs only when their settings are these, and refuses otherwise (:func:`check_finished_runs`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import errno
+import json
+import os
 import shlex
 import sys
 import time
@@ -38,36 +45,129 @@ from ermrl.analysis import (
     write_atomic,
     write_run,
 )
+from ermrl.analysis._results import RUNS_DIR
 from ermrl.config import (
+    AGENT_KINDS,
+    AGENTS,
+    AgentKind,
     BudgetConfig,
     ConfigError,
     EncoderConfig,
     EvolveConfig,
+    ObserveMode,
     PPOConfig,
     ReservoirParams,
     TaskConfig,
+    default_agents,
     to_dict,
 )
 
 __all__ = [
     "AGENTS",
+    "AGENT_KINDS",
+    "AgentKind",
     "AgentSpec",
+    "agent_specs",
+    "default_agents",
     "TestSettings",
     "default_test_seeds",
+    "Selection",
+    "select_reservoirs",
     "study_reservoirs",
+    "study_agents",
+    "selection_metadata",
+    "describe_selection",
     "run_comparison",
+    "run_settings",
+    "check_finished_runs",
+    "settings_diff",
     "aggregate",
 ]
-
-AGENTS: tuple[str, ...] = ("ppo", "res-ppo", "random-res-ppo")
 
 
 @dataclass(frozen=True)
 class AgentSpec:
-    """One agent of a comparison: a name and its reservoirs (``None`` for plain PPO)."""
+    """One agent of a comparison.
+
+    Attributes:
+        name: Agent name (its folder under ``agents/``).
+        reservoirs: Its reservoirs (``None`` for plain PPO).
+        observe: Its own observation mask, overriding the comparison task's (``None``: the
+            task's); ``ppo-full`` sees ``"all"``.
+    """
 
     name: str
     reservoirs: tuple[ReservoirParams, ...] | None
+    observe: ObserveMode | None = None
+
+    def task(self, task: TaskConfig) -> TaskConfig:
+        """The task this agent trains on: ``task`` with the agent's own mask, if it has one."""
+        return task if self.observe is None else dataclasses.replace(task, observe=self.observe)
+
+
+def agent_specs(
+    names: Sequence[str],
+    evolved: tuple[ReservoirParams, ...] | None,
+    unevolved: tuple[ReservoirParams, ...],
+) -> list[AgentSpec]:
+    """Build the agents named in ``names`` from :data:`AGENT_KINDS`.
+
+    Args:
+        names: Agent names, in order.
+        evolved: The selected trial's reservoirs (needed when ``res-ppo`` is asked for).
+        unevolved: Unevolved reservoirs (for ``random-res-ppo``).
+
+    Raises:
+        ConfigError: an unknown name, or ``res-ppo`` without evolved reservoirs.
+    """
+    specs = []
+    for name in names:
+        kind = AGENT_KINDS.get(name)
+        if kind is None:
+            raise ConfigError(f"unknown agent {name!r}; choose from {', '.join(AGENTS)}")
+        reservoirs = {"none": None, "evolved": evolved, "unevolved": unevolved}[kind.reservoirs]
+        if kind.reservoirs == "evolved" and reservoirs is None:
+            raise ConfigError(f"agent {name!r} needs the evolved reservoirs")
+        specs.append(AgentSpec(name, reservoirs, kind.observe))
+    return specs
+
+
+def study_agents(
+    study: optuna.Study,
+    config: EvolveConfig,
+    names: Sequence[str],
+    trial_number: int | None = None,
+) -> tuple[list[AgentSpec], Selection | None]:
+    """The agents named in ``names`` for a study, and the evolved trial when one is needed.
+
+    Returns:
+        The agents (see :func:`agent_specs`) and the :class:`Selection` behind ``res-ppo``
+        (``None`` when no agent uses the evolved reservoirs).
+    """
+    chosen = None
+    if any(AGENT_KINDS[n].reservoirs == "evolved" for n in names if n in AGENT_KINDS):
+        chosen = select_reservoirs(study, config, trial_number)
+    agents = agent_specs(
+        names,
+        evolved=None if chosen is None else chosen.reservoirs,
+        unevolved=config.space.default_reservoirs(),
+    )
+    return agents, chosen
+
+
+def selection_metadata(chosen: Selection | None) -> dict[str, Any]:
+    """What ``config.yaml`` records of the selected trial."""
+    if chosen is None:
+        return {"trial": None, "params": {}, "selection": None}
+    return {"trial": chosen.number, "params": chosen.params, "selection": chosen.how}
+
+
+def describe_selection(chosen: Selection | None) -> str:
+    """One phrase for a test phase's header line."""
+    if chosen is None:
+        return "-"
+    params = ", ".join(f"{k}={v:.3g}" for k, v in chosen.params.items())
+    return f"trial {chosen.number} ({params}; {chosen.how})"
 
 
 @dataclass(frozen=True)
@@ -117,28 +217,46 @@ def default_test_seeds(evolution_seeds: Sequence[int], n: int = 5) -> tuple[int,
     return tuple(range(start, start + n))
 
 
-def study_reservoirs(
-    study: optuna.Study, config: EvolveConfig, trial_number: int | None = None
-) -> tuple[dict[str, float], tuple[ReservoirParams, ...], int]:
-    """The reservoirs of the best COMPLETE trial (or of ``trial_number``).
+@dataclass(frozen=True)
+class Selection:
+    """The evolved trial a test phase uses, and how it was chosen.
 
-    Returns:
-        The trial's parameters, its reservoirs and its number.
+    Attributes:
+        params: The trial's parameters.
+        reservoirs: Its reservoirs.
+        number: Its number.
+        how: How it was selected (``--trial``, the re-evaluated ranking, or the best evolution
+            fitness); printed and saved in ``config.yaml`` as ``selection``.
+    """
+
+    params: dict[str, float]
+    reservoirs: tuple[ReservoirParams, ...]
+    number: int
+    how: str
+
+
+def select_reservoirs(
+    study: optuna.Study, config: EvolveConfig, trial_number: int | None = None
+) -> Selection:
+    """The reservoirs to test: ``trial_number``, else the re-evaluated best, else the best trial.
 
     Raises:
         ConfigError: the study has no complete trial, or no such trial.
     """
-    if trial_number is None:
-        try:
-            trial = study.best_trial
-        except ValueError as err:
-            raise ConfigError(f"study {study.study_name!r} has no COMPLETE trial yet") from err
-    else:
-        matches = [t for t in study.get_trials(deepcopy=False) if t.number == trial_number]
-        if not matches:
-            raise ConfigError(f"study {study.study_name!r} has no trial {trial_number}")
-        trial = matches[0]
-    return dict(trial.params), config.space.reservoirs_from(trial.params), trial.number
+    from ermrl.search import select_trial
+
+    trial, how = select_trial(study, trial_number)
+    return Selection(
+        dict(trial.params), config.space.reservoirs_from(trial.params), trial.number, how
+    )
+
+
+def study_reservoirs(
+    study: optuna.Study, config: EvolveConfig, trial_number: int | None = None
+) -> tuple[dict[str, float], tuple[ReservoirParams, ...], int]:
+    """The parameters, reservoirs and number of the trial :func:`select_reservoirs` picks."""
+    chosen = select_reservoirs(study, config, trial_number)
+    return chosen.params, chosen.reservoirs, chosen.number
 
 
 def _train_job(args: tuple[Any, ...]) -> RunResult:
@@ -160,6 +278,182 @@ def _say(stream: TextIO | None, quiet: bool, line: str) -> None:
         print(line, file=stream or sys.stdout, flush=True)
 
 
+RUN_SETTINGS_FILE = "settings.json"
+# Record keys that every agent of one comparison shares (the rest depend on the agent).
+_SHARED_KEYS = ("env_id", "ppo", "budget")
+
+
+def run_settings(
+    task: TaskConfig,
+    encoder: EncoderConfig | None,
+    ppo: PPOConfig,
+    budget: BudgetConfig,
+    agent: str,
+    seed: int,
+) -> dict[str, Any]:
+    """Everything that determines one test-phase run, as plain JSON data.
+
+    Saved as ``settings.json`` in the run's folder, so that a rerun into the same folder can
+    tell a finished run made with these settings (skip it) from one made with others (refuse).
+    Parallelism (``torch_threads``, ``--n-procs``), output options and the evaluation
+    episode count without ``--eval`` are left out: they do not change the run's results.
+
+    Args:
+        task: The agent's env and observation mask.
+        encoder: Its encoding, reservoirs included (``None`` for plain PPO).
+        ppo: PPO settings.
+        budget: Training steps and returns measured.
+        agent: Agent name.
+        seed: The run's seed.
+    """
+    ppo_doc = {k: v for k, v in to_dict(ppo).items() if k != "torch_threads"}
+    budget_doc = {k: v for k, v in to_dict(budget).items() if k != "n_reports"}
+    if budget.fitness != "eval":
+        budget_doc.pop("n_eval_episodes")
+    record = {
+        "agent": agent,
+        "seed": int(seed),
+        "env_id": task.env_id,
+        "observe": task.observe,
+        "encoder": None if encoder is None else to_dict(encoder),
+        "ppo": ppo_doc,
+        "budget": budget_doc,
+    }
+    return json.loads(json.dumps(record))  # JSON types, as read back from the file
+
+
+def _flat(value: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(value, dict) and value:
+        out: dict[str, Any] = {}
+        for key, item in value.items():
+            out.update(_flat(item, f"{prefix}.{key}" if prefix else str(key)))
+        return out
+    if isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
+        out = {}
+        for i, item in enumerate(value):
+            out.update(_flat(item, f"{prefix}.{i}"))
+        return out
+    return {prefix: value}
+
+
+_MISSING = object()
+
+
+def settings_diff(stored: Mapping[str, Any], expected: Mapping[str, Any]) -> list[str]:
+    """Dotted keys whose values differ between two :func:`run_settings` records, sorted."""
+    a, b = _flat(dict(stored)), _flat(dict(expected))
+    return sorted(k for k in set(a) | set(b) if a.get(k, _MISSING) != b.get(k, _MISSING))
+
+
+def check_finished_runs(
+    out: Path,
+    expected: Mapping[str, Any],
+    seeds: Sequence[int],
+    overwrite: bool,
+) -> None:
+    """Refuse to mix: every finished run under ``out`` must have been made with these settings.
+
+    Runs of the agents and seeds this call trains are compared in full; other finished runs
+    in the folder (other seeds, e.g. other SLURM array tasks, or agents not asked for now) on
+    what every agent shares (env, PPO settings, budget). With ``overwrite``, the runs this call
+    retrains are not checked.
+
+    Args:
+        out: The test-phase folder.
+        expected: Agent name -> its :func:`run_settings` for seed 0 (the seed is replaced).
+        seeds: The seeds this call trains.
+        overwrite: ``--overwrite``: the requested runs are retrained, whatever they hold.
+
+    Raises:
+        ConfigError: some finished runs were made with other settings, or have no record
+            (written before ermrl kept one), naming them and the differing keys.
+    """
+    if not expected:
+        return
+    differing: list[str] = []
+    unrecorded: list[str] = []
+    outside: list[str] = []
+    shared = {k: v for k, v in next(iter(expected.values())).items() if k in _SHARED_KEYS}
+    for path in sorted(Path(out).glob(f"{RUNS_DIR}/*/seed_*/result.json")):
+        name, folder = path.parent.parent.name, path.parent
+        try:
+            seed = int(folder.name.removeprefix("seed_"))
+        except ValueError:
+            continue
+        requested = name in expected and seed in seeds
+        if requested and overwrite:
+            continue
+        label = f"{name} seed {seed}"
+        record_path = folder / RUN_SETTINGS_FILE
+        if not record_path.is_file():
+            unrecorded.append(label)
+            outside += [] if requested else [label]
+            continue
+        stored = json.loads(record_path.read_text())
+        if name in expected:
+            keys = settings_diff(stored, {**expected[name], "seed": seed})
+        else:
+            keys = settings_diff({k: stored.get(k) for k in _SHARED_KEYS}, shared)
+        if keys:
+            shown = ", ".join(keys[:4]) + (", ..." if len(keys) > 4 else "")
+            differing.append(f"{label} differs in {shown}")
+            outside += [] if requested else [label]
+    if not (differing or unrecorded):
+        return
+    problems = differing[:3] + (["..."] if len(differing) > 3 else [])
+    if unrecorded:
+        problems.append(
+            f"{len(unrecorded)} run(s) ({', '.join(unrecorded[:3])}"
+            f"{', ...' if len(unrecorded) > 3 else ''}) have no {RUN_SETTINGS_FILE} (written by "
+            "an older ermrl), so whether they match is unknown"
+        )
+    advice = "use another --out, or --overwrite to retrain them"
+    if outside:
+        advice += (
+            f" (--overwrite retrains only the agents and seeds asked for, not "
+            f"{', '.join(outside[:3])}{', ...' if len(outside) > 3 else ''})"
+        )
+    raise ConfigError(
+        f"{out} holds finished runs made with other settings than these: "
+        + "; ".join(problems)
+        + f"; {advice}"
+    )
+
+
+# A results folder that cannot take more data: a full disk, a quota, a read-only mount, no
+# permission. The CLI reports them on one line with exit code 2.
+WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM})
+
+
+def check_out_folder(out: str | Path) -> None:
+    """Refuse an output folder that cannot be created or written, before anything runs.
+
+    Args:
+        out: The test phase's ``--out``; it may not exist yet.
+
+    Raises:
+        ConfigError: ``out`` (or the nearest part of it that exists) is not a folder, or is
+            not writable.
+    """
+    out = Path(out)
+    existing = out
+    while not existing.exists() and existing.parent != existing:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise ConfigError(f"--out {out}: {existing} is a file, not a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise ConfigError(f"--out {out}: cannot write in {existing} (read-only or no permission)")
+
+
+def write_error_message(err: OSError, out: str | Path) -> str:
+    """One line for an ``OSError`` of :data:`WRITE_ERRNOS` met while writing results."""
+    where = err.filename or out
+    return (
+        f"cannot write {where}: {err.strerror or err}; finished runs are kept in {out} and "
+        "no partial file is left under its final name: free space (or fix the folder) and rerun"
+    )
+
+
 def run_comparison(
     task: TaskConfig,
     encoder: EncoderConfig,
@@ -174,7 +468,7 @@ def run_comparison(
     """Train every agent on every seed and write the comparison's results.
 
     Args:
-        task: The environment.
+        task: The environment and mask (an agent with its own ``observe`` overrides the mask).
         encoder: Encoding options (its reservoirs are replaced by each agent's).
         ppo: PPO settings shared by all agents.
         agents: The agents to compare.
@@ -185,9 +479,12 @@ def run_comparison(
 
     Returns:
         The summary table (also written as ``summary.csv``).
+
+    Raises:
+        ConfigError: ``settings.out`` holds finished runs made with other settings (see
+            :func:`check_finished_runs`); nothing is written then.
     """
     out = Path(settings.out)
-    out.mkdir(parents=True, exist_ok=True)
     budget = BudgetConfig(
         training_steps=settings.training_steps,
         n_last_episodes=settings.n_last_episodes,
@@ -195,6 +492,15 @@ def run_comparison(
         fitness="eval" if settings.evaluate else "last",
         n_reports=0,
     )
+
+    def encoder_of(agent: AgentSpec) -> EncoderConfig | None:
+        return None if agent.reservoirs is None else encoder.with_reservoirs(agent.reservoirs)
+
+    expected = {
+        a.name: run_settings(a.task(task), encoder_of(a), ppo, budget, a.name, 0) for a in agents
+    }
+    check_finished_runs(out, expected, settings.seeds, settings.overwrite)
+    out.mkdir(parents=True, exist_ok=True)
     config_doc = {
         "task": to_dict(task),
         "encoder": to_dict(encoder),
@@ -204,6 +510,8 @@ def run_comparison(
             for k, v in dataclasses.asdict(settings).items()
         },
         "agents": {a.name: None if a.reservoirs is None else to_dict(a.reservoirs) for a in agents},
+        # Agents that observe otherwise than `task` (ppo-full: the whole observation).
+        "agent_observe": {a.name: a.observe for a in agents if a.observe is not None},
         **dict(metadata or {}),
     }
     write_atomic(out / "config.yaml", yaml.safe_dump(config_doc, sort_keys=False))
@@ -217,16 +525,15 @@ def run_comparison(
                 _say(stream, quiet, f"[skip] {agent.name} seed {seed}: already done in {folder}")
                 continue
             folder.mkdir(parents=True, exist_ok=True)
-            enc = None if agent.reservoirs is None else encoder.with_reservoirs(agent.reservoirs)
+            enc = encoder_of(agent)
             model_path = str(folder / "model.zip") if settings.save_models else None
             tb_log = (
                 None
                 if settings.tensorboard is None
                 else str(Path(settings.tensorboard) / agent.name / f"seed_{seed}")
             )
-            jobs.append(
-                (agent, seed, (task, enc, ppo, budget, seed, settings.evaluate, model_path, tb_log))
-            )
+            job = (agent.task(task), enc, ppo, budget, seed, settings.evaluate, model_path, tb_log)
+            jobs.append((agent, seed, job))
 
     started = time.perf_counter()
     done = 0
@@ -236,10 +543,14 @@ def run_comparison(
         done += 1
         extra = {
             "env_id": task.env_id,
-            "observe": task.observe,
+            "observe": agent.task(task).observe,  # what this agent saw
             "reservoirs": None if agent.reservoirs is None else to_dict(agent.reservoirs),
         }
-        write_run(run_dir(out, agent.name, seed), agent.name, result, extra)
+        folder = run_dir(out, agent.name, seed)
+        # The settings record first: result.json, written last, marks the run as finished.
+        record = {**expected[agent.name], "seed": seed}
+        write_atomic(folder / RUN_SETTINGS_FILE, json.dumps(record, indent=1) + "\n")
+        write_run(folder, agent.name, result, extra)
         elapsed = time.perf_counter() - started
         eta = elapsed / done * (len(jobs) - done)
         _say(

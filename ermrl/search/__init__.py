@@ -33,6 +33,14 @@ from ermrl.search._objective import (
     library_versions,
     pool_size,
 )
+from ermrl.search._reevaluate import (
+    REEVALUATION_ATTR,
+    reevaluate_study,
+    reevaluation_seeds,
+    reevaluation_study_name,
+    select_trial,
+    top_candidates,
+)
 from ermrl.search._samplers import (
     RESTART_STRATEGIES,
     SAMPLERS,
@@ -52,6 +60,7 @@ from ermrl.search._scores import (
 )
 
 __all__ = [
+    "REEVALUATION_ATTR",
     "RESTART_STRATEGIES",
     "SAMPLERS",
     "STUDY_COMMAND_ATTR",
@@ -84,7 +93,12 @@ __all__ = [
     "make_pruner",
     "make_sampler",
     "measure_random_returns",
+    "reevaluate_study",
+    "reevaluation_seeds",
+    "reevaluation_study_name",
     "reference_returns",
+    "select_trial",
+    "top_candidates",
     "run_evolution",
     "sample_params",
     "scores_path",

@@ -35,8 +35,8 @@ from dataclasses import dataclass
 from typing import Any, TextIO
 
 import optuna
+from optuna.distributions import FloatDistribution
 from optuna.exceptions import ExperimentalWarning, UpdateFinishedTrialError
-from optuna.storages import fail_stale_trials
 from optuna.storages._heartbeat import get_heartbeat_thread, is_heartbeat_enabled
 from optuna.trial import FrozenTrial, TrialState
 
@@ -50,11 +50,13 @@ from ermrl.config import (
     to_dict,
 )
 from ermrl.search._objective import FitnessResult, SeedRunner, evaluate_reservoir
+from ermrl.search._samplers import RestartCmaEsSampler
 from ermrl.storage import (
     DEFAULT_GRACE_PERIOD,
     DEFAULT_HEARTBEAT_INTERVAL,
     DEFAULT_MAX_RETRY,
     RetryStaleTrial,
+    fail_stale_trials,
     open_storage,
     storage_lock,
     study_lock,
@@ -84,11 +86,20 @@ _MUST_MATCH = ("problem", "space")
 
 
 class Interrupted(KeyboardInterrupt):
-    """Raised in the main thread on SIGTERM so that the running trial is closed like on Ctrl-C."""
+    """Raised in the main thread on SIGTERM so that the running trial is closed like on Ctrl-C.
+
+    Attributes:
+        signum: The signal.
+        trial_number: The trial this worker was running and closed as FAIL; ``None`` when the
+            signal came between trials (nothing was running).
+        requeued: Whether that trial was queued again (``False`` once its retries are spent).
+    """
 
     def __init__(self, signum: int) -> None:
         super().__init__(signal.Signals(signum).name)
         self.signum = signum
+        self.trial_number: int | None = None
+        self.requeued = False
 
 
 class PopulationWarning(UserWarning):
@@ -183,16 +194,54 @@ def make_pruner(name: str) -> optuna.pruners.BasePruner:
     raise ConfigError(f"unknown pruner {name!r}")
 
 
-def make_study_sampler(search: SearchConfig) -> optuna.samplers.BaseSampler:
+def search_distributions(space: ReservoirSpace) -> dict[str, FloatDistribution]:
+    """The fixed search space as Optuna distributions (what :func:`sample_params` asks)."""
+    return {name: FloatDistribution(r.low, r.high, log=r.log) for name, r in space.ranges().items()}
+
+
+def cma_start(search: SearchConfig, space: ReservoirSpace) -> dict[str, float]:
+    """The first CMA-ES mean: the reference reservoir (clipped into the box) or the box centre."""
+    if search.start == "center":
+        return space.center_params()
+    ranges = space.ranges()
+    return {
+        name: min(max(value, ranges[name].low), ranges[name].high)
+        for name, value in space.reference_params().items()
+    }
+
+
+def make_study_sampler(
+    search: SearchConfig, space: ReservoirSpace | None = None
+) -> optuna.samplers.BaseSampler:
+    """The study's sampler; with ``space``, CMA-ES knows the space before any trial completes."""
     from ermrl.search._samplers import make_sampler
 
+    fixed = search.sampler == "cmaes" and space is not None
     return make_sampler(
         search.sampler,  # type: ignore[arg-type]
         seed=search.sampler_seed,
         restart=search.restart,  # type: ignore[arg-type]
         popsize=search.popsize,
         consider_pruned_trials=search.pruner != "none",
+        search_space=search_distributions(space) if fixed else None,  # type: ignore[arg-type]
+        x0=cma_start(search, space) if fixed else None,  # type: ignore[arg-type]
     )
+
+
+REFERENCE_ATTR = "reference"
+
+
+def enqueue_reference(study: optuna.Study, space: ReservoirSpace) -> bool:
+    """Queue the unevolved reference reservoir as a trial (user attribute ``reference``).
+
+    Returns:
+        ``False`` when the reference lies outside the search space (nothing is queued).
+    """
+    params = space.reference_params()
+    if not space.contains(params):
+        return False
+    study.enqueue_trial(params, user_attrs={REFERENCE_ATTR: True}, skip_if_exists=True)
+    return True
 
 
 def sample_params(trial: optuna.Trial, space: ReservoirSpace) -> dict[str, float]:
@@ -266,7 +315,7 @@ def create_or_resume_study(
         max_retry=max_retry,
     )
     search = config.search if config is not None else SearchConfig()
-    sampler = make_study_sampler(search)
+    sampler = make_study_sampler(search, config.space if config is not None else None)
     pruner = make_pruner(search.pruner)
     with storage_lock(storage_url, study_name):
         study = optuna.create_study(
@@ -288,6 +337,12 @@ def create_or_resume_study(
             from ermrl import __version__
 
             study.set_user_attr("ermrl_version", __version__)
+            if config.search.reference_trial and not enqueue_reference(study, config.space):
+                warnings.warn(
+                    "the reference reservoir (sr = lr = input_scaling = 1) lies outside the "
+                    "search space: it does not take part in this study",
+                    stacklevel=2,
+                )
             return study
     diffs = [d for key in _MUST_MATCH for d in _config_diff(new[key], stored.get(key), key)]
     if diffs:
@@ -400,10 +455,17 @@ class _Claim:
     retry_of: int | None = None
 
 
-def _claim(study: optuna.Study, space: ReservoirSpace, n_trials: int, stale_check: bool) -> _Claim:
+def _claim(
+    study: optuna.Study,
+    space: ReservoirSpace,
+    n_trials: int,
+    stale_check: bool,
+    queued_only: bool = False,
+) -> _Claim:
     """Under the study lock: fail stale trials, count, and ask for a trial if the budget allows.
 
-    WAITING trials (retries, enqueued trials) are counted and are always claimable.
+    WAITING trials (retries, enqueued trials) are counted and are always claimable. With
+    ``queued_only``, nothing else is: the sampler never proposes a new point.
     """
     with study_lock(study), warnings.catch_warnings():
         warnings.simplefilter("ignore", ExperimentalWarning)
@@ -414,12 +476,17 @@ def _claim(study: optuna.Study, space: ReservoirSpace, n_trials: int, stale_chec
         trials = study.get_trials(deepcopy=False, states=_COUNTED)
         waiting = any(t.state == TrialState.WAITING for t in trials)
         running = sum(t.state == TrialState.RUNNING for t in trials)
-        if len(trials) >= n_trials and not waiting:
+        if (len(trials) >= n_trials or queued_only) and not waiting:
             return _Claim(None, {}, running)
         trial = study.ask()
         params = sample_params(trial, space)
+        if trial.user_attrs.get(REFERENCE_ATTR) and isinstance(study.sampler, RestartCmaEsSampler):
+            # Every parameter is fixed, so Optuna never asked CMA-ES: ask it now, so that the
+            # reference is labelled and told to CMA-ES as a member of the current generation.
+            _ = trial.relative_params
         for key, value in worker_info().items():
             trial.set_user_attr(f"worker_{key}", value)
+        trial.set_user_attr("worker_n_trials", n_trials)  # this worker's budget (study show)
         retry_of = trial.user_attrs.get("retry_of") if waiting else None
     return _Claim(trial, params, running + 1, retry_of)
 
@@ -449,6 +516,7 @@ def run_evolution(
     wait_for_running: bool = True,
     requeue_interrupted: bool = True,
     n_workers: int | None = None,
+    queued_only: bool = False,
 ) -> EvolutionSummary:
     """Run trials until the study holds ``config.search.n_trials`` counted trials.
 
@@ -475,6 +543,8 @@ def run_evolution(
             the storage's ``max_retry``).
         n_workers: Workers expected to share the study, for the population-size warning
             (default: ``SLURM_ARRAY_TASK_COUNT`` when set).
+        queued_only: Run only queued (WAITING) trials, never ask the sampler for a new point
+            (re-evaluation: a failed candidate is not replaced by a random one).
 
     Returns:
         What this worker did.
@@ -511,7 +581,8 @@ def run_evolution(
         warned_popsize = True
 
     done_before = _n_counted(study)
-    if done_before >= n_trials:
+    queued = len(study.get_trials(deepcopy=False, states=(TrialState.WAITING,)))
+    if done_before >= n_trials and not queued:
         say(
             f"study {study.study_name!r} already has {done_before}/{n_trials} trials: nothing to do"
         )
@@ -520,7 +591,7 @@ def run_evolution(
     wait = _FIRST_POLL
     failed_in_a_row = 0
     with SeedRunner(config.n_procs) as runner, guard.installed():
-        if config.n_procs > 1 and done_before < n_trials:
+        if config.n_procs > 1 and (done_before < n_trials or queued):
             n_tasks = len(config.generalization.tasks) if config.generalization else 1
             n_runs = n_tasks * len(problem.seeds)
             with guard.deferred():
@@ -537,7 +608,7 @@ def run_evolution(
         while True:
             guard.check()
             with guard.deferred():
-                claim = _claim(study, config.space, n_trials, heartbeats)
+                claim = _claim(study, config.space, n_trials, heartbeats, queued_only)
             if claim.trial is None:
                 if wait_for_running and heartbeats and claim.running > 0:
                     if not waiting_said:
@@ -698,5 +769,10 @@ def _close_interrupted(
             pass  # already closed by another worker as stale
         queued = "" if retry_of is None else f"; queued again (retry of #{retry_of})"
         say(f"[trial {trial.number}] closed as FAIL ({reason}){queued}")
+    if isinstance(err, KeyboardInterrupt):  # Interrupted (SIGTERM) or Ctrl-C
+        err.trial_number, err.requeued = trial.number, retry_of is not None  # type: ignore[attr-defined]
     if signum is not None and not isinstance(err, KeyboardInterrupt):
-        raise guard.error() or Interrupted(signum) from err
+        error = guard.error() or Interrupted(signum)
+        if isinstance(error, Interrupted):
+            error.trial_number, error.requeued = trial.number, retry_of is not None
+        raise error from err

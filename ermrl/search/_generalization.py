@@ -132,6 +132,7 @@ class GeneralizationFitness(FitnessResult):
             "env_steps": self.env_steps,
             "wall_seconds": round(self.wall_seconds, 3),
             "steps_per_second": round(self.steps_per_second, 1),
+            "dtype": self.dtype,
             "versions": library_versions(),
         }
 
@@ -200,6 +201,7 @@ def evaluate_generalization(
     fitness = float(np.mean([o.normalized for o in outcomes]))
     return GeneralizationFitness(
         fitness=fitness,
+        dtype=None if encoder is None else encoder.dtype,
         mode=budget.fitness,
         runs=[r for runs in per_task for r in runs],
         wall_seconds=time.perf_counter() - start,

@@ -52,12 +52,16 @@ class FitnessResult:
         mode: ``last`` or ``eval``.
         runs: One :class:`~ermrl.agents.RunResult` per seed, in seed order.
         wall_seconds: Wall-clock time of the whole evaluation.
+        dtype: Float type of the reservoir states (``None``: no reservoir). Above a spectral
+            radius of about 1.5, float32 and float64 trajectories decorrelate, so a trial's
+            result depends on it.
     """
 
     fitness: float
     mode: str
     runs: list[RunResult] = field(default_factory=list)
     wall_seconds: float = 0.0
+    dtype: str | None = None
 
     @property
     def env_steps(self) -> int:
@@ -78,6 +82,7 @@ class FitnessResult:
             "env_steps": self.env_steps,
             "wall_seconds": round(self.wall_seconds, 3),
             "steps_per_second": round(self.steps_per_second, 1),
+            "dtype": self.dtype,
             "versions": library_versions(),
         }
 
@@ -200,4 +205,5 @@ def evaluate_reservoir(
         mode=problem.budget.fitness,
         runs=runs,
         wall_seconds=time.perf_counter() - start,
+        dtype=None if encoder is None else encoder.dtype,
     )

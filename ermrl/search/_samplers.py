@@ -25,24 +25,50 @@ continue the same CMA-ES run, generation and restart. With the default attribute
 
 * On the trial during whose sampling the optimizer was updated (``tell``), additionally:
 
-  - ``cma:optimizer:{i}`` (str): the pickled ``cmaes`` optimizer as hex, split into chunks of at
-    most 2045 characters (as in Optuna).
+  - ``cma:state:{i}`` (str): the ``cmaes`` optimizer as plain JSON (:func:`optimizer_state`:
+    every attribute, arrays as dtype, shape and base64 bytes, the random generator's state
+    included), split into chunks of at most 2045 characters (as Optuna splits its pickle).
+    :func:`restore_optimizer` rebuilds it without unpickling or importing anything, and the
+    rebuilt optimizer continues exactly as the original.
   - ``cma:restart_state`` (dict): restart bookkeeping matching that optimizer: ``n_restarts``,
     ``regime``, ``popsize`` (current run), ``popsize0`` (first run), ``large_popsize`` (last
     large-regime popsize), ``n_evals_large`` / ``n_evals_small`` (evaluations spent per BIPOP
     regime by finished runs).
 
 The sampler always restores the optimizer and the restart state from the most recent COMPLETE
-trial carrying ``cma:optimizer:*``; nothing is kept only in process memory (apart from the
-random generator used for seeding, as in Optuna).
+trial carrying ``cma:state:*``; nothing is kept only in process memory.
+
+Nothing read from the storage is ever unpickled: anyone who can write to a shared storage could
+otherwise run code on every worker. A study written by an older ermrl stored the optimizer
+pickled, as ``cma:optimizer:{i}`` (Optuna's format). Those attributes are never read: when the
+latest stored state is such a pickle, a warning is logged and CMA-ES starts a new run (restart
+index one past the stored ``cma:restart_state``, its popsize and BIPOP budgets, the first run's
+start point and step size); the trials already in the study keep their values.
+
+Randomness never depends on which worker asks or how often it asked before:
+
+* each trial's point is drawn from a stream of its own, seeded by ``(seed, trial number)``, so
+  workers that share a ``seed`` never draw identical points;
+* a restart's randomness (the new start point, and BIPOP's popsize and step size) is seeded by
+  state every worker shares: the seed (or, without one, the study name), the restart index and
+  the number of the first trial of the generation that ended the run. Workers that restart the same run
+  at the same time therefore build the same new optimizer, and every trial labelled
+  "restart ``k``" comes from one distribution.
+
+With ``search_space`` given, the space is known before any trial completes, so the first trials
+of a study (for example the first 90 of a 90-task SLURM array) come from the CMA-ES initial
+distribution, not from an independent random sampler.
 """
 
 from __future__ import annotations
 
+import base64
+import json
 import logging
 import math
-import pickle
 import warnings
+import zlib
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, replace
 from typing import TYPE_CHECKING, Any, Literal, cast
 
@@ -67,6 +93,8 @@ __all__ = [
     "SamplerName",
     "cma_generation_info",
     "make_sampler",
+    "optimizer_state",
+    "restore_optimizer",
 ]
 
 RestartStrategy = Literal["none", "ipop", "bipop"]
@@ -86,7 +114,7 @@ _MIN_POPSIZE = 2
 
 @dataclass(frozen=True)
 class _RestartState:
-    """Restart bookkeeping stored next to the pickled optimizer.
+    """Restart bookkeeping stored next to the optimizer's state.
 
     Attributes:
         n_restarts: Index of the current run (number of restarts done so far).
@@ -167,8 +195,14 @@ class RestartCmaEsSampler(CmaEsSampler):
             ``4 + floor(3 ln n)``. Must be >= 2.
         seed: Seed for the CMA-ES random generator and the default independent sampler.
         n_startup_trials: Number of COMPLETE trials sampled by the independent sampler before
-            CMA-ES takes over. The first trial of a study is always sampled independently,
-            because the search space is unknown until one trial has finished.
+            CMA-ES takes over. Without ``search_space``, the first trial of a study is always
+            sampled independently, because the search space is unknown until one trial has
+            finished.
+        search_space: The fixed search space (parameter name -> distribution). When given,
+            CMA-ES samples from the first trial on: trials asked before any trial completes
+            come from the initial distribution.
+        x0: Start point of the first run (parameter name -> value, external representation);
+            ``None``: the centre of the (transformed) box, as in Optuna.
         **kwargs: Further keyword arguments of :class:`optuna.samplers.CmaEsSampler`
             (e.g. ``independent_sampler``, ``consider_pruned_trials``, ``use_separable_cma``,
             ``with_margin``, ``lr_adapt``). ``restart_strategy``/``inc_popsize`` are never
@@ -186,6 +220,8 @@ class RestartCmaEsSampler(CmaEsSampler):
         popsize: int | None = None,
         seed: int | None = None,
         n_startup_trials: int = 0,
+        search_space: Mapping[str, BaseDistribution] | None = None,
+        x0: Mapping[str, float] | None = None,
         **kwargs: Any,
     ) -> None:
         if restart_strategy not in RESTART_STRATEGIES:
@@ -198,9 +234,23 @@ class RestartCmaEsSampler(CmaEsSampler):
         _check_popsize(popsize)
         if n_startup_trials < 0:
             raise ValueError(f"n_startup_trials must be >= 0, got {n_startup_trials!r}.")
+        if x0 is not None and search_space is not None and set(x0) != set(search_space):
+            raise ValueError(
+                f"x0 must name exactly the parameters of the search space {sorted(search_space)}, "
+                f"got {sorted(x0)}."
+            )
         super().__init__(seed=seed, n_startup_trials=n_startup_trials, popsize=popsize, **kwargs)
+        # Optuna deprecates `x0`; the start point is handled here (`_init_optimizer`).
+        self._x0 = None if x0 is None else dict(x0)
+        self._fixed_space = None if search_space is None else dict(search_space)
+        self._seed = seed
+        # Without a seed, points still differ per trial; this process's entropy keeps studies apart.
+        self._entropy = (
+            int(seed) if seed is not None else int(np.random.SeedSequence().generate_state(1)[0])
+        )
         self._restart_strategy: RestartStrategy = restart_strategy
         self._inc_popsize = inc_popsize
+        self._warned_legacy = False
 
     @property
     def restart_strategy(self) -> RestartStrategy:
@@ -230,10 +280,44 @@ class RestartCmaEsSampler(CmaEsSampler):
     def _attr_key_restart_state(self) -> str:
         return self._attr_prefix + "restart_state"
 
+    @property
+    def _attr_key_state(self) -> str:
+        return self._attr_prefix + "state"
+
     def _attr_key_restart_generation(self, n_restarts: int) -> str:
         return f"{self._attr_prefix}restart_{n_restarts}:generation"
 
+    # ------------------------------------------------------------------ randomness
+
+    def _trial_rng_seed(self, trial: FrozenTrial) -> int:
+        """Seed of the point drawn for ``trial``: its own stream, whichever worker asks."""
+        return _derive_seed(self._entropy, trial.number)
+
+    def _restart_rng(
+        self, study: optuna.Study, n_restarts: int, first_trial: int
+    ) -> np.random.RandomState:
+        """Generator of restart ``n_restarts``, seeded from state shared by every worker.
+
+        Args:
+            study: The study (its name seeds the restart when the sampler has no seed).
+            n_restarts: Index of the new run.
+            first_trial: Number of the first trial of the generation that ended the previous run.
+        """
+        # With a seed the run is reproducible in any study; without one, the study's name is
+        # the state all workers share.
+        base = zlib.crc32(study.study_name.encode()) if self._seed is None else self._seed
+        seed = _derive_seed(base, int(self._seed is None), n_restarts, first_trial)
+        return np.random.RandomState(seed)
+
     # ------------------------------------------------------------------ sampling
+
+    def infer_relative_search_space(
+        self, study: optuna.Study, trial: FrozenTrial
+    ) -> dict[str, BaseDistribution]:
+        """The fixed search space when one was given, else Optuna's intersection search space."""
+        if self._fixed_space is not None:
+            return {k: d for k, d in self._fixed_space.items() if not d.single()}
+        return super().infer_relative_search_space(study, trial)
 
     def sample_relative(
         self,
@@ -271,7 +355,18 @@ class RestartCmaEsSampler(CmaEsSampler):
         )
 
         optimizer, state = self._restore_state(completed_trials)
-        if optimizer is None or state is None:
+        if optimizer is None and state is not None:  # a pickled optimizer was left unread
+            optimizer = self._init_optimizer(
+                trans, study.direction, population_size=state.popsize or self._popsize
+            )
+            popsize = optimizer.population_size
+            state = replace(
+                state,
+                popsize=popsize,
+                popsize0=state.popsize0 or popsize,
+                large_popsize=state.large_popsize or popsize,
+            )
+        elif optimizer is None or state is None:
             optimizer = self._init_optimizer(trans, study.direction, population_size=self._popsize)
             state = _RestartState.initial(optimizer.population_size)
 
@@ -303,13 +398,13 @@ class RestartCmaEsSampler(CmaEsSampler):
             optimizer.tell(solutions)
 
             if self._restart_strategy != "none" and optimizer.should_stop():
-                optimizer, state = self._restart(optimizer, state, trans, study.direction)
+                rng = self._restart_rng(study, state.n_restarts + 1, solution_trials[0].number)
+                optimizer, state = self._restart(optimizer, state, trans, study.direction, rng)
 
             self._store_state(study, trial, optimizer, state)
 
-        # As in Optuna: reseed the optimizer for every trial.
-        seed = self._cma_rng.rng.randint(1, 2**16) + trial.number
-        optimizer._rng.seed(seed)
+        # Reseed the optimizer for every trial, from the trial's own stream.
+        optimizer._rng.seed(self._trial_rng_seed(trial))
         if isinstance(optimizer, cmaes.CMAwM):
             params, x_for_tell = optimizer.ask()
             study._storage.set_trial_system_attr(trial._trial_id, "x_for_tell", x_for_tell.tolist())
@@ -375,27 +470,60 @@ class RestartCmaEsSampler(CmaEsSampler):
     ) -> tuple[CmaClass | None, _RestartState | None]:
         """Load the optimizer and restart state of the latest trial that stored them.
 
+        The state is plain data (:func:`restore_optimizer`); nothing is unpickled. When the
+        latest stored state is an optimizer pickled by an older ermrl (``{prefix}optimizer:*``),
+        it is left unread: a warning is logged and a new run starts (see
+        :meth:`_legacy_restart`).
+
         Args:
             completed_trials: Completed trials, ordered by trial number.
 
         Returns:
             ``(optimizer, state)``, or ``(None, None)`` when none was stored yet.
         """
-        chunk_prefix = self._attr_key_optimizer + ":"
+        state_prefix = self._attr_key_state + ":"
+        pickle_prefix = self._attr_key_optimizer + ":"
         for t in reversed(completed_trials):
-            chunks = {k: v for k, v in t.system_attrs.items() if k.startswith(chunk_prefix)}
-            if not chunks:
-                continue
-            optimizer = cast(
-                "CmaClass", pickle.loads(bytes.fromhex(self._concat_optimizer_attrs(chunks)))
-            )
+            chunks = {k: v for k, v in t.system_attrs.items() if k.startswith(state_prefix)}
             raw = t.system_attrs.get(self._attr_key_restart_state)
-            if isinstance(raw, dict):
-                state = _RestartState.from_dict(raw)
-            else:  # Optimizer stored by a plain CmaEsSampler: treat it as the first run.
-                state = _RestartState.initial(optimizer.population_size)
-            return optimizer, state
+            if chunks:
+                optimizer = restore_optimizer(json.loads(_join_chunks(chunks, state_prefix)))
+                if isinstance(raw, dict):
+                    state = _RestartState.from_dict(raw)
+                else:
+                    state = _RestartState.initial(optimizer.population_size)
+                return optimizer, state
+            if any(k.startswith(pickle_prefix) for k in t.system_attrs):
+                return None, self._legacy_restart(t, raw)
         return None, None
+
+    def _legacy_restart(self, trial: FrozenTrial, raw: Any) -> _RestartState:
+        """Restart state of the run that replaces an optimizer pickled by an older ermrl.
+
+        Args:
+            trial: The trial carrying the pickled optimizer (never unpickled).
+            raw: Its ``{prefix}restart_state`` (plain JSON), if any.
+
+        Returns:
+            The state of a new run: restart index one past the stored one (so its trials are
+            never told to the old run), the stored popsize and BIPOP budgets. The caller builds
+            its optimizer as the first run's (start point, step size), the same in every worker.
+        """
+        old = (
+            _RestartState.from_dict(raw)
+            if isinstance(raw, dict)
+            else _RestartState.initial(self._popsize or 0)
+        )
+        if not self._warned_legacy:
+            _logger.warning(
+                "RestartCmaEsSampler: trial %d holds a CMA-ES optimizer pickled by an older "
+                "ermrl (%s*); it is ignored, never unpickled, and CMA-ES starts run %d afresh.",
+                trial.number,
+                self._attr_key_optimizer + ":",
+                old.n_restarts + 1,
+            )
+            self._warned_legacy = True
+        return replace(old, n_restarts=old.n_restarts + 1)
 
     def _store_state(
         self,
@@ -404,8 +532,13 @@ class RestartCmaEsSampler(CmaEsSampler):
         optimizer: CmaClass,
         state: _RestartState,
     ) -> None:
-        """Persist the optimizer (chunked) and the restart state on ``trial``."""
-        attrs: dict[str, Any] = dict(self._split_optimizer_str(pickle.dumps(optimizer).hex()))
+        """Persist the optimizer (plain JSON, chunked) and the restart state on ``trial``."""
+        text = json.dumps(optimizer_state(optimizer), allow_nan=False, separators=(",", ":"))
+        prefix = self._attr_key_state + ":"
+        attrs: dict[str, Any] = {
+            f"{prefix}{i}": text[start : start + _CHUNK_CHARS]
+            for i, start in enumerate(range(0, len(text), _CHUNK_CHARS))
+        }
         attrs[self._attr_key_restart_state] = asdict(state)
         for key, value in attrs.items():
             study._storage.set_trial_system_attr(trial._trial_id, key, value)
@@ -416,6 +549,7 @@ class RestartCmaEsSampler(CmaEsSampler):
         state: _RestartState,
         trans: _SearchSpaceTransform,
         direction: StudyDirection,
+        rng: np.random.RandomState,
     ) -> tuple[CmaClass, _RestartState]:
         """Start a new run after ``optimizer`` stopped.
 
@@ -424,6 +558,8 @@ class RestartCmaEsSampler(CmaEsSampler):
             state: Restart state of the finished run.
             trans: Search-space transform.
             direction: Study direction.
+            rng: The restart's generator (see :meth:`_restart_rng`): every worker that restarts
+                this run draws the same popsize, step size and start point.
 
         Returns:
             The new optimizer (generation 0) and the matching restart state.
@@ -436,7 +572,6 @@ class RestartCmaEsSampler(CmaEsSampler):
 
         sigma_factor = 1.0
         if self._restart_strategy == "bipop" and state.n_evals_small < state.n_evals_large:
-            rng = self._cma_rng.rng
             u_popsize, u_sigma = float(rng.uniform()), float(rng.uniform())
             popsize = math.floor(
                 state.popsize0 * (0.5 * state.large_popsize / state.popsize0) ** (u_popsize**2)
@@ -469,6 +604,7 @@ class RestartCmaEsSampler(CmaEsSampler):
             population_size=popsize,
             randomize_start_point=True,
             sigma_factor=sigma_factor,
+            rng=rng,
         )
         return new_optimizer, state
 
@@ -480,6 +616,7 @@ class RestartCmaEsSampler(CmaEsSampler):
         population_size: int | None = None,
         randomize_start_point: bool = False,
         sigma_factor: float = 1.0,
+        rng: np.random.RandomState | None = None,
     ) -> CmaClass:
         """Create a ``cmaes`` optimizer (same choices as Optuna's ``CmaEsSampler``).
 
@@ -490,10 +627,14 @@ class RestartCmaEsSampler(CmaEsSampler):
             randomize_start_point: Draw the mean uniformly within the bounds (restarts). Warm
                 starting from ``source_trials`` and ``x0`` only apply to the first run.
             sigma_factor: Multiplier of the initial step size (BIPOP small regime).
+            rng: Generator of the start point and the optimizer's seed (``None``: a fixed
+                seed derived from the sampler's seed; the first run is the same in every worker).
 
         Returns:
             The new optimizer.
         """
+        if rng is None:
+            rng = np.random.RandomState(_derive_seed(-1 if self._seed is None else self._seed))
         lower_bounds = trans.bounds[:, 0]
         upper_bounds = trans.bounds[:, 1]
         n_dimension = len(trans.bounds)
@@ -505,9 +646,7 @@ class RestartCmaEsSampler(CmaEsSampler):
             sigma0 = float(self._sigma0)
 
         if randomize_start_point:
-            mean = lower_bounds + (upper_bounds - lower_bounds) * self._cma_rng.rng.rand(
-                n_dimension
-            )
+            mean = lower_bounds + (upper_bounds - lower_bounds) * rng.rand(n_dimension)
         elif self._source_trials is not None:
             expected_states = [TrialState.COMPLETE]
             if self._consider_pruned_trials:
@@ -522,12 +661,12 @@ class RestartCmaEsSampler(CmaEsSampler):
                 raise ValueError("No compatible source_trials")
             mean, sigma0, cov = cmaes.get_warm_start_mgd(source_solutions)
         elif self._x0 is not None:
-            mean = trans.transform(self._x0)
+            mean = np.clip(trans.transform(self._x0), lower_bounds, upper_bounds)
         else:
             mean = lower_bounds + (upper_bounds - lower_bounds) / 2
 
         sigma = max(sigma0 * sigma_factor, _EPS)
-        seed = self._cma_rng.rng.randint(1, 2**31 - 2)
+        seed = int(rng.randint(1, 2**31 - 2))
 
         # cmaes divides by the rank-mu learning rate, which is 0 for popsize < 4 (mu = 1); the
         # resulting inf is discarded by a min(), so the warning is noise.
@@ -580,6 +719,144 @@ class RestartCmaEsSampler(CmaEsSampler):
             )
 
 
+# ---------------------------------------------------------------------- plain-data optimizer state
+
+# The only classes a stored state may name: restoring never imports or calls anything else.
+_OPTIMIZER_CLASSES: dict[str, type] = {
+    "CMA": cmaes.CMA,
+    "SepCMA": cmaes.SepCMA,
+    "CMAwM": cmaes.CMAwM,
+}
+# Array dtypes a stored state may use (no object, string or structured dtypes).
+_ARRAY_KINDS = "biuf"
+# Optuna's RDB storage limits one attribute value; the JSON text is split into chunks.
+_CHUNK_CHARS = 2045
+
+
+def optimizer_state(optimizer: CmaClass) -> dict[str, Any]:
+    """The complete state of a ``cmaes`` optimizer as plain, JSON-serializable data.
+
+    Every attribute of the optimizer is kept (mean, step size, covariance, evolution paths,
+    generation, popsize, bounds, learning rates, termination history and the random
+    generator's state), so :func:`restore_optimizer` gives an optimizer that continues exactly
+    as this one would. Arrays are stored bit-exactly (``dtype``, ``shape`` and base64 bytes);
+    non-finite floats as ``{"__float__": "inf"}``.
+
+    Args:
+        optimizer: A ``cmaes.CMA``, ``cmaes.SepCMA`` or ``cmaes.CMAwM``.
+
+    Returns:
+        A dict of JSON types only (``json.dumps`` accepts it with ``allow_nan=False``).
+
+    Raises:
+        TypeError: For another optimizer class or an attribute of a type that has no plain form.
+    """
+    encoded = _encode(optimizer)
+    assert isinstance(encoded, dict)
+    return encoded
+
+
+def restore_optimizer(state: Mapping[str, Any]) -> CmaClass:
+    """Rebuild an optimizer from :func:`optimizer_state`, without running any stored code.
+
+    The state can only name ``CMA``, ``SepCMA`` or ``CMAwM`` and hold numbers, strings, lists
+    and numeric arrays; nothing is unpickled or imported.
+
+    Args:
+        state: The plain state.
+
+    Returns:
+        The optimizer.
+
+    Raises:
+        ValueError: For a state that is not of that form.
+    """
+    optimizer = _decode(dict(state))
+    if not isinstance(optimizer, tuple(_OPTIMIZER_CLASSES.values())):
+        raise ValueError("the stored CMA-ES state does not describe a cmaes optimizer")
+    return cast("CmaClass", optimizer)
+
+
+def _encode(value: Any) -> Any:
+    """One value of an optimizer's state as JSON types (see :func:`optimizer_state`)."""
+    if value is None or isinstance(value, (bool, str)):
+        return value
+    if isinstance(value, int) and not isinstance(value, np.integer):
+        return value
+    if isinstance(value, float) and not isinstance(value, np.floating):
+        return value if math.isfinite(value) else {"__float__": repr(value)}
+    if isinstance(value, (np.ndarray, np.generic)):
+        array = np.asarray(value)
+        if array.dtype.kind not in _ARRAY_KINDS:
+            raise TypeError(f"cannot store an array of dtype {array.dtype} as plain data")
+        return {
+            "__ndarray__": base64.b64encode(np.ascontiguousarray(array).tobytes()).decode(),
+            "dtype": array.dtype.str,
+            "shape": list(array.shape),
+            "scalar": isinstance(value, np.generic),
+        }
+    if isinstance(value, (list, tuple)):
+        return {"__list__": [_encode(v) for v in value], "tuple": isinstance(value, tuple)}
+    if isinstance(value, np.random.RandomState):
+        return {"__random_state__": _encode(value.get_state(legacy=True))}
+    if type(value) in _OPTIMIZER_CLASSES.values():
+        return {
+            "__cmaes__": type(value).__name__,
+            "attrs": {str(k): _encode(v) for k, v in vars(value).items()},
+        }
+    raise TypeError(f"cannot store a {type(value).__name__} as plain data")
+
+
+def _decode(value: Any) -> Any:
+    """Inverse of :func:`_encode`; raises ``ValueError`` for anything else."""
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    if not isinstance(value, dict):
+        raise ValueError(f"unexpected {type(value).__name__} in a stored CMA-ES state")
+    try:
+        if "__float__" in value:
+            text = str(value["__float__"])
+            if text not in ("inf", "-inf", "nan"):
+                raise ValueError(f"unexpected float {text!r}")
+            return float(text)
+        if "__ndarray__" in value:
+            dtype = np.dtype(str(value["dtype"]))
+            if dtype.kind not in _ARRAY_KINDS:
+                raise ValueError(f"unexpected dtype {dtype}")
+            shape = tuple(int(n) for n in value["shape"])
+            raw = base64.b64decode(str(value["__ndarray__"]), validate=True)
+            array = np.frombuffer(raw, dtype=dtype).reshape(shape).copy()
+            return array[()] if value.get("scalar") else array
+        if "__list__" in value:
+            items = [_decode(v) for v in value["__list__"]]
+            return tuple(items) if value.get("tuple") else items
+        if "__random_state__" in value:
+            rng = np.random.RandomState()
+            rng.set_state(_decode(value["__random_state__"]))
+            return rng
+        if "__cmaes__" in value:
+            cls = _OPTIMIZER_CLASSES.get(str(value["__cmaes__"]))
+            if cls is None:
+                raise ValueError(f"unknown optimizer class {value['__cmaes__']!r}")
+            optimizer = cls.__new__(cls)
+            optimizer.__dict__.update({str(k): _decode(v) for k, v in dict(value["attrs"]).items()})
+            return optimizer
+    except (KeyError, TypeError) as error:
+        raise ValueError(f"malformed stored CMA-ES state: {error}") from error
+    raise ValueError(f"unexpected keys {sorted(value)} in a stored CMA-ES state")
+
+
+def _join_chunks(chunks: Mapping[str, Any], prefix: str) -> str:
+    """The text split over ``{prefix}0``, ``{prefix}1``, ... (in index order)."""
+    return "".join(str(chunks[f"{prefix}{i}"]) for i in range(len(chunks)))
+
+
+def _derive_seed(*keys: int) -> int:
+    """A 31-bit seed from integer keys (``numpy.random.SeedSequence`` mixes them)."""
+    entropy = [k % 2**32 for k in keys]  # SeedSequence needs non-negative entropy
+    return int(np.random.SeedSequence(entropy).generate_state(1)[0] % (2**31 - 1))
+
+
 def _is_compatible(trans: _SearchSpaceTransform, search_space: dict[str, BaseDistribution]) -> bool:
     """Whether ``search_space`` has exactly the parameters of ``trans``."""
     names = set(trans._search_space.keys())
@@ -606,6 +883,8 @@ def make_sampler(
     popsize: int | None = None,
     inc_popsize: int = 2,
     consider_pruned_trials: bool = False,
+    search_space: Mapping[str, BaseDistribution] | None = None,
+    x0: Mapping[str, float] | None = None,
 ) -> BaseSampler:
     """Build the outer-loop sampler by name.
 
@@ -623,6 +902,9 @@ def make_sampler(
             generation with its last intermediate value (turn it on with a pruner: otherwise a
             generation waits for ``popsize`` COMPLETE trials, and a study whose trials are mostly
             pruned hardly moves). TPE uses pruned trials on its own; random search ignores them.
+        search_space: ``"cmaes"`` only: the fixed search space, so that CMA-ES samples from the
+            first trial on (see :class:`RestartCmaEsSampler`).
+        x0: ``"cmaes"`` only: the start point of the first run (``None``: the box centre).
 
     Returns:
         The sampler.
@@ -657,6 +939,8 @@ def make_sampler(
                 inc_popsize=inc_popsize,
                 seed=seed,
                 consider_pruned_trials=consider_pruned_trials,
+                search_space=search_space,
+                x0=x0,
             )
     if name == "tpe":
         return TPESampler(seed=seed)

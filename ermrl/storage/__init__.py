@@ -6,6 +6,7 @@ from ermrl.storage._heartbeat import (
     HeartbeatJournalStorage,
     RetryStaleTrial,
     fail_stale,
+    fail_stale_trials,
     find_stale_trials,
     last_seen,
 )
@@ -26,6 +27,7 @@ from ermrl.storage._open import (
     study_names,
     worker_info,
 )
+from ermrl.storage._repair import repair_journal, torn_tail
 
 __all__ = [
     "DEFAULT_GRACE_PERIOD",
@@ -39,15 +41,18 @@ __all__ = [
     "StorageError",
     "StudyNotFound",
     "fail_stale",
+    "fail_stale_trials",
     "find_stale_trials",
     "last_seen",
     "load_study",
     "normalize_url",
     "open_storage",
+    "repair_journal",
     "storage_kind",
     "storage_lock",
     "storage_url",
     "study_lock",
     "study_names",
+    "torn_tail",
     "worker_info",
 ]

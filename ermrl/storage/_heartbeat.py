@@ -37,13 +37,14 @@ __all__ = [
     "base_storage",
     "find_stale_trials",
     "fail_stale",
+    "fail_stale_trials",
     "last_seen",
 ]
 
 HEARTBEAT_ATTR = "ermrl:heartbeat"
 # System attributes a retried trial must not inherit: the CMA-ES optimizer stored on the failed
 # trial (a COMPLETE copy with a higher number would roll the CMA-ES state back) and heartbeats.
-_NOT_INHERITED = (":optimizer:", ":restart_state", HEARTBEAT_ATTR)
+_NOT_INHERITED = (":state:", ":optimizer:", ":restart_state", HEARTBEAT_ATTR)
 # User attributes of the failed run, not of the retry (the worker that runs it writes its own).
 _NOT_INHERITED_USER = ("fail_reason", "worker_")
 
@@ -109,10 +110,10 @@ class RetryStaleTrial(RetryHeartbeatStaleTrialCallback):
     """Optuna's :class:`~optuna.storages.RetryHeartbeatStaleTrialCallback`, made safe for CMA-ES.
 
     The WAITING copy keeps the parameters, the user attributes and the CMA-ES generation of the
-    failed trial, and records ``retry_history`` (Optuna's convention), but not the pickled CMA-ES
-    optimizer, the heartbeat, the ``fail_reason`` or the ``worker_*`` attributes of the dead
-    worker. Its user attribute ``retry_of`` is the number of the first failed trial of the
-    chain.
+    failed trial, and records ``retry_history`` (Optuna's convention), but not the stored CMA-ES
+    optimizer state (``cma:state:*``, or an older ermrl's ``cma:optimizer:*``), the heartbeat,
+    the ``fail_reason`` or the ``worker_*`` attributes of the dead worker. Its user attribute
+    ``retry_of`` is the number of the first failed trial of the chain.
 
     Args:
         max_retry: Retries of one original trial at most (``None``: no limit).
@@ -204,6 +205,71 @@ def find_stale_trials(study: optuna.Study, older_than: float) -> list[FrozenTria
     now = time.time()
     running = study.get_trials(deepcopy=False, states=(TrialState.RUNNING,))
     return [t for t in running if now - last_seen(t, heartbeats) > older_than]
+
+
+def _grace(storage: BaseStorage) -> float | None:
+    inner = base_storage(storage)
+    interval = getattr(inner, "heartbeat_interval", None)
+    grace = getattr(inner, "grace_period", None)
+    return grace or (2 * interval if interval else None)
+
+
+def fail_stale_trials(study: optuna.Study) -> list[FrozenTrial]:
+    """Optuna's :func:`~optuna.storages.fail_stale_trials`, with a ``fail_reason`` on each trial.
+
+    A trial whose worker stopped sending heartbeats (killed with ``kill -9``, a dead node) is
+    marked FAIL with the user attribute ``fail_reason`` set to ``"heartbeat lost (none for G s),
+    retried as trial N"``, or ``"heartbeat lost (none for G s), not retried (max_retry M
+    reached)"``, then retried by the storage's stale-trial callback (:class:`RetryStaleTrial`).
+
+    The trial number ``N`` is that of the WAITING copy the callback adds: exact when no other
+    process adds trials meanwhile, which holding :func:`~ermrl.storage.study_lock` (as ermrl's
+    workers and ``ermrl study fail-stale`` do) guarantees.
+
+    Args:
+        study: The study (its storage must have heartbeats, else nothing is done).
+
+    Returns:
+        The trials failed, as they were before failing.
+    """
+    from optuna.storages._heartbeat import is_heartbeat_enabled
+
+    storage = study._storage
+    if not isinstance(storage, BaseHeartbeat) or not is_heartbeat_enabled(storage):
+        return []
+    callback = storage.get_heartbeat_stale_trial_callback()
+    stale_ids = storage._get_stale_trial_ids(study._study_id)
+    if not stale_ids:
+        return []
+    grace = _grace(storage)
+    lost = "heartbeat lost" + (f" (none for {grace:.0f} s)" if grace else "")
+    next_number = len(study.get_trials(deepcopy=False))
+    failed = []
+    n_retries = 0
+    for trial_id in stale_ids:
+        trial = storage.get_trial(trial_id)
+        retried = isinstance(callback, RetryStaleTrial) and callback.would_retry(trial)
+        if isinstance(callback, RetryStaleTrial):
+            if retried:
+                reason = f"{lost}, retried as trial {next_number + n_retries}"
+            else:
+                reason = f"{lost}, not retried (max_retry {callback.max_retry} reached)"
+        elif callback is not None:
+            reason = f"{lost}, passed to {type(callback).__name__}"
+        else:
+            reason = f"{lost}, not retried"
+        try:
+            storage.set_trial_user_attr(trial_id, "fail_reason", reason)
+            if not storage.set_trial_state_values(trial_id, state=TrialState.FAIL):
+                continue
+        except UpdateFinishedTrialError:
+            continue  # finished, or failed by another process, meanwhile
+        failed.append(trial)
+        n_retries += retried
+    if callback is not None:
+        for trial in failed:
+            callback(study, copy.deepcopy(storage.get_trial(trial._trial_id)))
+    return failed
 
 
 def fail_stale(

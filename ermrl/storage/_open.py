@@ -25,7 +25,7 @@ import os
 import warnings
 import weakref
 from collections.abc import Iterator
-from typing import Any
+from typing import Any, Literal
 
 import optuna
 from optuna.exceptions import ExperimentalWarning
@@ -39,6 +39,7 @@ from ermrl.storage._locks import (
     sqlite_path,
     storage_lock,
 )
+from ermrl.storage._repair import repair_journal
 
 __all__ = [
     "StorageError",
@@ -76,10 +77,20 @@ class StudyNotFound(LookupError):
 
 
 def storage_kind(url: str) -> str:
-    """Classify a storage URL: ``sqlite``, ``postgresql``, ``mysql``, ``journal`` or ``redis``."""
+    """Classify a storage URL: ``sqlite``, ``postgresql``, ``mysql``, ``journal`` or ``redis``.
+
+    Raises:
+        StorageError: an unsupported URL, or an in-memory SQLite database (``sqlite://``,
+            ``sqlite:///:memory:``), whose results no later command could read.
+    """
     if url.startswith("journal://") or (url.endswith(".log") and "://" not in url):
         return "journal"
     scheme = url.split("://", 1)[0].split("+", 1)[0].lower() if "://" in url else ""
+    if scheme == "sqlite" and sqlite_path(url) is None:
+        raise StorageError(
+            f"{url} is an in-memory SQLite database: its trials would vanish when this command "
+            "exits and no other command could read them; use a file, e.g. sqlite:///ermrl.db"
+        )
     if scheme in ("sqlite", "postgresql", "postgres", "mysql", "redis"):
         return "postgresql" if scheme == "postgres" else scheme
     raise StorageError(
@@ -122,6 +133,7 @@ def open_storage(
     heartbeat_interval: int | None = None,
     grace_period: int | None = None,
     max_retry: int | None = DEFAULT_MAX_RETRY,
+    mode: Literal["create", "write", "read"] = "create",
 ) -> BaseStorage:
     """Open a storage, creating its schema under an inter-process lock.
 
@@ -133,6 +145,11 @@ def open_storage(
             (``None``: twice the interval, Optuna's default).
         max_retry: How many times a stale trial is retried (a WAITING copy with the same
             parameters; ``None``: no limit, 0: never).
+        mode: ``"create"`` (workers, ``ermrl study create``): a missing SQLite or journal file
+            is created; ``"write"``: the file must exist; ``"read"`` (commands that only read
+            a study): the file must exist and nothing is created or changed next to it (no
+            lock file, no schema, no journal repair: Optuna reads a journal's complete
+            records).
 
     Returns:
         An Optuna storage.
@@ -164,7 +181,7 @@ def open_storage(
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ExperimentalWarning)
-            storage = _open(url, kind, heartbeat)
+            storage = _open(url, kind, heartbeat, mode)
     except StorageError:
         raise
     except Exception as err:  # sqlalchemy / driver / redis errors: keep the message short
@@ -173,13 +190,26 @@ def open_storage(
     return storage
 
 
-def _open(url: str, kind: str, heartbeat: dict[str, Any]) -> BaseStorage:
+def _open(url: str, kind: str, heartbeat: dict[str, Any], mode: str) -> BaseStorage:
     if kind == "journal":
         from optuna.storages.journal import JournalFileBackend
 
         path = journal_path(url)
         if not path.parent.exists():
             raise StorageError(f"directory {path.parent} of journal {path} does not exist")
+        if mode != "create" and not path.is_file():
+            raise StorageError(f"no journal file {path} (check --storage)")
+        if mode == "read":
+            return HeartbeatJournalStorage(JournalFileBackend(str(path)), **heartbeat)
+        try:
+            # A record cut short (full disk, dead node) would be glued to the next one.
+            repair_journal(path)
+        except OSError as err:
+            raise StorageError(
+                f"journal {path} ends with a partial record that could not be set aside "
+                f"({err.strerror or err}); free some space and run: ermrl study repair "
+                f"--storage {url}"
+            ) from err
         return HeartbeatJournalStorage(JournalFileBackend(str(path)), **heartbeat)
     if kind == "redis":
         from optuna.storages.journal import JournalRedisBackend
@@ -195,15 +225,60 @@ def _open(url: str, kind: str, heartbeat: dict[str, Any]) -> BaseStorage:
             parent = path.resolve().parent
             if not parent.exists():
                 raise StorageError(f"directory {parent} of SQLite database does not exist")
+            if mode != "create" and not path.is_file():
+                raise StorageError(f"no SQLite database {path} (check --storage)")
+            _check_sqlite(path)
         # Python's sqlite3 waits this long for a lock before "database is locked".
         engine_kwargs["connect_args"] = {"timeout": SQLITE_BUSY_TIMEOUT_S}
     else:
         engine_kwargs["pool_pre_ping"] = True
         engine_kwargs["connect_args"] = {"connect_timeout": 10}
     rdb_url = normalize_url(url)
+    if mode == "read":  # the schema exists: no lock (and no lock file) needed
+        return optuna.storages.RDBStorage(rdb_url, engine_kwargs=engine_kwargs, **heartbeat)
     # Many workers starting at once on a fresh database race on CREATE TABLE: one at a time.
     with storage_lock(rdb_url, "schema"):
         return optuna.storages.RDBStorage(rdb_url, engine_kwargs=engine_kwargs, **heartbeat)
+
+
+def damaged_sqlite_message(path: os.PathLike[str] | str, detail: str) -> str:
+    """The one-line error for a damaged SQLite database, with what to try."""
+    recovered = f"{os.path.splitext(str(path))[0]}-recovered.db"
+    return (
+        f"SQLite database {path} is damaged ({detail}); recover what is readable with: "
+        f'sqlite3 {path} ".recover" | sqlite3 {recovered} (then --storage sqlite:///{recovered}), '
+        "or restore a backup"
+    )
+
+
+def _check_sqlite(path: os.PathLike[str] | str) -> None:
+    """Fail with :func:`damaged_sqlite_message` unless SQLite's ``quick_check`` passes.
+
+    A damaged page otherwise surfaces only when a query reads it, as a long traceback that ends
+    in Optuna's misleading "invalid data in the commit". Opened read-only: nothing is created.
+    """
+    import sqlite3
+    from urllib.parse import quote
+
+    if not os.path.isfile(path) or os.path.getsize(path) == 0:
+        return
+    uri = f"file:{quote(os.path.abspath(path))}?mode=ro"
+    try:
+        conn = sqlite3.connect(uri, uri=True, timeout=SQLITE_BUSY_TIMEOUT_S)
+        try:
+            rows = conn.execute("PRAGMA quick_check(1)").fetchall()
+        finally:
+            conn.close()
+    except sqlite3.OperationalError as err:
+        if "locked" in str(err) or "busy" in str(err):
+            return  # a writer holds it for longer than the timeout: let Optuna wait and report
+        raise StorageError(damaged_sqlite_message(path, _short(err))) from err
+    except sqlite3.DatabaseError as err:  # "file is not a database", "disk image is malformed"
+        raise StorageError(damaged_sqlite_message(path, _short(err))) from err
+    if rows != [("ok",)]:
+        lines = [line for row in rows for line in str(row[0]).splitlines()]
+        lines = [line for line in lines if not line.startswith("***")] or ["quick_check failed"]
+        raise StorageError(damaged_sqlite_message(path, lines[0]))
 
 
 def storage_url(storage: BaseStorage) -> str | None:
@@ -237,10 +312,28 @@ def study_names(storage: BaseStorage) -> list[str]:
     return [s.study_name for s in storage.get_all_studies()]
 
 
-def load_study(name: str, storage: BaseStorage | str, **kwargs: Any) -> optuna.Study:
-    """Load an existing study, with the available names in the error when it is missing."""
+def load_study(
+    name: str,
+    storage: BaseStorage | str,
+    *,
+    mode: Literal["write", "read"] = "read",
+    **kwargs: Any,
+) -> optuna.Study:
+    """Load an existing study, with the available names in the error when it is missing.
+
+    Args:
+        name: The study's name.
+        storage: A storage, or a URL opened with :func:`open_storage` in ``mode``.
+        mode: ``"read"`` (default): nothing is created, a missing SQLite or journal file is a
+            :class:`StorageError`; ``"write"``: the same, for commands that change the study.
+        **kwargs: Passed to :func:`optuna.load_study` (e.g. ``sampler``).
+
+    Raises:
+        StorageError: the storage cannot be opened or its file does not exist.
+        StudyNotFound: no study of that name.
+    """
     if isinstance(storage, str):
-        storage = open_storage(storage)
+        storage = open_storage(storage, mode=mode)
     try:
         return optuna.load_study(study_name=name, storage=storage, **kwargs)
     except KeyError as err:

@@ -1,0 +1,101 @@
+"""A trained PPO policy as plain tensors: saved beside ``model.zip``, read back without pickles.
+
+SB3's ``model.zip`` holds cloudpickled objects (``data``) and ``torch.save`` files that
+``PPO.load`` unpickles: a crafted ``model.zip`` runs code when it is loaded. ermrl therefore
+also saves every trained policy's weights as ``policy.pt``, a ``torch.save`` of the policy's
+``state_dict()`` (names to tensors only), and reads policies back only from that file with
+``torch.load(..., weights_only=True)``. The network is rebuilt from the run's PPO settings
+(:class:`~ermrl.config.PPOConfig`, plain JSON in the run folder) and the environment's spaces;
+``model.zip`` is still written for users who want SB3's format, and ermrl never reads it.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+import warnings
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from stable_baselines3 import PPO
+
+    from ermrl.config import PPOConfig
+
+__all__ = ["POLICY_FILE", "load_policy", "policy_path", "save_policy"]
+
+POLICY_FILE = "policy.pt"
+
+
+def policy_path(model_path: str | Path) -> Path:
+    """Where a model's plain policy weights live: ``policy.pt`` beside it.
+
+    ``<folder>/model.zip`` gives ``<folder>/policy.pt``; any other model name
+    ``<folder>/<name>.zip`` gives ``<folder>/<name>.policy.pt``.
+    """
+    path = Path(model_path)
+    stem = path.name.removesuffix(".zip")
+    return path.with_name(POLICY_FILE if stem == "model" else f"{stem}.{POLICY_FILE}")
+
+
+def save_policy(model: PPO, path: str | Path) -> None:
+    """Save ``model.policy.state_dict()`` (CPU tensors only) to ``path``, atomically.
+
+    Args:
+        model: The trained model.
+        path: The file (see :func:`policy_path`).
+    """
+    import torch
+
+    path = Path(path)
+    state = {name: tensor.detach().cpu() for name, tensor in model.policy.state_dict().items()}
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
+    os.close(fd)
+    try:
+        torch.save(state, tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+
+
+def load_policy(path: str | Path, ppo: PPOConfig, env: Any) -> PPO:
+    """Rebuild a trained PPO agent from its plain weights; nothing is unpickled.
+
+    The agent is built as training built it (``PPO("MlpPolicy", env, **ppo_kwargs(ppo))``, on
+    the CPU), then its policy takes the weights of ``path``, read with
+    ``torch.load(..., weights_only=True)`` (tensors and plain containers only).
+
+    Args:
+        path: A ``policy.pt`` written by :func:`save_policy`.
+        ppo: The run's PPO settings (its ``policy_kwargs`` fix the network's shape).
+        env: A VecEnv with the observation and action spaces the agent trained on.
+
+    Returns:
+        The agent, ready for ``predict``; it is not meant to be trained further.
+
+    Raises:
+        ValueError: The file does not hold a state dict of this network.
+    """
+    import torch
+    from stable_baselines3 import PPO
+
+    from ermrl.agents._hyperparams import ppo_kwargs
+
+    state = torch.load(str(path), map_location="cpu", weights_only=True)
+    if not isinstance(state, dict) or not all(
+        isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in state.items()
+    ):
+        raise ValueError(f"{path} does not hold a policy state dict (names to tensors)")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # rollout-size hints about a buffer never filled here
+        model = PPO("MlpPolicy", env, device="cpu", verbose=0, **ppo_kwargs(ppo))
+    try:
+        model.policy.load_state_dict(state)
+    except RuntimeError as err:
+        first = str(err).strip().splitlines()[0]
+        raise ValueError(
+            f"{path} does not match the run's PPO settings and spaces: {first}"
+        ) from None
+    model.policy.set_training_mode(False)
+    return model

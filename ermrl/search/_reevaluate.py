@@ -1,0 +1,327 @@
+"""An honest winner: re-train the best candidates of a finished study on fresh seeds.
+
+The best trial of an evolution is the maximum of noisy fitness values, so its fitness is biased
+upwards (the winner's curse) and its rank among close candidates is partly luck. With
+``--reevaluate-top K``, once a study's budget is spent, its ``K`` best trials and the unevolved
+reference trial are trained again on seeds that neither evolution nor the test phase use
+(:func:`reevaluation_seeds`), optionally at another budget (``--reevaluate-steps``, e.g. the test
+budget). The runs are trials of a sibling study named ``<study>.reeval`` in the same storage,
+so they get everything evolution trials get: any number of workers share them, a dead worker's
+candidate is retried, SIGTERM and Ctrl-C lose nothing, and re-running the command resumes.
+
+The ranking is recorded in the evolution study's user attribute ``ermrl_reevaluation`` (plain
+JSON), which the test phase reads (:func:`select_trial`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+from collections.abc import Callable
+from typing import Any, TextIO
+
+import numpy as np
+import optuna
+from optuna.trial import FrozenTrial, TrialState
+
+from ermrl.config import ConfigError, EvolveConfig, Problem
+from ermrl.storage import study_lock
+
+__all__ = [
+    "CANDIDATE_ATTR",
+    "REEVALUATION_ATTR",
+    "reevaluation_config",
+    "reevaluation_seeds",
+    "reevaluation_study_name",
+    "reevaluate_study",
+    "select_trial",
+    "top_candidates",
+]
+
+REEVALUATION_ATTR = "ermrl_reevaluation"
+CANDIDATE_ATTR = "candidate"
+# Re-evaluation seeds start this far above the largest evolution seed, clear of the test phase's
+# default seeds (the five after the largest evolution seed).
+SEED_OFFSET = 1000
+
+
+def reevaluation_study_name(study_name: str) -> str:
+    """Name of the sibling study that holds a study's re-evaluation runs."""
+    return f"{study_name}.reeval"
+
+
+def reevaluation_seeds(problem: Problem, n: int) -> tuple[int, ...]:
+    """``n`` fresh seeds: ``max(evolution seeds) + 1000`` and up."""
+    start = max(problem.seeds) + SEED_OFFSET
+    return tuple(range(start, start + n))
+
+
+def reevaluation_config(config: EvolveConfig, n_candidates: int) -> EvolveConfig:
+    """The configuration of a study's re-evaluation: fresh seeds, its budget, queued trials only."""
+    from ermrl.config import SearchConfig
+
+    search = config.search
+    budget = dataclasses.replace(
+        config.problem.budget,
+        training_steps=search.reevaluate_steps or config.problem.budget.training_steps,
+        n_reports=0,
+    )
+    problem = dataclasses.replace(
+        config.problem,
+        seeds=reevaluation_seeds(config.problem, search.reevaluate_seeds),
+        budget=budget,
+    )
+    # Every trial is a queued candidate; the sampler never proposes a point.
+    quiet_search = SearchConfig(
+        sampler="random", sampler_seed=0, n_trials=max(n_candidates, 1), reference_trial=False
+    )
+    return dataclasses.replace(config, problem=problem, search=quiet_search)
+
+
+def _params_key(trial: FrozenTrial) -> tuple[tuple[str, float], ...]:
+    return tuple(sorted(trial.params.items()))
+
+
+def top_candidates(study: optuna.Study, k: int) -> list[FrozenTrial]:
+    """The ``k`` best COMPLETE trials with distinct parameters, and the reference trial.
+
+    Ties go to the earlier trial. The reference trial (user attribute ``reference``) is added
+    when it is not among the ``k`` best, so the evolved winner always faces it.
+    """
+    complete = [
+        t
+        for t in study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
+        if t.value is not None and math.isfinite(t.value)
+    ]
+    complete.sort(key=lambda t: (-float(t.value), t.number))  # type: ignore[arg-type]
+    out: list[FrozenTrial] = []
+    seen: set[tuple[tuple[str, float], ...]] = set()
+    for t in complete:
+        if len(out) == k:
+            break
+        if _params_key(t) not in seen:
+            seen.add(_params_key(t))
+            out.append(t)
+    for t in complete:
+        if t.user_attrs.get("reference") and _params_key(t) not in seen:
+            out.append(t)
+            break
+    return out
+
+
+def _study_finished(study: optuna.Study, n_trials: int) -> tuple[bool, int]:
+    """Whether the budget is spent and no trial runs or waits; and how many still run."""
+    trials = study.get_trials(deepcopy=False)
+    done = sum(t.state in (TrialState.COMPLETE, TrialState.PRUNED) for t in trials)
+    busy = sum(t.state in (TrialState.RUNNING, TrialState.WAITING) for t in trials)
+    return done >= n_trials and busy == 0, busy
+
+
+def _seed_values(trial: FrozenTrial) -> list[float]:
+    """Per-seed values behind a trial's fitness (per-seed mean normalized return for multi-task)."""
+    attrs = trial.user_attrs
+    if "task_seed_returns" in attrs and "task_normalized" in attrs:
+        return []  # multi-task: the fitness is a mean over tasks; per-task values are recorded
+    key = "returns_eval" if attrs.get("fitness_mode") == "eval" else "returns_last"
+    return [float(v) for v in attrs.get(key) or [] if v is not None]
+
+
+def record_reevaluation(
+    study: optuna.Study, rstudy: optuna.Study, rconfig: EvolveConfig, candidates: list[int]
+) -> dict[str, Any]:
+    """Write the ranking of the re-evaluated candidates into ``study`` (``ermrl_reevaluation``).
+
+    Args:
+        study: The evolution study.
+        rstudy: Its re-evaluation study.
+        rconfig: The re-evaluation configuration (seeds, budget).
+        candidates: Trial numbers of the current candidates.
+
+    Returns:
+        The recorded document.
+    """
+    evolved = {t.number: t for t in study.get_trials(deepcopy=False)}
+    rows = []
+    for t in rstudy.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)):
+        number = t.user_attrs.get(CANDIDATE_ATTR)
+        if number not in candidates or t.value is None:
+            continue
+        values = _seed_values(t)
+        source = evolved.get(int(number))
+        rows.append(
+            {
+                "trial": int(number),
+                "reference": bool(source is not None and source.user_attrs.get("reference")),
+                "params": dict(t.params),
+                "fitness": float(t.value),
+                "std": float(np.std(values, ddof=1)) if len(values) > 1 else None,
+                "seed_values": values,
+                "evolution_fitness": None if source is None else source.value,
+                "reevaluation_trial": t.number,
+            }
+        )
+    rows.sort(key=lambda r: (-r["fitness"], r["trial"]))
+    doc = {
+        "study": rstudy.study_name,
+        "seeds": list(rconfig.problem.seeds),
+        "training_steps": rconfig.problem.budget.training_steps,
+        "fitness_mode": rconfig.problem.budget.fitness,
+        "complete": len(rows) == len(candidates),
+        "best_trial": rows[0]["trial"] if rows else None,
+        "candidates": rows,
+    }
+    study.set_user_attr(REEVALUATION_ATTR, doc)
+    return doc
+
+
+def reevaluate_study(
+    config: EvolveConfig,
+    study: optuna.Study,
+    storage_url: str,
+    *,
+    evaluator_factory: Callable[[EvolveConfig], Any] | None = None,
+    quiet: bool = False,
+    stream: TextIO | None = None,
+    wait_for_running: bool = True,
+    heartbeat_interval: int | None = None,
+    grace_period: int | None = None,
+    max_retry: int | None = None,
+) -> dict[str, Any] | None:
+    """Re-train the study's best candidates on fresh seeds and record the ranking.
+
+    Call it after :func:`~ermrl.search.run_evolution` returned; it does nothing until the
+    study's budget is spent with no trial running. Several workers may call it at once: they
+    share the candidates through the sibling study.
+
+    Args:
+        config: The evolution's configuration (``search.reevaluate_*`` set the re-evaluation).
+        study: The evolution study.
+        storage_url: Its storage (the sibling study lives there too).
+        evaluator_factory: Builds the fitness of the re-evaluation config (the multi-task
+            pipeline passes :func:`~ermrl.search.generalization_evaluator`); ``None``: the
+            single-task fitness.
+        quiet: No progress lines.
+        stream: Where progress lines go.
+        wait_for_running: Wait for other workers' re-evaluation runs at the end.
+        heartbeat_interval: Heartbeats of the re-evaluation trials (as for evolution).
+        grace_period: Seconds without heartbeat before a run is failed and retried.
+        max_retry: Retries of a run whose worker died.
+
+    Returns:
+        The recorded ranking (see :func:`record_reevaluation`), or ``None`` when re-evaluation
+        is off, the study is not finished, or it has no COMPLETE trial.
+    """
+    from ermrl.search._evolve import create_or_resume_study, format_params, run_evolution
+
+    out = stream or sys.stdout
+
+    def say(line: str) -> None:
+        if not quiet:
+            print(line, file=out, flush=True)
+
+    k = config.search.reevaluate_top
+    if k == 0:
+        return None
+    finished, busy = _study_finished(study, config.search.n_trials)
+    if not finished:
+        say(
+            f"re-evaluation waits for the study to finish ({busy} trial(s) running or queued); "
+            "run this command again when they are done"
+        )
+        return None
+    candidates = top_candidates(study, k)
+    if not candidates:
+        say("re-evaluation skipped: the study has no COMPLETE trial")
+        return None
+    numbers = [t.number for t in candidates]
+    rconfig = reevaluation_config(config, len(candidates))
+    name = reevaluation_study_name(study.study_name)
+    rstudy = create_or_resume_study(
+        rconfig,
+        storage_url,
+        name,
+        kind="reevaluation",
+        heartbeat_interval=heartbeat_interval,
+        grace_period=grace_period,
+        max_retry=max_retry,
+    )
+    with study_lock(rstudy):
+        trials = rstudy.get_trials(deepcopy=False)
+        present = {t.user_attrs.get(CANDIDATE_ATTR) for t in trials}
+        for t in candidates:
+            if t.number not in present:
+                rstudy.enqueue_trial(dict(t.params), user_attrs={CANDIDATE_ATTR: t.number})
+        n_total = len(present - {None} | set(numbers))
+    rconfig = dataclasses.replace(
+        rconfig, search=dataclasses.replace(rconfig.search, n_trials=n_total)
+    )
+    seeds = rconfig.problem.seeds
+    say(
+        f"re-evaluating {len(candidates)} candidates (trials {', '.join(map(str, numbers))}) on "
+        f"seeds {seeds[0]}..{seeds[-1]}, {rconfig.problem.budget.training_steps} steps each"
+    )
+    evaluate = evaluator_factory(rconfig) if evaluator_factory is not None else None
+    run_evolution(
+        rconfig,
+        rstudy,
+        quiet=quiet,
+        stream=stream,
+        evaluate=evaluate,
+        wait_for_running=wait_for_running,
+        queued_only=True,
+    )
+    with study_lock(study):
+        doc = record_reevaluation(study, rstudy, rconfig, numbers)
+    if doc["candidates"]:
+        say("re-evaluated ranking (mean over fresh seeds; evolution fitness in brackets):")
+        for row in doc["candidates"]:
+            tag = " (reference)" if row["reference"] else ""
+            std = "" if row["std"] is None else f" ± {row['std']:.3g}"
+            evo = row["evolution_fitness"]
+            say(
+                f"  trial {row['trial']}{tag}: {row['fitness']:.4g}{std} "
+                f"[{'-' if evo is None else f'{evo:.4g}'}] {format_params(row['params'])}"
+            )
+    if not doc["complete"]:
+        say("re-evaluation incomplete: other workers still run candidates; re-run to finish")
+    return doc
+
+
+def select_trial(study: optuna.Study, trial_number: int | None = None) -> tuple[FrozenTrial, str]:
+    """The trial the test phase should use, and how it was chosen.
+
+    Args:
+        study: An evolution study.
+        trial_number: An explicit trial (wins over any ranking).
+
+    Returns:
+        The trial and a phrase saying how it was selected: ``"trial N (--trial)"``,
+        ``"re-evaluated best of K candidates ..."`` or ``"best evolution fitness ..."``.
+
+    Raises:
+        ConfigError: no such trial, or no COMPLETE trial.
+    """
+    trials = {t.number: t for t in study.get_trials(deepcopy=False)}
+    if trial_number is not None:
+        if trial_number not in trials:
+            raise ConfigError(f"study {study.study_name!r} has no trial {trial_number}")
+        return trials[trial_number], f"trial {trial_number} (--trial)"
+    doc = study.user_attrs.get(REEVALUATION_ATTR)
+    if isinstance(doc, dict) and doc.get("complete") and doc.get("best_trial") in trials:
+        seeds = doc["seeds"]
+        how = (
+            f"re-evaluated best of {len(doc['candidates'])} candidates "
+            f"({len(seeds)} fresh seeds x {doc['training_steps']} steps)"
+        )
+        return trials[doc["best_trial"]], how
+    try:
+        best = study.best_trial
+    except ValueError as err:
+        raise ConfigError(f"study {study.study_name!r} has no COMPLETE trial yet") from err
+    why = (
+        "re-evaluation incomplete"
+        if isinstance(doc, dict)
+        else "no re-evaluation; evolve with --reevaluate-top K for an unbiased pick"
+    )
+    return best, f"best evolution fitness ({why})"

@@ -1,0 +1,342 @@
+"""Bad input is refused with one line on stderr and exit code 2, before anything is written."""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import os
+import stat
+import subprocess
+
+import pytest
+
+from ermrl.cli._evolve import evolve_main
+from ermrl.cli._generalization import evolve_generalization_main
+
+FAST = ["--n-trials", "1", "--n-seeds", "1", "--training-steps", "64", "--quiet"]
+
+
+@pytest.fixture(autouse=True)
+def _no_training(monkeypatch):  # noqa: ANN001, ANN202
+    """Input that gets past validation must not train (``--training-steps 1e30`` would run
+    forever on code without the limit): the study is created, then the run is skipped, and the
+    test sees the database file it must not find."""
+    import ermrl.cli._evolve
+    import ermrl.cli._generalization
+
+    for module in (ermrl.cli._evolve, ermrl.cli._generalization):
+        monkeypatch.setattr(module, "run_and_report", lambda *a, **k: 0)
+
+
+def _refused(main, argv, capsys) -> str:  # noqa: ANN001
+    """Run a CLI entry point in-process; assert exit 2 and a single stderr line."""
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1, err
+    return err
+
+
+def _evolve(tmp_path, *extra: str) -> list[str]:  # noqa: ANN001
+    db = tmp_path / "s.db"
+    return ["--env-id", "Pendulum-v1", *FAST, "--storage", f"sqlite:///{db}", *extra]
+
+
+@pytest.mark.parametrize(
+    ("extra", "expected"),
+    [
+        (["--ppo", "n_steps=0"], "n_steps"),
+        (["--ppo", "n_steps=1", "n_envs=1"], "n_steps"),
+        (["--ppo", "learning_rate=abc"], "learning_rate"),
+        (["--ppo", "learning_rate=-1"], "learning_rate"),
+        (["--ppo", "learning_rate=lin_abc"], "learning_rate"),
+        (["--ppo", "batch_size=0"], "batch_size"),
+        (["--ppo", "policy_kwargs={net_arch: foo}"], "refused"),
+        (["--ppo", "gamma=2"], "gamma"),
+        (["--ppo", "n_steps=100000000"], "n_steps * n_envs"),
+        (["--units", "1e9"], "units"),
+        (["--units", "5000", "--n-reservoirs", "3"], "units"),
+        (["--training-steps", "1e30"], "training steps"),
+        (["--training-steps", "1e400"], "integer"),
+        (["--n-trials", "1e7"], "n_trials"),
+        (["--n-seeds", "5000"], "seeds"),
+        (["--bias-scaling", "nan"], "bias_scaling"),
+        (["--bias-scaling", "inf"], "bias_scaling"),
+        (["--n-envs", "100000"], "n_envs"),
+    ],
+)
+def test_evolve_refuses_bad_values_before_the_study_exists(tmp_path, capsys, extra, expected):  # noqa: ANN001
+    """Values that used to fail only inside the first trial (after the study and a FAIL trial
+    were stored) are refused up front: exit 2, one line, no database file."""
+    err = _refused(evolve_main, _evolve(tmp_path, *extra), capsys)
+    assert expected in err
+    assert not (tmp_path / "s.db").exists()
+
+
+@pytest.mark.parametrize("env_id", [".:Pendulum-v1", ":Pendulum-v1", "..x:Pendulum-v1"])
+def test_evolve_refuses_malformed_module_prefix(tmp_path, capsys, env_id):  # noqa: ANN001
+    argv = _evolve(tmp_path)
+    argv[1] = env_id
+    err = _refused(evolve_main, argv, capsys)
+    assert "not a module name" in err
+    assert not (tmp_path / "s.db").exists()
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        ("Pendulum-v1: {n_steps: [\n", "not valid plain YAML"),
+        ("Pendulum-v1: !!python/object/apply:os.system ['echo hacked']\n", "not valid plain YAML"),
+        ("Pendulum-v1: 5\n", "must be a mapping"),
+        ("- 1\n- 2\n", "must map env ids"),
+    ],
+)
+def test_evolve_refuses_malformed_hyperparams_file(tmp_path, capsys, text, expected):  # noqa: ANN001
+    table = tmp_path / "ppo.yml"
+    table.write_text(text)
+    err = _refused(evolve_main, _evolve(tmp_path, "--hyperparams", str(table)), capsys)
+    assert expected in err
+    assert "hacked" not in capsys.readouterr().out
+    assert not (tmp_path / "s.db").exists()
+
+
+# -- evolve-generalization ------------------------------------------------------------------------
+
+
+def _generalization(tmp_path, *extra: str) -> list[str]:  # noqa: ANN001
+    db = tmp_path / "s.db"
+    return ["--env-ids", "Swimmer-v5", "Hopper-v5", *FAST, "--storage", f"sqlite:///{db}", *extra]
+
+
+@pytest.mark.parametrize(
+    ("extra", "expected"),
+    [
+        (["--ppo", "n_steps=0"], "n_steps"),
+        (["--ppo", "learning_rate=abc"], "learning_rate"),
+        (["--ppo", "policy_kwargs={net_arch: foo}"], "refused"),
+        (["--units", "1e9"], "units"),
+        (["--training-steps", "1e30"], "training steps"),
+    ],
+)
+def test_evolve_generalization_refuses_bad_values_before_the_study_exists(
+    tmp_path, capsys, extra, expected
+):  # noqa: ANN001
+
+    err = _refused(evolve_generalization_main, _generalization(tmp_path, *extra), capsys)
+    assert expected in err
+    assert not (tmp_path / "s.db").exists()
+
+
+def test_malformed_suites_file_is_one_line(tmp_path, capsys):  # noqa: ANN001
+    """PyYAML's parse error spans several lines (the line and a caret); the CLI gives one."""
+
+    suites = tmp_path / "suites.yml"
+    suites.write_text("mine: [Hopper-v5,\n  other: {\n")
+    argv = ["--suite", "mine", "--suites-file", str(suites), *FAST]
+    err = _refused(
+        evolve_generalization_main, [*argv, "--storage", f"sqlite:///{tmp_path}/s.db"], capsys
+    )
+    assert "not valid YAML" in err
+    assert not (tmp_path / "s.db").exists()
+
+
+# -- test phase -----------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def study_url(tmp_path):  # noqa: ANN001, ANN201
+    """A Pendulum study without trials (``--agents ppo`` needs none); nothing is trained."""
+    url = f"sqlite:///{tmp_path / 'study.db'}"
+    assert evolve_main([*_evolve(tmp_path)[:-2], "--storage", url, "--study-name", "s"]) == 0
+    return url
+
+
+def _test_argv(url: str, out, *extra: str) -> list[str]:  # noqa: ANN001
+    return [
+        *("--study-name", "s", "--storage", url, "--agents", "ppo", "--seeds", "100"),
+        *("--training-steps", "64", "--quiet", "--out", str(out), *extra),
+    ]
+
+
+@contextlib.contextmanager
+def _tmpfs(where, *options: str):  # noqa: ANN001, ANN202
+    """Mount a small tmpfs at ``where`` (needs root; the test is skipped otherwise)."""
+    where.mkdir()
+    proc = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", ",".join(options), "tmpfs", str(where)],
+        capture_output=True,
+        text=True,
+    )
+    if proc.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs to fill up (needs root): {proc.stderr.strip()}")
+    try:
+        yield where
+    finally:
+        subprocess.run(["umount", "--lazy", str(where)], check=False)
+
+
+def test_test_out_is_a_file(study_url, tmp_path, capsys):  # noqa: ANN001
+    from ermrl.cli._test import test_main
+
+    out = tmp_path / "results"
+    out.write_text("mine\n")
+    err = _refused(test_main, _test_argv(study_url, out), capsys)
+    assert "is a file" in err
+    assert out.read_text() == "mine\n"
+    err = _refused(test_main, _test_argv(study_url, out / "sub"), capsys)
+    assert "is a file" in err
+
+
+def test_test_out_read_only(study_url, tmp_path, capsys):  # noqa: ANN001
+    from ermrl.cli._test import test_main
+
+    with _tmpfs(tmp_path / "ro", "ro", "size=1m") as ro:
+        err = _refused(test_main, _test_argv(study_url, ro / "out"), capsys)
+        assert "cannot write" in err and "read-only" in err
+
+
+def test_test_refuses_bad_ppo_override_before_writing(study_url, tmp_path, capsys):  # noqa: ANN001
+    from ermrl.cli._test import test_main
+
+    out = tmp_path / "out"
+    for bad in ("n_steps=0", "learning_rate=abc", "policy_kwargs={net_arch: foo}"):
+        err = _refused(test_main, _test_argv(study_url, out, "--ppo", bad), capsys)
+        assert bad.partition("=")[0] in err or "refused" in err
+        assert not out.exists()
+
+
+def test_test_on_a_full_disk(study_url, tmp_path, capsys):  # noqa: ANN001
+    """A real full disk (a 64 KiB tmpfs; PPO's model.zip is larger): one line, exit 2, and no
+    truncated model.zip (nor temporary file) left behind."""
+    from ermrl.cli._test import test_main
+
+    with _tmpfs(tmp_path / "full", "size=64k") as full:
+        out = full / "out"
+        err = _refused(test_main, _test_argv(study_url, out), capsys)
+        assert "No space left on device" in err
+        folder = out / "agents" / "ppo" / "seed_100"
+        assert not (folder / "model.zip").exists()
+        leftovers = [p.name for p in out.rglob("*") if p.is_file()]
+        assert not [n for n in leftovers if n.startswith(".") or n.endswith(".partial")], leftovers
+
+
+# -- write_atomic ---------------------------------------------------------------------------------
+
+
+def test_write_atomic_on_a_full_disk_leaves_nothing_behind(tmp_path):  # noqa: ANN001
+    """A real full disk (a 64 KiB tmpfs): the old file stays whole and no temporary file stays."""
+    from ermrl.analysis import write_atomic
+
+    with _tmpfs(tmp_path / "full", "size=64k") as full:
+        target = full / "summary.csv"
+        write_atomic(target, "old\n")
+        with pytest.raises(OSError) as exc:
+            write_atomic(target, "x" * 200_000)
+        assert exc.value.errno == errno.ENOSPC
+        assert target.read_text() == "old\n"
+        assert [p.name for p in full.iterdir()] == ["summary.csv"]
+
+
+@pytest.mark.parametrize(("umask", "mode"), [(0o022, 0o644), (0o027, 0o640), (0o002, 0o664)])
+def test_write_atomic_respects_the_umask(tmp_path, umask, mode):  # noqa: ANN001
+    """Files are readable by the group/others the umask allows (mkstemp alone gives 0600)."""
+    from ermrl.analysis import write_atomic
+
+    old = os.umask(umask)
+    try:
+        write_atomic(tmp_path / "summary.csv", "a,b\n")
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE((tmp_path / "summary.csv").stat().st_mode) == mode
+
+
+# -- the stored command ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("main", "prog", "argv"),
+    [
+        (evolve_main, "ermrl evolve", ["--env-id", "Pendulum-v1"]),
+        (evolve_main, "evolve_res.py", ["--env-id", "Pendulum-v1"]),
+        (evolve_generalization_main, "ermrl evolve-generalization", ["--env-ids", "Hopper-v5"]),
+    ],
+)
+def test_stored_command_can_be_pasted_into_a_shell(tmp_path, main, prog, argv):  # noqa: ANN001
+    """``shlex.join(["ermrl evolve", ...])`` gave ``'ermrl evolve' --env-id ...``, which a shell
+    runs as one (missing) program; each word of the program name is now its own word."""
+    import shlex
+
+    import optuna
+
+    url = f"sqlite:///{tmp_path / 'my study.db'}"
+    full = [*argv, *FAST, "--storage", url, "--study-name", "s"]
+    assert main(full, prog=prog) == 0
+    command = optuna.load_study(study_name="s", storage=url).user_attrs["ermrl_command"]
+    assert command.startswith(f"{prog} {argv[0]} ")
+    assert shlex.split(command) == [*prog.split(), *full]
+
+
+# -- SIGTERM between trials -----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("signame", "code", "expected"),
+    [
+        ("SIGTERM", 143, "stopped by SIGTERM between trials"),
+        ("SIGINT", 130, "interrupted between trials"),
+    ],
+)
+def test_signal_while_waiting_says_no_trial_was_running(
+    tmp_path, monkeypatch, capsys, signame, code, expected
+):  # noqa: ANN001
+    """A worker that has reached the budget waits for another worker's running trial; a signal
+    then closes nothing, and the message must not claim that a trial was closed (and queued)."""
+    import signal
+    import threading
+
+    import optuna
+
+    import ermrl.cli._evolve
+
+    url = f"sqlite:///{tmp_path / 's.db'}"
+    argv = [*_evolve(tmp_path)[:-2], "--storage", url, "--study-name", "s", "--no-reference-trial"]
+    assert evolve_main(argv) == 0  # creates the study (training stubbed by _no_training)
+    monkeypatch.undo()  # the real run_and_report from here on
+    study = optuna.load_study(study_name="s", storage=url)
+    study.tell(study.ask(), 0.0)  # the budget (1 trial) is spent...
+    study.ask()  # ...and another worker's trial is running
+    capsys.readouterr()
+    timer = threading.Timer(2.0, os.kill, (os.getpid(), getattr(signal, signame)))
+    timer.start()
+    try:
+        returned = ermrl.cli._evolve.evolve_main(argv)
+    finally:
+        timer.cancel()
+    assert returned == code
+    err = capsys.readouterr().err
+    assert expected in err, err
+    assert "closed as FAIL" not in err and "queued again" not in err
+    states = [t.state.name for t in optuna.load_study(study_name="s", storage=url).trials]
+    assert states == ["COMPLETE", "RUNNING"]  # the other worker's trial is untouched
+
+
+# -- report ---------------------------------------------------------------------------------------
+
+
+def test_report_on_a_study_without_completed_trials(study_url, tmp_path, capsys):  # noqa: ANN001
+    """An empty study used to give exit 0 and a report of empty figures."""
+    from ermrl.cli._report import report_main
+
+    out = tmp_path / "report"
+    argv = ["--study-name", "s", "--storage", study_url, "--out", str(out), "--quiet"]
+    err = _refused(report_main, argv, capsys)
+    assert "no completed trial" in err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("value", ["abc", "1.5", "[1]", ".inf", ".nan"])
+def test_n_envs_must_be_a_whole_number(tmp_path, capsys, value):  # noqa: ANN001
+    err = _refused(evolve_main, _evolve(tmp_path, "--ppo", f"n_envs={value}"), capsys)
+    assert "n_envs" in err
+    assert not (tmp_path / "s.db").exists()

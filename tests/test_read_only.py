@@ -1,0 +1,134 @@
+"""Commands that only read a study create nothing: no storage file, lock file or output folder."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import optuna
+import pytest
+
+from ermrl.cli import main
+from ermrl.storage import StorageError, load_study, open_storage
+
+optuna.logging.set_verbosity(optuna.logging.WARNING)
+
+READERS = [
+    ["test", "--study-name", "X"],
+    ["test-generalization", "--study-name", "X", "--env-id", "Pendulum-v1"],
+    ["study", "show", "--study-name", "X"],
+    ["study", "list"],
+    ["study", "export", "--study-name", "X", "--out", "t.csv"],
+    ["study", "fail-stale", "--study-name", "X", "--older-than", "1h"],
+    ["report", "--study-name", "X"],
+]
+
+
+def _files(where: Path) -> list[str]:
+    return sorted(str(p.relative_to(where)) for p in where.rglob("*"))
+
+
+def _fails_in_one_line(argv: list[str], capsys: pytest.CaptureFixture[str]) -> str:
+    with pytest.raises(SystemExit) as err:
+        main(argv)
+    assert err.value.code == 2
+    message = capsys.readouterr().err.strip()
+    assert "\n" not in message
+    return message
+
+
+@pytest.mark.parametrize("argv", READERS, ids=lambda a: " ".join(a[:2]))
+@pytest.mark.parametrize("storage", [None, "sqlite:///nosuch.db", "nosuch.log"])
+def test_readers_on_a_missing_storage_fail_and_create_nothing(
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+    argv: list[str],
+    storage: str | None,
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    extra = [] if storage is None else ["--storage", storage]
+    message = _fails_in_one_line([*argv, *extra], capsys)
+    name = "nosuch.log" if storage == "nosuch.log" else "nosuch.db" if storage else "ermrl.db"
+    assert name in message
+    assert _files(tmp_path) == []
+
+
+@pytest.mark.parametrize("storage", ["sqlite:///s.db", "s.log"])
+def test_readers_on_an_unknown_study_create_nothing(
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+    storage: str,
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    study = optuna.create_study(study_name="demo", storage=open_storage(storage))
+    study.optimize(lambda t: t.suggest_float("x", 0, 1), n_trials=1)
+    before = _files(tmp_path)
+    for argv in READERS:
+        if argv[1:2] == ["list"]:
+            continue
+        assert "no study named 'X'" in _fails_in_one_line([*argv, "--storage", storage], capsys)
+    assert main(["study", "show", "--study-name", "demo", "--storage", storage]) == 0
+    assert main(["study", "list", "--storage", storage]) == 0
+    assert _files(tmp_path) == before  # no ermrl.db, no .lock, no reports/X
+
+
+def test_report_refuses_a_missing_runs_folder(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    optuna.create_study(study_name="demo", storage=open_storage("sqlite:///s.db"))
+    argv = ["report", "--study-name", "demo", "--storage", "sqlite:///s.db"]
+    message = _fails_in_one_line([*argv, "--runs", str(tmp_path / "missing")], capsys)
+    assert "missing" in message
+    assert _files(tmp_path) == ["s.db", "s.db.lock"]
+
+
+@pytest.mark.parametrize("command", ["dynamics", "video"])
+def test_run_folder_readers_refuse_a_missing_run(
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+    command: str,
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    assert "missing" in _fails_in_one_line([command, "--run", "missing"], capsys)
+    assert _files(tmp_path) == []
+
+
+def test_load_study_reads_only_and_workers_still_create(tmp_path: Path) -> None:
+    for url in (f"sqlite:///{tmp_path}/s.db", f"{tmp_path}/s.log"):
+        with pytest.raises(StorageError, match="no (SQLite database|journal file)"):
+            load_study("s", url)
+        assert _files(tmp_path) == []
+        with pytest.raises(StorageError, match="no (SQLite database|journal file)"):
+            open_storage(url, mode="write")
+    open_storage(f"sqlite:///{tmp_path}/s.db")  # the default mode creates, as workers need
+    open_storage(f"{tmp_path}/s.log")
+    assert {"s.db", "s.log"} <= set(_files(tmp_path))
+
+
+@pytest.mark.parametrize("url", ["sqlite://", "sqlite:///:memory:"])
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["evolve", "--env-id", "Pendulum-v1", "--training-steps", "256", "--n-trials", "1"],
+        ["evolve-generalization", "--env-id", "Pendulum-v1", "--training-steps", "256"],
+        ["study", "create", "--study-name", "X"],
+        ["study", "repair"],
+        *READERS,
+    ],
+    ids=lambda a: " ".join(a[:2]),
+)
+def test_an_in_memory_sqlite_storage_is_refused(
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+    argv: list[str],
+    url: str,
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    message = _fails_in_one_line([*argv, "--storage", url], capsys)
+    assert "in-memory" in message
+    with pytest.raises(StorageError, match="in-memory"):
+        open_storage(url)

@@ -1,0 +1,215 @@
+"""The reference trial, the CMA-ES start and the re-evaluation of the best candidates."""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import optuna
+import pytest
+from optuna.trial import TrialState
+
+from ermrl.config import EvolveConfig, ReservoirSpace, SearchConfig
+from ermrl.search import (
+    REEVALUATION_ATTR,
+    FitnessResult,
+    create_or_resume_study,
+    reevaluate_study,
+    reevaluation_seeds,
+    reevaluation_study_name,
+    run_evolution,
+    select_trial,
+    top_candidates,
+)
+from ermrl.search._evolve import cma_start
+from tests.test_search import make_config
+
+optuna.logging.set_verbosity(optuna.logging.WARNING)
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def stub_fitness(calls: list | None = None, noise: dict | None = None):  # noqa: ANN201
+    """A fitness that peaks at sr = 1 and records the seeds it was asked for."""
+
+    def evaluate(reservoirs, runner, report):  # noqa: ANN001, ANN202
+        sr = reservoirs[0].sr
+        value = -(math.log10(sr) ** 2) + (noise or {}).get(round(sr, 6), 0.0)
+        if calls is not None:
+            calls.append(round(sr, 6))
+        return FitnessResult(fitness=value, mode="last", runs=[], wall_seconds=0.0)
+
+    return evaluate
+
+
+def test_reference_trial_competes_and_is_told_to_cma_es(tmp_path: Path) -> None:
+    config = make_config(n_trials=5, popsize=4)
+    study = create_or_resume_study(config, f"sqlite:///{tmp_path}/s.db", "s")
+    run_evolution(config, study, quiet=True, evaluate=stub_fitness())
+    trials = study.get_trials()
+    assert trials[0].user_attrs["reference"] is True
+    assert trials[0].params == {"sr": 1.0, "lr": 1.0, "input_scaling": 1.0}
+    # Every trial, the reference included, belongs to a CMA-ES generation.
+    assert [t.system_attrs["cma:restart_0:generation"] for t in trials] == [0, 0, 0, 0, 1]
+    assert sum(bool(t.user_attrs.get("reference")) for t in trials) == 1
+    # The reference is the optimum of this fitness: the study's best cannot be worse.
+    assert study.best_value == pytest.approx(0.0)
+
+
+def test_reference_outside_the_space_is_said_and_skipped(tmp_path: Path) -> None:
+    config = make_config(n_trials=2)
+    config = dataclasses.replace(
+        config, space=dataclasses.replace(config.space, lr=config.space.lr.__class__(0.01, 0.5))
+    )
+    with pytest.warns(UserWarning, match="outside the search space"):
+        study = create_or_resume_study(config, f"sqlite:///{tmp_path}/s.db", "s")
+    assert study.get_trials() == []
+    no_ref = make_config(n_trials=2, reference_trial=False)
+    study = create_or_resume_study(no_ref, f"sqlite:///{tmp_path}/s.db", "t")
+    assert study.get_trials() == []
+
+
+def test_cma_start_reference_or_center() -> None:
+    space = ReservoirSpace()
+    reference = SearchConfig(start="reference")
+    assert cma_start(reference, space) == {"sr": 1.0, "lr": 1.0, "input_scaling": 1.0}
+    centre = cma_start(SearchConfig(), space)  # the default
+    assert centre == pytest.approx({"sr": 0.1, "lr": 0.1, "input_scaling": 1.0})
+    narrow = dataclasses.replace(space, sr=space.sr.__class__(2.0, 10.0))
+    assert cma_start(reference, narrow)["sr"] == 2.0  # clipped into the box
+
+
+def test_old_stored_search_configs_read_as_what_they_were() -> None:
+    data = make_config().to_dict()
+    for key in ("start", "reference_trial", "reevaluate_top", "reevaluate_seeds"):
+        data["search"].pop(key)
+    old = EvolveConfig.from_dict(data)
+    assert old.search.start == "center" and old.search.reference_trial is False
+    assert old.search.reevaluate_top == 0
+
+
+def test_trials_record_the_reservoir_dtype(tmp_path: Path) -> None:
+    config = make_config(n_trials=1, steps=256, seeds=(0,))  # one 200-step episode ends
+    study = create_or_resume_study(config, f"sqlite:///{tmp_path}/s.db", "s")
+    run_evolution(config, study, quiet=True)
+    assert study.trials[0].state == TrialState.COMPLETE
+    assert study.trials[0].user_attrs["dtype"] == "float32"
+
+
+def test_top_candidates_are_distinct_and_include_the_reference(tmp_path: Path) -> None:
+    config = make_config(n_trials=9, popsize=4)
+    study = create_or_resume_study(config, f"sqlite:///{tmp_path}/s.db", "s")
+    # The reference (sr = 1) is made the worst here, so it only enters as the reference.
+    run_evolution(config, study, quiet=True, evaluate=stub_fitness(noise={1.0: -100.0}))
+    top = top_candidates(study, 2)
+    assert len(top) == 3
+    values = [t.value for t in top[:2]]
+    assert values == sorted(values, reverse=True)
+    assert values[0] == study.best_value
+    assert top[2].user_attrs["reference"] is True
+    assert len({tuple(t.params.items()) for t in top}) == 3
+
+
+def test_reevaluation_ranks_on_fresh_seeds_and_the_test_phase_uses_it(tmp_path: Path) -> None:
+    url = f"sqlite:///{tmp_path}/s.db"
+    config = make_config(n_trials=6, popsize=4, reevaluate_top=2, reevaluate_seeds=2)
+    study = create_or_resume_study(config, url, "s")
+    run_evolution(config, study, quiet=True, evaluate=stub_fitness())
+    best_by_fitness, how = select_trial(study)
+    assert "no re-evaluation" in how
+    # Re-evaluation: the lucky evolution winner is beaten on fresh seeds.
+    calls: list[float] = []
+    lucky = round(best_by_fitness.params["sr"], 6)
+    assert best_by_fitness.user_attrs["reference"] is True  # sr = 1 is the optimum
+    factory_configs: list[EvolveConfig] = []
+
+    def factory(rconfig: EvolveConfig):  # noqa: ANN202
+        factory_configs.append(rconfig)
+        return stub_fitness(calls, noise={lucky: -10.0})
+
+    out = io.StringIO()
+    doc = reevaluate_study(config, study, url, evaluator_factory=factory, stream=out)
+    assert doc is not None and doc["complete"]
+    rconfig = factory_configs[0]
+    assert rconfig.problem.seeds == reevaluation_seeds(config.problem, 2) == (1001, 1002)
+    assert not set(rconfig.problem.seeds) & set(config.problem.seeds)
+    assert sorted(calls) == sorted({round(t.params["sr"], 6) for t in top_candidates(study, 2)})
+    assert doc["best_trial"] != best_by_fitness.number
+    assert study.user_attrs[REEVALUATION_ATTR]["best_trial"] == doc["best_trial"]
+    chosen, how = select_trial(study)
+    assert chosen.number == doc["best_trial"] and how.startswith("re-evaluated best of 2")
+    assert "re-evaluated ranking" in out.getvalue()
+    # An explicit trial wins over the ranking.
+    assert select_trial(study, 0)[0].number == 0
+    # Running it again re-trains nothing.
+    calls.clear()
+    reevaluate_study(config, study, url, evaluator_factory=factory, quiet=True)
+    assert calls == []
+    rstudy = optuna.load_study(study_name=reevaluation_study_name("s"), storage=url)
+    assert len(rstudy.get_trials(states=(TrialState.COMPLETE,))) == 2
+
+
+def test_a_failed_candidate_is_not_replaced_by_a_random_point(tmp_path: Path) -> None:
+    from ermrl.agents import TrainingDiverged
+
+    url = f"sqlite:///{tmp_path}/s.db"
+    config = make_config(n_trials=4, popsize=4, reevaluate_top=1, reevaluate_seeds=1)
+    study = create_or_resume_study(config, url, "s")
+    run_evolution(config, study, quiet=True, evaluate=stub_fitness(noise={1.0: -100.0}))
+
+    def diverge(reservoirs, runner, report):  # noqa: ANN001, ANN202
+        raise TrainingDiverged("nan")
+
+    doc = reevaluate_study(config, study, url, evaluator_factory=lambda c: diverge, quiet=True)
+    assert doc is not None and not doc["complete"] and doc["candidates"] == []
+    rstudy = optuna.load_study(study_name=reevaluation_study_name("s"), storage=url)
+    assert len(rstudy.trials) == 2  # the two candidates, both FAIL; no new point was asked
+    assert {t.state for t in rstudy.trials} == {TrialState.FAIL}
+    assert "re-evaluation incomplete" in select_trial(study)[1]
+
+
+def test_reevaluation_waits_for_an_unfinished_study(tmp_path: Path) -> None:
+    url = f"sqlite:///{tmp_path}/s.db"
+    config = make_config(n_trials=4, reevaluate_top=1)
+    study = create_or_resume_study(config, url, "s")
+    out = io.StringIO()
+    assert reevaluate_study(config, study, url, stream=out) is None
+    assert "waits for the study to finish" in out.getvalue()
+
+
+def test_cli_reevaluates_and_test_phase_says_which_trial_it_used(tmp_path: Path) -> None:
+    url = f"sqlite:///{tmp_path}/s.db"
+    tiny = ["--env-id", "Pendulum-v1", "--observe", "positions", "--units", "20", "--n-envs", "1",
+            "--ppo", "n_steps=128", "batch_size=64", "n_epochs=1"]  # fmt: skip
+    evolve = subprocess.run(
+        [sys.executable, str(ROOT / "evolve_res.py"), *tiny, "--n-trials", "3", "--n-seeds", "1",
+         "--training-steps", "256", "--popsize", "2", "--sampler-seed", "0",
+         "--reevaluate-top", "1", "--reevaluate-seeds", "1", "--reevaluate-steps", "384",
+         "--storage", url, "--study-name", "s"],
+        capture_output=True, text=True, timeout=300, cwd=tmp_path,
+    )  # fmt: skip
+    assert evolve.returncode == 0, evolve.stdout + evolve.stderr
+    assert "re-evaluated ranking" in evolve.stdout
+    study = optuna.load_study(study_name="s", storage=url)
+    doc = study.user_attrs[REEVALUATION_ATTR]
+    assert doc["complete"] and doc["training_steps"] == 384 and doc["seeds"] == [1000]
+    test = subprocess.run(
+        [sys.executable, str(ROOT / "test.py"), "--study-name", "s", "--storage", url,
+         "--training-steps", "256", "--seeds", "5", "--agents", "res-ppo", "--no-save-models",
+         "--out", str(tmp_path / "run")],
+        capture_output=True, text=True, timeout=300, cwd=tmp_path,
+    )  # fmt: skip
+    assert test.returncode == 0, test.stdout + test.stderr
+    assert f"trial {doc['best_trial']}" in test.stdout
+    assert "re-evaluated best of" in test.stdout
+    config_yaml = (tmp_path / "run" / "config.yaml").read_text()
+    assert "selection: re-evaluated best of" in config_yaml
+    show = subprocess.run(
+        [sys.executable, "-m", "ermrl", "study", "show", "--storage", url, "--study-name", "s"],
+        capture_output=True, text=True, timeout=120, cwd=tmp_path,
+    )  # fmt: skip
+    assert show.returncode == 0, show.stderr
+    assert "re-evaluated on 1 fresh seeds x 384 steps (study 's.reeval')" in show.stdout

@@ -1,0 +1,205 @@
+"""Damaged storages: a journal with a torn last record is repaired, never glued to the next one."""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import random
+import subprocess
+import sys
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+
+import optuna
+import pytest
+from optuna.trial import TrialState
+
+from ermrl.cli._study import study_main
+from ermrl.storage import open_storage, repair_journal, torn_tail
+
+optuna.logging.set_verbosity(optuna.logging.WARNING)
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _journal_study(path: Path, n_trials: int = 3) -> list[float]:
+    """A journal study ``s`` with ``n_trials`` complete trials of a stub objective."""
+    study = optuna.create_study(study_name="s", storage=open_storage(str(path)))
+    study.optimize(lambda t: t.suggest_float("x", 0, 1), n_trials=n_trials)
+    return [t.value for t in study.trials]
+
+
+def _values(path: Path) -> list[float]:
+    study = optuna.load_study(study_name="s", storage=open_storage(str(path)))
+    return [t.value for t in study.get_trials(states=(TrialState.COMPLETE,))]
+
+
+def _asides(path: Path) -> list[Path]:
+    return sorted(path.parent.glob(f"{path.name}.torn-*"))
+
+
+def test_a_cut_last_line_is_set_aside_and_the_study_goes_on(tmp_path: Path) -> None:
+    path = tmp_path / "s.log"
+    values = _journal_study(path)
+    size = path.stat().st_size
+    with open(path, "r+b") as f:  # cut the last record short, as a full disk does
+        f.truncate(size - 7)
+    assert torn_tail(path) > 0
+
+    # The next worker appends its records after the complete ones, not after the partial one.
+    study = optuna.load_study(study_name="s", storage=open_storage(str(path)))
+    study.optimize(lambda t: t.suggest_float("x", 0, 1), n_trials=2)
+    assert torn_tail(path) == 0
+    for line in path.read_bytes().splitlines():
+        json.loads(line)
+    (aside,) = _asides(path)
+    assert not aside.read_bytes().endswith(b"\n") and len(aside.read_bytes()) > 0
+    # The first trials whose records were complete are all still there, and the new ones.
+    again = _values(path)
+    assert len(again) >= len(values) - 1 + 2
+    assert again[: len(values) - 1] == values[: len(values) - 1]
+
+
+def test_an_intact_journal_is_left_alone(tmp_path: Path) -> None:
+    path = tmp_path / "s.log"
+    _journal_study(path, n_trials=1)
+    before = path.read_bytes()
+    assert repair_journal(path) is None
+    assert path.read_bytes() == before and not _asides(path)
+
+
+def test_study_repair_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / "s.log"
+    _journal_study(path, n_trials=2)
+    assert study_main(["repair", "--storage", f"journal://{path}"]) == 0
+    assert "intact" in capsys.readouterr().out
+    with open(path, "ab") as f:
+        f.write(b'{"op_code":5,"worker_id":"x","trial_id":1,"s')
+    assert study_main(["repair", "--storage", str(path)]) == 0
+    (aside,) = _asides(path)
+    out = capsys.readouterr().out
+    assert str(aside) in out and "partial" in out
+    assert aside.read_bytes() == b'{"op_code":5,"worker_id":"x","trial_id":1,"s'
+    assert len(_values(path)) == 2
+    with pytest.raises(SystemExit) as err:
+        study_main(["repair", "--storage", f"sqlite:///{tmp_path}/s.db"])
+    assert err.value.code == 2 and "only journal" in capsys.readouterr().err
+
+
+@pytest.fixture
+def small_disk(tmp_path: Path) -> Iterator[Path]:
+    """A 1 MiB tmpfs (needs root and ``mount``)."""
+    where = tmp_path / f"disk-{uuid.uuid4().hex[:6]}"
+    where.mkdir()
+    done = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(where)],
+        capture_output=True,
+        text=True,
+    )
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a small tmpfs to fill: {done.stderr.strip() or done.returncode}")
+    try:
+        yield where
+    finally:
+        subprocess.run(["umount", "-l", str(where)], check=False)
+
+
+def _fill(path: Path) -> None:
+    """Write to ``path`` until the file system is full."""
+    with open(path, "wb", buffering=0) as f:
+        block = b"\0" * 4096
+        while True:
+            try:
+                f.write(block)
+            except OSError as err:
+                assert err.errno == errno.ENOSPC
+                break
+        for size in (512, 64, 1):
+            while True:
+                try:
+                    f.write(b"\0" * size)
+                except OSError:
+                    break
+
+
+def test_a_full_disk_during_a_write_tears_the_journal_and_the_next_worker_repairs_it(
+    small_disk: Path,
+) -> None:
+    path = small_disk / "s.log"
+    values = _journal_study(path, n_trials=3)
+    study = optuna.load_study(study_name="s", storage=open_storage(str(path)))
+    trial = study.ask()
+    while path.stat().st_size % 4096 in (0, 4095):  # leave room in the last page: a torn write
+        trial.set_user_attr("pad", "x" * 10)
+    _fill(small_disk / "filler")
+    with pytest.raises(OSError) as err:
+        trial.set_user_attr("big", "y" * 20000)  # a worker records a large attribute
+    assert err.value.errno == errno.ENOSPC
+    assert torn_tail(path) > 0  # the record stopped mid-way
+
+    # While the disk is full, the partial record cannot be set aside: a one-line error.
+    with pytest.raises(Exception, match="ermrl study repair"):
+        open_storage(str(path))
+    assert torn_tail(path) > 0 and not _asides(path)
+
+    os.remove(small_disk / "filler")
+    study = optuna.load_study(study_name="s", storage=open_storage(str(path)))
+    study.optimize(lambda t: t.suggest_float("x", 0, 1), n_trials=1)
+    assert torn_tail(path) == 0 and len(_asides(path)) == 1
+    assert _values(path)[:3] == values
+    assert len(_values(path)) == 4
+
+
+# -- a damaged SQLite database --------------------------------------------------------------------
+
+
+def _ermrl(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-c", "import sys; from ermrl.cli import main; sys.exit(main())", *args],
+        cwd=cwd,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+
+
+@pytest.fixture(scope="module")
+def damaged_db(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A copy of a small study database with 4 KiB of random bytes written into its middle."""
+    where = tmp_path_factory.mktemp("damaged")
+    path = where / "s.db"
+    study = optuna.create_study(study_name="demo", storage=f"sqlite:///{path}")
+
+    def objective(trial: optuna.Trial) -> float:
+        trial.set_user_attr("returns", list(range(50)))
+        return trial.suggest_float("x", 0, 1)
+
+    study.optimize(objective, n_trials=40)
+    del study
+    middle = path.stat().st_size // 2 // 4096 * 4096
+    with open(path, "r+b") as f:
+        f.seek(middle)
+        f.write(random.Random(0).randbytes(4096))
+    return path
+
+
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["study", "show", "--study-name", "demo"],
+        ["study", "list"],
+        ["evolve", "--env-id", "Pendulum-v1", "--study-name", "demo", "--training-steps", "256"],
+    ],
+    ids=["show", "list", "evolve"],
+)
+def test_a_damaged_sqlite_database_is_one_line_and_exit_2(
+    damaged_db: Path, command: list[str]
+) -> None:
+    done = _ermrl(*command, "--storage", f"sqlite:///{damaged_db}", cwd=damaged_db.parent)
+    assert done.returncode == 2, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in done.stderr
+    assert "is damaged" in lines[0] and '".recover"' in lines[0] and "backup" in lines[0]
