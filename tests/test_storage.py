@@ -44,6 +44,7 @@ from ermrl.storage import (
     storage_lock,
     storage_url,
 )
+from ermrl.storage import fail_stale_trials as ermrl_fail_stale_trials
 
 optuna.logging.set_verbosity(optuna.logging.WARNING)
 
@@ -214,6 +215,31 @@ def test_stale_trial_is_failed_and_retried_with_the_same_params(fresh_storage: s
         time.sleep(beyond_grace)
         fail_stale_trials(study)
     assert [t.state for t in study.get_trials()] == [TrialState.FAIL, TrialState.FAIL]
+
+
+@pytest.mark.parametrize(
+    "fresh_storage",
+    ["sqlite", pytest.param("postgresql", marks=pytest.mark.services)],
+    indirect=True,
+)
+def test_a_trial_whose_worker_died_before_its_first_heartbeat_is_failed_and_retried(
+    fresh_storage: str,
+) -> None:
+    # Optuna's RDB check ignores a RUNNING trial without any heartbeat: a worker killed between
+    # ask() and its first heartbeat left the trial RUNNING forever, and the other workers waited.
+    storage = open_storage(fresh_storage, heartbeat_interval=1, grace_period=2, max_retry=1)
+    study = optuna.create_study(study_name="s", storage=storage)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        number = _running_trial(study)  # no heartbeat, ever
+        assert ermrl_fail_stale_trials(study) == []  # younger than the grace period
+        time.sleep(3.2)
+        failed = ermrl_fail_stale_trials(study)
+    assert [t.number for t in failed] == [number]
+    trials = study.get_trials()
+    assert [t.state for t in trials] == [TrialState.FAIL, TrialState.WAITING]
+    assert trials[0].user_attrs["fail_reason"].endswith(f"retried as trial {trials[1].number}")
+    assert trials[1].params == trials[0].params
 
 
 def test_fail_stale_uses_heartbeats_else_start_time(tmp_path: Path) -> None:

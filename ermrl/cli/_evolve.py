@@ -342,7 +342,8 @@ def add_search_args(parser: argparse.ArgumentParser) -> None:
         type=nonneg_int,
         default=60,
         metavar="SECONDS",
-        help="a running trial records a heartbeat this often; 0 turns heartbeats off",
+        help="a running trial records a heartbeat this often; 0 turns heartbeats off (for every "
+        "worker of the study: a trial that never sent one is failed after the grace period)",
     )
     w.add_argument(
         "--grace-period",

@@ -214,11 +214,26 @@ def _grace(storage: BaseStorage) -> float | None:
     return grace or (2 * interval if interval else None)
 
 
+def _stale_trial_ids(study: optuna.Study, grace: float | None) -> list[int]:
+    """The storage's stale trials, and the RUNNING trials that never sent a heartbeat.
+
+    Optuna's RDB check skips a RUNNING trial without any heartbeat row, so a worker killed
+    between ``ask()`` and its first heartbeat left its trial RUNNING forever (and every other
+    worker waiting for it). Such a trial is stale once its start is older than the grace period,
+    as on journal storages.
+    """
+    ids = list(study._storage._get_stale_trial_ids(study._study_id))
+    if grace is not None:
+        ids += [t._trial_id for t in find_stale_trials(study, grace) if t._trial_id not in ids]
+    return ids
+
+
 def fail_stale_trials(study: optuna.Study) -> list[FrozenTrial]:
     """Optuna's :func:`~optuna.storages.fail_stale_trials`, with a ``fail_reason`` on each trial.
 
-    A trial whose worker stopped sending heartbeats (killed with ``kill -9``, a dead node) is
-    marked FAIL with the user attribute ``fail_reason`` set to ``"heartbeat lost (none for G s),
+    A trial whose worker stopped sending heartbeats (killed with ``kill -9``, a dead node), or
+    that has run longer than the grace period without ever sending one (its worker died before
+    the first heartbeat; so every worker of a study must use heartbeats, or none), is marked FAIL with the user attribute ``fail_reason`` set to ``"heartbeat lost (none for G s),
     retried as trial N"``, or ``"heartbeat lost (none for G s), not retried (max_retry M
     reached)"``, then retried by the storage's stale-trial callback (:class:`RetryStaleTrial`).
 
@@ -238,10 +253,10 @@ def fail_stale_trials(study: optuna.Study) -> list[FrozenTrial]:
     if not isinstance(storage, BaseHeartbeat) or not is_heartbeat_enabled(storage):
         return []
     callback = storage.get_heartbeat_stale_trial_callback()
-    stale_ids = storage._get_stale_trial_ids(study._study_id)
+    grace = _grace(storage)
+    stale_ids = _stale_trial_ids(study, grace)
     if not stale_ids:
         return []
-    grace = _grace(storage)
     lost = "heartbeat lost" + (f" (none for {grace:.0f} s)" if grace else "")
     next_number = len(study.get_trials(deepcopy=False))
     failed = []
