@@ -1,0 +1,27 @@
+"""A study written before learners became plug-ins still loads and tests to the same returns."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = Path(__file__).parent / "data"
+
+
+def test_a_study_written_by_the_old_code_tests_to_the_same_returns(tmp_path: Path) -> None:
+    db = tmp_path / "study_v0.db"
+    shutil.copy(DATA / "study_v0.db", db)  # the fixture itself is never written
+    out = tmp_path / "out"
+    cmd = [sys.executable, str(ROOT / "test.py"), "--study-name", "pendulum-v0"]
+    cmd += ["--storage", f"sqlite:///{db}", "--agents", "ppo", "ppo-full", "res-ppo"]
+    cmd += ["random-res-ppo", "--seeds", "5000", "--training-steps", "1024", "--out", str(out)]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stdout + done.stderr
+    got = pd.read_csv(out / "curves.csv")
+    want = pd.read_csv(DATA / "study_v0_curves.csv")
+    pd.testing.assert_frame_equal(got, want, rtol=1e-6)
