@@ -25,7 +25,7 @@ from ermrl.search import (
     select_trial,
     top_candidates,
 )
-from ermrl.search._evolve import cma_start
+from ermrl.search._study import cma_start
 from tests.test_search import make_config
 
 optuna.logging.set_verbosity(optuna.logging.WARNING)

@@ -386,7 +386,7 @@ def test_pruned_trials_fill_generations_only_when_considered(consider: bool) -> 
 
 def test_study_sampler_considers_pruned_trials_with_a_pruner() -> None:
     from ermrl.config import SearchConfig
-    from ermrl.search._evolve import make_study_sampler
+    from ermrl.search._study import make_study_sampler
 
     assert make_study_sampler(SearchConfig(pruner="median"))._consider_pruned_trials
     assert not make_study_sampler(SearchConfig())._consider_pruned_trials

@@ -3,18 +3,10 @@ of a reservoir, the multi-task (generalization) fitness and its reference scores
 loop over an Optuna study."""
 
 from ermrl.search._evolve import (
-    STUDY_COMMAND_ATTR,
-    STUDY_CONFIG_ATTR,
     EvolutionSummary,
-    Interrupted,
     PopulationWarning,
     cma_popsize,
-    create_or_resume_study,
-    format_params,
-    make_pruner,
     run_evolution,
-    sample_params,
-    study_config,
 )
 from ermrl.search._generalization import (
     GeneralizationFitness,
@@ -33,6 +25,8 @@ from ermrl.search._objective import (
     library_versions,
     pool_size,
 )
+from ermrl.search._progress import format_params
+from ermrl.search._pruning import make_pruner
 from ermrl.search._reevaluate import (
     REEVALUATION_ATTR,
     reevaluate_study,
@@ -57,6 +51,14 @@ from ermrl.search._scores import (
     reference_returns,
     scores_path,
     update_scores,
+)
+from ermrl.search._signals import Interrupted
+from ermrl.search._study import (
+    STUDY_COMMAND_ATTR,
+    STUDY_CONFIG_ATTR,
+    create_or_resume_study,
+    sample_params,
+    study_config,
 )
 
 __all__ = [

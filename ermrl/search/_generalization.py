@@ -41,9 +41,10 @@ from ermrl.config import (
     TaskConfig,
     to_dict,
 )
-from ermrl.search._evolve import STUDY_CONFIG_ATTR, EvaluateFn, create_or_resume_study
+from ermrl.search._evolve import EvaluateFn
 from ermrl.search._objective import FitnessResult, SeedRunner, _finite_or_none, library_versions
 from ermrl.search._scores import load_scores, reference_returns
+from ermrl.search._study import STUDY_CONFIG_ATTR, create_or_resume_study
 
 __all__ = [
     "GeneralizationFitness",

@@ -212,7 +212,9 @@ def reevaluate_study(
         The recorded ranking (see :func:`record_reevaluation`), or ``None`` when re-evaluation
         is off, the study is not finished, or it has no COMPLETE trial.
     """
-    from ermrl.search._evolve import create_or_resume_study, format_params, run_evolution
+    from ermrl.search._evolve import run_evolution
+    from ermrl.search._progress import format_params
+    from ermrl.search._study import create_or_resume_study
 
     out = stream or sys.stdout
 

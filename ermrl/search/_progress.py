@@ -1,0 +1,77 @@
+"""Progress lines of a worker."""
+
+from __future__ import annotations
+
+import math
+
+import optuna
+from optuna.trial import TrialState
+
+from ermrl.search._objective import FitnessResult
+
+__all__ = ["best_trial", "fmt_duration", "format_params", "trial_line"]
+
+
+def format_params(params: dict[str, float]) -> str:
+    return " ".join(f"{k}={v:.3g}" for k, v in params.items())
+
+
+def fmt_duration(seconds: float) -> str:
+    if not math.isfinite(seconds):
+        return "?"
+    seconds = int(round(seconds))
+    h, rem = divmod(seconds, 3600)
+    m, s = divmod(rem, 60)
+    return f"{h}h{m:02d}m" if h else f"{m}m{s:02d}s"
+
+
+def best_trial(study: optuna.Study) -> tuple[float | None, int | None, dict[str, float] | None]:
+    try:
+        best = study.best_trial
+    except ValueError:
+        return None, None, None
+    return best.value, best.number, best.params
+
+
+def trial_line(
+    study: optuna.Study,
+    number: int,
+    params: dict[str, float],
+    state: TrialState,
+    result: FitnessResult | None,
+    note: str,
+    elapsed: float,
+    *,
+    counted: int,
+    n_trials: int,
+    retry_of: int | None,
+    eta: float,
+) -> str:
+    """The progress line of a finished trial: its outcome, the study's best and the ETA.
+
+    Args:
+        study: The study (for its best trial so far).
+        number: The trial's number.
+        params: Its parameters.
+        state: How it ended.
+        result: Its fitness (``None`` unless it completed).
+        note: Why it was pruned or failed.
+        elapsed: Its wall-clock seconds.
+        counted: Trials the study counts towards the budget.
+        n_trials: The budget.
+        retry_of: The trial it retries, if any.
+        eta: Seconds left, estimated.
+    """
+    best_value, best_number, _ = best_trial(study)
+    if state == TrialState.COMPLETE and result is not None:
+        outcome = f"fitness {result.fitness:.4g}"
+        speed = f"{result.steps_per_second:.0f} steps/s"
+    else:
+        outcome = f"{state.name} ({note})"
+        speed = f"{elapsed:.0f}s"
+    best = "-" if best_value is None else f"{best_value:.4g} (#{best_number})"
+    retried = "" if retry_of is None else f" | retry of #{retry_of}"
+    return (
+        f"[trial {number} | {counted}/{n_trials}{retried}] {format_params(params)} | "
+        f"{outcome} | best {best} | {speed} | ETA {fmt_duration(eta)}"
+    )

@@ -1,0 +1,202 @@
+"""Creating or resuming a study: its sampler, its stored configuration and the check that a
+resumed study has the same fitness landscape."""
+
+from __future__ import annotations
+
+import sys
+import warnings
+from typing import Any
+
+import optuna
+from optuna.distributions import FloatDistribution
+
+from ermrl.config import ConfigError, EvolveConfig, ReservoirSpace, SearchConfig, to_dict
+from ermrl.search._pruning import make_pruner
+from ermrl.storage import (
+    DEFAULT_GRACE_PERIOD,
+    DEFAULT_HEARTBEAT_INTERVAL,
+    DEFAULT_MAX_RETRY,
+    open_storage,
+    storage_lock,
+)
+
+__all__ = [
+    "REFERENCE_ATTR",
+    "STUDY_COMMAND_ATTR",
+    "STUDY_CONFIG_ATTR",
+    "STUDY_KIND_ATTR",
+    "cma_start",
+    "create_or_resume_study",
+    "enqueue_reference",
+    "make_study_sampler",
+    "sample_params",
+    "search_distributions",
+    "study_config",
+]
+
+STUDY_CONFIG_ATTR = "ermrl_config"
+STUDY_COMMAND_ATTR = "ermrl_command"
+STUDY_KIND_ATTR = "ermrl_kind"
+# Parts of the configuration that define the fitness landscape: a resumed study must match them.
+_MUST_MATCH = ("problem", "space")
+
+
+def search_distributions(space: ReservoirSpace) -> dict[str, FloatDistribution]:
+    """The fixed search space as Optuna distributions (what :func:`sample_params` asks)."""
+    return {name: FloatDistribution(r.low, r.high, log=r.log) for name, r in space.ranges().items()}
+
+
+def cma_start(search: SearchConfig, space: ReservoirSpace) -> dict[str, float]:
+    """The first CMA-ES mean: the reference reservoir (clipped into the box) or the box centre."""
+    if search.start == "center":
+        return space.center_params()
+    ranges = space.ranges()
+    return {
+        name: min(max(value, ranges[name].low), ranges[name].high)
+        for name, value in space.reference_params().items()
+    }
+
+
+def make_study_sampler(
+    search: SearchConfig, space: ReservoirSpace | None = None
+) -> optuna.samplers.BaseSampler:
+    """The study's sampler; with ``space``, CMA-ES knows the space before any trial completes."""
+    from ermrl.search._samplers import make_sampler
+
+    fixed = search.sampler == "cmaes" and space is not None
+    return make_sampler(
+        search.sampler,  # type: ignore[arg-type]
+        seed=search.sampler_seed,
+        restart=search.restart,  # type: ignore[arg-type]
+        popsize=search.popsize,
+        consider_pruned_trials=search.pruner != "none",
+        search_space=search_distributions(space) if fixed else None,  # type: ignore[arg-type]
+        x0=cma_start(search, space) if fixed else None,  # type: ignore[arg-type]
+    )
+
+
+REFERENCE_ATTR = "reference"
+
+
+def enqueue_reference(study: optuna.Study, space: ReservoirSpace) -> bool:
+    """Queue the unevolved reference reservoir as a trial (user attribute ``reference``).
+
+    Returns:
+        ``False`` when the reference lies outside the search space (nothing is queued).
+    """
+    params = space.reference_params()
+    if not space.contains(params):
+        return False
+    study.enqueue_trial(params, user_attrs={REFERENCE_ATTR: True}, skip_if_exists=True)
+    return True
+
+
+def sample_params(trial: optuna.Trial, space: ReservoirSpace) -> dict[str, float]:
+    """Ask a trial for every evolved hyperparameter of the space (fixed order and ranges)."""
+    return {
+        name: trial.suggest_float(name, r.low, r.high, log=r.log)
+        for name, r in space.ranges().items()
+    }
+
+
+def study_config(study: optuna.Study) -> EvolveConfig:
+    """The configuration an ermrl study was created with.
+
+    Raises:
+        ConfigError: the study was not created by ``ermrl evolve``.
+    """
+    data = study.user_attrs.get(STUDY_CONFIG_ATTR)
+    if data is None:
+        raise ConfigError(f"study {study.study_name!r} has no ermrl configuration")
+    return EvolveConfig.from_dict(data)
+
+
+def _config_diff(a: Any, b: Any, path: str = "") -> list[str]:
+    if isinstance(a, dict) and isinstance(b, dict):
+        out = []
+        for key in sorted(set(a) | set(b)):
+            out += _config_diff(a.get(key), b.get(key), f"{path}.{key}" if path else key)
+        return out
+    return [] if a == b else [f"{path}: {b!r} in the study, {a!r} now"]
+
+
+def create_or_resume_study(
+    config: EvolveConfig | None,
+    storage_url: str,
+    study_name: str,
+    *,
+    command: str | None = None,
+    kind: str = "evolve",
+    heartbeat_interval: int | None = DEFAULT_HEARTBEAT_INTERVAL,
+    grace_period: int | None = DEFAULT_GRACE_PERIOD,
+    max_retry: int | None = DEFAULT_MAX_RETRY,
+) -> optuna.Study:
+    """Create the study, or load it when it exists with the same problem and search space.
+
+    Safe with many workers starting at once: the schema and the study are created under the
+    storage's inter-process lock, and the first worker stores the configuration.
+
+    Args:
+        config: The run's configuration (``None``: create or load a bare study; the first
+            worker that brings a configuration stores it).
+        storage_url: Where the study lives (see :func:`ermrl.storage.open_storage`).
+        study_name: The study's name.
+        command: Launch command stored with the configuration (default: ``sys.argv``).
+        kind: ``"evolve"`` or ``"generalization"``, stored as the ``ermrl_kind`` attribute.
+        heartbeat_interval: Seconds between heartbeats of running trials (``None``: off).
+        grace_period: Seconds without heartbeat before a running trial is failed and retried.
+        max_retry: Retries of a trial whose worker died or was preempted (0: none; ``None``:
+            no limit).
+
+    Returns:
+        The study.
+
+    Raises:
+        ConfigError: a study of that name exists with another configuration.
+        StorageError: the storage cannot be opened.
+    """
+    storage = open_storage(
+        storage_url,
+        heartbeat_interval=heartbeat_interval,
+        grace_period=grace_period,
+        max_retry=max_retry,
+    )
+    search = config.search if config is not None else SearchConfig()
+    sampler = make_study_sampler(search, config.space if config is not None else None)
+    pruner = make_pruner(search.pruner)
+    with storage_lock(storage_url, study_name):
+        study = optuna.create_study(
+            study_name=study_name,
+            storage=storage,
+            sampler=sampler,
+            pruner=pruner,
+            direction="maximize",
+            load_if_exists=True,
+        )
+        if config is None:
+            return study
+        new = to_dict(config)
+        stored = study.user_attrs.get(STUDY_CONFIG_ATTR)
+        if stored is None:
+            study.set_user_attr(STUDY_CONFIG_ATTR, new)
+            study.set_user_attr(STUDY_KIND_ATTR, kind)
+            study.set_user_attr(STUDY_COMMAND_ATTR, command or " ".join(sys.argv))
+            from ermrl import __version__
+
+            study.set_user_attr("ermrl_version", __version__)
+            if config.search.reference_trial and not enqueue_reference(study, config.space):
+                warnings.warn(
+                    "the reference reservoir (sr = lr = input_scaling = 1) lies outside the "
+                    "search space: it does not take part in this study",
+                    stacklevel=2,
+                )
+            return study
+    diffs = [d for key in _MUST_MATCH for d in _config_diff(new[key], stored.get(key), key)]
+    if diffs:
+        raise ConfigError(
+            f"study {study_name!r} already exists with another configuration ("
+            + "; ".join(diffs[:4])
+            + (" ..." if len(diffs) > 4 else "")
+            + "); pick another --study-name"
+        )
+    return study
