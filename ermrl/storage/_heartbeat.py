@@ -214,7 +214,7 @@ def _grace(storage: BaseStorage) -> float | None:
     return grace or (2 * interval if interval else None)
 
 
-def _stale_trial_ids(study: optuna.Study, grace: float | None) -> list[int]:
+def _stale_trial_ids(study: optuna.Study, storage: BaseHeartbeat, grace: float | None) -> list[int]:
     """The storage's stale trials, and the RUNNING trials that never sent a heartbeat.
 
     Optuna's RDB check skips a RUNNING trial without any heartbeat row, so a worker killed
@@ -222,7 +222,7 @@ def _stale_trial_ids(study: optuna.Study, grace: float | None) -> list[int]:
     worker waiting for it). Such a trial is stale once its start is older than the grace period,
     as on journal storages.
     """
-    ids = list(study._storage._get_stale_trial_ids(study._study_id))
+    ids = list(storage._get_stale_trial_ids(study._study_id))
     if grace is not None:
         ids += [t._trial_id for t in find_stale_trials(study, grace) if t._trial_id not in ids]
     return ids
@@ -254,7 +254,7 @@ def fail_stale_trials(study: optuna.Study) -> list[FrozenTrial]:
         return []
     callback = storage.get_heartbeat_stale_trial_callback()
     grace = _grace(storage)
-    stale_ids = _stale_trial_ids(study, grace)
+    stale_ids = _stale_trial_ids(study, storage, grace)
     if not stale_ids:
         return []
     lost = "heartbeat lost" + (f" (none for {grace:.0f} s)" if grace else "")
