@@ -28,6 +28,7 @@ from ermrl.storage._open import (
     worker_info,
 )
 from ermrl.storage._repair import repair_journal, torn_tail
+from ermrl.storage._url import StorageKind, StorageURL, parse_storage_url
 
 __all__ = [
     "DEFAULT_GRACE_PERIOD",
@@ -39,6 +40,8 @@ __all__ = [
     "LockTimeout",
     "RetryStaleTrial",
     "StorageError",
+    "StorageKind",
+    "StorageURL",
     "StudyNotFound",
     "fail_stale",
     "fail_stale_trials",
@@ -47,6 +50,7 @@ __all__ = [
     "load_study",
     "normalize_url",
     "open_storage",
+    "parse_storage_url",
     "repair_journal",
     "storage_kind",
     "storage_lock",

@@ -28,6 +28,14 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from ermrl.storage._url import (
+    StorageURL,
+    journal_file,
+    parse_storage_url,
+    redis_split,
+    sqlite_file,
+)
+
 __all__ = ["LockTimeout", "storage_lock", "sqlite_path", "journal_path", "redis_parts", "lock_key"]
 
 LOCK_TIMEOUT_S = 600.0
@@ -52,12 +60,7 @@ def _pg_key(name: str) -> int:
 
 def sqlite_path(url: str) -> Path | None:
     """The database file of a ``sqlite:///`` URL (``None`` for in-memory databases)."""
-    rest = url.split("://", 1)[1] if "://" in url else url
-    rest = rest[1:] if rest.startswith("/") else rest  # sqlite:///rel.db, sqlite:////abs.db
-    rest = rest.split("?", 1)[0]
-    if not rest or rest == ":memory:":
-        return None
-    return Path(rest).expanduser()
+    return sqlite_file(url)
 
 
 def redis_parts(url: str) -> tuple[str, str]:
@@ -65,20 +68,12 @@ def redis_parts(url: str) -> tuple[str, str]:
 
     The prefix keeps several journals apart in one Redis database (default: none).
     """
-    from urllib.parse import parse_qsl, urlencode, urlsplit, urlunsplit
-
-    parts = urlsplit(url)
-    query = parse_qsl(parts.query, keep_blank_values=True)
-    prefix = "".join(v for k, v in query if k == "prefix")
-    rest = urlencode([(k, v) for k, v in query if k != "prefix"])
-    return urlunsplit(parts._replace(query=rest)), prefix
+    return redis_split(url)
 
 
 def journal_path(url: str) -> Path:
     """The log file of a ``journal:///path`` URL or of a bare ``path.log``."""
-    if url.startswith("journal://"):
-        return Path(url[len("journal://") :]).expanduser()
-    return Path(url).expanduser()
+    return journal_file(url)
 
 
 @contextlib.contextmanager
@@ -170,12 +165,11 @@ def _mysql_lock(url: str, name: str, timeout: float) -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def _redis_lock(url: str, name: str, timeout: float) -> Iterator[None]:
+def _redis_lock(spec: StorageURL, name: str, timeout: float) -> Iterator[None]:
     import redis
 
-    clean, prefix = redis_parts(url)
-    client = redis.Redis.from_url(clean)
-    lock = client.lock(lock_key(f"{prefix}:{name}"), timeout=120, blocking_timeout=timeout)
+    client = redis.Redis.from_url(spec.url)
+    lock = client.lock(lock_key(f"{spec.prefix}:{name}"), timeout=120, blocking_timeout=timeout)
     if not lock.acquire():
         raise LockTimeout(f"could not take Redis lock {name!r} within {timeout:.0f} s")
     try:
@@ -187,38 +181,35 @@ def _redis_lock(url: str, name: str, timeout: float) -> Iterator[None]:
 
 @contextlib.contextmanager
 def storage_lock(
-    url: str, name: str = "storage", timeout: float = LOCK_TIMEOUT_S
+    url: str | StorageURL, name: str = "storage", timeout: float = LOCK_TIMEOUT_S
 ) -> Iterator[None]:
     """Hold an inter-process lock tied to a storage URL.
 
     Args:
-        url: The storage URL (see :func:`ermrl.storage.open_storage`).
+        url: The storage URL (see :func:`ermrl.storage.open_storage`), as a string or parsed.
         name: Which lock (e.g. ``"schema"`` or a study name). File-based locks (SQLite, journal)
             are one per storage whatever the name; server locks are one per name.
         timeout: Seconds to wait for the lock.
 
     Raises:
+        StorageError: the URL is malformed.
         LockTimeout: the lock was not obtained in time.
     """
-    from ermrl.storage._open import normalize_url, storage_kind
-
-    kind = storage_kind(url)
-    if kind == "sqlite":
-        path = sqlite_path(url)
-        if path is None:
+    spec = url if isinstance(url, StorageURL) else parse_storage_url(url)
+    if spec.kind == "redis":
+        with _redis_lock(spec, name, timeout):
             yield
-            return
-        with _flock(Path(str(path) + ".lock"), timeout):
+    elif spec.kind == "postgresql":
+        with _pg_lock(spec.url, name, timeout):
             yield
-    elif kind == "journal":
-        with _symlink_lock(Path(str(journal_path(url)) + ".ermrl")):
+    elif spec.kind == "mysql":
+        with _mysql_lock(spec.url, name, timeout):
             yield
-    elif kind == "postgresql":
-        with _pg_lock(normalize_url(url), name, timeout):
-            yield
-    elif kind == "mysql":
-        with _mysql_lock(normalize_url(url), name, timeout):
-            yield
-    else:  # redis
-        with _redis_lock(url, name, timeout):
-            yield
+    else:  # a file next to the SQLite database or the journal
+        assert spec.path is not None, spec
+        if spec.kind == "sqlite":
+            with _flock(Path(f"{spec.path}.lock"), timeout):
+                yield
+        else:
+            with _symlink_lock(Path(f"{spec.path}.ermrl")):
+                yield

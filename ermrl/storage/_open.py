@@ -32,14 +32,9 @@ from optuna.exceptions import ExperimentalWarning
 from optuna.storages import BaseStorage
 
 from ermrl.storage._heartbeat import HeartbeatJournalStorage, RetryStaleTrial, base_storage
-from ermrl.storage._locks import (
-    LOCK_TIMEOUT_S,
-    journal_path,
-    redis_parts,
-    sqlite_path,
-    storage_lock,
-)
+from ermrl.storage._locks import LOCK_TIMEOUT_S, storage_lock
 from ermrl.storage._repair import repair_journal
+from ermrl.storage._url import StorageError, StorageKind, StorageURL, parse_storage_url
 
 __all__ = [
     "StorageError",
@@ -65,61 +60,36 @@ DEFAULT_GRACE_PERIOD = 300
 DEFAULT_MAX_RETRY = 3
 
 # URL each storage was opened from (the claim lock of a study is found from its storage).
-_URLS: weakref.WeakKeyDictionary[BaseStorage, str] = weakref.WeakKeyDictionary()
-
-
-class StorageError(RuntimeError):
-    """The storage URL is malformed or the storage cannot be reached."""
+_OPENED_FROM: weakref.WeakKeyDictionary[BaseStorage, StorageURL] = weakref.WeakKeyDictionary()
 
 
 class StudyNotFound(LookupError):
     """No study of that name exists in the storage."""
 
 
-def storage_kind(url: str) -> str:
+def storage_kind(url: str) -> StorageKind:
     """Classify a storage URL: ``sqlite``, ``postgresql``, ``mysql``, ``journal`` or ``redis``.
 
     Raises:
         StorageError: an unsupported URL, or an in-memory SQLite database (``sqlite://``,
             ``sqlite:///:memory:``), whose results no later command could read.
     """
-    if url.startswith("journal://") or (url.endswith(".log") and "://" not in url):
-        return "journal"
-    scheme = url.split("://", 1)[0].split("+", 1)[0].lower() if "://" in url else ""
-    if scheme == "sqlite" and sqlite_path(url) is None:
-        raise StorageError(
-            f"{url} is an in-memory SQLite database: its trials would vanish when this command "
-            "exits and no other command could read them; use a file, e.g. sqlite:///ermrl.db"
-        )
-    if scheme in ("sqlite", "postgresql", "postgres", "mysql", "redis"):
-        return "postgresql" if scheme == "postgres" else scheme
-    raise StorageError(
-        f"unsupported storage URL {url!r}; use sqlite:///file.db, postgresql://..., "
-        "mysql://..., journal:///file.log (or file.log) or redis://host:port"
-    )
+    return parse_storage_url(url).kind
 
 
 def normalize_url(url: str) -> str:
-    """The SQLAlchemy URL of an RDB storage URL.
+    """The SQLAlchemy URL of an RDB storage URL (:attr:`StorageURL.url`).
 
     ``postgres://`` becomes ``postgresql://``; a URL without a driver uses one that is installed:
     ``postgresql://`` psycopg2 unless psycopg 3 (SQLAlchemy 2.1's default) is there, ``mysql://``
-    PyMySQL unless ``mysqlclient`` is. Other URLs are returned unchanged.
+    PyMySQL unless ``mysqlclient`` is. Other URLs, and URLs that are not storage URLs, are
+    returned unchanged.
     """
-    if url.startswith("postgres://"):
-        url = "postgresql://" + url[len("postgres://") :]
-    if url.startswith("postgresql://"):
-        try:
-            import psycopg  # noqa: F401
-        except ImportError:
-            return "postgresql+psycopg2://" + url[len("postgresql://") :]
+    try:
+        spec = parse_storage_url(url)
+    except StorageError:
         return url
-    if url.startswith("mysql://"):
-        try:
-            import MySQLdb  # noqa: F401
-        except ImportError:
-            return "mysql+pymysql://" + url[len("mysql://") :]
-    return url
+    return spec.url if spec.is_rdb else url
 
 
 def _short(err: BaseException) -> str:
@@ -128,7 +98,7 @@ def _short(err: BaseException) -> str:
 
 
 def open_storage(
-    url: str,
+    url: str | StorageURL,
     *,
     heartbeat_interval: int | None = None,
     grace_period: int | None = None,
@@ -138,7 +108,7 @@ def open_storage(
     """Open a storage, creating its schema under an inter-process lock.
 
     Args:
-        url: A storage URL (see module docstring).
+        url: A storage URL (see module docstring), as a string or parsed.
         heartbeat_interval: Seconds between heartbeats of running trials (``None``: no
             heartbeat, so a dead worker's trial stays RUNNING until ``ermrl study fail-stale``).
         grace_period: Seconds without a heartbeat after which a running trial is stale
@@ -157,7 +127,7 @@ def open_storage(
     Raises:
         StorageError: the URL is malformed or the storage is unreachable.
     """
-    kind = storage_kind(url)
+    spec = url if isinstance(url, StorageURL) else parse_storage_url(url)
     if heartbeat_interval is not None and heartbeat_interval <= 0:
         raise StorageError(f"heartbeat interval must be positive, got {heartbeat_interval}")
     if grace_period is not None and grace_period <= 0:
@@ -181,20 +151,21 @@ def open_storage(
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ExperimentalWarning)
-            storage = _open(url, kind, heartbeat, mode)
+            storage = _open(spec, heartbeat, mode)
     except StorageError:
         raise
     except Exception as err:  # sqlalchemy / driver / redis errors: keep the message short
-        raise StorageError(f"cannot open storage {url}: {_short(err)}") from err
-    _URLS[storage] = url
+        raise StorageError(f"cannot open storage {spec}: {_short(err)}") from err
+    _OPENED_FROM[storage] = spec
     return storage
 
 
-def _open(url: str, kind: str, heartbeat: dict[str, Any], mode: str) -> BaseStorage:
-    if kind == "journal":
+def _open(spec: StorageURL, heartbeat: dict[str, Any], mode: str) -> BaseStorage:
+    if spec.kind == "journal":
         from optuna.storages.journal import JournalFileBackend
 
-        path = journal_path(url)
+        path = spec.path
+        assert path is not None, spec
         if not path.parent.exists():
             raise StorageError(f"directory {path.parent} of journal {path} does not exist")
         if mode != "create" and not path.is_file():
@@ -208,37 +179,36 @@ def _open(url: str, kind: str, heartbeat: dict[str, Any], mode: str) -> BaseStor
             raise StorageError(
                 f"journal {path} ends with a partial record that could not be set aside "
                 f"({err.strerror or err}); free some space and run: ermrl study repair "
-                f"--storage {url}"
+                f"--storage {spec}"
             ) from err
         return HeartbeatJournalStorage(JournalFileBackend(str(path)), **heartbeat)
-    if kind == "redis":
+    if spec.kind == "redis":
         from optuna.storages.journal import JournalRedisBackend
 
-        clean, prefix = redis_parts(url)
-        storage = HeartbeatJournalStorage(JournalRedisBackend(clean, prefix=prefix), **heartbeat)
+        backend = JournalRedisBackend(spec.url, prefix=spec.prefix)
+        storage = HeartbeatJournalStorage(backend, **heartbeat)
         storage.get_all_studies()  # fail now if the server is unreachable
         return storage
     engine_kwargs: dict[str, Any] = {}
-    if kind == "sqlite":
-        path = sqlite_path(url)
-        if path is not None:
-            parent = path.resolve().parent
-            if not parent.exists():
-                raise StorageError(f"directory {parent} of SQLite database does not exist")
-            if mode != "create" and not path.is_file():
-                raise StorageError(f"no SQLite database {path} (check --storage)")
-            _check_sqlite(path)
+    if spec.kind == "sqlite":
+        path = spec.path
+        assert path is not None, spec  # parse_storage_url refuses in-memory databases
+        parent = path.resolve().parent
+        if not parent.exists():
+            raise StorageError(f"directory {parent} of SQLite database does not exist")
+        if mode != "create" and not path.is_file():
+            raise StorageError(f"no SQLite database {path} (check --storage)")
+        _check_sqlite(path)
         # Python's sqlite3 waits this long for a lock before "database is locked".
         engine_kwargs["connect_args"] = {"timeout": SQLITE_BUSY_TIMEOUT_S}
     else:
         engine_kwargs["pool_pre_ping"] = True
         engine_kwargs["connect_args"] = {"connect_timeout": 10}
-    rdb_url = normalize_url(url)
     if mode == "read":  # the schema exists: no lock (and no lock file) needed
-        return optuna.storages.RDBStorage(rdb_url, engine_kwargs=engine_kwargs, **heartbeat)
+        return optuna.storages.RDBStorage(spec.url, engine_kwargs=engine_kwargs, **heartbeat)
     # Many workers starting at once on a fresh database race on CREATE TABLE: one at a time.
-    with storage_lock(rdb_url, "schema"):
-        return optuna.storages.RDBStorage(rdb_url, engine_kwargs=engine_kwargs, **heartbeat)
+    with storage_lock(spec, "schema"):
+        return optuna.storages.RDBStorage(spec.url, engine_kwargs=engine_kwargs, **heartbeat)
 
 
 def damaged_sqlite_message(path: os.PathLike[str] | str, detail: str) -> str:
@@ -281,14 +251,22 @@ def _check_sqlite(path: os.PathLike[str] | str) -> None:
         raise StorageError(damaged_sqlite_message(path, lines[0]))
 
 
+def _registered(storage: BaseStorage) -> StorageURL | None:
+    """The URL :func:`open_storage` opened a storage from (also under Optuna's cache wrapper)."""
+    for candidate in (storage, base_storage(storage)):
+        spec = _OPENED_FROM.get(candidate)
+        if spec is not None:
+            return spec
+    return None
+
+
 def storage_url(storage: BaseStorage) -> str | None:
     """The URL a storage was opened from with :func:`open_storage` (``None`` if unknown)."""
-    for candidate in (storage, base_storage(storage)):
-        url = _URLS.get(candidate)
-        if url is not None:
-            return url
+    spec = _registered(storage)
+    if spec is not None:
+        return spec.raw
     inner = base_storage(storage)
-    return getattr(inner, "url", None) if isinstance(inner, optuna.storages.RDBStorage) else None
+    return inner.url if isinstance(inner, optuna.storages.RDBStorage) else None
 
 
 @contextlib.contextmanager
@@ -299,11 +277,14 @@ def study_lock(study: optuna.Study, timeout: float = LOCK_TIMEOUT_S) -> Iterator
     trial budget exact. Yields ``False`` (and locks nothing) for storages not opened by
     :func:`open_storage`, e.g. Optuna's in-memory storage.
     """
-    url = storage_url(study._storage)
-    if url is None:
-        yield False
-        return
-    with storage_lock(url, study.study_name, timeout=timeout):
+    spec = _registered(study._storage)
+    if spec is None:
+        url = storage_url(study._storage)  # an RDBStorage opened without open_storage
+        if url is None:
+            yield False
+            return
+        spec = parse_storage_url(url)
+    with storage_lock(spec, study.study_name, timeout=timeout):
         yield True
 
 
@@ -314,7 +295,7 @@ def study_names(storage: BaseStorage) -> list[str]:
 
 def load_study(
     name: str,
-    storage: BaseStorage | str,
+    storage: BaseStorage | str | StorageURL,
     *,
     mode: Literal["write", "read"] = "read",
     **kwargs: Any,
@@ -323,7 +304,8 @@ def load_study(
 
     Args:
         name: The study's name.
-        storage: A storage, or a URL opened with :func:`open_storage` in ``mode``.
+        storage: A storage, or a URL (string or parsed) opened with :func:`open_storage` in
+            ``mode``.
         mode: ``"read"`` (default): nothing is created, a missing SQLite or journal file is a
             :class:`StorageError`; ``"write"``: the same, for commands that change the study.
         **kwargs: Passed to :func:`optuna.load_study` (e.g. ``sampler``).
@@ -332,7 +314,7 @@ def load_study(
         StorageError: the storage cannot be opened or its file does not exist.
         StudyNotFound: no study of that name.
     """
-    if isinstance(storage, str):
+    if isinstance(storage, (str, StorageURL)):
         storage = open_storage(storage, mode=mode)
     try:
         return optuna.load_study(study_name=name, storage=storage, **kwargs)

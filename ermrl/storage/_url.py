@@ -1,0 +1,154 @@
+"""Storage URLs, parsed once into a small frozen value.
+
+Every other module of :mod:`ermrl.storage` takes a :class:`StorageURL` from
+:func:`parse_storage_url` instead of taking the string apart again. This module is a leaf: it
+imports nothing else from :mod:`ermrl.storage`, so any of them can import it.
+
+Accepted URLs:
+
+- ``sqlite:///path.db`` (in-memory databases, ``sqlite://`` and ``sqlite:///:memory:``, are
+  refused: no later command could read their trials);
+- ``postgresql://...`` (or ``postgres://...``) and ``mysql://...``, with or without a driver
+  (``postgresql+psycopg2://``, ``mysql+pymysql://``);
+- ``journal:///path.log`` or any path ending in ``.log`` (no scheme);
+- ``redis://host:port[/db][?prefix=NAME]``.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+from urllib.parse import parse_qsl, urlencode, urlsplit, urlunsplit
+
+__all__ = [
+    "StorageError",
+    "StorageKind",
+    "StorageURL",
+    "journal_file",
+    "parse_storage_url",
+    "redis_split",
+    "sqlite_file",
+]
+
+StorageKind = Literal["sqlite", "journal", "postgresql", "mysql", "redis"]
+_RDB_KINDS = ("sqlite", "postgresql", "mysql")
+
+
+class StorageError(RuntimeError):
+    """The storage URL is malformed or the storage cannot be reached."""
+
+
+@dataclass(frozen=True)
+class StorageURL:
+    """A storage URL, taken apart once (build it with :func:`parse_storage_url`).
+
+    Attributes:
+        raw: The URL as given (what error messages and :func:`ermrl.storage.storage_url` show).
+        kind: ``"sqlite"``, ``"journal"``, ``"postgresql"``, ``"mysql"`` or ``"redis"``.
+        url: What the backend is opened with: the SQLAlchemy URL for ``sqlite``,
+            ``postgresql`` and ``mysql`` (``postgres://`` spelled ``postgresql``, a driver
+            filled in when none is given), the Redis URL without the ``prefix`` parameter for
+            ``redis``, and ``raw`` for ``journal``.
+        path: The database file (``sqlite``) or log file (``journal``), ``~`` expanded;
+            ``None`` for server storages.
+        prefix: The key prefix of a Redis journal (``?prefix=NAME``); ``""`` when none is given
+            and for every other kind.
+    """
+
+    raw: str
+    kind: StorageKind
+    url: str
+    path: Path | None = None
+    prefix: str = ""
+
+    @property
+    def is_rdb(self) -> bool:
+        """Whether Optuna opens it as an ``RDBStorage`` (SQLite, PostgreSQL, MySQL)."""
+        return self.kind in _RDB_KINDS
+
+    def __str__(self) -> str:
+        return self.raw
+
+
+def parse_storage_url(url: str) -> StorageURL:
+    """Take a storage URL apart (see the module docstring for the accepted forms).
+
+    Args:
+        url: The storage URL, e.g. ``sqlite:///ermrl.db`` or ``redis://localhost:6379?prefix=a``.
+
+    Returns:
+        The parsed URL; ``parse_storage_url("postgres://u@h/db").url`` is
+        ``"postgresql+psycopg2://u@h/db"`` when psycopg 3 is not installed.
+
+    Raises:
+        StorageError: an unsupported URL, or an in-memory SQLite database (one line each).
+    """
+    if url.startswith("journal://") or (url.endswith(".log") and "://" not in url):
+        return StorageURL(raw=url, kind="journal", url=url, path=journal_file(url))
+    scheme, _, rest = url.partition("://") if "://" in url else ("", "", url)
+    dialect, _, driver = scheme.lower().partition("+")
+    if dialect == "sqlite":
+        path = sqlite_file(url)
+        if path is None:
+            raise StorageError(
+                f"{url} is an in-memory SQLite database: its trials would vanish when this "
+                "command exits and no other command could read them; use a file, e.g. "
+                "sqlite:///ermrl.db"
+            )
+        return StorageURL(raw=url, kind="sqlite", url=url, path=path)
+    if dialect in ("postgresql", "postgres"):
+        # SQLAlchemy 2.1 defaults to psycopg 3; without it, use psycopg2.
+        driver = driver or ("" if _installed("psycopg") else "psycopg2")
+        return StorageURL(raw=url, kind="postgresql", url=_with_scheme("postgresql", driver, rest))
+    if dialect == "mysql":
+        driver = driver or ("" if _installed("MySQLdb") else "pymysql")
+        return StorageURL(raw=url, kind="mysql", url=_with_scheme("mysql", driver, rest))
+    if dialect == "redis":
+        clean, prefix = redis_split(url)
+        return StorageURL(raw=url, kind="redis", url=clean, prefix=prefix)
+    raise StorageError(
+        f"unsupported storage URL {url!r}; use sqlite:///file.db, postgresql://..., "
+        "mysql://..., journal:///file.log (or file.log) or redis://host:port"
+    )
+
+
+def sqlite_file(url: str) -> Path | None:
+    """The database file of a ``sqlite:///`` URL (``None`` for in-memory databases)."""
+    rest = url.split("://", 1)[1] if "://" in url else url
+    rest = rest[1:] if rest.startswith("/") else rest  # sqlite:///rel.db, sqlite:////abs.db
+    rest = rest.split("?", 1)[0]
+    if not rest or rest == ":memory:":
+        return None
+    return Path(rest).expanduser()
+
+
+def journal_file(url: str) -> Path:
+    """The log file of a ``journal:///path`` URL or of a bare ``path.log``."""
+    if url.startswith("journal://"):
+        return Path(url[len("journal://") :]).expanduser()
+    return Path(url).expanduser()
+
+
+def redis_split(url: str) -> tuple[str, str]:
+    """Split ``redis://host:port/db?prefix=NAME`` into the Redis URL and the key prefix."""
+    parts = urlsplit(url)
+    query = parse_qsl(parts.query, keep_blank_values=True)
+    prefix = "".join(v for k, v in query if k == "prefix")
+    rest = urlencode([(k, v) for k, v in query if k != "prefix"])
+    return urlunsplit(parts._replace(query=rest)), prefix
+
+
+def _with_scheme(dialect: str, driver: str, rest: str) -> str:
+    return f"{dialect}+{driver}://{rest}" if driver else f"{dialect}://{rest}"
+
+
+@functools.cache
+def _installed(module: str) -> bool:
+    """Whether a database driver can be imported (checked once per process)."""
+    try:
+        __import__(module)
+    except ImportError:
+        return False
+    return True
