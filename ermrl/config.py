@@ -55,41 +55,68 @@ def _check_steps(name: str, steps: int) -> None:
 
 @dataclass(frozen=True)
 class AgentKind:
-    """What a test-phase agent is: its reservoirs and what it observes.
+    """What a test-phase agent is: a (learner, encoder, evolved or not) triple, and its labels.
 
     Attributes:
-        reservoirs: ``"none"`` (plain PPO), ``"evolved"`` (the selected trial's) or
+        reservoirs: ``"none"`` (the raw observation), ``"evolved"`` (the selected trial's) or
             ``"unevolved"`` (reservoirpy's defaults, :meth:`ReservoirSpace.default_reservoirs`).
         observe: The agent's own observation mask (``None``: the test task's).
         description: One line for ``--help`` and the docs.
+        learner: Its learner (a name of :data:`ermrl.learners.LEARNERS`); ``None``: the
+            study's own learner, with the study's settings. An agent with another learner than
+            the study's takes that learner's table settings for the task (and ``--ppo``).
+        label: Its name in figure legends.
+        short_label: Its name on crowded axes.
+        color: Its matplotlib colour, the same in every figure.
+        default: Trained when ``--agents`` is not given.
     """
 
     reservoirs: Literal["none", "evolved", "unevolved"]
     observe: ObserveMode | None
     description: str
+    learner: str | None = None
+    label: str = ""
+    short_label: str = ""
+    color: str = ""
+    default: bool = True
 
 
-# The registry of test-phase agents (ermrl.experiments builds them): CLI choices, defaults and
-# the analysis' agent order are read from it.
+# The registry of test-phase agents (ermrl.experiments builds them): CLI choices, defaults, the
+# analysis' agent order, labels and colours are read from it. One line adds an agent.
 AGENT_KINDS: Mapping[str, AgentKind] = {
-    "ppo": AgentKind("none", None, "PPO on the raw (masked) observation"),
+    "ppo": AgentKind(
+        "none", None, "PPO on the raw (masked) observation", "ppo",
+        "PPO (raw observation)", "PPO", "tab:blue",
+    ),
     "ppo-full": AgentKind(
-        "none", "all", "PPO on the full, unmasked observation: the ceiling memory should approach"
+        "none", "all", "PPO on the full, unmasked observation: the ceiling memory should approach",
+        "ppo", "PPO (full observation)", "PPO\n(full obs.)", "tab:gray",
     ),
-    "res-ppo": AgentKind("evolved", None, "PPO on the selected evolved reservoir(s)"),
+    "res-ppo": AgentKind(
+        "evolved", None, "the study's learner on the selected evolved reservoir(s)", None,
+        "RES-PPO (evolved reservoir)", "RES-PPO\n(evolved)", "tab:orange",
+    ),
     "random-res-ppo": AgentKind(
-        "unevolved",
-        None,
-        "PPO on unevolved reservoirs (reservoirpy's defaults): what evolution adds",
+        "unevolved", None,
+        "the study's learner on unevolved reservoirs (reservoirpy's defaults): what evolution adds",
+        None, "RES-PPO (unevolved reservoir)", "RES-PPO\n(unevolved)", "tab:green",
     ),
-}
+    "lstm-ppo": AgentKind(
+        "none", None, "RecurrentPPO (LSTM policy) on the raw (masked) observation: memory baseline",
+        "lstm-ppo", "LSTM-PPO (raw observation)", "LSTM-PPO", "tab:purple", default=False,
+    ),
+    "framestack-ppo": AgentKind(
+        "none", None, "PPO on the last k raw (masked) observations (frame_stack, default 4)",
+        "framestack-ppo", "PPO (4 stacked frames)", "PPO\n(stacked)", "tab:brown", default=False,
+    ),
+}  # fmt: skip
 AGENTS: tuple[str, ...] = tuple(AGENT_KINDS)
 
 
 def default_agents(observe: str) -> tuple[str, ...]:
-    """Every agent, less those whose own mask is the task's: ``ppo-full`` on an unmasked task
-    would repeat ``ppo`` run for run."""
-    return tuple(a for a in AGENTS if AGENT_KINDS[a].observe != observe)
+    """The default agents, less those whose own mask is the task's: ``ppo-full`` on an unmasked
+    task would repeat ``ppo`` run for run."""
+    return tuple(a for a, kind in AGENT_KINDS.items() if kind.default and kind.observe != observe)
 
 
 @dataclass(frozen=True)
@@ -278,7 +305,7 @@ class NormalizeConfig:
 
 @dataclass(frozen=True)
 class PPOConfig:
-    """Stable-Baselines3 PPO settings.
+    """An inner learner's settings (PPO's, or those of another learner of :mod:`ermrl.learners`).
 
     Attributes:
         n_envs: Environments stepped in lockstep by one agent (a ``DummyVecEnv``). PPO collects
@@ -292,6 +319,10 @@ class PPOConfig:
         normalize: Wrap the environment in ``VecNormalize`` (rl-baselines3-zoo's ``normalize``
             key); ``None``: no normalization. Left out of :meth:`to_dict` while ``None``, so
             configs stored before it existed are unchanged.
+        learner: The inner learner that takes these settings (a name of
+            :data:`ermrl.learners.LEARNERS`; ``hyperparams`` are its algorithm's arguments).
+            Left out of :meth:`to_dict` while ``"ppo"``, so configs stored before learners were
+            plug-ins read as PPO, unchanged.
     """
 
     n_envs: int = 1
@@ -299,8 +330,11 @@ class PPOConfig:
     torch_threads: int = 1
     device: str = "cpu"
     normalize: NormalizeConfig | None = field(default=None, metadata={"omit_if_default": True})
+    learner: str = field(default="ppo", metadata={"omit_if_default": True})
 
     def __post_init__(self) -> None:
+        if not isinstance(self.learner, str) or not self.learner:
+            raise ConfigError(f"learner must be a learner's name, got {self.learner!r}")
         if not 1 <= self.n_envs <= MAX_N_ENVS:
             raise ConfigError(f"n_envs must be in [1, {MAX_N_ENVS}], got {self.n_envs}")
         if self.torch_threads < 1:

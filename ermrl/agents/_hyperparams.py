@@ -91,17 +91,23 @@ def parse_normalize(value: Any, where: str = "normalize") -> NormalizeConfig | N
         raise ConfigError(f"{where}: {err}") from None
 
 
-def load_hyperparams_table(path: str | Path | None = None) -> dict[str, dict[str, Any]]:
-    """Load a YAML table of PPO hyperparameters keyed by env id.
+def load_hyperparams_table(
+    path: str | Path | None = None, learner: str = "ppo"
+) -> dict[str, dict[str, Any]]:
+    """Load a YAML table of a learner's settings keyed by env id.
 
     Args:
-        path: A YAML file; ``None`` loads the packaged ``ermrl/data/ppo.yml``.
+        path: A YAML file; ``None`` loads the learner's packaged table (``ermrl/data/ppo.yml``
+            for PPO).
+        learner: The learner whose settings these are (see :mod:`ermrl.learners`).
 
     Returns:
         The table, with a ``default`` entry (possibly empty).
     """
+    from ermrl.learners import get_learner
+
     if path is None:
-        text = resources.files("ermrl").joinpath("data/ppo.yml").read_text()
+        text = resources.files("ermrl").joinpath(f"data/{get_learner(learner).table}").read_text()
     else:
         try:
             text = Path(path).read_text()
@@ -126,7 +132,7 @@ def load_hyperparams_table(path: str | Path | None = None) -> dict[str, dict[str
     table = {env_id: _coerce(entry or {}) for env_id, entry in table.items()}
     table.setdefault("default", {})
     for env_id, entry in table.items():
-        _check_keys(entry or {}, f"{path or 'ppo.yml'}[{env_id}]")
+        _check_keys(entry or {}, f"{path or get_learner(learner).table}[{env_id}]")
     return table
 
 
@@ -151,12 +157,22 @@ def _coerce(value: Any) -> Any:
     return value
 
 
+def _valid_keys() -> set[str]:
+    """Keys a table or an override may set: any learner's algorithm arguments or own settings."""
+    from ermrl.learners import LEARNERS
+
+    keys = _PPO_KEYS | _ERMRL_KEYS
+    for learner in LEARNERS.values():
+        keys |= set(learner.own_keys)
+    return keys
+
+
 def _check_keys(entry: Mapping[str, Any], where: str) -> None:
-    unknown = set(entry) - _PPO_KEYS - _ERMRL_KEYS
+    valid = _valid_keys()
+    unknown = set(entry) - valid
     if unknown:
         raise ConfigError(
-            f"{where}: unknown PPO hyperparameter(s) {sorted(unknown)}; "
-            f"valid keys: {sorted(_PPO_KEYS | _ERMRL_KEYS)}"
+            f"{where}: unknown PPO hyperparameter(s) {sorted(unknown)}; valid keys: {sorted(valid)}"
         )
     if "normalize" in entry:
         parse_normalize(entry["normalize"], where)
@@ -188,6 +204,7 @@ def resolve_ppo_config(
     n_envs: int | None = None,
     table_path: str | Path | None = None,
     torch_threads: int = 1,
+    learner: str = "ppo",
 ) -> PPOConfig:
     """Resolve an env's PPO settings: SB3 defaults < table ``default`` < table[env_id] < overrides.
 
@@ -198,10 +215,11 @@ def resolve_ppo_config(
         env_id: Gymnasium id.
         overrides: Command-line overrides.
         n_envs: Explicit number of environments (wins over the table).
-        table_path: Alternative YAML table.
+        table_path: Alternative YAML table (default: the learner's own).
         torch_threads: Torch threads per training process.
+        learner: The learner (see :mod:`ermrl.learners`); its table is read.
     """
-    table = load_hyperparams_table(table_path)
+    table = load_hyperparams_table(table_path, learner)
     merged: dict[str, Any] = dict(table.get("default") or {})
     merged.update(table.get(env_id) or {})
     merged.update(overrides or {})
@@ -211,6 +229,7 @@ def resolve_ppo_config(
         hyperparams=merged,
         torch_threads=torch_threads,
         normalize=parse_normalize(merged.pop("normalize", None), env_id),
+        learner=learner,
     )
 
 
@@ -322,8 +341,8 @@ def check_ppo_config(
     """Refuse PPO settings that would fail or misbehave only once training runs.
 
     Checks the ranges of the common numeric settings, then builds the agent as training does
-    (the real env, the reservoir encoder and normalization, ``PPO("MlpPolicy", ...)`` with its
-    policy network) without taking a step, so that whatever Stable-Baselines3 or torch refuses
+    (the real env, the reservoir encoder and normalization, the learner's wrappers and its
+    algorithm with its policy network) without taking a step, so that whatever Stable-Baselines3 or torch refuses
     (``n_steps=1``, ``policy_kwargs={net_arch: foo}``, ...) is reported before a study or a run
     folder is touched.
 
@@ -338,12 +357,15 @@ def check_ppo_config(
     """
     from ermrl.agents._normalize import normalize_env
     from ermrl.agents._train import make_vec_env
+    from ermrl.learners import get_learner
 
     _check_values(ppo)
-    kwargs = ppo_kwargs(ppo)
+    learner = get_learner(ppo.learner)
+    learner.check(ppo)
+    ppo_kwargs(ppo)  # a malformed lin_X schedule is reported as such
     env = normalize_env(make_vec_env(task, ppo.n_envs, 0, encoder, 0), ppo)
     try:
-        PPO("MlpPolicy", env, seed=0, device=ppo.device, verbose=0, **kwargs)
+        learner.build(learner.wrap_env(env, ppo), ppo, seed=0)
     except Exception as err:  # noqa: BLE001 - any refusal is bad input; its text says which
         raise ConfigError(f"{where} settings refused: {_one_line(err)}") from None
     finally:

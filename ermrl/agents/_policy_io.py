@@ -60,16 +60,17 @@ def save_policy(model: PPO, path: str | Path) -> None:
 
 
 def load_policy(path: str | Path, ppo: PPOConfig, env: Any) -> PPO:
-    """Rebuild a trained PPO agent from its plain weights; nothing is unpickled.
+    """Rebuild a trained agent from its plain weights; nothing is unpickled.
 
-    The agent is built as training built it (``PPO("MlpPolicy", env, **ppo_kwargs(ppo))``, on
-    the CPU), then its policy takes the weights of ``path``, read with
+    The agent is built as training built it (by the learner of ``ppo.learner``, on the CPU),
+    then its policy takes the weights of ``path``, read with
     ``torch.load(..., weights_only=True)`` (tensors and plain containers only).
 
     Args:
         path: A ``policy.pt`` written by :func:`save_policy`.
-        ppo: The run's PPO settings (its ``policy_kwargs`` fix the network's shape).
-        env: A VecEnv with the observation and action spaces the agent trained on.
+        ppo: The run's learner settings (its ``policy_kwargs`` fix the network's shape).
+        env: A VecEnv with the observation and action spaces the agent trained on (wrapped by
+            the learner's :meth:`~ermrl.learners.Learner.wrap_env`, as in training).
 
     Returns:
         The agent, ready for ``predict``; it is not meant to be trained further.
@@ -78,9 +79,8 @@ def load_policy(path: str | Path, ppo: PPOConfig, env: Any) -> PPO:
         ValueError: The file does not hold a state dict of this network.
     """
     import torch
-    from stable_baselines3 import PPO
 
-    from ermrl.agents._hyperparams import ppo_kwargs
+    from ermrl.learners import get_learner
 
     state = torch.load(str(path), map_location="cpu", weights_only=True)
     if not isinstance(state, dict) or not all(
@@ -89,7 +89,7 @@ def load_policy(path: str | Path, ppo: PPOConfig, env: Any) -> PPO:
         raise ValueError(f"{path} does not hold a policy state dict (names to tensors)")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # rollout-size hints about a buffer never filled here
-        model = PPO("MlpPolicy", env, device="cpu", verbose=0, **ppo_kwargs(ppo))
+        model = get_learner(ppo.learner).build(env, ppo, device="cpu")
     try:
         model.policy.load_state_dict(state)
     except RuntimeError as err:

@@ -180,14 +180,15 @@ def train_agent(
     report: ReportFn | None = None,
     tensorboard_log: str | None = None,
 ) -> RunResult:
-    """Train ``PPO('MlpPolicy')`` on a task for one seed and measure its returns.
+    """Train the learner of ``ppo.learner`` (PPO by default) on a task for one seed and measure
+    its returns.
 
     Args:
         task: Env id and observation mask.
         encoder: Reservoir encoding; ``None`` trains plain PPO on the (masked) observation.
-        ppo: PPO settings.
+        ppo: The learner's settings (``ppo.learner`` names it, see :mod:`ermrl.learners`).
         budget: Training steps and fitness measure.
-        seed: Seeds the reservoir weights, the environments and PPO (see :func:`derive_seeds`).
+        seed: Seeds the reservoir weights, the environments and the agent (see :func:`derive_seeds`).
         evaluate: Run deterministic evaluation episodes after training (default: when
             ``budget.fitness == "eval"``).
         model_path: Save the trained model there (``.zip``, SB3's format), its policy's
@@ -206,10 +207,8 @@ def train_agent(
         NoEpisodeFinished: the ``last`` measure is needed but no episode ended.
     """
     import torch
-    from stable_baselines3 import PPO
     from stable_baselines3.common.evaluation import evaluate_policy
 
-    from ermrl.agents._hyperparams import ppo_kwargs
     from ermrl.agents._normalize import (
         frozen_normalize_env,
         normalize_env,
@@ -218,7 +217,9 @@ def train_agent(
         stats_path,
     )
     from ermrl.agents._policy_io import policy_path, save_policy
+    from ermrl.learners import get_learner
 
+    learner = get_learner(ppo.learner)
     torch.set_num_threads(ppo.torch_threads)
     # BLAS (numpy's matrix products in the encoder) gets the same thread budget: with several
     # training processes on a few cores, extra spinning BLAS threads only steal CPU time.
@@ -226,18 +227,14 @@ def train_agent(
     seeds = derive_seeds(seed)
     result = RunResult(seed=seed)
     start = time.perf_counter()
-    # VecNormalize (ppo.normalize) is the outermost wrapper: it sees the reservoir states.
-    env = normalize_env(make_vec_env(task, ppo.n_envs, seeds.env, encoder, seeds.reservoir), ppo)
+    # VecNormalize (ppo.normalize) sees the reservoir states; the learner's own wrappers (a
+    # frame stack) come last, as in rl-baselines3-zoo.
+    normalized = normalize_env(
+        make_vec_env(task, ppo.n_envs, seeds.env, encoder, seeds.reservoir), ppo
+    )
+    env = learner.wrap_env(normalized, ppo)
     try:
-        model = PPO(
-            "MlpPolicy",
-            env,
-            seed=seeds.agent,
-            device=ppo.device,
-            verbose=0,
-            tensorboard_log=tensorboard_log,
-            **ppo_kwargs(ppo),
-        )
+        model = learner.build(env, ppo, seed=seeds.agent, tensorboard_log=tensorboard_log)
         # PPO(seed=...) reseeds the env with the agent seed; give the envs their own seed.
         env.seed(seeds.env)
         try:
@@ -266,7 +263,8 @@ def train_agent(
             eval_env = make_vec_env(task, 1, seeds.eval_env, encoder, seeds.reservoir)
             if ppo.normalize is not None:
                 # Training's final statistics, frozen; rewards stay raw.
-                eval_env = frozen_normalize_env(eval_env, normalize_stats(env))
+                eval_env = frozen_normalize_env(eval_env, normalize_stats(normalized))
+            eval_env = learner.wrap_env(eval_env, ppo)
             try:
                 returns, _ = evaluate_policy(
                     model,
@@ -295,7 +293,7 @@ def train_agent(
                 partial.unlink(missing_ok=True)
             save_policy(model, policy_path(model_path))
             if ppo.normalize is not None:
-                save_normalize_stats(env, stats_path(model_path))
+                save_normalize_stats(normalized, stats_path(model_path))
     finally:
         env.close()
     result.wall_seconds = time.perf_counter() - start

@@ -171,9 +171,12 @@ def load_trained_agent(
             f"available: {_describe(models)}"
         )
 
+    settings_path = folder / "settings.json"
+    settings = json.loads(settings_path.read_text()) if settings_path.is_file() else {}
+    ppo = settings.get("ppo") or config.get("ppo")
     normalize_path: Path | None = stats_path(model_path)
     if not normalize_path.is_file():  # type: ignore[union-attr]
-        if (config.get("ppo") or {}).get("normalize"):
+        if isinstance(ppo, dict) and ppo.get("normalize"):
             raise FileNotFoundError(
                 f"{normalize_path} not found: the run trained with normalize (VecNormalize), "
                 "and its policy cannot be replayed without the statistics"
@@ -183,9 +186,6 @@ def load_trained_agent(
     task = config.get("task") or {}
     # The mask this agent trained with: its own (ppo-full: "all"), else the folder's task's.
     observe = (config.get("agent_observe") or {}).get(agent) or task.get("observe", "all")
-    settings_path = folder / "settings.json"
-    settings = json.loads(settings_path.read_text()) if settings_path.is_file() else {}
-    ppo = settings.get("ppo") or config.get("ppo")
     if not isinstance(ppo, dict):
         raise FileNotFoundError(
             f"no PPO settings for {folder} (neither its settings.json nor {run}/config.yaml "
@@ -251,6 +251,7 @@ def rollout(
         make_vec_env,
     )
     from ermrl.config import EncoderConfig, PPOConfig, TaskConfig, from_dict
+    from ermrl.learners import get_learner
 
     if trained.policy_path is None or trained.ppo is None:
         raise ValueError("rollout needs the plain policy file and PPO settings")
@@ -274,7 +275,9 @@ def rollout(
     try:
         if trained.normalize_path is not None:
             policy_env = frozen_normalize_env(venv, load_normalize_stats(trained.normalize_path))
+        policy_env = get_learner(ppo.learner).wrap_env(policy_env, ppo)  # a frame stack
         model = load_policy(trained.policy_path, ppo, policy_env)
+        obs_dim = int(np.prod(venv.observation_space.shape))
         base = venv.venv if encoder is not None else venv
         unwrapped = base.envs[0].unwrapped
         dt = _env_dt(unwrapped)
@@ -285,16 +288,21 @@ def rollout(
         observations, actions, rewards, states, frames = [], [], [], [], []
         ended = False
         step = 0
+        hidden = None
         while max_steps is None or step < max_steps:
             if encoder is not None:
                 observations.append(venv.get_inputs()[0, : venv.obs_dim].copy())
                 states.append(venv.get_states()[0].copy())
             else:
                 raw = policy_env.get_original_obs() if normalized else obs
-                observations.append(np.asarray(raw[0], dtype=np.float64).copy())
+                # The newest observation: a frame stack puts it last.
+                observations.append(np.asarray(raw[0], dtype=np.float64)[-obs_dim:].copy())
             if render:
                 frames.append(np.asarray(base.envs[0].render()).copy())
-            action, _ = model.predict(obs, deterministic=deterministic)
+            # A recurrent policy carries its hidden state (PPO ignores state and episode_start).
+            action, hidden = model.predict(
+                obs, state=hidden, episode_start=np.array([step == 0]), deterministic=deterministic
+            )
             obs, reward, done, _ = policy_env.step(action)
             if normalized:
                 reward = policy_env.get_original_reward()  # VecNormalize casts to float32

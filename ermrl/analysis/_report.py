@@ -33,7 +33,7 @@ from ermrl.config import AGENTS
 
 __all__ = ["ReportResult", "notebook_parameters", "write_report"]
 
-AGENT_ORDER = AGENTS  # ppo, ppo-full, res-ppo, random-res-ppo
+AGENT_ORDER = AGENTS  # the agent table's order (ermrl.config.AGENT_KINDS)
 ENV_STUDY = "ERMRL_STUDY_NAME"
 ENV_STORAGE = "ERMRL_STORAGE"
 ENV_RUNS = "ERMRL_RUNS"

@@ -18,6 +18,8 @@ import matplotlib as mpl
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
+from ermrl.config import AGENT_KINDS
+
 __all__ = [
     "AGENT_COLORS",
     "AGENT_LABELS",
@@ -32,25 +34,10 @@ __all__ = [
     "task_title",
 ]
 
-# One entry per agent of ermrl.config.AGENTS (a test checks that none is missing).
-AGENT_LABELS = {
-    "ppo": "PPO (raw observation)",
-    "ppo-full": "PPO (full observation)",
-    "res-ppo": "RES-PPO (evolved reservoir)",
-    "random-res-ppo": "RES-PPO (unevolved reservoir)",
-}
-AGENT_SHORT_LABELS = {
-    "ppo": "PPO",
-    "ppo-full": "PPO\n(full obs.)",
-    "res-ppo": "RES-PPO\n(evolved)",
-    "random-res-ppo": "RES-PPO\n(unevolved)",
-}
-AGENT_COLORS = {
-    "ppo": "tab:blue",
-    "ppo-full": "tab:gray",
-    "res-ppo": "tab:orange",
-    "random-res-ppo": "tab:green",
-}
+# Read from the agent table (ermrl.config.AGENT_KINDS): adding an agent there labels it here.
+AGENT_LABELS = {name: kind.label or name for name, kind in AGENT_KINDS.items()}
+AGENT_SHORT_LABELS = {name: kind.short_label or name for name, kind in AGENT_KINDS.items()}
+AGENT_COLORS = {name: kind.color for name, kind in AGENT_KINDS.items() if kind.color}
 _EXTRA_COLORS = ("tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:olive", "tab:cyan")
 
 # Sizes are in points at the saved size (figures are saved at their nominal size in inches).

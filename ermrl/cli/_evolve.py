@@ -86,7 +86,18 @@ def add_problem_args(parser: argparse.ArgumentParser, *, multi_task: bool = Fals
         default="all",
         help="keep the whole observation, only its positions (velocities hidden) or only its velocities",
     )
-    g = parser.add_argument_group("inner loop (PPO)")
+    g = parser.add_argument_group("inner loop (the learner: PPO by default)")
+    if not multi_task:
+        from ermrl.learners import LEARNERS
+
+        g.add_argument(
+            "--learner",
+            choices=tuple(LEARNERS),
+            default="ppo",
+            help="the inner learner, trained on the reservoir states: "
+            + "; ".join(f"{name}: {learner.description}" for name, learner in LEARNERS.items())
+            + ". Its settings come from its own table (see --hyperparams) and --ppo",
+        )
     g.add_argument(
         "--training-steps",
         type=positive_int,
@@ -136,13 +147,15 @@ def add_problem_args(parser: argparse.ArgumentParser, *, multi_task: bool = Fals
         nargs="+",
         default=[],
         metavar="KEY=VALUE",
-        help="PPO hyperparameter overrides, e.g. --ppo learning_rate=1e-4 n_steps=1024",
+        help="the learner's hyperparameter overrides, e.g. --ppo learning_rate=1e-4 n_steps=1024 "
+        "(framestack-ppo: frame_stack=K)",
     )
     g.add_argument(
         "--hyperparams",
         default=None,
         metavar="YAML",
-        help="PPO table keyed by env id (default: ermrl/data/ppo.yml)",
+        help="the learner's settings table keyed by env id (default: its packaged table, "
+        "ermrl/data/ppo.yml for PPO)",
     )
     g.add_argument(
         "--n-procs",
@@ -451,6 +464,7 @@ def config_from_args(args: argparse.Namespace) -> EvolveConfig:
         n_envs=args.n_envs,
         table_path=args.hyperparams,
         torch_threads=args.torch_threads,
+        learner=getattr(args, "learner", "ppo"),
     )
     problem = Problem(
         task=TaskConfig(env_id=args.env_id, observe=args.observe),

@@ -375,6 +375,7 @@ def _test_ppo(config: EvolveConfig, env_id: str, args: argparse.Namespace) -> PP
         n_envs=n_envs,
         table_path=table,
         torch_threads=config.problem.ppo.torch_threads,
+        learner=config.problem.ppo.learner,
     )
 
 
@@ -397,7 +398,7 @@ def test_generalization_main(
     argv: Sequence[str] | None = None, prog: str = "ermrl test-generalization"
 ) -> int:
     """Entry point of ``ermrl test-generalization`` and ``test_generalization.py``."""
-    from ermrl.agents import check_ppo_config
+    from ermrl.agents import check_ppo_config, parse_overrides
     from ermrl.envs import (
         UnknownEnvError,
         UnsupportedObserveError,
@@ -408,6 +409,7 @@ def test_generalization_main(
         TestSettings,
         default_test_seeds,
         describe_selection,
+        learner_settings_for,
         run_comparison,
         selection_metadata,
         study_agents,
@@ -441,11 +443,21 @@ def test_generalization_main(
             )
         seeds = select_seeds(seeds, os.environ.get("SLURM_ARRAY_TASK_ID"))
         args.agents = args.agents or list(default_agents(observe))
-        agents, chosen = study_agents(study, config, args.agents, args.trial)
         ppo = _test_ppo(config, args.env_id, args)
+        overrides = parse_overrides(args.ppo)
+        agents, chosen = study_agents(
+            study,
+            config,
+            args.agents,
+            args.trial,
+            learner_settings_for(ppo, args.env_id, overrides),
+        )
         task = dataclasses.replace(problem.task, env_id=args.env_id, observe=observe)
         # The test env's settings (the study's, a table's, --ppo): refused now, not by a run.
         check_ppo_config(task, problem.encoder, ppo, where=args.env_id)
+        for agent in agents:
+            if agent.ppo is not None and overrides:
+                check_ppo_config(agent.task(task), None, agent.ppo, where=agent.name)
         out = Path(args.out) if args.out else Path("runs") / f"{args.study_name}__{args.env_id}"
         check_out_folder(out)
         settings = TestSettings(

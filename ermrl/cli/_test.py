@@ -80,8 +80,10 @@ def add_test_args(
         nargs="+",
         choices=AGENTS,
         default=None,
-        help="agents to train (default: all; ppo-full only when the mask hides something, "
-        "since on the full observation it would repeat ppo): "
+        help="agents to train (default: "
+        + ", ".join(n for n, k in AGENT_KINDS.items() if k.default)
+        + "; ppo-full only when the mask hides something, since on the full observation it "
+        "would repeat ppo): "
         + "; ".join(f"{name}: {kind.description}" for name, kind in AGENT_KINDS.items()),
     )
     parser.add_argument("--out", default=None, help=out_help)
@@ -171,15 +173,19 @@ def run_or_exit(prog: str, out: Path, run: Callable[[], T]) -> T | None:
         exits with ``EXIT_INTERRUPTED``).
 
     Raises:
-        SystemExit: exit code 2 when ``--out`` holds runs made with other settings, or when a
-            full disk, a quota or a read-only folder stops a write.
+        SystemExit: exit code 2 when ``--out`` holds runs made with other settings, when a run
+            ends no episode or diverges, or when a full disk, a quota or a read-only folder
+            stops a write.
     """
+    from ermrl.agents import NoEpisodeFinished, TrainingDiverged
     from ermrl.experiments._test_phase import WRITE_ERRNOS, write_error_message
 
     try:
         return run()
     except ConfigError as err:  # --out holds runs made with other settings
         fail(prog, str(err))
+    except (NoEpisodeFinished, TrainingDiverged) as err:  # a run could not be measured
+        fail(prog, f"{err}; finished runs are kept in {out}")
     except OSError as err:  # a full disk, a quota, a read-only folder
         if err.errno not in WRITE_ERRNOS:
             raise
@@ -197,6 +203,7 @@ def test_main(argv: Sequence[str] | None = None, prog: str = "ermrl test") -> in
         TestSettings,
         default_test_seeds,
         describe_selection,
+        learner_settings_for,
         run_comparison,
         selection_metadata,
         study_agents,
@@ -236,11 +243,20 @@ def test_main(argv: Sequence[str] | None = None, prog: str = "ermrl test") -> in
             )
         seeds = select_seeds(seeds, os.environ.get("SLURM_ARRAY_TASK_ID"))
         args.agents = args.agents or list(default_agents(problem.task.observe))
-        agents, chosen = study_agents(study, config, args.agents, args.trial)
         overrides = parse_overrides(args.ppo)
         ppo = with_overrides(problem.ppo, overrides)
+        agents, chosen = study_agents(
+            study,
+            config,
+            args.agents,
+            args.trial,
+            learner_settings_for(ppo, problem.task.env_id, overrides),
+        )
         if overrides:  # refused now rather than by the first run
             check_ppo_config(problem.task, problem.encoder, ppo, where="--ppo")
+        for agent in agents:
+            if agent.ppo is not None and overrides:
+                check_ppo_config(agent.task(problem.task), None, agent.ppo, where=agent.name)
         out = Path(args.out) if args.out else Path("runs") / args.study_name
         check_out_folder(out)
         settings = TestSettings(

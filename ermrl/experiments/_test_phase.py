@@ -5,7 +5,10 @@ Agents:
 - ``ppo``: PPO on the raw (masked) observation;
 - ``ppo-full``: PPO on the full, unmasked observation (the ceiling memory should approach);
 - ``res-ppo``: PPO on the states of the best evolved reservoir(s);
-- ``random-res-ppo``: PPO on reservoirs with default, unevolved hyperparameters (what evolution adds).
+- ``random-res-ppo``: PPO on reservoirs with default, unevolved hyperparameters (what evolution adds);
+- ``lstm-ppo``, ``framestack-ppo``: memory baselines (RecurrentPPO; PPO on stacked observations).
+
+The agents are the table :data:`~ermrl.config.AGENT_KINDS` (learner, encoder, evolved or not).
 
 Every (agent, seed) run is saved in its own folder as soon as it finishes, so a test phase that
 is interrupted, or split across SLURM array tasks, resumes and merges: the aggregated
@@ -24,7 +27,7 @@ import os
 import shlex
 import sys
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, wait
 from dataclasses import dataclass
 from pathlib import Path
@@ -68,6 +71,7 @@ __all__ = [
     "AgentKind",
     "AgentSpec",
     "agent_specs",
+    "learner_settings_for",
     "default_agents",
     "TestSettings",
     "default_test_seeds",
@@ -94,11 +98,14 @@ class AgentSpec:
         reservoirs: Its reservoirs (``None`` for plain PPO).
         observe: Its own observation mask, overriding the comparison task's (``None``: the
             task's); ``ppo-full`` sees ``"all"``.
+        ppo: Its own learner settings (``None``: the comparison's), for an agent whose learner
+            is not the study's (``lstm-ppo`` in a PPO study).
     """
 
     name: str
     reservoirs: tuple[ReservoirParams, ...] | None
     observe: ObserveMode | None = None
+    ppo: PPOConfig | None = None
 
     def task(self, task: TaskConfig) -> TaskConfig:
         """The task this agent trains on: ``task`` with the agent's own mask, if it has one."""
@@ -109,6 +116,7 @@ def agent_specs(
     names: Sequence[str],
     evolved: tuple[ReservoirParams, ...] | None,
     unevolved: tuple[ReservoirParams, ...],
+    learner_settings: Callable[[str], PPOConfig | None] | None = None,
 ) -> list[AgentSpec]:
     """Build the agents named in ``names`` from :data:`AGENT_KINDS`.
 
@@ -116,6 +124,9 @@ def agent_specs(
         names: Agent names, in order.
         evolved: The selected trial's reservoirs (needed when ``res-ppo`` is asked for).
         unevolved: Unevolved reservoirs (for ``random-res-ppo``).
+        learner_settings: The settings of an agent whose learner is given by name (``None``
+            returned: the comparison's own settings); default: every agent takes the
+            comparison's settings.
 
     Raises:
         ConfigError: an unknown name, or ``res-ppo`` without evolved reservoirs.
@@ -128,8 +139,31 @@ def agent_specs(
         reservoirs = {"none": None, "evolved": evolved, "unevolved": unevolved}[kind.reservoirs]
         if kind.reservoirs == "evolved" and reservoirs is None:
             raise ConfigError(f"agent {name!r} needs the evolved reservoirs")
-        specs.append(AgentSpec(name, reservoirs, kind.observe))
+        ppo = None
+        if kind.learner is not None and learner_settings is not None:
+            ppo = learner_settings(kind.learner)
+        specs.append(AgentSpec(name, reservoirs, kind.observe, ppo))
     return specs
+
+
+def learner_settings_for(
+    base: PPOConfig, env_id: str, overrides: Mapping[str, Any] | None = None
+) -> Callable[[str], PPOConfig | None]:
+    """Settings of each learner in a comparison whose own settings are ``base``.
+
+    ``base.learner`` keeps ``base`` (``None``: the comparison's); another learner takes its own
+    table's settings for ``env_id`` with the same ``overrides`` (``--ppo``) and threads.
+    """
+    from ermrl.agents import resolve_ppo_config
+
+    def settings(learner: str) -> PPOConfig | None:
+        if learner == base.learner:
+            return None
+        return resolve_ppo_config(
+            env_id, overrides, torch_threads=base.torch_threads, learner=learner
+        )
+
+    return settings
 
 
 def study_agents(
@@ -137,8 +171,12 @@ def study_agents(
     config: EvolveConfig,
     names: Sequence[str],
     trial_number: int | None = None,
+    learner_settings: Callable[[str], PPOConfig | None] | None = None,
 ) -> tuple[list[AgentSpec], Selection | None]:
     """The agents named in ``names`` for a study, and the evolved trial when one is needed.
+
+    ``learner_settings`` gives agents of another learner than the study's their settings (see
+    :func:`learner_settings_for`).
 
     Returns:
         The agents (see :func:`agent_specs`) and the :class:`Selection` behind ``res-ppo``
@@ -151,6 +189,7 @@ def study_agents(
         names,
         evolved=None if chosen is None else chosen.reservoirs,
         unevolved=config.space.default_reservoirs(),
+        learner_settings=learner_settings,
     )
     return agents, chosen
 
@@ -345,6 +384,10 @@ def settings_diff(stored: Mapping[str, Any], expected: Mapping[str, Any]) -> lis
     return sorted(k for k in set(a) | set(b) if a.get(k, _MISSING) != b.get(k, _MISSING))
 
 
+def _learner_of(ppo_doc: Mapping[str, Any]) -> str:
+    return str(ppo_doc.get("learner", "ppo"))  # left out of stored settings for PPO
+
+
 def check_finished_runs(
     out: Path,
     expected: Mapping[str, Any],
@@ -374,6 +417,8 @@ def check_finished_runs(
     unrecorded: list[str] = []
     outside: list[str] = []
     shared = {k: v for k, v in next(iter(expected.values())).items() if k in _SHARED_KEYS}
+    # Learner settings are shared by the agents of one learner.
+    shared_ppo = {_learner_of(e["ppo"]): e["ppo"] for e in expected.values()}
     for path in sorted(Path(out).glob(f"{RUNS_DIR}/*/seed_*/result.json")):
         name, folder = path.parent.parent.name, path.parent
         try:
@@ -393,7 +438,12 @@ def check_finished_runs(
         if name in expected:
             keys = settings_diff(stored, {**expected[name], "seed": seed})
         else:
-            keys = settings_diff({k: stored.get(k) for k in _SHARED_KEYS}, shared)
+            own = {**shared, "ppo": shared_ppo.get(_learner_of(stored.get("ppo") or {}))}
+            keys = [
+                key
+                for key in settings_diff({k: stored.get(k) for k in _SHARED_KEYS}, own)
+                if own["ppo"] is not None or not key.startswith("ppo")
+            ]
         if keys:
             shown = ", ".join(keys[:4]) + (", ..." if len(keys) > 4 else "")
             differing.append(f"{label} differs in {shown}")
@@ -496,8 +546,12 @@ def run_comparison(
     def encoder_of(agent: AgentSpec) -> EncoderConfig | None:
         return None if agent.reservoirs is None else encoder.with_reservoirs(agent.reservoirs)
 
+    def ppo_of(agent: AgentSpec) -> PPOConfig:
+        return agent.ppo or ppo
+
     expected = {
-        a.name: run_settings(a.task(task), encoder_of(a), ppo, budget, a.name, 0) for a in agents
+        a.name: run_settings(a.task(task), encoder_of(a), ppo_of(a), budget, a.name, 0)
+        for a in agents
     }
     check_finished_runs(out, expected, settings.seeds, settings.overwrite)
     out.mkdir(parents=True, exist_ok=True)
@@ -512,6 +566,12 @@ def run_comparison(
         "agents": {a.name: None if a.reservoirs is None else to_dict(a.reservoirs) for a in agents},
         # Agents that observe otherwise than `task` (ppo-full: the whole observation).
         "agent_observe": {a.name: a.observe for a in agents if a.observe is not None},
+        # Agents with their own learner settings (another learner than the study's).
+        **(
+            {"agent_ppo": {a.name: to_dict(a.ppo) for a in agents if a.ppo is not None}}
+            if any(a.ppo is not None for a in agents)
+            else {}
+        ),
         **dict(metadata or {}),
     }
     write_atomic(out / "config.yaml", yaml.safe_dump(config_doc, sort_keys=False))
@@ -532,7 +592,10 @@ def run_comparison(
                 if settings.tensorboard is None
                 else str(Path(settings.tensorboard) / agent.name / f"seed_{seed}")
             )
-            job = (agent.task(task), enc, ppo, budget, seed, settings.evaluate, model_path, tb_log)
+            job = (
+                agent.task(task), enc, ppo_of(agent), budget, seed, settings.evaluate,
+                model_path, tb_log,
+            )  # fmt: skip
             jobs.append((agent, seed, job))
 
     started = time.perf_counter()

@@ -1,0 +1,40 @@
+"""Inner learners: the registry.
+
+Each learner is one module (see :mod:`ermrl.learners._ppo`, the reference) holding a
+:class:`Learner` subclass; add a line to :data:`LEARNERS` to register it. The CLI's
+``--learner`` choices, the test phase's agents (:data:`ermrl.config.AGENT_KINDS` names a learner
+per agent), the report's labels and replays all read this table.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+from ermrl.config import ConfigError
+from ermrl.learners._base import Learner
+from ermrl.learners._framestack_ppo import FrameStackPPOLearner
+from ermrl.learners._lstm_ppo import LstmPPOLearner
+from ermrl.learners._ppo import PPOLearner
+
+__all__ = ["LEARNERS", "Learner", "get_learner", "learner_names"]
+
+LEARNERS: Mapping[str, Learner] = {
+    learner.name: learner for learner in (PPOLearner(), LstmPPOLearner(), FrameStackPPOLearner())
+}
+
+
+def learner_names() -> tuple[str, ...]:
+    """The registered learners' names, in registry order."""
+    return tuple(LEARNERS)
+
+
+def get_learner(name: str) -> Learner:
+    """The learner registered as ``name``.
+
+    Raises:
+        ConfigError: no such learner (the message lists the registered ones).
+    """
+    learner = LEARNERS.get(name)
+    if learner is None:
+        raise ConfigError(f"unknown learner {name!r}; choose from {', '.join(LEARNERS)}")
+    return learner

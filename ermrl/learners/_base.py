@@ -1,0 +1,115 @@
+"""What a learner is: the inner loop's algorithm, its settings, and how its agents are built.
+
+A learner module subclasses :class:`Learner`, sets its class attributes and overrides the hooks
+that differ from plain PPO; :mod:`ermrl.learners` registers one instance of it. Everything else
+(the CLI's ``--learner`` choices, the test phase's agents, the report's labels, replays) reads
+the registry, so a new learner is one module and one registry line.
+
+Settings are an :class:`~ermrl.config.PPOConfig` (``n_envs``, ``normalize``, the algorithm's
+keyword arguments in ``hyperparams``, and ``learner``: the registry name). They resolve as SB3
+defaults < the learner's YAML table (``default`` block, then the env id's block) < ``--ppo``
+overrides (:func:`ermrl.agents.resolve_ppo_config`).
+"""
+
+from __future__ import annotations
+
+import inspect
+from collections.abc import Mapping
+from typing import Any, ClassVar
+
+from ermrl.config import ConfigError, PPOConfig
+
+__all__ = ["Learner"]
+
+# Arguments of the algorithm's constructor that ermrl itself owns.
+_OWNED = frozenset(
+    {"self", "policy", "env", "seed", "device", "verbose", "tensorboard_log", "_init_setup_model"}
+)
+
+
+class Learner:
+    """An inner learner: an on-policy SB3-style algorithm, its policy and its settings table.
+
+    Attributes:
+        name: Registry name (``--learner``, the agents' names).
+        description: One line for ``--help`` and the docs.
+        table: The packaged YAML table of settings keyed by env id (``ermrl/data/<table>``).
+        policy: The policy class name passed to the algorithm (``"MlpPolicy"``).
+        own_keys: Settings this learner reads itself, with their defaults; they are never passed
+            to the algorithm, and other learners refuse them.
+        recurrent: The policy carries a hidden state between steps (``predict`` needs
+            ``state`` and ``episode_start``; SB3's ``evaluate_policy`` passes them).
+    """
+
+    name: ClassVar[str]
+    description: ClassVar[str]
+    table: ClassVar[str] = "ppo.yml"
+    policy: ClassVar[str] = "MlpPolicy"
+    own_keys: ClassVar[Mapping[str, Any]] = {}
+    recurrent: ClassVar[bool] = False
+
+    def algorithm(self) -> type:
+        """The algorithm class (imported lazily: torch is slow to import)."""
+        from stable_baselines3 import PPO
+
+        return PPO
+
+    def algorithm_keys(self) -> frozenset[str]:
+        """Keyword arguments of the algorithm's constructor that settings may set."""
+        return frozenset(inspect.signature(self.algorithm().__init__).parameters) - _OWNED
+
+    def option(self, config: PPOConfig, key: str) -> Any:
+        """One of this learner's own settings (``own_keys``), or its default."""
+        return config.hyperparams.get(key, self.own_keys[key])
+
+    def check(self, config: PPOConfig) -> None:
+        """Refuse settings of another learner (e.g. ``frame_stack`` given to plain PPO).
+
+        Raises:
+            ConfigError: with a one-line reason.
+        """
+        from ermrl.learners import LEARNERS
+
+        foreign = {
+            key
+            for other in LEARNERS.values()
+            if other.name != self.name
+            for key in other.own_keys
+            if key not in self.own_keys and key in config.hyperparams
+        }
+        if foreign:
+            raise ConfigError(
+                f"learner {self.name!r} does not take {', '.join(sorted(foreign))} "
+                "(a setting of another learner)"
+            )
+
+    def kwargs(self, config: PPOConfig) -> dict[str, Any]:
+        """The algorithm's keyword arguments (``lin_X`` strings become schedules)."""
+        from ermrl.agents._hyperparams import ppo_kwargs
+
+        return {k: v for k, v in ppo_kwargs(config).items() if k not in self.own_keys}
+
+    def wrap_env(self, venv: Any, config: PPOConfig) -> Any:
+        """The learner's own wrappers, outermost (after the encoder and ``VecNormalize``)."""
+        return venv
+
+    def build(
+        self,
+        env: Any,
+        config: PPOConfig,
+        *,
+        seed: int | None = None,
+        device: str | None = None,
+        tensorboard_log: str | None = None,
+    ) -> Any:
+        """A new, untrained agent on ``env`` (already wrapped by :meth:`wrap_env`)."""
+        self.check(config)
+        return self.algorithm()(
+            self.policy,
+            env,
+            seed=seed,
+            device=device or config.device,
+            verbose=0,
+            tensorboard_log=tensorboard_log,
+            **self.kwargs(config),
+        )

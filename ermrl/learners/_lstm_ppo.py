@@ -1,0 +1,35 @@
+"""``lstm-ppo``: sb3-contrib's ``RecurrentPPO`` with an LSTM policy, the standard memory baseline.
+
+Its table, ``ermrl/data/ppo_lstm.yml``, holds rl-baselines3-zoo's ``ppo_lstm`` settings for the
+velocity-masked tasks (the PPO settings, an LSTM of 64 units for the actor and one for the
+critic, and ``normalize``). sb3-contrib moves in lockstep with stable-baselines3: both must be the
+same version (checked when the learner is first used).
+"""
+
+from __future__ import annotations
+
+from ermrl.config import ConfigError
+from ermrl.learners._base import Learner
+
+__all__ = ["LstmPPOLearner"]
+
+
+class LstmPPOLearner(Learner):
+    name = "lstm-ppo"
+    description = "sb3-contrib RecurrentPPO, LSTM policy (memory baseline)"
+    table = "ppo_lstm.yml"
+    policy = "MlpLstmPolicy"
+    recurrent = True
+
+    def algorithm(self) -> type:
+        import sb3_contrib
+        import stable_baselines3
+        from sb3_contrib import RecurrentPPO
+
+        mine, theirs = sb3_contrib.__version__, stable_baselines3.__version__
+        if mine.split(".")[:2] != theirs.split(".")[:2]:
+            raise ConfigError(
+                f"sb3-contrib {mine} does not match stable-baselines3 {theirs}; install "
+                f"sb3-contrib=={theirs}"
+            )
+        return RecurrentPPO

@@ -1,0 +1,205 @@
+"""Inner learners as plug-ins: the registry, the memory baselines, and a learner added in one place."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import ClassVar
+
+import numpy as np
+import optuna
+import pytest
+import yaml
+
+from ermrl.agents import (
+    check_ppo_config,
+    load_policy,
+    resolve_ppo_config,
+    train_agent,
+    with_overrides,
+)
+from ermrl.config import (
+    AGENT_KINDS,
+    BudgetConfig,
+    ConfigError,
+    EncoderConfig,
+    ReservoirParams,
+    TaskConfig,
+    default_agents,
+)
+from ermrl.learners import LEARNERS, get_learner, learner_names
+from ermrl.learners._ppo import PPOLearner
+
+ROOT = Path(__file__).resolve().parents[1]
+TASK = TaskConfig("Pendulum-v1", "positions")
+TINY = {"n_envs": 2, "n_steps": 128, "batch_size": 64, "n_epochs": 1}
+BUDGET = BudgetConfig(training_steps=512, fitness="eval", n_eval_episodes=1, n_last_episodes=1)
+ENCODER = EncoderConfig(reservoirs=(ReservoirParams(units=10),))
+
+
+def tiny(learner: str, **extra: object) -> object:
+    return with_overrides(resolve_ppo_config("Pendulum-v1", learner=learner), {**TINY, **extra})
+
+
+def test_the_registry_names_every_learner_and_refuses_an_unknown_one() -> None:
+    assert learner_names()[:3] == ("ppo", "lstm-ppo", "framestack-ppo")
+    for name, learner in LEARNERS.items():
+        assert learner.name == name and learner.description
+    with pytest.raises(ConfigError, match=r"unknown learner 'nope'; choose from ppo, lstm-ppo"):
+        get_learner("nope")
+
+
+def test_every_agent_of_the_table_has_a_registered_learner_and_labels() -> None:
+    for name, kind in AGENT_KINDS.items():
+        assert kind.learner is None or kind.learner in LEARNERS, name
+        assert kind.label and kind.short_label and kind.color, name
+    assert len({k.color for k in AGENT_KINDS.values()}) == len(AGENT_KINDS)
+    # The memory baselines are asked for, not trained by default (LSTM is ~4x slower).
+    assert default_agents("positions") == ("ppo", "ppo-full", "res-ppo", "random-res-ppo")
+
+
+@pytest.mark.parametrize("learner", ["ppo", "lstm-ppo", "framestack-ppo"])
+@pytest.mark.parametrize("encoder", [None, ENCODER], ids=["raw", "reservoir"])
+def test_each_learner_trains_saves_and_reloads_the_same_policy(
+    learner: str, encoder: EncoderConfig | None, tmp_path: Path
+) -> None:
+    ppo = tiny(learner)
+    result = train_agent(TASK, encoder, ppo, BUDGET, 3, model_path=tmp_path / "model.zip")
+    assert result.env_steps >= BUDGET.training_steps and np.isfinite(result.eval_return)
+    assert (tmp_path / "policy.pt").is_file()
+    # Rebuilt from plain weights on an env wrapped as in training: same actions.
+    from ermrl.agents import frozen_normalize_env, load_normalize_stats, make_vec_env
+
+    env = make_vec_env(TASK, 1, 0, encoder, 0)
+    if ppo.normalize is not None:
+        env = frozen_normalize_env(env, load_normalize_stats(tmp_path / "vecnormalize.json"))
+    env = get_learner(learner).wrap_env(env, ppo)
+    model = load_policy(tmp_path / "policy.pt", ppo, env)
+    obs = env.reset()
+    action, state = model.predict(obs, deterministic=True)
+    again, _ = model.predict(obs, deterministic=True)
+    assert np.array_equal(action, again)
+    assert (state is not None) == get_learner(learner).recurrent
+    env.close()
+
+
+def test_lstm_ppo_is_recurrent_ppo_with_the_zoo_settings() -> None:
+    import sb3_contrib
+    import stable_baselines3
+    from sb3_contrib import RecurrentPPO
+
+    assert sb3_contrib.__version__.split(".")[:2] == stable_baselines3.__version__.split(".")[:2]
+    ppo = resolve_ppo_config("Pendulum-v1", learner="lstm-ppo")
+    assert ppo.learner == "lstm-ppo" and ppo.normalize is not None and ppo.n_envs == 4
+    assert ppo.hyperparams["policy_kwargs"] == {"lstm_hidden_size": 64, "enable_critic_lstm": True}
+    env_ppo = resolve_ppo_config("Pendulum-v1")  # the zoo's NoVel settings are PPO's
+    for key, value in env_ppo.hyperparams.items():
+        assert ppo.hyperparams[key] == value, key
+    from ermrl.agents import make_vec_env
+
+    env = make_vec_env(TASK, 1, 0)
+    model = get_learner("lstm-ppo").build(env, with_overrides(ppo, TINY))
+    assert isinstance(model, RecurrentPPO)
+    assert model.policy.lstm_actor.hidden_size == 64 and model.policy.lstm_critic is not None
+    env.close()
+
+
+def test_framestack_ppo_stacks_k_observations_and_is_checked() -> None:
+    from ermrl.agents import make_vec_env
+
+    env = make_vec_env(TASK, 1, 0)
+    learner = get_learner("framestack-ppo")
+    assert learner.wrap_env(env, tiny("framestack-ppo")).observation_space.shape == (8,)
+    assert learner.wrap_env(env, tiny("framestack-ppo", frame_stack=3)).observation_space.shape == (
+        6,
+    )
+    env.close()
+    with pytest.raises(ConfigError, match="frame_stack must be a whole number"):
+        check_ppo_config(TASK, None, tiny("framestack-ppo", frame_stack=0))
+    # Another learner's own setting is refused, not silently ignored.
+    with pytest.raises(ConfigError, match=r"learner 'ppo' does not take frame_stack"):
+        check_ppo_config(TASK, None, tiny("ppo", frame_stack=4))
+
+
+class _SmallNetPPO(PPOLearner):
+    """A toy learner: PPO with another network, as a new engineer would add one."""
+
+    name = "small-ppo"
+    description = "PPO with an 8-unit network"
+    own_keys: ClassVar[dict[str, object]] = {}
+
+    def kwargs(self, config: object) -> dict[str, object]:
+        return {**super().kwargs(config), "policy_kwargs": {"net_arch": [8]}}  # type: ignore[arg-type]
+
+
+def test_a_learner_added_in_one_place_is_trained(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(LEARNERS, "small-ppo", _SmallNetPPO())  # type: ignore[index]
+    ppo = with_overrides(resolve_ppo_config("Pendulum-v1", learner="ppo"), TINY)
+    import dataclasses
+
+    ppo = dataclasses.replace(ppo, learner="small-ppo")
+    check_ppo_config(TASK, None, ppo)
+    result = train_agent(TASK, None, ppo, BUDGET, 0)
+    assert np.isfinite(result.eval_return)
+    from ermrl.agents import make_vec_env
+
+    model = get_learner("small-ppo").build(make_vec_env(TASK, 1, 0), ppo)
+    assert model.policy.mlp_extractor.policy_net[0].out_features == 8
+
+
+def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    return subprocess.run(
+        [sys.executable, *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=600
+    )
+
+
+def test_an_lstm_study_is_tested_against_ppo_and_the_memory_baselines(tmp_path: Path) -> None:
+    url = f"sqlite:///{tmp_path}/s.db"
+    tiny_args = ["--n-envs", "1", "--ppo", "n_steps=128", "batch_size=64", "n_epochs=1"]
+    proc = _run(
+        str(ROOT / "evolve_res.py"),
+        *("--env-id", "Pendulum-v1", "--observe", "positions", "--learner", "lstm-ppo"),
+        *("--n-trials", "2", "--n-seeds", "1", "--training-steps", "400", "--units", "10"),
+        *("--storage", url, "--study-name", "lstm", *tiny_args),
+        cwd=tmp_path,
+    )
+    assert proc.returncode == 0, proc.stderr
+    from ermrl.search import study_config
+
+    config = study_config(optuna.load_study(study_name="lstm", storage=url))
+    assert config.problem.ppo.learner == "lstm-ppo"
+
+    out = tmp_path / "out"
+    proc = _run(
+        str(ROOT / "test.py"),
+        *("--study-name", "lstm", "--storage", url, "--seeds", "9", "--training-steps", "800"),
+        *("--agents", "ppo", "lstm-ppo", "framestack-ppo", "res-ppo", "--out", str(out)),
+        *("--ppo", "n_steps=128", "n_envs=1"),
+        cwd=tmp_path,
+    )
+    assert proc.returncode == 0, proc.stderr
+    doc = yaml.safe_load((out / "config.yaml").read_text())
+    # The study's learner (lstm-ppo) trains res-ppo and lstm-ppo with the study's settings;
+    # ppo and framestack-ppo take their own table's, with --ppo on top.
+    assert set(doc["agent_ppo"]) == {"ppo", "framestack-ppo"}
+    assert doc["agent_ppo"]["framestack-ppo"]["learner"] == "framestack-ppo"
+    assert doc["agent_ppo"]["ppo"]["hyperparams"]["n_steps"] == 128
+    import json
+
+    learners = {
+        agent: json.loads((out / "agents" / agent / "seed_9" / "settings.json").read_text())[
+            "ppo"
+        ].get("learner", "ppo")
+        for agent in ("ppo", "lstm-ppo", "framestack-ppo", "res-ppo")
+    }
+    assert learners == {
+        "ppo": "ppo",
+        "lstm-ppo": "lstm-ppo",
+        "framestack-ppo": "framestack-ppo",
+        "res-ppo": "lstm-ppo",
+    }
+    summary = (out / "summary.csv").read_text()
+    assert all(a in summary for a in ("lstm-ppo", "framestack-ppo", "res-ppo"))
