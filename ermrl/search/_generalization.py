@@ -26,7 +26,7 @@ from typing import Any, TextIO
 import numpy as np
 import optuna
 
-from ermrl.agents import RunResult, train_agent
+from ermrl.agents import RunResult
 from ermrl.config import (
     BudgetConfig,
     ConfigError,
@@ -42,7 +42,13 @@ from ermrl.config import (
     to_dict,
 )
 from ermrl.search._evolve import EvaluateFn
-from ermrl.search._objective import FitnessResult, SeedRunner, _finite_or_none, library_versions
+from ermrl.search._objective import (
+    FitnessResult,
+    SeedRunner,
+    _finite_or_none,
+    library_versions,
+    train_runs,
+)
 from ermrl.search._scores import load_scores, reference_returns
 from ermrl.search._study import STUDY_CONFIG_ATTR, create_or_resume_study
 
@@ -175,29 +181,14 @@ def evaluate_generalization(
     budget = problem.budget
     start = time.perf_counter()
     runner = runner or SeedRunner(1)
-    n_seeds = len(problem.seeds)
-    if report is not None and runner.n_procs == 1:
-        per_task: list[list[RunResult]] = []
-        for i, spec in enumerate(tasks):
-            runs = []
-            for j, seed in enumerate(problem.seeds):
-                offset = (i * n_seeds + j) * budget.training_steps
-
-                def run_report(
-                    step: int, value: float, offset: int = offset, spec: GeneralizationTask = spec
-                ) -> None:
-                    report(offset + step, spec.normalize(value))
-
-                runs.append(
-                    train_agent(spec.task, encoder, spec.ppo, budget, seed, report=run_report)
-                )
-            per_task.append(runs)
-    else:
-        args = [
-            (spec.task, encoder, spec.ppo, budget, seed) for spec in tasks for seed in problem.seeds
-        ]
-        flat = runner.map(args)
-        per_task = [flat[i * n_seeds : (i + 1) * n_seeds] for i in range(len(tasks))]
+    per_task = train_runs(
+        encoder,
+        [(spec.task, spec.ppo, spec.normalize) for spec in tasks],
+        budget,
+        problem.seeds,
+        runner=runner,
+        report=report,
+    )
     outcomes = [TaskOutcome(spec, runs, budget.fitness) for spec, runs in zip(tasks, per_task)]
     fitness = float(np.mean([o.normalized for o in outcomes]))
     return GeneralizationFitness(

@@ -15,9 +15,23 @@ from typing import Any
 import numpy as np
 
 from ermrl.agents import RunResult, pool_size, train_agent, training_pool
-from ermrl.config import Problem, ReservoirParams
+from ermrl.config import (
+    BudgetConfig,
+    EncoderConfig,
+    PPOConfig,
+    Problem,
+    ReservoirParams,
+    TaskConfig,
+)
 
-__all__ = ["FitnessResult", "SeedRunner", "evaluate_reservoir", "library_versions", "pool_size"]
+__all__ = [
+    "FitnessResult",
+    "SeedRunner",
+    "evaluate_reservoir",
+    "library_versions",
+    "pool_size",
+    "train_runs",
+]
 
 ReportFn = Callable[[int, float], None]
 
@@ -161,6 +175,55 @@ class SeedRunner:
         self.close(cancel=exc[0] is not None)
 
 
+def train_runs(
+    encoder: EncoderConfig | None,
+    tasks: Sequence[tuple[TaskConfig, PPOConfig, Callable[[float], float] | None]],
+    budget: BudgetConfig,
+    seeds: Sequence[int],
+    *,
+    runner: SeedRunner,
+    report: ReportFn | None = None,
+) -> list[list[RunResult]]:
+    """Train one PPO agent per (task, seed) with the same encoder: the core of every fitness.
+
+    Args:
+        encoder: The reservoir encoding (``None``: plain PPO).
+        tasks: One ``(task, ppo, normalize)`` per task; ``normalize`` maps a raw return to the
+            value reported for pruning (``None``: the raw return).
+        budget: Training budget of each run.
+        seeds: Training seeds, the same on every task.
+        runner: Where the runs go (a pool trains all of them in parallel).
+        report: Intermediate returns for pruning, ``report(step, value)``; steps are counted
+            across tasks then seeds (task ``i``, seed ``j`` starts at
+            ``(i * len(seeds) + j) * training_steps``). Used only when runs stay in this process.
+
+    Returns:
+        The runs of each task, in seed order.
+    """
+    n_seeds = len(seeds)
+    if report is not None and runner.n_procs == 1:
+        per_task: list[list[RunResult]] = []
+        for i, (task, ppo, normalize) in enumerate(tasks):
+            runs = []
+            for j, seed in enumerate(seeds):
+                offset = (i * n_seeds + j) * budget.training_steps
+
+                def run_report(
+                    step: int,
+                    value: float,
+                    offset: int = offset,
+                    normalize: Callable[[float], float] | None = normalize,
+                ) -> None:
+                    report(offset + step, value if normalize is None else normalize(value))
+
+                runs.append(train_agent(task, encoder, ppo, budget, seed, report=run_report))
+            per_task.append(runs)
+        return per_task
+    args = [(task, encoder, ppo, budget, seed) for task, ppo, _ in tasks for seed in seeds]
+    flat = runner.map(args)
+    return [flat[i * n_seeds : (i + 1) * n_seeds] for i in range(len(tasks))]
+
+
 def evaluate_reservoir(
     reservoirs: Sequence[ReservoirParams] | None,
     problem: Problem,
@@ -169,6 +232,9 @@ def evaluate_reservoir(
     report: ReportFn | None = None,
 ) -> FitnessResult:
     """Train one PPO agent per seed on reservoir-encoded observations; return the mean return.
+
+    The single-task case of :func:`~ermrl.search.evaluate_generalization`: both train through
+    :func:`train_runs`.
 
     Args:
         reservoirs: Hyperparameters of each reservoir; ``None`` trains plain PPO.
@@ -183,22 +249,14 @@ def evaluate_reservoir(
     encoder = None if reservoirs is None else problem.encoder.with_reservoirs(tuple(reservoirs))
     start = time.perf_counter()
     runner = runner or SeedRunner(1)
-    if report is not None and runner.n_procs == 1:
-        runs = []
-        for i, seed in enumerate(problem.seeds):
-            offset = i * problem.budget.training_steps
-
-            def seed_report(step: int, value: float, offset: int = offset) -> None:
-                report(offset + step, value)
-
-            runs.append(
-                train_agent(
-                    problem.task, encoder, problem.ppo, problem.budget, seed, report=seed_report
-                )
-            )
-    else:
-        args = [(problem.task, encoder, problem.ppo, problem.budget, s) for s in problem.seeds]
-        runs = runner.map(args)
+    (runs,) = train_runs(
+        encoder,
+        [(problem.task, problem.ppo, None)],
+        problem.budget,
+        problem.seeds,
+        runner=runner,
+        report=report,
+    )
     values = [r.fitness(problem.budget.fitness) for r in runs]
     return FitnessResult(
         fitness=float(np.mean(values)),
