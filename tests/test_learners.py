@@ -203,3 +203,21 @@ def test_an_lstm_study_is_tested_against_ppo_and_the_memory_baselines(tmp_path: 
     }
     summary = (out / "summary.csv").read_text()
     assert all(a in summary for a in ("lstm-ppo", "framestack-ppo", "res-ppo"))
+
+
+def test_the_reservoir_is_a_registered_encoder_that_decodes_plain_params() -> None:
+    from ermrl.agents import make_vec_env
+    from ermrl.config import ReservoirSpace
+    from ermrl.encoders import ENCODERS, ReservoirVecEnv, encoder_for
+
+    encoder = encoder_for(ENCODER)
+    assert ENCODERS["reservoir"] is encoder and encoder.place == "env"
+    space = ReservoirSpace(n_reservoirs=2, units=10)
+    params = {name: 0.5 for name in space.param_names}
+    decoded = encoder.decode(space, params, ENCODER)
+    assert [(p.sr, p.lr, p.input_scaling) for p in decoded.reservoirs] == [(0.5, 0.5, 0.5)] * 2
+    env = make_vec_env(TASK, 1, 0, decoded, 0)
+    assert isinstance(env, ReservoirVecEnv) and env.observation_space.shape == (20,)
+    env.close()
+    with pytest.raises(TypeError, match="no registered encoder takes TaskConfig"):
+        encoder_for(TASK)

@@ -91,7 +91,7 @@ def make_vec_env(
     from stable_baselines3.common.monitor import Monitor
     from stable_baselines3.common.vec_env import DummyVecEnv
 
-    from ermrl.encoders import ReservoirVecEnv
+    from ermrl.encoders import encoder_for
     from ermrl.envs import make_env
 
     def factory() -> Any:
@@ -100,7 +100,7 @@ def make_vec_env(
     venv = DummyVecEnv([factory] * n_envs)
     venv.seed(env_seed)
     if encoder is not None:
-        venv = ReservoirVecEnv(venv, encoder, seed=reservoir_seed)
+        venv = encoder_for(encoder).wrap_env(venv, encoder, reservoir_seed)
     return venv
 
 
