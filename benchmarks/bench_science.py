@@ -6,13 +6,14 @@ command runs the whole pipeline as a user would, through the ``ermrl`` CLI:
 1. ``ermrl evolve``: CMA-ES over sr, lr and input_scaling, with the unevolved reference
    reservoir as a candidate, then ``--reevaluate-top K`` (the K best trials and the reference
    re-trained on fresh seeds at the test budget);
-2. ``ermrl test``: ``ppo``, ``ppo-full`` (full observation: the ceiling), ``random-res-ppo``
+2. ``ermrl test``: ``ppo``, ``ppo-full`` (full observation: the ceiling), the memory baselines
+   ``lstm-ppo`` (RecurrentPPO) and ``framestack-ppo`` (4 stacked observations), ``random-res-ppo``
    (reservoirpy's defaults sr = lr = input_scaling = 1) and ``res-ppo`` (the selected trial) on
    new seeds.
 
 It writes a JSON file and prints a table per task: final return (mean of the last 10 training
-episodes) mean ± std over the test seeds, the bootstrap 95% CI of ``res-ppo − random-res-ppo``
-and of ``res-ppo − ppo``, wall-clock time and env steps. The targets of the issue are printed
+episodes) mean ± std over the test seeds, the bootstrap 95% CI of ``res-ppo − random-res-ppo``,
+``res-ppo − ppo`` and ``res-ppo − lstm-ppo``, wall-clock time and env steps. The targets of the issue are printed
 next to the measurements; the benchmark never fails on a result.
 
     python benchmarks/bench_science.py            # default budget, about 45-60 min on 2 cores
@@ -36,7 +37,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks._harness import machine  # noqa: E402
 
-AGENTS = ("ppo", "ppo-full", "random-res-ppo", "res-ppo")
+AGENTS = ("ppo", "ppo-full", "lstm-ppo", "framestack-ppo", "random-res-ppo", "res-ppo")
+BASELINES = ("ppo", "ppo-full", "lstm-ppo", "framestack-ppo", "random-res-ppo")
 PENDULUM_TARGET = -300.0
 
 
@@ -146,6 +148,7 @@ def _task_result(out: Path) -> dict[str, Any]:
         "agents": agents,
         "res_minus_random": ci("res-ppo", "random-res-ppo"),
         "res_minus_ppo": ci("res-ppo", "ppo"),
+        "res_minus_lstm": ci("res-ppo", "lstm-ppo"),
     }
 
 
@@ -156,7 +159,7 @@ def _reuse_baselines(source: Path, out: Path, env_id: str, observe: str) -> None
     matches = sorted(source.glob(f"science__{env_id}__{observe}__*/agents"))
     if not matches:
         raise SystemExit(f"bench_science: no runs of {env_id}[{observe}] under {source}")
-    for agent in ("ppo", "ppo-full", "random-res-ppo"):
+    for agent in BASELINES:
         src = matches[0] / agent
         if src.is_dir() and not (out / "agents" / agent).exists():
             shutil.copytree(src, out / "agents" / agent)
@@ -189,11 +192,9 @@ def _fmt(value: float | None, std: float | None = None) -> str:
 
 def format_table(report: dict[str, Any]) -> str:
     """The Markdown table of a benchmark report (one row per task)."""
-    head = (
-        "| task | ppo | ppo-full | random-res-ppo | res-ppo | res − random [95% CI] | "
-        "res − ppo [95% CI] | selected trial | wall | env steps |\n"
-        "|---|---|---|---|---|---|---|---|---|---|\n"
-    )
+    columns = [*AGENTS, "res − random [95% CI]", "res − ppo [95% CI]", "res − lstm [95% CI]"]
+    columns += ["selected trial", "wall", "env steps"]
+    head = "| task | " + " | ".join(columns) + " |\n" + "|---" * (len(columns) + 1) + "|\n"
     rows = []
     for task in report["tasks"]:
         agents = task["test"]["agents"]
@@ -211,13 +212,18 @@ def format_table(report: dict[str, Any]) -> str:
             f"| {task['label']} | "
             + " | ".join(cells)
             + f" | {ci(task['test']['res_minus_random'])}"
-            f" | {ci(task['test']['res_minus_ppo'])} | #{sel['trial']}{tag} {params} | "
+            f" | {ci(task['test']['res_minus_ppo'])}"
+            f" | {ci(task['test']['res_minus_lstm'])} | #{sel['trial']}{tag} {params} | "
             f"{task['wall_seconds'] / 60:.1f} min | {task['env_steps'] / 1e6:.2f}M |"
         )
     lines = [head + "\n".join(rows), ""]
     for task in report["tasks"]:
         n = len(task["test"]["agents"]["res-ppo"]["final_returns"])
-        for key, name in (("res_minus_random", "res − random"), ("res_minus_ppo", "res − ppo")):
+        for key, name in (
+            ("res_minus_random", "res − random"),
+            ("res_minus_ppo", "res − ppo"),
+            ("res_minus_lstm", "res − lstm"),
+        ):
             paired = task["test"][key].get("paired_ci95")
             if paired:
                 lines.append(

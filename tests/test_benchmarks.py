@@ -55,7 +55,9 @@ def test_benchmarks_run_in_quick_mode(tmp_path: Path) -> None:
     assert [t["env_id"] for t in science["tasks"]] == ["Pendulum-v1", "CartPole-v1"]
     for task in science["tasks"]:
         agents = task["test"]["agents"]
-        assert set(agents) == {"ppo", "ppo-full", "random-res-ppo", "res-ppo"}
+        assert set(agents) == {
+            "ppo", "ppo-full", "lstm-ppo", "framestack-ppo", "random-res-ppo", "res-ppo"
+        }  # fmt: skip
         assert all(len(a["final_returns"]) == 2 for a in agents.values())
         low, high = task["test"]["res_minus_random"]["ci95"]
         assert low <= task["test"]["res_minus_random"]["diff"] <= high
@@ -63,6 +65,7 @@ def test_benchmarks_run_in_quick_mode(tmp_path: Path) -> None:
         assert task["evolution"]["selected"]["how"].startswith("re-evaluated best")
         assert task["env_steps"] > 0 and task["wall_seconds"] > 0
     assert "res − random [95% CI]" in science["table"]
+    assert "| lstm-ppo | framestack-ppo |" in science["table"]
     assert "targets:" in science["table"]
     trial = json.loads((tmp_path / "trial.json").read_text())["rows"]
     comparisons = {r["comparison"] for r in trial}
