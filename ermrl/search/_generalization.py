@@ -50,7 +50,12 @@ from ermrl.search._objective import (
     train_runs,
 )
 from ermrl.search._scores import load_scores, reference_returns
-from ermrl.search._study import STUDY_CONFIG_ATTR, create_or_resume_study
+from ermrl.search._study import (
+    STUDY_CONFIG_ATTR,
+    config_diffs,
+    create_or_resume_study,
+    refuse_other_config,
+)
 
 __all__ = [
     "GeneralizationFitness",
@@ -407,24 +412,5 @@ def create_or_resume_generalization_study(
     provenance = ("scores", "hyperparams")
     new = {k: v for k, v in to_dict(config.generalization).items() if k not in provenance}
     old = {k: v for k, v in stored.items() if k not in provenance}
-    diffs = _diff(new, old, "generalization")
-    if diffs:
-        raise ConfigError(
-            f"study {study_name!r} already exists with another configuration ("
-            + "; ".join(diffs[:4])
-            + (" ..." if len(diffs) > 4 else "")
-            + "); pick another --study-name"
-        )
+    refuse_other_config(study_name, config_diffs(new, old, "generalization"))
     return study
-
-
-def _diff(a: Any, b: Any, path: str) -> list[str]:
-    """Differences between two JSON-like values, recursing into dicts and lists."""
-    if isinstance(a, dict) and isinstance(b, dict):
-        out = []
-        for key in sorted(set(a) | set(b)):
-            out += _diff(a.get(key), b.get(key), f"{path}.{key}")
-        return out
-    if isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
-        return [d for i, (x, y) in enumerate(zip(a, b)) for d in _diff(x, y, f"{path}[{i}]")]
-    return [] if a == b else [f"{path}: {b!r} in the study, {a!r} now"]

@@ -26,9 +26,11 @@ __all__ = [
     "STUDY_CONFIG_ATTR",
     "STUDY_KIND_ATTR",
     "cma_start",
+    "config_diffs",
     "create_or_resume_study",
     "enqueue_reference",
     "make_study_sampler",
+    "refuse_other_config",
     "sample_params",
     "search_distributions",
     "study_config",
@@ -111,13 +113,48 @@ def study_config(study: optuna.Study) -> EvolveConfig:
     return EvolveConfig.from_dict(data)
 
 
-def _config_diff(a: Any, b: Any, path: str = "") -> list[str]:
-    if isinstance(a, dict) and isinstance(b, dict):
+def config_diffs(new: Any, stored: Any, path: str) -> list[str]:
+    """Differences between two JSON-like values, recursing into dicts and equal-length lists.
+
+    Args:
+        new: The value now (e.g. ``to_dict(config)[key]``).
+        stored: The value stored in the study.
+        path: The dotted name of the value (``problem``, ``generalization``, ...).
+
+    Returns:
+        One ``"<path>: <stored> in the study, <new> now"`` line per differing leaf.
+    """
+    if isinstance(new, dict) and isinstance(stored, dict):
         out = []
-        for key in sorted(set(a) | set(b)):
-            out += _config_diff(a.get(key), b.get(key), f"{path}.{key}" if path else key)
+        for key in sorted(set(new) | set(stored)):
+            out += config_diffs(new.get(key), stored.get(key), f"{path}.{key}")
         return out
-    return [] if a == b else [f"{path}: {b!r} in the study, {a!r} now"]
+    if isinstance(new, list) and isinstance(stored, list) and len(new) == len(stored):
+        return [
+            d
+            for i, (x, y) in enumerate(zip(new, stored))
+            for d in config_diffs(x, y, f"{path}[{i}]")
+        ]
+    return [] if new == stored else [f"{path}: {stored!r} in the study, {new!r} now"]
+
+
+def refuse_other_config(study_name: str, diffs: list[str]) -> None:
+    """Refuse to resume a study whose stored configuration differs (nothing if ``diffs`` is empty).
+
+    Args:
+        study_name: The study's name.
+        diffs: From :func:`config_diffs`; the first four are named in the message.
+
+    Raises:
+        ConfigError: ``diffs`` is not empty.
+    """
+    if diffs:
+        raise ConfigError(
+            f"study {study_name!r} already exists with another configuration ("
+            + "; ".join(diffs[:4])
+            + (" ..." if len(diffs) > 4 else "")
+            + "); pick another --study-name"
+        )
 
 
 def create_or_resume_study(
@@ -191,12 +228,7 @@ def create_or_resume_study(
                     stacklevel=2,
                 )
             return study
-    diffs = [d for key in _MUST_MATCH for d in _config_diff(new[key], stored.get(key), key)]
-    if diffs:
-        raise ConfigError(
-            f"study {study_name!r} already exists with another configuration ("
-            + "; ".join(diffs[:4])
-            + (" ..." if len(diffs) > 4 else "")
-            + "); pick another --study-name"
-        )
+    refuse_other_config(
+        study_name, [d for key in _MUST_MATCH for d in config_diffs(new[key], stored.get(key), key)]
+    )
     return study
