@@ -46,7 +46,6 @@ from ermrl.search._objective import (
     FitnessResult,
     SeedRunner,
     _finite_or_none,
-    library_versions,
     train_runs,
 )
 from ermrl.search._scores import load_scores, reference_returns
@@ -141,11 +140,7 @@ class GeneralizationFitness(FitnessResult):
                 t.env_id: [len(r.episode_returns) for r in t.runs] for t in self.tasks
             },
             "task_env_steps": {t.env_id: sum(r.env_steps for r in t.runs) for t in self.tasks},
-            "env_steps": self.env_steps,
-            "wall_seconds": round(self.wall_seconds, 3),
-            "steps_per_second": round(self.steps_per_second, 1),
-            "dtype": self.dtype,
-            "versions": library_versions(),
+            **self.totals(),
         }
 
     def describe(self) -> str:

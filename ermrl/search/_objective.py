@@ -93,6 +93,13 @@ class FitnessResult:
             "returns_last": [_finite_or_none(r.last_return) for r in self.runs],
             "returns_eval": [_finite_or_none(r.eval_return) for r in self.runs],
             "n_episodes": [len(r.episode_returns) for r in self.runs],
+            **self.totals(),
+        }
+
+    def totals(self) -> dict[str, Any]:
+        """The part of :meth:`user_attrs` every fitness shares: ``env_steps``, ``wall_seconds``,
+        ``steps_per_second``, ``dtype`` and ``versions``."""
+        return {
             "env_steps": self.env_steps,
             "wall_seconds": round(self.wall_seconds, 3),
             "steps_per_second": round(self.steps_per_second, 1),
