@@ -12,7 +12,7 @@ TORCH_SPEC ?= torch==2.13.0
 STORAGE ?= sqlite:///ermrl.db
 PYTEST_ARGS ?=
 
-.PHONY: install system-deps demo test test-slow lint clean
+.PHONY: install system-deps demo test test-slow lint typecheck clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -48,6 +48,10 @@ test-slow: install
 
 lint: install
 	$(PY) -m ruff check ermrl tests benchmarks *.py
+
+# mypy over the package, configured in pyproject.toml ([tool.mypy]).
+typecheck: install
+	$(PY) -m mypy
 
 clean:
 	rm -rf $(VENV) runs reports ermrl.db .pytest_cache

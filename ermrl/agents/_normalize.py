@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -138,10 +138,13 @@ def frozen_normalize_env(venv: Any, stats: dict[str, Any]) -> Any:
                 f"observation shape {shape}"
             )
         rms.count = float(obs["count"])
-        wrapped.obs_rms = rms
+        # SB3 infers ``obs_rms`` from its Dict-space branch (a dict of RunningMeanStd); for a Box
+        # observation space it holds one RunningMeanStd, as here.
+        wrapped.obs_rms = cast("dict[str, RunningMeanStd]", rms)
     ret = stats["ret_rms"]
-    wrapped.ret_rms.mean = np.float64(ret["mean"])
-    wrapped.ret_rms.var = np.float64(ret["var"])
+    # 0-d float64 arrays, as ``RunningMeanStd(shape=())`` holds them.
+    wrapped.ret_rms.mean = np.asarray(ret["mean"], np.float64)
+    wrapped.ret_rms.var = np.asarray(ret["var"], np.float64)
     wrapped.ret_rms.count = float(ret["count"])
     return wrapped
 

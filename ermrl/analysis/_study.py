@@ -10,7 +10,7 @@ import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 import pandas as pd
@@ -19,6 +19,7 @@ from ermrl.analysis._style import PaperFigure, empty_axes, new_figure, paper_sty
 
 if TYPE_CHECKING:
     import optuna
+    from matplotlib.ticker import MaxNLocator
 
     from ermrl.config import EvolveConfig
 
@@ -469,7 +470,10 @@ def param_slices_figure(
         if scatter is not None and not complete.empty:
             bar = fig.colorbar(scatter, ax=list(axes.ravel()), shrink=0.9, pad=0.02)
             bar.set_label("Trial number")
-            bar.ax.yaxis.get_major_locator().set_params(integer=True)
+            # A colorbar's default locator is an AutoLocator, a MaxNLocator: it takes ``integer``
+            # (matplotlib's stubs type the getter as the base Locator).
+            locator = cast("MaxNLocator", bar.ax.yaxis.get_major_locator())
+            locator.set_params(integer=True)
         if title:
             fig.suptitle(title)
     return fig
@@ -698,15 +702,17 @@ def write_interactive_evolution(
     folder.mkdir(parents=True, exist_ok=True)
     vis = optuna.visualization
     target_name = "Fitness"
+    # Optuna's plot functions are typed to take a list.
+    param_list = None if params is None else list(params)
     makers = {
         "optimization_history": lambda: vis.plot_optimization_history(
             study, target_name=target_name
         ),
         "parallel_coordinate": lambda: vis.plot_parallel_coordinate(
-            study, params=params, target_name=target_name
+            study, params=param_list, target_name=target_name
         ),
-        "slice": lambda: vis.plot_slice(study, params=params, target_name=target_name),
-        "contour": lambda: vis.plot_contour(study, params=params, target_name=target_name),
+        "slice": lambda: vis.plot_slice(study, params=param_list, target_name=target_name),
+        "contour": lambda: vis.plot_contour(study, params=param_list, target_name=target_name),
         "param_importances": lambda: vis.plot_param_importances(study, target_name=target_name),
     }
     import warnings

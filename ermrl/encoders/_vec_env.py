@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 from gymnasium import spaces
+from numpy.typing import DTypeLike
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvObs, VecEnvStepReturn
 
@@ -42,7 +43,7 @@ class ActionEncoder:
             does no type conversion.
     """
 
-    def __init__(self, space: spaces.Space, dtype: type | str = np.float64) -> None:
+    def __init__(self, space: spaces.Space, dtype: DTypeLike = np.float64) -> None:
         self.space = space
         dtype = np.dtype(dtype)
         self.low, self.high = 0.0, 1.0
@@ -162,12 +163,12 @@ class ReservoirVecEnv(VecEnvWrapper):
             starts = np.cumsum((0,) + self.bank.units[:-1])
             self._exposed = np.concatenate([np.arange(s, s + config.exposed_units) for s in starts])
         n_state = self.bank.n_units if self._exposed is None else len(self._exposed)
-        low = [np.full(n_state, -1.0)]
-        high = [np.full(n_state, 1.0)]
+        low: list[np.ndarray] = [np.full(n_state, -1.0)]
+        high: list[np.ndarray] = [np.full(n_state, 1.0)]
         if config.skip_connection:
             a = self.action_encoder
-            low += [obs_space.low.astype(np.float64), np.full(a.dim, a.low), [-np.inf]]
-            high += [obs_space.high.astype(np.float64), np.full(a.dim, a.high), [np.inf]]
+            low += [obs_space.low.astype(np.float64), np.full(a.dim, a.low), np.array([-np.inf])]
+            high += [obs_space.high.astype(np.float64), np.full(a.dim, a.high), np.array([np.inf])]
         observation_space = spaces.Box(
             low=np.concatenate(low).astype(np.float32),
             high=np.concatenate(high).astype(np.float32),

@@ -722,7 +722,7 @@ class RestartCmaEsSampler(CmaEsSampler):
 # ---------------------------------------------------------------------- plain-data optimizer state
 
 # The only classes a stored state may name: restoring never imports or calls anything else.
-_OPTIMIZER_CLASSES: dict[str, type] = {
+_OPTIMIZER_CLASSES: dict[str, type[CmaClass]] = {
     "CMA": cmaes.CMA,
     "SepCMA": cmaes.SepCMA,
     "CMAwM": cmaes.CMAwM,
