@@ -275,6 +275,8 @@ def train_agent(
                 )
             finally:
                 eval_env.close()
+            # return_episode_rewards=True: a list per episode (SB3 types it as float | list).
+            assert isinstance(returns, list)
             result.eval_returns = [float(r) for r in returns]
             result.eval_return = float(np.mean(returns))
             if not math.isfinite(result.eval_return):

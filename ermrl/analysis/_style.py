@@ -41,7 +41,8 @@ AGENT_COLORS = {name: kind.color for name, kind in AGENT_KINDS.items() if kind.c
 _EXTRA_COLORS = ("tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:olive", "tab:cyan")
 
 # Sizes are in points at the saved size (figures are saved at their nominal size in inches).
-PAPER_RC: dict[str, Any] = {
+# dict[Any, Any]: matplotlib's stubs type rc keys as a Literal of every rcParam name.
+PAPER_RC: dict[Any, Any] = {
     "font.size": 10,
     "axes.titlesize": 11,
     "axes.labelsize": 10,

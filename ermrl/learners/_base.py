@@ -13,18 +13,12 @@ overrides (:func:`ermrl.agents.resolve_ppo_config`).
 
 from __future__ import annotations
 
-import inspect
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
 from ermrl.config import ConfigError, PPOConfig
 
 __all__ = ["Learner"]
-
-# Arguments of the algorithm's constructor that ermrl itself owns.
-_OWNED = frozenset(
-    {"self", "policy", "env", "seed", "device", "verbose", "tensorboard_log", "_init_setup_model"}
-)
 
 
 class Learner:
@@ -53,10 +47,6 @@ class Learner:
         from stable_baselines3 import PPO
 
         return PPO
-
-    def algorithm_keys(self) -> frozenset[str]:
-        """Keyword arguments of the algorithm's constructor that settings may set."""
-        return frozenset(inspect.signature(self.algorithm().__init__).parameters) - _OWNED
 
     def option(self, config: PPOConfig, key: str) -> Any:
         """One of this learner's own settings (``own_keys``), or its default."""
