@@ -31,7 +31,7 @@ from dataclasses import dataclass
 from typing import TextIO
 
 import optuna
-from optuna.storages._heartbeat import get_heartbeat_thread, is_heartbeat_enabled
+from optuna.storages._heartbeat import BaseHeartbeat, get_heartbeat_thread, is_heartbeat_enabled
 from optuna.trial import TrialState
 
 from ermrl.agents import NoEpisodeFinished, TrainingDiverged
@@ -158,10 +158,13 @@ def run_evolution(
     n_trials = config.search.n_trials
     problem = config.problem
     durations: list[float] = []
-    heartbeats = is_heartbeat_enabled(study._storage)
+    storage = study._storage
+    heartbeats = is_heartbeat_enabled(storage)
     # Waiting for other workers' trials at the end: a claim is cheap, so poll at 0.5 s first (a
     # trial about to end is seen at once) and back off to at most `poll` for long waits.
-    interval = float(study._storage.get_heartbeat_interval() or 1) if heartbeats else 1.0
+    interval = 1.0
+    if heartbeats and isinstance(storage, BaseHeartbeat):  # always one when heartbeats is True
+        interval = float(storage.get_heartbeat_interval() or 1)
     poll = min(max(interval / 2, 0.5), 5.0)
     retry = retry_policy(study)
     popsize = cma_popsize(config)

@@ -142,7 +142,7 @@ def record_reevaluation(
         The recorded document.
     """
     evolved = {t.number: t for t in study.get_trials(deepcopy=False)}
-    rows = []
+    rows: list[dict[str, Any]] = []
     for t in rstudy.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)):
         number = t.user_attrs.get(CANDIDATE_ATTR)
         if number not in candidates or t.value is None:
