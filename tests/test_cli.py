@@ -108,11 +108,14 @@ def test_agent_registry_drives_choices_defaults_and_labels() -> None:
     from ermrl.config import AGENTS, ConfigError, default_agents
     from ermrl.experiments import agent_specs
 
-    assert AGENTS == ("ppo", "ppo-full", "res-ppo", "random-res-ppo")
+    assert AGENTS == (
+        "ppo", "ppo-full", "res-ppo", "random-res-ppo", "lstm-ppo", "framestack-ppo"
+    )  # fmt: skip
     assert set(AGENT_LABELS) == set(AGENT_SHORT_LABELS) == set(AGENT_COLORS) == set(AGENTS)
     action = next(a for a in build_test_parser()._actions if a.dest == "agents")
     assert tuple(action.choices) == AGENTS
-    assert default_agents("velocities") == AGENTS
+    # The memory baselines are trained when asked for.
+    assert default_agents("velocities") == ("ppo", "ppo-full", "res-ppo", "random-res-ppo")
     assert default_agents("all") == ("ppo", "res-ppo", "random-res-ppo")  # ppo-full == ppo there
     specs = agent_specs(["ppo-full", "random-res-ppo"], None, ())
     assert [(s.name, s.reservoirs, s.observe) for s in specs] == [

@@ -5,11 +5,9 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import os
 import shlex
 import sys
 import textwrap
-import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -33,8 +31,8 @@ from ermrl.cli._evolve import (
     search_from_args,
     space_from_args,
 )
-from ermrl.cli._test import add_test_args, run_or_exit, select_seeds
-from ermrl.config import ConfigError, EvolveConfig, PPOConfig, default_agents
+from ermrl.cli._test import add_test_args, plan_test_phase, run_test_phase, setup_errors
+from ermrl.config import ConfigError, EvolveConfig, PPOConfig
 
 __all__ = [
     "build_evolve_generalization_parser",
@@ -398,26 +396,12 @@ def test_generalization_main(
     argv: Sequence[str] | None = None, prog: str = "ermrl test-generalization"
 ) -> int:
     """Entry point of ``ermrl test-generalization`` and ``test_generalization.py``."""
-    from ermrl.agents import check_ppo_config, parse_overrides
-    from ermrl.envs import (
-        UnknownEnvError,
-        UnsupportedObserveError,
-        check_env_id,
-        observation_indices,
-    )
-    from ermrl.experiments import (
-        TestSettings,
-        default_test_seeds,
-        describe_selection,
-        learner_settings_for,
-        run_comparison,
-        selection_metadata,
-        study_agents,
-    )
-    from ermrl.experiments._test_phase import check_out_folder
+    from ermrl.agents import check_ppo_config
+    from ermrl.envs import check_env_id, observation_indices
+    from ermrl.experiments import describe_selection, selection_metadata
     from ermrl.search import study_config
     from ermrl.search._scores import load_scores, reference_returns
-    from ermrl.storage import StorageError, StudyNotFound, load_study
+    from ermrl.storage import load_study
 
     parser = build_test_generalization_parser(prog)
     quiet_libraries()
@@ -433,43 +417,18 @@ def test_generalization_main(
         observation_indices(args.env_id, observe)
         evolution_ids = _evolution_env_ids(config)
         warning = overlap_warning(args.env_id, evolution_ids, args.study_name)
-        seeds = tuple(args.seeds) if args.seeds else default_test_seeds(problem.seeds)
-        reused = sorted(set(seeds) & set(problem.seeds))
-        if reused:
-            warnings.warn(
-                f"test seeds {reused} were also used by evolution; results on them are not "
-                "independent of the selection",
-                stacklevel=1,
-            )
-        seeds = select_seeds(seeds, os.environ.get("SLURM_ARRAY_TASK_ID"))
-        args.agents = args.agents or list(default_agents(observe))
         ppo = _test_ppo(config, args.env_id, args)
-        overrides = parse_overrides(args.ppo)
-        agents, chosen = study_agents(
-            study,
-            config,
-            args.agents,
-            args.trial,
-            learner_settings_for(ppo, args.env_id, overrides),
-        )
         task = dataclasses.replace(problem.task, env_id=args.env_id, observe=observe)
         # The test env's settings (the study's, a table's, --ppo): refused now, not by a run.
         check_ppo_config(task, problem.encoder, ppo, where=args.env_id)
-        for agent in agents:
-            if agent.ppo is not None and overrides:
-                check_ppo_config(agent.task(task), None, agent.ppo, where=agent.name)
-        out = Path(args.out) if args.out else Path("runs") / f"{args.study_name}__{args.env_id}"
-        check_out_folder(out)
-        settings = TestSettings(
-            training_steps=args.training_steps,
-            seeds=seeds,
-            out=out,
-            n_procs=args.n_procs,
-            evaluate=args.eval,
-            n_eval_episodes=args.n_eval_episodes,
-            n_last_episodes=problem.budget.n_last_episodes,
-            save_models=args.save_models,
-            overwrite=args.overwrite,
+        plan = plan_test_phase(
+            args,
+            study,
+            config,
+            task,
+            ppo,
+            Path("runs") / f"{args.study_name}__{args.env_id}",
+            observe=observe,
         )
         scores = args.scores
         if scores is None and gen is not None and gen.scores != "packaged":
@@ -482,28 +441,23 @@ def test_generalization_main(
             )
         except ConfigError:
             reference = None
-    except (
-        ConfigError,
-        StorageError,
-        StudyNotFound,
-        UnknownEnvError,
-        UnsupportedObserveError,
-    ) as err:
+    except setup_errors() as err:
         fail(prog, str(err))
     if warning:
         _shout(warning)
     if not args.quiet:
-        best = describe_selection(chosen)
+        best = describe_selection(plan.chosen)
         print(
             f"generalization test of {args.study_name!r} (evolved on {', '.join(evolution_ids)}) "
-            f"on {task.label}: agents {' '.join(args.agents)}, seeds {' '.join(map(str, seeds))}, "
-            f"{args.training_steps} steps each; reservoirs: {best}; out: {out}",
+            f"on {task.label}: agents {' '.join(args.agents)}, "
+            f"seeds {' '.join(map(str, plan.seeds))}, {args.training_steps} steps each; "
+            f"reservoirs: {best}; out: {plan.out}",
             flush=True,
         )
     metadata = {
         "study_name": args.study_name,
         "storage": args.storage,
-        **selection_metadata(chosen),
+        **selection_metadata(plan.chosen),
         "evolution_env_ids": list(evolution_ids),
         "evolution_suite": gen.suite if gen is not None else None,
         "test_env_id": args.env_id,
@@ -512,34 +466,22 @@ def test_generalization_main(
         if reference is None
         else {"random": reference[0], "target": reference[1], "column": target_column},
     }
-    summary = run_or_exit(
+    summary = run_test_phase(
         prog,
-        out,
-        lambda: _normalize_summary(
-            run_comparison(
-                task,
-                problem.encoder,
-                ppo,
-                agents,
-                settings,
-                metadata=metadata,
-                quiet=args.quiet,
-            ),
-            out,
-            reference,
-        ),
+        args,
+        plan,
+        task,
+        problem.encoder,
+        ppo,
+        metadata,
+        then=lambda table: _normalize_summary(table, plan.out, reference),
     )
     if summary is None:
         return EXIT_INTERRUPTED
     if not args.quiet:
-        print(
-            summary.drop(columns=["seeds"]).to_string(
-                index=False, float_format=lambda v: f"{v:.4g}"
-            )
-        )
         if reference is None:
             print(f"note: no reference scores for {args.env_id}: summary.csv has raw returns only")
-        print(f"wrote {out}/summary.csv, curves.csv, learning_curves.png", flush=True)
+        print(f"wrote {plan.out}/summary.csv, curves.csv, learning_curves.png", flush=True)
         if warning:  # again, below the progress lines
             _shout(warning)
     return 0

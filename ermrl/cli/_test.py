@@ -8,8 +8,9 @@ import sys
 import textwrap
 import warnings
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TypeVar
+from typing import Any, TypeVar
 
 from ermrl.cli._common import (
     EXIT_INTERRUPTED,
@@ -25,7 +26,17 @@ from ermrl.config import AGENT_KINDS, AGENTS, ConfigError, default_agents
 
 T = TypeVar("T")
 
-__all__ = ["add_test_args", "build_test_parser", "run_or_exit", "test_main", "select_seeds"]
+__all__ = [
+    "TestPlan",
+    "add_test_args",
+    "build_test_parser",
+    "plan_test_phase",
+    "run_or_exit",
+    "run_test_phase",
+    "select_seeds",
+    "setup_errors",
+    "test_main",
+]
 
 DESCRIPTION = textwrap.dedent(
     """\
@@ -195,22 +206,132 @@ def run_or_exit(prog: str, out: Path, run: Callable[[], T]) -> T | None:
         return None
 
 
-def test_main(argv: Sequence[str] | None = None, prog: str = "ermrl test") -> int:
-    """Entry point of ``ermrl test`` and ``test.py``."""
-    from ermrl.agents import check_ppo_config, parse_overrides, with_overrides
-    from ermrl.envs import UnknownEnvError, UnsupportedObserveError
+@dataclass
+class TestPlan:
+    """What a test phase trains: its agents, the selected trial, seeds and settings."""
+
+    agents: list[Any]
+    chosen: Any
+    seeds: tuple[int, ...]
+    settings: Any
+    out: Path
+
+
+def plan_test_phase(
+    args: argparse.Namespace,
+    study: Any,
+    config: Any,
+    task: Any,
+    ppo: Any,
+    default_out: Path,
+    *,
+    observe: str,
+) -> TestPlan:
+    """The part of ``ermrl test`` and ``ermrl test-generalization`` that is the same: seeds,
+    agents (each with its learner's settings), checks of the settings and of ``--out``.
+
+    Args:
+        args: The parsed command line (``add_test_args``).
+        study: The evolution study.
+        config: Its configuration.
+        task: The task the agents train on.
+        ppo: The settings of the study's learner on that task (``--ppo`` applied).
+        default_out: ``--out`` when not given.
+        observe: The mask that decides the default agents.
+
+    Raises:
+        ConfigError: bad settings, a bad ``--out``, or an agent that cannot be built.
+    """
+    from ermrl.agents import check_ppo_config, parse_overrides
     from ermrl.experiments import (
         TestSettings,
         default_test_seeds,
-        describe_selection,
         learner_settings_for,
-        run_comparison,
-        selection_metadata,
         study_agents,
     )
     from ermrl.experiments._test_phase import check_out_folder
+
+    problem = config.problem
+    seeds = tuple(args.seeds) if args.seeds else default_test_seeds(problem.seeds)
+    reused = sorted(set(seeds) & set(problem.seeds))
+    if reused:
+        warnings.warn(
+            f"test seeds {reused} were also used by evolution; results on them are not "
+            "independent of the selection",
+            stacklevel=2,
+        )
+    seeds = select_seeds(seeds, os.environ.get("SLURM_ARRAY_TASK_ID"))
+    args.agents = args.agents or list(default_agents(observe))
+    overrides = parse_overrides(args.ppo)
+    agents, chosen = study_agents(
+        study, config, args.agents, args.trial, learner_settings_for(ppo, task.env_id, overrides)
+    )
+    for agent in agents:  # refused now rather than by the first run
+        if agent.ppo is not None and overrides:
+            check_ppo_config(agent.task(task), None, agent.ppo, where=agent.name)
+    out = Path(args.out) if args.out else default_out
+    check_out_folder(out)
+    tensorboard = getattr(args, "tensorboard", None)
+    settings = TestSettings(
+        training_steps=args.training_steps,
+        seeds=seeds,
+        out=out,
+        n_procs=args.n_procs,
+        evaluate=args.eval,
+        n_eval_episodes=args.n_eval_episodes,
+        n_last_episodes=problem.budget.n_last_episodes,
+        save_models=args.save_models,
+        overwrite=args.overwrite,
+        tensorboard=Path(tensorboard) if tensorboard else None,
+    )
+    return TestPlan(agents, chosen, seeds, settings, out)
+
+
+# What a test command reports as one line before anything runs.
+def setup_errors() -> tuple[type[BaseException], ...]:
+    from ermrl.envs import UnknownEnvError, UnsupportedObserveError
+    from ermrl.storage import StorageError, StudyNotFound
+
+    return (ConfigError, StorageError, StudyNotFound, UnknownEnvError, UnsupportedObserveError)
+
+
+def run_test_phase(
+    prog: str,
+    args: argparse.Namespace,
+    plan: TestPlan,
+    task: Any,
+    encoder: Any,
+    ppo: Any,
+    metadata: dict[str, Any],
+    *,
+    then: Callable[[Any], Any] | None = None,
+) -> Any:
+    """Train the plan's agents (one-line errors, Ctrl-C keeps finished runs) and print the
+    summary; ``then`` post-processes the summary table. Returns it, or ``None`` after Ctrl-C."""
+    from ermrl.experiments import run_comparison
+
+    def run() -> Any:
+        summary = run_comparison(
+            task, encoder, ppo, plan.agents, plan.settings, metadata=metadata, quiet=args.quiet
+        )
+        return summary if then is None else then(summary)
+
+    summary = run_or_exit(prog, plan.out, run)
+    if summary is not None and not args.quiet:
+        print(
+            summary.drop(columns=["seeds"]).to_string(
+                index=False, float_format=lambda v: f"{v:.4g}"
+            )
+        )
+    return summary
+
+
+def test_main(argv: Sequence[str] | None = None, prog: str = "ermrl test") -> int:
+    """Entry point of ``ermrl test`` and ``test.py``."""
+    from ermrl.agents import check_ppo_config, parse_overrides, with_overrides
+    from ermrl.experiments import describe_selection, selection_metadata
     from ermrl.search import study_config
-    from ermrl.storage import StorageError, StudyNotFound, load_study
+    from ermrl.storage import load_study
 
     parser = build_test_parser(prog)
     quiet_libraries()
@@ -233,84 +354,37 @@ def test_main(argv: Sequence[str] | None = None, prog: str = "ermrl test") -> in
                 "with test_generalization.py --env-id ENV"
             )
         problem = config.problem
-        seeds = tuple(args.seeds) if args.seeds else default_test_seeds(problem.seeds)
-        reused = sorted(set(seeds) & set(problem.seeds))
-        if reused:
-            warnings.warn(
-                f"test seeds {reused} were also used by evolution; results on them are not "
-                "independent of the selection",
-                stacklevel=1,
-            )
-        seeds = select_seeds(seeds, os.environ.get("SLURM_ARRAY_TASK_ID"))
-        args.agents = args.agents or list(default_agents(problem.task.observe))
         overrides = parse_overrides(args.ppo)
         ppo = with_overrides(problem.ppo, overrides)
-        agents, chosen = study_agents(
-            study,
-            config,
-            args.agents,
-            args.trial,
-            learner_settings_for(ppo, problem.task.env_id, overrides),
-        )
         if overrides:  # refused now rather than by the first run
             check_ppo_config(problem.task, problem.encoder, ppo, where="--ppo")
-        for agent in agents:
-            if agent.ppo is not None and overrides:
-                check_ppo_config(agent.task(problem.task), None, agent.ppo, where=agent.name)
-        out = Path(args.out) if args.out else Path("runs") / args.study_name
-        check_out_folder(out)
-        settings = TestSettings(
-            training_steps=args.training_steps,
-            seeds=seeds,
-            out=out,
-            n_procs=args.n_procs,
-            evaluate=args.eval,
-            n_eval_episodes=args.n_eval_episodes,
-            n_last_episodes=problem.budget.n_last_episodes,
-            save_models=args.save_models,
-            overwrite=args.overwrite,
-            tensorboard=Path(args.tensorboard) if args.tensorboard else None,
+        plan = plan_test_phase(
+            args,
+            study,
+            config,
+            problem.task,
+            ppo,
+            Path("runs") / args.study_name,
+            observe=problem.task.observe,
         )
-    except (
-        ConfigError,
-        StorageError,
-        StudyNotFound,
-        UnknownEnvError,
-        UnsupportedObserveError,
-    ) as err:
+    except setup_errors() as err:
         fail(prog, str(err))
     if not args.quiet:
-        best = describe_selection(chosen)
+        best = describe_selection(plan.chosen)
         print(
             f"test phase of {args.study_name!r}: {problem.task.label}, agents {' '.join(args.agents)}, "
-            f"seeds {' '.join(map(str, seeds))}, {args.training_steps} steps each; reservoir: {best}; out: {out}",
+            f"seeds {' '.join(map(str, plan.seeds))}, {args.training_steps} steps each; "
+            f"reservoir: {best}; out: {plan.out}",
             flush=True,
         )
     metadata = {
         "study_name": args.study_name,
         "storage": args.storage,
-        **selection_metadata(chosen),
+        **selection_metadata(plan.chosen),
     }
-    summary = run_or_exit(
-        prog,
-        out,
-        lambda: run_comparison(
-            problem.task,
-            problem.encoder,
-            ppo,
-            agents,
-            settings,
-            metadata=metadata,
-            quiet=args.quiet,
-        ),
-    )
+    summary = run_test_phase(prog, args, plan, problem.task, problem.encoder, ppo, metadata)
     if summary is None:
         return EXIT_INTERRUPTED
     if not args.quiet:
-        print(
-            summary.drop(columns=["seeds"]).to_string(
-                index=False, float_format=lambda v: f"{v:.4g}"
-            )
-        )
-        print(f"wrote {out}/summary.csv, curves.csv, learning_curves.png", flush=True)
+        print(f"wrote {plan.out}/summary.csv, curves.csv, learning_curves.png", flush=True)
     return 0
