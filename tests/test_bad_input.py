@@ -226,7 +226,7 @@ def test_test_on_a_full_disk(study_url, tmp_path, capsys):  # noqa: ANN001
 
 def test_write_atomic_on_a_full_disk_leaves_nothing_behind(tmp_path):  # noqa: ANN001
     """A real full disk (a 64 KiB tmpfs): the old file stays whole and no temporary file stays."""
-    from ermrl.analysis import write_atomic
+    from ermrl._io import write_atomic
 
     with _tmpfs(tmp_path / "full", "size=64k") as full:
         target = full / "summary.csv"
@@ -241,7 +241,7 @@ def test_write_atomic_on_a_full_disk_leaves_nothing_behind(tmp_path):  # noqa: A
 @pytest.mark.parametrize(("umask", "mode"), [(0o022, 0o644), (0o027, 0o640), (0o002, 0o664)])
 def test_write_atomic_respects_the_umask(tmp_path, umask, mode):  # noqa: ANN001
     """Files are readable by the group/others the umask allows (mkstemp alone gives 0600)."""
-    from ermrl.analysis import write_atomic
+    from ermrl._io import write_atomic
 
     old = os.umask(umask)
     try:

@@ -44,8 +44,6 @@ from ermrl.analysis._results import (
     run_dir,
     summarize,
     t_quantile,
-    write_atomic,
-    write_run,
 )
 from ermrl.analysis._stats import (
     WelchResult,
@@ -147,11 +145,9 @@ __all__ = [
     "task_title",
     "trials_frame",
     "welch_t_test",
-    "write_atomic",
     "write_dynamics",
     "write_gif",
     "write_interactive_evolution",
     "write_mp4",
     "write_report",
-    "write_run",
 ]

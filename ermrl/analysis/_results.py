@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
@@ -16,12 +14,10 @@ import pandas as pd
 __all__ = [
     "RUNS_DIR",
     "run_dir",
-    "write_run",
     "load_run_results",
     "load_curves",
     "curves_on_grid",
     "summarize",
-    "write_atomic",
     "load_run_config",
     "t_quantile",
 ]
@@ -35,68 +31,6 @@ CONFIG_FILE = "config.yaml"
 def run_dir(out: str | Path, agent: str, seed: int) -> Path:
     """Folder of one (agent, seed) run inside a test-phase output folder."""
     return Path(out) / RUNS_DIR / agent / f"seed_{seed}"
-
-
-def write_atomic(path: str | Path, text: str) -> None:
-    """Write a file so that readers never see it half-written (several SLURM tasks may race).
-
-    The text goes to a temporary file in the same folder, renamed over ``path`` once complete;
-    on an error (a full disk, ...) the temporary file is removed and ``path`` is left as it
-    was. The file gets the usual permissions, ``0o666`` less the umask (``mkstemp`` alone
-    would make it ``0o600``, unreadable by colleagues sharing a results folder).
-
-    Raises:
-        OSError: the file cannot be written (``ENOSPC``, ``EROFS``, ...).
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    try:
-        with os.fdopen(fd, "w") as handle:
-            os.fchmod(handle.fileno(), 0o666 & ~_umask())
-            handle.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def _umask() -> int:
-    """The process umask (it can only be read by setting it, so it is set back at once)."""
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
-
-
-def write_run(
-    folder: str | Path, agent: str, result: Any, extra: dict[str, Any] | None = None
-) -> None:
-    """Save one run: ``episodes.csv`` (every training episode) and ``result.json`` (written last).
-
-    Args:
-        folder: The run folder.
-        agent: Agent name (``ppo``, ``res-ppo``, ...).
-        result: A :class:`~ermrl.agents.RunResult`.
-        extra: More fields for ``result.json`` (reservoir parameters, ...).
-    """
-    folder = Path(folder)
-    episodes = pd.DataFrame(
-        {"env_step": result.episode_steps, "episode_return": result.episode_returns}
-    )
-    write_atomic(folder / "episodes.csv", episodes.to_csv(index=False))
-    record = {
-        "agent": agent,
-        "seed": result.seed,
-        "env_steps": result.env_steps,
-        "wall_seconds": result.wall_seconds,
-        "steps_per_second": result.steps_per_second,
-        "final_return": None if not np.isfinite(result.last_return) else result.last_return,
-        "eval_return": result.eval_return,
-        "eval_returns": result.eval_returns,
-        "n_episodes": len(result.episode_returns),
-        **(extra or {}),
-    }
-    write_atomic(folder / "result.json", json.dumps(record, indent=2))
 
 
 def load_run_results(out: str | Path) -> pd.DataFrame:

@@ -379,7 +379,7 @@ def _test_ppo(config: EvolveConfig, env_id: str, args: argparse.Namespace) -> PP
 
 def _normalize_summary(summary: Any, out: Path, reference: tuple[float, float] | None) -> Any:
     """Add normalized-return columns to ``summary.csv`` when the env has reference scores."""
-    from ermrl.analysis import write_atomic
+    from ermrl._io import write_atomic
 
     if reference is None or summary.empty:
         return summary

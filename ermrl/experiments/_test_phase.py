@@ -37,6 +37,7 @@ import optuna
 import pandas as pd
 import yaml
 
+from ermrl._io import write_atomic
 from ermrl.agents import RunResult, pool_size, train_agent, training_pool
 from ermrl.analysis import (
     curves_on_grid,
@@ -45,8 +46,6 @@ from ermrl.analysis import (
     plot_learning_curves,
     run_dir,
     summarize,
-    write_atomic,
-    write_run,
 )
 from ermrl.analysis._results import RUNS_DIR
 from ermrl.config import (
@@ -64,6 +63,7 @@ from ermrl.config import (
     default_agents,
     to_dict,
 )
+from ermrl.experiments._results import write_run
 
 __all__ = [
     "AGENTS",
