@@ -65,7 +65,7 @@ def run_study(
         SearchConfig,
         TaskConfig,
     )
-    from ermrl.search import create_or_resume_study, evaluate_reservoir, run_evolution
+    from ermrl.search import create_or_resume_study, evaluate_encoder, run_evolution
 
     space = ReservoirSpace(units=50)
     problem = Problem(
@@ -91,7 +91,9 @@ def run_study(
         seeds=reeval_seeds,
         budget=dataclasses.replace(problem.budget, n_reports=0),
     )
-    reeval = evaluate_reservoir(space.reservoirs_from(best.params), reeval_problem)
+    reeval = evaluate_encoder(
+        problem.encoder.with_reservoirs(space.reservoirs_from(best.params)), reeval_problem
+    )
     return {
         "pruner": pruner,
         "sampler_seed": sampler_seed,

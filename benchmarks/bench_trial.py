@@ -74,7 +74,7 @@ def _ermrl_trial(
         ReservoirParams,
         TaskConfig,
     )
-    from ermrl.search import evaluate_reservoir
+    from ermrl.search import evaluate_encoder
 
     reservoirs = (ReservoirParams(units=100, sr=0.9, lr=0.3),)
     problem = Problem(
@@ -84,7 +84,7 @@ def _ermrl_trial(
         budget=BudgetConfig(training_steps=steps),
         seeds=seeds,
     )
-    result = evaluate_reservoir(reservoirs, problem, runner=runner)
+    result = evaluate_encoder(problem.encoder, problem, runner=runner)
     return result.env_steps
 
 

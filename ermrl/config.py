@@ -13,7 +13,7 @@ import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Literal, TypeVar
+from typing import Any, Literal, Protocol, TypeVar, runtime_checkable
 
 ObserveMode = Literal["all", "positions", "velocities"]
 FitnessMode = Literal["last", "eval"]
@@ -390,6 +390,27 @@ class Range:
             )
         if self.log and self.low <= 0:
             raise ConfigError(f"a log-scale range needs low > 0, got [{self.low}, {self.high}]")
+
+
+@runtime_checkable
+class SearchSpace(Protocol):
+    """What the outer loop needs of an encoder's search space (:class:`ReservoirSpace` is one).
+
+    The search samples plain ``{name: value}`` points in :meth:`ranges`; the encoder turns a
+    point into its settings (:meth:`ermrl.encoders.Encoder.decode`), so search code never
+    handles an encoder's own types.
+    """
+
+    @property
+    def param_names(self) -> tuple[str, ...]: ...
+
+    def ranges(self) -> dict[str, Range]: ...
+
+    def reference_params(self) -> dict[str, float]: ...
+
+    def center_params(self) -> dict[str, float]: ...
+
+    def contains(self, params: Mapping[str, float]) -> bool: ...
 
 
 @dataclass(frozen=True)

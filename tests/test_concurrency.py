@@ -63,9 +63,9 @@ def stub_config(n_trials: int, sampler_seed: int | None = None) -> EvolveConfig:
 def _stub_worker(url: str, n_trials: int, delay: float, go, errors, heartbeat, seed=None) -> None:  # noqa: ANN001
     """One worker process: wait for the start signal, then the real create + worker loop."""
 
-    def evaluate(reservoirs, runner, report):  # noqa: ANN001, ANN202
+    def evaluate(encoder, runner, report):  # noqa: ANN001, ANN202
         time.sleep(delay)
-        value = -(math.log10(reservoirs[0].sr) ** 2)
+        value = -(math.log10(encoder.reservoirs[0].sr) ** 2)
         return FitnessResult(fitness=value, mode="last", runs=[], wall_seconds=delay)
 
     try:

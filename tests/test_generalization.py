@@ -193,7 +193,7 @@ def test_fitness_is_mean_normalized_return_and_reports_normalized_values() -> No
     )
     reports: list[tuple[int, float]] = []
     result = evaluate_generalization(
-        config.space.default_reservoirs(),
+        config.problem.encoder.with_reservoirs(config.space.default_reservoirs()),
         problem,
         tasks,
         report=lambda step, value: reports.append((step, value)),

@@ -262,3 +262,14 @@ def test_no_new_layer_violation(imports: list[Import]) -> None:
 def test_known_violations_still_exist(imports: list[Import]) -> None:
     gone = sorted(KNOWN_VIOLATIONS - set(layer_violations(imports)))
     assert not gone, f"fixed, remove from KNOWN_VIOLATIONS in tests/test_layers.py: {gone}"
+
+
+def test_search_never_imports_an_encoders_own_types() -> None:
+    """The outer loop samples plain dicts and lets the encoder decode them (ermrl.encoders)."""
+    own = {"ReservoirParams", "ReservoirSpace", "ReservoirVecEnv", "ReservoirBank"}
+    found = []
+    for path in sorted((PACKAGE_DIR / "search").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom):
+                found += [(path.name, a.name) for a in node.names if a.name in own]
+    assert found == []

@@ -35,8 +35,8 @@ ROOT = Path(__file__).resolve().parents[1]
 def stub_fitness(calls: list | None = None, noise: dict | None = None):  # noqa: ANN201
     """A fitness that peaks at sr = 1 and records the seeds it was asked for."""
 
-    def evaluate(reservoirs, runner, report):  # noqa: ANN001, ANN202
-        sr = reservoirs[0].sr
+    def evaluate(encoder, runner, report):  # noqa: ANN001, ANN202
+        sr = encoder.reservoirs[0].sr
         value = -(math.log10(sr) ** 2) + (noise or {}).get(round(sr, 6), 0.0)
         if calls is not None:
             calls.append(round(sr, 6))
@@ -160,7 +160,7 @@ def test_a_failed_candidate_is_not_replaced_by_a_random_point(tmp_path: Path) ->
     study = create_or_resume_study(config, url, "s")
     run_evolution(config, study, quiet=True, evaluate=stub_fitness(noise={1.0: -100.0}))
 
-    def diverge(reservoirs, runner, report):  # noqa: ANN001, ANN202
+    def diverge(encoder, runner, report):  # noqa: ANN001, ANN202
         raise TrainingDiverged("nan")
 
     doc = reevaluate_study(config, study, url, evaluator_factory=lambda c: diverge, quiet=True)

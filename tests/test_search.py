@@ -29,7 +29,7 @@ from ermrl.config import (
 from ermrl.search import (
     SeedRunner,
     create_or_resume_study,
-    evaluate_reservoir,
+    evaluate_encoder,
     pool_size,
     run_evolution,
     study_config,
@@ -93,13 +93,16 @@ def test_bad_configs_raise(make) -> None:  # noqa: ANN001
 def test_same_trial_same_seed_same_fitness_in_and_across_processes() -> None:
     problem = make_config().problem
     reservoirs = (ReservoirParams(units=20, sr=0.7, lr=0.3, input_scaling=2.0),)
-    a = evaluate_reservoir(reservoirs, problem)
-    b = evaluate_reservoir(reservoirs, problem)
+    encoder = problem.encoder.with_reservoirs(reservoirs)
+    a = evaluate_encoder(encoder, problem)
+    b = evaluate_encoder(encoder, problem)
     with SeedRunner(2) as runner:
-        c = evaluate_reservoir(reservoirs, problem, runner=runner)
+        c = evaluate_encoder(encoder, problem, runner=runner)
     assert a.fitness == b.fitness == c.fitness
     assert [r.episode_returns for r in a.runs] == [r.episode_returns for r in c.runs]
-    other = evaluate_reservoir((dataclasses.replace(reservoirs[0], sr=5.0),), problem)
+    other = evaluate_encoder(
+        problem.encoder.with_reservoirs((dataclasses.replace(reservoirs[0], sr=5.0),)), problem
+    )
     assert other.fitness != a.fitness
     assert a.fitness == pytest.approx(sum(r.last_return for r in a.runs) / 2)
 
@@ -143,12 +146,12 @@ def test_seed_runner_balances_three_seeds_on_two_cores() -> None:
     """3 seeds on 2 cores run in 3 processes, with the same fitness as in this process."""
     problem = dataclasses.replace(make_config().problem, seeds=(0, 1, 2))
     reservoirs = (ReservoirParams(units=20, sr=0.7, lr=0.3),)
-    here = evaluate_reservoir(reservoirs, problem)
+    here = evaluate_encoder(problem.encoder.with_reservoirs(reservoirs), problem)
     with SeedRunner(2) as runner:
         assert runner.processes_for(3) == 3 and runner.processes_for(4) == 2
         assert runner.start(3) == 3
         assert len(runner._pool._processes) == 3  # type: ignore[union-attr]  # all started
-        pool = evaluate_reservoir(reservoirs, problem, runner=runner)
+        pool = evaluate_encoder(problem.encoder.with_reservoirs(reservoirs), problem, runner=runner)
         assert runner.n_processes == 3
     assert runner.n_processes == 0  # closed
     assert [r.episode_returns for r in pool.runs] == [r.episode_returns for r in here.runs]
@@ -220,11 +223,11 @@ def test_ctrl_c_closes_the_running_trial_and_keeps_the_rest(tmp_path) -> None:  
     study = create_or_resume_study(config, f"sqlite:///{tmp_path}/s.db", "s")
     calls = []
 
-    def evaluate(reservoirs, runner, report):  # noqa: ANN001, ANN202
-        calls.append(reservoirs)
+    def evaluate(encoder, runner, report):  # noqa: ANN001, ANN202
+        calls.append(encoder)
         if len(calls) == 3:
             raise KeyboardInterrupt
-        return evaluate_reservoir(reservoirs, config.problem, runner=runner)
+        return evaluate_encoder(encoder, config.problem, runner=runner)
 
     with pytest.raises(KeyboardInterrupt):
         run_evolution(config, study, quiet=True, evaluate=evaluate)

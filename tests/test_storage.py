@@ -74,11 +74,11 @@ def tiny_config(n_trials: int = 4, **search: object) -> EvolveConfig:
 def stub_fitness(delay: float = 0.0, hook=None):  # noqa: ANN001, ANN201
     """An ``evaluate`` for run_evolution: a smooth function of sr, after ``delay`` seconds."""
 
-    def evaluate(reservoirs, runner, report):  # noqa: ANN001, ANN202
+    def evaluate(encoder, runner, report):  # noqa: ANN001, ANN202
         if hook is not None:
             hook()
         time.sleep(delay)
-        value = -((math.log10(reservoirs[0].sr) - 0.0) ** 2)
+        value = -((math.log10(encoder.reservoirs[0].sr) - 0.0) ** 2)
         return FitnessResult(fitness=value, mode="last", runs=[], wall_seconds=max(delay, 1e-3))
 
     return evaluate

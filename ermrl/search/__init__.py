@@ -21,7 +21,7 @@ from ermrl.search._generalization import (
 from ermrl.search._objective import (
     FitnessResult,
     SeedRunner,
-    evaluate_reservoir,
+    evaluate_encoder,
     library_versions,
     pool_size,
 )
@@ -83,7 +83,7 @@ __all__ = [
     "cma_generation_info",
     "create_or_resume_generalization_study",
     "create_or_resume_study",
-    "evaluate_reservoir",
+    "evaluate_encoder",
     "evaluate_generalization",
     "format_params",
     "generalization_config",

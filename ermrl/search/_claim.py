@@ -21,7 +21,7 @@ import optuna
 from optuna.exceptions import ExperimentalWarning, UpdateFinishedTrialError
 from optuna.trial import FrozenTrial, TrialState
 
-from ermrl.config import ReservoirSpace
+from ermrl.config import SearchSpace
 from ermrl.search._objective import FitnessResult, SeedRunner
 from ermrl.search._samplers import RestartCmaEsSampler
 from ermrl.search._signals import Interrupted, SignalGuard
@@ -65,7 +65,7 @@ class Claim:
 
 def claim_trial(
     study: optuna.Study,
-    space: ReservoirSpace,
+    space: SearchSpace,
     n_trials: int,
     stale_check: bool,
     queued_only: bool = False,

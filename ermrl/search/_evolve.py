@@ -35,7 +35,8 @@ from optuna.storages._heartbeat import BaseHeartbeat, get_heartbeat_thread, is_h
 from optuna.trial import TrialState
 
 from ermrl.agents import NoEpisodeFinished, TrainingDiverged
-from ermrl.config import EvolveConfig, ReservoirParams
+from ermrl.config import EncoderConfig, EvolveConfig
+from ermrl.encoders import encoder_for
 from ermrl.search._claim import (
     claim_trial,
     close_interrupted,
@@ -43,7 +44,7 @@ from ermrl.search._claim import (
     record,
     retry_policy,
 )
-from ermrl.search._objective import FitnessResult, SeedRunner, evaluate_reservoir
+from ermrl.search._objective import FitnessResult, SeedRunner, evaluate_encoder
 from ermrl.search._progress import best_trial, trial_line
 from ermrl.search._pruning import pruning_reporter
 from ermrl.search._signals import SignalGuard
@@ -83,7 +84,7 @@ class EvolutionSummary:
 
 
 EvaluateFn = Callable[
-    [tuple[ReservoirParams, ...], SeedRunner, Callable[[int, float], None] | None], FitnessResult
+    [EncoderConfig, SeedRunner, Callable[[int, float], None] | None], FitnessResult
 ]
 
 _FIRST_POLL = 0.5  # seconds between the first claims while waiting for other workers' trials
@@ -133,8 +134,9 @@ def run_evolution(
         study: A study from :func:`create_or_resume_study`.
         quiet: No progress lines.
         stream: Where progress lines go (default ``sys.stdout``).
-        evaluate: Fitness of a candidate, called as ``evaluate(reservoirs, runner, report)``
-            (default: :func:`~ermrl.search.evaluate_reservoir` on ``config.problem``; the
+        evaluate: Fitness of a candidate, called as ``evaluate(encoder, runner, report)`` with
+            the encoder settings decoded from the sampled point
+            (default: :func:`~ermrl.search.evaluate_encoder` on ``config.problem``; the
             generalization pipeline passes a multi-task fitness).
         wait_for_running: When the budget is reached but trials of other workers still run, wait
             for them (with heartbeats on): a trial whose worker died is then failed and retried
@@ -243,13 +245,12 @@ def run_evolution(
             note = ""
             try:
                 guard.check()  # a signal that arrived during the claim
-                reservoirs = config.space.reservoirs_from(params)
+                # The sampled point is a plain dict; the problem's encoder decodes it.
+                encoder = encoder_for(problem.encoder).decode(config.space, params, problem.encoder)
                 if evaluate is None:
-                    result = evaluate_reservoir(
-                        reservoirs, problem, runner=runner, report=use_report
-                    )
+                    result = evaluate_encoder(encoder, problem, runner=runner, report=use_report)
                 else:
-                    result = evaluate(reservoirs, runner, use_report)
+                    result = evaluate(encoder, runner, use_report)
                 if not math.isfinite(result.fitness):
                     raise TrainingDiverged(f"non-finite fitness {result.fitness}")
             except optuna.TrialPruned as err:

@@ -35,8 +35,6 @@ from ermrl.config import (
     GeneralizationConfig,
     GeneralizationTask,
     Problem,
-    ReservoirParams,
-    ReservoirSpace,
     SearchConfig,
     TaskConfig,
     to_dict,
@@ -151,17 +149,18 @@ class GeneralizationFitness(FitnessResult):
 
 
 def evaluate_generalization(
-    reservoirs: Sequence[ReservoirParams] | None,
+    encoder: EncoderConfig | None,
     problem: Problem,
     tasks: Sequence[GeneralizationTask],
     *,
     runner: SeedRunner | None = None,
     report: ReportFn | None = None,
 ) -> GeneralizationFitness:
-    """Train one PPO agent per (task, seed) with the same reservoirs; return the mean normalized return.
+    """Train one agent per (task, seed) with the same encoder; return the mean normalized return.
 
     Args:
-        reservoirs: Hyperparameters of each reservoir; ``None`` trains plain PPO.
+        encoder: The candidate's encoder settings (decoded from a sampled point by the problem's
+            encoder); ``None`` trains on the raw observation.
         problem: Shared encoding options, budget and seeds (its ``task`` and ``ppo`` are
             ignored: each task brings its own).
         tasks: The tasks with their PPO settings and reference returns.
@@ -175,9 +174,6 @@ def evaluate_generalization(
     """
     if not tasks:
         raise ConfigError("a generalization problem needs at least one task")
-    encoder: EncoderConfig | None = (
-        None if reservoirs is None else problem.encoder.with_reservoirs(tuple(reservoirs))
-    )
     budget = problem.budget
     start = time.perf_counter()
     runner = runner or SeedRunner(1)
@@ -219,10 +215,10 @@ def generalization_evaluator(
     tasks = config.generalization.tasks
 
     def evaluate(
-        reservoirs: tuple[ReservoirParams, ...], runner: SeedRunner, report: ReportFn | None
+        encoder: EncoderConfig, runner: SeedRunner, report: ReportFn | None
     ) -> FitnessResult:
         result = evaluate_generalization(
-            reservoirs, config.problem, tasks, runner=runner, report=report
+            encoder, config.problem, tasks, runner=runner, report=report
         )
         if not quiet:
             print(f"  {result.describe()}", file=stream or sys.stdout, flush=True)
@@ -300,7 +296,7 @@ def generalization_config(
     encoder: EncoderConfig,
     budget: BudgetConfig,
     seeds: Sequence[int],
-    space: ReservoirSpace,
+    space: Any,
     search: SearchConfig,
     n_procs: int = 1,
     suite: str | None = None,
@@ -321,7 +317,7 @@ def generalization_config(
         encoder: Encoding options shared by all tasks.
         budget: Training budget per (task, seed).
         seeds: Training seeds, the same on every task.
-        space: The evolved search space.
+        space: The evolved search space (the encoder's; a :class:`~ermrl.config.SearchSpace`).
         search: The sampler and trial budget.
         n_procs: Processes that train a trial's runs in parallel.
         suite: The suite name, if the tasks come from one.

@@ -20,14 +20,13 @@ from ermrl.config import (
     EncoderConfig,
     PPOConfig,
     Problem,
-    ReservoirParams,
     TaskConfig,
 )
 
 __all__ = [
     "FitnessResult",
     "SeedRunner",
-    "evaluate_reservoir",
+    "evaluate_encoder",
     "library_versions",
     "pool_size",
     "train_runs",
@@ -194,7 +193,7 @@ def train_runs(
     """Train one PPO agent per (task, seed) with the same encoder: the core of every fitness.
 
     Args:
-        encoder: The reservoir encoding (``None``: plain PPO).
+        encoder: The encoder's settings (``None``: the raw observation).
         tasks: One ``(task, ppo, normalize)`` per task; ``normalize`` maps a raw return to the
             value reported for pruning (``None``: the raw return).
         budget: Training budget of each run.
@@ -231,20 +230,21 @@ def train_runs(
     return [flat[i * n_seeds : (i + 1) * n_seeds] for i in range(len(tasks))]
 
 
-def evaluate_reservoir(
-    reservoirs: Sequence[ReservoirParams] | None,
+def evaluate_encoder(
+    encoder: EncoderConfig | None,
     problem: Problem,
     *,
     runner: SeedRunner | None = None,
     report: ReportFn | None = None,
 ) -> FitnessResult:
-    """Train one PPO agent per seed on reservoir-encoded observations; return the mean return.
+    """Train one agent per seed on encoded observations; return the mean return.
 
     The single-task case of :func:`~ermrl.search.evaluate_generalization`: both train through
     :func:`train_runs`.
 
     Args:
-        reservoirs: Hyperparameters of each reservoir; ``None`` trains plain PPO.
+        encoder: The candidate's encoder settings (decoded from a sampled point by the problem's
+            encoder, see :mod:`ermrl.encoders`); ``None`` trains on the raw observation.
         problem: Task, encoding options, PPO settings, budget and seeds.
         runner: Where the seeds run (default: one after another in this process).
         report: Intermediate-return callback for pruning, called as ``report(step, value)``
@@ -253,7 +253,6 @@ def evaluate_reservoir(
     Returns:
         The fitness and the per-seed runs.
     """
-    encoder = None if reservoirs is None else problem.encoder.with_reservoirs(tuple(reservoirs))
     start = time.perf_counter()
     runner = runner or SeedRunner(1)
     (runs,) = train_runs(

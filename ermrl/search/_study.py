@@ -10,7 +10,7 @@ from typing import Any
 import optuna
 from optuna.distributions import FloatDistribution
 
-from ermrl.config import ConfigError, EvolveConfig, ReservoirSpace, SearchConfig, to_dict
+from ermrl.config import ConfigError, EvolveConfig, SearchConfig, SearchSpace, to_dict
 from ermrl.search._pruning import make_pruner
 from ermrl.storage import (
     DEFAULT_GRACE_PERIOD,
@@ -43,12 +43,12 @@ STUDY_KIND_ATTR = "ermrl_kind"
 _MUST_MATCH = ("problem", "space")
 
 
-def search_distributions(space: ReservoirSpace) -> dict[str, FloatDistribution]:
+def search_distributions(space: SearchSpace) -> dict[str, FloatDistribution]:
     """The fixed search space as Optuna distributions (what :func:`sample_params` asks)."""
     return {name: FloatDistribution(r.low, r.high, log=r.log) for name, r in space.ranges().items()}
 
 
-def cma_start(search: SearchConfig, space: ReservoirSpace) -> dict[str, float]:
+def cma_start(search: SearchConfig, space: SearchSpace) -> dict[str, float]:
     """The first CMA-ES mean: the reference reservoir (clipped into the box) or the box centre."""
     if search.start == "center":
         return space.center_params()
@@ -60,7 +60,7 @@ def cma_start(search: SearchConfig, space: ReservoirSpace) -> dict[str, float]:
 
 
 def make_study_sampler(
-    search: SearchConfig, space: ReservoirSpace | None = None
+    search: SearchConfig, space: SearchSpace | None = None
 ) -> optuna.samplers.BaseSampler:
     """The study's sampler; with ``space``, CMA-ES knows the space before any trial completes."""
     from ermrl.search._samplers import make_sampler
@@ -80,7 +80,7 @@ def make_study_sampler(
 REFERENCE_ATTR = "reference"
 
 
-def enqueue_reference(study: optuna.Study, space: ReservoirSpace) -> bool:
+def enqueue_reference(study: optuna.Study, space: SearchSpace) -> bool:
     """Queue the unevolved reference reservoir as a trial (user attribute ``reference``).
 
     Returns:
@@ -93,7 +93,7 @@ def enqueue_reference(study: optuna.Study, space: ReservoirSpace) -> bool:
     return True
 
 
-def sample_params(trial: optuna.Trial, space: ReservoirSpace) -> dict[str, float]:
+def sample_params(trial: optuna.Trial, space: SearchSpace) -> dict[str, float]:
     """Ask a trial for every evolved hyperparameter of the space (fixed order and ranges)."""
     return {
         name: trial.suggest_float(name, r.low, r.high, log=r.log)
