@@ -221,3 +221,17 @@ def test_the_reservoir_is_a_registered_encoder_that_decodes_plain_params() -> No
     env.close()
     with pytest.raises(TypeError, match="no registered encoder takes TaskConfig"):
         encoder_for(TASK)
+
+
+def test_generalization_tasks_take_the_learners_own_table() -> None:
+    from ermrl.cli._generalization import build_evolve_generalization_parser
+    from ermrl.search import generalization_tasks
+
+    tasks = generalization_tasks(["Swimmer-v5", "Hopper-v5"], learner="lstm-ppo")
+    assert [t.ppo.learner for t in tasks] == ["lstm-ppo", "lstm-ppo"]
+    # ppo_lstm.yml's default block, not ppo.yml's
+    assert all(t.ppo.hyperparams["policy_kwargs"]["lstm_hidden_size"] == 64 for t in tasks)
+    args = build_evolve_generalization_parser().parse_args(
+        ["--env-ids", "Swimmer-v5", "--learner", "framestack-ppo"]
+    )
+    assert args.learner == "framestack-ppo"

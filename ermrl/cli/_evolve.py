@@ -37,6 +37,7 @@ from ermrl.config import (
     SearchConfig,
     TaskConfig,
 )
+from ermrl.learners import LEARNERS
 
 if TYPE_CHECKING:
     import optuna
@@ -87,17 +88,14 @@ def add_problem_args(parser: argparse.ArgumentParser, *, multi_task: bool = Fals
         help="keep the whole observation, only its positions (velocities hidden) or only its velocities",
     )
     g = parser.add_argument_group("inner loop (the learner: PPO by default)")
-    if not multi_task:
-        from ermrl.learners import LEARNERS
-
-        g.add_argument(
-            "--learner",
-            choices=tuple(LEARNERS),
-            default="ppo",
-            help="the inner learner, trained on the reservoir states: "
-            + "; ".join(f"{name}: {learner.description}" for name, learner in LEARNERS.items())
-            + ". Its settings come from its own table (see --hyperparams) and --ppo",
-        )
+    g.add_argument(
+        "--learner",
+        choices=tuple(LEARNERS),
+        default="ppo",
+        help="the inner learner, trained on the reservoir states: "
+        + "; ".join(f"{name}: {learner.description}" for name, learner in LEARNERS.items())
+        + ". Its settings come from its own table (see --hyperparams) and --ppo",
+    )
     g.add_argument(
         "--training-steps",
         type=positive_int,

@@ -162,6 +162,7 @@ def generalization_config_from_args(args: argparse.Namespace) -> EvolveConfig:
         torch_threads=args.torch_threads,
         scores=args.scores,
         target_column=args.target_column,
+        learner=args.learner,
     )
     space = space_from_args(args)
     config = generalization_config(

@@ -237,6 +237,7 @@ def generalization_tasks(
     torch_threads: int = 1,
     scores: str | None = None,
     target_column: str = "target",
+    learner: str = "ppo",
 ) -> tuple[GeneralizationTask, ...]:
     """Validate env ids and attach each one's PPO settings and reference returns.
 
@@ -249,6 +250,7 @@ def generalization_tasks(
         torch_threads: Torch threads per training process.
         scores: Reference table (``None``: the packaged ``ermrl/data/scores.csv``).
         target_column: ``target`` or ``provisional_target``.
+        learner: The inner learner (its table gives each task's settings).
 
     Raises:
         ConfigError: an empty or repeated task set, or a missing reference score.
@@ -278,6 +280,7 @@ def generalization_tasks(
             n_envs=n_envs,
             table_path=hyperparams,
             torch_threads=torch_threads,
+            learner=learner,
         )
         out.append(
             GeneralizationTask(
