@@ -111,6 +111,10 @@ AGENT_KINDS: Mapping[str, AgentKind] = {
     ),
 }  # fmt: skip
 AGENTS: tuple[str, ...] = tuple(AGENT_KINDS)
+# The agent on the selected evolved encoder, and the one on the unevolved reference: what the
+# report compares and replays.
+EVOLVED_AGENT = next(n for n, k in AGENT_KINDS.items() if k.reservoirs == "evolved")
+UNEVOLVED_AGENT = next(n for n, k in AGENT_KINDS.items() if k.reservoirs == "unevolved")
 
 
 def default_agents(observe: str) -> tuple[str, ...]:

@@ -29,7 +29,7 @@ from typing import Any, TextIO
 import pandas as pd
 
 from ermrl.analysis._style import save_figure, task_title
-from ermrl.config import AGENTS
+from ermrl.config import AGENTS, EVOLVED_AGENT, UNEVOLVED_AGENT
 
 __all__ = ["ReportResult", "notebook_parameters", "write_report"]
 
@@ -638,9 +638,9 @@ def _test_section(state: _State, runs: Path, band: str) -> None:
                 columns={"n_seeds": "seeds", "ci95_low": "95% CI low", "ci95_high": "95% CI high"}
             )
         )
-    comparison = compare_agents(results, "res-ppo", [a for a in order if a != "res-ppo"])
+    comparison = compare_agents(results, EVOLVED_AGENT, [a for a in order if a != EVOLVED_AGENT])
     state.csv("comparison", comparison, "test/comparison.csv")
-    doc.h(3, "`res-ppo` against the baselines")
+    doc.h(3, f"`{EVOLVED_AGENT}` against the baselines")
     if comparison.empty:
         doc.p("Needs finished runs of `res-ppo` and of a baseline.")
     else:
@@ -688,7 +688,7 @@ def _dynamics_section(state: _State, runs: Path) -> None:
     from ermrl.analysis._replay import available_runs
 
     models = available_runs(runs)
-    seeds = sorted(s for a, s in models if a == "res-ppo")
+    seeds = sorted(s for a, s in models if a == EVOLVED_AGENT)
     if not seeds:
         state.notes.append(
             f"reservoir dynamics: no saved res-ppo policy.pt in {runs} (test phase run with "
@@ -697,12 +697,12 @@ def _dynamics_section(state: _State, runs: Path) -> None:
         )
         return
     seed = seeds[0]
-    recordings = {"res-ppo": record_dynamics(runs, "res-ppo", seed)}
-    if ("random-res-ppo", seed) in models:
-        recordings["random-res-ppo"] = record_dynamics(runs, "random-res-ppo", seed)
+    recordings = {EVOLVED_AGENT: record_dynamics(runs, EVOLVED_AGENT, seed)}
+    if (UNEVOLVED_AGENT, seed) in models:
+        recordings[UNEVOLVED_AGENT] = record_dynamics(runs, UNEVOLVED_AGENT, seed)
     doc = _Doc()
     doc.h(2, "Reservoir dynamics")
-    rec = recordings["res-ppo"]
+    rec = recordings[EVOLVED_AGENT]
     doc.p(
         f"One deterministic episode of `res-ppo`, seed {seed} ({rec.n_steps} steps, return "
         f"{rec.episode_return:.4g}); arrays in `dynamics/` (`.npz`: observations, actions, "
@@ -713,7 +713,7 @@ def _dynamics_section(state: _State, runs: Path) -> None:
         paths = write_dynamics(recording, state.out / "dynamics")
         for key in ("dynamics", "spectrum"):
             state.figures[f"{agent}_{key}"] = paths[key]
-        if agent == "res-ppo":
+        if agent == EVOLVED_AGENT:
             doc.img(
                 f"dynamics/{paths['dynamics'].name}",
                 "Observations, actions and the first 20 reservoir units",

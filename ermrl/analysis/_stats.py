@@ -10,6 +10,7 @@ import numpy as np
 import pandas as pd
 
 from ermrl.analysis._results import t_quantile
+from ermrl.config import AGENTS, EVOLVED_AGENT
 
 __all__ = [
     "WelchResult",
@@ -159,8 +160,8 @@ def final_returns_table(
 
 def compare_agents(
     results: pd.DataFrame,
-    candidate: str = "res-ppo",
-    baselines: Sequence[str] = ("ppo", "ppo-full", "random-res-ppo"),
+    candidate: str = EVOLVED_AGENT,
+    baselines: Sequence[str] | None = None,
     *,
     metric: str = "final_return",
     confidence: float = 0.95,
@@ -172,7 +173,8 @@ def compare_agents(
     Args:
         results: Output of :func:`~ermrl.analysis.load_run_results`.
         candidate: The agent tested (default the evolved reservoir, ``res-ppo``).
-        baselines: Agents it is compared with (missing ones are skipped).
+        baselines: Agents it is compared with (missing ones are skipped; default: every other
+            agent of :data:`~ermrl.config.AGENT_KINDS`).
         metric: ``final_return`` or ``eval_return``.
         confidence: Coverage of the bootstrap interval.
         n_resamples: Bootstrap resamples.
@@ -183,6 +185,8 @@ def compare_agents(
         boot_ci_low, boot_ci_high, welch_t, welch_dof, p_value``, where ``mean_diff`` is
         ``mean(candidate) - mean(baseline)``.
     """
+    if baselines is None:
+        baselines = [a for a in AGENTS if a != candidate]
     columns = [
         "candidate",
         "baseline",
