@@ -203,6 +203,17 @@ def test_an_lstm_study_is_tested_against_ppo_and_the_memory_baselines(tmp_path: 
     }
     summary = (out / "summary.csv").read_text()
     assert all(a in summary for a in ("lstm-ppo", "framestack-ppo", "res-ppo"))
+    # The saved recurrent and stacked policies replay deterministically (the zoo's measure).
+    proc = _run(
+        str(ROOT / "benchmarks" / "eval_policies.py"),
+        *(str(out), "--agents", "lstm-ppo", "framestack-ppo", "--episodes", "1"),
+        *("--out", str(tmp_path / "eval.json")),
+        cwd=tmp_path,
+    )
+    assert proc.returncode == 0, proc.stderr
+    evaluated = json.loads((tmp_path / "eval.json").read_text())
+    assert set(evaluated) == {"lstm-ppo", "framestack-ppo"}
+    assert all(-2000 < a["mean"] <= 0 for a in evaluated.values())  # Pendulum returns
 
 
 def test_the_reservoir_is_a_registered_encoder_that_decodes_plain_params() -> None:
