@@ -18,9 +18,13 @@ from ermrl.learners._ppo import PPOLearner
 
 __all__ = ["LEARNERS", "Learner", "get_learner", "learner_names"]
 
-LEARNERS: Mapping[str, Learner] = {
-    learner.name: learner for learner in (PPOLearner(), LstmPPOLearner(), FrameStackPPOLearner())
-}
+# One line per learner (and its import above): the registry order is the CLI's and the docs'.
+_REGISTERED: tuple[Learner, ...] = (
+    PPOLearner(),
+    LstmPPOLearner(),
+    FrameStackPPOLearner(),
+)
+LEARNERS: Mapping[str, Learner] = {learner.name: learner for learner in _REGISTERED}
 
 
 def learner_names() -> tuple[str, ...]:
