@@ -117,6 +117,8 @@ class RunResult:
         last_return: Mean return of the last ``n_last_episodes`` training episodes.
         eval_return: Mean return of the deterministic evaluation episodes (if run).
         eval_returns: The evaluation episodes' returns.
+        timings: Where the time went, in seconds (the population backend's ``env``,
+            ``reservoir``, ``policy``, ``update`` and ``total``, for its whole population).
     """
 
     seed: int
@@ -127,6 +129,7 @@ class RunResult:
     last_return: float = math.nan
     eval_return: float | None = None
     eval_returns: list[float] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)
 
     @property
     def steps_per_second(self) -> float:

@@ -1,0 +1,32 @@
+"""The population backend (``--backend population``): many PPO agents trained in lockstep.
+
+:func:`train_population` trains a whole population (a CMA-ES generation's candidates x seeds, or
+a test phase's runs) in one process, with the semantics of the SB3 path per agent and several
+times its throughput; :func:`train_population_parallel` splits it over processes.
+See :mod:`ermrl.population._ppo` for what is shared and what stays per agent.
+"""
+
+from ermrl.population._envs import BatchedReservoir, PopulationEnvs, RunningStats
+from ermrl.population._parallel import split_jobs, train_population_parallel
+from ermrl.population._policy import PolicySpec, StackedPolicy, policy_spec
+from ermrl.population._ppo import (
+    PopulationJob,
+    PopulationPPO,
+    check_population_config,
+    train_population,
+)
+
+__all__ = [
+    "BatchedReservoir",
+    "PolicySpec",
+    "PopulationEnvs",
+    "PopulationJob",
+    "PopulationPPO",
+    "RunningStats",
+    "StackedPolicy",
+    "check_population_config",
+    "policy_spec",
+    "split_jobs",
+    "train_population",
+    "train_population_parallel",
+]

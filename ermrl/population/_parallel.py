@@ -1,0 +1,81 @@
+"""A population split over processes: ``--n-procs`` processes, each training a part of it.
+
+Two processes with half the agents each beat two threads (the environments step in Python), and
+an agent's result does not depend on which part it lands in (its random streams are its own), so
+the split is a plain contiguous one.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+from ermrl.agents._train import RunResult
+from ermrl.config import BudgetConfig, PPOConfig, TaskConfig
+from ermrl.population._ppo import PopulationJob, train_population
+
+__all__ = ["split_jobs", "train_population_parallel"]
+
+
+def split_jobs(n_jobs: int, n_parts: int) -> list[range]:
+    """Contiguous, near-equal parts of ``range(n_jobs)`` (at most ``n_parts``, none empty)."""
+    n_parts = max(1, min(n_parts, n_jobs))
+    size, extra = divmod(n_jobs, n_parts)
+    parts, begin = [], 0
+    for k in range(n_parts):
+        end = begin + size + (1 if k < extra else 0)
+        parts.append(range(begin, end))
+        begin = end
+    return parts
+
+
+def _train_part(args: tuple[Any, ...]) -> list[RunResult | BaseException]:
+    task, ppo, budget, jobs, evaluate, model_paths = args
+    return train_population(task, ppo, budget, jobs, evaluate=evaluate, model_paths=model_paths)
+
+
+def train_population_parallel(
+    task: TaskConfig,
+    ppo: PPOConfig,
+    budget: BudgetConfig,
+    jobs: Sequence[PopulationJob],
+    *,
+    n_procs: int = 1,
+    pool: ProcessPoolExecutor | None = None,
+    evaluate: bool | None = None,
+    model_paths: Sequence[str | Path | None] | None = None,
+) -> list[RunResult | BaseException]:
+    """:func:`~ermrl.population.train_population` with the jobs split over ``n_procs`` processes.
+
+    Args:
+        pool: Processes to use (e.g. from :func:`~ermrl.agents.training_pool`, kept across
+            generations); ``None`` with ``n_procs > 1``: a pool for this call only.
+        n_procs: Parts the population is split into (1: this process).
+
+    Returns:
+        One result or exception per job, in order.
+    """
+    parts = split_jobs(len(jobs), n_procs)
+    args = [
+        (
+            task,
+            ppo,
+            budget,
+            [jobs[i] for i in part],
+            evaluate,
+            None if model_paths is None else [model_paths[i] for i in part],
+        )
+        for part in parts
+    ]
+    if len(parts) == 1:
+        return _train_part(args[0])
+    if pool is None:
+        from ermrl.agents._pool import training_pool
+
+        with training_pool(len(parts)) as own:
+            chunks = list(own.map(_train_part, args))
+    else:
+        chunks = list(pool.map(_train_part, args))
+    return [result for chunk in chunks for result in chunk]

@@ -1,0 +1,256 @@
+"""Stacked actor-critic MLPs: SB3's PPO ``MlpPolicy`` for ``P`` agents at once.
+
+Each layer holds the weights of every agent in one tensor ``[P, in, out]`` (biases ``[P, 1, out]``),
+so a forward pass is one ``bmm`` per layer. Rollouts run the same weights through numpy (views of
+the torch tensors), which is several times faster than torch for these small products on a CPU.
+The network is SB3's: separate policy and value MLPs (``net_arch``, default 64-64, tanh), an
+action head (diagonal Gaussian with a state-independent ``log_std``, gSDE, or categorical) and a
+value head, orthogonal initialization with SB3's gains; :meth:`StackedPolicy.sb3_state` and
+:meth:`StackedPolicy.load_sb3_state` convert one agent to and from SB3's ``state_dict``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+import torch
+
+__all__ = ["PolicySpec", "StackedPolicy", "policy_spec"]
+
+LOG_SQRT_2PI = 0.5 * math.log(2 * math.pi)
+SDE_EPSILON = 1e-6  # SB3's StateDependentNoiseDistribution epsilon
+
+
+class PolicySpec:
+    """The network's shape and action head, read from SB3's ``policy_kwargs`` and ``use_sde``."""
+
+    def __init__(
+        self,
+        obs_dim: int,
+        action_dim: int,
+        discrete: bool,
+        pi: Sequence[int],
+        vf: Sequence[int],
+        use_sde: bool,
+        log_std_init: float,
+        ortho_init: bool,
+    ) -> None:
+        self.obs_dim, self.action_dim, self.discrete = obs_dim, action_dim, discrete
+        self.pi, self.vf = tuple(pi), tuple(vf)
+        self.use_sde, self.log_std_init, self.ortho_init = use_sde, log_std_init, ortho_init
+
+    @property
+    def latent_pi(self) -> int:
+        return self.pi[-1] if self.pi else self.obs_dim
+
+    @property
+    def latent_vf(self) -> int:
+        return self.vf[-1] if self.vf else self.obs_dim
+
+
+_POLICY_KWARGS = {"net_arch", "log_std_init", "ortho_init"}
+
+
+def policy_spec(
+    policy_kwargs: Mapping[str, Any], obs_dim: int, action_dim: int, discrete: bool, use_sde: bool
+) -> PolicySpec:
+    """The network SB3's ``MlpPolicy`` would build with these ``policy_kwargs``.
+
+    Raises:
+        ValueError: a ``policy_kwargs`` key the population backend does not implement.
+    """
+    unknown = set(policy_kwargs) - _POLICY_KWARGS
+    if unknown:
+        raise ValueError(
+            f"the population backend does not implement policy_kwargs {sorted(unknown)} "
+            f"(it supports {sorted(_POLICY_KWARGS)}); use --backend sb3"
+        )
+    arch = policy_kwargs.get("net_arch", {"pi": [64, 64], "vf": [64, 64]})
+    if isinstance(arch, Mapping):
+        pi, vf = list(arch.get("pi", [])), list(arch.get("vf", []))
+    else:
+        pi = vf = list(arch)
+    return PolicySpec(
+        obs_dim,
+        action_dim,
+        discrete,
+        pi,
+        vf,
+        use_sde and not discrete,
+        float(policy_kwargs.get("log_std_init", 0.0)),
+        bool(policy_kwargs.get("ortho_init", True)),
+    )
+
+
+def _baddbmm(bias: torch.Tensor | None, x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """``bias + x @ w`` per agent, computed as for any population size.
+
+    torch computes a batch of one matrix product by another kernel than a batch of several, whose
+    results differ in the last bits; a population of one therefore runs with a detached twin, so
+    that an agent's training does not depend on the population's size.
+    """
+    if x.shape[0] == 1:
+        x2 = torch.cat([x, x.detach()])
+        w2 = torch.cat([w, w.detach()])
+        if bias is None:
+            return torch.bmm(x2, w2)[:1]
+        return torch.baddbmm(torch.cat([bias, bias.detach()]), x2, w2)[:1]
+    return torch.bmm(x, w) if bias is None else torch.baddbmm(bias, x, w)
+
+
+def _init_linear(
+    w: torch.Tensor, b: torch.Tensor, gain: float, ortho: bool, gen: torch.Generator
+) -> None:
+    """Initialize one agent's ``[in, out]`` weight as SB3 does its ``[out, in]`` Linear."""
+    fan_in = w.shape[0]
+    bound = 1.0 / math.sqrt(fan_in) if fan_in > 0 else 0.0
+    weight = torch.empty(w.shape[1], w.shape[0])
+    if ortho:
+        torch.nn.init.orthogonal_(weight, gain=gain, generator=gen)
+        b.zero_()
+    else:  # torch's Linear default
+        weight.uniform_(-bound, bound, generator=gen)
+        b.uniform_(-bound, bound, generator=gen)
+    w.copy_(weight.T)
+
+
+class StackedPolicy:
+    """The policies of ``P`` agents as stacked torch parameters.
+
+    Args:
+        spec: The network.
+        init_seeds: One seed per agent for its weight initialization.
+    """
+
+    def __init__(self, spec: PolicySpec, init_seeds: Sequence[int]) -> None:
+        self.spec = spec
+        P = len(init_seeds)
+        self.params: dict[str, torch.nn.Parameter] = {}
+        shapes: list[tuple[str, int, int, float]] = []
+        for prefix, arch in (("pi", spec.pi), ("vf", spec.vf)):
+            d = spec.obs_dim
+            for i, h in enumerate(arch):
+                shapes.append((f"{prefix}{i}", d, h, math.sqrt(2)))
+                d = h
+        shapes.append(("action", spec.latent_pi, spec.action_dim, 0.01))
+        shapes.append(("value", spec.latent_vf, 1, 1.0))
+        for name, d_in, d_out, _ in shapes:
+            self.params[f"{name}.w"] = torch.nn.Parameter(torch.zeros(P, d_in, d_out))
+            self.params[f"{name}.b"] = torch.nn.Parameter(torch.zeros(P, 1, d_out))
+        if not spec.discrete:
+            shape = (P, spec.latent_pi, spec.action_dim) if spec.use_sde else (P, spec.action_dim)
+            self.params["log_std"] = torch.nn.Parameter(torch.full(shape, spec.log_std_init))
+        with torch.no_grad():
+            for p, seed in enumerate(init_seeds):
+                gen = torch.Generator().manual_seed(int(seed))
+                for name, _, _, gain in shapes:
+                    w, b = self.params[f"{name}.w"][p], self.params[f"{name}.b"][p, 0]
+                    _init_linear(w, b, gain, spec.ortho_init, gen)
+        self.refresh()
+
+    @property
+    def n_agents(self) -> int:
+        return int(self.params["value.w"].shape[0])
+
+    def parameters(self) -> list[torch.nn.Parameter]:
+        return list(self.params.values())
+
+    def refresh(self) -> None:
+        """Numpy views of the weights (after the parameters were replaced)."""
+        self.np = {k: v.detach().numpy() for k, v in self.params.items()}
+
+    # -- numpy forward (rollouts) --------------------------------------------------------------
+    def _mlp_np(self, x: np.ndarray, prefix: str, n: int, p: Any = slice(None)) -> np.ndarray:
+        for i in range(n):
+            x = np.matmul(x, self.np[f"{prefix}{i}.w"][p])
+            x += self.np[f"{prefix}{i}.b"][p]
+            np.tanh(x, out=x)
+        return x
+
+    def forward_np(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(latent_pi, head, values)`` for observations ``[P, n, obs_dim]`` (float32);
+        ``head`` is the Gaussian mean or the categorical logits."""
+        s = self.spec
+        latent = self._mlp_np(obs, "pi", len(s.pi))
+        head = np.matmul(latent, self.np["action.w"]) + self.np["action.b"]
+        latent_vf = self._mlp_np(obs, "vf", len(s.vf))
+        values = (np.matmul(latent_vf, self.np["value.w"]) + self.np["value.b"])[..., 0]
+        return latent, head, values
+
+    def values_np(self, obs: np.ndarray, agents: np.ndarray) -> np.ndarray:
+        """Values of single observations ``[k, obs_dim]``, row ``j`` under agent ``agents[j]``."""
+        x = obs[:, None, :].astype(np.float32)
+        x = self._mlp_np(x, "vf", len(self.spec.vf), agents)
+        out = np.matmul(x, self.np["value.w"][agents]) + self.np["value.b"][agents]
+        return out[:, 0, 0]
+
+    # -- torch forward (updates) ---------------------------------------------------------------
+    def _mlp(self, x: torch.Tensor, prefix: str, n: int) -> torch.Tensor:
+        for i in range(n):
+            x = torch.tanh(
+                _baddbmm(self.params[f"{prefix}{i}.b"], x, self.params[f"{prefix}{i}.w"])
+            )
+        return x
+
+    def evaluate(
+        self, obs: torch.Tensor, actions: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(values, log_prob, entropy)``, each ``[P, B]``, as SB3's ``evaluate_actions``."""
+        s = self.spec
+        latent = self._mlp(obs, "pi", len(s.pi))
+        head = _baddbmm(self.params["action.b"], latent, self.params["action.w"])
+        latent_vf = self._mlp(obs, "vf", len(s.vf))
+        values = _baddbmm(self.params["value.b"], latent_vf, self.params["value.w"])[..., 0]
+        if s.discrete:
+            logp = torch.log_softmax(head, dim=-1)
+            log_prob = torch.gather(logp, -1, actions.long().unsqueeze(-1))[..., 0]
+            entropy = -(logp.exp() * logp).sum(-1)
+            return values, log_prob, entropy
+        log_std = self.params["log_std"]
+        if s.use_sde:
+            std = torch.exp(log_std)
+            variance = _baddbmm(None, latent.detach() ** 2, std**2)
+            scale = torch.sqrt(variance + SDE_EPSILON)
+            log_scale = torch.log(scale)
+        else:
+            log_scale = log_std[:, None, :].expand_as(head)
+            scale = torch.exp(log_scale)
+        z = (actions - head) / scale
+        log_prob = (-0.5 * z**2 - log_scale - LOG_SQRT_2PI).sum(-1)
+        entropy = (0.5 + LOG_SQRT_2PI + log_scale).sum(-1)
+        return values, log_prob, entropy
+
+    # -- SB3 state dicts -----------------------------------------------------------------------
+    def _sb3_names(self) -> list[tuple[str, str]]:
+        """``(our name, SB3's name)`` for each weight and bias."""
+        out = []
+        for prefix, net, arch in (
+            ("pi", "policy_net", self.spec.pi),
+            ("vf", "value_net", self.spec.vf),
+        ):
+            for i in range(len(arch)):
+                out.append((f"{prefix}{i}", f"mlp_extractor.{net}.{2 * i}"))
+        out += [("action", "action_net"), ("value", "value_net")]
+        return out
+
+    def sb3_state(self, p: int) -> dict[str, torch.Tensor]:
+        """Agent ``p``'s weights under the names of SB3's ``ActorCriticPolicy.state_dict()``."""
+        state: dict[str, torch.Tensor] = {}
+        for ours, theirs in self._sb3_names():
+            state[f"{theirs}.weight"] = self.params[f"{ours}.w"][p].detach().T.clone()
+            state[f"{theirs}.bias"] = self.params[f"{ours}.b"][p, 0].detach().clone()
+        if "log_std" in self.params:
+            state["log_std"] = self.params["log_std"][p].detach().clone()
+        return state
+
+    def load_sb3_state(self, p: int, state: Mapping[str, torch.Tensor]) -> None:
+        """Set agent ``p``'s weights from an SB3 ``state_dict`` of the same network."""
+        with torch.no_grad():
+            for ours, theirs in self._sb3_names():
+                self.params[f"{ours}.w"][p].copy_(state[f"{theirs}.weight"].T)
+                self.params[f"{ours}.b"][p, 0].copy_(state[f"{theirs}.bias"])
+            if "log_std" in self.params:
+                self.params["log_std"][p].copy_(state["log_std"])

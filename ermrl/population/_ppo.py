@@ -1,0 +1,587 @@
+"""Population PPO: ``P`` agents trained in lockstep, with SB3 PPO's semantics per agent.
+
+Every agent is what :func:`ermrl.agents.train_agent` trains with ``learner: ppo``: the same
+environments, seeds, reservoir, normalization, network and PPO update (GAE with truncation
+bootstrapping, clipped objective, value loss, entropy bonus, advantage normalization, Adam with
+eps 1e-5, gradient clipping, minibatches, epochs, linear schedules, gSDE). What is shared is only
+the arithmetic: environments are stepped one after another, the reservoirs and the policies of all
+agents run as stacked products, and one ``Adam`` steps the stacked weights (Adam is elementwise,
+so that equals one Adam per agent; the gradient clipping is per agent).
+
+Each agent draws from its own random streams (weight initialization, action noise, gSDE
+matrices, minibatch permutations), derived from its seed: its result does not depend on the size
+of the population nor on its place in it. An agent whose training produces NaN is dropped (its
+weights, optimizer state, envs and reservoir rows sliced away); the others go on.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import threadpoolctl
+import torch
+from gymnasium import spaces
+
+from ermrl.agents._train import NoEpisodeFinished, RunResult, TrainingDiverged, derive_seeds
+from ermrl.config import BudgetConfig, ConfigError, EncoderConfig, PPOConfig, TaskConfig
+from ermrl.population._envs import PopulationEnvs
+from ermrl.population._policy import StackedPolicy, policy_spec
+
+__all__ = ["PopulationJob", "PopulationPPO", "check_population_config", "train_population"]
+
+# SB3 PPO's defaults for the keys the population backend reads.
+_DEFAULTS: dict[str, Any] = {
+    "learning_rate": 3e-4,
+    "n_steps": 2048,
+    "batch_size": 64,
+    "n_epochs": 10,
+    "gamma": 0.99,
+    "gae_lambda": 0.95,
+    "clip_range": 0.2,
+    "clip_range_vf": None,
+    "normalize_advantage": True,
+    "ent_coef": 0.0,
+    "vf_coef": 0.5,
+    "max_grad_norm": 0.5,
+    "use_sde": False,
+    "sde_sample_freq": -1,
+    "target_kl": None,
+    "policy_kwargs": None,
+}
+
+
+@dataclass(frozen=True)
+class PopulationJob:
+    """One agent of a population: its encoder (``None``: raw observation) and its seed."""
+
+    encoder: EncoderConfig | None
+    seed: int
+
+
+def _settings(ppo: PPOConfig) -> dict[str, Any]:
+    from ermrl.agents._hyperparams import ppo_kwargs
+
+    kwargs = ppo_kwargs(ppo)
+    unknown = sorted(set(kwargs) - set(_DEFAULTS))
+    if unknown:
+        raise ConfigError(
+            f"the population backend does not implement PPO settings {unknown}; use --backend sb3"
+        )
+    if kwargs.get("target_kl") is not None:
+        raise ConfigError(
+            "the population backend does not implement target_kl (its early stop would differ "
+            "per agent); use --backend sb3"
+        )
+    return {**_DEFAULTS, **kwargs}
+
+
+def check_population_config(ppo: PPOConfig) -> None:
+    """Refuse settings the population backend cannot train as SB3 would, in one line.
+
+    Raises:
+        ConfigError: another learner than PPO, or an unimplemented PPO setting.
+    """
+    if ppo.learner != "ppo":
+        raise ConfigError(
+            f"the population backend trains the ppo learner only, not {ppo.learner!r}; "
+            "use --backend sb3"
+        )
+    settings = _settings(ppo)
+    policy_spec(settings["policy_kwargs"] or {}, 1, 1, False, bool(settings["use_sde"]))
+
+
+def _schedule(value: Any) -> Any:
+    return value if callable(value) else (lambda _progress, v=float(value): v)
+
+
+class PopulationPPO:
+    """Train a population of PPO agents on one task in lockstep.
+
+    Args:
+        task: The task (all agents).
+        ppo: PPO settings (all agents; ``learner`` must be ``ppo``).
+        jobs: One :class:`PopulationJob` per agent. Encoders must all be ``None`` or all share
+            their structure (their reservoir hyperparameters may differ).
+    """
+
+    def __init__(self, task: TaskConfig, ppo: PPOConfig, jobs: Sequence[PopulationJob]) -> None:
+        check_population_config(ppo)
+        if not jobs:
+            raise ValueError("a population needs at least one agent")
+        with_encoder = {job.encoder is not None for job in jobs}
+        if len(with_encoder) != 1:
+            raise ValueError("the agents of a population must all have an encoder, or none")
+        self.task, self.ppo, self.jobs = task, ppo, list(jobs)
+        self.s = _settings(ppo)
+        self.seeds = [derive_seeds(job.seed) for job in jobs]
+        encoders = [job.encoder for job in jobs] if jobs[0].encoder is not None else None
+        self.envs = PopulationEnvs(
+            task,
+            ppo.n_envs,
+            [s.env for s in self.seeds],
+            encoders,  # type: ignore[arg-type]
+            [s.reservoir for s in self.seeds],
+            ppo.normalize,
+            float(self.s["gamma"]),
+        )
+        space = self.envs.action_space
+        self.discrete = self.envs.discrete
+        if isinstance(space, spaces.Discrete):
+            action_dim = int(space.n)
+        else:
+            assert isinstance(space, spaces.Box)
+            action_dim = int(np.prod(space.shape))
+            self.low = np.asarray(space.low, np.float32)
+            self.high = np.asarray(space.high, np.float32)
+        self.spec = policy_spec(
+            self.s["policy_kwargs"] or {},
+            self.envs.policy_dim,
+            action_dim,
+            self.discrete,
+            bool(self.s["use_sde"]),
+        )
+        # Each agent's streams: weight initialization (torch) and everything sampled (numpy).
+        streams = [np.random.SeedSequence(s.agent).spawn(2) for s in self.seeds]
+        init_seeds = [int(a.generate_state(1, dtype=np.uint64)[0] >> 1) for a, _ in streams]
+        self.rngs = [np.random.default_rng(b) for _, b in streams]
+        self.policy = StackedPolicy(self.spec, init_seeds)
+        self.lr = _schedule(self.s["learning_rate"])
+        self.clip_range = _schedule(self.s["clip_range"])
+        self.clip_range_vf = (
+            None if self.s["clip_range_vf"] is None else _schedule(self.s["clip_range_vf"])
+        )
+        self.optimizer = self._adam(self.policy.parameters(), self.lr(1.0))
+        self.alive = list(range(len(jobs)))  # position in the arrays -> job index
+        self.failed: dict[int, BaseException] = {}
+        self.episodes: list[list[tuple[float, int]]] = [[] for _ in jobs]
+        self.num_timesteps = 0
+        self.timings = {"env": 0.0, "reservoir": 0.0, "policy": 0.0, "update": 0.0, "total": 0.0}
+        self._sde: np.ndarray | None = None
+
+    @staticmethod
+    def _adam(params: list[torch.nn.Parameter], lr: float) -> torch.optim.Optimizer:
+        try:
+            return torch.optim.Adam(params, lr=lr, eps=1e-5, fused=True)
+        except (RuntimeError, TypeError):  # a torch without the fused CPU kernel
+            return torch.optim.Adam(params, lr=lr, eps=1e-5, foreach=True)
+
+    @property
+    def n_agents(self) -> int:
+        return len(self.alive)
+
+    # -- dropping agents -----------------------------------------------------------------------
+    def _drop(self, positions: Sequence[int], reason: str) -> np.ndarray:
+        """Drop the agents at ``positions``; returns the kept positions."""
+        bad = set(positions)
+        for pos in bad:
+            job = self.alive[pos]
+            self.failed[job] = TrainingDiverged(f"seed {self.jobs[job].seed}: {reason}")
+        keep = np.asarray([i for i in range(self.n_agents) if i not in bad], np.int64)
+        self.alive = [self.alive[i] for i in keep]
+        self.rngs = [self.rngs[i] for i in keep]
+        self.envs.keep(keep)
+        if self._sde is not None:
+            self._sde = self._sde[keep]
+        old = self.optimizer
+        index = torch.from_numpy(keep)
+        new_params: dict[str, torch.nn.Parameter] = {}
+        for name, param in self.policy.params.items():
+            new_params[name] = torch.nn.Parameter(param.detach()[index].clone())
+        new_opt = self._adam(list(new_params.values()), old.param_groups[0]["lr"])
+        for (_, param), new in zip(self.policy.params.items(), new_params.values()):
+            state = old.state.get(param)
+            if state:
+                new_opt.state[new] = {
+                    k: (v[index].clone() if torch.is_tensor(v) and v.dim() > 0 else v)
+                    for k, v in state.items()
+                }
+        self.policy.params = new_params
+        self.policy.refresh()
+        self.optimizer = new_opt
+        return keep
+
+    # -- rollouts ------------------------------------------------------------------------------
+    def _reset_noise(self) -> None:
+        std = np.exp(self.policy.np["log_std"])  # [P, L, A]
+        E = self.envs.n_envs
+        self._sde = np.stack(
+            [
+                rng.standard_normal((E, *std.shape[1:]), dtype=np.float32) * std[p]
+                for p, rng in enumerate(self.rngs)
+            ]
+        )
+
+    def _act(
+        self, obs: np.ndarray, deterministic: bool = False
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(actions, values, log_probs)`` for observations ``[P, E, d]``."""
+        latent, head, values = self.policy.forward_np(obs)
+        P, E = obs.shape[:2]
+        if self.discrete:
+            logits = head - head.max(-1, keepdims=True)
+            logp = logits - np.log(np.exp(logits).sum(-1, keepdims=True))
+            if deterministic:
+                actions = head.argmax(-1)
+            else:
+                u = np.stack([rng.random(E) for rng in self.rngs])
+                cdf = np.cumsum(np.exp(logp), -1)
+                actions = np.minimum((cdf < u[..., None]).sum(-1), head.shape[-1] - 1)
+            log_probs = np.take_along_axis(logp, actions[..., None], -1)[..., 0]
+            return actions, values, log_probs
+        if deterministic:
+            return head, values, np.zeros((P, E), np.float32)
+        if self.spec.use_sde:
+            assert self._sde is not None
+            noise = np.matmul(latent[:, :, None, :], self._sde)[:, :, 0, :]
+            std2 = np.exp(2.0 * self.policy.np["log_std"])
+            var = np.matmul(np.square(latent), std2) + np.float32(1e-6)
+            actions = head + noise
+            log_probs = (-0.5 * np.square(noise) / var - 0.5 * np.log(var)).sum(-1)
+        else:
+            eps = np.stack(
+                [rng.standard_normal((E, head.shape[-1]), dtype=np.float32) for rng in self.rngs]
+            )
+            log_std = self.policy.np["log_std"][:, None, :]
+            actions = head + np.exp(log_std) * eps
+            log_probs = (-0.5 * np.square(eps) - log_std).sum(-1)
+        log_probs = log_probs - np.float32(0.5 * math.log(2 * math.pi) * head.shape[-1])
+        return actions, values, log_probs
+
+    def _clip(self, actions: np.ndarray) -> np.ndarray:
+        return actions if self.discrete else np.clip(actions, self.low, self.high)
+
+    # -- training ------------------------------------------------------------------------------
+    def learn(self, total_timesteps: int) -> None:
+        """Train every agent for ``total_timesteps`` env steps (whole rollouts, as SB3)."""
+        start = time.perf_counter()
+        s, E = self.s, self.envs.n_envs
+        n_steps, gamma, lam = int(s["n_steps"]), float(s["gamma"]), float(s["gae_lambda"])
+        use_sde, freq = self.spec.use_sde, int(s["sde_sample_freq"])
+        obs = self.envs.reset()
+        starts = np.ones((self.n_agents, E), np.float32)
+        while self.num_timesteps < total_timesteps and self.n_agents:
+            P = self.n_agents
+            buf_obs = np.zeros((P, n_steps, E, self.envs.policy_dim), np.float32)
+            buf_act = np.zeros(
+                (P, n_steps, E) if self.discrete else (P, n_steps, E, self.spec.action_dim),
+                np.int64 if self.discrete else np.float32,
+            )
+            buf_rew = np.zeros((P, n_steps, E), np.float32)
+            buf_start = np.zeros((P, n_steps, E), np.float32)
+            buf_val = np.zeros((P, n_steps, E), np.float32)
+            buf_logp = np.zeros((P, n_steps, E), np.float32)
+            if use_sde:
+                self._reset_noise()
+            dones = np.zeros((P, E), bool)
+            step = 0
+            while step < n_steps:
+                if use_sde and freq > 0 and step % freq == 0:
+                    self._reset_noise()
+                t0 = time.perf_counter()
+                actions, values, log_probs = self._act(obs)
+                self.timings["policy"] += time.perf_counter() - t0
+                bad = ~np.isfinite(actions.reshape(P, -1)).all(1) | ~np.isfinite(values).all(1)
+                if bad.any():
+                    keep = self._drop(np.flatnonzero(bad).tolist(), "training diverged (NaN)")
+                    obs, starts, dones = obs[keep], starts[keep], dones[keep]
+                    actions, values, log_probs = actions[keep], values[keep], log_probs[keep]
+                    buf_obs, buf_act, buf_rew = buf_obs[keep], buf_act[keep], buf_rew[keep]
+                    buf_start, buf_val, buf_logp = buf_start[keep], buf_val[keep], buf_logp[keep]
+                    P = self.n_agents
+                    if not P:
+                        break
+                new_obs, rewards, _, dones, terminal, finished = self.envs.step(self._clip(actions))
+                self.num_timesteps += E
+                for p, _, ret, _ in finished:
+                    self.episodes[self.alive[p]].append((ret, self.num_timesteps))
+                rewards = rewards.astype(np.float32)
+                if terminal:
+                    keys = list(terminal)
+                    agents = np.asarray([p for p, _ in keys])
+                    t0 = time.perf_counter()
+                    boot = self.policy.values_np(np.stack([terminal[k] for k in keys]), agents)
+                    self.timings["policy"] += time.perf_counter() - t0
+                    for (p, i), v in zip(keys, boot):
+                        rewards[p, i] += gamma * v
+                buf_obs[:, step] = obs
+                buf_act[:, step] = actions
+                buf_rew[:, step] = rewards
+                buf_start[:, step] = starts
+                buf_val[:, step] = values
+                buf_logp[:, step] = log_probs
+                obs, starts = new_obs, dones.astype(np.float32)
+                step += 1
+            if not self.n_agents:
+                break
+            t0 = time.perf_counter()
+            _, _, last_values = self.policy.forward_np(obs)
+            adv = np.zeros((P, n_steps, E), np.float32)
+            last_gae = np.zeros((P, E), np.float32)
+            for t in reversed(range(n_steps)):
+                if t == n_steps - 1:
+                    non_terminal = 1.0 - dones.astype(np.float32)
+                    next_values = last_values
+                else:
+                    non_terminal = 1.0 - buf_start[:, t + 1]
+                    next_values = buf_val[:, t + 1]
+                delta = buf_rew[:, t] + gamma * next_values * non_terminal - buf_val[:, t]
+                last_gae = delta + gamma * lam * non_terminal * last_gae
+                adv[:, t] = last_gae
+            returns = adv + buf_val
+            self.timings["policy"] += time.perf_counter() - t0
+            progress = 1.0 - float(self.num_timesteps) / float(total_timesteps)
+            t0 = time.perf_counter()
+            self._train(progress, buf_obs, buf_act, buf_val, buf_logp, adv, returns)
+            self.timings["update"] += time.perf_counter() - t0
+        self.timings["env"] = self.envs.env_seconds
+        self.timings["reservoir"] = self.envs.reservoir_seconds
+        self.timings["total"] += time.perf_counter() - start
+
+    def _train(
+        self,
+        progress: float,
+        obs: np.ndarray,
+        actions: np.ndarray,
+        values: np.ndarray,
+        log_probs: np.ndarray,
+        advantages: np.ndarray,
+        returns: np.ndarray,
+    ) -> None:
+        """SB3 ``PPO.train`` on every agent's rollout (arrays ``[P, n_steps, E, ...]``)."""
+        P = self.n_agents
+
+        def flat(a: np.ndarray) -> torch.Tensor:
+            # SB3's swap_and_flatten: env-major order, index = env * n_steps + step.
+            a = np.swapaxes(a, 1, 2)
+            return torch.from_numpy(np.ascontiguousarray(a.reshape(P, -1, *a.shape[3:])))
+
+        data = [flat(a) for a in (obs, actions, values, log_probs, advantages, returns)]
+        self.update(progress, *data, permutations=None)
+
+    def update(
+        self,
+        progress: float,
+        obs: torch.Tensor,
+        actions: torch.Tensor,
+        old_values: torch.Tensor,
+        old_log_probs: torch.Tensor,
+        advantages: torch.Tensor,
+        returns: torch.Tensor,
+        *,
+        permutations: Sequence[np.ndarray] | None = None,
+    ) -> None:
+        """The PPO update on flattened rollouts ``[P, T, ...]``.
+
+        Args:
+            progress: SB3's ``progress_remaining`` (1 at the start, 0 at the end).
+            permutations: The minibatch orders, one ``[P, T]`` array per epoch (default: each
+                agent's own stream draws them, as SB3 draws ``np.random.permutation``).
+        """
+        s = self.s
+        P, T = obs.shape[:2]
+        lr = float(self.lr(progress))
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr
+        clip = float(self.clip_range(progress))
+        clip_vf = None if self.clip_range_vf is None else float(self.clip_range_vf(progress))
+        batch_size, n_epochs = int(s["batch_size"]), int(s["n_epochs"])
+        ent_coef, vf_coef = float(s["ent_coef"]), float(s["vf_coef"])
+        max_norm = float(s["max_grad_norm"])
+        rows = torch.arange(P)[:, None]
+        params = self.policy.parameters()
+        for epoch in range(n_epochs):
+            if permutations is None:
+                perm = np.stack([rng.permutation(T) for rng in self.rngs])
+            else:
+                perm = np.asarray(permutations[epoch])
+            perm_t = torch.from_numpy(perm)
+            for begin in range(0, T, batch_size):
+                idx = perm_t[:, begin : begin + batch_size]
+                b_obs, b_act = obs[rows, idx], actions[rows, idx]
+                b_adv, b_ret = advantages[rows, idx], returns[rows, idx]
+                b_oldv, b_oldlp = old_values[rows, idx], old_log_probs[rows, idx]
+                values, log_prob, entropy = self.policy.evaluate(b_obs, b_act)
+                if s["normalize_advantage"] and b_adv.shape[1] > 1:
+                    b_adv = (b_adv - b_adv.mean(1, keepdim=True)) / (
+                        b_adv.std(1, keepdim=True) + 1e-8
+                    )
+                ratio = torch.exp(log_prob - b_oldlp)
+                loss_1 = b_adv * ratio
+                loss_2 = b_adv * torch.clamp(ratio, 1 - clip, 1 + clip)
+                policy_loss = -torch.min(loss_1, loss_2).mean(1)
+                if clip_vf is not None:
+                    values = b_oldv + torch.clamp(values - b_oldv, -clip_vf, clip_vf)
+                value_loss = ((b_ret - values) ** 2).mean(1)
+                entropy_loss = -entropy.mean(1)
+                loss = policy_loss + ent_coef * entropy_loss + vf_coef * value_loss
+                self.optimizer.zero_grad(set_to_none=False)
+                loss.sum().backward()
+                # Per-agent clip_grad_norm_ (SB3 clips each agent's whole gradient).
+                grads = [p.grad for p in params if p.grad is not None]
+                norms = torch.stack(
+                    [torch.linalg.vector_norm(g.reshape(P, -1), dim=1) for g in grads]
+                )
+                total = torch.linalg.vector_norm(norms, dim=0)
+                coef = torch.clamp(max_norm / (total + 1e-6), max=1.0)
+                for g in grads:
+                    g.mul_(coef.view(P, *([1] * (g.dim() - 1))))
+                self.optimizer.step()
+        finite = torch.stack(
+            [torch.isfinite(p.detach().reshape(P, -1)).all(1) for p in params]
+        ).all(0)
+        if not bool(finite.all()):
+            self._drop(torch.nonzero(~finite).flatten().tolist(), "training diverged (NaN weights)")
+
+    # -- evaluation and export -----------------------------------------------------------------
+    def evaluate(self, n_episodes: int) -> dict[int, list[float]]:
+        """Deterministic episodes on each surviving agent's separate evaluation env (seeded with
+        its ``eval_env`` seed, its training's final normalization frozen): job -> returns."""
+        jobs = [self.jobs[j] for j in self.alive]
+        frozen = None
+        if self.ppo.normalize is not None:
+            frozen = [self.envs.normalize_stats(p) for p in range(self.n_agents)]
+        env = PopulationEnvs(
+            self.task,
+            1,
+            [self.seeds[j].eval_env for j in self.alive],
+            [job.encoder for job in jobs] if jobs[0].encoder is not None else None,  # type: ignore[misc]
+            [self.seeds[j].reservoir for j in self.alive],
+            self.ppo.normalize,
+            float(self.s["gamma"]),
+            frozen_stats=frozen,
+        )
+        out: dict[int, list[float]] = {j: [] for j in self.alive}
+        try:
+            obs = env.reset()
+            while any(len(v) < n_episodes for v in out.values()):
+                actions, _, _ = self._act(obs, deterministic=True)
+                obs, _, _, _, _, finished = env.step(self._clip(actions))
+                for p, _, ret, _ in finished:
+                    job = self.alive[p]
+                    if len(out[job]) < n_episodes:
+                        out[job].append(ret)
+        finally:
+            env.close()
+        return out
+
+    def export(self, position: int, model_path: str | Path) -> None:
+        """Save an agent as the SB3 path saves one: ``model.zip``, ``policy.pt`` and, with
+        normalization, its statistics (so replays, videos and reports read it unchanged)."""
+        import json
+        import os
+
+        from ermrl.agents._normalize import frozen_normalize_env, stats_path
+        from ermrl.agents._policy_io import policy_path, save_policy
+        from ermrl.agents._train import make_vec_env
+        from ermrl.learners import get_learner
+
+        job = self.jobs[self.alive[position]]
+        seeds = self.seeds[self.alive[position]]
+        learner = get_learner(self.ppo.learner)
+        venv = make_vec_env(self.task, 1, seeds.env, job.encoder, seeds.reservoir)
+        stats = None
+        if self.ppo.normalize is not None:
+            stats = self.envs.normalize_stats(position)
+            venv = frozen_normalize_env(venv, stats)
+        try:
+            model = learner.build(venv, self.ppo, seed=seeds.agent)
+            model.policy.load_state_dict(self.policy.sb3_state(position))
+            model.num_timesteps = self.num_timesteps
+            partial = Path(f"{model_path}.partial")
+            try:
+                with partial.open("wb") as handle:
+                    model.save(handle)
+                os.replace(partial, model_path)
+            finally:
+                partial.unlink(missing_ok=True)
+            save_policy(model, policy_path(model_path))
+            if stats is not None:
+                stats_path(model_path).write_text(json.dumps(stats, indent=1) + "\n")
+        finally:
+            venv.close()
+
+    def close(self) -> None:
+        self.envs.close()
+
+
+def train_population(
+    task: TaskConfig,
+    ppo: PPOConfig,
+    budget: BudgetConfig,
+    jobs: Sequence[PopulationJob],
+    *,
+    evaluate: bool | None = None,
+    model_paths: Sequence[str | Path | None] | None = None,
+) -> list[RunResult | BaseException]:
+    """Train ``jobs`` as one population in this process; one result per job, in order.
+
+    A job whose training diverged or finished no episode (with the ``last`` measure) gets the
+    exception :func:`~ermrl.agents.train_agent` would have raised, instead of a result; the other
+    jobs are unaffected. Each result's ``wall_seconds`` is its share of the population's wall
+    time (the wall time over the number of agents) and ``timings`` the population's breakdown
+    (``env``, ``reservoir``, ``policy``, ``update``, ``total`` seconds, for all agents together).
+
+    Args:
+        task: The task of every job.
+        ppo: PPO settings of every job.
+        budget: Training steps and fitness measure.
+        jobs: The agents.
+        evaluate: Run deterministic evaluation episodes (default: with the ``eval`` measure).
+        model_paths: Per job, where to save the trained agent (``None``: not saved).
+    """
+    torch.set_num_threads(ppo.torch_threads)
+    threadpoolctl.threadpool_limits(ppo.torch_threads)
+    start = time.perf_counter()
+    population = PopulationPPO(task, ppo, jobs)
+    try:
+        population.learn(budget.training_steps)
+        eval_returns: dict[int, list[float]] = {}
+        if (evaluate if evaluate is not None else budget.fitness == "eval") and population.n_agents:
+            eval_returns = population.evaluate(budget.n_eval_episodes)
+        if model_paths is not None:
+            for pos, index in enumerate(population.alive):
+                path = model_paths[index]
+                if path is not None:
+                    population.export(pos, path)
+    finally:
+        population.close()
+    wall = time.perf_counter() - start
+    results: list[RunResult | BaseException] = []
+    for j, job in enumerate(jobs):
+        if j in population.failed:
+            results.append(population.failed[j])
+            continue
+        episodes = population.episodes[j]
+        result = RunResult(
+            seed=job.seed,
+            episode_returns=[r for r, _ in episodes],
+            episode_steps=[s for _, s in episodes],
+            env_steps=population.num_timesteps,
+            wall_seconds=wall / len(jobs),
+            timings=dict(population.timings),
+        )
+        if not all(math.isfinite(r) for r in result.episode_returns):
+            results.append(TrainingDiverged(f"seed {job.seed}: non-finite episode return"))
+            continue
+        if result.episode_returns:
+            result.last_return = float(np.mean(result.episode_returns[-budget.n_last_episodes :]))
+        elif budget.fitness == "last":
+            results.append(
+                NoEpisodeFinished(
+                    f"seed {job.seed}: no episode of {task.env_id} ended within "
+                    f"{budget.training_steps} training steps; raise --training-steps or use "
+                    "--fitness eval"
+                )
+            )
+            continue
+        if j in eval_returns:
+            result.eval_returns = [float(r) for r in eval_returns[j]]
+            result.eval_return = float(np.mean(result.eval_returns))
+        results.append(result)
+    return results
