@@ -26,6 +26,7 @@ FITNESS_MODES: tuple[str, ...] = ("last", "eval")
 RESET_MODES: tuple[str, ...] = ("episode", "never")
 PRUNERS: tuple[str, ...] = ("none", "median", "halving")
 STARTS: tuple[str, ...] = ("reference", "center")
+BACKENDS: tuple[str, ...] = ("sb3", "population")
 BIAS_INITS: tuple[str, ...] = ("none", "original")
 
 
@@ -327,6 +328,10 @@ class PPOConfig:
             :data:`ermrl.learners.LEARNERS`; ``hyperparams`` are its algorithm's arguments).
             Left out of :meth:`to_dict` while ``"ppo"``, so configs stored before learners were
             plug-ins read as PPO, unchanged.
+        backend: What trains the agents: ``"sb3"`` (one Stable-Baselines3 process per agent, the
+            default) or ``"population"`` (:mod:`ermrl.population`: a whole generation's agents in
+            lockstep, PPO only). Part of a study's stored configuration, so a study never mixes
+            backends; left out of :meth:`to_dict` while ``"sb3"``.
     """
 
     n_envs: int = 1
@@ -335,10 +340,18 @@ class PPOConfig:
     device: str = "cpu"
     normalize: NormalizeConfig | None = field(default=None, metadata={"omit_if_default": True})
     learner: str = field(default="ppo", metadata={"omit_if_default": True})
+    backend: str = field(default="sb3", metadata={"omit_if_default": True})
 
     def __post_init__(self) -> None:
         if not isinstance(self.learner, str) or not self.learner:
             raise ConfigError(f"learner must be a learner's name, got {self.learner!r}")
+        if self.backend not in BACKENDS:
+            raise ConfigError(f"unknown backend {self.backend!r}; choose one of {BACKENDS}")
+        if self.backend == "population" and self.learner != "ppo":
+            raise ConfigError(
+                f"the population backend trains the ppo learner only, not {self.learner!r}; "
+                "use --backend sb3"
+            )
         if not 1 <= self.n_envs <= MAX_N_ENVS:
             raise ConfigError(f"n_envs must be in [1, {MAX_N_ENVS}], got {self.n_envs}")
         if self.torch_threads < 1:
@@ -745,6 +758,11 @@ class EvolveConfig:
             raise ConfigError(
                 "pruning reads intermediate returns while a trial's seeds train one after "
                 "another: use --n-procs 1 with --pruner (or run more workers instead)"
+            )
+        if self.search.pruner != "none" and self.problem.ppo.backend == "population":
+            raise ConfigError(
+                "the population backend trains a whole generation at once and reports no "
+                "intermediate returns: use --pruner none with --backend population"
             )
         if self.space.n_reservoirs != self.problem.encoder.n_reservoirs:
             raise ConfigError("the encoder and the search space disagree on n_reservoirs")

@@ -205,6 +205,7 @@ def resolve_ppo_config(
     table_path: str | Path | None = None,
     torch_threads: int = 1,
     learner: str = "ppo",
+    backend: str = "sb3",
 ) -> PPOConfig:
     """Resolve an env's PPO settings: SB3 defaults < table ``default`` < table[env_id] < overrides.
 
@@ -218,6 +219,7 @@ def resolve_ppo_config(
         table_path: Alternative YAML table (default: the learner's own).
         torch_threads: Torch threads per training process.
         learner: The learner (see :mod:`ermrl.learners`); its table is read.
+        backend: What trains the agents (``sb3`` or ``population``, see :mod:`ermrl.population`).
     """
     table = load_hyperparams_table(table_path, learner)
     merged: dict[str, Any] = dict(table.get("default") or {})
@@ -230,6 +232,7 @@ def resolve_ppo_config(
         torch_threads=torch_threads,
         normalize=parse_normalize(merged.pop("normalize", None), env_id),
         learner=learner,
+        backend=backend,
     )
 
 

@@ -97,6 +97,15 @@ def add_problem_args(parser: argparse.ArgumentParser, *, multi_task: bool = Fals
         + ". Its settings come from its own table (see --hyperparams) and --ppo",
     )
     g.add_argument(
+        "--backend",
+        choices=("sb3", "population"),
+        default="sb3",
+        help="what trains the agents: sb3 (one Stable-Baselines3 process per agent, the "
+        "default) or population (a whole generation's candidates x seeds trained in lockstep "
+        "with the same PPO, several times faster per core; ppo learner only, no --pruner). "
+        "Stored with the study: a study never mixes backends",
+    )
+    g.add_argument(
         "--training-steps",
         type=positive_int,
         default=300_000,
@@ -463,6 +472,7 @@ def config_from_args(args: argparse.Namespace) -> EvolveConfig:
         table_path=args.hyperparams,
         torch_threads=args.torch_threads,
         learner=getattr(args, "learner", "ppo"),
+        backend=getattr(args, "backend", "sb3"),
     )
     problem = Problem(
         task=TaskConfig(env_id=args.env_id, observe=args.observe),
@@ -477,6 +487,10 @@ def config_from_args(args: argparse.Namespace) -> EvolveConfig:
     # Whatever PPO or the encoder would refuse in the first trial is refused now, before the
     # study (and a FAIL trial) exists.
     check_ppo_config(problem.task, problem.encoder, ppo)
+    if ppo.backend == "population":
+        from ermrl.population import check_population_config
+
+        check_population_config(ppo)
     return config
 
 

@@ -31,7 +31,13 @@ from ermrl.cli._evolve import (
     search_from_args,
     space_from_args,
 )
-from ermrl.cli._test import add_test_args, plan_test_phase, run_test_phase, setup_errors
+from ermrl.cli._test import (
+    add_test_args,
+    plan_test_phase,
+    run_test_phase,
+    setup_errors,
+    with_backend,
+)
 from ermrl.config import ConfigError, EvolveConfig, PPOConfig
 
 __all__ = [
@@ -163,6 +169,7 @@ def generalization_config_from_args(args: argparse.Namespace) -> EvolveConfig:
         scores=args.scores,
         target_column=args.target_column,
         learner=args.learner,
+        backend=args.backend,
     )
     space = space_from_args(args)
     config = generalization_config(
@@ -183,6 +190,10 @@ def generalization_config_from_args(args: argparse.Namespace) -> EvolveConfig:
     # What PPO or the encoder would refuse in the first trial is refused before the study exists.
     for task in tasks:
         check_ppo_config(task.task, config.problem.encoder, task.ppo, where=task.task.env_id)
+    if args.backend == "population":
+        from ermrl.population import check_population_config
+
+        check_population_config(config.problem.ppo)
     return config
 
 
@@ -375,6 +386,7 @@ def _test_ppo(config: EvolveConfig, env_id: str, args: argparse.Namespace) -> PP
         table_path=table,
         torch_threads=config.problem.ppo.torch_threads,
         learner=config.problem.ppo.learner,
+        backend=config.problem.ppo.backend,
     )
 
 
@@ -418,7 +430,7 @@ def test_generalization_main(
         observation_indices(args.env_id, observe)
         evolution_ids = _evolution_env_ids(config)
         warning = overlap_warning(args.env_id, evolution_ids, args.study_name)
-        ppo = _test_ppo(config, args.env_id, args)
+        ppo = with_backend(_test_ppo(config, args.env_id, args), args)
         task = dataclasses.replace(problem.task, env_id=args.env_id, observe=observe)
         # The test env's settings (the study's, a table's, --ppo): refused now, not by a run.
         check_ppo_config(task, problem.encoder, ppo, where=args.env_id)

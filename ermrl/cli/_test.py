@@ -116,6 +116,14 @@ def add_test_args(
     )
     parser.add_argument("--ppo", nargs="+", default=[], metavar="KEY=VALUE", help=ppo_help)
     parser.add_argument(
+        "--backend",
+        choices=("sb3", "population"),
+        default=None,
+        help="what trains the agents of the study's learner: sb3 (one Stable-Baselines3 process "
+        "per run) or population (all seeds of an agent trained in lockstep, PPO only); "
+        "default: the study's backend. Agents with another learner always train with sb3",
+    )
+    parser.add_argument(
         "--save-models",
         action=argparse.BooleanOptionalAction,
         default=True,
@@ -288,6 +296,21 @@ def plan_test_phase(
 
 
 # What a test command reports as one line before anything runs.
+def with_backend(ppo: Any, args: argparse.Namespace) -> Any:
+    """The study's learner settings with ``--backend`` applied (and checked for it)."""
+    import dataclasses
+
+    if getattr(args, "backend", None):
+        ppo = dataclasses.replace(ppo, backend=args.backend)
+    if ppo.backend == "population":
+        from ermrl.population import check_population_config
+
+        check_population_config(ppo)
+        if getattr(args, "tensorboard", None):
+            raise ConfigError("--tensorboard logs come from the sb3 backend; use --backend sb3")
+    return ppo
+
+
 def setup_errors() -> tuple[type[BaseException], ...]:
     from ermrl.envs import UnknownEnvError, UnsupportedObserveError
     from ermrl.storage import StorageError, StudyNotFound
@@ -355,7 +378,7 @@ def test_main(argv: Sequence[str] | None = None, prog: str = "ermrl test") -> in
             )
         problem = config.problem
         overrides = parse_overrides(args.ppo)
-        ppo = with_overrides(problem.ppo, overrides)
+        ppo = with_backend(with_overrides(problem.ppo, overrides), args)
         if overrides:  # refused now rather than by the first run
             check_ppo_config(problem.task, problem.encoder, ppo, where="--ppo")
         plan = plan_test_phase(

@@ -624,6 +624,7 @@ def run_comparison(
             f"{result.wall_seconds:.0f}s | ETA {eta:.0f}s",
         )
 
+    jobs = _train_populations(jobs, budget, settings, finished, stream, quiet)
     if settings.n_procs == 1 or len(jobs) <= 1:
         for agent, seed, args in jobs:
             finished(agent, seed, _train_job(args))
@@ -646,6 +647,65 @@ def run_comparison(
                 raise
 
     return aggregate(out, [a.name for a in agents], title=task.label)
+
+
+def _population_key(args: tuple[Any, ...]) -> str:
+    """Runs that can share one population: same task and settings, same encoder structure."""
+    task, encoder, ppo = args[0], args[1], args[2]
+    enc = None
+    if encoder is not None:
+        enc = {**to_dict(encoder), "reservoirs": [p.units for p in encoder.reservoirs]}
+    return json.dumps({"task": to_dict(task), "ppo": to_dict(ppo), "encoder": enc}, sort_keys=True)
+
+
+def _train_populations(
+    jobs: list[tuple[AgentSpec, int, tuple[Any, ...]]],
+    budget: BudgetConfig,
+    settings: TestSettings,
+    finished: Any,
+    stream: TextIO | None,
+    quiet: bool,
+) -> list[tuple[AgentSpec, int, tuple[Any, ...]]]:
+    """Train the runs whose settings ask for the population backend, one population per group
+    of runs that can share one (an agent's seeds, and agents alike: res-ppo and random-res-ppo
+    train together); returns the other runs. A run that diverged is raised once the others of
+    its population are written."""
+    from ermrl.population import PopulationJob, train_population_parallel
+
+    groups: dict[str, list[tuple[AgentSpec, int, tuple[Any, ...]]]] = {}
+    rest = []
+    for job in jobs:
+        if job[2][2].backend == "population":
+            groups.setdefault(_population_key(job[2]), []).append(job)
+        else:
+            rest.append(job)
+    for group in groups.values():
+        task, _, ppo = group[0][2][:3]
+        names = sorted({agent.name for agent, _, _ in group})
+        _say(
+            stream,
+            quiet,
+            f"[population] {len(group)} runs ({', '.join(names)}) on {task.label}, trained in "
+            f"lockstep in {min(settings.n_procs, len(group))} process(es)",
+        )
+        results = train_population_parallel(
+            task,
+            ppo,
+            budget,
+            [PopulationJob(args[1], seed) for _, seed, args in group],
+            n_procs=settings.n_procs,
+            evaluate=settings.evaluate,
+            model_paths=[args[6] for _, _, args in group],
+        )
+        failure: BaseException | None = None
+        for (agent, seed, _), result in zip(group, results):
+            if isinstance(result, BaseException):
+                failure = failure or result
+            else:
+                finished(agent, seed, result)
+        if failure is not None:
+            raise failure
+    return rest
 
 
 def aggregate(

@@ -93,7 +93,10 @@ def check_population_config(ppo: PPOConfig) -> None:
             "use --backend sb3"
         )
     settings = _settings(ppo)
-    policy_spec(settings["policy_kwargs"] or {}, 1, 1, False, bool(settings["use_sde"]))
+    try:
+        policy_spec(settings["policy_kwargs"] or {}, 1, 1, False, bool(settings["use_sde"]))
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
 
 
 def _schedule(value: Any) -> Any:

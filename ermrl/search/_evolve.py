@@ -26,7 +26,7 @@ import os
 import sys
 import time
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TextIO
 
@@ -38,22 +38,30 @@ from ermrl.agents import NoEpisodeFinished, TrainingDiverged
 from ermrl.config import EncoderConfig, EvolveConfig
 from ermrl.encoders import encoder_for
 from ermrl.search._claim import (
+    Claim,
     claim_trial,
     close_interrupted,
     n_counted,
     record,
     retry_policy,
 )
-from ermrl.search._objective import FitnessResult, SeedRunner, evaluate_encoder
+from ermrl.search._objective import (
+    FitnessResult,
+    SeedRunner,
+    evaluate_encoder,
+    evaluate_encoders,
+)
 from ermrl.search._progress import best_trial, trial_line
 from ermrl.search._pruning import pruning_reporter
 from ermrl.search._signals import SignalGuard
 
 __all__ = [
     "EvaluateFn",
+    "EvaluateGenerationFn",
     "EvolutionSummary",
     "PopulationWarning",
     "cma_popsize",
+    "generation_size",
     "run_evolution",
 ]
 
@@ -86,6 +94,9 @@ class EvolutionSummary:
 EvaluateFn = Callable[
     [EncoderConfig, SeedRunner, Callable[[int, float], None] | None], FitnessResult
 ]
+EvaluateGenerationFn = Callable[
+    [Sequence[EncoderConfig], SeedRunner], list[FitnessResult | BaseException]
+]
 
 _FIRST_POLL = 0.5  # seconds between the first claims while waiting for other workers' trials
 
@@ -94,6 +105,17 @@ def cma_popsize(config: EvolveConfig) -> int | None:
     """The first CMA-ES population size of a run (``None`` for other samplers)."""
     if config.search.sampler != "cmaes":
         return None
+    if config.search.popsize is not None:
+        return config.search.popsize
+    return 4 + math.floor(3 * math.log(len(config.space.param_names)))
+
+
+def generation_size(config: EvolveConfig) -> int:
+    """Candidates the population backend trains together: the CMA-ES population size (the
+    same default formula, or ``--popsize``, for the other samplers)."""
+    popsize = cma_popsize(config)
+    if popsize is not None:
+        return popsize
     if config.search.popsize is not None:
         return config.search.popsize
     return 4 + math.floor(3 * math.log(len(config.space.param_names)))
@@ -118,6 +140,7 @@ def run_evolution(
     requeue_interrupted: bool = True,
     n_workers: int | None = None,
     queued_only: bool = False,
+    evaluate_generation: EvaluateGenerationFn | None = None,
 ) -> EvolutionSummary:
     """Run trials until the study holds ``config.search.n_trials`` counted trials.
 
@@ -147,6 +170,10 @@ def run_evolution(
             (default: ``SLURM_ARRAY_TASK_COUNT`` when set).
         queued_only: Run only queued (WAITING) trials, never ask the sampler for a new point
             (re-evaluation: a failed candidate is not replaced by a random one).
+        evaluate_generation: With the population backend, the fitness of a whole generation,
+            ``evaluate_generation(encoders, runner)`` -> one fitness or exception per candidate
+            (default: :func:`~ermrl.search.evaluate_encoders` on ``config.problem``, or the
+            multi-task fitness of a generalization config).
 
     Returns:
         What this worker did.
@@ -195,8 +222,161 @@ def run_evolution(
     waiting_said = False
     wait = _FIRST_POLL
     failed_in_a_row = 0
+
+    def finish(
+        claim: Claim,
+        closed: object,
+        state: TrialState,
+        result: FitnessResult | None,
+        note: str,
+        elapsed: float,
+    ) -> bool:
+        """Count and report a recorded trial; ``False`` when the worker must stop."""
+        nonlocal failed_in_a_row
+        assert claim.trial is not None
+        if closed is None:
+            say(
+                f"[trial {claim.trial.number}] was closed by another worker (stale); result dropped"
+            )
+            return True
+        if state == TrialState.COMPLETE:
+            summary.completed += 1
+            failed_in_a_row = 0
+        elif state == TrialState.PRUNED:
+            summary.pruned += 1
+            failed_in_a_row = 0
+        else:
+            summary.failed += 1
+            failed_in_a_row += 1
+        counted = n_counted(study)
+        remaining = max(n_trials - counted, 0)
+        eta = remaining * (sum(durations) / len(durations))
+        say(
+            trial_line(
+                study, claim.trial.number, claim.params, state, result, note, elapsed,
+                counted=counted, n_trials=n_trials, retry_of=claim.retry_of, eta=eta,
+            )
+        )  # fmt: skip
+        if failed_in_a_row >= n_trials:
+            say(
+                f"stopping: the last {failed_in_a_row} trials of this worker failed "
+                "(FAIL trials do not count towards the budget; is the problem broken?)"
+            )
+            return False
+        return True
+
+    def wait_for_others(claim: Claim) -> bool:
+        """Budget reached: wait (``True``: claim again) while other workers' trials run."""
+        nonlocal waiting_said, wait
+        if not (wait_for_running and heartbeats and claim.running > 0):
+            return False
+        if not waiting_said:
+            say(
+                f"budget reached; waiting for {claim.running} running trial(s) of "
+                "other workers (a trial whose worker died is retried here)"
+            )
+            waiting_said = True
+        time.sleep(wait)
+        wait = min(wait * 1.5, poll)
+        return True
+
+    def run_generation(size: int) -> bool:
+        """Claim up to ``size`` trials and train them together (population backend); ``False``
+        when the worker must stop."""
+        nonlocal wait
+        claims: list[Claim] = []
+        last: Claim | None = None
+        for _ in range(size):
+            with guard.deferred():
+                last = claim_trial(study, config.space, n_trials, heartbeats, queued_only)
+            if last.trial is None:
+                break
+            claims.append(last)
+        if not claims:
+            assert last is not None
+            return wait_for_others(last)
+        wait = _FIRST_POLL
+        beats = []
+        for claim in claims:
+            assert claim.trial is not None
+            beats.append(get_heartbeat_thread(claim.trial._trial_id, study._storage))
+            beats[-1].start()
+        summary.trials_run += len(claims)
+        started = time.perf_counter()
+        try:
+            guard.check()  # a signal that arrived during the claims
+            decode = encoder_for(problem.encoder).decode
+            encoders = [decode(config.space, c.params, problem.encoder) for c in claims]
+            assert evaluate_generation is not None
+            results = evaluate_generation(encoders, runner)
+            unexpected = next(
+                (
+                    r
+                    for r in results
+                    if isinstance(r, BaseException)
+                    and not isinstance(r, (TrainingDiverged, NoEpisodeFinished))
+                ),
+                None,
+            )
+            if unexpected is not None:
+                raise unexpected
+        except BaseException as err:
+            raised: BaseException | None = None
+            for claim, beat in zip(claims, beats):
+                assert claim.trial is not None
+                try:
+                    close_interrupted(
+                        study, claim.trial, err, guard, runner, beat, say,
+                        retry if requeue_interrupted else None,
+                    )  # fmt: skip
+                except BaseException as closing:  # noqa: BLE001 (re-raised below)
+                    raised = raised or closing
+            if raised is not None:
+                raise raised from err
+            raise
+        outcomes = []
+        with guard.deferred():
+            for beat in beats:
+                beat.join()
+            elapsed = (time.perf_counter() - started) / len(claims)
+            for claim, outcome in zip(claims, results):
+                assert claim.trial is not None
+                result = outcome if isinstance(outcome, FitnessResult) else None
+                state, note = TrialState.COMPLETE, ""
+                if result is None:
+                    state, note = TrialState.FAIL, str(outcome)
+                elif not math.isfinite(result.fitness):
+                    state, note = TrialState.FAIL, f"non-finite fitness {result.fitness}"
+                durations.append(elapsed)
+                closed = record(study, claim.trial, state, result, note)
+                outcomes.append((claim, closed, state, result, note))
+        return all(finish(*outcome, elapsed) for outcome in outcomes)
+
+    generation: int | None = None
+    if problem.ppo.backend == "population":
+        generation = generation_size(config)
+        if evaluate_generation is None:
+            if config.generalization is not None:
+                from ermrl.search._generalization import generalization_generation
+
+                evaluate_generation = generalization_generation(config, quiet=quiet, stream=out)
+            else:
+
+                def evaluate_generation(
+                    encoders: Sequence[EncoderConfig], runner: SeedRunner
+                ) -> list[FitnessResult | BaseException]:
+                    return evaluate_encoders(encoders, problem, runner=runner)
+
     with SeedRunner(config.n_procs) as runner, guard.installed():
-        if config.n_procs > 1 and (done_before < n_trials or queued):
+        if generation is not None and (done_before < n_trials or queued):
+            n_tasks = len(config.generalization.tasks) if config.generalization else 1
+            say(
+                f"population backend: generations of up to {generation} candidates x "
+                f"{len(problem.seeds)} seeds = {generation * len(problem.seeds)} agents per task "
+                f"({n_tasks} task(s)), trained in lockstep in "
+                f"{min(config.n_procs, generation * len(problem.seeds))} process(es)"
+            )
+        elif config.n_procs > 1 and (done_before < n_trials or queued):
             n_tasks = len(config.generalization.tasks) if config.generalization else 1
             n_runs = n_tasks * len(problem.seeds)
             with guard.deferred():
@@ -212,18 +392,14 @@ def run_evolution(
             )
         while True:
             guard.check()
+            if generation is not None:
+                if not run_generation(generation):
+                    break
+                continue
             with guard.deferred():
                 claim = claim_trial(study, config.space, n_trials, heartbeats, queued_only)
             if claim.trial is None:
-                if wait_for_running and heartbeats and claim.running > 0:
-                    if not waiting_said:
-                        say(
-                            f"budget reached; waiting for {claim.running} running trial(s) of "
-                            "other workers (a trial whose worker died is retried here)"
-                        )
-                        waiting_said = True
-                    time.sleep(wait)
-                    wait = min(wait * 1.5, poll)
+                if wait_for_others(claim):
                     continue
                 break
             trial, params = claim.trial, claim.params
@@ -268,33 +444,7 @@ def run_evolution(
                 elapsed = time.perf_counter() - started
                 durations.append(elapsed)
                 closed = record(study, trial, state, result, note)
-            if closed is None:
-                say(f"[trial {trial.number}] was closed by another worker (stale); result dropped")
-                continue
-            if state == TrialState.COMPLETE:
-                summary.completed += 1
-                failed_in_a_row = 0
-            elif state == TrialState.PRUNED:
-                summary.pruned += 1
-                failed_in_a_row = 0
-            else:
-                summary.failed += 1
-                failed_in_a_row += 1
-
-            counted = n_counted(study)
-            remaining = max(n_trials - counted, 0)
-            eta = remaining * (sum(durations) / len(durations))
-            say(
-                trial_line(
-                    study, trial.number, params, state, result, note, elapsed,
-                    counted=counted, n_trials=n_trials, retry_of=claim.retry_of, eta=eta,
-                )
-            )  # fmt: skip
-            if failed_in_a_row >= n_trials:
-                say(
-                    f"stopping: the last {failed_in_a_row} trials of this worker failed "
-                    "(FAIL trials do not count towards the budget; is the problem broken?)"
-                )
+            if not finish(claim, closed, state, result, note, elapsed):
                 break
 
     summary.best_value, _, summary.best_params = best_trial(study)

@@ -44,6 +44,8 @@ from ermrl.search._objective import (
     FitnessResult,
     SeedRunner,
     _finite_or_none,
+    first_failure,
+    train_generation,
     train_runs,
 )
 from ermrl.search._scores import load_scores, reference_returns
@@ -197,6 +199,62 @@ def evaluate_generalization(
     )
 
 
+def generalization_generation(
+    config: EvolveConfig, *, quiet: bool = False, stream: TextIO | None = None
+) -> Callable[[Sequence[EncoderConfig], SeedRunner], list[FitnessResult | BaseException]]:
+    """The population backend's counterpart of :func:`generalization_evaluator`: the multi-task
+    fitness of a whole generation, each task's (candidate, seed) runs trained as one population.
+
+    Raises:
+        ConfigError: the config has no task set.
+    """
+    if config.generalization is None:
+        raise ConfigError("this configuration has no generalization task set")
+    tasks = config.generalization.tasks
+    problem = config.problem
+
+    def evaluate(
+        encoders: Sequence[EncoderConfig], runner: SeedRunner
+    ) -> list[FitnessResult | BaseException]:
+        start = time.perf_counter()
+        trained = train_generation(
+            encoders,
+            [(spec.task, spec.ppo) for spec in tasks],
+            problem.budget,
+            problem.seeds,
+            runner=runner,
+        )
+        share = (time.perf_counter() - start) / max(len(encoders), 1)
+        out: list[FitnessResult | BaseException] = []
+        for encoder, per_task in zip(encoders, trained):
+            failure = first_failure([r for runs in per_task for r in runs])
+            if failure is not None:
+                out.append(failure)
+                continue
+            outcomes = [
+                TaskOutcome(
+                    spec, [r for r in runs if isinstance(r, RunResult)], problem.budget.fitness
+                )
+                for spec, runs in zip(tasks, per_task)
+            ]
+            result = GeneralizationFitness(
+                fitness=float(np.mean([o.normalized for o in outcomes])),
+                dtype=encoder.dtype,
+                mode=problem.budget.fitness,
+                runs=[r for o in outcomes for r in o.runs],
+                wall_seconds=share,
+                backend="population",
+                population=len(encoders) * len(problem.seeds),
+                tasks=outcomes,
+            )
+            if not quiet:
+                print(f"  {result.describe()}", file=stream or sys.stdout, flush=True)
+            out.append(result)
+        return out
+
+    return evaluate
+
+
 def generalization_evaluator(
     config: EvolveConfig, *, quiet: bool = False, stream: TextIO | None = None
 ) -> EvaluateFn:
@@ -238,6 +296,7 @@ def generalization_tasks(
     scores: str | None = None,
     target_column: str = "target",
     learner: str = "ppo",
+    backend: str = "sb3",
 ) -> tuple[GeneralizationTask, ...]:
     """Validate env ids and attach each one's PPO settings and reference returns.
 
@@ -251,6 +310,7 @@ def generalization_tasks(
         scores: Reference table (``None``: the packaged ``ermrl/data/scores.csv``).
         target_column: ``target`` or ``provisional_target``.
         learner: The inner learner (its table gives each task's settings).
+        backend: What trains the agents (``sb3`` or ``population``).
 
     Raises:
         ConfigError: an empty or repeated task set, or a missing reference score.
@@ -281,6 +341,7 @@ def generalization_tasks(
             table_path=hyperparams,
             torch_threads=torch_threads,
             learner=learner,
+            backend=backend,
         )
         out.append(
             GeneralizationTask(

@@ -27,6 +27,8 @@ __all__ = [
     "FitnessResult",
     "SeedRunner",
     "evaluate_encoder",
+    "evaluate_encoders",
+    "train_generation",
     "library_versions",
     "pool_size",
     "train_runs",
@@ -68,6 +70,8 @@ class FitnessResult:
         dtype: Float type of the reservoir states (``None``: no reservoir). Above a spectral
             radius of about 1.5, float32 and float64 trajectories decorrelate, so a trial's
             result depends on it.
+        backend: What trained the runs (``sb3`` or ``population``).
+        population: Agents trained together (the population backend; 1 otherwise).
     """
 
     fitness: float
@@ -75,6 +79,8 @@ class FitnessResult:
     runs: list[RunResult] = field(default_factory=list)
     wall_seconds: float = 0.0
     dtype: str | None = None
+    backend: str = "sb3"
+    population: int = 1
 
     @property
     def env_steps(self) -> int:
@@ -97,12 +103,16 @@ class FitnessResult:
 
     def totals(self) -> dict[str, Any]:
         """The part of :meth:`user_attrs` every fitness shares: ``env_steps``, ``wall_seconds``,
-        ``steps_per_second``, ``dtype`` and ``versions``."""
+        ``steps_per_second``, ``dtype``, ``backend``, ``population`` and ``versions``. With the
+        population backend, ``wall_seconds`` is the trial's share of its generation's wall time
+        (the generation's over its number of candidates)."""
         return {
             "env_steps": self.env_steps,
             "wall_seconds": round(self.wall_seconds, 3),
             "steps_per_second": round(self.steps_per_second, 1),
             "dtype": self.dtype,
+            "backend": self.backend,
+            "population": self.population,
             "versions": library_versions(),
         }
 
@@ -158,6 +168,26 @@ class SeedRunner:
             # Start every process (one task each spawns them all) before the first trial.
             list(self._pool.map(abs, range(size)))
         return size
+
+    def population(
+        self,
+        task: TaskConfig,
+        ppo: PPOConfig,
+        budget: BudgetConfig,
+        jobs: Sequence[Any],
+    ) -> list[RunResult | BaseException]:
+        """Train ``jobs`` (:class:`~ermrl.population.PopulationJob`) as one population split
+        over ``n_procs`` processes of this runner's pool (the population backend)."""
+        from ermrl.population import split_jobs, train_population_parallel
+
+        parts = len(split_jobs(len(jobs), self.n_procs))
+        if parts > 1 and (self._pool is None or self.n_processes != parts):
+            self.close()
+            self._pool = training_pool(parts)
+            self.n_processes = parts
+        return train_population_parallel(
+            task, ppo, budget, jobs, n_procs=parts, pool=self._pool if parts > 1 else None
+        )
 
     def map(self, args: Sequence[tuple[Any, ...]]) -> list[RunResult]:
         if self.start(len(args)) == 1:
@@ -228,6 +258,73 @@ def train_runs(
     args = [(task, encoder, ppo, budget, seed) for task, ppo, _ in tasks for seed in seeds]
     flat = runner.map(args)
     return [flat[i * n_seeds : (i + 1) * n_seeds] for i in range(len(tasks))]
+
+
+def train_generation(
+    encoders: Sequence[EncoderConfig],
+    tasks: Sequence[tuple[TaskConfig, PPOConfig]],
+    budget: BudgetConfig,
+    seeds: Sequence[int],
+    *,
+    runner: SeedRunner,
+) -> list[list[list[RunResult | BaseException]]]:
+    """Train a whole generation with the population backend: every (candidate, seed) of a task
+    in one population (split over the runner's processes), one task after another.
+
+    Returns:
+        ``[candidate][task][seed]``: a run, or the exception that ended it (a diverged run fails
+        alone; the other agents go on).
+    """
+    from ermrl.population import PopulationJob
+
+    n_seeds = len(seeds)
+    out: list[list[list[RunResult | BaseException]]] = [[] for _ in encoders]
+    for task, ppo in tasks:
+        jobs = [PopulationJob(enc, seed) for enc in encoders for seed in seeds]
+        flat = runner.population(task, ppo, budget, jobs)
+        for c in range(len(encoders)):
+            out[c].append(flat[c * n_seeds : (c + 1) * n_seeds])
+    return out
+
+
+def first_failure(runs: Sequence[RunResult | BaseException]) -> BaseException | None:
+    """The first exception among a candidate's runs (its trial then fails), or ``None``."""
+    return next((r for r in runs if isinstance(r, BaseException)), None)
+
+
+def evaluate_encoders(
+    encoders: Sequence[EncoderConfig], problem: Problem, *, runner: SeedRunner
+) -> list[FitnessResult | BaseException]:
+    """The fitness of each candidate of a generation, trained together (population backend).
+
+    A candidate one of whose seeds diverged (or finished no episode) gets that exception instead
+    of a fitness, as :func:`evaluate_encoder` would raise it; the other candidates are unaffected.
+    """
+    start = time.perf_counter()
+    trained = train_generation(
+        encoders, [(problem.task, problem.ppo)], problem.budget, problem.seeds, runner=runner
+    )
+    share = (time.perf_counter() - start) / max(len(encoders), 1)
+    out: list[FitnessResult | BaseException] = []
+    for encoder, (runs,) in zip(encoders, trained):
+        failure = first_failure(runs)
+        if failure is not None:
+            out.append(failure)
+            continue
+        done = [r for r in runs if isinstance(r, RunResult)]
+        values = [r.fitness(problem.budget.fitness) for r in done]
+        out.append(
+            FitnessResult(
+                fitness=float(np.mean(values)),
+                mode=problem.budget.fitness,
+                runs=done,
+                wall_seconds=share,
+                dtype=encoder.dtype,
+                backend="population",
+                population=len(encoders) * len(problem.seeds),
+            )
+        )
+    return out
 
 
 def evaluate_encoder(
