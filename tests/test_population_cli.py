@@ -1,0 +1,159 @@
+"""The population backend through the command line: evolution, refusals, kill -9, test phase.
+
+Real CLI workers on a real SQLite study with real (tiny) training; nothing is mocked.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+import optuna
+import pandas as pd
+import pytest
+from optuna.trial import TrialState
+
+from ermrl.search import study_config
+from ermrl.storage import open_storage
+
+ROOT = Path(__file__).resolve().parents[1]
+# Pendulum with velocities hidden, a few hundred steps per agent.
+TINY = [
+    "--env-id", "Pendulum-v1", "--observe", "positions", "--units", "20",
+    "--n-envs", "1", "--ppo", "n_steps=128", "batch_size=64", "n_epochs=2",
+    "--training-steps", "256", "--backend", "population",
+]  # fmt: skip
+
+
+def evolve(tmp_path: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, str(ROOT / "evolve_res.py"), *args],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        timeout=600,
+    )
+
+
+def load(url: str, name: str) -> optuna.Study:
+    return optuna.load_study(study_name=name, storage=open_storage(url))
+
+
+def test_an_evolution_trains_whole_generations_and_records_the_backend(tmp_path: Path) -> None:
+    """Each generation's trials complete with per-seed records, the backend and its size."""
+    url = f"sqlite:///{tmp_path}/s.db"
+    common = [*TINY, "--storage", url, "--study-name", "p", "--popsize", "3", "--n-seeds", "2"]
+    done = evolve(tmp_path, *common, "--n-trials", "5")
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "population backend: generations of up to 3 candidates x 2 seeds" in done.stdout
+    study = load(url, "p")
+    trials = study.get_trials()
+    assert [t.state for t in trials] == [TrialState.COMPLETE] * 5
+    for t in trials:
+        assert t.user_attrs["backend"] == "population"
+        assert len(t.user_attrs["returns_last"]) == 2
+        assert all(r is not None for r in t.user_attrs["returns_last"])
+    # The first generation has 3 candidates x 2 seeds, the second the 2 trials left.
+    assert [t.user_attrs["population"] for t in trials] == [6, 6, 6, 4, 4]
+    assert study_config(study).problem.ppo.backend == "population"
+    # Resuming with the other backend is refused: a study never mixes backends.
+    other = [a if a != "population" else "sb3" for a in common]
+    refused = evolve(tmp_path, *other, "--n-trials", "6")
+    assert refused.returncode != 0
+    assert "backend" in (refused.stdout + refused.stderr)
+    assert len(load(url, "p").get_trials()) == 5
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (["--pruner", "median"], "--pruner none with --backend population"),
+        (["--learner", "lstm-ppo"], "ppo learner only"),
+        (["--ppo", "target_kl=0.01"], "target_kl"),
+    ],
+)
+def test_combinations_the_population_backend_cannot_train_are_refused(
+    tmp_path: Path, extra: list[str], message: str
+) -> None:
+    """A pruner, another learner or an unimplemented PPO setting: one line, no study."""
+    url = f"sqlite:///{tmp_path}/s.db"
+    done = evolve(tmp_path, *TINY, *extra, "--storage", url, "--n-trials", "2")
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert message in done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1, done.stderr
+    assert not (tmp_path / "s.db").exists()
+
+
+@pytest.mark.slow
+def test_kill_9_during_a_generation_fails_and_retries_its_trials(tmp_path: Path) -> None:
+    """Every trial of a killed worker's generation ends FAIL and is retried by another worker."""
+    url = f"sqlite:///{tmp_path}/s.db"
+    args = [*TINY, "--storage", url, "--study-name", "k", "--popsize", "3", "--n-trials", "6"]
+    args += ["--training-steps", "20000", "--heartbeat-interval", "1", "--grace-period", "4"]
+    log = open(tmp_path / "victim.log", "w")  # noqa: SIM115 (closed below)
+    victim = subprocess.Popen(
+        [sys.executable, str(ROOT / "evolve_res.py"), *args],
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+        cwd=tmp_path,
+    )
+    deadline = time.monotonic() + 120
+    running: list[int] = []
+    while time.monotonic() < deadline and len(running) < 3:
+        time.sleep(0.3)
+        try:
+            trials = load(url, "k").get_trials(states=[TrialState.RUNNING])
+        except Exception:  # the study does not exist yet
+            continue
+        running = [t.number for t in trials if t.user_attrs.get("worker_pid") == victim.pid]
+    assert len(running) == 3, (tmp_path / "victim.log").read_text()
+    time.sleep(1.0)  # inside the generation's training
+    os.killpg(victim.pid, signal.SIGKILL)
+    victim.wait(10)
+    log.close()
+    survivor = evolve(tmp_path, *args)
+    assert survivor.returncode == 0, survivor.stdout + survivor.stderr
+    trials = load(url, "k").get_trials()
+    states = Counter(t.state for t in trials)
+    assert states == {TrialState.COMPLETE: 6, TrialState.FAIL: 3}, states
+    failed = sorted(t.number for t in trials if t.state == TrialState.FAIL)
+    assert failed == sorted(running)
+    retried = {t.user_attrs.get("retry_of") for t in trials if t.state == TrialState.COMPLETE}
+    assert set(failed) <= retried
+    # The retries train the killed trials' own candidates.
+    by_number = {t.number: t for t in trials}
+    for t in trials:
+        if t.user_attrs.get("retry_of") is not None:
+            assert t.params == by_number[t.user_attrs["retry_of"]].params
+
+
+def test_the_test_phase_trains_under_both_backends(tmp_path: Path) -> None:
+    """test.py runs a population-evolved study's agents under population and sb3."""
+    url = f"sqlite:///{tmp_path}/s.db"
+    done = evolve(tmp_path, *TINY, "--storage", url, "--study-name", "t", "--n-trials", "2")
+    assert done.returncode == 0, done.stdout + done.stderr
+    summaries = {}
+    for backend in ("population", "sb3"):
+        out = tmp_path / backend
+        run = subprocess.run(
+            [
+                sys.executable, str(ROOT / "test.py"), "--study-name", "t", "--storage", url,
+                "--training-steps", "256", "--seeds", "10", "11", "--agents", "res-ppo", "ppo",
+                "--ppo", "n_steps=128", "batch_size=64", "n_epochs=2", "--backend", backend,
+                "--out", str(out), "--save-models",
+            ],
+            capture_output=True, text=True, cwd=tmp_path, timeout=600,
+        )  # fmt: skip
+        assert run.returncode == 0, run.stdout + run.stderr
+        assert ("[population]" in run.stdout) == (backend == "population")
+        assert (out / "agents" / "res-ppo" / "seed_10" / "policy.pt").exists()
+        summaries[backend] = pd.read_csv(out / "summary.csv").set_index("agent")
+    for summary in summaries.values():
+        assert set(summary.index) == {"res-ppo", "ppo"}
+        assert (summary["n_seeds"] == 2).all()
