@@ -1,0 +1,494 @@
+"""The population backend: each agent trains as SB3 PPO would, whatever the population around it."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+
+from ermrl.agents import (
+    derive_seeds,
+    frozen_normalize_env,
+    load_normalize_stats,
+    load_policy,
+    make_vec_env,
+    policy_path,
+    resolve_ppo_config,
+    with_overrides,
+)
+from ermrl.agents._normalize import stats_path
+from ermrl.agents._train import RunResult, TrainingDiverged
+from ermrl.config import (
+    BudgetConfig,
+    ConfigError,
+    EncoderConfig,
+    PPOConfig,
+    ReservoirParams,
+    TaskConfig,
+)
+from ermrl.learners import get_learner
+from ermrl.population import (
+    PopulationEnvs,
+    PopulationJob,
+    PopulationPPO,
+    check_population_config,
+    train_population,
+)
+
+
+def encoder(k: int, units: int = 12, **options: Any) -> EncoderConfig:
+    """An encoder whose reservoir hyperparameters depend on ``k`` (same structure for all k)."""
+    params = ReservoirParams(
+        units=units, sr=0.6 + 0.1 * k, lr=0.3 + 0.1 * k, input_scaling=0.5 + 0.2 * k
+    )
+    return EncoderConfig(reservoirs=(params,), **options)
+
+
+def ppo_for(env_id: str, **overrides: Any) -> PPOConfig:
+    return with_overrides(resolve_ppo_config(env_id), overrides)
+
+
+# -- 1. an agent's result does not depend on the population ------------------------------------
+CASES = {
+    "cartpole": (
+        TaskConfig("CartPole-v1", "positions"),
+        {"n_steps": 16, "batch_size": 64, "n_epochs": 2},
+        512,
+        True,
+    ),
+    "pendulum-gsde": (
+        TaskConfig("Pendulum-v1", "positions"),
+        {"n_steps": 64, "batch_size": 64, "n_epochs": 2},
+        1024,
+        True,
+    ),
+    "pendulum-normalize": (
+        TaskConfig("Pendulum-v1", "positions"),
+        {"n_steps": 64, "batch_size": 64, "n_epochs": 2, "normalize": True},
+        1024,
+        True,
+    ),
+    "pendulum-raw": (
+        TaskConfig("Pendulum-v1", "all"),
+        {"n_steps": 64, "batch_size": 64, "n_epochs": 2},
+        1024,
+        False,
+    ),
+    "halfcheetah": (
+        TaskConfig("HalfCheetah-v5", "velocities"),
+        {"n_steps": 256, "batch_size": 64, "n_epochs": 2},
+        1024,
+        True,
+    ),
+}
+
+
+# BUG (ermrl/population/_ppo.py): an agent's update depends on P in the last bits, which grow over
+# training. (1) PopulationPPO._adam's fused CPU Adam updates a tensor in SIMD chunks and a scalar
+# tail that round differently, so parameters with few elements per agent (value.b, action.b,
+# log_std) depend on P; foreach=True does not. (2) The clip coefficient's
+# ``torch.linalg.vector_norm(norms, dim=0)`` reduces a strided axis of the [n_params, P] norms
+# for P > 1 and a contiguous one for P = 1 (another summation order);
+# ``vector_norm(norms.T.contiguous(), dim=1)`` does not. With both changed these tests pass.
+POPULATION_SIZE_BUG = pytest.mark.xfail(
+    strict=True,
+    reason="BUG: fused Adam and the strided grad-norm reduction make an agent's update depend "
+    "on the population size (ermrl/population/_ppo.py _adam and update)",
+)
+FAILING_CASES = {"pendulum-gsde", "pendulum-normalize", "halfcheetah"}
+
+
+@pytest.mark.parametrize(
+    "case",
+    [pytest.param(c, marks=POPULATION_SIZE_BUG if c in FAILING_CASES else ()) for c in CASES],
+)
+def test_an_agents_result_does_not_depend_on_the_population(case: str) -> None:
+    """The same (encoder, seed) alone and at position 5 of 8 gives exactly the same results."""
+    task, overrides, steps, with_encoder = CASES[case]
+    ppo = ppo_for(task.env_id, **overrides)
+    if case == "pendulum-normalize":
+        assert ppo.normalize is not None
+    budget = BudgetConfig(
+        training_steps=steps, fitness="eval", n_eval_episodes=1, n_last_episodes=1
+    )
+    jobs = [PopulationJob(encoder(k) if with_encoder else None, 100 + 7 * k) for k in range(8)]
+    together = train_population(task, ppo, budget, jobs)
+    alone = train_population(task, ppo, budget, [jobs[5]])
+    a, b = together[5], alone[0]
+    assert isinstance(a, RunResult) and isinstance(b, RunResult)
+    assert a.episode_returns, "no episode ended: the comparison would be empty"
+    assert a.episode_returns == b.episode_returns
+    assert a.episode_steps == b.episode_steps
+    assert a.eval_returns == b.eval_returns and len(a.eval_returns) == 1
+    # The others trained too, and differently (the comparison is not between clones).
+    others = [r for r in together if isinstance(r, RunResult)]
+    assert len(others) == 8
+    assert len({tuple(r.episode_returns) for r in others}) > 1
+
+
+@POPULATION_SIZE_BUG
+def test_an_agents_update_does_not_depend_on_the_population_size() -> None:
+    """The same agent updated on the same data alone and at position 5 of 8 ends bitwise equal."""
+    task = TaskConfig("Pendulum-v1", "positions")
+    ppo = ppo_for("Pendulum-v1", n_steps=64, batch_size=64, n_epochs=2, use_sde=False)
+    jobs = [PopulationJob(None, 100 + 7 * k) for k in range(8)]
+    big, alone = PopulationPPO(task, ppo, jobs), PopulationPPO(task, ppo, [jobs[5]])
+    rng = np.random.default_rng(0)
+    T, d = 256, big.envs.policy_dim
+    data = [rng.standard_normal((8, T, d)), rng.standard_normal((8, T, 1))]
+    data += [rng.standard_normal((8, T)) for _ in range(4)]
+    data[3] = -np.abs(data[3]) - 1.0  # log-probabilities
+    tensors = [torch.from_numpy(a.astype(np.float32)) for a in data]
+    for _ in range(3):
+        big.update(0.9, *tensors)
+        alone.update(0.9, *[x[5:6].clone() for x in tensors])
+    for name, value in big.policy.params.items():
+        np.testing.assert_array_equal(
+            value.detach()[5].numpy(), alone.policy.params[name].detach()[0].numpy(), err_msg=name
+        )
+
+
+# -- 2. reservoir encodings equal ReservoirVecEnv's ---------------------------------------------
+ENCODER_OPTIONS = {
+    "default": {},
+    "skip-exposed": {"skip_connection": True, "exposed_units": 5},
+    "two-reservoirs": {"two": True},
+    "reset-never": {"reset": "never"},
+    "float64": {"dtype": "float64"},
+}
+
+
+def option_encoder(k: int, option: str) -> EncoderConfig:
+    options = dict(ENCODER_OPTIONS[option])
+    enc = encoder(k, **{key: v for key, v in options.items() if key != "two"})
+    if options.get("two"):
+        second = ReservoirParams(units=12, sr=1.1 - 0.1 * k, lr=0.9, input_scaling=1.0 + k)
+        enc = dataclasses.replace(enc, reservoirs=(*enc.reservoirs, second))
+    return enc
+
+
+FLOAT64_REWARD = pytest.mark.xfail(
+    strict=True,
+    reason="BUG: PopulationEnvs.step feeds the float64 reward to a float64 reservoir; the SB3 "
+    "path feeds DummyVecEnv's float32 reward (ermrl/population/_envs.py set_action_reward(raw))",
+)
+
+
+@pytest.mark.parametrize(
+    ("option", "env_id"),
+    [
+        pytest.param(
+            option,
+            env_id,
+            marks=FLOAT64_REWARD if (option, env_id) == ("float64", "Pendulum-v1") else (),
+        )
+        for option in ENCODER_OPTIONS
+        for env_id in ("CartPole-v1", "Pendulum-v1")
+    ],
+)
+def test_population_encodings_equal_reservoir_vec_env_over_episode_ends(
+    option: str, env_id: str
+) -> None:
+    """Observations, rewards, dones and terminal encodings equal the SB3 path's, step by step."""
+    task = TaskConfig(env_id, "all")
+    encoders = [option_encoder(k, option) for k in range(3)]
+    env_seeds, res_seeds = [11, 222, 3333], [5, 66, 777]
+    pop = PopulationEnvs(task, 2, env_seeds, encoders, res_seeds, None, 0.99)
+    venvs = [make_vec_env(task, 2, env_seeds[p], encoders[p], res_seeds[p]) for p in range(3)]
+    assert pop.reservoir is not None
+    # The encoding of every finished row's last state, just before its reset (all episode ends,
+    # terminated ones included, which ``step`` does not return).
+    captured: dict[tuple[int, int], np.ndarray] = {}
+    reset_rows = pop.reservoir.reset_rows
+
+    def spy(p: int, rows: np.ndarray, obs: np.ndarray) -> None:
+        assert pop.reservoir is not None
+        enc = pop.reservoir.policy_obs(p, rows)
+        for j, i in enumerate(rows):
+            captured[(p, int(i))] = enc[j].copy()
+        reset_rows(p, rows, obs)
+
+    pop.reservoir.reset_rows = spy  # type: ignore[method-assign]
+    try:
+        obs = pop.reset()
+        for p, venv in enumerate(venvs):
+            np.testing.assert_array_equal(obs[p], venv.reset())
+        rng = np.random.default_rng(0)
+        ends = truncations = 0
+        for _ in range(300):
+            if pop.discrete:
+                actions = rng.integers(0, 2, (3, 2))
+            else:
+                actions = rng.uniform(-2, 2, (3, 2, 1)).astype(np.float32)
+            captured.clear()
+            obs, _, raw, dones, terminal, episodes = pop.step(actions)
+            assert obs.dtype == np.float32
+            for p, venv in enumerate(venvs):
+                o, r, d, infos = venv.step(actions[p])
+                np.testing.assert_array_equal(obs[p], o)
+                np.testing.assert_array_equal(raw[p].astype(np.float32), r)
+                np.testing.assert_array_equal(dones[p], d)
+                for i in np.flatnonzero(d):
+                    ends += 1
+                    expected = infos[i]["terminal_observation"]
+                    np.testing.assert_array_equal(captured[(p, i)], expected)
+                    truncated = bool(infos[i].get("TimeLimit.truncated", False))
+                    assert ((p, i) in terminal) == truncated
+                    if truncated:
+                        truncations += 1
+                        np.testing.assert_array_equal(terminal[(p, i)], expected)
+            assert len(episodes) == int(dones.sum()) == len(captured)
+        assert ends > 0
+        if env_id == "Pendulum-v1":
+            assert truncations == 6  # every env's 200-step limit
+    finally:
+        pop.close()
+        for venv in venvs:
+            venv.close()
+
+
+# -- 3. the same update as SB3 ------------------------------------------------------------------
+SB3_CASES = {
+    "pendulum-gsde": ("Pendulum-v1", {"use_sde": True}),
+    "pendulum-gauss": ("Pendulum-v1", {"use_sde": False}),
+    "cartpole": ("CartPole-v1", {}),  # linear learning rate and clip range schedules
+}
+
+
+def sb3_rollout(env_id: str, overrides: dict[str, Any]) -> tuple[Any, PPOConfig, TaskConfig]:
+    """An SB3 PPO built as training builds it, after one collected rollout (not trained)."""
+    task = TaskConfig(env_id, "all")
+    ppo = ppo_for(
+        env_id,
+        n_envs=4,
+        n_steps=128,
+        batch_size=64,
+        n_epochs=40,
+        ent_coef=0.01,
+        **overrides,
+    )
+    env = make_vec_env(task, ppo.n_envs, 3, None, 0)
+    model = get_learner("ppo").build(env, ppo, seed=4)
+    total = 4 * model.n_steps * model.n_envs  # progress remaining 0.75 after one rollout
+    total, callback = model._setup_learn(total, None)
+    callback.on_training_start(locals(), globals())
+    assert model.collect_rollouts(model.env, callback, model.rollout_buffer, model.n_steps)
+    model._update_current_progress_remaining(model.num_timesteps, total)
+    return model, ppo, task
+
+
+def flat(a: np.ndarray) -> np.ndarray:
+    """SB3's swap_and_flatten: ``(n_steps, n_envs, ...)`` to ``(n_envs * n_steps, ...)``."""
+    return np.swapaxes(a, 0, 1).reshape(a.shape[0] * a.shape[1], *a.shape[2:])
+
+
+@pytest.mark.parametrize("case", list(SB3_CASES))
+def test_the_population_update_equals_sb3_ppo_train(case: str) -> None:
+    """Agent 0 fed SB3's rollout, weights and minibatches ends with SB3's weights; no leaks."""
+    env_id, overrides = SB3_CASES[case]
+    torch.set_num_threads(1)
+    model, ppo, task = sb3_rollout(env_id, overrides)
+    buf = model.rollout_buffer
+    T = buf.buffer_size * buf.n_envs
+    discrete = env_id == "CartPole-v1"
+    data0 = [flat(buf.observations), flat(buf.actions)]
+    if discrete:
+        data0[1] = data0[1][..., 0].astype(np.int64)
+    data0 += [flat(getattr(buf, k)) for k in ("values", "log_probs", "advantages", "returns")]
+    np.random.seed(1234)
+    perms0 = [np.random.permutation(T) for _ in range(model.n_epochs)]
+    start = {k: v.detach().clone() for k, v in model.policy.state_dict().items()}
+    np.random.seed(1234)
+    model.train()
+    rng = np.random.default_rng(9)
+    others = [[rng.permutation(T) for _ in range(model.n_epochs)] for _ in range(2)]
+
+    def run(first: list[np.ndarray], first_perms: list[np.ndarray]) -> PopulationPPO:
+        jobs = [PopulationJob(None, s) for s in (1, 2, 3)]
+        population = PopulationPPO(task, ppo, jobs)
+        population.policy.load_sb3_state(0, start)
+        population.policy.refresh()
+        stacked = []
+        for j, a in enumerate(first):
+            other = data0[j] if j == 1 else data0[j] * 1.5 + 0.1 * (j + 1)
+            other2 = data0[j] if j == 1 else data0[j] * 0.5 - 0.2
+            stacked.append(torch.from_numpy(np.stack([a, other, other2]).astype(a.dtype)))
+        perms = [np.stack([first_perms[e], others[0][e], others[1][e]]) for e in range(len(perms0))]
+        population.update(model._current_progress_remaining, *stacked, permutations=perms)
+        assert population.n_agents == 3
+        return population
+
+    population = run(data0, perms0)
+    ours, theirs = population.policy.sb3_state(0), model.policy.state_dict()
+    assert set(ours) == set(theirs)
+    moved = max(float((theirs[k] - start[k]).abs().max()) for k in ours)
+    diff = max(float((ours[k] - theirs[k]).abs().max()) for k in ours)
+    print(f"{case}: SB3 weights moved by {moved:.3g}, max |population - SB3| = {diff:.3g}")
+    assert moved > 1e-3
+    # Not bitwise: SB3 runs nn.Linear (addmm), foreach Adam and one clip_grad_norm_ over its
+    # parameter order; the population runs baddbmm and fused Adam. Last-bit differences grow over
+    # the 320 Adam steps to ~1e-6 (measured 0.15e-6 to 1.1e-6); a semantic difference is >1e-3.
+    assert diff < 3e-6
+    # Agents 1 and 2 end the same whatever agent 0's data.
+    shuffled = [a[::-1].copy() * (1 if j == 1 else 2) for j, a in enumerate(data0)]
+    again = run(shuffled, [p[::-1].copy() for p in perms0])
+    for name, value in population.policy.params.items():
+        np.testing.assert_array_equal(
+            value.detach()[1:].numpy(), again.policy.params[name].detach()[1:].numpy()
+        )
+    assert any(
+        not torch.equal(value.detach()[0], again.policy.params[name].detach()[0])
+        for name, value in population.policy.params.items()
+    )
+
+
+# -- 4. a diverged agent is dropped -------------------------------------------------------------
+def tiny_pendulum(**extra: Any) -> tuple[TaskConfig, PPOConfig, list[PopulationJob]]:
+    task = TaskConfig("Pendulum-v1", "positions")
+    ppo = ppo_for("Pendulum-v1", n_steps=64, batch_size=64, n_epochs=2, **extra)
+    jobs = [PopulationJob(encoder(k), 40 + k) for k in range(3)]
+    return task, ppo, jobs
+
+
+def test_an_agent_with_nan_weights_is_dropped_and_the_others_are_unaffected() -> None:
+    """NaN weights at the start: that job fails with TrainingDiverged, the others train as alone."""
+    task, ppo, jobs = tiny_pendulum()
+    population = PopulationPPO(task, ppo, jobs)
+    population.policy.params["action.w"].data[1] = float("nan")
+    population.learn(1024)
+    reference = PopulationPPO(task, ppo, [jobs[0], jobs[2]])
+    reference.learn(1024)
+    assert set(population.failed) == {1}
+    assert isinstance(population.failed[1], TrainingDiverged)
+    assert population.alive == [0, 2]
+    assert population.episodes[1] == []
+    assert population.episodes[0] and population.episodes[0] == reference.episodes[0]
+    assert population.episodes[2] == reference.episodes[1]
+    for name, value in population.policy.params.items():
+        np.testing.assert_array_equal(
+            value.detach().numpy(), reference.policy.params[name].detach().numpy()
+        )
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="BUG: learn() keeps the dropped agent's rows of obs/starts after update() drops it "
+    "(ermrl/population/_ppo.py learn, after self._train): the next rollout raises ValueError",
+)
+def test_an_agent_diverging_in_an_update_is_dropped_and_the_others_are_unaffected() -> None:
+    """NaN in one agent's second update: dropped after it; shared Adam/loss leak nothing."""
+    task, ppo, jobs = tiny_pendulum()
+    population = PopulationPPO(task, ppo, jobs)
+    train, calls = population._train, []
+
+    def poisoned(progress: float, obs: np.ndarray, *rest: np.ndarray) -> None:
+        calls.append(population.n_agents)
+        if len(calls) == 2:
+            obs = obs.copy()
+            obs[1] = np.nan
+        train(progress, obs, *rest)
+
+    population._train = poisoned  # type: ignore[method-assign]
+    population.learn(1024)
+    assert calls == [3, 3, 2, 2]  # dropped at the end of the poisoned update
+    assert set(population.failed) == {1}
+    assert isinstance(population.failed[1], TrainingDiverged)
+    reference = PopulationPPO(task, ppo, [jobs[0], jobs[2]])
+    reference.learn(1024)
+    assert population.episodes[0] == reference.episodes[0]
+    assert population.episodes[2] == reference.episodes[1]
+    for name, value in population.policy.params.items():
+        assert torch.isfinite(value).all()
+        np.testing.assert_array_equal(
+            value.detach().numpy(), reference.policy.params[name].detach().numpy()
+        )
+
+
+def test_train_population_reports_the_diverged_job_and_keeps_the_others() -> None:
+    """train_population returns TrainingDiverged for a job whose weights become NaN."""
+    task, ppo, jobs = tiny_pendulum()
+    budget = BudgetConfig(training_steps=1024, fitness="last", n_last_episodes=1)
+    original = PopulationPPO.__init__
+
+    def init(self: PopulationPPO, *args: Any, **kwargs: Any) -> None:
+        original(self, *args, **kwargs)
+        self.policy.params["vf0.w"].data[2] = float("inf") * 0.0  # NaN
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(PopulationPPO, "__init__", init)
+        results = train_population(task, ppo, budget, jobs)
+    assert isinstance(results[2], TrainingDiverged)
+    assert "seed 42" in str(results[2])
+    assert all(isinstance(r, RunResult) for r in results[:2])
+
+
+# -- 5. exported agents load and act the same ---------------------------------------------------
+@pytest.mark.parametrize("normalize", [False, True], ids=["raw", "normalize"])
+def test_exported_agents_load_and_act_as_in_the_population(normalize: bool, tmp_path: Path) -> None:
+    """Each exported agent, reloaded from policy.pt on the SB3 env, predicts the same actions."""
+    task, ppo, jobs = tiny_pendulum(normalize=normalize)
+    population = PopulationPPO(task, ppo, jobs)
+    population.learn(512)
+    rng = np.random.default_rng(0)
+    for pos in range(population.n_agents):
+        model_path = tmp_path / f"agent{pos}" / "model.zip"
+        model_path.parent.mkdir()
+        population.export(pos, model_path)
+        assert model_path.is_file() and policy_path(model_path).is_file()
+        assert stats_path(model_path).is_file() == normalize
+        seeds = derive_seeds(jobs[pos].seed)
+        env = make_vec_env(task, 1, seeds.eval_env, jobs[pos].encoder, seeds.reservoir)
+        if normalize:
+            env = frozen_normalize_env(env, load_normalize_stats(stats_path(model_path)))
+        try:
+            model = load_policy(policy_path(model_path), ppo, env)
+            obs = env.reset()
+            for _ in range(30):
+                theirs, _ = model.predict(obs, deterministic=True)
+                stacked = np.repeat(np.asarray(obs, np.float32)[None], population.n_agents, 0)
+                actions, _, _ = population._act(stacked, deterministic=True)
+                ours = population._clip(actions)[pos]
+                np.testing.assert_allclose(ours, theirs, atol=1e-5, rtol=0)
+                obs, _, _, _ = env.step(rng.uniform(-2, 2, (1, 1)).astype(np.float32))
+        finally:
+            env.close()
+    population.close()
+
+
+def test_train_population_saves_the_asked_models(tmp_path: Path) -> None:
+    """model_paths: a saved model, policy and statistics for each job that asks, none otherwise."""
+    task, ppo, jobs = tiny_pendulum(normalize=True)
+    budget = BudgetConfig(training_steps=1024, fitness="last", n_last_episodes=1)
+    paths = [tmp_path / "a" / "model.zip", None, tmp_path / "c" / "model.zip"]
+    for path in paths:
+        if path is not None:
+            path.parent.mkdir()
+    results = train_population(task, ppo, budget, jobs, model_paths=paths)
+    assert all(isinstance(r, RunResult) for r in results)
+    for path in (paths[0], paths[2]):
+        assert path is not None
+        assert path.is_file() and policy_path(path).is_file() and stats_path(path).is_file()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "c"]
+
+
+# -- 6. refusals --------------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    "ppo",
+    [
+        resolve_ppo_config("Pendulum-v1", learner="lstm-ppo"),
+        ppo_for("Pendulum-v1", target_kl=0.01),
+        ppo_for("Pendulum-v1", policy_kwargs={"squash_output": True}),
+    ],
+    ids=["lstm-ppo", "target_kl", "policy_kwargs"],
+)
+def test_unsupported_settings_are_refused_in_one_line(ppo: PPOConfig) -> None:
+    """Another learner, target_kl or an unknown policy_kwargs key: a one-line --backend sb3 hint."""
+    with pytest.raises((ConfigError, ValueError), match="--backend sb3") as info:
+        check_population_config(ppo)
+    assert "\n" not in str(info.value)
+    with pytest.raises((ConfigError, ValueError), match="--backend sb3"):
+        PopulationPPO(TaskConfig("Pendulum-v1"), ppo, [PopulationJob(None, 0)])
