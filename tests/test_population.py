@@ -87,24 +87,9 @@ CASES = {
 }
 
 
-# BUG (ermrl/population/_ppo.py): an agent's update depends on P in the last bits, which grow over
-# training. (1) PopulationPPO._adam's fused CPU Adam updates a tensor in SIMD chunks and a scalar
-# tail that round differently, so parameters with few elements per agent (value.b, action.b,
-# log_std) depend on P; foreach=True does not. (2) The clip coefficient's
-# ``torch.linalg.vector_norm(norms, dim=0)`` reduces a strided axis of the [n_params, P] norms
-# for P > 1 and a contiguous one for P = 1 (another summation order);
-# ``vector_norm(norms.T.contiguous(), dim=1)`` does not. With both changed these tests pass.
-POPULATION_SIZE_BUG = pytest.mark.xfail(
-    strict=True,
-    reason="BUG: fused Adam and the strided grad-norm reduction make an agent's update depend "
-    "on the population size (ermrl/population/_ppo.py _adam and update)",
-)
-FAILING_CASES = {"pendulum-gsde", "pendulum-normalize", "halfcheetah"}
-
-
 @pytest.mark.parametrize(
     "case",
-    [pytest.param(c, marks=POPULATION_SIZE_BUG if c in FAILING_CASES else ()) for c in CASES],
+    CASES,
 )
 def test_an_agents_result_does_not_depend_on_the_population(case: str) -> None:
     """The same (encoder, seed) alone and at position 5 of 8 gives exactly the same results."""
@@ -130,7 +115,6 @@ def test_an_agents_result_does_not_depend_on_the_population(case: str) -> None:
     assert len({tuple(r.episode_returns) for r in others}) > 1
 
 
-@POPULATION_SIZE_BUG
 def test_an_agents_update_does_not_depend_on_the_population_size() -> None:
     """The same agent updated on the same data alone and at position 5 of 8 ends bitwise equal."""
     task = TaskConfig("Pendulum-v1", "positions")
@@ -171,20 +155,12 @@ def option_encoder(k: int, option: str) -> EncoderConfig:
     return enc
 
 
-FLOAT64_REWARD = pytest.mark.xfail(
-    strict=True,
-    reason="BUG: PopulationEnvs.step feeds the float64 reward to a float64 reservoir; the SB3 "
-    "path feeds DummyVecEnv's float32 reward (ermrl/population/_envs.py set_action_reward(raw))",
-)
-
-
 @pytest.mark.parametrize(
     ("option", "env_id"),
     [
         pytest.param(
             option,
             env_id,
-            marks=FLOAT64_REWARD if (option, env_id) == ("float64", "Pendulum-v1") else (),
         )
         for option in ENCODER_OPTIONS
         for env_id in ("CartPole-v1", "Pendulum-v1")
@@ -374,23 +350,18 @@ def test_an_agent_with_nan_weights_is_dropped_and_the_others_are_unaffected() ->
         )
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="BUG: learn() keeps the dropped agent's rows of obs/starts after update() drops it "
-    "(ermrl/population/_ppo.py learn, after self._train): the next rollout raises ValueError",
-)
 def test_an_agent_diverging_in_an_update_is_dropped_and_the_others_are_unaffected() -> None:
     """NaN in one agent's second update: dropped after it; shared Adam/loss leak nothing."""
     task, ppo, jobs = tiny_pendulum()
     population = PopulationPPO(task, ppo, jobs)
     train, calls = population._train, []
 
-    def poisoned(progress: float, obs: np.ndarray, *rest: np.ndarray) -> None:
+    def poisoned(progress: float, obs: np.ndarray, *rest: np.ndarray) -> np.ndarray | None:
         calls.append(population.n_agents)
         if len(calls) == 2:
             obs = obs.copy()
             obs[1] = np.nan
-        train(progress, obs, *rest)
+        return train(progress, obs, *rest)
 
     population._train = poisoned  # type: ignore[method-assign]
     population.learn(1024)

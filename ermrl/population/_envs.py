@@ -419,8 +419,11 @@ class PopulationEnvs:
                 obs[p, i] = o
         t1 = time.perf_counter()
         self.env_seconds += t1 - t0
-        self.episode_reward += raw
+        self.episode_reward += raw  # Monitor's sums: the rewards as the env returned them
         self.episode_length += 1
+        # What DummyVecEnv hands on (its reward buffer is float32): the reservoir, the
+        # normalization and PPO see these.
+        raw32 = raw.astype(np.float32)
         episodes: list[tuple[int, int, float, int]] = []
         for p, i in last_obs:
             episodes.append(
@@ -432,7 +435,7 @@ class PopulationEnvs:
         terminal: dict[tuple[int, int], np.ndarray] = {}
         if self.reservoir is not None:
             res = self.reservoir
-            res.set_action_reward(actions, raw)
+            res.set_action_reward(actions, raw32)
             if not last_obs:
                 res.set_obs(obs)
                 res.step_all()
@@ -464,7 +467,7 @@ class PopulationEnvs:
         policy = self._norm_obs(policy)
         for (p, i), o in terminal.items():
             terminal[(p, i)] = self._norm_obs(o, p)
-        rewards = self._norm_reward(raw, dones)
+        rewards = self._norm_reward(raw32, dones)
         return policy, rewards, raw, dones, terminal, episodes
 
     def keep(self, idx: np.ndarray) -> None:

@@ -169,10 +169,9 @@ class PopulationPPO:
 
     @staticmethod
     def _adam(params: list[torch.nn.Parameter], lr: float) -> torch.optim.Optimizer:
-        try:
-            return torch.optim.Adam(params, lr=lr, eps=1e-5, fused=True)
-        except (RuntimeError, TypeError):  # a torch without the fused CPU kernel
-            return torch.optim.Adam(params, lr=lr, eps=1e-5, foreach=True)
+        # foreach, not fused: the fused CPU kernel rounds its SIMD body and its scalar tail
+        # differently, so a small tensor's update would depend on the population size.
+        return torch.optim.Adam(params, lr=lr, eps=1e-5, foreach=True)
 
     @property
     def n_agents(self) -> int:
@@ -340,8 +339,10 @@ class PopulationPPO:
             self.timings["policy"] += time.perf_counter() - t0
             progress = 1.0 - float(self.num_timesteps) / float(total_timesteps)
             t0 = time.perf_counter()
-            self._train(progress, buf_obs, buf_act, buf_val, buf_logp, adv, returns)
+            keep = self._train(progress, buf_obs, buf_act, buf_val, buf_logp, adv, returns)
             self.timings["update"] += time.perf_counter() - t0
+            if keep is not None:  # agents whose weights became NaN were dropped
+                obs, starts = obs[keep], starts[keep]
         self.timings["env"] = self.envs.env_seconds
         self.timings["reservoir"] = self.envs.reservoir_seconds
         self.timings["total"] += time.perf_counter() - start
@@ -355,8 +356,9 @@ class PopulationPPO:
         log_probs: np.ndarray,
         advantages: np.ndarray,
         returns: np.ndarray,
-    ) -> None:
-        """SB3 ``PPO.train`` on every agent's rollout (arrays ``[P, n_steps, E, ...]``)."""
+    ) -> np.ndarray | None:
+        """SB3 ``PPO.train`` on every agent's rollout (arrays ``[P, n_steps, E, ...]``); returns
+        the kept positions when agents were dropped."""
         P = self.n_agents
 
         def flat(a: np.ndarray) -> torch.Tensor:
@@ -365,7 +367,7 @@ class PopulationPPO:
             return torch.from_numpy(np.ascontiguousarray(a.reshape(P, -1, *a.shape[3:])))
 
         data = [flat(a) for a in (obs, actions, values, log_probs, advantages, returns)]
-        self.update(progress, *data, permutations=None)
+        return self.update(progress, *data, permutations=None)
 
     def update(
         self,
@@ -378,8 +380,9 @@ class PopulationPPO:
         returns: torch.Tensor,
         *,
         permutations: Sequence[np.ndarray] | None = None,
-    ) -> None:
-        """The PPO update on flattened rollouts ``[P, T, ...]``.
+    ) -> np.ndarray | None:
+        """The PPO update on flattened rollouts ``[P, T, ...]``; an agent whose weights became
+        NaN is dropped, and the kept positions are returned (``None``: none dropped).
 
         Args:
             progress: SB3's ``progress_remaining`` (1 at the start, 0 at the end).
@@ -430,7 +433,8 @@ class PopulationPPO:
                 norms = torch.stack(
                     [torch.linalg.vector_norm(g.reshape(P, -1), dim=1) for g in grads]
                 )
-                total = torch.linalg.vector_norm(norms, dim=0)
+                # Reduced along contiguous rows: the summation order is then the same for any P.
+                total = torch.linalg.vector_norm(norms.T.contiguous(), dim=1)
                 coef = torch.clamp(max_norm / (total + 1e-6), max=1.0)
                 for g in grads:
                     g.mul_(coef.view(P, *([1] * (g.dim() - 1))))
@@ -439,7 +443,10 @@ class PopulationPPO:
             [torch.isfinite(p.detach().reshape(P, -1)).all(1) for p in params]
         ).all(0)
         if not bool(finite.all()):
-            self._drop(torch.nonzero(~finite).flatten().tolist(), "training diverged (NaN weights)")
+            return self._drop(
+                torch.nonzero(~finite).flatten().tolist(), "training diverged (NaN weights)"
+            )
+        return None
 
     # -- evaluation and export -----------------------------------------------------------------
     def evaluate(self, n_episodes: int) -> dict[int, list[float]]:
