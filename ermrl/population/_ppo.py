@@ -339,10 +339,10 @@ class PopulationPPO:
             self.timings["policy"] += time.perf_counter() - t0
             progress = 1.0 - float(self.num_timesteps) / float(total_timesteps)
             t0 = time.perf_counter()
-            keep = self._train(progress, buf_obs, buf_act, buf_val, buf_logp, adv, returns)
+            kept = self._train(progress, buf_obs, buf_act, buf_val, buf_logp, adv, returns)
             self.timings["update"] += time.perf_counter() - t0
-            if keep is not None:  # agents whose weights became NaN were dropped
-                obs, starts = obs[keep], starts[keep]
+            if kept is not None:  # agents whose weights became NaN were dropped
+                obs, starts = obs[kept], starts[kept]
         self.timings["env"] = self.envs.env_seconds
         self.timings["reservoir"] = self.envs.reservoir_seconds
         self.timings["total"] += time.perf_counter() - start
