@@ -31,7 +31,7 @@ from gymnasium import spaces
 from ermrl.agents._train import NoEpisodeFinished, RunResult, TrainingDiverged, derive_seeds
 from ermrl.config import BudgetConfig, ConfigError, EncoderConfig, PPOConfig, TaskConfig
 from ermrl.population._envs import PopulationEnvs
-from ermrl.population._policy import StackedPolicy, policy_spec
+from ermrl.population._policy import StackedAdam, StackedPolicy, policy_spec
 
 __all__ = ["PopulationJob", "PopulationPPO", "check_population_config", "train_population"]
 
@@ -159,19 +159,13 @@ class PopulationPPO:
         self.clip_range_vf = (
             None if self.s["clip_range_vf"] is None else _schedule(self.s["clip_range_vf"])
         )
-        self.optimizer = self._adam(self.policy.parameters(), self.lr(1.0))
+        self.optimizer = StackedAdam(self.policy.parameters(), self.lr(1.0), eps=1e-5)
         self.alive = list(range(len(jobs)))  # position in the arrays -> job index
         self.failed: dict[int, BaseException] = {}
         self.episodes: list[list[tuple[float, int]]] = [[] for _ in jobs]
         self.num_timesteps = 0
         self.timings = {"env": 0.0, "reservoir": 0.0, "policy": 0.0, "update": 0.0, "total": 0.0}
         self._sde: np.ndarray | None = None
-
-    @staticmethod
-    def _adam(params: list[torch.nn.Parameter], lr: float) -> torch.optim.Optimizer:
-        # foreach, not fused: the fused CPU kernel rounds its SIMD body and its scalar tail
-        # differently, so a small tensor's update would depend on the population size.
-        return torch.optim.Adam(params, lr=lr, eps=1e-5, foreach=True)
 
     @property
     def n_agents(self) -> int:
@@ -190,22 +184,14 @@ class PopulationPPO:
         self.envs.keep(keep)
         if self._sde is not None:
             self._sde = self._sde[keep]
-        old = self.optimizer
         index = torch.from_numpy(keep)
-        new_params: dict[str, torch.nn.Parameter] = {}
-        for name, param in self.policy.params.items():
-            new_params[name] = torch.nn.Parameter(param.detach()[index].clone())
-        new_opt = self._adam(list(new_params.values()), old.param_groups[0]["lr"])
-        for (_, param), new in zip(self.policy.params.items(), new_params.values()):
-            state = old.state.get(param)
-            if state:
-                new_opt.state[new] = {
-                    k: (v[index].clone() if torch.is_tensor(v) and v.dim() > 0 else v)
-                    for k, v in state.items()
-                }
+        new_params = {
+            name: torch.nn.Parameter(param.detach()[index].clone())
+            for name, param in self.policy.params.items()
+        }
+        self.optimizer = self.optimizer.keep(index, list(new_params.values()))
         self.policy.params = new_params
         self.policy.refresh()
-        self.optimizer = new_opt
         return keep
 
     # -- rollouts ------------------------------------------------------------------------------
@@ -392,8 +378,7 @@ class PopulationPPO:
         s = self.s
         P, T = obs.shape[:2]
         lr = float(self.lr(progress))
-        for group in self.optimizer.param_groups:
-            group["lr"] = lr
+        self.optimizer.lr = lr
         clip = float(self.clip_range(progress))
         clip_vf = None if self.clip_range_vf is None else float(self.clip_range_vf(progress))
         batch_size, n_epochs = int(s["batch_size"]), int(s["n_epochs"])
@@ -401,17 +386,28 @@ class PopulationPPO:
         max_norm = float(s["max_grad_norm"])
         rows = torch.arange(P)[:, None]
         params = self.policy.parameters()
+        # One [P, T, D] table of everything a minibatch reads, shuffled once per epoch (one
+        # gather instead of six per minibatch); minibatches are then slices of it.
+        d_obs = obs.shape[2]
+        act = actions.to(obs.dtype).reshape(P, T, -1)
+        d_act = act.shape[2]
+        table = torch.cat(
+            [obs, act, *(t[..., None] for t in (old_values, old_log_probs, advantages, returns))],
+            dim=2,
+        )
         for epoch in range(n_epochs):
             if permutations is None:
                 perm = np.stack([rng.permutation(T) for rng in self.rngs])
             else:
                 perm = np.asarray(permutations[epoch])
-            perm_t = torch.from_numpy(perm)
+            shuffled = table[rows, torch.from_numpy(perm)]
             for begin in range(0, T, batch_size):
-                idx = perm_t[:, begin : begin + batch_size]
-                b_obs, b_act = obs[rows, idx], actions[rows, idx]
-                b_adv, b_ret = advantages[rows, idx], returns[rows, idx]
-                b_oldv, b_oldlp = old_values[rows, idx], old_log_probs[rows, idx]
+                batch = shuffled[:, begin : begin + batch_size]
+                b_obs = batch[..., :d_obs]
+                b_act = batch[..., d_obs : d_obs + d_act]
+                b_oldv, b_oldlp, b_adv, b_ret = batch[..., d_obs + d_act :].unbind(-1)
+                if self.discrete:
+                    b_act = b_act[..., 0].long()
                 values, log_prob, entropy = self.policy.evaluate(b_obs, b_act)
                 if s["normalize_advantage"] and b_adv.shape[1] > 1:
                     b_adv = (b_adv - b_adv.mean(1, keepdim=True)) / (
@@ -426,7 +422,7 @@ class PopulationPPO:
                 value_loss = ((b_ret - values) ** 2).mean(1)
                 entropy_loss = -entropy.mean(1)
                 loss = policy_loss + ent_coef * entropy_loss + vf_coef * value_loss
-                self.optimizer.zero_grad(set_to_none=False)
+                self.optimizer.zero_grad()
                 loss.sum().backward()
                 # Per-agent clip_grad_norm_ (SB3 clips each agent's whole gradient).
                 grads = [p.grad for p in params if p.grad is not None]
