@@ -132,6 +132,8 @@ def _task_result(out: Path) -> dict[str, Any]:
 
     def ci(a: str, b: str) -> dict[str, Any]:
         x, y = agents[a]["final_returns"], agents[b]["final_returns"]
+        if not x or not y:  # an agent left out of the test phase (--agents)
+            return {"diff": None, "ci95": [None, None]}
         low, high = bootstrap_mean_diff_ci(x, y)
         diff = float(np.mean(x) - np.mean(y)) if x and y else None
         out: dict[str, Any] = {"diff": diff, "ci95": [low, high]}
@@ -254,6 +256,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sampler-seed", type=int, default=0)
     p.add_argument("--n-procs", type=int, default=2)
     p.add_argument(
+        "--backend",
+        default="sb3",
+        choices=("sb3", "population"),
+        help="what trains the evolution's agents (population: whole generations in lockstep)",
+    )
+    p.add_argument(
+        "--test-backend",
+        default="sb3",
+        choices=("sb3", "population"),
+        help="what trains the test phase's agents (sb3 keeps the test measure of earlier runs)",
+    )
+    p.add_argument(
+        "--agents",
+        nargs="+",
+        default=list(AGENTS),
+        choices=AGENTS,
+        help="test-phase agents (default: all; drop lstm-ppo to save most of the test time)",
+    )
+    p.add_argument(
         "--workdir", default=None, help="studies and runs (default: --out without its suffix)"
     )
     p.add_argument("--out", default="benchmarks/results/science.json")
@@ -293,6 +314,8 @@ def main(argv: list[str] | None = None) -> int:
         study = f"science__{env_id}__{args.observe}__{args.training_steps}__{args.n_trials}"
         if args.cma_start != "center":
             study += f"__{args.cma_start}"
+        if args.backend != "sb3":
+            study += f"__{args.backend}"
         if args.quick:
             study += "__quick"
         evolve_s = _run(
@@ -302,7 +325,7 @@ def main(argv: list[str] | None = None) -> int:
              "--sampler-seed", str(args.sampler_seed), "--cma-start", args.cma_start,
              "--reevaluate-top", str(args.reevaluate_top),
              "--reevaluate-seeds", str(args.reevaluate_seeds),
-             "--reevaluate-steps", str(reeval_steps),
+             "--reevaluate-steps", str(reeval_steps), "--backend", args.backend,
              "--storage", storage, "--study-name", study],
             log,
         )  # fmt: skip
@@ -316,8 +339,8 @@ def main(argv: list[str] | None = None) -> int:
         test_s = _run(
             [*py, "test", "--study-name", study, "--storage", storage,
              "--training-steps", str(args.test_steps), "--seeds", *seeds,
-             "--agents", *AGENTS, "--n-procs", str(args.n_procs), "--out", str(out),
-             "--no-save-models"],
+             "--agents", *args.agents, "--n-procs", str(args.n_procs), "--out", str(out),
+             "--no-save-models", "--backend", args.test_backend],
             log,
         )  # fmt: skip
         test = _task_result(out)
