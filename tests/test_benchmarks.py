@@ -76,3 +76,42 @@ def test_benchmarks_run_in_quick_mode(tmp_path: Path) -> None:
         "2 workers / 1 worker (trials/min, first trial start to last end)",
     } <= comparisons
     assert all(r["a_steps_s"] > 0 and r["b_steps_s"] > 0 for r in trial if "a_steps_s" in r)
+
+
+@pytest.mark.slow
+def test_the_backend_benchmarks_run_in_quick_mode(tmp_path: Path) -> None:
+    """bench_backends and calibrate_backends run end to end and write what they promise."""
+    import csv
+
+    def run(script: str, *args: str) -> subprocess.CompletedProcess[str]:
+        proc = subprocess.run(
+            [sys.executable, str(ROOT / "benchmarks" / script), "--quick", *args],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=900,
+        )
+        assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+        return proc
+
+    run("bench_backends.py", "--tasks", "Pendulum-v1:positions", "--out", str(tmp_path / "b"))
+    with (tmp_path / "b" / "backends.csv").open() as fh:
+        rows = {r["backend"]: r for r in csv.DictReader(fh)}
+    assert set(rows) == {"sb3", "population"}
+    assert rows["sb3"]["env_steps"] == rows["population"]["env_steps"]
+    assert all(float(r["steps_per_s"]) > 0 and r["failed"] == "0" for r in rows.values())
+    # The population's time breakdown is measured, and its parts add up to at most its total.
+    parts = sum(
+        float(rows["population"][k]) for k in ("env_s", "reservoir_s", "policy_s", "update_s")
+    )
+    assert 0 < parts <= float(rows["population"]["total_s"]) * 1.001
+    assert "population / sb3" in (tmp_path / "b" / "backends.md").read_text()
+
+    run("calibrate_backends.py", "--tasks", "CartPole-v1:positions", "--out", str(tmp_path / "c"))
+    with (tmp_path / "c" / "runs.csv").open() as fh:
+        runs = list(csv.DictReader(fh))
+    assert sorted((r["backend"], r["seed"]) for r in runs) == [
+        ("population", "0"), ("population", "1"), ("sb3", "0"), ("sb3", "1")
+    ]  # fmt: skip
+    assert all(r["last_return"] and not r["error"] for r in runs)
+    assert "Mann-Whitney" in (tmp_path / "c" / "summary.md").read_text()
