@@ -84,6 +84,13 @@ CASES = {
         1024,
         True,
     ),
+    # A MuJoCo v4 task with the other mask, episodes ending early (termination), 2 reservoirs.
+    "hopper-v4-two-reservoirs": (
+        TaskConfig("Hopper-v4", "positions"),
+        {"n_steps": 128, "batch_size": 64, "n_epochs": 2},
+        512,
+        True,
+    ),
 }
 
 
@@ -100,7 +107,17 @@ def test_an_agents_result_does_not_depend_on_the_population(case: str) -> None:
     budget = BudgetConfig(
         training_steps=steps, fitness="eval", n_eval_episodes=1, n_last_episodes=1
     )
-    jobs = [PopulationJob(encoder(k) if with_encoder else None, 100 + 7 * k) for k in range(8)]
+
+    def make(k: int) -> EncoderConfig | None:
+        if not with_encoder:
+            return None
+        enc = encoder(k)
+        if "two-reservoirs" in case:
+            second = dataclasses.replace(enc.reservoirs[0], sr=1.5 - 0.1 * k, units=8)
+            enc = enc.with_reservoirs((*enc.reservoirs, second))
+        return enc
+
+    jobs = [PopulationJob(make(k), 100 + 7 * k) for k in range(8)]
     together = train_population(task, ppo, budget, jobs)
     alone = train_population(task, ppo, budget, [jobs[5]])
     a, b = together[5], alone[0]
