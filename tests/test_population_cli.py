@@ -157,3 +157,28 @@ def test_the_test_phase_trains_under_both_backends(tmp_path: Path) -> None:
     for summary in summaries.values():
         assert set(summary.index) == {"res-ppo", "ppo"}
         assert (summary["n_seeds"] == 2).all()
+
+
+def test_a_generalization_evolution_trains_each_task_as_a_population(tmp_path: Path) -> None:
+    """evolve-generalization: each task's candidates x seeds train together; per-task records."""
+    url = f"sqlite:///{tmp_path}/g.db"
+    done = subprocess.run(
+        [
+            sys.executable, str(ROOT / "evolve_generalization.py"),
+            "--env-ids", "Hopper-v5", "Swimmer-v5", "--observe", "positions",
+            "--backend", "population", "--n-trials", "3", "--popsize", "3", "--n-seeds", "2",
+            "--training-steps", "512", "--fitness", "eval", "--n-eval-episodes", "1",
+            "--ppo", "n_steps=128", "batch_size=64", "n_epochs=2", "--units", "20",
+            "--storage", url, "--study-name", "g",
+        ],
+        capture_output=True, text=True, cwd=tmp_path, timeout=600,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "(2 task(s))" in done.stdout
+    trials = load(url, "g").get_trials()
+    assert [t.state for t in trials] == [TrialState.COMPLETE] * 3
+    for t in trials:
+        assert t.user_attrs["backend"] == "population"
+        assert t.user_attrs["population"] == 6
+        assert set(t.user_attrs["task_seed_returns"]) == {"Hopper-v5", "Swimmer-v5"}
+        assert all(len(v) == 2 for v in t.user_attrs["task_seed_returns"].values())
