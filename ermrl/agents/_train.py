@@ -171,6 +171,32 @@ def _episode_callback(result: RunResult, budget: BudgetConfig, report: ReportFn 
     return EpisodeRecorder()
 
 
+def save_trained(model: Any, model_path: str | Path, stats: dict[str, Any] | None) -> None:
+    """Write a trained agent's files: ``model_path`` (``model.zip``), its ``policy.pt`` and, with
+    normalization statistics, their JSON (:func:`~ermrl.agents.stats_path`).
+
+    ``model.zip`` is SB3's format (pickles, never read by ermrl); ``policy.pt`` holds the weights
+    as plain tensors, the only file ermrl reads a policy from. The zip is written under a
+    temporary name and renamed once complete: a full disk never leaves a truncated ``model.zip``
+    under its final name.
+    """
+    import json
+
+    from ermrl.agents._normalize import stats_path
+    from ermrl.agents._policy_io import policy_path, save_policy
+
+    partial = Path(f"{model_path}.partial")
+    try:
+        with partial.open("wb") as handle:
+            model.save(handle)
+        os.replace(partial, model_path)
+    finally:
+        partial.unlink(missing_ok=True)
+    save_policy(model, policy_path(model_path))
+    if stats is not None:
+        stats_path(model_path).write_text(json.dumps(stats, indent=1) + "\n")
+
+
 def train_agent(
     task: TaskConfig,
     encoder: EncoderConfig | None,
@@ -216,10 +242,7 @@ def train_agent(
         frozen_normalize_env,
         normalize_env,
         normalize_stats,
-        save_normalize_stats,
-        stats_path,
     )
-    from ermrl.agents._policy_io import policy_path, save_policy
     from ermrl.learners import get_learner
 
     learner = get_learner(ppo.learner)
@@ -285,20 +308,8 @@ def train_agent(
             if not math.isfinite(result.eval_return):
                 raise TrainingDiverged(f"seed {seed}: non-finite evaluation return")
         if model_path is not None:
-            # model.zip is SB3's format (pickles, never read by ermrl); policy.pt holds the
-            # weights as plain tensors, the only file ermrl reads a policy from.
-            # Saved under a temporary name, renamed once complete: a full disk never leaves a
-            # truncated model.zip under its final name.
-            partial = Path(f"{model_path}.partial")
-            try:
-                with partial.open("wb") as handle:
-                    model.save(handle)
-                os.replace(partial, model_path)
-            finally:
-                partial.unlink(missing_ok=True)
-            save_policy(model, policy_path(model_path))
-            if ppo.normalize is not None:
-                save_normalize_stats(normalized, stats_path(model_path))
+            stats = normalize_stats(normalized) if ppo.normalize is not None else None
+            save_trained(model, model_path, stats)
     finally:
         env.close()
     result.wall_seconds = time.perf_counter() - start

@@ -479,12 +479,8 @@ class PopulationPPO:
     def export(self, position: int, model_path: str | Path) -> None:
         """Save an agent as the SB3 path saves one: ``model.zip``, ``policy.pt`` and, with
         normalization, its statistics (so replays, videos and reports read it unchanged)."""
-        import json
-        import os
-
-        from ermrl.agents._normalize import frozen_normalize_env, stats_path
-        from ermrl.agents._policy_io import policy_path, save_policy
-        from ermrl.agents._train import make_vec_env
+        from ermrl.agents._normalize import frozen_normalize_env
+        from ermrl.agents._train import make_vec_env, save_trained
         from ermrl.learners import get_learner
 
         job = self.jobs[self.alive[position]]
@@ -499,16 +495,7 @@ class PopulationPPO:
             model = learner.build(venv, self.ppo, seed=seeds.agent)
             model.policy.load_state_dict(self.policy.sb3_state(position))
             model.num_timesteps = self.num_timesteps
-            partial = Path(f"{model_path}.partial")
-            try:
-                with partial.open("wb") as handle:
-                    model.save(handle)
-                os.replace(partial, model_path)
-            finally:
-                partial.unlink(missing_ok=True)
-            save_policy(model, policy_path(model_path))
-            if stats is not None:
-                stats_path(model_path).write_text(json.dumps(stats, indent=1) + "\n")
+            save_trained(model, model_path, stats)
         finally:
             venv.close()
 
