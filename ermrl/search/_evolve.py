@@ -107,18 +107,20 @@ def cma_popsize(config: EvolveConfig) -> int | None:
         return None
     if config.search.popsize is not None:
         return config.search.popsize
+    return _default_popsize(config)
+
+
+def _default_popsize(config: EvolveConfig) -> int:
+    """CMA-ES's default population size, 4 + 3 ln(dimension)."""
     return 4 + math.floor(3 * math.log(len(config.space.param_names)))
 
 
 def generation_size(config: EvolveConfig) -> int:
     """Candidates the population backend trains together: the CMA-ES population size (the
     same default formula, or ``--popsize``, for the other samplers)."""
-    popsize = cma_popsize(config)
-    if popsize is not None:
-        return popsize
     if config.search.popsize is not None:
         return config.search.popsize
-    return 4 + math.floor(3 * math.log(len(config.space.param_names)))
+    return _default_popsize(config)
 
 
 def _popsize_message(popsize: int, workers: int, what: str) -> str:
@@ -350,7 +352,8 @@ def run_evolution(
                 durations.append(elapsed)
                 closed = record(study, claim.trial, state, result, note)
                 outcomes.append((claim, closed, state, result, note))
-        return all(finish(*outcome, elapsed) for outcome in outcomes)
+        go_on = [finish(*outcome, elapsed) for outcome in outcomes]  # report every trial
+        return all(go_on)
 
     generation: int | None = None
     if problem.ppo.backend == "population":
