@@ -242,6 +242,8 @@ def train_agent(
         frozen_normalize_env,
         normalize_env,
         normalize_stats,
+        save_normalize_stats,
+        stats_path,
     )
     from ermrl.learners import get_learner
 
@@ -308,8 +310,9 @@ def train_agent(
             if not math.isfinite(result.eval_return):
                 raise TrainingDiverged(f"seed {seed}: non-finite evaluation return")
         if model_path is not None:
-            stats = normalize_stats(normalized) if ppo.normalize is not None else None
-            save_trained(model, model_path, stats)
+            save_trained(model, model_path, None)
+            if ppo.normalize is not None:
+                save_normalize_stats(normalized, stats_path(model_path))
     finally:
         env.close()
     result.wall_seconds = time.perf_counter() - start
