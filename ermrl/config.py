@@ -13,7 +13,7 @@ import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Literal, Protocol, TypeVar, runtime_checkable
+from typing import Any, ClassVar, Literal, Protocol, TypeVar, runtime_checkable
 
 ObserveMode = Literal["all", "positions", "velocities"]
 FitnessMode = Literal["last", "eval"]
@@ -28,6 +28,8 @@ PRUNERS: tuple[str, ...] = ("none", "median", "halving")
 STARTS: tuple[str, ...] = ("reference", "center")
 BACKENDS: tuple[str, ...] = ("sb3", "population")
 BIAS_INITS: tuple[str, ...] = ("none", "original")
+# Encoder families: echo state networks (reservoirpy) and frozen recurrent trace units.
+FAMILIES: tuple[str, ...] = ("esn", "rtu")
 
 
 class ConfigError(ValueError):
@@ -69,7 +71,9 @@ class AgentKind:
         label: Its name in figure legends.
         short_label: Its name on crowded axes.
         color: Its matplotlib colour, the same in every figure.
-        default: Trained when ``--agents`` is not given.
+        default: Trained when ``--agents`` is not given (in a study of its family).
+        family: The encoder family of a study it can be tested in (``"esn"``: evolved with
+            ``--encoder reservoir``, ``"rtu"``: with ``--encoder rtu``); ``None``: any study.
     """
 
     reservoirs: Literal["none", "evolved", "unevolved"]
@@ -80,6 +84,7 @@ class AgentKind:
     short_label: str = ""
     color: str = ""
     default: bool = True
+    family: str | None = None
 
 
 # The registry of test-phase agents (ermrl.experiments builds them): CLI choices, defaults, the
@@ -95,12 +100,28 @@ AGENT_KINDS: Mapping[str, AgentKind] = {
     ),
     "res-ppo": AgentKind(
         "evolved", None, "the study's learner on the selected evolved reservoir(s)", None,
-        "RES-PPO (evolved reservoir)", "RES-PPO\n(evolved)", "tab:orange",
+        "RES-PPO (evolved reservoir)", "RES-PPO\n(evolved)", "tab:orange", family="esn",
     ),
     "random-res-ppo": AgentKind(
         "unevolved", None,
         "the study's learner on unevolved reservoirs (reservoirpy's defaults): what evolution adds",
         None, "RES-PPO (unevolved reservoir)", "RES-PPO\n(unevolved)", "tab:green",
+        family="esn",
+    ),
+    "rtu-res-ppo": AgentKind(
+        "evolved", None,
+        "the study's learner on the selected evolved frozen RTU layer(s) (--encoder rtu studies)",
+        None, "RTU-RES-PPO (evolved RTU)", "RTU-RES\n(evolved)", "tab:red", family="rtu",
+    ),
+    "random-rtu-res-ppo": AgentKind(
+        "unevolved", None,
+        "the study's learner on frozen RTUs of the paper's initialization (--encoder rtu studies)",
+        None, "RTU-RES-PPO (unevolved RTU)", "RTU-RES\n(unevolved)", "tab:pink", family="rtu",
+    ),
+    "rtu-ppo": AgentKind(
+        "none", None,
+        "PPO with recurrent trace units learned online by RTRL (real-time PPO): learned memory",
+        "rtu-ppo", "RTU-PPO (learned RTU)", "RTU-PPO", "tab:olive", default=False,
     ),
     "lstm-ppo": AgentKind(
         "none", None, "RecurrentPPO (LSTM policy) on the raw (masked) observation: memory baseline",
@@ -112,16 +133,35 @@ AGENT_KINDS: Mapping[str, AgentKind] = {
     ),
 }  # fmt: skip
 AGENTS: tuple[str, ...] = tuple(AGENT_KINDS)
-# The agent on the selected evolved encoder, and the one on the unevolved reference: what the
-# report compares and replays.
-EVOLVED_AGENT = next(n for n, k in AGENT_KINDS.items() if k.reservoirs == "evolved")
-UNEVOLVED_AGENT = next(n for n, k in AGENT_KINDS.items() if k.reservoirs == "unevolved")
 
 
-def default_agents(observe: str) -> tuple[str, ...]:
-    """The default agents, less those whose own mask is the task's: ``ppo-full`` on an unmasked
-    task would repeat ``ppo`` run for run."""
-    return tuple(a for a, kind in AGENT_KINDS.items() if kind.default and kind.observe != observe)
+def evolved_agent(family: str = "esn") -> str:
+    """The agent on the selected evolved encoder of a study of ``family``: what the report
+    compares and replays."""
+    return next(
+        n for n, k in AGENT_KINDS.items() if k.reservoirs == "evolved" and k.family == family
+    )
+
+
+def unevolved_agent(family: str = "esn") -> str:
+    """The agent on the unevolved reference encoder of a study of ``family``."""
+    return next(
+        n for n, k in AGENT_KINDS.items() if k.reservoirs == "unevolved" and k.family == family
+    )
+
+
+EVOLVED_AGENT = evolved_agent()
+UNEVOLVED_AGENT = unevolved_agent()
+
+
+def default_agents(observe: str, family: str = "esn") -> tuple[str, ...]:
+    """The default agents of a study of encoder ``family``, less those whose own mask is the
+    task's: ``ppo-full`` on an unmasked task would repeat ``ppo`` run for run."""
+    return tuple(
+        a
+        for a, kind in AGENT_KINDS.items()
+        if kind.default and kind.observe != observe and kind.family in (None, family)
+    )
 
 
 @dataclass(frozen=True)
@@ -155,6 +195,13 @@ class ReservoirParams:
     bias_scaling: float = 0.0
     bias_init: BiasInit = field(default="none", metadata={"omit_if_default": True})
 
+    family: ClassVar[str] = "esn"
+
+    @property
+    def state_dim(self) -> int:
+        """Width of the state the policy can see: one value per unit."""
+        return self.units
+
     def __post_init__(self) -> None:
         if self.bias_init not in BIAS_INITS:
             raise ConfigError(f"bias_init must be one of {BIAS_INITS}, got {self.bias_init!r}")
@@ -179,11 +226,67 @@ class ReservoirParams:
 
 
 @dataclass(frozen=True)
+class RTUParams:
+    """Hyperparameters of one frozen layer of recurrent trace units (a complex-diagonal reservoir).
+
+    The units of Elelimy et al. (2024), with fixed random weights: each of the ``units`` complex
+    units holds ``(c1, c2)``; with ``g = r cos(theta)``, ``phi = r sin(theta)`` and
+    ``gamma = sqrt(1 - r^2)``::
+
+        c1 <- g c1 - phi c2 + gamma (W1 u)
+        c2 <- g c2 + phi c1 + gamma (W2 u)
+
+    The policy sees ``tanh([c1; c2])`` (``2 * units`` values). ``r^2 ~ U(r_min^2, r_max^2)`` and
+    ``theta ~ U(0, theta_max)`` per unit; ``W1`` and ``W2`` are dense ``N(0, input_scaling^2 /
+    input_dim)``. The defaults are the paper's initialization (r in (0, 1), theta in (0, 2 pi)),
+    the unevolved reference of ``--encoder rtu``.
+
+    Attributes:
+        units: Complex units (the state has ``2 * units`` values).
+        r_min: Lower bound of the decay rates' range, in [0, r_max].
+        r_max: Upper bound of the decay rates' range, in (0, 1].
+        theta_max: Upper bound of the rotation frequencies' range (radians per step).
+        input_scaling: Scale of ``W1`` and ``W2``.
+        family: Always ``"rtu"`` (tells stored configurations apart from echo state networks).
+    """
+
+    units: int = 50
+    r_min: float = 0.0
+    r_max: float = 1.0
+    theta_max: float = 2 * math.pi
+    input_scaling: float = 1.0
+    family: Literal["rtu"] = "rtu"
+
+    @property
+    def state_dim(self) -> int:
+        """Width of the state the policy can see: two values per complex unit."""
+        return 2 * self.units
+
+    def __post_init__(self) -> None:
+        if self.family != "rtu":
+            raise ConfigError(f"RTUParams family must be 'rtu', got {self.family!r}")
+        _check_units(2 * self.units)
+        if not (0 < self.r_max <= 1):
+            raise ConfigError(f"r_max must be in (0, 1], got {self.r_max}")
+        if not (0 <= self.r_min <= self.r_max):
+            raise ConfigError(f"r_min must be in [0, r_max = {self.r_max}], got {self.r_min}")
+        if not (self.theta_max > 0 and math.isfinite(self.theta_max)):
+            raise ConfigError(f"theta_max must be positive, got {self.theta_max}")
+        if not (self.input_scaling > 0 and math.isfinite(self.input_scaling)):
+            raise ConfigError(f"input_scaling must be positive, got {self.input_scaling}")
+
+
+EncoderParams = ReservoirParams | RTUParams
+
+
+@dataclass(frozen=True)
 class EncoderConfig:
     """How the reservoir(s) turn observations into the policy's input.
 
     Attributes:
-        reservoirs: One :class:`ReservoirParams` per reservoir; their states are concatenated.
+        reservoirs: One :class:`ReservoirParams` (echo state network) or :class:`RTUParams`
+            (frozen recurrent trace units) per reservoir, all of one family; their states are
+            concatenated.
         skip_connection: The policy sees ``[state, observation, action, reward]``, not only the state.
         reset: ``"episode"`` zeroes a row's state when its episode ends; ``"never"`` carries it.
         exposed_units: Expose only the first N units of each reservoir to the policy (``None``: all).
@@ -200,7 +303,7 @@ class EncoderConfig:
             reservoirpy's own states to 1e-10.
     """
 
-    reservoirs: tuple[ReservoirParams, ...] = (ReservoirParams(),)
+    reservoirs: tuple[EncoderParams, ...] = (ReservoirParams(),)
     skip_connection: bool = False
     reset: ResetMode = "episode"
     exposed_units: int | None = None
@@ -214,6 +317,8 @@ class EncoderConfig:
             raise ConfigError(f"dtype must be float64 or float32, got {self.dtype!r}")
         if not self.reservoirs:
             raise ConfigError("an encoder needs at least one reservoir")
+        if len({p.family for p in self.reservoirs}) > 1:
+            raise ConfigError("the reservoirs of one encoder must all be of one family")
         if self.total_units > MAX_UNITS:
             raise ConfigError(
                 f"the reservoirs have {self.total_units} units together; at most {MAX_UNITS} "
@@ -222,10 +327,10 @@ class EncoderConfig:
         if self.reset not in RESET_MODES:
             raise ConfigError(f"reset must be one of {RESET_MODES}, got {self.reset!r}")
         if self.exposed_units is not None:
-            smallest = min(p.units for p in self.reservoirs)
+            smallest = min(p.state_dim for p in self.reservoirs)
             if not (1 <= self.exposed_units <= smallest):
                 raise ConfigError(
-                    f"exposed_units must be in [1, {smallest}] (units per reservoir), "
+                    f"exposed_units must be in [1, {smallest}] (state size per reservoir), "
                     f"got {self.exposed_units}"
                 )
         if not math.isfinite(self.reward_scale):
@@ -236,8 +341,14 @@ class EncoderConfig:
         return len(self.reservoirs)
 
     @property
+    def family(self) -> str:
+        """``"esn"`` or ``"rtu"``: the reservoirs' family."""
+        return self.reservoirs[0].family
+
+    @property
     def total_units(self) -> int:
-        return sum(p.units for p in self.reservoirs)
+        """Width of the concatenated states (an RTU's complex unit counts twice)."""
+        return sum(p.state_dim for p in self.reservoirs)
 
     @property
     def exposed_total(self) -> int:
@@ -245,7 +356,7 @@ class EncoderConfig:
             return self.total_units
         return self.exposed_units * self.n_reservoirs
 
-    def with_reservoirs(self, reservoirs: tuple[ReservoirParams, ...]) -> EncoderConfig:
+    def with_reservoirs(self, reservoirs: tuple[EncoderParams, ...]) -> EncoderConfig:
         """Return a copy with other reservoir hyperparameters (same encoding options)."""
         return dataclasses.replace(self, reservoirs=tuple(reservoirs))
 
@@ -430,9 +541,72 @@ class SearchSpace(Protocol):
     def contains(self, params: Mapping[str, float]) -> bool: ...
 
 
+class _PerReservoirSpace:
+    """What the search spaces share: each reservoir has the same evolved parameters, named
+    ``name`` with one reservoir and ``name_0``, ``name_1``, ... with several."""
+
+    n_reservoirs: int
+
+    def _per_reservoir(self) -> dict[str, Range]:
+        """One reservoir's evolved parameters and their ranges, in order."""
+        raise NotImplementedError
+
+    def _reference_values(self) -> dict[str, float]:
+        """One unevolved reference reservoir's evolved parameters."""
+        raise NotImplementedError
+
+    @property
+    def evolved(self) -> tuple[str, ...]:
+        """Names of the evolved hyperparameters of one reservoir."""
+        return tuple(self._per_reservoir())
+
+    def param_name(self, name: str, index: int) -> str:
+        return name if self.n_reservoirs == 1 else f"{name}_{index}"
+
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        return tuple(self.param_name(n, k) for k in range(self.n_reservoirs) for n in self.evolved)
+
+    def ranges(self) -> dict[str, Range]:
+        """Search ranges keyed by Optuna parameter name, in a fixed order."""
+        per = self._per_reservoir()
+        return {self.param_name(n, k): r for k in range(self.n_reservoirs) for n, r in per.items()}
+
+    def _values(self, params: Mapping[str, float], k: int) -> dict[str, float]:
+        """Reservoir ``k``'s evolved values in a trial's parameters.
+
+        Raises:
+            ConfigError: a parameter of this space is missing.
+        """
+        try:
+            return {n: float(params[self.param_name(n, k)]) for n in self.evolved}
+        except KeyError as err:
+            raise ConfigError(f"parameter {err.args[0]!r} missing from {dict(params)}") from err
+
+    def reference_params(self) -> dict[str, float]:
+        """The unevolved reference reservoirs (``default_reservoirs()``) as trial parameters."""
+        one = self._reference_values()
+        return {self.param_name(n, k): one[n] for k in range(self.n_reservoirs) for n in one}
+
+    def contains(self, params: Mapping[str, float]) -> bool:
+        """Whether ``params`` name exactly this space's parameters, each within its range."""
+        ranges = self.ranges()
+        return set(params) == set(ranges) and all(
+            r.low <= params[name] <= r.high for name, r in ranges.items()
+        )
+
+    def center_params(self) -> dict[str, float]:
+        """The centre of the box (geometric mean of the bounds on a log scale): the paper's start."""
+        return {
+            name: math.sqrt(r.low * r.high) if r.log else (r.low + r.high) / 2
+            for name, r in self.ranges().items()
+        }
+
+
 @dataclass(frozen=True)
-class ReservoirSpace:
-    """The evolved search space: data, not code. Defaults follow the ER-MRL paper.
+class ReservoirSpace(_PerReservoirSpace):
+    """The evolved search space of echo state networks: data, not code. Defaults follow the
+    ER-MRL paper.
 
     Every range is log-scale. The space has a fixed dimension so that CMA-ES never falls back to
     independent sampling. With one reservoir the parameters are named ``sr``, ``lr`` and
@@ -462,6 +636,8 @@ class ReservoirSpace:
     bias_scaling: float = 0.0
     bias_init: BiasInit = field(default="none", metadata={"omit_if_default": True})
 
+    family: ClassVar[str] = "esn"
+
     def __post_init__(self) -> None:
         if self.n_reservoirs < 1:
             raise ConfigError(f"n_reservoirs must be >= 1, got {self.n_reservoirs}")
@@ -483,25 +659,15 @@ class ReservoirSpace:
             bias_init=self.bias_init,
         )
 
-    @property
-    def evolved(self) -> tuple[str, ...]:
-        """Names of the evolved hyperparameters of one reservoir."""
-        base = ("sr", "lr")
-        return base + (("input_scaling",) if self.input_scaling is not None else ())
-
-    def param_name(self, name: str, index: int) -> str:
-        return name if self.n_reservoirs == 1 else f"{name}_{index}"
-
-    @property
-    def param_names(self) -> tuple[str, ...]:
-        return tuple(self.param_name(n, k) for k in range(self.n_reservoirs) for n in self.evolved)
-
-    def ranges(self) -> dict[str, Range]:
-        """Search ranges keyed by Optuna parameter name, in a fixed order."""
+    def _per_reservoir(self) -> dict[str, Range]:
         per: dict[str, Range] = {"sr": self.sr, "lr": self.lr}
         if self.input_scaling is not None:
             per["input_scaling"] = self.input_scaling
-        return {self.param_name(n, k): r for k in range(self.n_reservoirs) for n, r in per.items()}
+        return per
+
+    def _reference_values(self) -> dict[str, float]:
+        one = self.default_reservoirs()[0]
+        return {name: float(getattr(one, name)) for name in self.evolved}
 
     def reservoirs_from(self, params: Mapping[str, float]) -> tuple[ReservoirParams, ...]:
         """Build the reservoirs described by a trial's parameters.
@@ -511,21 +677,13 @@ class ReservoirSpace:
         """
         out = []
         for k in range(self.n_reservoirs):
-            try:
-                sr = float(params[self.param_name("sr", k)])
-                lr = float(params[self.param_name("lr", k)])
-                if self.input_scaling is None:
-                    input_scaling = self.fixed_input_scaling
-                else:
-                    input_scaling = float(params[self.param_name("input_scaling", k)])
-            except KeyError as err:
-                raise ConfigError(f"parameter {err.args[0]!r} missing from {dict(params)}") from err
+            values = self._values(params, k)
             out.append(
                 ReservoirParams(
                     units=self.units,
-                    sr=sr,
-                    lr=lr,
-                    input_scaling=input_scaling,
+                    sr=values["sr"],
+                    lr=values["lr"],
+                    input_scaling=values.get("input_scaling", self.fixed_input_scaling),
                     rc_connectivity=self.rc_connectivity,
                     input_connectivity=self.input_connectivity,
                     bias_scaling=self.bias_scaling,
@@ -533,28 +691,6 @@ class ReservoirSpace:
                 )
             )
         return tuple(out)
-
-    def reference_params(self) -> dict[str, float]:
-        """The unevolved reference reservoirs (:meth:`default_reservoirs`) as trial parameters."""
-        out: dict[str, float] = {}
-        for k, res in enumerate(self.default_reservoirs()):
-            for name in self.evolved:
-                out[self.param_name(name, k)] = float(getattr(res, name))
-        return out
-
-    def contains(self, params: Mapping[str, float]) -> bool:
-        """Whether ``params`` name exactly this space's parameters, each within its range."""
-        ranges = self.ranges()
-        return set(params) == set(ranges) and all(
-            r.low <= params[name] <= r.high for name, r in ranges.items()
-        )
-
-    def center_params(self) -> dict[str, float]:
-        """The centre of the box (geometric mean of the bounds on a log scale): the paper's start."""
-        return {
-            name: math.sqrt(r.low * r.high) if r.log else (r.low + r.high) / 2
-            for name, r in self.ranges().items()
-        }
 
     def default_reservoirs(self) -> tuple[ReservoirParams, ...]:
         """Unevolved reservoirs (reservoirpy defaults for sr, lr and input scaling)."""
@@ -567,6 +703,101 @@ class ReservoirSpace:
             bias_init=self.bias_init,
         )
         return (one,) * self.n_reservoirs
+
+
+@dataclass(frozen=True)
+class RTUSpace(_PerReservoirSpace):
+    """The evolved search space of frozen recurrent trace units (``--encoder rtu``).
+
+    Evolution shapes the ranges the units' parameters are drawn from, as it shapes an ESN's
+    spectral radius: the upper decay rate ``r_max`` (linear scale), the lower one as a fraction
+    of it, ``r_min_ratio`` (linear; ``r_min = r_min_ratio * r_max`` keeps the range ordered in a
+    box), the largest rotation frequency ``theta_max`` (log scale) and the input scaling (log
+    scale). The reference is the paper's initialization: ``r in (0, 1)``, ``theta in (0, 2 pi)``,
+    input scaling 1.
+
+    Attributes:
+        n_reservoirs: RTU layers per agent, each with its own ranges and weights.
+        units: Complex units per layer (the policy sees ``2 * units`` values per layer).
+        r_max: Range of ``r_max``, within (0, 1].
+        r_min_ratio: Range of ``r_min / r_max``, within [0, 1].
+        theta_max: Range of ``theta_max``.
+        input_scaling: Input-scaling range, or ``None`` to fix it at ``fixed_input_scaling``.
+        fixed_input_scaling: The value used when ``input_scaling`` is ``None``.
+        family: Always ``"rtu"`` (stored, so that a study's space reads back as this class).
+    """
+
+    n_reservoirs: int = 1
+    units: int = 50
+    r_max: Range = Range(0.05, 1.0, log=False)
+    r_min_ratio: Range = Range(0.0, 1.0, log=False)
+    theta_max: Range = Range(1e-2, 2 * math.pi)
+    input_scaling: Range | None = Range(1e-1, 10.0)
+    fixed_input_scaling: float = 1.0
+    family: Literal["rtu"] = "rtu"
+
+    def __post_init__(self) -> None:
+        if self.family != "rtu":
+            raise ConfigError(f"RTUSpace family must be 'rtu', got {self.family!r}")
+        if self.n_reservoirs < 1:
+            raise ConfigError(f"n_reservoirs must be >= 1, got {self.n_reservoirs}")
+        if self.n_reservoirs * 2 * self.units > MAX_UNITS:
+            raise ConfigError(
+                f"{self.n_reservoirs} RTU layers of {self.units} complex units: at most "
+                f"{MAX_UNITS} state values are allowed in all"
+            )
+        if not (0 < self.r_max.low and self.r_max.high <= 1):
+            raise ConfigError(f"the r_max range must stay within (0, 1], got {self.r_max}")
+        if not (0 <= self.r_min_ratio.low and self.r_min_ratio.high <= 1):
+            raise ConfigError(
+                f"the r_min_ratio range must stay within [0, 1], got {self.r_min_ratio}"
+            )
+        RTUParams(units=self.units, input_scaling=self.fixed_input_scaling)
+
+    def _per_reservoir(self) -> dict[str, Range]:
+        per = {"r_max": self.r_max, "r_min_ratio": self.r_min_ratio, "theta_max": self.theta_max}
+        if self.input_scaling is not None:
+            per["input_scaling"] = self.input_scaling
+        return per
+
+    def _reference_values(self) -> dict[str, float]:
+        one = self.default_reservoirs()[0]
+        ref = {"r_max": one.r_max, "r_min_ratio": one.r_min / one.r_max}
+        ref["theta_max"] = one.theta_max
+        if self.input_scaling is not None:
+            ref["input_scaling"] = one.input_scaling
+        return ref
+
+    def reservoirs_from(self, params: Mapping[str, float]) -> tuple[RTUParams, ...]:
+        """Build the RTU layers described by a trial's parameters.
+
+        Raises:
+            ConfigError: a parameter of this space is missing.
+        """
+        out = []
+        for k in range(self.n_reservoirs):
+            values = self._values(params, k)
+            out.append(
+                RTUParams(
+                    units=self.units,
+                    r_min=values["r_min_ratio"] * values["r_max"],
+                    r_max=values["r_max"],
+                    theta_max=values["theta_max"],
+                    input_scaling=values.get("input_scaling", self.fixed_input_scaling),
+                )
+            )
+        return tuple(out)
+
+    def default_reservoirs(self) -> tuple[RTUParams, ...]:
+        """Unevolved RTU layers: the paper's initialization ranges, input scaling 1."""
+        one = RTUParams(
+            units=self.units,
+            input_scaling=self.fixed_input_scaling if self.input_scaling is None else 1.0,
+        )
+        return (one,) * self.n_reservoirs
+
+
+EncoderSpace = ReservoirSpace | RTUSpace
 
 
 @dataclass(frozen=True)
@@ -744,7 +975,7 @@ class EvolveConfig:
     """
 
     problem: Problem
-    space: ReservoirSpace
+    space: EncoderSpace
     search: SearchConfig
     n_procs: int = 1
     generalization: GeneralizationConfig | None = field(
@@ -766,6 +997,13 @@ class EvolveConfig:
             )
         if self.space.n_reservoirs != self.problem.encoder.n_reservoirs:
             raise ConfigError("the encoder and the search space disagree on n_reservoirs")
+        if self.space.family != self.problem.encoder.family:
+            raise ConfigError("the encoder and the search space are of different families")
+        if self.space.family != "esn" and self.problem.ppo.backend == "population":
+            raise ConfigError(
+                "the population backend runs echo state reservoirs only: use --backend sb3 "
+                f"with the {self.space.family} encoder"
+            )
         if self.generalization is not None and self.problem.task not in (
             t.task for t in self.generalization.tasks
         ):
@@ -775,6 +1013,8 @@ class EvolveConfig:
     def default_study_name(self) -> str:
         task = self.problem.task
         parts = [task.env_id, task.observe, f"{self.problem.budget.training_steps}steps"]
+        if self.space.family != "esn":
+            parts.append(self.space.family)
         if self.space.n_reservoirs > 1:
             parts.append(f"{self.space.n_reservoirs}res")
         return "__".join(parts)
@@ -822,6 +1062,10 @@ def from_dict(cls: type[_T], data: Mapping[str, Any]) -> _T:
         (ReservoirSpace, "sr"): Range,
         (ReservoirSpace, "lr"): Range,
         (ReservoirSpace, "input_scaling"): Range,
+        (RTUSpace, "r_max"): Range,
+        (RTUSpace, "r_min_ratio"): Range,
+        (RTUSpace, "theta_max"): Range,
+        (RTUSpace, "input_scaling"): Range,
         (EvolveConfig, "generalization"): GeneralizationConfig,
         (GeneralizationTask, "task"): TaskConfig,
         (GeneralizationTask, "ppo"): PPOConfig,
@@ -837,10 +1081,15 @@ def from_dict(cls: type[_T], data: Mapping[str, Any]) -> _T:
         if key not in names:
             continue  # tolerate fields added by newer versions
         sub = hints.get((cls, key))
+        if sub is ReservoirSpace and isinstance(value, Mapping) and value.get("family") == "rtu":
+            sub = RTUSpace
         if sub is not None and value is not None:
             value = from_dict(sub, value)
         elif cls is EncoderConfig and key == "reservoirs":
-            value = tuple(from_dict(ReservoirParams, v) for v in value)
+            value = tuple(
+                from_dict(RTUParams if v.get("family") == "rtu" else ReservoirParams, v)
+                for v in value
+            )
         elif cls is Problem and key == "seeds":
             value = tuple(int(v) for v in value)
         elif cls is PPOConfig and key == "hyperparams":

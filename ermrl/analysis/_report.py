@@ -29,7 +29,7 @@ from typing import Any, TextIO
 import pandas as pd
 
 from ermrl.analysis._style import save_figure, task_title
-from ermrl.config import AGENTS, EVOLVED_AGENT, UNEVOLVED_AGENT
+from ermrl.config import AGENTS, evolved_agent, unevolved_agent
 
 __all__ = ["ReportResult", "notebook_parameters", "write_report"]
 
@@ -638,11 +638,12 @@ def _test_section(state: _State, runs: Path, band: str) -> None:
                 columns={"n_seeds": "seeds", "ci95_low": "95% CI low", "ci95_high": "95% CI high"}
             )
         )
-    comparison = compare_agents(results, EVOLVED_AGENT, [a for a in order if a != EVOLVED_AGENT])
+    evolved = _evolved_agent(state)
+    comparison = compare_agents(results, evolved, [a for a in order if a != evolved])
     state.csv("comparison", comparison, "test/comparison.csv")
-    doc.h(3, f"`{EVOLVED_AGENT}` against the baselines")
+    doc.h(3, f"`{evolved}` against the baselines")
     if comparison.empty:
-        doc.p("Needs finished runs of `res-ppo` and of a baseline.")
+        doc.p(f"Needs finished runs of `{evolved}` and of a baseline.")
     else:
         doc.table(
             comparison[
@@ -659,7 +660,7 @@ def _test_section(state: _State, runs: Path, band: str) -> None:
                 ]
             ].rename(
                 columns={
-                    "n_candidate": "seeds res-ppo",
+                    "n_candidate": f"seeds {evolved}",
                     "n_baseline": "seeds baseline",
                     "mean_diff": "mean difference",
                     "boot_ci_low": "95% bootstrap CI low",
@@ -671,11 +672,16 @@ def _test_section(state: _State, runs: Path, band: str) -> None:
             )
         )
         doc.p(
-            "Mean difference = mean(`res-ppo`) − mean(baseline) of the final returns; percentile "
+            f"Mean difference = mean(`{evolved}`) − mean(baseline) of the final returns; percentile "
             "bootstrap (10 000 resamples) and Welch's unequal-variance t-test. With few seeds "
             "both are rough: report them with the number of seeds."
         )
     state.sections.append(doc)
+
+
+def _evolved_agent(state: _State) -> str:
+    """The report's study's evolved agent (``res-ppo``, or ``rtu-res-ppo`` for an RTU study)."""
+    return evolved_agent(state.config.space.family if state.config else "esn")
 
 
 def _dynamics_section(state: _State, runs: Path) -> None:
@@ -688,23 +694,25 @@ def _dynamics_section(state: _State, runs: Path) -> None:
     from ermrl.analysis._replay import available_runs
 
     models = available_runs(runs)
-    seeds = sorted(s for a, s in models if a == EVOLVED_AGENT)
+    evolved = _evolved_agent(state)
+    unevolved = unevolved_agent(state.config.space.family if state.config else "esn")
+    seeds = sorted(s for a, s in models if a == evolved)
     if not seeds:
         state.notes.append(
-            f"reservoir dynamics: no saved res-ppo policy.pt in {runs} (test phase run with "
-            "--no-save-models, without res-ppo, or by an older ermrl that saved only model.zip, "
-            "which is never unpickled: re-train)"
+            f"reservoir dynamics: no saved {evolved} policy.pt in {runs} (test phase run with "
+            f"--no-save-models, without {evolved}, or by an older ermrl that saved only "
+            "model.zip, which is never unpickled: re-train)"
         )
         return
     seed = seeds[0]
-    recordings = {EVOLVED_AGENT: record_dynamics(runs, EVOLVED_AGENT, seed)}
-    if (UNEVOLVED_AGENT, seed) in models:
-        recordings[UNEVOLVED_AGENT] = record_dynamics(runs, UNEVOLVED_AGENT, seed)
+    recordings = {evolved: record_dynamics(runs, evolved, seed)}
+    if (unevolved, seed) in models:
+        recordings[unevolved] = record_dynamics(runs, unevolved, seed)
     doc = _Doc()
     doc.h(2, "Reservoir dynamics")
-    rec = recordings[EVOLVED_AGENT]
+    rec = recordings[evolved]
     doc.p(
-        f"One deterministic episode of `res-ppo`, seed {seed} ({rec.n_steps} steps, return "
+        f"One deterministic episode of `{evolved}`, seed {seed} ({rec.n_steps} steps, return "
         f"{rec.episode_return:.4g}); arrays in `dynamics/` (`.npz`: observations, actions, "
         "rewards, reservoir states)."
     )
@@ -713,7 +721,7 @@ def _dynamics_section(state: _State, runs: Path) -> None:
         paths = write_dynamics(recording, state.out / "dynamics")
         for key in ("dynamics", "spectrum"):
             state.figures[f"{agent}_{key}"] = paths[key]
-        if agent == EVOLVED_AGENT:
+        if agent == evolved:
             doc.img(
                 f"dynamics/{paths['dynamics'].name}",
                 "Observations, actions and the first 20 reservoir units",

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import shlex
 import sys
 import textwrap
@@ -30,10 +31,12 @@ from ermrl.config import (
     BudgetConfig,
     ConfigError,
     EncoderConfig,
+    EncoderSpace,
     EvolveConfig,
     Problem,
     Range,
     ReservoirSpace,
+    RTUSpace,
     SearchConfig,
     TaskConfig,
 )
@@ -58,10 +61,14 @@ DESCRIPTION = textwrap.dedent(
 
     Each trial samples sr, lr and input_scaling (per reservoir), trains one PPO agent per seed on
     the reservoir-encoded observations and records the mean return as the trial's fitness.
-    Re-running the same command resumes the study; several workers may share it.
+    With --encoder rtu the reservoir is a frozen layer of recurrent trace units and the trial
+    samples the ranges its decays and frequencies are drawn from. Re-running the same command
+    resumes the study; several workers may share it.
 
-    example:
+    examples:
       evolve_res.py --env-id Pendulum-v1 --observe positions --n-trials 20 --n-seeds 2 \\
+          --training-steps 20000 --storage sqlite:///ermrl.db
+      evolve_res.py --env-id CartPole-v1 --observe positions --encoder rtu --n-trials 20 \\
           --training-steps 20000 --storage sqlite:///ermrl.db
     """
 )
@@ -176,14 +183,28 @@ def add_problem_args(parser: argparse.ArgumentParser, *, multi_task: bool = Fals
         "--torch-threads", type=positive_int, default=1, help="torch threads per training process"
     )
 
-    r = parser.add_argument_group("reservoirs")
+    r = parser.add_argument_group("reservoirs (the evolved encoder)")
+    r.add_argument(
+        "--encoder",
+        choices=("reservoir", "rtu"),
+        default="reservoir",
+        help="'reservoir': echo state networks (evolved sr, lr, input_scaling); 'rtu': frozen "
+        "recurrent trace units, a complex-diagonal reservoir (evolved r_max, r_min_ratio, "
+        "theta_max, input_scaling)",
+    )
     r.add_argument(
         "--n-reservoirs",
         type=positive_int,
         default=1,
-        help="reservoirs per agent, each with its own evolved sr, lr, input_scaling",
+        help="reservoirs (or RTU layers) per agent, each with its own evolved parameters",
     )
-    r.add_argument("--units", type=positive_int, default=100, help="units per reservoir (fixed)")
+    r.add_argument(
+        "--units",
+        type=positive_int,
+        default=None,
+        help="units per reservoir, fixed (default 100); with --encoder rtu, complex units per "
+        "layer, each showing the policy 2 values (default 50)",
+    )
     r.add_argument(
         "--sr-range",
         nargs=2,
@@ -216,6 +237,23 @@ def add_problem_args(parser: argparse.ArgumentParser, *, multi_task: bool = Fals
         default=None,
         metavar="VALUE",
         help="do not evolve input scaling; fix it at VALUE (1.0 when no value is given)",
+    )
+    r.add_argument(
+        "--r-max-range",
+        nargs=2,
+        type=float,
+        default=[0.05, 1.0],
+        metavar=("LOW", "HIGH"),
+        help="--encoder rtu: range of the largest decay rate r_max (linear, within (0, 1])",
+    )
+    r.add_argument(
+        "--theta-max-range",
+        nargs=2,
+        type=positive_float,
+        default=[1e-2, 2 * math.pi],
+        metavar=("LOW", "HIGH"),
+        help="--encoder rtu: range of the largest rotation frequency theta_max (log scale, "
+        "radians per step)",
     )
     r.add_argument(
         "--rc-connectivity", type=positive_float, default=0.1, help="recurrent connectivity"
@@ -395,10 +433,22 @@ def build_evolve_parser(prog: str = "ermrl evolve") -> ArgumentParser:
     return parser
 
 
-def space_from_args(args: argparse.Namespace) -> ReservoirSpace:
+def space_from_args(args: argparse.Namespace) -> EncoderSpace:
+    input_scaling = (
+        None if args.fixed_input_scaling is not None else _range("is")(args.input_scaling_range)
+    )
+    if getattr(args, "encoder", "reservoir") == "rtu":
+        return RTUSpace(
+            n_reservoirs=args.n_reservoirs,
+            units=50 if args.units is None else args.units,
+            r_max=Range(float(args.r_max_range[0]), float(args.r_max_range[1]), log=False),
+            theta_max=_range("theta_max")(args.theta_max_range),
+            input_scaling=input_scaling,
+            fixed_input_scaling=args.fixed_input_scaling or 1.0,
+        )
     return ReservoirSpace(
         n_reservoirs=args.n_reservoirs,
-        units=args.units,
+        units=100 if args.units is None else args.units,
         sr=_range("sr")(args.sr_range),
         lr=_range("lr")(args.lr_range),
         input_scaling=None
@@ -412,7 +462,7 @@ def space_from_args(args: argparse.Namespace) -> ReservoirSpace:
     )
 
 
-def encoder_from_args(args: argparse.Namespace, space: ReservoirSpace) -> EncoderConfig:
+def encoder_from_args(args: argparse.Namespace, space: EncoderSpace) -> EncoderConfig:
     return EncoderConfig(
         reservoirs=space.default_reservoirs(),
         skip_connection=args.skip_connection,

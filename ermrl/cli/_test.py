@@ -269,7 +269,7 @@ def plan_test_phase(
             stacklevel=2,
         )
     seeds = select_seeds(seeds, os.environ.get("SLURM_ARRAY_TASK_ID"))
-    args.agents = args.agents or list(default_agents(observe))
+    args.agents = args.agents or list(default_agents(observe, config.space.family))
     overrides = parse_overrides(args.ppo)
     agents, chosen = study_agents(
         study, config, args.agents, args.trial, learner_settings_for(ppo, task.env_id, overrides)

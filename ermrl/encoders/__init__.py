@@ -12,14 +12,17 @@ from ermrl.encoders._base import Encoder
 from ermrl.encoders._reservoir import (
     ReservoirBank,
     ReservoirWeights,
+    encoder_weights,
     reservoir_node,
     reservoir_seeds,
     reservoir_weights,
+    rtu_weights,
 )
 from ermrl.encoders._reservoir_encoder import ReservoirEncoder
+from ermrl.encoders._rtu_encoder import RTUEncoder
 from ermrl.encoders._vec_env import ActionEncoder, ReservoirVecEnv
 
-ENCODERS: Mapping[str, Encoder] = {e.name: e for e in (ReservoirEncoder(),)}
+ENCODERS: Mapping[str, Encoder] = {e.name: e for e in (ReservoirEncoder(), RTUEncoder())}
 
 
 def encoder_for(config: Any) -> Encoder:
@@ -29,9 +32,23 @@ def encoder_for(config: Any) -> Encoder:
         TypeError: no registered encoder takes such settings.
     """
     for encoder in ENCODERS.values():
-        if isinstance(config, encoder.config_cls):
+        if encoder.accepts(config):
             return encoder
     raise TypeError(f"no registered encoder takes {type(config).__name__} settings")
+
+
+def get_encoder(name: str) -> Encoder:
+    """The encoder registered as ``name``.
+
+    Raises:
+        ConfigError: no such encoder (the message lists the registered ones).
+    """
+    from ermrl.config import ConfigError
+
+    encoder = ENCODERS.get(name)
+    if encoder is None:
+        raise ConfigError(f"unknown encoder {name!r}; choose from {', '.join(ENCODERS)}")
+    return encoder
 
 
 __all__ = [
@@ -39,7 +56,11 @@ __all__ = [
     "ActionEncoder",
     "Encoder",
     "ReservoirEncoder",
+    "RTUEncoder",
     "encoder_for",
+    "encoder_weights",
+    "get_encoder",
+    "rtu_weights",
     "ReservoirBank",
     "ReservoirVecEnv",
     "ReservoirWeights",

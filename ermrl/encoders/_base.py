@@ -29,6 +29,8 @@ class Encoder:
         name: Registry name.
         description: One line for the docs.
         place: ``"env"`` (frozen, wraps the env) or ``"policy"`` (trainable, in the policy).
+        family: The reservoirs' family its settings hold (:attr:`ermrl.config.EncoderConfig.family`);
+            two encoders may share a settings class and differ by family.
         config_cls: Its settings dataclass (stored in a study's configuration).
         space_cls: Its search space dataclass: ``ranges()`` (name -> range of every evolved
             parameter), ``reference_params()``, ``contains()`` and ``center_params()``.
@@ -37,8 +39,15 @@ class Encoder:
     name: ClassVar[str]
     description: ClassVar[str]
     place: ClassVar[Literal["env", "policy"]] = "env"
+    family: ClassVar[str | None] = None
     config_cls: ClassVar[type]
     space_cls: ClassVar[type]
+
+    def accepts(self, config: Any) -> bool:
+        """Whether ``config`` is this encoder's settings (its class and, if set, its family)."""
+        if not isinstance(config, self.config_cls):
+            return False
+        return self.family is None or getattr(config, "family", None) == self.family
 
     def decode(self, space: Any, params: Mapping[str, float], base: Any) -> Any:
         """The encoder settings of a sampled point: ``base`` with the evolved parameters."""

@@ -4,6 +4,10 @@ The update rule is reservoirpy's ``Reservoir`` rule, applied to ``n_envs`` state
 
     x <- (1 - lr) * x + lr * tanh(W x + Win u + b)
 
+A frozen layer of recurrent trace units (:class:`~ermrl.config.RTUParams`) is the linear case
+``x <- W x + Win u`` with a block-rotation ``W`` (see :func:`rtu_weights`); the policy then sees
+``tanh(x)``.
+
 Several reservoirs are fused into one block-diagonal system, so one step is one matrix product
 for all reservoirs and all environments: there is no per-step reservoirpy ``Node`` call.
 """
@@ -17,9 +21,16 @@ import numpy as np
 from reservoirpy import mat_gen
 from reservoirpy.nodes import Reservoir
 
-from ermrl.config import ReservoirParams
+from ermrl.config import EncoderParams, ReservoirParams, RTUParams
 
-__all__ = ["ReservoirWeights", "ReservoirBank", "reservoir_weights", "reservoir_seeds"]
+__all__ = [
+    "ReservoirWeights",
+    "ReservoirBank",
+    "encoder_weights",
+    "reservoir_weights",
+    "reservoir_seeds",
+    "rtu_weights",
+]
 
 
 @dataclass(frozen=True)
@@ -31,12 +42,15 @@ class ReservoirWeights:
         Win: Input matrix, shape ``(units, input_dim)``.
         bias: Bias vector, shape ``(units,)``.
         lr: Leak rate.
+        linear: The update is ``x <- W x + Win u`` (no tanh, no leak; an RTU layer) and the
+            policy sees ``tanh(x)``.
     """
 
     W: np.ndarray
     Win: np.ndarray
     bias: np.ndarray
     lr: float
+    linear: bool = False
 
     @property
     def units(self) -> int:
@@ -103,6 +117,38 @@ def reservoir_weights(params: ReservoirParams, input_dim: int, seed: int) -> Res
     return ReservoirWeights(W=_dense(node.W), Win=_dense(node.Win), bias=bias, lr=float(params.lr))
 
 
+def rtu_weights(params: RTUParams, input_dim: int, seed: int) -> ReservoirWeights:
+    """One frozen RTU layer as a linear reservoir over the state ``x = [c1; c2]``.
+
+    Per complex unit ``i``: ``r_i = sqrt(U(r_min^2, r_max^2))``, ``theta_i = U(0, theta_max)``,
+    ``g = r cos(theta)``, ``phi = r sin(theta)``, ``gamma = sqrt(1 - r^2)``, and
+    ``W = [[diag g, -diag phi], [diag phi, diag g]]``, ``Win = [gamma W1; gamma W2]`` with ``W1``,
+    ``W2`` dense ``N(0, input_scaling^2 / input_dim)``. ``r`` and ``theta`` come from one child
+    stream of ``seed`` and the input weights from another, so the same seed gives the same
+    recurrence for any ``input_dim`` (as reservoirpy does for an ESN's ``W``).
+    """
+    if input_dim < 1:
+        raise ValueError(f"input_dim must be >= 1, got {input_dim}")
+    recurrent, inputs = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(2))
+    n = params.units
+    r = np.sqrt(recurrent.uniform(params.r_min**2, params.r_max**2, n))
+    theta = recurrent.uniform(0.0, params.theta_max, n)
+    g, phi, gamma = r * np.cos(theta), r * np.sin(theta), np.sqrt(np.maximum(1.0 - r**2, 0.0))
+    W = np.block([[np.diag(g), -np.diag(phi)], [np.diag(phi), np.diag(g)]])
+    scale = params.input_scaling / np.sqrt(input_dim)
+    W12 = inputs.normal(0.0, scale, (2 * n, input_dim))
+    Win = np.concatenate([gamma, gamma])[:, None] * W12
+    return ReservoirWeights(W=W, Win=Win, bias=np.zeros(2 * n), lr=1.0, linear=True)
+
+
+def encoder_weights(params: EncoderParams, input_dim: int, seed: int) -> ReservoirWeights:
+    """The weights of one reservoir of either family (:func:`reservoir_weights` or
+    :func:`rtu_weights`)."""
+    if isinstance(params, RTUParams):
+        return rtu_weights(params, input_dim, seed)
+    return reservoir_weights(params, input_dim, seed)
+
+
 def reservoir_seeds(seed: int, n_reservoirs: int) -> list[int]:
     """Independent weight seeds for ``n_reservoirs`` reservoirs derived from one seed."""
     children = np.random.SeedSequence(seed).spawn(n_reservoirs)
@@ -128,6 +174,9 @@ class ReservoirBank:
         dims = {w.input_dim for w in weights}
         if len(dims) != 1:
             raise ValueError(f"all reservoirs must share input_dim, got {sorted(dims)}")
+        if len({w.linear for w in weights}) != 1:
+            raise ValueError("a ReservoirBank cannot mix linear (RTU) and tanh reservoirs")
+        self.linear = weights[0].linear
         self.dtype = np.dtype(dtype)
         self.units = tuple(w.units for w in weights)
         self.n_units = sum(self.units)
@@ -166,6 +215,9 @@ class ReservoirBank:
             xu: Shape ``(n, N + input_dim)``; its state columns are updated in place.
         """
         pre = np.matmul(xu, self.M)  # the function: ~0.5 us less per call than `@`
+        if self.linear:
+            xu[:, : self.n_units] = pre
+            return
         if self._has_bias:
             pre += self.bias
         np.tanh(pre, out=pre)
@@ -173,6 +225,13 @@ class ReservoirBank:
         x = xu[:, : self.n_units]
         x *= self.keep
         x += pre
+
+    def emit(self, states: np.ndarray) -> np.ndarray:
+        """What the policy sees of ``states``, as a new float32 array: the states themselves
+        (ESN, already in (-1, 1)) or their tanh (linear RTU layers, whose states are unbounded)."""
+        if self.linear:
+            return np.tanh(states).astype(np.float32)
+        return states.astype(np.float32)
 
     def step(self, states: np.ndarray, inputs: np.ndarray) -> np.ndarray:
         """Advance every state row by one step, in place.

@@ -21,6 +21,7 @@ class ReservoirEncoder(Encoder):
     name = "reservoir"
     description = "echo state network(s) initialized by reservoirpy; frozen, wraps the env"
     place = "env"
+    family = "esn"
     config_cls = EncoderConfig
     space_cls = ReservoirSpace
 

@@ -25,7 +25,7 @@ from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvObs, VecEnvStepReturn
 
 from ermrl.config import EncoderConfig
-from ermrl.encoders._reservoir import ReservoirBank, reservoir_seeds, reservoir_weights
+from ermrl.encoders._reservoir import ReservoirBank, encoder_weights, reservoir_seeds
 
 __all__ = ["ActionEncoder", "ReservoirVecEnv"]
 
@@ -131,7 +131,7 @@ class ReservoirVecEnv(VecEnvWrapper):
 
         self.weight_seeds = reservoir_seeds(seed, config.n_reservoirs)
         self.weights = [
-            reservoir_weights(p, self.input_dim, s)
+            encoder_weights(p, self.input_dim, s)
             for p, s in zip(config.reservoirs, self.weight_seeds)
         ]
         self.bank = ReservoirBank(self.weights, dtype=config.dtype)
@@ -183,9 +183,9 @@ class ReservoirVecEnv(VecEnvWrapper):
         if self._exposed is not None:
             x = x[:, self._exposed]
         if not self.config.skip_connection:
-            return x.astype(np.float32)
+            return self.bank.emit(x)
         parts = [
-            x,
+            self.bank.emit(x),
             self._obs_in[rows] if obs is None else obs,
             self._act_in[rows],
             self._rew_in[rows],
@@ -223,7 +223,7 @@ class ReservoirVecEnv(VecEnvWrapper):
             self._obs_in[:] = obs
             self.bank.step_buffer(self._xu)
             if self._state_only:
-                return self.states.astype(np.float32), rewards, dones, infos
+                return self.bank.emit(self.states), rewards, dones, infos
             return self._policy_obs(), rewards, dones, infos
 
         # Terminal step: feed the true last observation of each finished episode.

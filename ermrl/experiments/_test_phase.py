@@ -55,13 +55,15 @@ from ermrl.config import (
     BudgetConfig,
     ConfigError,
     EncoderConfig,
+    EncoderParams,
     EvolveConfig,
     ObserveMode,
     PPOConfig,
-    ReservoirParams,
     TaskConfig,
     default_agents,
+    evolved_agent,
     to_dict,
+    unevolved_agent,
 )
 from ermrl.experiments._results import write_run
 
@@ -103,7 +105,7 @@ class AgentSpec:
     """
 
     name: str
-    reservoirs: tuple[ReservoirParams, ...] | None
+    reservoirs: tuple[EncoderParams, ...] | None
     observe: ObserveMode | None = None
     ppo: PPOConfig | None = None
 
@@ -114,8 +116,8 @@ class AgentSpec:
 
 def agent_specs(
     names: Sequence[str],
-    evolved: tuple[ReservoirParams, ...] | None,
-    unevolved: tuple[ReservoirParams, ...],
+    evolved: tuple[EncoderParams, ...] | None,
+    unevolved: tuple[EncoderParams, ...],
     learner_settings: Callable[[str], PPOConfig | None] | None = None,
 ) -> list[AgentSpec]:
     """Build the agents named in ``names`` from :data:`AGENT_KINDS`.
@@ -129,13 +131,21 @@ def agent_specs(
             comparison's settings.
 
     Raises:
-        ConfigError: an unknown name, or ``res-ppo`` without evolved reservoirs.
+        ConfigError: an unknown name, an agent of another encoder family than the reservoirs
+            given, or ``res-ppo`` without evolved reservoirs.
     """
     specs = []
+    family = unevolved[0].family if unevolved else None
     for name in names:
         kind = AGENT_KINDS.get(name)
         if kind is None:
             raise ConfigError(f"unknown agent {name!r}; choose from {', '.join(AGENTS)}")
+        if kind.family is not None and family is not None and kind.family != family:
+            flag = "--encoder rtu" if kind.family == "rtu" else "--encoder reservoir"
+            raise ConfigError(
+                f"agent {name!r} needs a study evolved with {flag}; this study's encoder is "
+                f"{family!r} (its agents: {evolved_agent(family)}, {unevolved_agent(family)})"
+            )
         reservoirs = {"none": None, "evolved": evolved, "unevolved": unevolved}[kind.reservoirs]
         if kind.reservoirs == "evolved" and reservoirs is None:
             raise ConfigError(f"agent {name!r} needs the evolved reservoirs")
@@ -269,7 +279,7 @@ class Selection:
     """
 
     params: dict[str, float]
-    reservoirs: tuple[ReservoirParams, ...]
+    reservoirs: tuple[EncoderParams, ...]
     number: int
     how: str
 
@@ -292,7 +302,7 @@ def select_reservoirs(
 
 def study_reservoirs(
     study: optuna.Study, config: EvolveConfig, trial_number: int | None = None
-) -> tuple[dict[str, float], tuple[ReservoirParams, ...], int]:
+) -> tuple[dict[str, float], tuple[EncoderParams, ...], int]:
     """The parameters, reservoirs and number of the trial :func:`select_reservoirs` picks."""
     chosen = select_reservoirs(study, config, trial_number)
     return chosen.params, chosen.reservoirs, chosen.number
@@ -675,7 +685,9 @@ def _train_populations(
     groups: dict[str, list[tuple[AgentSpec, int, tuple[Any, ...]]]] = {}
     rest = []
     for job in jobs:
-        if job[2][2].backend == "population":
+        encoder = job[2][1]
+        # The population backend runs echo state reservoirs only; other runs stay on sb3.
+        if job[2][2].backend == "population" and (encoder is None or encoder.family == "esn"):
             groups.setdefault(_population_key(job[2]), []).append(job)
         else:
             rest.append(job)

@@ -46,6 +46,11 @@ class BatchedReservoir:
         from ermrl.encoders._vec_env import ActionEncoder
 
         first = encoders[0]
+        if any(enc.family != "esn" for enc in encoders):
+            raise ValueError(
+                "the population backend runs echo state reservoirs only; train other encoders "
+                "with the sb3 backend"
+            )
         for enc in encoders[1:]:
             if enc.with_reservoirs(first.reservoirs) != first or [
                 p.units for p in enc.reservoirs
@@ -65,7 +70,7 @@ class BatchedReservoir:
         banks = [
             ReservoirBank(
                 [
-                    reservoir_weights(p, self.input_dim, s)
+                    reservoir_weights(p, self.input_dim, s)  # type: ignore[arg-type]
                     for p, s in zip(enc.reservoirs, reservoir_seeds(seed, enc.n_reservoirs))
                 ],
                 dtype=enc.dtype,
