@@ -15,6 +15,7 @@ from ermrl.learners._base import Learner
 from ermrl.learners._framestack_ppo import FrameStackPPOLearner
 from ermrl.learners._lstm_ppo import LstmPPOLearner
 from ermrl.learners._ppo import PPOLearner
+from ermrl.learners._rtu_ppo import RTUPPOLearner
 
 __all__ = ["LEARNERS", "Learner", "get_learner", "learner_names"]
 
@@ -23,6 +24,7 @@ _REGISTERED: tuple[Learner, ...] = (
     PPOLearner(),
     LstmPPOLearner(),
     FrameStackPPOLearner(),
+    RTUPPOLearner(),
 )
 LEARNERS: Mapping[str, Learner] = {learner.name: learner for learner in _REGISTERED}
 
