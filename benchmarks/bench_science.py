@@ -55,7 +55,8 @@ def _run(cmd: list[str], log: Path) -> float:
             fh.write(line)
         code = proc.wait()
     if code != 0:
-        raise SystemExit(f"bench_science: {cmd[3]} failed with exit code {code} (log: {log})")
+        bench = Path(sys.argv[0]).stem or "benchmark"
+        raise SystemExit(f"{bench}: {cmd[3]} failed with exit code {code} (log: {log})")
     return time.perf_counter() - start
 
 

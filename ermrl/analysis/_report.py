@@ -580,7 +580,7 @@ def _test_section(state: _State, runs: Path, band: str) -> None:
     if run_config.get("trial") is not None:
         params = run_config.get("params") or {}
         facts.append(
-            f"`res-ppo` uses trial #{run_config['trial']}: "
+            f"`{_evolved_agent(state)}` uses trial #{run_config['trial']}: "
             + ", ".join(f"`{k}` = {v:.4g}" for k, v in params.items())
         )
     if settings:

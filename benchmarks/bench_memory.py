@@ -1,0 +1,214 @@
+"""Memory benchmark: evolved reservoirs against learned recurrent memory, on partially observable
+tasks.
+
+Five agents get the same training budget on new seeds (the test phase), each with its learner's
+own settings table:
+
+- ``ppo``: PPO on the masked observation (no memory);
+- ``lstm-ppo``: RecurrentPPO with an LSTM (learned memory, BPTT);
+- ``rtu-ppo``: real-time PPO with recurrent trace units learned online by RTRL (learned memory);
+- ``res-ppo``: PPO on an echo state network evolved by CMA-ES (``ermrl evolve``);
+- ``rtu-res-ppo``: PPO on frozen RTUs whose ranges CMA-ES evolved (``ermrl evolve --encoder
+  rtu``).
+
+For each task the benchmark runs, through the ``ermrl`` CLI as a user would: the two evolutions
+(same trials, seeds and steps), the test phase of the ESN study (``ppo lstm-ppo rtu-ppo
+res-ppo``) and that of the RTU study (``rtu-res-ppo``), on the same test seeds and budget. It
+prints a table per task: final return (mean of the last 10 training episodes) mean, std and
+Student-t 95% CI over the seeds, and wall-clock per agent (its test runs; evolved agents also
+show their evolution's wall time). It writes JSON and Markdown; it never fails on a result.
+
+    python benchmarks/bench_memory.py                  # default budgets (hours on 2 cores)
+    python benchmarks/bench_memory.py --quick          # smoke test, a few minutes
+    python benchmarks/bench_memory.py --tasks CartPole-v1:positions --test-steps 50000
+
+Tasks are ``ENV_ID:OBSERVE``; every budget is an argument. A resumed run skips finished
+trials and test runs (the studies and run folders are kept in the work folder).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks._harness import machine  # noqa: E402
+from benchmarks.bench_science import _evolution_facts, _run  # noqa: E402
+
+AGENTS = ("ppo", "lstm-ppo", "rtu-ppo", "res-ppo", "rtu-res-ppo")
+TASKS = (
+    "Pendulum-v1:positions",
+    "CartPole-v1:positions",
+    "popgym-RepeatFirstEasy-v0:all",
+    "Hopper-v5:positions",
+)
+# Which study's test phase trains an agent: the RTU study trains its evolved RTU, the ESN study
+# everything else.
+RTU_AGENTS = ("rtu-res-ppo",)
+
+
+def _agent_rows(outs: list[Path], agents: tuple[str, ...]) -> dict[str, Any]:
+    """Per-agent final returns, their statistics and wall time, from test-phase folders."""
+    import pandas as pd
+
+    from ermrl.analysis import final_returns_table, load_run_results
+
+    frames = [load_run_results(out) for out in outs if out.exists()]
+    runs = pd.concat([f for f in frames if not f.empty]) if frames else pd.DataFrame()
+    table = final_returns_table(
+        runs, [a for a in agents if not runs.empty and a in set(runs["agent"])]
+    )
+    rows: dict[str, Any] = {}
+    for agent in agents:
+        sub = runs[runs["agent"] == agent].sort_values("seed") if not runs.empty else runs
+        stats = table[table["agent"] == agent]
+        one = stats.iloc[0] if len(stats) else None
+        rows[agent] = {
+            "seeds": [int(s) for s in sub["seed"]] if len(sub) else [],
+            "final_returns": [float(v) for v in sub["final_return"]] if len(sub) else [],
+            "mean": None if one is None else float(one["mean"]),
+            "std": None if one is None else float(one["std"]),
+            "ci95": None if one is None else [float(one["ci95_low"]), float(one["ci95_high"])],
+            "wall_seconds": float(sub["wall_seconds"].sum()) if len(sub) else 0.0,
+            "env_steps": int(sub["env_steps"].sum()) if len(sub) else 0,
+        }
+    return rows
+
+
+def _fmt(value: float | None, digits: int = 1) -> str:
+    return "-" if value is None or value != value else f"{value:.{digits}f}"
+
+
+def format_table(report: dict[str, Any]) -> str:
+    """Markdown: one table per task, one row per agent."""
+    lines = []
+    for task in report["tasks"]:
+        lines += [
+            f"### {task['label']}",
+            "",
+            "| agent | seeds | final return mean ± std | 95% CI | test wall (all seeds) | "
+            "evolution wall |",
+            "|---|---|---|---|---|---|",
+        ]
+        for agent, row in task["agents"].items():
+            ci = row["ci95"]
+            ci_text = "-" if ci is None else f"[{_fmt(ci[0])}, {_fmt(ci[1])}]"
+            evolve = task["evolution_seconds"].get(agent)
+            lines.append(
+                f"| {agent} | {len(row['final_returns'])} | {_fmt(row['mean'])} ± "
+                f"{_fmt(row['std'])} | {ci_text} | {row['wall_seconds'] / 60:.1f} min | "
+                f"{'-' if evolve is None else f'{evolve / 60:.1f} min'} |"
+            )
+        for agent, sel in task["selected"].items():
+            params = " ".join(f"{k}={v:.3g}" for k, v in sel["params"].items())
+            tag = " (the unevolved reference)" if sel["is_reference"] else ""
+            lines.append(f"\n{agent}: trial #{sel['trial']}{tag} {params}")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    p.add_argument("--tasks", nargs="+", default=list(TASKS), metavar="ENV_ID:OBSERVE")
+    p.add_argument("--agents", nargs="+", default=list(AGENTS), choices=AGENTS)
+    p.add_argument("--n-trials", type=int, default=20, help="evolution trials per encoder")
+    p.add_argument("--n-seeds", type=int, default=1, help="seeds per evolution trial")
+    p.add_argument("--training-steps", type=int, default=20_000, help="steps per evolution run")
+    p.add_argument("--test-steps", type=int, default=50_000, help="steps per test run")
+    p.add_argument("--test-seeds", type=int, default=5)
+    p.add_argument("--sampler-seed", type=int, default=0)
+    p.add_argument("--n-procs", type=int, default=2)
+    p.add_argument("--out", default="benchmarks/results/memory.json")
+    p.add_argument("--workdir", default=None, help="studies and runs (default: next to --out)")
+    p.add_argument("--quick", action="store_true", help="tiny budgets: a smoke test")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.quick:
+        args.n_trials, args.n_seeds, args.training_steps = 2, 1, 1024
+        args.test_steps, args.test_seeds = 1024, 2
+    work = Path(args.workdir) if args.workdir else Path(args.out).with_suffix("")
+    work.mkdir(parents=True, exist_ok=True)
+    storage = f"sqlite:///{(work / 'memory.db').resolve()}"
+    log = work / "log.txt"
+    py = [sys.executable, "-m", "ermrl"]
+    seeds = [str(10 + i) for i in range(args.test_seeds)]
+    report: dict[str, Any] = {"settings": vars(args), "machine": machine(), "tasks": []}
+    for spec in args.tasks:
+        env_id, _, observe = spec.partition(":")
+        observe = observe or "all"
+        label = f"{env_id}[{observe}]"
+        studies: dict[str, str] = {}
+        for encoder, agent in (("reservoir", "res-ppo"), ("rtu", "rtu-res-ppo")):
+            if agent not in args.agents:
+                continue
+            study = (
+                f"memory__{env_id}__{observe}__{encoder}__{args.training_steps}__{args.n_trials}"
+            )
+            studies[agent] = study
+            _run(
+                [*py, "evolve", "--env-id", env_id, "--observe", observe, "--encoder", encoder,
+                 "--n-trials", str(args.n_trials), "--n-seeds", str(args.n_seeds),
+                 "--training-steps", str(args.training_steps), "--n-procs", str(args.n_procs),
+                 "--sampler-seed", str(args.sampler_seed), "--storage", storage,
+                 "--study-name", study, "--quiet"],
+                log,
+            )  # fmt: skip
+        # The ESN study's test phase trains every agent but the evolved RTU; without an ESN
+        # study (no res-ppo asked for), a tiny one is evolved to host the baselines.
+        host = studies.get("res-ppo")
+        esn_agents = [a for a in args.agents if a not in RTU_AGENTS]
+        if esn_agents and host is None:
+            host = f"memory__{env_id}__{observe}__host"
+            _run(
+                [*py, "evolve", "--env-id", env_id, "--observe", observe, "--n-trials", "1",
+                 "--n-seeds", "1", "--training-steps", "1000", "--storage", storage,
+                 "--study-name", host, "--quiet"],
+                log,
+            )  # fmt: skip
+        outs = []
+        for study, agents in ((host, esn_agents), (studies.get("rtu-res-ppo"), ["rtu-res-ppo"])):
+            if study is None or not agents:
+                continue
+            out = work / study
+            outs.append(out)
+            _run(
+                [*py, "test", "--study-name", study, "--storage", storage,
+                 "--training-steps", str(args.test_steps), "--seeds", *seeds,
+                 "--agents", *agents, "--n-procs", str(args.n_procs), "--out", str(out),
+                 "--no-save-models", "--quiet"],
+                log,
+            )  # fmt: skip
+        facts = {agent: _evolution_facts(storage, study) for agent, study in studies.items()}
+        report["tasks"].append(
+            {
+                "env_id": env_id,
+                "observe": observe,
+                "label": label,
+                "studies": studies,
+                "agents": _agent_rows(outs, tuple(args.agents)),
+                "evolution_seconds": {a: f["seconds"] for a, f in facts.items()},
+                "selected": {a: f["selected"] for a, f in facts.items()},
+            }
+        )
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(report, indent=2, default=str))
+    table = format_table(report)
+    report["table"] = table
+    Path(args.out).write_text(json.dumps(report, indent=2, default=str))
+    Path(args.out).with_suffix(".md").write_text(table + "\n")
+    print(table)
+    print(f"wrote {args.out} and {Path(args.out).with_suffix('.md')}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
