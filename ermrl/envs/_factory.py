@@ -1,4 +1,9 @@
-"""Build gymnasium envs the way ermrl uses them: validated id, optional observation mask."""
+"""Build gymnasium envs the way ermrl uses them: validated id, optional observation mask.
+
+POPGym ids (``popgym-<Name>-v0``) are registered on first use, so :func:`check_env_id`,
+:func:`observation_split` and :func:`observation_indices` here wrap those of
+:mod:`ermrl.envs._masks` to import ``popgym`` first (see :mod:`ermrl.envs._popgym`).
+"""
 
 from __future__ import annotations
 
@@ -9,6 +14,7 @@ from typing import Any
 import gymnasium
 from gymnasium import spaces
 
+from ermrl.envs import _masks
 from ermrl.envs._masks import (
     CLASSIC_SPLITS,
     MUJOCO_OBSERVE_ENVS,
@@ -22,11 +28,15 @@ from ermrl.envs._masks import (
     _select,
     _unsupported,
     _validate_observe,
-    check_env_id,
-    observation_split,
+)
+from ermrl.envs._popgym import (
+    check_popgym_observe,
+    is_popgym_id,
+    make_popgym_env,
+    register_popgym,
 )
 
-__all__ = ["make_env"]
+__all__ = ["check_env_id", "make_env", "observation_indices", "observation_split"]
 
 # MuJoCo >= 3.3 warns, on every model load, that gymnasium's own XML files use the deprecated
 # `settotalmass` attribute. Nothing ermrl or its users can fix; it would flood progress output.
@@ -53,6 +63,69 @@ def _filter_mujoco_warnings() -> None:
 
 
 _filter_mujoco_warnings()
+
+
+def check_env_id(env_id: str) -> None:
+    """Fail fast on an env id that gymnasium does not know, suggesting close matches.
+
+    :func:`ermrl.envs._masks.check_env_id`, after registering POPGym tasks for a ``popgym-``
+    id. Only the registry is consulted; the env is not constructed.
+
+    Args:
+        env_id: A gymnasium id such as ``"HalfCheetah-v5"`` or ``"popgym-RepeatFirstEasy-v0"``.
+
+    Raises:
+        UnknownEnvError: When ``env_id`` is not registered (or ``popgym`` is not installed).
+    """
+    register_popgym(env_id)
+    _masks.check_env_id(env_id)
+
+
+def observation_split(env_id: str) -> ObservationSplit:
+    """Return the position/velocity split of ``env_id``'s default observation.
+
+    :func:`ermrl.envs._masks.observation_split` (cached), refusing POPGym tasks with their own
+    message.
+
+    Args:
+        env_id: A registered gymnasium id.
+
+    Returns:
+        The split for the env built with default keyword arguments.
+
+    Raises:
+        UnknownEnvError: When ``env_id`` is not registered.
+        UnsupportedObserveError: When no split is known for ``env_id`` (always for POPGym).
+    """
+    check_env_id(env_id)
+    if is_popgym_id(env_id):
+        check_popgym_observe(env_id, "positions")
+    return _masks.observation_split(env_id)
+
+
+def observation_indices(env_id: str, observe: ObserveMode) -> tuple[int, ...] | None:
+    """Indices of the flat observation kept by an observation mode.
+
+    :func:`ermrl.envs._masks.observation_indices`, refusing a mask for a POPGym task with its
+    own message.
+
+    Args:
+        env_id: A registered gymnasium id.
+        observe: ``"all"``, ``"positions"`` or ``"velocities"``.
+
+    Returns:
+        ``None`` for ``"all"`` (keep everything), else sorted indices into the observation.
+
+    Raises:
+        ValueError: For an unknown ``observe`` value.
+        UnknownEnvError: When ``env_id`` is not registered.
+        UnsupportedObserveError: When a mask is requested for an env without a known split.
+    """
+    _validate_observe(observe)
+    check_env_id(env_id)
+    if is_popgym_id(env_id):
+        check_popgym_observe(env_id, observe)
+    return _masks.observation_indices(env_id, observe)
 
 
 def _split_for(env_id: str, env_kwargs: Mapping[str, Any]) -> ObservationSplit:
@@ -95,6 +168,10 @@ def make_env(
     Everything cheap is validated first (``observe`` value, env id in the registry, a known
     split for masked modes) before the env itself is built.
 
+    A POPGym task (``popgym-<Name>-v0``, see :mod:`ermrl.envs._popgym`) takes only
+    ``observe="all"``; its observation is flattened to a float32 vector (one-hot for each
+    discrete part).
+
     Args:
         env_id: A registered gymnasium id, e.g. ``"HalfCheetah-v5"``.
         observe: ``"all"`` (full observation), ``"positions"`` or ``"velocities"``.
@@ -103,16 +180,22 @@ def make_env(
 
     Returns:
         The env; for a masked mode, wrapped in :class:`ObservationMask` so observations have
-        shape ``(len(indices),)`` instead of ``(obs_dim,)``.
+        shape ``(len(indices),)`` instead of ``(obs_dim,)``; for a POPGym task, wrapped so
+        observations are float32 of shape ``(flatdim,)``.
 
     Raises:
         ValueError: For an unknown ``observe`` value.
-        UnknownEnvError: When ``env_id`` is not registered.
-        UnsupportedObserveError: When a mask is requested for an env without a known split, or
-            the built env's observation does not have the split's layout.
+        UnknownEnvError: When ``env_id`` is not registered (for a POPGym id: or ``popgym`` is
+            not installed).
+        UnsupportedObserveError: When a mask is requested for an env without a known split (any
+            POPGym task), or the built env's observation does not have the split's layout.
+        ConfigError: When a POPGym env does not take ``render_mode`` or ``env_kwargs``.
     """
     _validate_observe(observe)
     check_env_id(env_id)
+    if is_popgym_id(env_id):
+        check_popgym_observe(env_id, observe)
+        return make_popgym_env(env_id, render_mode, **env_kwargs)
     split = None if observe == "all" else _split_for(env_id, env_kwargs)
 
     env = gymnasium.make(env_id, render_mode=render_mode, **env_kwargs)
