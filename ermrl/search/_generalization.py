@@ -418,7 +418,7 @@ def generalization_config(
 
 
 def generalization_study_name(config: EvolveConfig) -> str:
-    """Default study name: ``gen__<suite or ids>__<observe>__<steps>steps[__<K>res]``."""
+    """Default study name: ``gen__<suite or ids>__<observe>__<steps>steps[__rtu][__<K>res]``."""
     if config.generalization is None:
         return config.default_study_name
     gen = config.generalization
@@ -429,6 +429,8 @@ def generalization_study_name(config: EvolveConfig) -> str:
         config.problem.task.observe,
         f"{config.problem.budget.training_steps}steps",
     ]
+    if config.space.family != "esn":
+        parts.append(config.space.family)
     if config.space.n_reservoirs > 1:
         parts.append(f"{config.space.n_reservoirs}res")
     return "__".join(parts)
