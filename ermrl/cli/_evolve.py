@@ -86,7 +86,9 @@ def add_problem_args(parser: argparse.ArgumentParser, *, multi_task: bool = Fals
     """Arguments shared by single-task and generalization evolution."""
     if not multi_task:
         parser.add_argument(
-            "--env-id", required=True, help="gymnasium env id, e.g. Pendulum-v1, HalfCheetah-v5"
+            "--env-id",
+            required=True,
+            help="gymnasium env id, e.g. Pendulum-v1, HalfCheetah-v5, popgym-RepeatFirstEasy-v0",
         )
     parser.add_argument(
         "--observe",
