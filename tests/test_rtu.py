@@ -191,3 +191,16 @@ def test_slow_units_stay_finite() -> None:
     out.sum().backward()
     assert all(th.isfinite(p.grad).all() for p in _params(rtu))  # type: ignore[arg-type]
     assert all(th.isfinite(t).all() for t in carry)
+
+
+def test_a_step_without_the_next_carry_gives_the_same_output_and_gradients() -> None:
+    rtu, xs, weights = _sequence(4)
+    carry = rtu.initial_carry(BATCH)
+    for x in xs[:6]:
+        _, carry = rtu(x, carry)
+    out, _ = rtu(xs[6], carry)
+    full = th.autograd.grad(_loss(out, weights[6]), _params(rtu))
+    only = rtu.step_output(xs[6], carry)
+    assert th.equal(only, out)
+    for a, b in zip(th.autograd.grad(_loss(only, weights[6]), _params(rtu)), full):
+        th.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)

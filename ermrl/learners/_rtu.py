@@ -210,11 +210,19 @@ def _state_step(
 
 
 class _RTRLStep(th.autograd.Function):
-    """One RTU step whose backward is exact RTRL (see the module docstring)."""
+    """One RTU step whose backward is exact RTRL (see the module docstring).
+
+    The ``W₁`` traces after the step, ``A_t = rot(A_{t-1}) + (gamma x, 0)``, are only built
+    when the next carry is asked for (acting, re-scanning). The backward contracts the
+    rotated output gradient with the traces before the step instead,
+    ``grad_c · A_t = rotᵀ(grad_c) · A_{t-1} + gamma grad_c¹ x``, so a minibatch that only needs
+    gradients never materialises a second ``(B, 2, n, d_in)`` tensor.
+    """
 
     @staticmethod
     def forward(
         ctx: Any,
+        new_w: bool,
         x: Tensor,
         nu_log: Tensor,
         theta_log: Tensor,
@@ -238,44 +246,51 @@ class _RTRLStep(th.autograd.Function):
         dg, dphi = co.dg_dtheta, co.dphi_dtheta
         a1 = a1 + dg * c1p - dphi * c2p
         a2 = a2 + dg * c2p + dphi * c1p
-        # W₁ rows: unit i only sees row i, forced by gamma_i x (into c¹ only).
-        g, phi = co.g[:, None], co.phi[:, None]
-        w_1, w_2 = _rotate(g, phi, t_w[:, 0], t_w[:, 1])
-        w_1 = w_1 + co.gamma[:, None] * x[:, None, :]
         new_nu = th.stack((n1, n2), dim=1)
         new_theta = th.stack((a1, a2), dim=1)
-        new_w = th.stack((w_1, w_2), dim=1)
-        ctx.save_for_backward(co.gamma, w1, w2, new_nu, new_theta, new_w)
-        ctx.mark_non_differentiable(new_nu, new_theta, new_w)
-        return c, new_nu, new_theta, new_w
+        if new_w:
+            # W₁ rows: unit i only sees row i, forced by gamma_i x (into c¹ only).
+            g, phi = co.g[:, None], co.phi[:, None]
+            w_1, w_2 = _rotate(g, phi, t_w[:, 0], t_w[:, 1])
+            traces = th.stack((w_1 + co.gamma[:, None] * x[:, None, :], w_2), dim=1)
+        else:
+            traces = t_w.new_empty(0)
+        ctx.save_for_backward(co.g, co.phi, co.gamma, x, w1, w2, new_nu, new_theta, t_w)
+        ctx.mark_non_differentiable(new_nu, new_theta, traces)
+        return c, new_nu, new_theta, traces
 
     @staticmethod
     def backward(ctx: Any, grad_c: Tensor, *unused: Tensor) -> tuple[Tensor | None, ...]:
-        gamma, w1, w2, t_nu, t_theta, t_w = ctx.saved_tensors
+        g, phi, gamma, x, w1, w2, t_nu, t_theta, t_w = ctx.saved_tensors
         d1, d2 = grad_c[:, 0], grad_c[:, 1]
         need = ctx.needs_input_grad
         grad_x = grad_nu = grad_theta = grad_w1 = grad_w2 = None
-        if need[0]:
-            grad_x = (gamma * d1) @ w1 + (gamma * d2) @ w2
         if need[1]:
-            grad_nu = (d1 * t_nu[:, 0] + d2 * t_nu[:, 1]).sum(0)
+            grad_x = (gamma * d1) @ w1 + (gamma * d2) @ w2
         if need[2]:
-            grad_theta = (d1 * t_theta[:, 0] + d2 * t_theta[:, 1]).sum(0)
+            grad_nu = (d1 * t_nu[:, 0] + d2 * t_nu[:, 1]).sum(0)
         if need[3]:
-            grad_w1 = th.einsum("bn,bnd->nd", d1, t_w[:, 0]) + th.einsum(
-                "bn,bnd->nd", d2, t_w[:, 1]
-            )
-        if need[4]:
-            # dc¹/dW₂ = -dc²/dW₁, dc²/dW₂ = dc¹/dW₁.
-            grad_w2 = th.einsum("bn,bnd->nd", d2, t_w[:, 0]) - th.einsum(
-                "bn,bnd->nd", d1, t_w[:, 1]
-            )
-        return grad_x, grad_nu, grad_theta, grad_w1, grad_w2, None, None, None, None
+            grad_theta = (d1 * t_theta[:, 0] + d2 * t_theta[:, 1]).sum(0)
+        if need[4] or need[5]:
+            # rotᵀ(grad_c), then the W₁ gradient sum_k e_k · A^k and, since
+            # dc¹/dW₂ = -dc²/dW₁ and dc²/dW₂ = dc¹/dW₁, the W₂ gradient e_2 · A¹ - e_1 · A².
+            e1, e2 = g * d1 + phi * d2, g * d2 - phi * d1
+            weights = th.stack((th.stack((e1, e2), dim=1), th.stack((e2, -e1), dim=1)))
+            grads = th.einsum("wbkn,bknd->wnd", weights, t_w)
+            forcing = th.stack((gamma * d1, gamma * d2)).transpose(1, 2) @ x
+            grad_w1, grad_w2 = grads[0] + forcing[0], grads[1] + forcing[1]
+        return None, grad_x, grad_nu, grad_theta, grad_w1, grad_w2, None, None, None, None
 
 
 def rtrl_step(
-    x: Tensor, carry: RTUCarry, nu_log: Tensor, theta_log: Tensor, w1: Tensor, w2: Tensor
-) -> tuple[Tensor, RTUCarry]:
+    x: Tensor,
+    carry: RTUCarry,
+    nu_log: Tensor,
+    theta_log: Tensor,
+    w1: Tensor,
+    w2: Tensor,
+    new_carry: bool = True,
+) -> tuple[Tensor, RTUCarry | None]:
     """One RTU step from ``carry`` whose gradient is exact RTRL.
 
     Args:
@@ -285,14 +300,19 @@ def rtrl_step(
         theta_log: ``(n,)``.
         w1: ``(n, d_in)``.
         w2: ``(n, d_in)``.
+        new_carry: Build the carry after the step; without it (a minibatch that only needs
+            gradients) the step skips the ``(B, 2, n, d_in)`` trace update.
 
     Returns:
         ``c`` ``(B, 2, n)`` (the new ``(c¹, c²)``, differentiable: the parameters get
-        ``grad_c · trace``, ``x`` its one-step gradient) and the new carry (detached).
+        ``grad_c · trace``, ``x`` its one-step gradient) and the new carry (detached), or
+        ``None`` without ``new_carry``.
     """
     c, t_nu, t_theta, t_w = _RTRLStep.apply(
-        x, nu_log, theta_log, w1, w2, carry.h.detach(), carry.nu, carry.theta, carry.w
+        new_carry, x, nu_log, theta_log, w1, w2, carry.h.detach(), carry.nu, carry.theta, carry.w
     )
+    if not new_carry:
+        return c, None
     return c, RTUCarry(c.detach(), t_nu, t_theta, t_w)
 
 
@@ -380,8 +400,22 @@ class RTU(nn.Module):
         Returns:
             The output ``f([c¹; c²])`` ``(B, 2 n)`` and the carry after the step.
         """
-        c, carry = rtrl_step(x, carry, self.nu_log, self.theta_log, self.w1, self.w2)
-        return self.output(c), carry
+        c, after = rtrl_step(x, carry, self.nu_log, self.theta_log, self.w1, self.w2)
+        assert after is not None
+        return self.output(c), after
+
+    def step_output(self, x: Tensor, carry: RTUCarry) -> Tensor:
+        """:meth:`forward`'s output and gradients without building the next carry.
+
+        Args:
+            x: ``(B, d_in)``.
+            carry: State and traces before the step.
+
+        Returns:
+            The output ``f([c¹; c²])`` ``(B, 2 n)``.
+        """
+        c, _ = rtrl_step(x, carry, self.nu_log, self.theta_log, self.w1, self.w2, new_carry=False)
+        return self.output(c)
 
     def state_step(self, x: Tensor, h: Tensor) -> tuple[Tensor, Tensor]:
         """One step of the plain recurrence, no traces (acting; unrolled, it is BPTT).
@@ -502,7 +536,7 @@ class RTUActorCriticPolicy(BasePolicy):
         self, obs: Tensor, carry: RTUCarry, actions: Tensor
     ) -> tuple[Tensor, Tensor, Tensor | None]:
         """Recompute one step from stored carries: ``(values (B, 1), log_prob, entropy)``."""
-        latent, _ = self.trunk(obs, carry)
+        latent = self.rtu.step_output(self._input(obs), carry)
         distribution = self._distribution(latent)
         return self.critic(latent), distribution.log_prob(actions), distribution.entropy()
 
