@@ -232,3 +232,44 @@ def test_a_policy_that_outputs_nan_raises_a_value_error() -> None:
         model.policy.encoder.weight.fill_(float("nan"))
     with pytest.raises(ValueError, match="nan"):
         model.learn(64)
+
+
+def test_truncated_episodes_bootstrap_from_their_own_state() -> None:
+    """SB3's timeout bootstrapping: the reward of a truncated step gets gamma V(terminal obs),
+    the value seen from the episode's own carry after that step (not a reset one)."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    seen: list[tuple[float, Any, th.Tensor]] = []
+
+    class Spy(BaseCallback):
+        def _on_step(self) -> bool:
+            info = self.locals["infos"][0]
+            if self.locals["dones"][0]:
+                h = self.model._last_carry.h.clone()
+                seen.append((float(self.locals["rewards"][0]), info["terminal_observation"], h))
+            return True
+
+    model = _model(PENDULUM, tiny(n_steps=256), seed=6)
+    _, callback = model._setup_learn(256, Spy())
+    assert model.env is not None
+    model.collect_rollouts(model.env, callback, model.rollout_buffer, 256)
+    assert len(seen) == 1  # Pendulum truncates at 200 steps
+    raw, terminal, h = seen[0]
+    with th.no_grad():
+        value = model.policy.predict_values(th.as_tensor(terminal[None]), h)
+    stored = model.rollout_buffer.rewards[199, 0]
+    assert abs(value.item()) > 1e-3
+    np.testing.assert_allclose(stored, raw + model.gamma * value.item(), rtol=1e-5)
+    with th.no_grad():
+        reset_value = model.policy.predict_values(th.as_tensor(terminal[None]), h * 0)
+    assert not np.isclose(stored, raw + model.gamma * reset_value.item(), rtol=1e-5)
+
+
+def test_training_on_reservoir_states_and_evaluating_with_state() -> None:
+    from ermrl.config import EncoderConfig, ReservoirParams
+
+    encoder = EncoderConfig(reservoirs=(ReservoirParams(units=10),))
+    budget = BudgetConfig(training_steps=128, fitness="eval", n_eval_episodes=1)
+    result = train_agent(TaskConfig("Pendulum-v1", "positions"), encoder, tiny(), budget, 0)
+    assert result.env_steps == 128 and result.eval_return is not None
+    assert np.isfinite(result.eval_return) and len(result.eval_returns) == 1

@@ -849,8 +849,10 @@ class RTUPPO(OnPolicyAlgorithm):
         while n_steps < n_rollout_steps:
             with th.no_grad():
                 obs_tensor = obs_as_tensor(self._last_obs, self.device)  # type: ignore[arg-type]
-                starts = th.as_tensor(self._last_episode_starts, device=self.device)
-                carry = self._last_carry.reset(starts)
+                carry = self._last_carry
+                if np.any(self._last_episode_starts):
+                    starts = th.as_tensor(self._last_episode_starts, device=self.device)
+                    carry = carry.reset(starts)
                 actions, values, log_probs, self._last_carry = self.policy(obs_tensor, carry)
             if not (th.isfinite(values).all() and th.isfinite(self._last_carry.h).all()):
                 raise ValueError("rtu-ppo: the policy output nan or inf (training diverged)")
