@@ -27,8 +27,12 @@ Real-time PPO, as in the paper:
 ``2 d_rec d_in + 6 d_rec`` numbers (the ``W₂`` traces follow exactly from the ``W₁`` ones, see
 :mod:`ermrl.learners._rtu`), 25,728 numbers (~103 kB) at ``d_rec`` 192 and ``d_in`` 64, so a
 2048-step rollout holds ~211 MB of carries (the paper's layout, with all four weight traces,
-would take ~410 MB). Recomputing them instead would cost a sequential re-scan of the rollout
-before every epoch; storing is what ``stale_gradient: true`` (the default) needs anyway.
+would take ~410 MB). Measured on Pendulum-v1 with the default settings, the process's peak
+resident memory grows by ~230 MB over one 2048-step rollout and its update. Recomputing the
+carries instead would cost a sequential re-scan of the rollout before every epoch; storing is
+what ``stale_gradient: true`` (the default) needs anyway. Speed on the same task (one torch
+thread, a shared 2-core CPU): ~600 env steps/s with stale gradients, ~330 with
+``stale_gradient: false`` (three re-scans per update).
 
 Settings: ``ermrl/data/rtu_ppo.yml`` (the paper's ant_p configuration in its ``default`` block)
 and this learner's own keys ``d_rec`` (RTU units, default 192) and ``stale_gradient``.
