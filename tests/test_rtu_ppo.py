@@ -77,6 +77,9 @@ def test_rtu_ppo_is_registered_with_the_papers_settings() -> None:
     policy = model.policy
     assert policy.rtu.units == 192 and policy.rtu.input_dim == 64
     assert policy.encoder.in_features == 3 and policy.actor[0].in_features == 2 * 192
+    # The official trunk Dense: flax's lecun_normal (truncated at 2 std), zero bias.
+    assert policy.encoder.weight.abs().max() <= 2 * (1 / 3) ** 0.5 / 0.8796 + 1e-6
+    assert not policy.encoder.bias.any() and not policy.actor[0].bias.any()
     assert policy.optimizer.defaults["eps"] == 1e-5 and policy.optimizer.defaults["lr"] == 1e-4
     assert model.stale_gradient and model.max_grad_norm == 0.5
 

@@ -25,7 +25,10 @@ passing an activation (the config's ``activation: tanh`` only applies to the Den
 ``(r_min, r_max) = (0, 1)``, i.e. ``nu_log = log(-½ log u)``; ``theta ~ U(0, max_phase)`` with
 ``max_phase = 2π`` (the official code writes 6.28), ``theta_log = log theta``. ``W₁`` and ``W₂`` are
 flax ``nn.Dense(use_bias=False)`` kernels there, i.e. flax's default ``lecun_normal``: a normal
-of standard deviation ``sqrt(1/d_in) / 0.8796`` truncated at two standard deviations.
+of standard deviation ``sqrt(1/d_in) / 0.8796`` truncated at two standard deviations. The
+official ``gamma`` adds 1e-8 to ``sqrt(1 - r²)``; here ``gamma`` is exact (see
+:func:`rtu_coefficients`). The official files named here were read in the indexed fork
+SakodaShintaro/rtus of esraaelelimy/rtus.
 
 **Exact RTRL.** The recurrence is diagonal (a complex scalar per unit), so the sensitivities
 of ``c_t`` to the parameters are carried forward exactly at O(n) cost for ``nu_log`` and
@@ -161,6 +164,13 @@ class RTUCoefficients(NamedTuple):
     dgamma_dnu: Tensor
     dg_dtheta: Tensor
     dphi_dtheta: Tensor
+
+
+def _lecun_normal(weight: Tensor, generator: th.Generator | None = None) -> None:
+    """flax's default Dense kernel init: variance 1/fan_in, a normal truncated at 2 std."""
+    std = math.sqrt(1.0 / weight.shape[1]) / _TRUNCATED_NORMAL_STD
+    with th.no_grad():
+        nn.init.trunc_normal_(weight, std=std, a=-2 * std, b=2 * std, generator=generator)
 
 
 def rtu_coefficients(nu_log: Tensor, theta_log: Tensor) -> RTUCoefficients:
@@ -363,9 +373,8 @@ class RTU(nn.Module):
             self.nu_log.copy_(th.log(-0.5 * th.log(u)))
             phase = th.rand(self.units, generator=generator, dtype=th.float64) * self.max_phase
             self.theta_log.copy_(th.log(phase.clamp_min(1e-12)))
-            std = math.sqrt(1.0 / self.input_dim) / _TRUNCATED_NORMAL_STD
             for w in (self.w1, self.w2):
-                nn.init.trunc_normal_(w, std=std, a=-2 * std, b=2 * std, generator=generator)
+                _lecun_normal(w, generator)
 
     def initial_carry(
         self, batch: int, dtype: th.dtype | None = None, device: th.device | str | None = None
@@ -443,8 +452,10 @@ class RTUActorCriticPolicy(BasePolicy):
     The actor head is ``Dense(d_head) -> tanh -> action distribution`` (a diagonal Gaussian with
     a state-independent log std for ``Box``, categorical for ``Discrete``, ...) and the critic
     head ``Dense(d_head) -> tanh -> Dense(1)``. Initialisation as the official
-    ``RealTimeActorCritic``: orthogonal with gain sqrt(2) (trunk Dense), 2 (head hidden
-    layers), 0.01 (action output) and 1 (value output), zero biases, log std 0.
+    ``RealTimeActorCritic``: orthogonal with gain 2 (head hidden layers), 0.01 (action output)
+    and 1 (value output), zero biases, log std 0; the trunk Dense is flax's default
+    ``lecun_normal`` (its ``MLP`` in ``src/nets/MLP.py`` takes an orthogonal ``kernel_init``
+    but never passes it to its Dense layers).
 
     Args:
         observation_space: Flat (``Box``, ``Discrete``, ...) observation space.
@@ -490,8 +501,9 @@ class RTUActorCriticPolicy(BasePolicy):
             )
         else:
             self.action_net = self.action_dist.proba_distribution_net(latent_dim=d_head)  # type: ignore[assignment]
+        _lecun_normal(self.encoder.weight)
+        nn.init.zeros_(self.encoder.bias)
         for module, gain in (
-            (self.encoder, math.sqrt(2)),
             (self.actor[0], 2.0),
             (self.critic[0], 2.0),
             (self.critic[2], 1.0),
