@@ -115,3 +115,27 @@ def test_the_backend_benchmarks_run_in_quick_mode(tmp_path: Path) -> None:
     ]  # fmt: skip
     assert all(r["last_return"] and not r["error"] for r in runs)
     assert "Mann-Whitney" in (tmp_path / "c" / "summary.md").read_text()
+
+
+@pytest.mark.slow
+def test_the_memory_benchmark_runs_in_quick_mode(tmp_path: Path) -> None:
+    """bench_memory evolves an ESN and an RTU, tests the five agents on the same seeds, and
+    reports every agent's returns with a CI and its wall time."""
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "bench_memory.py"), "--quick",
+         "--tasks", "popgym-RepeatFirstEasy-v0:all", "--out", str(tmp_path / "memory.json")],
+        cwd=ROOT, capture_output=True, text=True, timeout=1200,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    report = json.loads((tmp_path / "memory.json").read_text())
+    (task,) = report["tasks"]
+    assert task["label"] == "popgym-RepeatFirstEasy-v0[all]"
+    agents = task["agents"]
+    assert list(agents) == ["ppo", "lstm-ppo", "rtu-ppo", "res-ppo", "rtu-res-ppo"]
+    for row in agents.values():
+        assert row["seeds"] == [10, 11]
+        low, high = row["ci95"]
+        assert low <= row["mean"] <= high and row["wall_seconds"] > 0
+    assert set(task["selected"]) == {"res-ppo", "rtu-res-ppo"}
+    assert "rtu-res-ppo: trial #" in report["table"] and "r_max=" in report["table"]
+    assert "| rtu-ppo | 2 |" in (tmp_path / "memory.md").read_text()

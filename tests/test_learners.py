@@ -60,7 +60,7 @@ def test_every_agent_of_the_table_has_a_registered_learner_and_labels() -> None:
     assert default_agents("positions") == ("ppo", "ppo-full", "res-ppo", "random-res-ppo")
 
 
-@pytest.mark.parametrize("learner", ["ppo", "lstm-ppo", "framestack-ppo"])
+@pytest.mark.parametrize("learner", ["ppo", "lstm-ppo", "framestack-ppo", "rtu-ppo"])
 @pytest.mark.parametrize("encoder", [None, ENCODER], ids=["raw", "reservoir"])
 def test_each_learner_trains_saves_and_reloads_the_same_policy(
     learner: str, encoder: EncoderConfig | None, tmp_path: Path
