@@ -182,3 +182,48 @@ def test_evolve_and_test_an_rtu_study_from_the_command_line(tmp_path: Path) -> N
     )  # fmt: skip
     assert refused.returncode == 2
     assert refused.stderr.strip().count("\n") == 0 and "--encoder reservoir" in refused.stderr
+
+
+def test_the_test_phase_trains_rtu_ppo_next_to_ppo_with_its_own_flag(tmp_path: Path) -> None:
+    """``--agents ppo rtu-ppo res-ppo`` on an ESN study; --no-stale-gradient reaches rtu-ppo only,
+    and evolve refuses it for another learner in one line."""
+    import json
+
+    storage = f"sqlite:///{tmp_path / 'esn.db'}"
+    run = [sys.executable, "-m", "ermrl"]
+    evolve = subprocess.run(
+        [*run, "evolve", "--env-id", "CartPole-v1", "--observe", "positions", "--units", "10",
+         "--n-trials", "1", "--n-seeds", "1", "--training-steps", "300", "--storage", storage,
+         "--study-name", "esn"],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert evolve.returncode == 0, evolve.stderr
+    test = subprocess.run(
+        [*run, "test", "--study-name", "esn", "--storage", storage, "--training-steps", "300",
+         "--seeds", "10", "--agents", "ppo", "rtu-ppo", "res-ppo", "--no-stale-gradient",
+         "--ppo", "d_rec=8", "--out", str(tmp_path / "test")],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    # d_rec is rtu-ppo's own setting: --ppo gives it to every agent, and PPO refuses it.
+    assert test.returncode == 2 and "d_rec" in test.stderr, test.stderr
+    test = subprocess.run(
+        [*run, "test", "--study-name", "esn", "--storage", storage, "--training-steps", "300",
+         "--seeds", "10", "--agents", "ppo", "rtu-ppo", "res-ppo", "--no-stale-gradient",
+         "--out", str(tmp_path / "test")],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert test.returncode == 0, test.stderr
+    settings = {
+        p.parent.parent.name: json.loads(p.read_text())
+        for p in (tmp_path / "test").rglob("settings.json")
+    }
+    assert set(settings) == {"ppo", "rtu-ppo", "res-ppo"}, settings.keys()
+    assert settings["rtu-ppo"]["ppo"]["learner"] == "rtu-ppo"
+    assert settings["rtu-ppo"]["ppo"]["hyperparams"]["stale_gradient"] is False
+    assert "stale_gradient" not in settings["ppo"]["ppo"]["hyperparams"]
+    refused = subprocess.run(
+        [*run, "evolve", "--env-id", "CartPole-v1", "--no-stale-gradient", "--storage", storage],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert refused.returncode == 2
+    assert refused.stderr.strip().endswith("--stale-gradient applies to --learner rtu-ppo only")

@@ -167,3 +167,21 @@ def run_folder_kwargs(args: argparse.Namespace) -> dict[str, Any]:
         "deterministic": args.deterministic,
         "env_seed": args.env_seed,
     }
+
+
+def add_stale_gradient_arg(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    """``--stale-gradient/--no-stale-gradient``: the rtu-ppo learner's ``stale_gradient``."""
+    parser.add_argument(
+        "--stale-gradient",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="rtu-ppo only: keep each stored RTU carry as it was collected (the default, the "
+        "paper's stale gradient), or re-scan the rollout with the new parameters after each "
+        "epoch (--no-stale-gradient, about half as fast)",
+    )
+
+
+def learner_overrides(args: argparse.Namespace) -> dict[str, dict[str, Any]]:
+    """Settings given by learner-specific flags, keyed by the learner they apply to."""
+    stale = getattr(args, "stale_gradient", None)
+    return {} if stale is None else {"rtu-ppo": {"stale_gradient": stale}}

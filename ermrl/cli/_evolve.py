@@ -15,6 +15,7 @@ from ermrl.cli._common import (
     EXIT_TERMINATED,
     ArgumentParser,
     HelpFormatter,
+    add_stale_gradient_arg,
     add_storage_args,
     fail,
     nonneg_int,
@@ -105,6 +106,7 @@ def add_problem_args(parser: argparse.ArgumentParser, *, multi_task: bool = Fals
         + "; ".join(f"{name}: {learner.description}" for name, learner in LEARNERS.items())
         + ". Its settings come from its own table (see --hyperparams) and --ppo",
     )
+    add_stale_gradient_arg(g)
     g.add_argument(
         "--backend",
         choices=("sb3", "population"),
@@ -511,19 +513,31 @@ def validate_task(env_id: str, observe: str) -> None:
     observation_indices(env_id, observe)  # type: ignore[arg-type]
 
 
+def learner_flags(args: argparse.Namespace, learner: str) -> dict[str, Any]:
+    """The learner-specific flags' settings for ``learner`` (refused for another learner)."""
+    from ermrl.cli._common import learner_overrides
+
+    given = learner_overrides(args)
+    for name in given:
+        if name != learner:
+            raise ConfigError(f"--stale-gradient applies to --learner {name} only")
+    return dict(given.get(learner, {}))
+
+
 def config_from_args(args: argparse.Namespace) -> EvolveConfig:
     """Build and validate the run's configuration (raises ConfigError / env errors)."""
     from ermrl.agents import check_ppo_config, parse_overrides, resolve_ppo_config
 
     validate_task(args.env_id, args.observe)
     space = space_from_args(args)
+    learner = getattr(args, "learner", "ppo")
     ppo = resolve_ppo_config(
         args.env_id,
-        parse_overrides(args.ppo),
+        {**parse_overrides(args.ppo), **learner_flags(args, learner)},
         n_envs=args.n_envs,
         table_path=args.hyperparams,
         torch_threads=args.torch_threads,
-        learner=getattr(args, "learner", "ppo"),
+        learner=learner,
         backend=getattr(args, "backend", "sb3"),
     )
     problem = Problem(

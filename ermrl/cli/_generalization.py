@@ -27,6 +27,7 @@ from ermrl.cli._evolve import (
     budget_from_args,
     command_line,
     encoder_from_args,
+    learner_flags,
     run_and_report,
     search_from_args,
     space_from_args,
@@ -158,7 +159,7 @@ def generalization_config_from_args(args: argparse.Namespace) -> EvolveConfig:
         if args.env_version is not None:
             raise ConfigError("--env-version applies to --suite only; write the ids in full")
         env_ids = args.env_ids or ()
-    overrides = parse_overrides(args.ppo)
+    overrides = {**parse_overrides(args.ppo), **learner_flags(args, args.learner)}
     tasks = generalization_tasks(
         env_ids,
         observe=args.observe,
@@ -366,8 +367,10 @@ def _shout(message: str) -> None:
 def _test_ppo(config: EvolveConfig, env_id: str, args: argparse.Namespace) -> PPOConfig:
     """PPO settings of the test env: the study's for an evolution task, else table + overrides."""
     from ermrl.agents import parse_overrides, resolve_ppo_config, with_overrides
+    from ermrl.cli._common import learner_overrides
 
-    cli = parse_overrides(args.ppo)
+    own = learner_overrides(args).get(config.problem.ppo.learner, {})
+    cli = {**parse_overrides(args.ppo), **own}
     gen = config.generalization
     known: PPOConfig | None = None
     if gen is not None:

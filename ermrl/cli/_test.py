@@ -16,8 +16,10 @@ from ermrl.cli._common import (
     EXIT_INTERRUPTED,
     ArgumentParser,
     HelpFormatter,
+    add_stale_gradient_arg,
     add_storage_args,
     fail,
+    learner_overrides,
     nonneg_int,
     positive_int,
     quiet_libraries,
@@ -115,6 +117,7 @@ def add_test_args(
         "--n-eval-episodes", type=positive_int, default=10, help="evaluation episodes with --eval"
     )
     parser.add_argument("--ppo", nargs="+", default=[], metavar="KEY=VALUE", help=ppo_help)
+    add_stale_gradient_arg(parser)
     parser.add_argument(
         "--backend",
         choices=("sb3", "population"),
@@ -272,7 +275,11 @@ def plan_test_phase(
     args.agents = args.agents or list(default_agents(observe, config.space.family))
     overrides = parse_overrides(args.ppo)
     agents, chosen = study_agents(
-        study, config, args.agents, args.trial, learner_settings_for(ppo, task.env_id, overrides)
+        study,
+        config,
+        args.agents,
+        args.trial,
+        learner_settings_for(ppo, task.env_id, overrides, learner_overrides(args)),
     )
     for agent in agents:  # refused now rather than by the first run
         if agent.ppo is not None and overrides:
@@ -378,7 +385,8 @@ def test_main(argv: Sequence[str] | None = None, prog: str = "ermrl test") -> in
             )
         problem = config.problem
         overrides = parse_overrides(args.ppo)
-        ppo = with_backend(with_overrides(problem.ppo, overrides), args)
+        own = learner_overrides(args).get(problem.ppo.learner, {})
+        ppo = with_backend(with_overrides(problem.ppo, {**overrides, **own}), args)
         if overrides:  # refused now rather than by the first run
             check_ppo_config(problem.task, problem.encoder, ppo, where="--ppo")
         plan = plan_test_phase(

@@ -157,20 +157,25 @@ def agent_specs(
 
 
 def learner_settings_for(
-    base: PPOConfig, env_id: str, overrides: Mapping[str, Any] | None = None
+    base: PPOConfig,
+    env_id: str,
+    overrides: Mapping[str, Any] | None = None,
+    learner_overrides: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> Callable[[str], PPOConfig | None]:
     """Settings of each learner in a comparison whose own settings are ``base``.
 
     ``base.learner`` keeps ``base`` (``None``: the comparison's); another learner takes its own
-    table's settings for ``env_id`` with the same ``overrides`` (``--ppo``) and threads.
+    table's settings for ``env_id`` with the same ``overrides`` (``--ppo``) and threads, plus its
+    entry of ``learner_overrides`` (settings of one learner only, e.g. ``--no-stale-gradient``).
     """
     from ermrl.agents import resolve_ppo_config
 
     def settings(learner: str) -> PPOConfig | None:
         if learner == base.learner:
             return None
+        own = (learner_overrides or {}).get(learner, {})
         return resolve_ppo_config(
-            env_id, overrides, torch_threads=base.torch_threads, learner=learner
+            env_id, {**(overrides or {}), **own}, torch_threads=base.torch_threads, learner=learner
         )
 
     return settings
