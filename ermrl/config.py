@@ -669,28 +669,25 @@ class ReservoirSpace(_PerReservoirSpace):
         one = self.default_reservoirs()[0]
         return {name: float(getattr(one, name)) for name in self.evolved}
 
+    def _reservoir(self, values: Mapping[str, float]) -> ReservoirParams:
+        return ReservoirParams(
+            units=self.units,
+            sr=values["sr"],
+            lr=values["lr"],
+            input_scaling=values.get("input_scaling", self.fixed_input_scaling),
+            rc_connectivity=self.rc_connectivity,
+            input_connectivity=self.input_connectivity,
+            bias_scaling=self.bias_scaling,
+            bias_init=self.bias_init,
+        )
+
     def reservoirs_from(self, params: Mapping[str, float]) -> tuple[ReservoirParams, ...]:
         """Build the reservoirs described by a trial's parameters.
 
         Raises:
             ConfigError: a parameter of this space is missing.
         """
-        out = []
-        for k in range(self.n_reservoirs):
-            values = self._values(params, k)
-            out.append(
-                ReservoirParams(
-                    units=self.units,
-                    sr=values["sr"],
-                    lr=values["lr"],
-                    input_scaling=values.get("input_scaling", self.fixed_input_scaling),
-                    rc_connectivity=self.rc_connectivity,
-                    input_connectivity=self.input_connectivity,
-                    bias_scaling=self.bias_scaling,
-                    bias_init=self.bias_init,
-                )
-            )
-        return tuple(out)
+        return tuple(self._reservoir(self._values(params, k)) for k in range(self.n_reservoirs))
 
     def default_reservoirs(self) -> tuple[ReservoirParams, ...]:
         """Unevolved reservoirs (reservoirpy defaults for sr, lr and input scaling)."""
@@ -768,25 +765,22 @@ class RTUSpace(_PerReservoirSpace):
             ref["input_scaling"] = one.input_scaling
         return ref
 
+    def _reservoir(self, values: Mapping[str, float]) -> RTUParams:
+        return RTUParams(
+            units=self.units,
+            r_min=values["r_min_ratio"] * values["r_max"],
+            r_max=values["r_max"],
+            theta_max=values["theta_max"],
+            input_scaling=values.get("input_scaling", self.fixed_input_scaling),
+        )
+
     def reservoirs_from(self, params: Mapping[str, float]) -> tuple[RTUParams, ...]:
         """Build the RTU layers described by a trial's parameters.
 
         Raises:
             ConfigError: a parameter of this space is missing.
         """
-        out = []
-        for k in range(self.n_reservoirs):
-            values = self._values(params, k)
-            out.append(
-                RTUParams(
-                    units=self.units,
-                    r_min=values["r_min_ratio"] * values["r_max"],
-                    r_max=values["r_max"],
-                    theta_max=values["theta_max"],
-                    input_scaling=values.get("input_scaling", self.fixed_input_scaling),
-                )
-            )
-        return tuple(out)
+        return tuple(self._reservoir(self._values(params, k)) for k in range(self.n_reservoirs))
 
     def default_reservoirs(self) -> tuple[RTUParams, ...]:
         """Unevolved RTU layers: the paper's initialization ranges, input scaling 1."""

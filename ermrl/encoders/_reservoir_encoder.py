@@ -9,9 +9,9 @@ and it wraps the env in a :class:`~ermrl.encoders.ReservoirVecEnv`.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, ClassVar
 
-from ermrl.config import EncoderConfig, ReservoirSpace
+from ermrl.config import EncoderConfig, EncoderSpace, ReservoirSpace
 from ermrl.encoders._base import Encoder
 
 __all__ = ["ReservoirEncoder"]
@@ -23,10 +23,10 @@ class ReservoirEncoder(Encoder):
     place = "env"
     family = "esn"
     config_cls = EncoderConfig
-    space_cls = ReservoirSpace
+    space_cls: ClassVar[type] = ReservoirSpace
 
     def decode(
-        self, space: ReservoirSpace, params: Mapping[str, float], base: EncoderConfig
+        self, space: EncoderSpace, params: Mapping[str, float], base: EncoderConfig
     ) -> EncoderConfig:
         return base.with_reservoirs(space.reservoirs_from(params))
 

@@ -11,29 +11,16 @@ with the linear update of :func:`~ermrl.encoders.rtu_weights`.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from typing import Any
-
-from ermrl.config import EncoderConfig, RTUSpace
-from ermrl.encoders._base import Encoder
+from ermrl.config import RTUSpace
+from ermrl.encoders._reservoir_encoder import ReservoirEncoder
 
 __all__ = ["RTUEncoder"]
 
 
-class RTUEncoder(Encoder):
+class RTUEncoder(ReservoirEncoder):
+    """The reservoir encoder's decoding and wrapper, with RTU layers and their search space."""
+
     name = "rtu"
     description = "recurrent trace units with fixed random weights (a complex-diagonal reservoir)"
-    place = "env"
     family = "rtu"
-    config_cls = EncoderConfig
     space_cls = RTUSpace
-
-    def decode(
-        self, space: RTUSpace, params: Mapping[str, float], base: EncoderConfig
-    ) -> EncoderConfig:
-        return base.with_reservoirs(space.reservoirs_from(params))
-
-    def wrap_env(self, venv: Any, config: EncoderConfig, seed: int) -> Any:
-        from ermrl.encoders._vec_env import ReservoirVecEnv
-
-        return ReservoirVecEnv(venv, config, seed=seed)
