@@ -118,11 +118,6 @@ AGENT_KINDS: Mapping[str, AgentKind] = {
         "the study's learner on frozen RTUs of the paper's initialization (--encoder rtu studies)",
         None, "RTU-RES-PPO (unevolved RTU)", "RTU-RES\n(unevolved)", "tab:pink", family="rtu",
     ),
-    "rtu-ppo": AgentKind(
-        "none", None,
-        "PPO with recurrent trace units learned online by RTRL (real-time PPO): learned memory",
-        "rtu-ppo", "RTU-PPO (learned RTU)", "RTU-PPO", "tab:olive", default=False,
-    ),
     "lstm-ppo": AgentKind(
         "none", None, "RecurrentPPO (LSTM policy) on the raw (masked) observation: memory baseline",
         "lstm-ppo", "LSTM-PPO (raw observation)", "LSTM-PPO", "tab:purple", default=False,
@@ -130,6 +125,11 @@ AGENT_KINDS: Mapping[str, AgentKind] = {
     "framestack-ppo": AgentKind(
         "none", None, "PPO on the last k raw (masked) observations (frame_stack, default 4)",
         "framestack-ppo", "PPO (4 stacked frames)", "PPO\n(stacked)", "tab:brown", default=False,
+    ),
+    "rtu-ppo": AgentKind(
+        "none", None,
+        "PPO with recurrent trace units learned online by RTRL (real-time PPO): learned memory",
+        "rtu-ppo", "RTU-PPO (learned RTU)", "RTU-PPO", "tab:olive", default=False,
     ),
 }  # fmt: skip
 AGENTS: tuple[str, ...] = tuple(AGENT_KINDS)

@@ -109,7 +109,8 @@ def test_agent_registry_drives_choices_defaults_and_labels() -> None:
     from ermrl.experiments import agent_specs
 
     assert AGENTS == (
-        "ppo", "ppo-full", "res-ppo", "random-res-ppo", "lstm-ppo", "framestack-ppo"
+        "ppo", "ppo-full", "res-ppo", "random-res-ppo", "rtu-res-ppo", "random-rtu-res-ppo",
+        "lstm-ppo", "framestack-ppo", "rtu-ppo",
     )  # fmt: skip
     assert set(AGENT_LABELS) == set(AGENT_SHORT_LABELS) == set(AGENT_COLORS) == set(AGENTS)
     action = next(a for a in build_test_parser()._actions if a.dest == "agents")
@@ -117,6 +118,8 @@ def test_agent_registry_drives_choices_defaults_and_labels() -> None:
     # The memory baselines are trained when asked for.
     assert default_agents("velocities") == ("ppo", "ppo-full", "res-ppo", "random-res-ppo")
     assert default_agents("all") == ("ppo", "res-ppo", "random-res-ppo")  # ppo-full == ppo there
+    # A study evolved with --encoder rtu has its own evolved and unevolved agents.
+    assert default_agents("all", "rtu") == ("ppo", "rtu-res-ppo", "random-rtu-res-ppo")
     specs = agent_specs(["ppo-full", "random-res-ppo"], None, ())
     assert [(s.name, s.reservoirs, s.observe) for s in specs] == [
         ("ppo-full", None, "all"),
