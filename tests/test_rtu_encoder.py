@@ -227,3 +227,27 @@ def test_the_test_phase_trains_rtu_ppo_next_to_ppo_with_its_own_flag(tmp_path: P
     )  # fmt: skip
     assert refused.returncode == 2
     assert refused.stderr.strip().endswith("--stale-gradient applies to --learner rtu-ppo only")
+
+
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [
+        (["--backend", "population"], "the population backend runs echo state reservoirs only"),
+        (["--r-max-range", "0.5", "1.5"], "the r_max range must stay within (0, 1]"),
+        (["--units", "6000"], "at most 10000 state values"),
+        (["--theta-max-range", "2", "1"], "low must be < high"),
+    ],
+)
+def test_bad_rtu_settings_are_refused_in_one_line_before_any_storage_exists(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], flags: list[str], message: str
+) -> None:
+    from ermrl.cli._evolve import evolve_main
+
+    db = tmp_path / "x.db"
+    with pytest.raises(SystemExit) as exit_:
+        evolve_main(["--env-id", "CartPole-v1", "--encoder", "rtu", *flags,
+                     "--storage", f"sqlite:///{db}"])  # fmt: skip
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and "\n" not in err
+    assert not db.exists()
