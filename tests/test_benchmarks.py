@@ -139,3 +139,21 @@ def test_the_memory_benchmark_runs_in_quick_mode(tmp_path: Path) -> None:
     assert set(task["selected"]) == {"res-ppo", "rtu-res-ppo"}
     assert "rtu-res-ppo: trial #" in report["table"] and "r_max=" in report["table"]
     assert "| rtu-ppo | 2 |" in (tmp_path / "memory.md").read_text()
+
+
+@pytest.mark.slow
+def test_the_rtu_cost_benchmark_runs_in_quick_mode(tmp_path: Path) -> None:
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "bench_rtu.py"), "--quick",
+         "--out", str(tmp_path / "rtu.json")],
+        cwd=ROOT, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    summary = {s["variant"]: s for s in json.loads((tmp_path / "rtu.json").read_text())["summary"]}
+    assert set(summary) == {"ppo", "rtu-ppo", "rtu-ppo --no-stale-gradient"}
+    assert summary["ppo"]["vs_ppo"] == 1.0 and summary["ppo"]["carries_mb"] == 0
+    # One 2048-step rollout of carries at d_rec 192: 2 * 192 * 64 + 6 * 192 floats per step.
+    assert summary["rtu-ppo"]["carries_mb"] == pytest.approx(
+        2048 * (2 * 192 * 64 + 6 * 192) * 4 / 1e6
+    )
+    assert all(s["steps_per_s"] > 0 for s in summary.values())
