@@ -13,6 +13,7 @@ from collections.abc import Mapping
 from ermrl.config import ConfigError
 from ermrl.learners._base import Learner
 from ermrl.learners._framestack_ppo import FrameStackPPOLearner
+from ermrl.learners._hebbian import HebbianLearner
 from ermrl.learners._lstm_ppo import LstmPPOLearner
 from ermrl.learners._ppo import PPOLearner
 from ermrl.learners._rtu_ppo import RTUPPOLearner
@@ -25,6 +26,7 @@ _REGISTERED: tuple[Learner, ...] = (
     LstmPPOLearner(),
     FrameStackPPOLearner(),
     RTUPPOLearner(),
+    HebbianLearner(),
 )
 LEARNERS: Mapping[str, Learner] = {learner.name: learner for learner in _REGISTERED}
 

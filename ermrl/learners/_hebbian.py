@@ -1,0 +1,198 @@
+"""``hebbian``: a leaky-integrator network whose readout learns by a reward-modulated Hebbian rule.
+
+The agent of cristianocapone/RL_ML_class (Ant-v4), with that code's bugs fixed (see
+``REFERENCES.md`` and issue 16): no backprop, no replay, one online pass. ``N`` leaky units with
+per-unit time constants ``tau`` spread log-uniformly over ``[tau_min, tau_max]``::
+
+    alpha = exp(-dt / tau)
+    h_t   = alpha * h_{t-1} + (1 - alpha) * tanh(J h_{t-1} + J_in o_t + b)
+    mu_t  = tanh(J_out h_t),   a_t = mu_t + sigma xi_t,   xi_t ~ N(0, I)
+    e_t   = lambda e_{t-1} + ((a_t - mu_t) * (1 - mu_t^2)) h_t^T / sigma^2
+    G    += (r_t - b_t) e_t                      (each step once)
+    J_out <- J_out + Adam(G / n_envs - l2 J_out)  (at each episode end, or every k steps); G <- 0
+
+Only ``J_out`` (and the critic) learn; ``J``, ``J_in`` and ``b`` are fixed. The model
+(:class:`~ermrl.learners._hebbian_model.HebbianAgent`, numpy only) lives in
+:mod:`ermrl.learners._hebbian_model`, imported when an agent is built. It is not an SB3 algorithm
+but offers what ermrl uses of one: ``learn`` (with SB3 callbacks), ``predict`` (recurrent: the
+state is ``h``), ``num_timesteps``, ``save`` (a plain ``.npz``: arrays and a JSON config, no
+pickle) and ``policy`` (``state_dict`` of CPU tensors, ``load_state_dict``,
+``set_training_mode``), so ``train_agent``, ``save_trained``/``load_policy``, evaluation and
+replays take it unchanged.
+
+Settings (``ermrl/data/hebbian.yml``): this learner's own keys (:attr:`HebbianLearner.own_keys`)
+and two keys it shares with PPO, ``learning_rate`` (Adam's step on ``J_out``, default 1e-4) and
+``gamma`` (the critic's discount). Any other PPO key is refused. Only Box action spaces are
+taken (a Discrete one is refused with a one-line :class:`~ermrl.config.ConfigError`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any
+
+from ermrl.config import ConfigError, PPOConfig
+from ermrl.learners._base import Learner
+
+__all__ = ["HebbianLearner", "BASELINES", "REWARDS", "SHARED_KEYS"]
+
+MAX_UNITS = 4096
+# Baselines b_t: none (b = 0), a running mean of the reward, a linear critic V(h) trained by
+# TD(lambda) (b_t = V(h_t)), or that critic's TD error as the modulator (r_t - b_t := delta_t).
+BASELINES = ("none", "mean", "critic", "td")
+# The reward that modulates plasticity: the task's, or the torso's forward velocity
+# info["x_velocity"] (the original's choice on Ant; MuJoCo locomotion tasks report it).
+REWARDS = ("task", "x_velocity")
+DTYPES = ("float64", "float32")
+# PPO keys this learner reads too (with these defaults when the table does not set them).
+SHARED_KEYS: Mapping[str, Any] = {"learning_rate": 1e-4, "gamma": 0.99}
+# Keys read by ermrl itself, never an algorithm's.
+_ERMRL_KEYS = {"n_envs", "normalize"}
+
+
+def _number(
+    key: str, value: Any, low: float, high: float = math.inf, *, open_low: bool = False
+) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ConfigError(f"hebbian {key} must be a finite number, got {value!r}")
+    if (value <= low if open_low else value < low) or value > high:
+        bound = f"{'>' if open_low else '>='} {low:g}" + (
+            f" and <= {high:g}" if math.isfinite(high) else ""
+        )
+        raise ConfigError(f"hebbian {key} must be {bound}, got {value!r}")
+    return float(value)
+
+
+class HebbianLearner(Learner):
+    """The ``hebbian`` learner: settings, their checks, and the agent's construction.
+
+    Own keys (defaults from the original, see ``ermrl/data/hebbian.yml``): ``units`` (N),
+    ``sigma`` (exploration noise), ``trace_decay`` (lambda), ``adam_betas``, ``adam_eps``,
+    ``tau_min``/``tau_max``/``dt`` (same time unit; ms in the original), ``spectral_radius``
+    (rho of ``J``), ``input_scaling`` (std of ``J_in``), ``bias_scaling`` (std of ``b``),
+    ``readout_scaling`` (std of the initial ``J_out``), ``l2``, ``baseline`` (one of
+    :data:`BASELINES`), ``baseline_decay`` (of the running mean), ``critic_lr``,
+    ``critic_lambda``, ``update_every`` (0: update at each episode end; k: every k steps),
+    ``reward`` (one of :data:`REWARDS`) and ``dtype``.
+    """
+
+    name = "hebbian"
+    description = "leaky-integrator network, readout learned by a reward-modulated Hebbian rule"
+    table = "hebbian.yml"
+    policy = "HebbianPolicy"
+    recurrent = True
+    own_keys = {
+        "units": 500,
+        "sigma": 0.25,
+        "trace_decay": 0.99,
+        "adam_betas": [0.9, 0.999],
+        "adam_eps": 1e-8,
+        "tau_min": 2.5,
+        "tau_max": 10.0,
+        "dt": 1.0,
+        "spectral_radius": 0.95,
+        "input_scaling": 0.01,
+        "bias_scaling": 0.0,
+        "readout_scaling": 0.01,
+        "l2": 0.0,
+        "baseline": "mean",
+        "baseline_decay": 0.99,
+        "critic_lr": 1e-3,
+        "critic_lambda": 0.9,
+        "update_every": 0,
+        "reward": "task",
+        "dtype": "float64",
+    }
+
+    def algorithm(self) -> type:
+        from ermrl.learners._hebbian_model import HebbianAgent
+
+        return HebbianAgent
+
+    def option(self, config: PPOConfig, key: str) -> Any:
+        if key in SHARED_KEYS:
+            return config.hyperparams.get(key, SHARED_KEYS[key])
+        return super().option(config, key)
+
+    def settings(self, config: PPOConfig) -> dict[str, Any]:
+        """Every setting of the agent (own and shared keys), checked.
+
+        Raises:
+            ConfigError: a bad value, with a one-line reason.
+        """
+        self.check(config)
+        return {key: self.option(config, key) for key in (*self.own_keys, *SHARED_KEYS)}
+
+    def check(self, config: PPOConfig) -> None:
+        super().check(config)
+        foreign = set(config.hyperparams) - set(self.own_keys) - set(SHARED_KEYS) - _ERMRL_KEYS
+        if foreign:
+            raise ConfigError(
+                f"learner 'hebbian' does not take {', '.join(sorted(foreign))} (a setting of "
+                "another learner)"
+            )
+        get = self.option
+        units = get(config, "units")
+        if isinstance(units, bool) or not isinstance(units, int) or not 1 <= units <= MAX_UNITS:
+            raise ConfigError(
+                f"hebbian units must be a whole number in [1, {MAX_UNITS}], got {units!r}"
+            )
+        _number("sigma", get(config, "sigma"), 0.0, open_low=True)
+        _number("trace_decay", get(config, "trace_decay"), 0.0, 1.0)
+        _number("learning_rate", get(config, "learning_rate"), 0.0, open_low=True)
+        _number("gamma", get(config, "gamma"), 0.0, 1.0)
+        betas = get(config, "adam_betas")
+        if not isinstance(betas, (list, tuple)) or len(betas) != 2:
+            raise ConfigError(f"hebbian adam_betas must be two numbers in [0, 1), got {betas!r}")
+        for beta in betas:
+            if _number("adam_betas", beta, 0.0, 1.0) >= 1.0:
+                raise ConfigError(
+                    f"hebbian adam_betas must be two numbers in [0, 1), got {betas!r}"
+                )
+        _number("adam_eps", get(config, "adam_eps"), 0.0, open_low=True)
+        tau_min = _number("tau_min", get(config, "tau_min"), 0.0, open_low=True)
+        tau_max = _number("tau_max", get(config, "tau_max"), 0.0, open_low=True)
+        if tau_max < tau_min:
+            raise ConfigError(f"hebbian tau_max ({tau_max:g}) must be >= tau_min ({tau_min:g})")
+        _number("dt", get(config, "dt"), 0.0, open_low=True)
+        for key in ("spectral_radius", "input_scaling", "bias_scaling", "readout_scaling", "l2"):
+            _number(key, get(config, key), 0.0)
+        for key, choices in (("baseline", BASELINES), ("reward", REWARDS), ("dtype", DTYPES)):
+            if get(config, key) not in choices:
+                raise ConfigError(
+                    f"hebbian {key} must be one of {', '.join(choices)}, got {get(config, key)!r}"
+                )
+        decay = _number("baseline_decay", get(config, "baseline_decay"), 0.0, 1.0)
+        if decay >= 1.0:
+            raise ConfigError(f"hebbian baseline_decay must be < 1, got {decay!r}")
+        _number("critic_lr", get(config, "critic_lr"), 0.0, open_low=True)
+        _number("critic_lambda", get(config, "critic_lambda"), 0.0, 1.0)
+        every = get(config, "update_every")
+        if isinstance(every, bool) or not isinstance(every, int) or every < 0:
+            raise ConfigError(
+                f"hebbian update_every must be a whole number >= 0 (0: at episode ends), got {every!r}"
+            )
+
+    def kwargs(self, config: PPOConfig) -> dict[str, Any]:
+        """The agent's settings (no PPO argument is passed on)."""
+        return self.settings(config)
+
+    def build(
+        self,
+        env: Any,
+        config: PPOConfig,
+        *,
+        seed: int | None = None,
+        device: str | None = None,
+        tensorboard_log: str | None = None,
+    ) -> Any:
+        """A new, untrained Hebbian agent on ``env`` (numpy on the CPU: ``device`` is ignored, and
+        so is ``tensorboard_log``: the agent logs nothing).
+
+        Raises:
+            ConfigError: a bad setting, or an action space that is not a Box.
+        """
+        from ermrl.learners._hebbian_model import HebbianAgent
+
+        return HebbianAgent(env, self.settings(config), seed=seed)

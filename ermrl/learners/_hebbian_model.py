@@ -1,0 +1,451 @@
+"""The ``hebbian`` learner's agent: a leaky-integrator network and its Hebbian readout (numpy).
+
+See :mod:`ermrl.learners._hebbian` for the rule and the settings. Shapes: ``E`` envs, ``N``
+units, ``D`` observation entries, ``A`` action entries. One step of a batch of envs is one
+matrix product for the recurrence (``[h, o] @ [J, J_in]^T``) and one for the readout
+(``h @ J_out^T``).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from ermrl.config import ConfigError
+
+__all__ = ["HebbianAgent", "HebbianPolicy", "leak_factors", "load_npz", "recurrent_weights"]
+
+# Arrays of the policy (what ``policy.pt`` holds); the learning state is saved by ``save`` only.
+POLICY_ARRAYS = ("J", "J_in", "b", "alpha", "J_out", "critic_w", "critic_b")
+
+
+def leak_factors(units: int, tau_min: float, tau_max: float, dt: float) -> np.ndarray:
+    """Per-unit leak factors ``alpha = exp(-dt / tau)``, ``tau`` log-uniform over
+    ``[tau_min, tau_max]`` (``np.geomspace``: unit ``i`` has the ``i``-th of ``units``
+    log-evenly spaced time constants).
+
+    Returns:
+        ``alpha``, shape ``(units,)``, float64.
+    """
+    tau = np.geomspace(tau_min, tau_max, units)
+    return np.exp(-dt / tau)
+
+
+def recurrent_weights(units: int, spectral_radius: float, seed: Any) -> np.ndarray:
+    """``J``: Gaussian (reservoirpy's ``mat_gen.normal``), zero diagonal, spectral radius rho.
+
+    Returns:
+        Shape ``(units, units)``, float64.
+    """
+    from reservoirpy import mat_gen
+
+    J = np.array(mat_gen.normal(units, units, connectivity=1.0, seed=seed), dtype=np.float64)
+    np.fill_diagonal(J, 0.0)
+    radius = float(np.max(np.abs(np.linalg.eigvals(J)))) if units > 1 else 0.0
+    return J * (spectral_radius / radius) if radius > 0 else J
+
+
+class HebbianPolicy:
+    """The network's weights and its forward step (numpy), with a torch-like state dict.
+
+    Attributes:
+        J: Recurrent weights ``(N, N)``.
+        J_in: Input weights ``(N, D)``.
+        b: Bias ``(N,)``.
+        alpha: Leak factors ``(N,)``.
+        J_out: Readout ``(A, N)`` (the plastic weights).
+        critic_w: Linear critic's weights ``(N,)``; ``critic_b``: its bias ``(1,)``.
+    """
+
+    J: np.ndarray
+    J_in: np.ndarray
+    b: np.ndarray
+    alpha: np.ndarray
+    J_out: np.ndarray
+    critic_w: np.ndarray
+    critic_b: np.ndarray
+
+    def __init__(self, arrays: Mapping[str, np.ndarray], dtype: np.dtype) -> None:
+        self.dtype = dtype
+        self.training = True
+        self._set(arrays)
+
+    def _set(self, arrays: Mapping[str, np.ndarray]) -> None:
+        for name in POLICY_ARRAYS:
+            setattr(self, name, np.array(arrays[name], dtype=self.dtype))
+        self.W = np.concatenate([self.J, self.J_in], axis=1).T.copy()  # (N + D, N)
+
+    def recur(self, h: np.ndarray, obs: np.ndarray) -> np.ndarray:
+        """``alpha h + (1 - alpha) tanh(J h + J_in o + b)`` for a batch ``h (E, N)``, ``obs (E, D)``."""
+        pre = np.concatenate([h, obs], axis=1) @ self.W
+        pre += self.b
+        return self.alpha * h + (1.0 - self.alpha) * np.tanh(pre)
+
+    def mean(self, h: np.ndarray) -> np.ndarray:
+        """``mu = tanh(J_out h)``, shape ``(E, A)``."""
+        return np.tanh(h @ self.J_out.T)
+
+    def value(self, h: np.ndarray) -> np.ndarray:
+        """The critic ``V(h) = critic_w . h + critic_b``, shape ``(E,)``."""
+        return h @ self.critic_w + self.critic_b[0]
+
+    def state_dict(self) -> dict[str, Any]:
+        """The weights as CPU torch tensors (what ``policy.pt`` stores)."""
+        import torch
+
+        return {name: torch.from_numpy(np.array(getattr(self, name))) for name in POLICY_ARRAYS}
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        """Take weights from :meth:`state_dict`'s output.
+
+        Raises:
+            RuntimeError: missing or unexpected names, or a shape that differs.
+        """
+        if set(state) != set(POLICY_ARRAYS):
+            raise RuntimeError(
+                f"Error(s) in loading state_dict for HebbianPolicy: expected {sorted(POLICY_ARRAYS)}, "
+                f"got {sorted(state)}"
+            )
+        arrays = {name: np.asarray(state[name].detach().cpu().numpy()) for name in POLICY_ARRAYS}
+        for name in POLICY_ARRAYS:
+            if arrays[name].shape != getattr(self, name).shape:
+                raise RuntimeError(
+                    f"Error(s) in loading state_dict for HebbianPolicy: size mismatch for {name}: "
+                    f"{arrays[name].shape} in the file, {getattr(self, name).shape} here"
+                )
+        self._set(arrays)
+
+    def set_training_mode(self, mode: bool) -> None:
+        """Recorded only: the forward step is the same in both modes."""
+        self.training = bool(mode)
+
+
+class HebbianAgent:
+    """A leaky-integrator network with a reward-modulated Hebbian readout, on a VecEnv.
+
+    Not an SB3 algorithm: it offers what ermrl uses of one (``learn`` with SB3 callbacks,
+    ``predict``, ``num_timesteps``, ``save``, ``policy``, ``get_env``).
+
+    Args:
+        env: A VecEnv with a 1-D Box observation space and a Box action space. Policy means
+            ``mu`` lie in ``[-1, 1]``; the action ``mu + sigma xi`` is clipped to ``[-1, 1]`` and
+            mapped linearly onto the action bounds (the identity when they are ``[-1, 1]``).
+        settings: :meth:`~ermrl.learners._hebbian.HebbianLearner.settings`.
+        seed: Seeds the weights (reservoirpy's initializers) and the exploration noise.
+
+    Raises:
+        ConfigError: the action space is not a Box (Discrete actions are not supported) or the
+            observation space is not a 1-D Box.
+    """
+
+    def __init__(self, env: Any, settings: Mapping[str, Any], seed: int | None = None) -> None:
+        from gymnasium import spaces
+        from stable_baselines3.common.logger import Logger
+
+        if not isinstance(env.action_space, spaces.Box):
+            raise ConfigError(
+                f"learner 'hebbian' needs a Box action space, got {env.action_space} "
+                "(discrete actions are not supported)"
+            )
+        if (
+            not isinstance(env.observation_space, spaces.Box)
+            or len(env.observation_space.shape) != 1
+        ):
+            raise ConfigError(
+                f"learner 'hebbian' needs a flat Box observation space, got {env.observation_space}"
+            )
+        self.env = env
+        self.settings = dict(settings)
+        self.seed = seed
+        self.n_envs = int(env.num_envs)
+        self.num_timesteps = 0
+        self.logger = Logger(folder=None, output_formats=[])
+        self.observation_space = env.observation_space
+        self.action_space = env.action_space
+        self.dtype = np.dtype(self.settings["dtype"])
+        self.obs_dim = int(env.observation_space.shape[0])
+        self.act_dim = int(np.prod(env.action_space.shape))
+        low = np.asarray(env.action_space.low, dtype=np.float64).ravel()
+        high = np.asarray(env.action_space.high, dtype=np.float64).ravel()
+        self._unit_box = bool(np.all(low == -1.0) and np.all(high == 1.0))
+        self._low, self._high = low, high
+
+        weights_seq, noise_seq = np.random.SeedSequence(seed).spawn(2)
+        j_seq, in_seq, b_seq, out_seq = (np.random.default_rng(s) for s in weights_seq.spawn(4))
+        from reservoirpy import mat_gen
+
+        s = self.settings
+        n = int(s["units"])
+        arrays = {
+            "J": recurrent_weights(n, float(s["spectral_radius"]), j_seq),
+            "J_in": np.array(
+                mat_gen.normal(n, self.obs_dim, scale=float(s["input_scaling"]), seed=in_seq)
+            ),
+            "b": np.array(mat_gen.normal(n, 1, scale=float(s["bias_scaling"]), seed=b_seq)).ravel(),
+            "alpha": leak_factors(n, float(s["tau_min"]), float(s["tau_max"]), float(s["dt"])),
+            "J_out": np.array(
+                mat_gen.normal(self.act_dim, n, scale=float(s["readout_scaling"]), seed=out_seq)
+            ),
+            "critic_w": np.zeros(n),
+            "critic_b": np.zeros(1),
+        }
+        self.policy = HebbianPolicy(arrays, self.dtype)
+        self.rng = np.random.default_rng(noise_seq)
+        # Learning state: Adam's moments and step, the accumulator G, the running-mean baseline.
+        self.adam_m = np.zeros_like(self.policy.J_out)
+        self.adam_v = np.zeros_like(self.policy.J_out)
+        self.adam_t = 0
+        self.G = np.zeros_like(self.policy.J_out)
+        self.baseline_sum = 0.0  # exponentially weighted sum, bias-corrected by baseline_weight
+        self.baseline_weight = 0.0
+
+    # -- SB3-like interface -------------------------------------------------------------------
+
+    def get_env(self) -> Any:
+        return self.env
+
+    def _env_action(self, action: np.ndarray) -> np.ndarray:
+        """Clip to ``[-1, 1]`` and map onto the action bounds; shape ``(E, *action_shape)``."""
+        clipped = np.clip(action, -1.0, 1.0)
+        if not self._unit_box:
+            clipped = self._low + (clipped + 1.0) * 0.5 * (self._high - self._low)
+        out = clipped.reshape((-1, *self.action_space.shape))
+        return out.astype(self.action_space.dtype, copy=False)
+
+    def predict(
+        self,
+        observation: np.ndarray,
+        state: np.ndarray | None = None,
+        episode_start: np.ndarray | None = None,
+        deterministic: bool = False,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Actions for a batch of observations, carrying the hidden state.
+
+        Args:
+            observation: ``(E, D)`` (or ``(D,)`` for one env).
+            state: ``h`` from the previous call, ``(E, N)``; ``None``: zeros.
+            episode_start: ``(E,)`` booleans; a true entry resets that env's ``h`` to zero.
+            deterministic: The mean action ``mu`` (else ``mu + sigma xi``).
+
+        Returns:
+            The env actions ``(E, *action_shape)`` (``(*action_shape,)`` for a single
+            observation) and the new state ``h``.
+        """
+        obs = np.asarray(observation, dtype=self.dtype)
+        single = obs.ndim == 1
+        obs = obs.reshape(-1, self.obs_dim)
+        n = self.policy.J.shape[0]
+        if state is None:
+            h = np.zeros((obs.shape[0], n), dtype=self.dtype)
+        else:
+            h = np.array(state, dtype=self.dtype).reshape(obs.shape[0], n)
+        if episode_start is not None:
+            h[np.asarray(episode_start, dtype=bool).reshape(-1)] = 0.0
+        h = self.policy.recur(h, obs)
+        mu = self.policy.mean(h)
+        action = (
+            mu
+            if deterministic
+            else mu + self.settings["sigma"] * self.rng.standard_normal(mu.shape)
+        )
+        env_action = self._env_action(action)
+        return (env_action[0] if single else env_action), h
+
+    def save(self, path: Any) -> None:
+        """Write the agent as a plain ``.npz``: its arrays, learning state and a JSON config.
+
+        Args:
+            path: A file name or a binary file handle. ``np.load(..., allow_pickle=False)``
+                reads it back.
+        """
+        arrays = {name: getattr(self.policy, name) for name in POLICY_ARRAYS}
+        arrays.update(adam_m=self.adam_m, adam_v=self.adam_v, G=self.G)
+        config = {
+            "learner": "hebbian",
+            "settings": self.settings,
+            "seed": self.seed,
+            "num_timesteps": self.num_timesteps,
+            "adam_t": self.adam_t,
+            "baseline_sum": self.baseline_sum,
+            "baseline_weight": self.baseline_weight,
+        }
+        np.savez(path, config=np.array(json.dumps(config)), **arrays)
+
+    def set_random_seed(self, seed: int | None = None) -> None:
+        """Reseed the exploration noise."""
+        self.rng = np.random.default_rng(seed)
+
+    # -- learning -----------------------------------------------------------------------------
+
+    def _apply_update(self) -> None:
+        """``J_out += Adam(G / E - l2 J_out)`` (gradient ascent), then ``G = 0``."""
+        s = self.settings
+        beta1, beta2 = (float(b) for b in s["adam_betas"])
+        grad = self.G / self.n_envs - float(s["l2"]) * self.policy.J_out
+        self.adam_t += 1
+        self.adam_m *= beta1
+        self.adam_m += (1.0 - beta1) * grad
+        self.adam_v *= beta2
+        self.adam_v += (1.0 - beta2) * grad * grad
+        m_hat = self.adam_m / (1.0 - beta1**self.adam_t)
+        v_hat = self.adam_v / (1.0 - beta2**self.adam_t)
+        self.policy.J_out += (
+            float(s["learning_rate"]) * m_hat / (np.sqrt(v_hat) + float(s["adam_eps"]))
+        )
+        self.G[...] = 0.0
+        if not np.all(np.isfinite(self.policy.J_out)):
+            raise ValueError("hebbian: the readout J_out became non-finite (nan or inf)")
+
+    def _reward(self, rewards: np.ndarray, infos: list[dict[str, Any]]) -> np.ndarray:
+        if self.settings["reward"] == "task":
+            return np.asarray(rewards, dtype=np.float64)
+        try:
+            return np.array([float(info["x_velocity"]) for info in infos])
+        except KeyError:
+            raise ConfigError(
+                "hebbian reward x_velocity needs an env whose info has 'x_velocity' "
+                "(MuJoCo locomotion tasks such as Ant-v5)"
+            ) from None
+
+    def learn(
+        self,
+        total_timesteps: int,
+        callback: Any = None,
+        progress_bar: bool = False,
+        reset_num_timesteps: bool = True,
+        **_: Any,
+    ) -> HebbianAgent:
+        """Learn online for ``total_timesteps`` env steps (counted over all envs, as SB3 does).
+
+        Args:
+            total_timesteps: Env steps to take.
+            callback: An SB3 ``BaseCallback`` (or a list of them, or ``None``); its ``on_step``
+                runs after every batch step with ``locals`` holding ``dones``, ``infos``,
+                ``rewards``, ``actions``; returning ``False`` stops training.
+            progress_bar: Ignored (no progress bar).
+            reset_num_timesteps: Start counting from zero.
+
+        Returns:
+            ``self``.
+
+        Raises:
+            ValueError: the network's state or weights became non-finite (the message says
+                "nan").
+        """
+        from stable_baselines3.common.callbacks import BaseCallback, CallbackList
+
+        if isinstance(callback, list):
+            callback = CallbackList(callback)
+        if callback is not None and not isinstance(callback, BaseCallback):
+            raise TypeError(f"callback must be an SB3 BaseCallback, got {type(callback).__name__}")
+        if reset_num_timesteps:
+            self.num_timesteps = 0
+        total_timesteps = int(total_timesteps) + (0 if reset_num_timesteps else self.num_timesteps)
+        s = self.settings
+        policy, n_envs, dtype = self.policy, self.n_envs, self.dtype
+        sigma, trace_decay = float(s["sigma"]), float(s["trace_decay"])
+        baseline, decay = str(s["baseline"]), float(s["baseline_decay"])
+        gamma, critic_lr, critic_lambda = (
+            float(s["gamma"]),
+            float(s["critic_lr"]),
+            float(s["critic_lambda"]),
+        )
+        update_every = int(s["update_every"])
+        use_critic = baseline in ("critic", "td")
+        n = policy.J.shape[0]
+        eligibility = np.zeros((n_envs, self.act_dim, n), dtype=dtype)
+        critic_trace = np.zeros((n_envs, n), dtype=dtype)
+        critic_bias_trace = np.zeros(n_envs)
+        since_update = 0
+
+        obs = np.asarray(self.env.reset(), dtype=dtype)
+        h = policy.recur(np.zeros((n_envs, n), dtype=dtype), obs)
+        if callback is not None:
+            callback.init_callback(self)  # type: ignore[arg-type]
+            callback.on_training_start(locals(), globals())
+        while self.num_timesteps < total_timesteps:
+            mu = policy.mean(h)
+            actions = mu + sigma * self.rng.standard_normal(mu.shape)
+            # e = lambda e + ((a - mu)(1 - mu^2) / sigma^2) h^T, per env
+            psi = (actions - mu) * (1.0 - mu * mu) / (sigma * sigma)
+            eligibility *= trace_decay
+            eligibility += psi[:, :, None] * h[:, None, :]
+            new_obs, rewards, dones, infos = self.env.step(self._env_action(actions))
+            new_obs = np.asarray(new_obs, dtype=dtype)
+            reward = self._reward(rewards, infos)
+            dones = np.asarray(dones, dtype=bool)
+            h_start = h.copy()
+            h_start[dones] = 0.0
+            h_next = policy.recur(h_start, new_obs)
+            if not np.all(np.isfinite(h_next)):
+                raise ValueError("hebbian: the network state became non-finite (nan or inf)")
+
+            if use_critic:
+                value = policy.value(h)
+                value_next = policy.value(h_next)
+                for i in np.flatnonzero(dones):
+                    terminal = infos[i].get("terminal_observation")
+                    truncated = bool(infos[i].get("TimeLimit.truncated", False))
+                    if truncated and terminal is not None:
+                        last = policy.recur(h[i : i + 1], np.asarray(terminal, dtype=dtype)[None])
+                        value_next[i] = policy.value(last)[0]
+                    else:
+                        value_next[i] = 0.0
+                delta = reward + gamma * value_next - value
+                # TD(lambda) with accumulating traces on V(h) = w.h + c
+                critic_trace *= gamma * critic_lambda
+                critic_trace += h
+                critic_bias_trace *= gamma * critic_lambda
+                critic_bias_trace += 1.0
+                policy.critic_w += critic_lr * (delta @ critic_trace) / n_envs
+                policy.critic_b += critic_lr * float(delta @ critic_bias_trace) / n_envs
+                modulator = delta if baseline == "td" else reward - value
+                critic_trace[dones] = 0.0
+                critic_bias_trace[dones] = 0.0
+            elif baseline == "mean":
+                current = self.baseline_sum / self.baseline_weight if self.baseline_weight else 0.0
+                modulator = reward - current
+                for r in reward:
+                    self.baseline_sum = decay * self.baseline_sum + (1.0 - decay) * float(r)
+                    self.baseline_weight = decay * self.baseline_weight + (1.0 - decay)
+            else:
+                modulator = reward
+            # G += (r - b) e, summed over envs (the update divides by n_envs)
+            self.G += np.tensordot(modulator.astype(dtype), eligibility, axes=1)
+            eligibility[dones] = 0.0
+
+            self.num_timesteps += n_envs
+            since_update += 1
+            if (update_every > 0 and since_update >= update_every) or (
+                update_every == 0 and dones.any()
+            ):
+                self._apply_update()
+                since_update = 0
+            obs, h = new_obs, h_next
+            if callback is not None:
+                callback.update_locals(locals())
+                if not callback.on_step():
+                    break
+        if callback is not None:
+            callback.on_training_end()
+        return self
+
+
+def load_npz(data: bytes | Any) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """Read a saved agent (``save``'s ``.npz``) without pickles.
+
+    Args:
+        data: The file's bytes, a path or a binary handle.
+
+    Returns:
+        The JSON config and the arrays.
+    """
+    source = io.BytesIO(data) if isinstance(data, bytes) else data
+    with np.load(source, allow_pickle=False) as npz:
+        arrays = {name: npz[name] for name in npz.files}
+    config = json.loads(str(arrays.pop("config")))
+    return config, arrays
