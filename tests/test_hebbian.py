@@ -254,11 +254,65 @@ def test_bad_settings_are_refused_in_one_line(override: dict[str, Any], message:
     assert "\n" not in str(err.value)
 
 
-def test_other_learners_refuse_hebbian_settings_and_discrete_actions_are_refused() -> None:
+def test_other_learners_refuse_hebbian_settings() -> None:
+    ppo = with_overrides(resolve_ppo_config("Pendulum-v1"), {"units": 5})
     with pytest.raises(ConfigError, match="learner 'ppo' does not take units"):
-        check_ppo_config(
-            PENDULUM, None, with_overrides(resolve_ppo_config("Pendulum-v1"), {"units": 5})
-        )
-    cartpole = resolve_ppo_config("CartPole-v1", {"units": 5}, learner="hebbian")
-    with pytest.raises(ConfigError, match="needs a Box action space, got Discrete"):
-        check_ppo_config(TaskConfig("CartPole-v1", "all"), None, cartpole)
+        check_ppo_config(PENDULUM, None, ppo)
+
+
+class DiscreteBandit(ContextBandit):
+    """The contextual bandit with two discrete arms: arm 1 is right for context +1."""
+
+    action_space = gym.spaces.Discrete(2)  # type: ignore[assignment]
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
+        reward = float((2 * int(action) - 1) == self.context)
+        self.t += 1
+        return self._context(), reward, self.t >= self.length, False, {}
+
+
+def test_discrete_actions_follow_the_softmax_policy_gradient() -> None:
+    def agent_for(seed: int, **overrides: Any) -> HebbianAgent:
+        env = DummyVecEnv([DiscreteBandit] * 64)
+        env.seed(seed)
+        base = {"units": 20, "input_scaling": 3.0, "bias_scaling": 1.0, "readout_scaling": 0.5}
+        return HebbianAgent(env, settings(**{**base, **overrides}), seed=seed)
+
+    agent = agent_for(1)
+    updates: list[np.ndarray] = []
+
+    def record() -> None:
+        updates.append(agent.G / agent.n_envs)
+        agent.G[...] = 0.0
+
+    agent._apply_update = record  # type: ignore[method-assign]
+    agent.learn(64 * 100)
+    truth = np.zeros_like(agent.G)  # d/dJ_out of 0.5 sum_c p_c(right arm)
+    for context in (-1.0, 1.0):
+        h = agent.policy.recur(np.zeros((1, 20)), np.array([[context]]))
+        p = agent.policy.probabilities(h)[0]
+        right = int(context > 0)
+        truth += 0.5 * p[right] * np.outer(np.eye(2)[right] - p, h[0])
+    expected = np.mean(updates, axis=0)
+    assert np.linalg.norm(expected - truth) < 0.15 * np.linalg.norm(truth)
+
+    trained = agent_for(2, learning_rate=0.02)
+    trained.learn(64 * 100)
+    obs = np.array([[1.0], [-1.0]])
+    actions, _ = trained.predict(obs, deterministic=True)
+    assert actions.tolist() == [1, 0]
+    sampled, _ = trained.predict(np.repeat(obs, 200, axis=0))
+    assert np.mean(sampled[:200] == 1) > 0.9 and np.mean(sampled[200:] == 0) > 0.9
+
+
+def test_cartpole_trains_through_train_agent(tmp_path: Path) -> None:
+    task = TaskConfig("CartPole-v1", "all")
+    ppo = resolve_ppo_config("CartPole-v1", {"units": 20}, learner="hebbian", n_envs=2)
+    budget = BudgetConfig(training_steps=400, fitness="eval", n_eval_episodes=1)
+    result = train_agent(task, None, ppo, budget, 0, model_path=tmp_path / "model.zip")
+    assert result.episode_returns and result.eval_return is not None
+    env = make_vec_env(task, 1, 0)
+    model = load_policy(tmp_path / "policy.pt", ppo, env)
+    action, state = model.predict(env.reset(), deterministic=True)
+    assert action.dtype == np.int64 and action.shape == (1,) and state.shape == (1, 20)
+    env.close()

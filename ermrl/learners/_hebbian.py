@@ -22,8 +22,11 @@ replays take it unchanged.
 
 Settings (``ermrl/data/hebbian.yml``): this learner's own keys (:attr:`HebbianLearner.own_keys`)
 and two keys it shares with PPO, ``learning_rate`` (Adam's step on ``J_out``, default 1e-4) and
-``gamma`` (the critic's discount). Any other PPO key is refused. Only Box action spaces are
-taken (a Discrete one is refused with a one-line :class:`~ermrl.config.ConfigError`).
+``gamma`` (the critic's discount). Any other PPO key is refused. Box actions follow the
+equations above (clipped, then mapped onto the action bounds); Discrete actions use a softmax
+readout ``p = softmax(J_out h)``, ``a ~ p``, with the softmax's score as eligibility,
+``e_t = lambda e_{t-1} + (onehot(a_t) - p_t) h_t^T`` (``sigma`` unused). Other action spaces are
+refused with a one-line :class:`~ermrl.config.ConfigError`.
 """
 
 from __future__ import annotations
@@ -191,7 +194,7 @@ class HebbianLearner(Learner):
         so is ``tensorboard_log``: the agent logs nothing).
 
         Raises:
-            ConfigError: a bad setting, or an action space that is not a Box.
+            ConfigError: a bad setting, or an action space that is neither Box nor Discrete.
         """
         from ermrl.learners._hebbian_model import HebbianAgent
 

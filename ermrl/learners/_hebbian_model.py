@@ -89,6 +89,14 @@ class HebbianPolicy:
         """``mu = tanh(J_out h)``, shape ``(E, A)``."""
         return np.tanh(h @ self.J_out.T)
 
+    def probabilities(self, h: np.ndarray) -> np.ndarray:
+        """``p = softmax(J_out h)`` (discrete actions), shape ``(E, A)``."""
+        logits = h @ self.J_out.T
+        logits -= logits.max(axis=1, keepdims=True)
+        p = np.exp(logits)
+        p /= p.sum(axis=1, keepdims=True)
+        return p
+
     def value(self, h: np.ndarray) -> np.ndarray:
         """The critic ``V(h) = critic_w . h + critic_b``, shape ``(E,)``."""
         return h @ self.critic_w + self.critic_b[0]
@@ -131,25 +139,28 @@ class HebbianAgent:
     ``predict``, ``num_timesteps``, ``save``, ``policy``, ``get_env``).
 
     Args:
-        env: A VecEnv with a 1-D Box observation space and a Box action space. Policy means
-            ``mu`` lie in ``[-1, 1]``; the action ``mu + sigma xi`` is clipped to ``[-1, 1]`` and
-            mapped linearly onto the action bounds (the identity when they are ``[-1, 1]``).
+        env: A VecEnv with a 1-D Box observation space and a Box or Discrete action space.
+            Box: policy means ``mu`` lie in ``[-1, 1]``; the action ``mu + sigma xi`` is clipped
+            to ``[-1, 1]`` and mapped linearly onto the action bounds (the identity when they
+            are ``[-1, 1]``). Discrete (``A`` actions): a softmax policy
+            ``p = softmax(J_out h)``, ``a ~ p``, whose eligibility is
+            ``e = lambda e + (onehot(a) - p) h^T`` (the score of the softmax; ``sigma`` is not
+            used); the deterministic action is ``argmax p``.
         settings: :meth:`~ermrl.learners._hebbian.HebbianLearner.settings`.
         seed: Seeds the weights (reservoirpy's initializers) and the exploration noise.
 
     Raises:
-        ConfigError: the action space is not a Box (Discrete actions are not supported) or the
-            observation space is not a 1-D Box.
+        ConfigError: the action space is neither a Box nor a Discrete one, or the observation
+            space is not a 1-D Box.
     """
 
     def __init__(self, env: Any, settings: Mapping[str, Any], seed: int | None = None) -> None:
         from gymnasium import spaces
         from stable_baselines3.common.logger import Logger
 
-        if not isinstance(env.action_space, spaces.Box):
+        if not isinstance(env.action_space, (spaces.Box, spaces.Discrete)):
             raise ConfigError(
-                f"learner 'hebbian' needs a Box action space, got {env.action_space} "
-                "(discrete actions are not supported)"
+                f"learner 'hebbian' needs a Box or Discrete action space, got {env.action_space}"
             )
         if (
             not isinstance(env.observation_space, spaces.Box)
@@ -168,11 +179,18 @@ class HebbianAgent:
         self.action_space = env.action_space
         self.dtype = np.dtype(self.settings["dtype"])
         self.obs_dim = int(env.observation_space.shape[0])
-        self.act_dim = int(np.prod(env.action_space.shape))
-        low = np.asarray(env.action_space.low, dtype=np.float64).ravel()
-        high = np.asarray(env.action_space.high, dtype=np.float64).ravel()
-        self._unit_box = bool(np.all(low == -1.0) and np.all(high == 1.0))
-        self._low, self._high = low, high
+        space = env.action_space
+        self.discrete = isinstance(space, spaces.Discrete)
+        if isinstance(space, spaces.Discrete):
+            self.act_dim = int(space.n)
+            self._start = int(space.start)
+        else:
+            self.act_dim = int(np.prod(space.shape))
+            low = np.asarray(space.low, dtype=np.float64).ravel()
+            high = np.asarray(space.high, dtype=np.float64).ravel()
+            self._unit_box = bool(np.all(low == -1.0) and np.all(high == 1.0))
+            self._low, self._high = low, high
+            self._shape: tuple[int, ...] = tuple(space.shape)
 
         weights_seq, noise_seq = np.random.SeedSequence(seed).spawn(2)
         j_seq, in_seq, b_seq, out_seq = (np.random.default_rng(s) for s in weights_seq.spawn(4))
@@ -209,11 +227,14 @@ class HebbianAgent:
         return self.env
 
     def _env_action(self, action: np.ndarray) -> np.ndarray:
-        """Clip to ``[-1, 1]`` and map onto the action bounds; shape ``(E, *action_shape)``."""
+        """Box: clip to ``[-1, 1]`` and map onto the action bounds; shape
+        ``(E, *action_shape)``. Discrete: the indices ``(E,)`` shifted by the space's start."""
+        if self.discrete:
+            return np.asarray(action, dtype=np.int64) + self._start
         clipped = np.clip(action, -1.0, 1.0)
         if not self._unit_box:
             clipped = self._low + (clipped + 1.0) * 0.5 * (self._high - self._low)
-        out = clipped.reshape((-1, *self.action_space.shape))
+        out = clipped.reshape((-1, *self._shape))
         return out.astype(self.action_space.dtype, copy=False)
 
     def predict(
@@ -246,14 +267,20 @@ class HebbianAgent:
         if episode_start is not None:
             h[np.asarray(episode_start, dtype=bool).reshape(-1)] = 0.0
         h = self.policy.recur(h, obs)
-        mu = self.policy.mean(h)
-        action = (
-            mu
-            if deterministic
-            else mu + self.settings["sigma"] * self.rng.standard_normal(mu.shape)
-        )
+        if self.discrete:
+            p = self.policy.probabilities(h)
+            action = p.argmax(axis=1) if deterministic else self._sample(p)
+        else:
+            mu = self.policy.mean(h)
+            noise = self.settings["sigma"] * self.rng.standard_normal(mu.shape)
+            action = mu if deterministic else mu + noise
         env_action = self._env_action(action)
         return (env_action[0] if single else env_action), h
+
+    def _sample(self, p: np.ndarray) -> np.ndarray:
+        """One index per row of the probabilities ``p (E, A)`` (inverse CDF)."""
+        u = self.rng.random((p.shape[0], 1))
+        return np.minimum((np.cumsum(p, axis=1) < u).sum(axis=1), p.shape[1] - 1)
 
     def save(self, path: Any) -> None:
         """Write the agent as a plain ``.npz``: its arrays, learning state and a JSON config.
@@ -368,10 +395,17 @@ class HebbianAgent:
             callback.init_callback(self)  # type: ignore[arg-type]
             callback.on_training_start(locals(), globals())
         while self.num_timesteps < total_timesteps:
-            mu = policy.mean(h)
-            actions = mu + sigma * self.rng.standard_normal(mu.shape)
-            # e = lambda e + ((a - mu)(1 - mu^2) / sigma^2) h^T, per env
-            psi = (actions - mu) * (1.0 - mu * mu) / (sigma * sigma)
+            if self.discrete:
+                # softmax policy: e = lambda e + (onehot(a) - p) h^T, per env
+                mu = policy.probabilities(h)
+                actions = self._sample(mu)
+                psi = -mu
+                psi[np.arange(n_envs), actions] += 1.0
+            else:
+                mu = policy.mean(h)
+                actions = mu + sigma * self.rng.standard_normal(mu.shape)
+                # e = lambda e + ((a - mu)(1 - mu^2) / sigma^2) h^T, per env
+                psi = (actions - mu) * (1.0 - mu * mu) / (sigma * sigma)
             eligibility *= trace_decay
             eligibility += psi[:, :, None] * h[:, None, :]
             new_obs, rewards, dones, infos = self.env.step(self._env_action(actions))
