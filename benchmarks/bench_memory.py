@@ -79,8 +79,10 @@ def _agent_rows(outs: list[Path], agents: tuple[str, ...]) -> dict[str, Any]:
     return rows
 
 
-def _fmt(value: float | None, digits: int = 1) -> str:
-    return "-" if value is None or value != value else f"{value:.{digits}f}"
+def _fmt(value: float | None) -> str:
+    if value is None or value != value:
+        return "-"
+    return f"{value:.3f}" if abs(value) < 10 else f"{value:.1f}"  # POPGym returns lie in [-1, 1]
 
 
 def format_table(report: dict[str, Any]) -> str:
