@@ -142,18 +142,26 @@ def test_the_memory_benchmark_runs_in_quick_mode(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-def test_the_rtu_cost_benchmark_runs_in_quick_mode(tmp_path: Path) -> None:
-    proc = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "bench_rtu.py"), "--quick",
-         "--out", str(tmp_path / "rtu.json")],
-        cwd=ROOT, capture_output=True, text=True, timeout=600,
-    )  # fmt: skip
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    summary = {s["variant"]: s for s in json.loads((tmp_path / "rtu.json").read_text())["summary"]}
-    assert set(summary) == {"ppo", "rtu-ppo", "rtu-ppo --no-stale-gradient"}
-    assert summary["ppo"]["vs_ppo"] == 1.0 and summary["ppo"]["carries_mb"] == 0
+def test_the_learner_cost_benchmark_runs_in_quick_mode(tmp_path: Path) -> None:
+    def run(suite: str) -> dict[str, dict]:
+        out = tmp_path / f"{suite}.json"
+        proc = subprocess.run(
+            [sys.executable, str(ROOT / "benchmarks" / "bench_learner_cost.py"), "--quick",
+             "--suite", suite, "--out", str(out)],
+            cwd=ROOT, capture_output=True, text=True, timeout=600,
+        )  # fmt: skip
+        assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+        return {s["variant"]: s for s in json.loads(out.read_text())["summary"]}
+
+    rtu = run("rtu")
+    assert set(rtu) == {"ppo", "rtu-ppo", "rtu-ppo --no-stale-gradient"}
+    assert rtu["ppo"]["vs_ppo"] == 1.0 and rtu["ppo"]["carries_mb"] == 0
     # One 2048-step rollout of carries at d_rec 192: 2 * 192 * 64 + 6 * 192 floats per step.
-    assert summary["rtu-ppo"]["carries_mb"] == pytest.approx(
-        2048 * (2 * 192 * 64 + 6 * 192) * 4 / 1e6
+    assert rtu["rtu-ppo"]["carries_mb"] == pytest.approx(2048 * (2 * 192 * 64 + 6 * 192) * 4 / 1e6)
+    assert all(s["steps_per_s"] > 0 for s in rtu.values())
+    hebbian = run("hebbian")
+    assert set(hebbian) == {"ppo", "hebbian"}
+    assert hebbian["hebbian"]["update_share"] is None  # no SB3 rollout/update split
+    assert hebbian["hebbian"]["vs_ppo"] == pytest.approx(
+        hebbian["hebbian"]["steps_per_s"] / hebbian["ppo"]["steps_per_s"]
     )
-    assert all(s["steps_per_s"] > 0 for s in summary.values())
