@@ -63,6 +63,8 @@ class AgentKind:
     Attributes:
         reservoirs: ``"none"`` (the raw observation), ``"evolved"`` (the selected trial's) or
             ``"unevolved"`` (reservoirpy's defaults, :meth:`ReservoirSpace.default_reservoirs`).
+            In a study of a learner's genes (:class:`LearnerSpace`) the agent sees the raw
+            observation and ``"evolved"``/``"unevolved"`` are the learner's genes.
         observe: The agent's own observation mask (``None``: the test task's).
         description: One line for ``--help`` and the docs.
         learner: Its learner (a name of :data:`ermrl.learners.LEARNERS`); ``None``: the
@@ -73,7 +75,8 @@ class AgentKind:
         color: Its matplotlib colour, the same in every figure.
         default: Trained when ``--agents`` is not given (in a study of its family).
         family: The encoder family of a study it can be tested in (``"esn"``: evolved with
-            ``--encoder reservoir``, ``"rtu"``: with ``--encoder rtu``); ``None``: any study.
+            ``--encoder reservoir``, ``"rtu"``: with ``--encoder rtu``, ``"hebbian"``: a study
+            of the Hebbian learner's genes); ``None``: any study.
     """
 
     reservoirs: Literal["none", "evolved", "unevolved"]
@@ -130,6 +133,17 @@ AGENT_KINDS: Mapping[str, AgentKind] = {
         "none", None,
         "PPO with recurrent trace units learned online by RTRL (real-time PPO): learned memory",
         "rtu-ppo", "RTU-PPO (learned RTU)", "RTU-PPO", "tab:olive", default=False,
+    ),
+    "hebbian": AgentKind(
+        "evolved", None,
+        "the Hebbian learner with the selected evolved genes (evolve --learner hebbian studies)",
+        None, "Hebbian (evolved genes)", "Hebbian\n(evolved)", "tab:cyan", family="hebbian",
+    ),
+    "random-hebbian": AgentKind(
+        "unevolved", None,
+        "the Hebbian learner with its default genes (the original's values; --learner hebbian "
+        "studies)",
+        None, "Hebbian (default genes)", "Hebbian\n(default)", "darkgoldenrod", family="hebbian",
     ),
 }  # fmt: skip
 AGENTS: tuple[str, ...] = tuple(AGENT_KINDS)
@@ -541,6 +555,21 @@ class SearchSpace(Protocol):
     def contains(self, params: Mapping[str, float]) -> bool: ...
 
 
+def _box_contains(ranges: Mapping[str, Range], params: Mapping[str, float]) -> bool:
+    """Whether ``params`` name exactly the parameters of ``ranges``, each within its range."""
+    return set(params) == set(ranges) and all(
+        r.low <= params[name] <= r.high for name, r in ranges.items()
+    )
+
+
+def _box_center(ranges: Mapping[str, Range]) -> dict[str, float]:
+    """The centre of a box (the geometric mean of the bounds on a log scale)."""
+    return {
+        name: math.sqrt(r.low * r.high) if r.log else (r.low + r.high) / 2
+        for name, r in ranges.items()
+    }
+
+
 class _PerReservoirSpace:
     """What the search spaces share: each reservoir has the same evolved parameters, named
     ``name`` with one reservoir and ``name_0``, ``name_1``, ... with several."""
@@ -590,17 +619,11 @@ class _PerReservoirSpace:
 
     def contains(self, params: Mapping[str, float]) -> bool:
         """Whether ``params`` name exactly this space's parameters, each within its range."""
-        ranges = self.ranges()
-        return set(params) == set(ranges) and all(
-            r.low <= params[name] <= r.high for name, r in ranges.items()
-        )
+        return _box_contains(self.ranges(), params)
 
     def center_params(self) -> dict[str, float]:
         """The centre of the box (geometric mean of the bounds on a log scale): the paper's start."""
-        return {
-            name: math.sqrt(r.low * r.high) if r.log else (r.low + r.high) / 2
-            for name, r in self.ranges().items()
-        }
+        return _box_center(self.ranges())
 
 
 @dataclass(frozen=True)
@@ -795,6 +818,84 @@ EncoderSpace = ReservoirSpace | RTUSpace
 
 
 @dataclass(frozen=True)
+class LearnerSpace:
+    """The evolved genes of an inner learner (``evolve --learner hebbian``): data, not code.
+
+    Evolution then shapes the learner itself, plasticity included, and the agent sees the raw
+    (masked) observation: the study has no encoder. Each gene is a named :class:`Range`; the
+    learner turns a point into settings (:meth:`ermrl.learners.Learner.decode_genes`), so search
+    code never handles a learner's own settings. The space has a fixed dimension, so that CMA-ES
+    works; a categorical choice (the Hebbian learner's baseline) is fixed per study through the
+    learner's settings (``--ppo baseline=critic``).
+
+    Attributes:
+        learner: The learner whose genes these are (a name of :data:`ermrl.learners.LEARNERS`).
+        genes: Gene name -> search range, in order.
+        reference: The unevolved genes: the study's own learner settings (the learner's table
+            for the task and ``--ppo``) as gene values, what ``random-<learner>`` trains with.
+            Its trial (``--reference-trial``) is clipped into the box.
+    """
+
+    learner: str
+    genes: Mapping[str, Range]
+    reference: Mapping[str, float]
+
+    n_reservoirs: ClassVar[int] = 0
+
+    def __post_init__(self) -> None:
+        if not self.genes:
+            raise ConfigError(f"learner {self.learner!r} has no genes to evolve")
+        if set(self.reference) != set(self.genes):
+            raise ConfigError(
+                f"the reference genes {sorted(self.reference)} must be the genes "
+                f"{sorted(self.genes)}"
+            )
+        for name, value in self.reference.items():
+            if not math.isfinite(value):
+                raise ConfigError(f"reference gene {name} must be finite, got {value}")
+
+    @property
+    def family(self) -> str:
+        """What the study evolves: the learner's name (the test phase's agents follow it)."""
+        return self.learner
+
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        return tuple(self.genes)
+
+    def ranges(self) -> dict[str, Range]:
+        return dict(self.genes)
+
+    def reference_params(self) -> dict[str, float]:
+        """The reference genes clipped into the box (a gene whose default lies outside a
+        log-scale range, as an l2 of 0, takes the nearest bound)."""
+        return {
+            name: min(max(float(self.reference[name]), r.low), r.high)
+            for name, r in self.genes.items()
+        }
+
+    def center_params(self) -> dict[str, float]:
+        return _box_center(self.genes)
+
+    def contains(self, params: Mapping[str, float]) -> bool:
+        return _box_contains(self.genes, params)
+
+    def values(self, params: Mapping[str, float]) -> dict[str, float]:
+        """A trial's gene values, in gene order.
+
+        Raises:
+            ConfigError: a gene is missing.
+        """
+        try:
+            return {name: float(params[name]) for name in self.genes}
+        except KeyError as err:
+            raise ConfigError(f"gene {err.args[0]!r} missing from {dict(params)}") from err
+
+
+SearchSpaceConfig = EncoderSpace | LearnerSpace
+
+
+@dataclass(frozen=True)
 class SearchConfig:
     """The outer loop: how candidates are proposed.
 
@@ -863,13 +964,14 @@ class Problem:
     Attributes:
         task: The environment.
         encoder: Encoding options; its ``reservoirs`` are replaced by each candidate's.
+            ``None``: no encoder (a study of a learner's genes, :class:`LearnerSpace`).
         ppo: Agent settings.
         budget: Training budget and fitness measure.
         seeds: Training seeds; fitness is the mean over them.
     """
 
     task: TaskConfig
-    encoder: EncoderConfig
+    encoder: EncoderConfig | None
     ppo: PPOConfig
     budget: BudgetConfig
     seeds: tuple[int, ...] = (0, 1, 2)
@@ -960,7 +1062,8 @@ class EvolveConfig:
 
     Attributes:
         problem: How fitness is computed.
-        space: What is searched.
+        space: What is searched: an encoder's space, or a learner's genes
+            (:class:`LearnerSpace`, with no encoder).
         search: How it is searched.
         n_procs: Processes that train a trial's seeds in parallel.
         generalization: The task set of a multi-task run (``evolve-generalization``); then
@@ -969,7 +1072,7 @@ class EvolveConfig:
     """
 
     problem: Problem
-    space: EncoderSpace
+    space: SearchSpaceConfig
     search: SearchConfig
     n_procs: int = 1
     generalization: GeneralizationConfig | None = field(
@@ -989,9 +1092,28 @@ class EvolveConfig:
                 "the population backend trains a whole generation at once and reports no "
                 "intermediate returns: use --pruner none with --backend population"
             )
-        if self.space.n_reservoirs != self.problem.encoder.n_reservoirs:
+        encoder = self.problem.encoder
+        if isinstance(self.space, LearnerSpace):
+            if encoder is not None:
+                raise ConfigError(
+                    f"a study of the {self.space.learner} learner's genes has no encoder "
+                    "(the learner's own network is the evolved one)"
+                )
+            if self.space.learner != self.problem.ppo.learner:
+                raise ConfigError(
+                    f"the genes of learner {self.space.learner!r} cannot evolve learner "
+                    f"{self.problem.ppo.learner!r}"
+                )
+            if self.generalization is not None:
+                raise ConfigError(
+                    "evolve-generalization evolves encoders only; evolve a learner's genes "
+                    "with evolve"
+                )
+        elif encoder is None:
+            raise ConfigError("an encoder's search space needs the problem's encoder")
+        elif self.space.n_reservoirs != encoder.n_reservoirs:
             raise ConfigError("the encoder and the search space disagree on n_reservoirs")
-        if self.space.family != self.problem.encoder.family:
+        elif self.space.family != encoder.family:
             raise ConfigError("the encoder and the search space are of different families")
         if self.space.family != "esn" and self.problem.ppo.backend == "population":
             raise ConfigError(
@@ -1077,7 +1199,13 @@ def from_dict(cls: type[_T], data: Mapping[str, Any]) -> _T:
         sub = hints.get((cls, key))
         if sub is ReservoirSpace and isinstance(value, Mapping) and value.get("family") == "rtu":
             sub = RTUSpace
-        if sub is not None and value is not None:
+        if sub is ReservoirSpace and isinstance(value, Mapping) and "learner" in value:
+            sub = LearnerSpace
+        if cls is LearnerSpace and key == "genes":
+            value = {str(k): from_dict(Range, v) for k, v in value.items()}
+        elif cls is LearnerSpace and key == "reference":
+            value = {str(k): float(v) for k, v in value.items()}
+        elif sub is not None and value is not None:
             value = from_dict(sub, value)
         elif cls is EncoderConfig and key == "reservoirs":
             value = tuple(

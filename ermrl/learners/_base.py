@@ -13,10 +13,11 @@ overrides (:func:`ermrl.agents.resolve_ppo_config`).
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
-from ermrl.config import ConfigError, PPOConfig
+from ermrl.config import ConfigError, LearnerSpace, PPOConfig, Range
 
 __all__ = ["Learner"]
 
@@ -33,6 +34,9 @@ class Learner:
             to the algorithm, and other learners refuse them.
         recurrent: The policy carries a hidden state between steps (``predict`` needs
             ``state`` and ``episode_start``; SB3's ``evaluate_policy`` passes them).
+        genes: The settings evolution may shape (``evolve --learner NAME``), gene name ->
+            default search range; empty: the learner has no genes and a study evolves an
+            encoder for it. :meth:`decode_genes` turns genes into settings.
     """
 
     name: ClassVar[str]
@@ -41,6 +45,7 @@ class Learner:
     policy: ClassVar[str] = "MlpPolicy"
     own_keys: ClassVar[Mapping[str, Any]] = {}
     recurrent: ClassVar[bool] = False
+    genes: ClassVar[Mapping[str, Range]] = {}
 
     def algorithm(self) -> type:
         """The algorithm class (imported lazily: torch is slow to import)."""
@@ -103,3 +108,53 @@ class Learner:
             tensorboard_log=tensorboard_log,
             **self.kwargs(config),
         )
+
+    # -- evolvable genes ---------------------------------------------------------------------
+
+    def decode_genes(self, values: Mapping[str, float]) -> dict[str, Any]:
+        """The settings a point of the gene space stands for (default: genes are settings)."""
+        return dict(values)
+
+    def gene_values(self, config: PPOConfig) -> dict[str, float]:
+        """The genes of ``config``'s settings: the inverse of :meth:`decode_genes`."""
+        return {name: float(self.option(config, name)) for name in self.genes}
+
+    def gene_space(
+        self, config: PPOConfig, ranges: Mapping[str, Range] | None = None
+    ) -> LearnerSpace:
+        """The study's search space of this learner's genes, whose reference is ``config``.
+
+        Args:
+            config: The study's settings of this learner (the unevolved reference).
+            ranges: Other ranges for some genes (``--gene NAME=LOW:HIGH``).
+
+        Raises:
+            ConfigError: the learner has no genes, or ``ranges`` names another gene.
+        """
+        if not self.genes:
+            raise ConfigError(
+                f"learner {self.name!r} has no genes to evolve; a study evolves its encoder "
+                "(--encoder)"
+            )
+        unknown = sorted(set(ranges or {}) - set(self.genes))
+        if unknown:
+            raise ConfigError(
+                f"learner {self.name!r} has no gene {', '.join(unknown)}; its genes: "
+                f"{', '.join(self.genes)}"
+            )
+        self.check(config)
+        space = LearnerSpace(self.name, {**self.genes, **(ranges or {})}, self.gene_values(config))
+        for end in ("low", "high"):  # a range the learner would refuse fails here, not mid-study
+            self.with_genes(config, {n: getattr(r, end) for n, r in space.genes.items()})
+        return space
+
+    def with_genes(self, config: PPOConfig, values: Mapping[str, float]) -> PPOConfig:
+        """``config`` with the settings of a point of the gene space, checked.
+
+        Raises:
+            ConfigError: the genes decode to a setting the learner refuses.
+        """
+        hyperparams = {**config.hyperparams, **self.decode_genes(values)}
+        out = dataclasses.replace(config, hyperparams=hyperparams)
+        self.check(out)
+        return out

@@ -35,10 +35,10 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
-from ermrl.config import ConfigError, PPOConfig
+from ermrl.config import ConfigError, PPOConfig, Range
 from ermrl.learners._base import Learner
 
-__all__ = ["HebbianLearner", "BASELINES", "REWARDS", "SHARED_KEYS"]
+__all__ = ["HebbianLearner", "BASELINES", "GENES", "REWARDS", "SHARED_KEYS"]
 
 MAX_UNITS = 4096
 # Baselines b_t: none (b = 0), a running mean of the reward, a linear critic V(h) trained by
@@ -50,6 +50,24 @@ REWARDS = ("task", "x_velocity")
 DTYPES = ("float64", "float32")
 # PPO keys this learner reads too (with these defaults when the table does not set them).
 SHARED_KEYS: Mapping[str, Any] = {"learning_rate": 1e-4, "gamma": 0.99}
+# The evolvable genes (evolve --learner hebbian) and their default search ranges. Two are
+# reparametrized so that a box is always valid and log scales fit: tau_ratio = tau_max / tau_min
+# (>= 1, so tau_max >= tau_min) and trace_horizon = 1 / (1 - trace_decay) (the trace's time
+# constant in steps: 2 -> lambda 0.5, 100 -> 0.99, 1000 -> 0.999). The rest are settings.
+# The baseline is a categorical choice, fixed per study (--ppo baseline=...).
+GENES: Mapping[str, Range] = {
+    "spectral_radius": Range(0.05, 3.0),
+    "input_scaling": Range(1e-3, 1.0),
+    "bias_scaling": Range(0.0, 1.0, log=False),
+    "tau_min": Range(1.0, 100.0),
+    "tau_ratio": Range(1.0, 100.0),
+    "sigma": Range(0.02, 1.0),
+    "trace_horizon": Range(2.0, 1000.0),
+    "learning_rate": Range(1e-6, 1e-2),
+    "l2": Range(1e-6, 10.0),
+}
+# The largest trace horizon a trace decay of 1 (no decay) is read as.
+_MAX_HORIZON = 1e6
 # Keys read by ermrl itself, never an algorithm's.
 _ERMRL_KEYS = {"n_envs", "normalize"}
 
@@ -107,6 +125,30 @@ class HebbianLearner(Learner):
         "reward": "task",
         "dtype": "float64",
     }
+
+    genes = GENES
+
+    def decode_genes(self, values: Mapping[str, float]) -> dict[str, Any]:
+        """Settings from genes: ``tau_max = tau_min * tau_ratio`` and
+        ``trace_decay = 1 - 1 / trace_horizon``; the others are settings."""
+        out: dict[str, Any] = {
+            k: float(v) for k, v in values.items() if k not in ("tau_ratio", "trace_horizon")
+        }
+        if "tau_ratio" in values:
+            out["tau_max"] = float(values["tau_min"]) * float(values["tau_ratio"])
+        if "trace_horizon" in values:
+            out["trace_decay"] = 1.0 - 1.0 / float(values["trace_horizon"])
+        return out
+
+    def gene_values(self, config: PPOConfig) -> dict[str, float]:
+        get = self.option
+        tau_min = float(get(config, "tau_min"))
+        decay = float(get(config, "trace_decay"))
+        derived = {
+            "tau_ratio": float(get(config, "tau_max")) / tau_min,
+            "trace_horizon": min(1.0 / (1.0 - decay), _MAX_HORIZON) if decay < 1 else _MAX_HORIZON,
+        }
+        return {k: derived[k] if k in derived else float(get(config, k)) for k in self.genes}
 
     def algorithm(self) -> type:
         from ermrl.learners._hebbian_model import HebbianAgent

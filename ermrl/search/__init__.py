@@ -21,6 +21,7 @@ from ermrl.search._generalization import (
 from ermrl.search._objective import (
     FitnessResult,
     SeedRunner,
+    decode_candidate,
     evaluate_encoder,
     library_versions,
     pool_size,
@@ -83,6 +84,7 @@ __all__ = [
     "cma_generation_info",
     "create_or_resume_generalization_study",
     "create_or_resume_study",
+    "decode_candidate",
     "evaluate_encoder",
     "evaluate_generalization",
     "format_params",

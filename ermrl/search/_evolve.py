@@ -36,7 +36,6 @@ from optuna.trial import TrialState
 
 from ermrl.agents import NoEpisodeFinished, TrainingDiverged
 from ermrl.config import EncoderConfig, EvolveConfig
-from ermrl.encoders import encoder_for
 from ermrl.search._claim import (
     Claim,
     claim_trial,
@@ -48,6 +47,7 @@ from ermrl.search._claim import (
 from ermrl.search._objective import (
     FitnessResult,
     SeedRunner,
+    decode_candidate,
     evaluate_encoder,
     evaluate_encoders,
 )
@@ -307,8 +307,11 @@ def run_evolution(
         started = time.perf_counter()
         try:
             guard.check()  # a signal that arrived during the claims
-            decode = encoder_for(problem.encoder).decode
-            encoders = [decode(config.space, c.params, problem.encoder) for c in claims]
+            encoders = []
+            for c in claims:
+                encoder = decode_candidate(config.space, c.params, problem)[0]
+                assert encoder is not None  # the population backend trains encoders' studies
+                encoders.append(encoder)
             assert evaluate_generation is not None
             results = evaluate_generation(encoders, runner)
             unexpected = next(
@@ -424,11 +427,12 @@ def run_evolution(
             note = ""
             try:
                 guard.check()  # a signal that arrived during the claim
-                # The sampled point is a plain dict; the problem's encoder decodes it.
-                encoder = encoder_for(problem.encoder).decode(config.space, params, problem.encoder)
+                # The sampled point is a plain dict; the problem's encoder (or learner) decodes it.
+                encoder, candidate = decode_candidate(config.space, params, problem)
                 if evaluate is None:
-                    result = evaluate_encoder(encoder, problem, runner=runner, report=use_report)
-                else:
+                    result = evaluate_encoder(encoder, candidate, runner=runner, report=use_report)
+                else:  # encoders' studies only (evolve-generalization, its re-evaluation)
+                    assert encoder is not None
                     result = evaluate(encoder, runner, use_report)
                 if not math.isfinite(result.fitness):
                     raise TrainingDiverged(f"non-finite fitness {result.fitness}")

@@ -5,9 +5,10 @@ This is the *problem* side of the evolution, independent of how candidates are p
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
@@ -18,14 +19,17 @@ from ermrl.agents import RunResult, pool_size, train_agent, training_pool
 from ermrl.config import (
     BudgetConfig,
     EncoderConfig,
+    LearnerSpace,
     PPOConfig,
     Problem,
+    SearchSpaceConfig,
     TaskConfig,
 )
 
 __all__ = [
     "FitnessResult",
     "SeedRunner",
+    "decode_candidate",
     "evaluate_encoder",
     "evaluate_encoders",
     "train_generation",
@@ -115,6 +119,29 @@ class FitnessResult:
             "population": self.population,
             "versions": library_versions(),
         }
+
+
+def decode_candidate(
+    space: SearchSpaceConfig, params: Mapping[str, float], problem: Problem
+) -> tuple[EncoderConfig | None, Problem]:
+    """What a sampled point stands for: ``(encoder, problem)`` to train.
+
+    An encoder's space decodes to the encoder's settings (the problem unchanged); a learner's
+    genes (:class:`~ermrl.config.LearnerSpace`) decode to the problem with those learner
+    settings, and no encoder.
+
+    Raises:
+        ConfigError: a parameter is missing, or decodes to a refused setting.
+    """
+    if isinstance(space, LearnerSpace):
+        from ermrl.learners import get_learner
+
+        ppo = get_learner(space.learner).with_genes(problem.ppo, space.values(params))
+        return None, dataclasses.replace(problem, ppo=ppo)
+    from ermrl.encoders import encoder_for
+
+    assert problem.encoder is not None
+    return encoder_for(problem.encoder).decode(space, params, problem.encoder), problem
 
 
 def _finite_or_none(value: float | None) -> float | None:
