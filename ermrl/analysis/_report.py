@@ -29,7 +29,7 @@ from typing import Any, TextIO
 import pandas as pd
 
 from ermrl.analysis._style import save_figure, task_title
-from ermrl.config import AGENTS, evolved_agent, unevolved_agent
+from ermrl.config import AGENTS, LearnerSpace, evolved_agent, unevolved_agent
 
 __all__ = ["ReportResult", "notebook_parameters", "write_report"]
 
@@ -353,6 +353,14 @@ class _State:
         return rel
 
 
+def _evolved_row(config: Any) -> tuple[str, str]:
+    """What the study evolved, as one row of the study table."""
+    space = config.space
+    if isinstance(space, LearnerSpace):
+        return ("Evolved", f"the {space.learner} learner's {len(space.genes)} genes (no encoder)")
+    return ("Reservoir", f"{space.n_reservoirs} x {space.units} units")
+
+
 def _study_section(state: _State) -> None:
     import yaml
 
@@ -404,7 +412,7 @@ def _study_section(state: _State) -> None:
                 )
                 + f", {budget.training_steps} training steps per seed",
             ),
-            ("Reservoir", f"{config.space.n_reservoirs} x {config.space.units} units"),
+            _evolved_row(config),
         ]
     if overview.best_number is not None:
         rows.append(("Best trial", f"#{overview.best_number}, fitness {overview.best_value:.4g}"))

@@ -7,7 +7,7 @@ import math
 import shlex
 import sys
 import textwrap
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 from ermrl.cli._common import (
@@ -34,11 +34,14 @@ from ermrl.config import (
     EncoderConfig,
     EncoderSpace,
     EvolveConfig,
+    LearnerSpace,
+    PPOConfig,
     Problem,
     Range,
     ReservoirSpace,
     RTUSpace,
     SearchConfig,
+    SearchSpaceConfig,
     TaskConfig,
 )
 from ermrl.learners import LEARNERS
@@ -63,14 +66,18 @@ DESCRIPTION = textwrap.dedent(
     Each trial samples sr, lr and input_scaling (per reservoir), trains one PPO agent per seed on
     the reservoir-encoded observations and records the mean return as the trial's fitness.
     With --encoder rtu the reservoir is a frozen layer of recurrent trace units and the trial
-    samples the ranges its decays and frequencies are drawn from. Re-running the same command
-    resumes the study; several workers may share it.
+    samples the ranges its decays and frequencies are drawn from. With --learner hebbian there is
+    no encoder: each trial samples the Hebbian learner's genes (its network's spectral radius,
+    input and bias scales, time constants, and its plasticity: noise, trace decay, learning rate,
+    l2; see --gene). Re-running the same command resumes the study; several workers may share it.
 
     examples:
       evolve_res.py --env-id Pendulum-v1 --observe positions --n-trials 20 --n-seeds 2 \\
           --training-steps 20000 --storage sqlite:///ermrl.db
       evolve_res.py --env-id CartPole-v1 --observe positions --encoder rtu --n-trials 20 \\
           --training-steps 20000 --storage sqlite:///ermrl.db
+      evolve_res.py --env-id Ant-v5 --learner hebbian --gene sigma=0.02:0.5 --n-trials 24 \\
+          --training-steps 40000 --storage sqlite:///ermrl.db
     """
 )
 
@@ -188,7 +195,13 @@ def add_problem_args(parser: argparse.ArgumentParser, *, multi_task: bool = Fals
     )
 
     r = parser.add_argument_group("reservoirs (the evolved encoder)")
-    r.add_argument(
+    encoder_flags: dict[str, tuple[str, Any]] = {}
+
+    def radd(*names: str, **kwargs: Any) -> None:
+        action = r.add_argument(*names, **kwargs)
+        encoder_flags[action.dest] = (names[0], action.default)
+
+    radd(
         "--encoder",
         choices=("reservoir", "rtu"),
         default="reservoir",
@@ -196,20 +209,20 @@ def add_problem_args(parser: argparse.ArgumentParser, *, multi_task: bool = Fals
         "recurrent trace units, a complex-diagonal reservoir (evolved r_max, r_min_ratio, "
         "theta_max, input_scaling)",
     )
-    r.add_argument(
+    radd(
         "--n-reservoirs",
         type=positive_int,
         default=1,
         help="reservoirs (or RTU layers) per agent, each with its own evolved parameters",
     )
-    r.add_argument(
+    radd(
         "--units",
         type=positive_int,
         default=None,
         help="units per reservoir, fixed (default 100); with --encoder rtu, complex units per "
         "layer, each showing the policy 2 values (default 50)",
     )
-    r.add_argument(
+    radd(
         "--sr-range",
         nargs=2,
         type=positive_float,
@@ -217,7 +230,7 @@ def add_problem_args(parser: argparse.ArgumentParser, *, multi_task: bool = Fals
         metavar=("LOW", "HIGH"),
         help="spectral radius range (log scale)",
     )
-    r.add_argument(
+    radd(
         "--lr-range",
         nargs=2,
         type=positive_float,
@@ -225,7 +238,7 @@ def add_problem_args(parser: argparse.ArgumentParser, *, multi_task: bool = Fals
         metavar=("LOW", "HIGH"),
         help="leak rate range (log scale, within (0, 1])",
     )
-    r.add_argument(
+    radd(
         "--input-scaling-range",
         nargs=2,
         type=positive_float,
@@ -233,7 +246,7 @@ def add_problem_args(parser: argparse.ArgumentParser, *, multi_task: bool = Fals
         metavar=("LOW", "HIGH"),
         help="input scaling range (log scale)",
     )
-    r.add_argument(
+    radd(
         "--fixed-input-scaling",
         nargs="?",
         type=positive_float,
@@ -242,7 +255,7 @@ def add_problem_args(parser: argparse.ArgumentParser, *, multi_task: bool = Fals
         metavar="VALUE",
         help="do not evolve input scaling; fix it at VALUE (1.0 when no value is given)",
     )
-    r.add_argument(
+    radd(
         "--r-max-range",
         nargs=2,
         type=float,
@@ -250,7 +263,7 @@ def add_problem_args(parser: argparse.ArgumentParser, *, multi_task: bool = Fals
         metavar=("LOW", "HIGH"),
         help="--encoder rtu: range of the largest decay rate r_max (linear, within (0, 1])",
     )
-    r.add_argument(
+    radd(
         "--theta-max-range",
         nargs=2,
         type=positive_float,
@@ -259,19 +272,15 @@ def add_problem_args(parser: argparse.ArgumentParser, *, multi_task: bool = Fals
         help="--encoder rtu: range of the largest rotation frequency theta_max (log scale, "
         "radians per step)",
     )
-    r.add_argument(
-        "--rc-connectivity", type=positive_float, default=0.1, help="recurrent connectivity"
-    )
-    r.add_argument(
-        "--input-connectivity", type=positive_float, default=0.1, help="input connectivity"
-    )
-    r.add_argument(
+    radd("--rc-connectivity", type=positive_float, default=0.1, help="recurrent connectivity")
+    radd("--input-connectivity", type=positive_float, default=0.1, help="input connectivity")
+    radd(
         "--bias-scaling",
         type=float,
         default=0.0,
         help="dense Bernoulli bias: every unit +-scale (0: no bias, reservoirpy 0.4's default)",
     )
-    r.add_argument(
+    radd(
         "--bias-init",
         choices=BIAS_INITS,
         default="none",
@@ -279,49 +288,68 @@ def add_problem_args(parser: argparse.ArgumentParser, *, multi_task: bool = Fals
         "--input-connectivity of the units (10%%), zero elsewhere (needs --bias-scaling 0); "
         "'none': the bias of --bias-scaling",
     )
-    r.add_argument(
+    radd(
         "--skip-connection",
         action=argparse.BooleanOptionalAction,
         default=False,
         help="the policy also sees [observation, previous action, previous reward]",
     )
-    r.add_argument(
+    radd(
         "--reset",
         choices=RESET_MODES,
         default="episode",
         help="reset reservoir states at each episode, or carry them across episodes",
     )
-    r.add_argument(
+    radd(
         "--exposed-units",
         type=positive_int,
         default=None,
         help="show the policy only the first N units of each reservoir",
     )
-    r.add_argument(
+    radd(
         "--reward-scale",
         type=float,
         default=1.0,
         help="factor applied to the reward fed to the reservoir",
     )
-    r.add_argument(
+    radd(
         "--dtype",
         choices=("float32", "float64"),
         default="float32",
         help="reservoir state precision: float32 is about twice as cheap per step; float64 "
         "reproduces reservoirpy's own states to 1e-10",
     )
-    r.add_argument(
+    radd(
         "--feed-action",
         action=argparse.BooleanOptionalAction,
         default=True,
         help="feed the previous action to the reservoir",
     )
-    r.add_argument(
+    radd(
         "--feed-reward",
         action=argparse.BooleanOptionalAction,
         default=True,
         help="feed the previous reward to the reservoir",
     )
+    parser.set_defaults(encoder_flags=encoder_flags)
+    if not multi_task:
+        genes = "; ".join(
+            f"{name}: " + ", ".join(f"{g} {_range_text(r)}" for g, r in learner.genes.items())
+            for name, learner in LEARNERS.items()
+            if learner.genes
+        )
+        e = parser.add_argument_group(
+            "learner genes (a learner with genes, --learner hebbian, has no encoder: evolution "
+            "shapes the learner itself)"
+        )
+        e.add_argument(
+            "--gene",
+            nargs="+",
+            default=argparse.SUPPRESS,
+            metavar="NAME=LOW:HIGH",
+            help="another search range for a gene (log scale when the default range is; "
+            f"NAME=LOW:HIGH:lin or :log to choose). Genes and default ranges: {genes}",
+        )
 
 
 def add_search_args(parser: argparse.ArgumentParser) -> None:
@@ -437,6 +465,51 @@ def build_evolve_parser(prog: str = "ermrl evolve") -> ArgumentParser:
     return parser
 
 
+def _range_text(r: Range) -> str:
+    return f"[{r.low:g}, {r.high:g}]{'' if r.log else ' lin'}"
+
+
+def parse_gene_ranges(items: Sequence[str], genes: Mapping[str, Range]) -> dict[str, Range]:
+    """``--gene NAME=LOW:HIGH[:lin|:log]`` as ranges (the scale defaults to the gene's own).
+
+    Raises:
+        ConfigError: a malformed item, an unknown gene or a bad range.
+    """
+    out: dict[str, Range] = {}
+    for item in items:
+        name, sep, text = item.partition("=")
+        parts = text.split(":")
+        if (
+            not sep
+            or len(parts) not in (2, 3)
+            or (len(parts) == 3 and parts[2] not in ("lin", "log"))
+        ):
+            raise ConfigError(f"--gene expects NAME=LOW:HIGH[:lin|:log], got {item!r}")
+        if name not in genes:
+            raise ConfigError(f"unknown gene {name!r}; the genes are {', '.join(genes)}")
+        try:
+            low, high = float(parts[0]), float(parts[1])
+        except ValueError:
+            raise ConfigError(f"--gene {name}: bounds must be numbers, got {text!r}") from None
+        log = genes[name].log if len(parts) == 2 else parts[2] == "log"
+        out[name] = Range(low, high, log=log)
+    return out
+
+
+def learner_space_from_args(args: argparse.Namespace, ppo: PPOConfig) -> LearnerSpace:
+    """The gene space of a learner with genes; the encoder's flags are refused."""
+    from ermrl.learners import get_learner
+
+    for dest, (flag, default) in getattr(args, "encoder_flags", {}).items():
+        if getattr(args, dest, default) != default:
+            raise ConfigError(
+                f"{flag} sets an evolved encoder; --learner {ppo.learner} has none (evolution "
+                "shapes its genes: see --gene)"
+            )
+    learner = get_learner(ppo.learner)
+    return learner.gene_space(ppo, parse_gene_ranges(getattr(args, "gene", []), learner.genes))
+
+
 def space_from_args(args: argparse.Namespace) -> EncoderSpace:
     input_scaling = (
         None if args.fixed_input_scaling is not None else _range("is")(args.input_scaling_range)
@@ -527,9 +600,9 @@ def learner_flags(args: argparse.Namespace, learner: str) -> dict[str, Any]:
 def config_from_args(args: argparse.Namespace) -> EvolveConfig:
     """Build and validate the run's configuration (raises ConfigError / env errors)."""
     from ermrl.agents import check_ppo_config, parse_overrides, resolve_ppo_config
+    from ermrl.learners import get_learner
 
     validate_task(args.env_id, args.observe)
-    space = space_from_args(args)
     learner = getattr(args, "learner", "ppo")
     ppo = resolve_ppo_config(
         args.env_id,
@@ -540,9 +613,17 @@ def config_from_args(args: argparse.Namespace) -> EvolveConfig:
         learner=learner,
         backend=getattr(args, "backend", "sb3"),
     )
+    space: SearchSpaceConfig
+    if get_learner(learner).genes:
+        space, encoder = learner_space_from_args(args, ppo), None
+    else:
+        if getattr(args, "gene", []):
+            raise ConfigError(f"--gene evolves a learner's genes; learner {learner!r} has none")
+        space = space_from_args(args)
+        encoder = encoder_from_args(args, space)
     problem = Problem(
         task=TaskConfig(env_id=args.env_id, observe=args.observe),
-        encoder=encoder_from_args(args, space),
+        encoder=encoder,
         ppo=ppo,
         budget=budget_from_args(args),
         seeds=tuple(range(args.seed, args.seed + args.n_seeds)),

@@ -159,6 +159,13 @@ def generalization_config_from_args(args: argparse.Namespace) -> EvolveConfig:
         if args.env_version is not None:
             raise ConfigError("--env-version applies to --suite only; write the ids in full")
         env_ids = args.env_ids or ()
+    from ermrl.learners import get_learner
+
+    if get_learner(args.learner).genes:
+        raise ConfigError(
+            f"evolve-generalization evolves encoders; the {args.learner} learner's genes are "
+            "evolved on one task with evolve"
+        )
     overrides = {**parse_overrides(args.ppo), **learner_flags(args, args.learner)}
     tasks = generalization_tasks(
         env_ids,

@@ -280,6 +280,7 @@ def plan_test_phase(
         args.agents,
         args.trial,
         learner_settings_for(ppo, task.env_id, overrides, learner_overrides(args)),
+        ppo,
     )
     for agent in agents:  # refused now rather than by the first run
         if agent.ppo is not None and overrides:

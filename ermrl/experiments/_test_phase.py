@@ -51,12 +51,14 @@ from ermrl.analysis._results import RUNS_DIR
 from ermrl.config import (
     AGENT_KINDS,
     AGENTS,
+    FAMILIES,
     AgentKind,
     BudgetConfig,
     ConfigError,
     EncoderConfig,
     EncoderParams,
     EvolveConfig,
+    LearnerSpace,
     ObserveMode,
     PPOConfig,
     TaskConfig,
@@ -119,39 +121,57 @@ def agent_specs(
     evolved: tuple[EncoderParams, ...] | None,
     unevolved: tuple[EncoderParams, ...],
     learner_settings: Callable[[str], PPOConfig | None] | None = None,
+    *,
+    family: str | None = None,
+    evolved_ppo: PPOConfig | None = None,
 ) -> list[AgentSpec]:
     """Build the agents named in ``names`` from :data:`AGENT_KINDS`.
 
     Args:
         names: Agent names, in order.
         evolved: The selected trial's reservoirs (needed when ``res-ppo`` is asked for).
-        unevolved: Unevolved reservoirs (for ``random-res-ppo``).
+        unevolved: Unevolved reservoirs (for ``random-res-ppo``); empty in a study of a
+            learner's genes.
         learner_settings: The settings of an agent whose learner is given by name (``None``
             returned: the comparison's own settings); default: every agent takes the
             comparison's settings.
+        family: What the study evolved (default: the family of ``unevolved``); a learner's name
+            for a study of its genes.
+        evolved_ppo: In a study of a learner's genes, the comparison's settings with the
+            selected trial's genes (the evolved agent's); its unevolved agent keeps the
+            comparison's own settings.
 
     Raises:
-        ConfigError: an unknown name, an agent of another encoder family than the reservoirs
-            given, or ``res-ppo`` without evolved reservoirs.
+        ConfigError: an unknown name, an agent of another family than the study's, or an
+            evolved agent without the selected trial.
     """
     specs = []
-    family = unevolved[0].family if unevolved else None
+    family = family or (unevolved[0].family if unevolved else None)
     for name in names:
         kind = AGENT_KINDS.get(name)
         if kind is None:
             raise ConfigError(f"unknown agent {name!r}; choose from {', '.join(AGENTS)}")
         if kind.family is not None and family is not None and kind.family != family:
-            flag = "--encoder rtu" if kind.family == "rtu" else "--encoder reservoir"
+            flag = {"rtu": "--encoder rtu", "esn": "--encoder reservoir"}.get(
+                kind.family, f"--learner {kind.family}"
+            )
             raise ConfigError(
-                f"agent {name!r} needs a study evolved with {flag}; this study's encoder is "
+                f"agent {name!r} needs a study evolved with {flag}; this study evolved "
                 f"{family!r} (its agents: {evolved_agent(family)}, {unevolved_agent(family)})"
             )
-        reservoirs = {"none": None, "evolved": evolved, "unevolved": unevolved}[kind.reservoirs]
-        if kind.reservoirs == "evolved" and reservoirs is None:
-            raise ConfigError(f"agent {name!r} needs the evolved reservoirs")
         ppo = None
         if kind.learner is not None and learner_settings is not None:
             ppo = learner_settings(kind.learner)
+        if kind.reservoirs != "none" and family not in (None, *FAMILIES):  # learner's genes
+            if kind.reservoirs == "evolved":
+                if evolved_ppo is None:
+                    raise ConfigError(f"agent {name!r} needs the evolved genes")
+                ppo = evolved_ppo
+            specs.append(AgentSpec(name, None, kind.observe, ppo))
+            continue
+        reservoirs = {"none": None, "evolved": evolved, "unevolved": unevolved}[kind.reservoirs]
+        if kind.reservoirs == "evolved" and reservoirs is None:
+            raise ConfigError(f"agent {name!r} needs the evolved reservoirs")
         specs.append(AgentSpec(name, reservoirs, kind.observe, ppo))
     return specs
 
@@ -187,11 +207,13 @@ def study_agents(
     names: Sequence[str],
     trial_number: int | None = None,
     learner_settings: Callable[[str], PPOConfig | None] | None = None,
+    ppo: PPOConfig | None = None,
 ) -> tuple[list[AgentSpec], Selection | None]:
     """The agents named in ``names`` for a study, and the evolved trial when one is needed.
 
     ``learner_settings`` gives agents of another learner than the study's their settings (see
-    :func:`learner_settings_for`).
+    :func:`learner_settings_for`). In a study of a learner's genes, the evolved agent takes the
+    selected genes on top of ``ppo``, the comparison's settings (default: the study's).
 
     Returns:
         The agents (see :func:`agent_specs`) and the :class:`Selection` behind ``res-ppo``
@@ -200,10 +222,22 @@ def study_agents(
     chosen = None
     if any(AGENT_KINDS[n].reservoirs == "evolved" for n in names if n in AGENT_KINDS):
         chosen = select_reservoirs(study, config, trial_number)
+    space = config.space
+    if isinstance(space, LearnerSpace):
+        evolved_ppo = None
+        if chosen is not None:
+            from ermrl.learners import get_learner
+
+            base = ppo or config.problem.ppo
+            evolved_ppo = get_learner(space.learner).with_genes(base, space.values(chosen.params))
+        agents = agent_specs(
+            names, None, (), learner_settings, family=space.family, evolved_ppo=evolved_ppo
+        )
+        return agents, chosen
     agents = agent_specs(
         names,
         evolved=None if chosen is None else chosen.reservoirs,
-        unevolved=config.space.default_reservoirs(),
+        unevolved=space.default_reservoirs(),
         learner_settings=learner_settings,
     )
     return agents, chosen
@@ -277,14 +311,15 @@ class Selection:
 
     Attributes:
         params: The trial's parameters.
-        reservoirs: Its reservoirs.
+        reservoirs: Its reservoirs (``None`` in a study of a learner's genes: ``params`` are
+            the genes).
         number: Its number.
         how: How it was selected (``--trial``, the re-evaluated ranking, or the best evolution
             fitness); printed and saved in ``config.yaml`` as ``selection``.
     """
 
     params: dict[str, float]
-    reservoirs: tuple[EncoderParams, ...]
+    reservoirs: tuple[EncoderParams, ...] | None
     number: int
     how: str
 
@@ -300,14 +335,14 @@ def select_reservoirs(
     from ermrl.search import select_trial
 
     trial, how = select_trial(study, trial_number)
-    return Selection(
-        dict(trial.params), config.space.reservoirs_from(trial.params), trial.number, how
-    )
+    space = config.space
+    reservoirs = None if isinstance(space, LearnerSpace) else space.reservoirs_from(trial.params)
+    return Selection(dict(trial.params), reservoirs, trial.number, how)
 
 
 def study_reservoirs(
     study: optuna.Study, config: EvolveConfig, trial_number: int | None = None
-) -> tuple[dict[str, float], tuple[EncoderParams, ...], int]:
+) -> tuple[dict[str, float], tuple[EncoderParams, ...] | None, int]:
     """The parameters, reservoirs and number of the trial :func:`select_reservoirs` picks."""
     chosen = select_reservoirs(study, config, trial_number)
     return chosen.params, chosen.reservoirs, chosen.number
