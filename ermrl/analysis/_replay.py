@@ -69,8 +69,9 @@ class Rollout:
         observations: Raw (masked) observations seen before each action, shape ``(T, obs_dim)``.
         actions: Actions taken, shape ``(T, act_dim)`` (``(T, 1)`` for discrete actions).
         rewards: Rewards received, shape ``(T,)``.
-        states: Reservoir states the policy saw before each action, shape ``(T, units)``
-            (``(T, 0)`` for plain PPO).
+        states: Reservoir states the policy saw before each action, shape ``(T, units)``;
+            without an encoder, a recurrent learner's own state when it is an array (hebbian:
+            ``h``; rtu-ppo: ``(c1, c2)`` flattened) after each step; ``(T, 0)`` for plain PPO.
         frames: RGB frames, shape ``(height, width, 3)`` each (empty unless rendered).
         dt: Seconds of simulated time per step (``None`` when the env does not say).
         fps: Frames per second of real-time playback.
@@ -306,6 +307,10 @@ def rollout(
             obs, reward, done, _ = policy_env.step(action)
             if normalized:
                 reward = policy_env.get_original_reward()  # VecNormalize casts to float32
+            if encoder is None and isinstance(hidden, np.ndarray):
+                # A learner's own network (hebbian's h, rtu-ppo's (c1, c2)): the state the
+                # action was computed from, as a reservoir's.
+                states.append(np.asarray(hidden[0], dtype=np.float64).reshape(-1).copy())
             actions.append(np.atleast_1d(np.asarray(action[0], dtype=np.float64)))
             rewards.append(float(reward[0]))
             step += 1
@@ -315,7 +320,7 @@ def rollout(
     finally:
         policy_env.close()
     n = len(rewards)
-    n_units = encoder.total_units if encoder is not None else 0
+    n_units = encoder.total_units if encoder is not None else (len(states[0]) if states else 0)
     return Rollout(
         observations=np.asarray(observations, dtype=np.float64).reshape(n, -1),
         actions=np.asarray(actions, dtype=np.float64).reshape(n, -1),
