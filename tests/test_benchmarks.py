@@ -165,3 +165,28 @@ def test_the_learner_cost_benchmark_runs_in_quick_mode(tmp_path: Path) -> None:
     assert hebbian["hebbian"]["vs_ppo"] == pytest.approx(
         hebbian["hebbian"]["steps_per_s"] / hebbian["ppo"]["steps_per_s"]
     )
+
+
+@pytest.mark.slow
+def test_the_hebbian_benchmark_runs_in_quick_mode(tmp_path: Path) -> None:
+    """bench_hebbian evolves the Hebbian genes on Ant-v5, tests hebbian, random-hebbian and ppo
+    on the same seeds, and reports CIs of the differences and the zero-action return."""
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "bench_hebbian.py"), "--quick",
+         "--out", str(tmp_path / "hebbian.json")],
+        cwd=ROOT, capture_output=True, text=True, timeout=900,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    report = json.loads((tmp_path / "hebbian.json").read_text())
+    assert list(report["agents"]) == ["hebbian", "random-hebbian", "ppo"]
+    for row in report["agents"].values():
+        assert row["seeds"] == [100, 101] and len(row["final_returns"]) == 2
+    diff = report["differences"]["hebbian - random-hebbian"]
+    rows = report["agents"]
+    assert diff["diff"] == pytest.approx(rows["hebbian"]["mean"] - rows["random-hebbian"]["mean"])
+    assert diff["ci95"][0] <= diff["diff"] <= diff["ci95"][1]
+    assert len(report["zero_action_returns"]) == 2
+    assert all(800 < r <= 1000 for r in report["zero_action_returns"])  # Ant's healthy bonus
+    assert set(report["selected"]["params"]) >= {"sigma", "trace_horizon", "learning_rate"}
+    assert Path(report["learning_curves"]).is_file()
+    assert "| hebbian - random-hebbian |" in (tmp_path / "hebbian.md").read_text()
