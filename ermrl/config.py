@@ -145,6 +145,15 @@ AGENT_KINDS: Mapping[str, AgentKind] = {
         "studies)",
         None, "Hebbian (default genes)", "Hebbian\n(default)", "darkgoldenrod", family="hebbian",
     ),
+    "sac": AgentKind(
+        "none", None, "SAC (off-policy) on the raw (masked) observation", "sac",
+        "SAC (raw observation)", "SAC", "black", default=False,
+    ),
+    "res-sac": AgentKind(
+        "evolved", None, "SAC on the selected evolved reservoir(s) (its replay holds their states)",
+        "sac", "RES-SAC (evolved reservoir)", "RES-SAC\n(evolved)", "teal", default=False,
+        family="esn",
+    ),
 }  # fmt: skip
 AGENTS: tuple[str, ...] = tuple(AGENT_KINDS)
 

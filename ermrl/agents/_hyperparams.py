@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import yaml
-from stable_baselines3 import PPO
+from stable_baselines3 import PPO, SAC
 
 from ermrl.config import (
     ConfigError,
@@ -32,9 +32,10 @@ __all__ = [
     "check_ppo_config",
 ]
 
-# Keys of PPO(...) that a table or an override may set. `policy`, `env`, `seed`, `device`,
-# `verbose` and `tensorboard_log` are owned by ermrl.
-_PPO_KEYS = set(inspect.signature(PPO.__init__).parameters) - {
+# Keys of PPO(...) and SAC(...) that a table or an override may set. `policy`, `env`, `seed`,
+# `device`, `verbose` and `tensorboard_log` are owned by ermrl. (A key of the other algorithm,
+# such as SAC's learning_starts given to PPO, is refused when the agent is built.)
+_OWNED_KEYS = {
     "self",
     "policy",
     "env",
@@ -44,6 +45,8 @@ _PPO_KEYS = set(inspect.signature(PPO.__init__).parameters) - {
     "tensorboard_log",
     "_init_setup_model",
 }
+_PPO_KEYS = set(inspect.signature(PPO.__init__).parameters) - _OWNED_KEYS
+_SAC_KEYS = set(inspect.signature(SAC.__init__).parameters) - _OWNED_KEYS
 # Keys that ermrl itself reads (never passed to PPO(...)): the number of envs, and
 # rl-baselines3-zoo's `normalize` (VecNormalize).
 _ERMRL_KEYS = {"n_envs", "normalize"}
@@ -161,7 +164,7 @@ def _valid_keys() -> set[str]:
     """Keys a table or an override may set: any learner's algorithm arguments or own settings."""
     from ermrl.learners import LEARNERS
 
-    keys = _PPO_KEYS | _ERMRL_KEYS
+    keys = _PPO_KEYS | _SAC_KEYS | _ERMRL_KEYS
     for learner in LEARNERS.values():
         keys |= set(learner.own_keys)
     return keys
@@ -307,7 +310,13 @@ MAX_ROLLOUT = 10_000_000
 
 
 def _check_values(config: PPOConfig) -> None:
+    from ermrl.learners import get_learner
+
+    # Settings the learner checks itself (SAC's ent_coef may be "auto").
+    own_checks: frozenset[str] = getattr(get_learner(config.learner), "checks_itself", frozenset())
     for key, value in config.hyperparams.items():
+        if key in own_checks:
+            continue
         if key in _INT_RANGES:
             if isinstance(value, bool) or not isinstance(value, int):
                 raise ConfigError(f"PPO {key} must be an integer, got {value!r}")

@@ -17,6 +17,7 @@ from ermrl.learners._hebbian import HebbianLearner
 from ermrl.learners._lstm_ppo import LstmPPOLearner
 from ermrl.learners._ppo import PPOLearner
 from ermrl.learners._rtu_ppo import RTUPPOLearner
+from ermrl.learners._sac import SACLearner
 
 __all__ = ["LEARNERS", "Learner", "get_learner", "learner_names"]
 
@@ -27,6 +28,7 @@ _REGISTERED: tuple[Learner, ...] = (
     FrameStackPPOLearner(),
     RTUPPOLearner(),
     HebbianLearner(),
+    SACLearner(),
 )
 LEARNERS: Mapping[str, Learner] = {learner.name: learner for learner in _REGISTERED}
 
