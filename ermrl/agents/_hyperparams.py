@@ -313,7 +313,7 @@ def _check_values(config: PPOConfig) -> None:
     from ermrl.learners import get_learner
 
     # Settings the learner checks itself (SAC's ent_coef may be "auto").
-    own_checks: frozenset[str] = getattr(get_learner(config.learner), "checks_itself", frozenset())
+    own_checks = get_learner(config.learner).checks_itself
     for key, value in config.hyperparams.items():
         if key in own_checks:
             continue

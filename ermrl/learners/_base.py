@@ -34,6 +34,8 @@ class Learner:
             to the algorithm, and other learners refuse them.
         recurrent: The policy carries a hidden state between steps (``predict`` needs
             ``state`` and ``episode_start``; SB3's ``evaluate_policy`` passes them).
+        checks_itself: Settings whose values :meth:`check` validates, skipped by the shared
+            PPO range checks (SAC's ``ent_coef`` may be ``"auto"``).
         genes: The settings evolution may shape (``evolve --learner NAME``), gene name ->
             default search range; empty: the learner has no genes and a study evolves an
             encoder for it. :meth:`decode_genes` turns genes into settings.
@@ -46,6 +48,7 @@ class Learner:
     own_keys: ClassVar[Mapping[str, Any]] = {}
     recurrent: ClassVar[bool] = False
     genes: ClassVar[Mapping[str, Range]] = {}
+    checks_itself: ClassVar[frozenset[str]] = frozenset()
 
     def algorithm(self) -> type:
         """The algorithm class (imported lazily: torch is slow to import)."""
