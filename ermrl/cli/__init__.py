@@ -35,6 +35,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "ermrl.cli._scores:scores_main",
         "measure random-policy returns for the normalized fitness",
     ),
+    "expert": (
+        "ermrl.cli._expert:expert_main",
+        "train and evaluate experts for imitation (BC, DAgger)",
+    ),
 }
 
 
