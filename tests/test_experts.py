@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
 import time
@@ -194,6 +195,40 @@ def test_train_refuses_an_existing_expert_unless_overwrite(
     assert sorted(p.name for p in tmp_path.iterdir()) == ["copy", "other"]
 
 
+def test_train_prints_progress_and_the_eval_return(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    argv = ["train", "--env-id", PENDULUM, "--algo", "ppo", "--steps", "640", "--out"]
+    argv += [str(tmp_path / "e"), "--n-eval-episodes", "1", "--ppo", *TINY_PPO]
+    assert expert_main(argv) == 0
+    lines = capsys.readouterr().out.splitlines()
+    progress = [line for line in lines if "steps/s, ETA" in line]
+    # Every 10% of the steps once an episode (200 steps) has ended: 256, 320, ..., 576.
+    assert [line.split("/")[0] for line in progress] == [str(64 * k) for k in range(4, 10)]
+    assert "recent return" in progress[0]
+    assert "eval return" in lines[-1] and "± 0.0 over 1 episodes" in lines[-1]
+
+
+def test_ctrl_c_leaves_no_expert(tmp_path: Path) -> None:
+    out = tmp_path / "expert"
+    cmd = [sys.executable, "-m", "ermrl", "expert", "train", "--env-id", PENDULUM]
+    cmd += ["--algo", "ppo", "--steps", "1000000", "--out", str(out), "--ppo", *TINY_PPO]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while not any(p.name.startswith(".expert.partial-") for p in tmp_path.iterdir()):
+            assert proc.poll() is None and time.monotonic() < deadline
+            time.sleep(0.05)
+        time.sleep(0.5)  # into training
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, err
+    assert "interrupted; no expert written" in err
+    assert list(tmp_path.iterdir()) == []
+
+
 @pytest.mark.filterwarnings("ignore:Detected pickle protocol")  # torch, on the garbage file
 @pytest.mark.parametrize("case", ["missing", "no-json", "corrupt-json", "bad-policy"])
 def test_eval_refuses_a_missing_or_corrupt_expert(
@@ -211,6 +246,16 @@ def test_eval_refuses_a_missing_or_corrupt_expert(
     elif case == "bad-policy":
         (folder / "policy.pt").write_bytes(b"\x80\x04garbage")
     _refused(["eval", "--expert", str(folder)], capsys, str(folder))
+
+
+@pytest.mark.parametrize(
+    ("extra", "match"),
+    [(["--episodes", "0"], "must be positive"), (["--out", "returns.txt"], ".csv or .json")],
+)
+def test_eval_refuses_bad_options(
+    extra: list[str], match: str, ppo_expert: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    _refused(["eval", "--expert", str(ppo_expert), *extra], capsys, match)
 
 
 def test_load_expert_refuses_a_foreign_document(ppo_expert: Path, tmp_path: Path) -> None:

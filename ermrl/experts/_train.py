@@ -49,16 +49,22 @@ class TrainingProgress:
         total_steps: Steps asked for.
         recent_return: Mean return of the last (at most 10) training episodes.
         elapsed: Seconds since training started.
+        previous_steps: Steps done at the previous report (0 for the first).
+        previous_elapsed: Seconds at the previous report (0.0 for the first).
     """
 
     steps: int
     total_steps: int
     recent_return: float
     elapsed: float
+    previous_steps: int = 0
+    previous_elapsed: float = 0.0
 
     @property
     def steps_per_second(self) -> float:
-        return self.steps / self.elapsed if self.elapsed > 0 else math.nan
+        """Speed since the previous report (SAC slows down once ``learning_starts`` is past)."""
+        seconds = self.elapsed - self.previous_elapsed
+        return (self.steps - self.previous_steps) / seconds if seconds > 0 else math.nan
 
     @property
     def eta_seconds(self) -> float:
@@ -186,10 +192,14 @@ def train_expert(
     final.parent.mkdir(parents=True, exist_ok=True)
 
     start = time.perf_counter()
+    previous = (0, 0.0)
 
     def report(step: int, recent: float) -> None:
+        nonlocal previous
+        elapsed = time.perf_counter() - start
         if progress is not None:
-            progress(TrainingProgress(step, steps, recent, time.perf_counter() - start))
+            progress(TrainingProgress(step, steps, recent, elapsed, *previous))
+        previous = (step, elapsed)
 
     partial = Path(tempfile.mkdtemp(dir=final.parent, prefix=f".{final.name}.partial-"))
     try:
