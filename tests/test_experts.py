@@ -281,13 +281,14 @@ def test_help_shows_examples(capsys: pytest.CaptureFixture[str]) -> None:
 def test_sac_pendulum_expert_reaches_a_good_return(tmp_path: Path) -> None:
     """The zoo's SAC settings for Pendulum (learning_rate 1e-3) solve it in about a minute.
 
-    A random policy scores about -1200; SAC reaches about -150 by 8000 steps.
+    A random policy scores about -1200. Measured on a 2-core CPU (one torch thread, about 65
+    SAC steps/s): 5000 steps in 70-100 s reach -159 (seed 0) and -133 (seed 1); 8000 steps -158.
     """
     start = time.perf_counter()
-    info = train_expert(PENDULUM, "sac", steps=8000, out=tmp_path / "pendulum", seed=0)
+    info = train_expert(PENDULUM, "sac", steps=5000, out=tmp_path / "pendulum", seed=0)
     wall = time.perf_counter() - start
     print(
-        f"SAC Pendulum-v1 8000 steps: {wall:.0f} s, eval {info.eval_mean:.1f} ± {info.eval_std:.1f}"
+        f"SAC Pendulum-v1 5000 steps: {wall:.0f} s, eval {info.eval_mean:.1f} ± {info.eval_std:.1f}"
     )
     assert info.eval_mean > -400
     replay = evaluate_expert(load_expert(tmp_path / "pendulum"), n_episodes=10, seed=0)

@@ -30,7 +30,7 @@ DESCRIPTION = textwrap.dedent(
     the settings use normalize, vecnormalize.json. Nothing is pickled.
 
     examples:
-      ermrl expert train --env-id Pendulum-v1 --algo sac --steps 10000 --out experts/pendulum
+      ermrl expert train --env-id Pendulum-v1 --algo sac --steps 5000 --out experts/pendulum
       ermrl expert train --env-id Hopper-v5 --algo sac --steps 1000000 --out experts/hopper
       ermrl expert eval --expert experts/hopper --episodes 20 --out hopper_eval.csv
     """
@@ -45,7 +45,7 @@ TRAIN_DESCRIPTION = textwrap.dedent(
     renamed when complete: an interrupted run leaves no half-written expert.
 
     examples:
-      ermrl expert train --env-id Pendulum-v1 --steps 10000 --out experts/pendulum
+      ermrl expert train --env-id Pendulum-v1 --steps 5000 --out experts/pendulum
       ermrl expert train --env-id Hopper-v5 --algo sac --steps 1000000 --out experts/hopper
       ermrl expert train --env-id Pendulum-v1 --algo ppo --steps 100000 --out experts/pend-ppo \\
           --ppo normalize=true

@@ -8,7 +8,7 @@ the full one::
 
     from ermrl.experts import evaluate_expert, load_expert, train_expert
 
-    train_expert("Pendulum-v1", "sac", steps=15_000, out="experts/pendulum")
+    train_expert("Pendulum-v1", "sac", steps=5000, out="experts/pendulum")
     expert = load_expert("experts/pendulum")
     actions = expert.predict(full_observations)  # (n, obs_dim) raw -> (n, act_dim)
     print(evaluate_expert(expert, n_episodes=10, seed=0).mean)
