@@ -29,6 +29,7 @@ __all__ = [
     "CLASSIC_SPLITS",
     "MUJOCO_OBSERVE_ENVS",
     "OBSERVE_MODES",
+    "FULL_OBSERVATION_KEY",
     "ObservationMask",
     "ObservationSplit",
     "ObserveMode",
@@ -41,6 +42,9 @@ __all__ = [
 ]
 
 ObserveMode = Literal["all", "positions", "velocities"]
+# The info key under which ObservationMask passes on the unmasked observation (for imitation:
+# an expert acts on the full state while the learner sees the masked one).
+FULL_OBSERVATION_KEY = "full_observation"
 OBSERVE_MODES: tuple[str, ...] = ("all", "positions", "velocities")
 
 
@@ -410,7 +414,10 @@ class ObservationMask(gymnasium.ObservationWrapper):
     """Keep only selected entries of a flat ``Box`` observation.
 
     ``observation(obs) == obs[indices]``; the new space is a ``Box`` with the kept ``low`` and
-    ``high`` bounds and the original dtype.
+    ``high`` bounds and the original dtype. ``reset`` and ``step`` also put the unmasked
+    observation, shape ``(obs_dim,)``, into ``info["full_observation"]``
+    (:data:`FULL_OBSERVATION_KEY`), so that an expert can act on the full state while a learner
+    sees the masked one (the ``bc`` and ``dagger`` learners read it).
     """
 
     def __init__(self, env: gymnasium.Env, indices: Sequence[int]) -> None:
@@ -453,3 +460,17 @@ class ObservationMask(gymnasium.ObservationWrapper):
             Masked observation, shape ``(len(indices),)``, same dtype.
         """
         return np.asarray(observation)[self._idx]
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        """Reset the env; ``info["full_observation"]`` holds the unmasked observation."""
+        obs, info = self.env.reset(seed=seed, options=options)
+        info[FULL_OBSERVATION_KEY] = obs
+        return self.observation(obs), info
+
+    def step(self, action: Any) -> tuple[np.ndarray, Any, bool, bool, dict[str, Any]]:
+        """Step the env; ``info["full_observation"]`` holds the unmasked observation."""
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        info[FULL_OBSERVATION_KEY] = obs
+        return self.observation(obs), reward, terminated, truncated, info

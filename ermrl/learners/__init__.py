@@ -12,6 +12,8 @@ from collections.abc import Mapping
 
 from ermrl.config import ConfigError
 from ermrl.learners._base import Learner
+from ermrl.learners._bc import BCLearner
+from ermrl.learners._dagger import DAggerLearner
 from ermrl.learners._framestack_ppo import FrameStackPPOLearner
 from ermrl.learners._hebbian import HebbianLearner
 from ermrl.learners._lstm_ppo import LstmPPOLearner
@@ -29,6 +31,8 @@ _REGISTERED: tuple[Learner, ...] = (
     RTUPPOLearner(),
     HebbianLearner(),
     SACLearner(),
+    BCLearner(),
+    DAggerLearner(),
 )
 LEARNERS: Mapping[str, Learner] = {learner.name: learner for learner in _REGISTERED}
 
