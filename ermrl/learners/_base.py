@@ -34,6 +34,8 @@ class Learner:
             to the algorithm, and other learners refuse them.
         recurrent: The policy carries a hidden state between steps (``predict`` needs
             ``state`` and ``episode_start``; SB3's ``evaluate_policy`` passes them).
+        shared_keys: PPO keys a learner that is not an SB3 algorithm reads too, with its own
+            defaults (the Hebbian learner's ``learning_rate`` and ``gamma``).
         checks_itself: Settings whose values :meth:`check` validates, skipped by the shared
             PPO range checks (SAC's ``ent_coef`` may be ``"auto"``).
         genes: The settings evolution may shape (``evolve --learner NAME``), gene name ->
@@ -48,6 +50,7 @@ class Learner:
     own_keys: ClassVar[Mapping[str, Any]] = {}
     recurrent: ClassVar[bool] = False
     genes: ClassVar[Mapping[str, Range]] = {}
+    shared_keys: ClassVar[Mapping[str, Any]] = {}
     checks_itself: ClassVar[frozenset[str]] = frozenset()
 
     def algorithm(self) -> type:
@@ -57,8 +60,20 @@ class Learner:
         return PPO
 
     def option(self, config: PPOConfig, key: str) -> Any:
-        """One of this learner's own settings (``own_keys``), or its default."""
+        """One of this learner's own settings (``own_keys``) or of the PPO keys it shares
+        (``shared_keys``), or its default."""
+        if key in self.shared_keys:
+            return config.hyperparams.get(key, self.shared_keys[key])
         return config.hyperparams.get(key, self.own_keys[key])
+
+    def settings(self, config: PPOConfig) -> dict[str, Any]:
+        """Every own and shared setting of an agent that is not an SB3 algorithm, checked.
+
+        Raises:
+            ConfigError: a bad value, with a one-line reason.
+        """
+        self.check(config)
+        return {key: self.option(config, key) for key in (*self.own_keys, *self.shared_keys)}
 
     def check(self, config: PPOConfig) -> None:
         """Refuse settings of another learner (e.g. ``frame_stack`` given to plain PPO).

@@ -40,16 +40,12 @@ class ImitationLearner(Learner):
     """What ``bc`` and ``dagger`` share: the expert, the network, the regression's settings."""
 
     policy = "ImitationPolicy"
+    shared_keys = SHARED_KEYS
     common_keys: ClassVar[Mapping[str, Any]] = {
         "expert": None,
         "hidden_sizes": [64, 64],
         "epochs": 5,
     }
-
-    def option(self, config: PPOConfig, key: str) -> Any:
-        if key in SHARED_KEYS:
-            return config.hyperparams.get(key, SHARED_KEYS[key])
-        return super().option(config, key)
 
     def settings(self, config: PPOConfig) -> dict[str, Any]:
         """Every setting of the agent (own and shared keys, and ``mode``), checked.
@@ -57,9 +53,7 @@ class ImitationLearner(Learner):
         Raises:
             ConfigError: a bad value, with a one-line reason.
         """
-        self.check(config)
-        out = {key: self.option(config, key) for key in (*self.own_keys, *SHARED_KEYS)}
-        return {**out, "mode": self.name}
+        return {**super().settings(config), "mode": self.name}
 
     def check(self, config: PPOConfig) -> None:
         super().check(config)

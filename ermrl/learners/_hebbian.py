@@ -127,6 +127,7 @@ class HebbianLearner(Learner):
     }
 
     genes = GENES
+    shared_keys = SHARED_KEYS
 
     def decode_genes(self, values: Mapping[str, float]) -> dict[str, Any]:
         """Settings from genes: ``tau_max = tau_min * tau_ratio`` and
@@ -154,20 +155,6 @@ class HebbianLearner(Learner):
         from ermrl.learners._hebbian_model import HebbianAgent
 
         return HebbianAgent
-
-    def option(self, config: PPOConfig, key: str) -> Any:
-        if key in SHARED_KEYS:
-            return config.hyperparams.get(key, SHARED_KEYS[key])
-        return super().option(config, key)
-
-    def settings(self, config: PPOConfig) -> dict[str, Any]:
-        """Every setting of the agent (own and shared keys), checked.
-
-        Raises:
-            ConfigError: a bad value, with a one-line reason.
-        """
-        self.check(config)
-        return {key: self.option(config, key) for key in (*self.own_keys, *SHARED_KEYS)}
 
     def check(self, config: PPOConfig) -> None:
         super().check(config)
