@@ -17,7 +17,8 @@ Two rules:
    layer or a lower one, never a higher one, whatever the kind of import (a function-level or
    ``TYPE_CHECKING`` import still ties the lower layer to the higher one). The order is the one the
    package's concepts give: configuration (and ``ermrl._io``, atomic file writes), then
-   environments, encoders, the inner-loop learners and agents, the population backend (which
+   environments, encoders, the inner-loop learners and agents (with the experts that imitation
+   learners query, trained by the agents' loop), the population backend (which
    trains many agents at once with the agents' seeds and files), storage, the outer-loop search,
    analysis (which only reads results: studies and run folders), experiments (the test phase,
    which writes run folders and summarizes them with analysis), and the CLI on top. Storage sits above agents and below search, where the concepts put it: measured, it
@@ -48,7 +49,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("ermrl.config",),
     ("ermrl.envs",),
     ("ermrl.encoders",),
-    ("ermrl.learners", "ermrl.agents"),
+    ("ermrl.learners", "ermrl.agents", "ermrl.experts"),
     ("ermrl.population",),
     ("ermrl.storage",),
     ("ermrl.search",),
