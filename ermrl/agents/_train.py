@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -119,6 +119,11 @@ class RunResult:
         eval_returns: The evaluation episodes' returns.
         timings: Where the time went, in seconds (the population backend's ``env``,
             ``reservoir``, ``policy``, ``update`` and ``total``, for its whole population).
+        checkpoint_returns: ``(env_step, mean evaluation return)`` of each evaluation during
+            training (``train_agent(eval_at=...)``), in step order; empty when none was asked.
+        phase_steps: The learner's own split of its env steps (the trained model's
+            ``phase_steps`` attribute, e.g. an imitation learner's steps per phase), or ``None``
+            when the model has none.
     """
 
     seed: int
@@ -130,6 +135,8 @@ class RunResult:
     eval_return: float | None = None
     eval_returns: list[float] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
+    checkpoint_returns: list[tuple[int, float]] = field(default_factory=list)
+    phase_steps: dict[str, int] | None = None
 
     @property
     def steps_per_second(self) -> float:
@@ -171,6 +178,93 @@ def _episode_callback(result: RunResult, budget: BudgetConfig, report: ReportFn 
     return EpisodeRecorder()
 
 
+def _evaluate(
+    model: Any,
+    task: TaskConfig,
+    encoder: EncoderConfig | None,
+    ppo: PPOConfig,
+    seeds: SeedSet,
+    normalized: Any,
+    n_eval_episodes: int,
+) -> list[float]:
+    """Deterministic evaluation episodes of ``model`` on a fresh evaluation env.
+
+    The env is built as training's (mask, encoder with the run's reservoir weights, the
+    learner's wrappers) on one environment seeded with ``seeds.eval_env``, so every call with
+    the same model gives the same returns. With ``ppo.normalize`` it normalizes observations
+    with the training env's statistics *at the time of the call*, frozen; rewards stay raw.
+
+    Args:
+        model: The learner (an SB3 algorithm or anything with SB3's ``predict``).
+        task: Env id and observation mask.
+        encoder: The run's reservoir encoding, or ``None``.
+        ppo: The learner's settings.
+        seeds: The run's seeds (:func:`derive_seeds`).
+        normalized: The training env after ``normalize_env`` (a ``VecNormalize`` when
+            ``ppo.normalize`` is set).
+        n_eval_episodes: Episodes to run.
+
+    Returns:
+        The episodes' returns, shape ``(n_eval_episodes,)``.
+    """
+    from stable_baselines3.common.evaluation import evaluate_policy
+
+    from ermrl.agents._normalize import frozen_normalize_env, normalize_stats
+    from ermrl.learners import get_learner
+
+    learner = get_learner(ppo.learner)
+    eval_env = make_vec_env(task, 1, seeds.eval_env, encoder, seeds.reservoir)
+    if ppo.normalize is not None:
+        eval_env = frozen_normalize_env(eval_env, normalize_stats(normalized))
+    eval_env = learner.wrap_env(eval_env, ppo)
+    try:
+        returns, _ = evaluate_policy(
+            model,
+            eval_env,
+            n_eval_episodes=n_eval_episodes,
+            deterministic=True,
+            return_episode_rewards=True,
+        )
+    finally:
+        eval_env.close()
+    # return_episode_rewards=True: a list per episode (SB3 types it as float | list).
+    assert isinstance(returns, list)
+    return [float(r) for r in returns]
+
+
+def _checkpoint_callback(
+    result: RunResult, eval_at: Sequence[int], training_steps: int, evaluate: Callable[[], float]
+) -> Any:
+    """An SB3 callback that calls ``evaluate()`` when the learner's ``num_timesteps`` first
+    reaches each step of ``eval_at`` and appends ``(step, return)`` to
+    ``result.checkpoint_returns``.
+
+    Steps at or past ``training_steps`` are evaluated when training ends, after the learner's
+    last update (an on-policy learner reaches its last step before the update of its last
+    rollout), so a checkpoint at the full budget measures the final model.
+    """
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    pending = sorted(set(int(s) for s in eval_at))
+
+    def run(step: int) -> None:
+        result.checkpoint_returns.append((step, float(evaluate())))
+
+    class CheckpointEvaluator(BaseCallback):
+        """Evaluates the learner at fixed env steps (works with any ``on_step`` caller)."""
+
+        def _on_step(self) -> bool:
+            while pending and pending[0] < training_steps and self.num_timesteps >= pending[0]:
+                run(pending.pop(0))
+            return True
+
+        def _on_training_end(self) -> None:
+            while pending:
+                run(pending.pop(0))
+
+    return CheckpointEvaluator()
+
+
 def save_trained(model: Any, model_path: str | Path, stats: dict[str, Any] | None) -> None:
     """Write a trained agent's files: ``model_path`` (``model.zip``), its ``policy.pt`` and, with
     normalization statistics, their JSON (:func:`~ermrl.agents.stats_path`).
@@ -208,6 +302,7 @@ def train_agent(
     model_path: str | Path | None = None,
     report: ReportFn | None = None,
     tensorboard_log: str | None = None,
+    eval_at: Sequence[int] = (),
 ) -> RunResult:
     """Train the learner of ``ppo.learner`` (PPO by default) on a task for one seed and measure
     its returns.
@@ -227,6 +322,14 @@ def train_agent(
         report: Called as ``report(env_step, mean_recent_return)`` ``budget.n_reports`` times
             during training (for pruning); it may raise to stop training.
         tensorboard_log: Directory for SB3's TensorBoard logs.
+        eval_at: Env steps at which to run ``budget.n_eval_episodes`` deterministic
+            evaluation episodes during training, each on a fresh evaluation env built as the
+            final evaluation's (same seeds every time, distinct from training's; with
+            normalization, training's statistics of that moment, frozen). A checkpoint runs
+            when the learner's ``num_timesteps`` first reaches its step (up to ``n_envs - 1``
+            steps later); checkpoints at the full budget run after the last update, so they
+            measure the final model. Stored in ``RunResult.checkpoint_returns``. The evaluations
+            do not change training (deterministic actions on their own env).
 
     Returns:
         The run's returns and timings.
@@ -234,19 +337,16 @@ def train_agent(
     Raises:
         TrainingDiverged: NaN or infinite values appeared in training.
         NoEpisodeFinished: the ``last`` measure is needed but no episode ended.
+        ValueError: a step of ``eval_at`` outside ``[1, budget.training_steps]``.
     """
     import torch
-    from stable_baselines3.common.evaluation import evaluate_policy
 
-    from ermrl.agents._normalize import (
-        frozen_normalize_env,
-        normalize_env,
-        normalize_stats,
-        save_normalize_stats,
-        stats_path,
-    )
+    from ermrl.agents._normalize import normalize_env, save_normalize_stats, stats_path
     from ermrl.learners import get_learner
 
+    bad = [s for s in eval_at if not 1 <= int(s) <= budget.training_steps]
+    if bad:
+        raise ValueError(f"eval_at steps must be in [1, {budget.training_steps}], got {bad}")
     learner = get_learner(ppo.learner)
     torch.set_num_threads(ppo.torch_threads)
     # BLAS (numpy's matrix products in the encoder) gets the same thread budget: with several
@@ -265,11 +365,22 @@ def train_agent(
         model = learner.build(env, ppo, seed=seeds.agent, tensorboard_log=tensorboard_log)
         # PPO(seed=...) reseeds the env with the agent seed; give the envs their own seed.
         env.seed(seeds.env)
+        callback: Any = _episode_callback(result, budget, report)
+        if eval_at:
+
+            def checkpoint() -> float:
+                returns = _evaluate(
+                    model, task, encoder, ppo, seeds, normalized, budget.n_eval_episodes
+                )
+                return float(np.mean(returns))
+
+            callback = [
+                callback,
+                _checkpoint_callback(result, eval_at, budget.training_steps, checkpoint),
+            ]
         try:
             model.learn(
-                total_timesteps=budget.training_steps,
-                callback=_episode_callback(result, budget, report),
-                progress_bar=False,
+                total_timesteps=budget.training_steps, callback=callback, progress_bar=False
             )
         except ValueError as err:
             # torch.distributions raises ValueError when the policy outputs NaN.
@@ -277,6 +388,9 @@ def train_agent(
                 raise TrainingDiverged(f"seed {seed}: training diverged ({err})") from err
             raise
         result.env_steps = int(model.num_timesteps)
+        phase_steps = getattr(model, "phase_steps", None)
+        if isinstance(phase_steps, dict):
+            result.phase_steps = {str(k): int(v) for k, v in phase_steps.items()}
         if not all(math.isfinite(r) for r in result.episode_returns):
             raise TrainingDiverged(f"seed {seed}: non-finite episode return")
         if result.episode_returns:
@@ -288,25 +402,10 @@ def train_agent(
                 "--fitness eval"
             )
         if evaluate if evaluate is not None else budget.fitness == "eval":
-            eval_env = make_vec_env(task, 1, seeds.eval_env, encoder, seeds.reservoir)
-            if ppo.normalize is not None:
-                # Training's final statistics, frozen; rewards stay raw.
-                eval_env = frozen_normalize_env(eval_env, normalize_stats(normalized))
-            eval_env = learner.wrap_env(eval_env, ppo)
-            try:
-                returns, _ = evaluate_policy(
-                    model,
-                    eval_env,
-                    n_eval_episodes=budget.n_eval_episodes,
-                    deterministic=True,
-                    return_episode_rewards=True,
-                )
-            finally:
-                eval_env.close()
-            # return_episode_rewards=True: a list per episode (SB3 types it as float | list).
-            assert isinstance(returns, list)
-            result.eval_returns = [float(r) for r in returns]
-            result.eval_return = float(np.mean(returns))
+            result.eval_returns = _evaluate(
+                model, task, encoder, ppo, seeds, normalized, budget.n_eval_episodes
+            )
+            result.eval_return = float(np.mean(result.eval_returns))
             if not math.isfinite(result.eval_return):
                 raise TrainingDiverged(f"seed {seed}: non-finite evaluation return")
         if model_path is not None:
