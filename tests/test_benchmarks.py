@@ -190,3 +190,59 @@ def test_the_hebbian_benchmark_runs_in_quick_mode(tmp_path: Path) -> None:
     assert set(report["selected"]["params"]) >= {"sigma", "trace_horizon", "learning_rate"}
     assert Path(report["learning_curves"]).is_file()
     assert "| hebbian - random-hebbian |" in (tmp_path / "hebbian.md").read_text()
+
+
+@pytest.mark.slow
+def test_the_learners_benchmark_runs_in_quick_mode(tmp_path: Path) -> None:
+    """bench_learners trains a tiny expert, then every learner with and without positions on the
+    same seeds, with evaluation checkpoints; it writes the runs, the summary, curves and meta."""
+    import csv
+    import math
+
+    from ermrl.learners import learner_names
+
+    learners = ["ppo", "sac", "dagger"]
+    if "imitation-sac" in learner_names():
+        learners.append("imitation-sac")
+    out = tmp_path / "learners"
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "bench_learners.py"), "--quick",
+         "--env-id", "Pendulum-v1", "--train-expert-steps", "300", "--learners", *learners,
+         "--out", str(out)],
+        cwd=ROOT, capture_output=True, text=True, timeout=900,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    for name in ("runs.csv", "summary.csv", "summary.md", "curves.png", "meta.json"):
+        assert (out / name).is_file(), name
+    with (out / "runs.csv").open() as fh:
+        runs = list(csv.DictReader(fh))
+    assert sorted((r["learner"], r["observe"], r["seed"]) for r in runs) == sorted(
+        (name, observe, seed)
+        for name in learners
+        for observe in ("all", "positions")
+        for seed in ("200", "201")
+    )
+    for r in runs:
+        assert r["error"] == "", r["error"]
+        for key in ("final_eval_return", "last10_return", "return_at_25pct", "wall_seconds"):
+            assert math.isfinite(float(r[key])), (key, r)
+        assert int(r["env_steps"]) >= 1000
+        steps = [step for step, _ in json.loads(r["checkpoints"])]
+        assert steps == [250, 500, 750, 1000]
+        # The 25% return is the checkpoint at 250 steps.
+        assert float(r["return_at_25pct"]) == json.loads(r["checkpoints"])[0][1]
+        if r["steps_to_expert"]:
+            assert int(r["steps_to_expert"]) in steps
+    with (out / "summary.csv").open() as fh:
+        summary = list(csv.DictReader(fh))
+    assert len(summary) == 2 * len(learners)
+    for row in summary:
+        assert row["n_runs"] == "2"
+        low, mean, high = (float(row[k]) for k in ("final_ci_low", "final_mean", "final_ci_high"))
+        assert low <= mean <= high
+        assert math.isfinite(float(row["at25_mean"]))
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["expert"]["steps"] == 300 and math.isfinite(meta["expert"]["eval_return"])
+    assert meta["expert"]["trained_here_seconds"] > 0
+    assert meta["checkpoints"] == [250, 500, 750, 1000]
+    assert "| imitation-sac |" in proc.stdout or "imitation-sac" not in learners
