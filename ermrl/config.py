@@ -154,6 +154,18 @@ AGENT_KINDS: Mapping[str, AgentKind] = {
         "sac", "RES-SAC (evolved reservoir)", "RES-SAC\n(evolved)", "teal", default=False,
         family="esn",
     ),
+    "dagger": AgentKind(
+        "none", None,
+        "DAgger on the raw (masked) observation; its expert sees the full state "
+        "(--for-learner dagger expert=DIR)",
+        "dagger", "DAgger (raw observation)", "DAgger", "navy", default=False,
+    ),
+    "res-dagger": AgentKind(
+        "evolved", None,
+        "DAgger on the selected evolved reservoir(s)' states; its expert sees the full state",
+        "dagger", "RES-DAgger (evolved reservoir)", "RES-DAgger\n(evolved)", "magenta",
+        default=False, family="esn",
+    ),
 }  # fmt: skip
 AGENTS: tuple[str, ...] = tuple(AGENT_KINDS)
 
