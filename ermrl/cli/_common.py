@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Sequence
 from typing import Any, NoReturn
 
 from ermrl.storage import DEFAULT_STORAGE
@@ -13,6 +14,11 @@ __all__ = [
     "fail",
     "add_storage_args",
     "storage_arg",
+    "add_stale_gradient_arg",
+    "add_for_learner_arg",
+    "parse_for_learner",
+    "for_learner_names",
+    "learner_overrides",
     "add_run_folder_args",
     "run_folder_kwargs",
     "positive_int",
@@ -181,7 +187,106 @@ def add_stale_gradient_arg(parser: argparse.ArgumentParser | argparse._ArgumentG
     )
 
 
+FOR_LEARNER_HELP = (
+    "settings of one learner only, on top of its table and --ppo: the first word names the "
+    "learner, the rest are KEY=VALUE as in --ppo (values read as YAML). Repeatable; a later "
+    "flag wins per key. Use it for what other learners refuse, e.g. the dagger learner's "
+    "expert: --for-learner dagger expert=experts/hopper steps_per_iteration=500"
+)
+
+
+def parse_for_learner(values: Sequence[str]) -> tuple[str, dict[str, Any]]:
+    """One ``--for-learner LEARNER KEY=VALUE [KEY=VALUE ...]``: the learner and its settings.
+
+    Values are read as ``--ppo`` values are (:func:`ermrl.agents.parse_overrides`: YAML,
+    ``1e-4`` a number, ``[64, 64]`` a list).
+
+    Args:
+        values: The flag's words, the learner's name first.
+
+    Returns:
+        The learner's name and its settings.
+
+    Raises:
+        ConfigError: an unregistered learner, no ``KEY=VALUE``, a malformed one or an unknown
+            key (one line, starting ``--for-learner LEARNER:``).
+
+    Example:
+        >>> parse_for_learner(["dagger", "expert=experts/hopper", "epochs=3"])
+        ('dagger', {'expert': 'experts/hopper', 'epochs': 3})
+    """
+    from ermrl.agents import parse_overrides
+    from ermrl.config import ConfigError
+    from ermrl.learners import learner_names
+
+    name, *items = values
+    where = f"--for-learner {name}"
+    if name not in learner_names():
+        raise ConfigError(
+            f"{where}: unknown learner {name!r}; choose from {', '.join(learner_names())}"
+        )
+    if not items:
+        raise ConfigError(f"{where}: give at least one KEY=VALUE after the learner's name")
+    settings: dict[str, Any] = {}
+    for item in items:
+        key, sep, _ = item.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"{where}: {item!r} is not KEY=VALUE")
+        try:
+            settings.update(parse_overrides([item]))
+        except ConfigError as err:
+            raise ConfigError(f"{where}: {str(err).removeprefix('--ppo: ')}") from None
+    return name, settings
+
+
+class ForLearnerAction(argparse.Action):
+    """Appends each ``--for-learner`` as ``(learner, settings)``, checked while parsing."""
+
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: str | Sequence[Any] | None,
+        option_string: str | None = None,
+    ) -> None:
+        from ermrl.config import ConfigError
+
+        words = [values] if isinstance(values, str) else list(values or [])
+        try:
+            parsed = parse_for_learner(words)
+        except ConfigError as err:
+            raise argparse.ArgumentError(None, str(err)) from None
+        setattr(namespace, self.dest, [*(getattr(namespace, self.dest, None) or []), parsed])
+
+
+def add_for_learner_arg(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    """``--for-learner LEARNER KEY=VALUE [KEY=VALUE ...]``: settings of one learner only."""
+    parser.add_argument(
+        "--for-learner",
+        action=ForLearnerAction,
+        nargs="+",
+        default=[],
+        metavar=("LEARNER", "KEY=VALUE"),
+        help=FOR_LEARNER_HELP,
+    )
+
+
+def for_learner_names(args: argparse.Namespace) -> tuple[str, ...]:
+    """The learners named by ``--for-learner`` flags, in order, each once."""
+    given = getattr(args, "for_learner", None) or []
+    return tuple(dict.fromkeys(name for name, _ in given))
+
+
 def learner_overrides(args: argparse.Namespace) -> dict[str, dict[str, Any]]:
-    """Settings given by learner-specific flags, keyed by the learner they apply to."""
+    """Settings given by learner-specific flags, keyed by the learner they apply to.
+
+    ``--stale-gradient`` (rtu-ppo's ``stale_gradient``) first, then each ``--for-learner`` in
+    the order given: a later flag wins per key.
+    """
+    out: dict[str, dict[str, Any]] = {}
     stale = getattr(args, "stale_gradient", None)
-    return {} if stale is None else {"rtu-ppo": {"stale_gradient": stale}}
+    if stale is not None:
+        out["rtu-ppo"] = {"stale_gradient": stale}
+    for name, settings in getattr(args, "for_learner", None) or []:
+        out[name] = {**out.get(name, {}), **settings}
+    return out

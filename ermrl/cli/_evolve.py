@@ -15,6 +15,7 @@ from ermrl.cli._common import (
     EXIT_TERMINATED,
     ArgumentParser,
     HelpFormatter,
+    add_for_learner_arg,
     add_stale_gradient_arg,
     add_storage_args,
     fail,
@@ -114,6 +115,7 @@ def add_problem_args(parser: argparse.ArgumentParser, *, multi_task: bool = Fals
         + ". Its settings come from its own table (see --hyperparams) and --ppo",
     )
     add_stale_gradient_arg(g)
+    add_for_learner_arg(g)
     g.add_argument(
         "--backend",
         choices=("sb3", "population"),
@@ -587,9 +589,20 @@ def validate_task(env_id: str, observe: str) -> None:
 
 
 def learner_flags(args: argparse.Namespace, learner: str) -> dict[str, Any]:
-    """The learner-specific flags' settings for ``learner`` (refused for another learner)."""
-    from ermrl.cli._common import learner_overrides
+    """The learner-specific flags' settings for ``learner``, the study's learner.
 
+    Raises:
+        ConfigError: a flag of another learner (``--for-learner dagger`` in a study of
+            ``--learner ppo``; ``--stale-gradient`` without ``--learner rtu-ppo``).
+    """
+    from ermrl.cli._common import for_learner_names, learner_overrides
+
+    for name in for_learner_names(args):
+        if name != learner:
+            raise ConfigError(
+                f"--for-learner {name}: no agent of this run uses learner {name} (the study "
+                f"trains --learner {learner})"
+            )
     given = learner_overrides(args)
     for name in given:
         if name != learner:

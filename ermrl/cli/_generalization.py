@@ -34,6 +34,7 @@ from ermrl.cli._evolve import (
 )
 from ermrl.cli._test import (
     add_test_args,
+    choose_agents,
     plan_test_phase,
     run_test_phase,
     setup_errors,
@@ -440,6 +441,7 @@ def test_generalization_main(
         observation_indices(args.env_id, observe)
         evolution_ids = _evolution_env_ids(config)
         warning = overlap_warning(args.env_id, evolution_ids, args.study_name)
+        choose_agents(args, config, observe)
         ppo = with_backend(_test_ppo(config, args.env_id, args), args)
         task = dataclasses.replace(problem.task, env_id=args.env_id, observe=observe)
         # The test env's settings (the study's, a table's, --ppo): refused now, not by a run.

@@ -16,9 +16,11 @@ from ermrl.cli._common import (
     EXIT_INTERRUPTED,
     ArgumentParser,
     HelpFormatter,
+    add_for_learner_arg,
     add_stale_gradient_arg,
     add_storage_args,
     fail,
+    for_learner_names,
     learner_overrides,
     nonneg_int,
     positive_int,
@@ -31,7 +33,9 @@ T = TypeVar("T")
 __all__ = [
     "TestPlan",
     "add_test_args",
+    "agent_learners",
     "build_test_parser",
+    "choose_agents",
     "plan_test_phase",
     "run_or_exit",
     "run_test_phase",
@@ -54,8 +58,13 @@ DESCRIPTION = textwrap.dedent(
     --out with other settings (--ppo, --trial, --training-steps, --eval, ...) is refused: use
     another --out, or --overwrite to retrain.
 
-    example:
+    The settings of each agent are its learner's table (ermrl/data/<learner>.yml), then --ppo
+    (every agent), then the flags of its learner only (--for-learner, --stale-gradient). A
+    setting other learners refuse, such as the dagger learner's expert, goes in --for-learner.
+
+    examples:
       test.py --study-name S --storage sqlite:///ermrl.db --training-steps 1000000 --seeds 10 11 12
+      test.py --study-name S --agents ppo dagger res-dagger --for-learner dagger expert=experts/hopper
     """
 )
 
@@ -67,6 +76,7 @@ def add_test_args(
 
     Adds, in this order: ``--training-steps``, ``--seeds``, ``--agents``, ``--out``, ``--trial``,
     ``--n-procs``, ``--eval/--no-eval``, ``--n-eval-episodes``, ``--ppo``,
+    ``--stale-gradient/--no-stale-gradient``, ``--for-learner``, ``--backend``,
     ``--save-models/--no-save-models`` and ``--overwrite``.
 
     Args:
@@ -118,6 +128,7 @@ def add_test_args(
     )
     parser.add_argument("--ppo", nargs="+", default=[], metavar="KEY=VALUE", help=ppo_help)
     add_stale_gradient_arg(parser)
+    add_for_learner_arg(parser)
     parser.add_argument(
         "--backend",
         choices=("sb3", "population"),
@@ -217,6 +228,36 @@ def run_or_exit(prog: str, out: Path, run: Callable[[], T]) -> T | None:
         return None
 
 
+def agent_learners(names: Sequence[str], study_learner: str) -> tuple[str, ...]:
+    """The learners that train the agents ``names`` (``AGENT_KINDS``), each once.
+
+    Args:
+        names: Agent names.
+        study_learner: The study's learner, which trains the agents of no learner of their own.
+    """
+    kinds = [AGENT_KINDS[n] for n in names if n in AGENT_KINDS]
+    return tuple(dict.fromkeys(kind.learner or study_learner for kind in kinds))
+
+
+def choose_agents(args: argparse.Namespace, config: Any, observe: str) -> list[str]:
+    """``--agents`` (default: the study's default agents), checked against ``--for-learner``.
+
+    Sets ``args.agents`` and returns it.
+
+    Raises:
+        ConfigError: a ``--for-learner`` names a learner that none of the agents trains with.
+    """
+    args.agents = args.agents or list(default_agents(observe, config.space.family))
+    used = agent_learners(args.agents, config.problem.ppo.learner)
+    for name in for_learner_names(args):
+        if name not in used:
+            raise ConfigError(
+                f"--for-learner {name}: no agent of this run uses learner {name} (agents "
+                f"{' '.join(args.agents)} use {', '.join(used)})"
+            )
+    return list(args.agents)
+
+
 @dataclass
 class TestPlan:
     """What a test phase trains: its agents, the selected trial, seeds and settings."""
@@ -272,18 +313,21 @@ def plan_test_phase(
             stacklevel=2,
         )
     seeds = select_seeds(seeds, os.environ.get("SLURM_ARRAY_TASK_ID"))
-    args.agents = args.agents or list(default_agents(observe, config.space.family))
+    choose_agents(args, config, observe)
     overrides = parse_overrides(args.ppo)
+    own = learner_overrides(args)
     agents, chosen = study_agents(
         study,
         config,
         args.agents,
         args.trial,
-        learner_settings_for(ppo, task.env_id, overrides, learner_overrides(args)),
+        learner_settings_for(ppo, task.env_id, overrides, own),
         ppo,
     )
-    for agent in agents:  # refused now rather than by the first run
-        if agent.ppo is not None and overrides:
+    # An agent of another learner than the study's has settings no study checked (its table,
+    # --ppo, --for-learner; dagger's expert): refused now rather than by its first run.
+    for agent in agents:
+        if agent.ppo is not None:
             check_ppo_config(agent.task(task), None, agent.ppo, where=agent.name)
     out = Path(args.out) if args.out else default_out
     check_out_folder(out)
@@ -385,11 +429,13 @@ def test_main(argv: Sequence[str] | None = None, prog: str = "ermrl test") -> in
                 "with test_generalization.py --env-id ENV"
             )
         problem = config.problem
+        choose_agents(args, config, problem.task.observe)
         overrides = parse_overrides(args.ppo)
         own = learner_overrides(args).get(problem.ppo.learner, {})
         ppo = with_backend(with_overrides(problem.ppo, {**overrides, **own}), args)
-        if overrides:  # refused now rather than by the first run
-            check_ppo_config(problem.task, problem.encoder, ppo, where="--ppo")
+        if overrides or own:  # refused now rather than by the first run
+            where = "--ppo" if overrides else f"--for-learner {problem.ppo.learner}"
+            check_ppo_config(problem.task, problem.encoder, ppo, where=where)
         plan = plan_test_phase(
             args,
             study,

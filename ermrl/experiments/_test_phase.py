@@ -6,7 +6,9 @@ Agents:
 - ``ppo-full``: PPO on the full, unmasked observation (the ceiling memory should approach);
 - ``res-ppo``: PPO on the states of the best evolved reservoir(s);
 - ``random-res-ppo``: PPO on reservoirs with default, unevolved hyperparameters (what evolution adds);
-- ``lstm-ppo``, ``framestack-ppo``: memory baselines (RecurrentPPO; PPO on stacked observations).
+- ``lstm-ppo``, ``framestack-ppo``: memory baselines (RecurrentPPO; PPO on stacked observations);
+- ``sac``, ``res-sac``, ``dagger``, ``res-dagger``: other learners on the raw observation and on
+  the selected evolved reservoir(s) (DAgger's expert sees the full state).
 
 The agents are the table :data:`~ermrl.config.AGENT_KINDS` (learner, encoder, evolved or not).
 
@@ -186,7 +188,8 @@ def learner_settings_for(
 
     ``base.learner`` keeps ``base`` (``None``: the comparison's); another learner takes its own
     table's settings for ``env_id`` with the same ``overrides`` (``--ppo``) and threads, plus its
-    entry of ``learner_overrides`` (settings of one learner only, e.g. ``--no-stale-gradient``).
+    entry of ``learner_overrides`` (settings of one learner only, on top of ``overrides``:
+    ``--for-learner dagger expert=DIR``, ``--no-stale-gradient``).
     """
     from ermrl.agents import resolve_ppo_config
 
