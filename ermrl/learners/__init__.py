@@ -16,6 +16,7 @@ from ermrl.learners._bc import BCLearner
 from ermrl.learners._dagger import DAggerLearner
 from ermrl.learners._framestack_ppo import FrameStackPPOLearner
 from ermrl.learners._hebbian import HebbianLearner
+from ermrl.learners._imitation_sac import ImitationSACLearner
 from ermrl.learners._lstm_ppo import LstmPPOLearner
 from ermrl.learners._ppo import PPOLearner
 from ermrl.learners._rtu_ppo import RTUPPOLearner
@@ -33,6 +34,7 @@ _REGISTERED: tuple[Learner, ...] = (
     SACLearner(),
     BCLearner(),
     DAggerLearner(),
+    ImitationSACLearner(),
 )
 LEARNERS: Mapping[str, Learner] = {learner.name: learner for learner in _REGISTERED}
 
