@@ -166,6 +166,20 @@ AGENT_KINDS: Mapping[str, AgentKind] = {
         "dagger", "RES-DAgger (evolved reservoir)", "RES-DAgger\n(evolved)", "magenta",
         default=False, family="esn",
     ),
+    "imitation-sac": AgentKind(
+        "none", None,
+        "SAC seeded by DAgger from an expert that sees the full state, on the raw (masked) "
+        "observation (--for-learner imitation-sac expert=DIR)",
+        "imitation-sac", "Imitation-SAC (raw observation)", "Imit.-SAC", "chocolate",
+        default=False,
+    ),
+    "res-imitation-sac": AgentKind(
+        "evolved", None,
+        "imitation-seeded SAC on the selected evolved reservoir(s)' states; its expert sees the "
+        "full state",
+        "imitation-sac", "RES-Imitation-SAC (evolved reservoir)", "RES-Imit.-SAC\n(evolved)",
+        "slateblue", default=False, family="esn",
+    ),
 }  # fmt: skip
 AGENTS: tuple[str, ...] = tuple(AGENT_KINDS)
 

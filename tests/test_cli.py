@@ -111,7 +111,7 @@ def test_agent_registry_drives_choices_defaults_and_labels() -> None:
     assert AGENTS == (
         "ppo", "ppo-full", "res-ppo", "random-res-ppo", "rtu-res-ppo", "random-rtu-res-ppo",
         "lstm-ppo", "framestack-ppo", "rtu-ppo", "hebbian", "random-hebbian", "sac", "res-sac",
-        "dagger", "res-dagger",
+        "dagger", "res-dagger", "imitation-sac", "res-imitation-sac",
     )  # fmt: skip
     assert set(AGENT_LABELS) == set(AGENT_SHORT_LABELS) == set(AGENT_COLORS) == set(AGENTS)
     action = next(a for a in build_test_parser()._actions if a.dest == "agents")

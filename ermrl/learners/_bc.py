@@ -67,8 +67,9 @@ class ImitationLearner(Learner):
         expert = self.option(config, "expert")
         if not isinstance(expert, str) or not expert:
             raise ConfigError(
-                f"learner {name!r} needs an expert: --ppo expert=DIR (a folder written by "
-                f"ermrl expert train), got {expert!r}"
+                f"learner {name!r} needs an expert: --ppo expert=DIR, or in a test phase "
+                f"--for-learner {name} expert=DIR (a folder written by ermrl expert train), "
+                f"got {expert!r}"
             )
         sizes = self.option(config, "hidden_sizes")
         if not isinstance(sizes, (list, tuple)) or not all(

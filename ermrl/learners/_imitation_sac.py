@@ -71,8 +71,9 @@ class ImitationSACLearner(SACLearner):
         expert = self.option(config, "expert")
         if not isinstance(expert, str) or not expert:
             raise ConfigError(
-                f"learner {name!r} needs an expert: --ppo expert=DIR (a folder written by "
-                f"ermrl expert train), got {expert!r}"
+                f"learner {name!r} needs an expert: --ppo expert=DIR, or in a test phase "
+                f"--for-learner {name} expert=DIR (a folder written by ermrl expert train), "
+                f"got {expert!r}"
             )
         _whole(name, "pretrain_steps", self.option(config, "pretrain_steps"), 0)
         _whole(name, "steps_per_iteration", self.option(config, "steps_per_iteration"), 1)
