@@ -27,6 +27,8 @@ in ``num_timesteps`` (the learner's env-step budget):
    (the actor's mean against the label). Scaling by the batch's mean ``|Q|`` (detached) is
    TD3+BC's normalisation (Fujimoto and Gu, 2021): their ``alpha = 2.5`` is
    ``bc_weight = 0.4``.
+   The table starts SAC's learned entropy temperature at 0.05 (``ent_coef: auto_0.05``), not
+   SB3's 1.0, which would push the pretrained actor towards entropy and away from the expert.
 
 The expert's own training is not part of the budget: its steps are in its ``expert.json``, and
 :attr:`ImitationSAC.phase_steps` records, apart, what each phase used.
