@@ -1,4 +1,5 @@
-"""Shared fixtures: fresh databases on the local PostgreSQL / MariaDB / Redis servers.
+"""Shared fixtures: fresh databases on the local PostgreSQL / MariaDB / Redis servers, and
+Pendulum experts for the imitation learners (trained once per session).
 
 Tests that need a server are marked ``services``. When the server cannot be reached they are
 skipped with the reason, unless ``ERMRL_REQUIRE_SERVICES=1`` (CI), where they fail instead.
@@ -125,3 +126,34 @@ def fresh_storage(request: pytest.FixtureRequest, tmp_path: Path) -> str:
     if kind == "redis":
         return request.getfixturevalue("redis_url")
     raise ValueError(f"unknown storage kind {kind!r}")
+
+
+# -- experts for the imitation learners (bc, dagger, imitation-sac) --------------------------------
+
+
+@pytest.fixture(scope="session")
+def tiny_expert(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A SAC Pendulum expert of 300 steps (quality irrelevant: its actions vary with the state)."""
+    from ermrl.experts import train_expert
+
+    out = tmp_path_factory.mktemp("experts") / "pendulum"
+    train_expert(
+        "Pendulum-v1",
+        "sac",
+        300,
+        out,
+        seed=0,
+        overrides={"learning_starts": 100},
+        n_eval_episodes=1,
+    )
+    return out
+
+
+@pytest.fixture(scope="session")
+def good_expert(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A SAC Pendulum expert of 5000 steps (about -160: it swings up); for slow tests."""
+    from ermrl.experts import train_expert
+
+    out = tmp_path_factory.mktemp("experts") / "pendulum-good"
+    train_expert("Pendulum-v1", "sac", 5000, out, seed=0, n_eval_episodes=2)
+    return out

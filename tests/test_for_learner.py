@@ -28,7 +28,8 @@ from ermrl.cli._test import agent_learners, build_test_parser
 from ermrl.cli._test import test_main as run_test
 from ermrl.config import AGENT_KINDS, ConfigError, default_agents
 from ermrl.learners import learner_names
-from tests.test_imitation import PENDULUM, tiny_expert  # noqa: F401  (a shared fixture)
+
+PENDULUM = "Pendulum-v1"
 
 PARSERS: dict[str, Callable[[], argparse.ArgumentParser]] = {
     "test": build_test_parser,
@@ -267,7 +268,7 @@ def test_test_generalization_refuses_before_any_run(
 
 def test_test_gives_the_dagger_agents_their_own_settings(
     study: tuple[Path, str],
-    tiny_expert: Path,  # noqa: F811  (the fixture imported above)
+    tiny_expert: Path,
 ) -> None:
     tmp, url = study
     out = tmp / "test"

@@ -16,7 +16,7 @@ from ermrl.agents import resolve_ppo_config
 from ermrl.agents._policy_io import load_policy, policy_path
 from ermrl.agents._train import derive_seeds, make_vec_env, train_agent
 from ermrl.config import BudgetConfig, ConfigError, EncoderConfig, ReservoirParams, TaskConfig
-from ermrl.experts import load_expert, train_expert
+from ermrl.experts import load_expert
 from ermrl.learners import get_learner
 from ermrl.learners._imitation import (
     FullObservations,
@@ -28,16 +28,6 @@ from ermrl.learners._imitation import (
 )
 
 PENDULUM = "Pendulum-v1"
-
-
-@pytest.fixture(scope="module")
-def tiny_expert(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A SAC Pendulum expert of 300 steps (quality irrelevant: its actions vary with the state)."""
-    out = tmp_path_factory.mktemp("experts") / "pendulum"
-    train_expert(
-        PENDULUM, "sac", 300, out, seed=0, overrides={"learning_starts": 100}, n_eval_episodes=1
-    )
-    return out
 
 
 def _config(learner: str, expert: Path | str | None, **overrides: object) -> object:
@@ -349,13 +339,6 @@ def test_evolve_cli_without_expert_fails_in_one_line(tmp_path: Path) -> None:
 
 
 # -- quality ----------------------------------------------------------------------------------------
-
-
-@pytest.fixture(scope="module")
-def good_expert(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("experts") / "pendulum-good"
-    train_expert(PENDULUM, "sac", 5000, out, seed=0, n_eval_episodes=2)
-    return out
 
 
 @pytest.mark.slow

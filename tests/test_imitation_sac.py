@@ -14,7 +14,6 @@ from ermrl.agents import resolve_ppo_config
 from ermrl.agents._policy_io import load_policy, policy_path
 from ermrl.agents._train import derive_seeds, make_vec_env, save_trained, train_agent
 from ermrl.config import BudgetConfig, ConfigError, EncoderConfig, ReservoirParams, TaskConfig
-from ermrl.experts import train_expert
 from ermrl.learners import get_learner
 from ermrl.learners._imitation import beta
 
@@ -22,14 +21,10 @@ PENDULUM = "Pendulum-v1"
 LEARNER = "imitation-sac"
 
 
-@pytest.fixture(scope="module")
-def expert(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A SAC Pendulum expert of 300 steps (quality irrelevant: its actions vary with the state)."""
-    out = tmp_path_factory.mktemp("experts") / "pendulum"
-    train_expert(
-        PENDULUM, "sac", 300, out, seed=0, overrides={"learning_starts": 100}, n_eval_episodes=1
-    )
-    return out
+@pytest.fixture
+def expert(tiny_expert: Path) -> Path:
+    """The session's 300-step SAC Pendulum expert (tests/conftest.py)."""
+    return tiny_expert
 
 
 def _config(expert: Path | None, **overrides: object) -> object:
@@ -212,13 +207,6 @@ def test_missing_expert_is_refused_in_one_line() -> None:
 def test_sac_refuses_the_imitation_keys(expert: Path) -> None:
     with pytest.raises(ConfigError, match="does not take"):
         get_learner("sac").check(resolve_ppo_config(PENDULUM, {"bc_weight": 1.0}, learner="sac"))
-
-
-@pytest.fixture(scope="module")
-def good_expert(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("experts") / "pendulum-good"
-    train_expert(PENDULUM, "sac", 5000, out, seed=0, n_eval_episodes=2)
-    return out
 
 
 @pytest.mark.slow

@@ -9,7 +9,6 @@ import pytest
 
 from ermrl.agents import RunResult, resolve_ppo_config, train_agent
 from ermrl.config import BudgetConfig, TaskConfig
-from tests.test_imitation import tiny_expert  # noqa: F401  (the fixture: a 300-step SAC expert)
 
 PENDULUM = TaskConfig("Pendulum-v1", "all")
 TINY_PPO = {"n_steps": 64, "batch_size": 64, "n_epochs": 1}
