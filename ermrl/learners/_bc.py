@@ -36,6 +36,16 @@ def _whole(learner: str, key: str, value: Any, least: int) -> int:
     return value
 
 
+def check_expert(learner: str, expert: Any) -> None:
+    """Refuse a missing ``expert`` setting of an imitation learner, in one line."""
+    if not isinstance(expert, str) or not expert:
+        raise ConfigError(
+            f"learner {learner!r} needs an expert: --ppo expert=DIR, or in a test phase "
+            f"--for-learner {learner} expert=DIR (a folder written by ermrl expert train), "
+            f"got {expert!r}"
+        )
+
+
 class ImitationLearner(Learner):
     """What ``bc`` and ``dagger`` share: the expert, the network, the regression's settings."""
 
@@ -64,13 +74,7 @@ class ImitationLearner(Learner):
                 f"learner {name!r} does not take {', '.join(sorted(foreign))} (a setting of "
                 "another learner)"
             )
-        expert = self.option(config, "expert")
-        if not isinstance(expert, str) or not expert:
-            raise ConfigError(
-                f"learner {name!r} needs an expert: --ppo expert=DIR, or in a test phase "
-                f"--for-learner {name} expert=DIR (a folder written by ermrl expert train), "
-                f"got {expert!r}"
-            )
+        check_expert(name, self.option(config, "expert"))
         sizes = self.option(config, "hidden_sizes")
         if not isinstance(sizes, (list, tuple)) or not all(
             isinstance(h, int) and not isinstance(h, bool) and 1 <= h <= MAX_WIDTH for h in sizes

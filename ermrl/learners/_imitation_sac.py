@@ -13,7 +13,7 @@ import math
 from typing import Any
 
 from ermrl.config import ConfigError, PPOConfig
-from ermrl.learners._bc import _whole
+from ermrl.learners._bc import _whole, check_expert
 from ermrl.learners._sac import SACLearner
 
 __all__ = ["ImitationSACLearner"]
@@ -68,13 +68,7 @@ class ImitationSACLearner(SACLearner):
         ):
             if key in hp and not (key == "use_sde" and hp[key] is False):
                 raise ConfigError(f"learner {name!r} does not take {key} ({why})")
-        expert = self.option(config, "expert")
-        if not isinstance(expert, str) or not expert:
-            raise ConfigError(
-                f"learner {name!r} needs an expert: --ppo expert=DIR, or in a test phase "
-                f"--for-learner {name} expert=DIR (a folder written by ermrl expert train), "
-                f"got {expert!r}"
-            )
+        check_expert(name, self.option(config, "expert"))
         _whole(name, "pretrain_steps", self.option(config, "pretrain_steps"), 0)
         _whole(name, "steps_per_iteration", self.option(config, "steps_per_iteration"), 1)
         _whole(name, "beta_iterations", self.option(config, "beta_iterations"), 1)
