@@ -18,7 +18,7 @@ learner x observation: mean, std and bootstrap 95% CI of the final and 25% retur
 ``--out``: ``runs.csv``, ``summary.csv``, ``summary.md``, ``curves.png`` (mean evaluation return
 against env steps, one panel per observation, the expert's return as a line) and ``meta.json``.
 
-    python benchmarks/bench_learners.py --expert /work/exp/hopper     # 3 seeds x 20k steps
+    python benchmarks/bench_learners.py --expert experts/hopper     # 3 seeds x 20k steps
     python benchmarks/bench_learners.py --quick --env-id Pendulum-v1 --train-expert-steps 300
 """
 
