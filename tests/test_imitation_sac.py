@@ -217,3 +217,17 @@ def test_pretrained_actor_swings_up_before_sac_starts(good_expert: Path) -> None
     result = train_agent(TaskConfig(PENDULUM, "positions"), None, ppo, budget, seed=0)
     print("imitation-sac after pretraining: eval", result.eval_return)
     assert result.eval_return is not None and result.eval_return > -600  # random: about -1200
+
+
+def test_several_envs_count_every_env_step(expert: Path) -> None:
+    venv = make_vec_env(TaskConfig(PENDULUM, "positions"), 2, 0)
+    ppo = _config(expert, **{**SMALL, "n_envs": 2, "pretrain_steps": 400})
+    model = get_learner(LEARNER).build(venv, ppo, seed=3)
+    model.learn(800)
+    phases = model.phase_steps
+    assert model.num_timesteps == 800
+    assert phases["pretrain_env_steps"] == 400 and phases["sac_env_steps"] == 400
+    assert phases["pretrain_fits"] == 2  # at 200 and 400 env steps (100 steps of each env)
+    assert phases["expert_labels"] == 400 + phases["dagger_block_env_steps"]
+    assert model._label_arrays()[0].shape == (phases["expert_labels"], 2)
+    venv.close()
