@@ -14,6 +14,7 @@ from ermrl.agents import resolve_ppo_config
 from ermrl.agents._policy_io import load_policy, policy_path
 from ermrl.agents._train import derive_seeds, make_vec_env, save_trained, train_agent
 from ermrl.config import BudgetConfig, ConfigError, EncoderConfig, ReservoirParams, TaskConfig
+from ermrl.experiments._results import write_run
 from ermrl.learners import get_learner
 from ermrl.learners._imitation import beta
 
@@ -145,6 +146,10 @@ def test_through_train_agent_and_reload(
     assert result.env_steps == 800
     assert len(result.episode_returns) == 4
     assert result.eval_return is not None and np.isfinite(result.eval_return)
+    assert result.phase_steps is not None and result.phase_steps["pretrain_env_steps"] == 600
+    write_run(tmp_path / "run", LEARNER, result)  # the test phase's record of a run
+    record = json.loads((tmp_path / "run" / "result.json").read_text())
+    assert record["phase_steps"] == result.phase_steps
     with zipfile.ZipFile(tmp_path / "model.zip") as archive:
         data = json.loads(archive.read("data"))
     assert "expert" not in data and "_label_obs" not in data  # nothing of the expert pickled

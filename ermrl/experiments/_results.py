@@ -25,6 +25,9 @@ def write_run(
         agent: Agent name (``ppo``, ``res-ppo``, ...).
         result: A :class:`~ermrl.agents.RunResult`.
         extra: More fields for ``result.json`` (reservoir parameters, ...).
+
+    ``result.json`` also holds ``phase_steps`` when the learner splits its env steps into
+    phases (``imitation-sac``).
     """
     folder = Path(folder)
     episodes = pd.DataFrame(
@@ -43,4 +46,6 @@ def write_run(
         "n_episodes": len(result.episode_returns),
         **(extra or {}),
     }
+    if getattr(result, "phase_steps", None):  # a learner's own split of its env steps
+        record["phase_steps"] = result.phase_steps
     write_atomic(folder / "result.json", json.dumps(record, indent=2))
