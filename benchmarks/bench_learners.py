@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import io
 import json
 import math
 import sys
@@ -38,6 +39,7 @@ from typing import Any
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks._harness import machine  # noqa: E402
+from ermrl._io import write_atomic  # noqa: E402
 
 LEARNERS = ("ppo", "sac", "dagger", "imitation-sac")
 OBSERVE = ("all", "positions")
@@ -250,11 +252,13 @@ def _csv_value(value: Any) -> Any:
 
 
 def write_csv(path: Path, rows: list[dict[str, Any]], columns: Sequence[str]) -> None:
-    with path.open("w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(columns))
-        writer.writeheader()
-        for row in rows:
-            writer.writerow({c: _csv_value(row.get(c)) for c in columns})
+    """Write ``rows`` as CSV, atomically (a temporary file renamed over ``path``)."""
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=list(columns))
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({c: _csv_value(row.get(c)) for c in columns})
+    write_atomic(path, buffer.getvalue())
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -356,6 +360,7 @@ def main(argv: list[str] | None = None) -> int:
         for future in as_completed(futures):
             row = future.result()
             runs.append(row)
+            write_csv(out / "runs.csv", runs, RUN_COLUMNS)  # an interrupted run keeps these
             status = row["error"] or (
                 f"final {_fmt(row['final_eval_return'])}, 25% {_fmt(row['return_at_25pct'])}, "
                 f"expert at {row['steps_to_expert']}, {row['wall_seconds']:.1f} s "
