@@ -28,8 +28,8 @@ def test_a_study_written_by_the_old_code_tests_to_the_same_returns(tmp_path: Pat
     # kernels differ between CPUs (ATEN_CPU_CAPABILITY=default alone moves these returns), and
     # PPO's update amplifies the difference: on a second machine the same code reproduced the
     # fixture to 3.3e-6 (relative) in each agent's first episode (one PPO update in: n_steps 128)
-    # and to 1.1e-3 in later ones. A wrong seed, mask, reservoir or initial policy changes the first episode by far
-    # more than 1e-4 (the four agents' first episodes here differ by 3% to 10%).
+    # and to 1.1e-3 in later ones. A wrong seed, mask, reservoir or initial policy changes the
+    # first episode by far more than 1e-4 (the agents' first episodes here differ by 3% to 10%).
     pd.testing.assert_frame_equal(
         got.drop(columns="episode_return"), want.drop(columns="episode_return")
     )
