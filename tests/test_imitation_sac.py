@@ -219,7 +219,8 @@ def test_pretrained_actor_swings_up_before_sac_starts(good_expert: Path) -> None
     # pretraining alone (2000 DAgger steps, then the critic warm-up): the actor already imitates
     ppo = _config(good_expert, pretrain_steps=2000)
     budget = BudgetConfig(training_steps=2000, fitness="eval", n_eval_episodes=10)
-    result = train_agent(TaskConfig(PENDULUM, "positions"), None, ppo, budget, seed=0)
+    # the full observation: Pendulum's swing-up needs the angular velocity the expert acts on
+    result = train_agent(TaskConfig(PENDULUM, "all"), None, ppo, budget, seed=0)
     print("imitation-sac after pretraining: eval", result.eval_return)
     assert result.eval_return is not None and result.eval_return > -600  # random: about -1200
 
