@@ -53,6 +53,7 @@ def _evolve(tmp_path, *extra: str) -> list[str]:  # noqa: ANN001
         (["--ppo", "learning_rate=lin_abc"], "learning_rate"),
         (["--ppo", "batch_size=0"], "batch_size"),
         (["--ppo", "policy_kwargs={net_arch: foo}"], "refused"),
+        (["--ppo", "policy_kwargs={activation_fn: nn.ReLU}"], "tanh, relu, elu, leaky_relu"),
         (["--ppo", "gamma=2"], "gamma"),
         (["--ppo", "n_steps=100000000"], "n_steps * n_envs"),
         (["--units", "1e9"], "units"),
@@ -89,6 +90,7 @@ def test_evolve_refuses_malformed_module_prefix(tmp_path, capsys, env_id):  # no
         ("Pendulum-v1: {n_steps: [\n", "not valid plain YAML"),
         ("Pendulum-v1: !!python/object/apply:os.system ['echo hacked']\n", "not valid plain YAML"),
         ("Pendulum-v1: 5\n", "must be a mapping"),
+        ("Pendulum-v1: {policy_kwargs: {activation_fn: os.system}}\n", "is not one of tanh"),
         ("- 1\n- 2\n", "must map env ids"),
     ],
 )

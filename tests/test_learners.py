@@ -85,25 +85,71 @@ def test_each_learner_trains_saves_and_reloads_the_same_policy(
     env.close()
 
 
-def test_lstm_ppo_is_recurrent_ppo_with_the_zoo_settings() -> None:
+# rl-baselines3-zoo's hyperparams/ppo_lstm.yml, PendulumNoVel-v1 and CartPoleNoVel-v1:
+# dict(ortho_init=False, activation_fn=nn.ReLU, lstm_hidden_size=64, enable_critic_lstm=True,
+#      net_arch=dict(pi=[64], vf=[64]))
+ZOO_NOVEL_POLICY = {
+    "ortho_init": False,
+    "activation_fn": "relu",
+    "lstm_hidden_size": 64,
+    "enable_critic_lstm": True,
+    "net_arch": {"pi": [64], "vf": [64]},
+}
+
+
+@pytest.mark.parametrize("env_id", ["Pendulum-v1", "CartPole-v1"])
+def test_lstm_ppo_is_recurrent_ppo_with_the_zoo_settings(env_id: str) -> None:
     import sb3_contrib
     import stable_baselines3
+    import torch
     from sb3_contrib import RecurrentPPO
 
     assert sb3_contrib.__version__.split(".")[:2] == stable_baselines3.__version__.split(".")[:2]
-    ppo = resolve_ppo_config("Pendulum-v1", learner="lstm-ppo")
-    assert ppo.learner == "lstm-ppo" and ppo.normalize is not None and ppo.n_envs == 4
-    assert ppo.hyperparams["policy_kwargs"] == {"lstm_hidden_size": 64, "enable_critic_lstm": True}
-    env_ppo = resolve_ppo_config("Pendulum-v1")  # the zoo's NoVel settings are PPO's
+    ppo = resolve_ppo_config(env_id, learner="lstm-ppo")
+    assert ppo.learner == "lstm-ppo" and ppo.normalize is not None
+    assert ppo.n_envs == {"Pendulum-v1": 4, "CartPole-v1": 8}[env_id]
+    assert ppo.hyperparams["policy_kwargs"] == ZOO_NOVEL_POLICY
+    env_ppo = resolve_ppo_config(env_id)  # the zoo's NoVel settings are PPO's
     for key, value in env_ppo.hyperparams.items():
         assert ppo.hyperparams[key] == value, key
     from ermrl.agents import make_vec_env
 
-    env = make_vec_env(TASK, 1, 0)
+    env = make_vec_env(TaskConfig(env_id, "positions"), 1, 0)
     model = get_learner("lstm-ppo").build(env, with_overrides(ppo, TINY))
     assert isinstance(model, RecurrentPPO)
-    assert model.policy.lstm_actor.hidden_size == 64 and model.policy.lstm_critic is not None
+    policy = model.policy
+    assert policy.lstm_actor.hidden_size == 64 and policy.lstm_critic is not None
+    assert policy.activation_fn is torch.nn.ReLU and policy.ortho_init is False
+    # One ReLU layer of 64 in each head, after the LSTM (SB3's default: two tanh layers).
+    for head in (policy.mlp_extractor.policy_net, policy.mlp_extractor.value_net):
+        assert [type(m) for m in head] == [torch.nn.Linear, torch.nn.ReLU]
+        assert (head[0].in_features, head[0].out_features) == (64, 64)
     env.close()
+
+
+@pytest.mark.parametrize("name", ["nn.ReLU", "torch.nn.GELU", "os.system", "sigmoid", "3", "[]"])
+def test_an_activation_is_a_name_from_a_fixed_table(name: str, tmp_path: Path) -> None:
+    """Tables, --ppo and stored studies name an activation; anything else is refused, never
+    imported or evaluated."""
+    import torch
+
+    from ermrl.agents import ACTIVATIONS, load_hyperparams_table, parse_overrides, ppo_kwargs
+
+    assert set(ACTIVATIONS) == {"tanh", "relu", "elu", "leaky_relu"}
+    good = parse_overrides(["policy_kwargs={activation_fn: leaky_relu, net_arch: [8]}"])
+    kwargs = ppo_kwargs(with_overrides(tiny("ppo"), good))
+    assert kwargs["policy_kwargs"] == {"activation_fn": torch.nn.LeakyReLU, "net_arch": [8]}
+    valid = "tanh, relu, elu, leaky_relu"
+    with pytest.raises(ConfigError, match=f"activation_fn .* is not one of {valid}"):
+        parse_overrides([f"policy_kwargs={{activation_fn: {name}}}"])
+    table = tmp_path / "ppo.yml"
+    table.write_text(f"Pendulum-v1:\n  policy_kwargs: {{activation_fn: '{name}'}}\n")
+    with pytest.raises(ConfigError, match=f"Pendulum-v1.*is not one of {valid}"):
+        load_hyperparams_table(table)
+    # A stored configuration bypasses both: the name is checked again when the agent is built.
+    stored = with_overrides(tiny("ppo"), {"policy_kwargs": {"activation_fn": name}})
+    with pytest.raises(ConfigError, match=f"is not one of {valid}"):
+        ppo_kwargs(stored)
 
 
 def test_framestack_ppo_stacks_k_observations_and_is_checked() -> None:

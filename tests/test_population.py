@@ -470,13 +470,20 @@ def test_train_population_saves_the_asked_models(tmp_path: Path) -> None:
         resolve_ppo_config("Pendulum-v1", learner="lstm-ppo"),
         ppo_for("Pendulum-v1", target_kl=0.01),
         ppo_for("Pendulum-v1", policy_kwargs={"squash_output": True}),
+        ppo_for("Pendulum-v1", policy_kwargs={"activation_fn": "relu"}),
     ],
-    ids=["lstm-ppo", "target_kl", "policy_kwargs"],
+    ids=["lstm-ppo", "target_kl", "policy_kwargs", "activation_fn"],
 )
 def test_unsupported_settings_are_refused_in_one_line(ppo: PPOConfig) -> None:
-    """Another learner, target_kl or an unknown policy_kwargs key: a one-line --backend sb3 hint."""
+    """Another learner, target_kl, an unknown policy_kwargs key or an activation other than
+    tanh: a one-line --backend sb3 hint."""
     with pytest.raises((ConfigError, ValueError), match="--backend sb3") as info:
         check_population_config(ppo)
     assert "\n" not in str(info.value)
     with pytest.raises((ConfigError, ValueError), match="--backend sb3"):
         PopulationPPO(TaskConfig("Pendulum-v1"), ppo, [PopulationJob(None, 0)])
+
+
+def test_tanh_named_as_the_activation_is_accepted() -> None:
+    """SB3's default activation, named in policy_kwargs, is what the population backend trains."""
+    check_population_config(ppo_for("Pendulum-v1", policy_kwargs={"activation_fn": "tanh"}))

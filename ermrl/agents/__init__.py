@@ -1,6 +1,8 @@
 """The inner loop: Stable-Baselines3 PPO on raw or reservoir-encoded observations."""
 
 from ermrl.agents._hyperparams import (
+    ACTIVATIONS,
+    activation_fn,
     check_ppo_config,
     linear_schedule,
     load_hyperparams_table,
@@ -31,11 +33,13 @@ from ermrl.agents._train import (
 )
 
 __all__ = [
+    "ACTIVATIONS",
     "POLICY_FILE",
     "NoEpisodeFinished",
     "RunResult",
     "SeedSet",
     "TrainingDiverged",
+    "activation_fn",
     "check_ppo_config",
     "derive_seeds",
     "frozen_normalize_env",

@@ -12,6 +12,7 @@ from typing import Any
 
 import yaml
 from stable_baselines3 import PPO, SAC
+from torch import nn
 
 from ermrl.config import (
     ConfigError,
@@ -22,6 +23,8 @@ from ermrl.config import (
 )
 
 __all__ = [
+    "ACTIVATIONS",
+    "activation_fn",
     "load_hyperparams_table",
     "parse_normalize",
     "parse_overrides",
@@ -51,6 +54,36 @@ _SAC_KEYS = set(inspect.signature(SAC.__init__).parameters) - _OWNED_KEYS
 # rl-baselines3-zoo's `normalize` (VecNormalize).
 _ERMRL_KEYS = {"n_envs", "normalize"}
 _NORMALIZE_KEYS = tuple(f.name for f in dataclasses.fields(NormalizeConfig))
+
+# The activations a table or --ppo may name as ``policy_kwargs: {activation_fn: relu}``.
+# rl-baselines3-zoo writes ``activation_fn=nn.ReLU`` and evaluates it; ermrl looks the name up
+# here and never imports or evaluates what a file says.
+ACTIVATIONS: dict[str, type[nn.Module]] = {
+    "tanh": nn.Tanh,
+    "relu": nn.ReLU,
+    "elu": nn.ELU,
+    "leaky_relu": nn.LeakyReLU,
+}
+
+
+def activation_fn(name: Any, where: str = "policy_kwargs") -> type[nn.Module]:
+    """The torch module class of an activation named in ``policy_kwargs`` (:data:`ACTIVATIONS`).
+
+    Args:
+        name: The name read from a table, ``--ppo`` or a study (``"relu"``).
+        where: Where the value comes from, for the message.
+
+    Returns:
+        Its class (``nn.ReLU``), for SB3's ``policy_kwargs``.
+
+    Raises:
+        ConfigError: any other value, listing the valid names.
+    """
+    if isinstance(name, str) and name in ACTIVATIONS:
+        return ACTIVATIONS[name]
+    raise ConfigError(
+        f"{where}: policy_kwargs activation_fn {name!r} is not one of {', '.join(ACTIVATIONS)}"
+    )
 
 
 def parse_normalize(value: Any, where: str = "normalize") -> NormalizeConfig | None:
@@ -179,6 +212,9 @@ def _check_keys(entry: Mapping[str, Any], where: str) -> None:
         )
     if "normalize" in entry:
         parse_normalize(entry["normalize"], where)
+    policy_kwargs = entry.get("policy_kwargs")
+    if isinstance(policy_kwargs, Mapping) and "activation_fn" in policy_kwargs:
+        activation_fn(policy_kwargs["activation_fn"], where)
 
 
 def parse_overrides(items: Sequence[str]) -> dict[str, Any]:
@@ -276,11 +312,14 @@ def linear_schedule(initial: float) -> Callable[[float], float]:
 
 
 def ppo_kwargs(config: PPOConfig) -> dict[str, Any]:
-    """Keyword arguments for ``PPO(...)`` from a config (``lin_X`` strings become schedules)."""
+    """Keyword arguments for ``PPO(...)`` from a config (``lin_X`` strings become schedules,
+    a ``policy_kwargs`` ``activation_fn`` name its class from :data:`ACTIVATIONS`)."""
     kwargs: dict[str, Any] = {}
     for key, value in config.hyperparams.items():
         if key in _ERMRL_KEYS:
             continue  # read by ermrl (PPOConfig fields), not a PPO(...) argument
+        if key == "policy_kwargs" and isinstance(value, Mapping) and "activation_fn" in value:
+            value = {**value, "activation_fn": activation_fn(value["activation_fn"], "PPO")}
         if isinstance(value, str) and value.startswith("lin_"):
             try:
                 value = linear_schedule(float(value[4:]))

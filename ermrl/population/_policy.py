@@ -51,7 +51,7 @@ class PolicySpec:
         return self.vf[-1] if self.vf else self.obs_dim
 
 
-_POLICY_KWARGS = {"net_arch", "log_std_init", "ortho_init"}
+_POLICY_KWARGS = {"net_arch", "log_std_init", "ortho_init", "activation_fn"}
 
 
 def policy_spec(
@@ -60,13 +60,21 @@ def policy_spec(
     """The network SB3's ``MlpPolicy`` would build with these ``policy_kwargs``.
 
     Raises:
-        ValueError: a ``policy_kwargs`` key the population backend does not implement.
+        ValueError: a ``policy_kwargs`` key the population backend does not implement, or an
+            ``activation_fn`` other than tanh (SB3's default, the only one implemented).
     """
     unknown = set(policy_kwargs) - _POLICY_KWARGS
     if unknown:
         raise ValueError(
             f"the population backend does not implement policy_kwargs {sorted(unknown)} "
             f"(it supports {sorted(_POLICY_KWARGS)}); use --backend sb3"
+        )
+    activation = policy_kwargs.get("activation_fn", torch.nn.Tanh)
+    if activation not in (torch.nn.Tanh, "tanh"):
+        name = getattr(activation, "__name__", activation)
+        raise ValueError(
+            f"the population backend implements activation_fn tanh only, not {name}; "
+            "use --backend sb3"
         )
     arch = policy_kwargs.get("net_arch", {"pi": [64, 64], "vf": [64, 64]})
     if isinstance(arch, Mapping):
