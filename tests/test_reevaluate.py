@@ -13,7 +13,7 @@ import optuna
 import pytest
 from optuna.trial import TrialState
 
-from ermrl.config import EvolveConfig, ReservoirSpace, SearchConfig
+from ermrl.config import ConfigError, EvolveConfig, ReservoirSpace, SearchConfig
 from ermrl.search import (
     REEVALUATION_ATTR,
     FitnessResult,
@@ -23,7 +23,9 @@ from ermrl.search import (
     reevaluation_study_name,
     run_evolution,
     select_trial,
+    stale_ranking,
     top_candidates,
+    used_reevaluation_seeds,
 )
 from ermrl.search._study import cma_start
 from tests.test_search import make_config
@@ -164,11 +166,163 @@ def test_a_failed_candidate_is_not_replaced_by_a_random_point(tmp_path: Path) ->
         raise TrainingDiverged("nan")
 
     doc = reevaluate_study(config, study, url, evaluator_factory=lambda c: diverge, quiet=True)
-    assert doc is not None and not doc["complete"] and doc["candidates"] == []
+    # Both failed for good: ranked (last), so the ranking is complete, and nothing is selected.
+    assert doc is not None and doc["complete"] and doc["best_trial"] is None
+    assert [row["failed"] for row in doc["candidates"]] == [True, True]
     rstudy = optuna.load_study(study_name=reevaluation_study_name("s"), storage=url)
     assert len(rstudy.trials) == 2  # the two candidates, both FAIL; no new point was asked
     assert {t.state for t in rstudy.trials} == {TrialState.FAIL}
-    assert "re-evaluation incomplete" in select_trial(study)[1]
+    with pytest.raises(ConfigError, match="every re-evaluated candidate .* failed"):
+        select_trial(study)
+    # Running it again re-trains nothing: a diverged candidate is not queued again.
+    reevaluate_study(config, study, url, evaluator_factory=lambda c: diverge, quiet=True)
+    assert len(rstudy.get_trials()) == 2
+
+
+def test_a_candidate_that_fails_its_reevaluation_is_ranked_last_and_never_selected(
+    tmp_path: Path,
+) -> None:
+    """The evolution winner diverges on the fresh seeds: the ranking still completes, with the
+    winner last and its reason, and the test phase takes the best measured candidate."""
+    from ermrl.agents import TrainingDiverged
+
+    url = f"sqlite:///{tmp_path}/s.db"
+    config = make_config(n_trials=6, popsize=4, reevaluate_top=2, reevaluate_seeds=1)
+    study = create_or_resume_study(config, url, "s")
+    run_evolution(config, study, quiet=True, evaluate=stub_fitness())
+    winner, _ = select_trial(study)  # the noisy evolution maximum
+    sr_winner = round(winner.params["sr"], 6)
+
+    def diverge_on_winner(encoder, runner, report):  # noqa: ANN001, ANN202
+        if round(encoder.reservoirs[0].sr, 6) == sr_winner:
+            raise TrainingDiverged("NaN in the policy loss")
+        return stub_fitness()(encoder, runner, report)
+
+    out = io.StringIO()
+    doc = reevaluate_study(
+        config, study, url, evaluator_factory=lambda c: diverge_on_winner, stream=out
+    )
+    assert doc is not None and doc["complete"] and doc["pending"] == 0
+    last = doc["candidates"][-1]
+    assert last["trial"] == winner.number and last["failed"] and last["fitness"] is None
+    assert "NaN in the policy loss" in last["fail_reason"]
+    assert not any(row.get("failed") for row in doc["candidates"][:-1])
+    assert doc["best_trial"] not in (None, winner.number)
+    assert f"trial {winner.number}" in out.getvalue() and "FAILED" in out.getvalue()
+    assert study.user_attrs[REEVALUATION_ATTR] == doc
+    chosen, how = select_trial(study)
+    assert chosen.number == doc["best_trial"] != winner.number
+    n = len(doc["candidates"])
+    assert how.startswith(f"re-evaluated best of {n}") and "1 failed, ranked last" in how
+    # An incomplete ranking falls back to the evolution fitness, but never to a failed candidate.
+    study.set_user_attr(REEVALUATION_ATTR, {**doc, "complete": False})
+    chosen, how = select_trial(study)
+    assert chosen.number != winner.number and "skipped: failed re-evaluation" in how
+
+
+def test_an_interrupted_reevaluation_run_is_queued_again_by_the_next_call(tmp_path: Path) -> None:
+    """Ctrl-C is not a failure of the candidate: re-running the command finishes the ranking."""
+    url = f"sqlite:///{tmp_path}/s.db"
+    config = make_config(n_trials=4, popsize=4, reevaluate_top=1, reevaluate_seeds=1)
+    study = create_or_resume_study(config, url, "s")
+    run_evolution(config, study, quiet=True, evaluate=stub_fitness(noise={1.0: -100.0}))
+
+    def interrupt(encoder, runner, report):  # noqa: ANN001, ANN202
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        reevaluate_study(config, study, url, evaluator_factory=lambda c: interrupt, quiet=True)
+    doc = reevaluate_study(config, study, url, evaluator_factory=lambda c: stub_fitness())
+    assert doc is not None and doc["complete"] and len(doc["candidates"]) == 2
+    assert not any(row.get("failed") for row in doc["candidates"])
+
+
+def test_a_ranking_from_before_the_study_grew_is_stale_and_recomputed(tmp_path: Path) -> None:
+    """More trials after the re-evaluation (a larger --n-trials, evolution resumed): the stored
+    ranking no longer covers the best candidates; select_trial does not use it, the test phase
+    says so on stderr, and the next re-evaluation re-ranks, reusing the finished runs."""
+    url = f"sqlite:///{tmp_path}/s.db"
+    config = make_config(n_trials=6, popsize=4, reevaluate_top=1, reevaluate_seeds=1)
+    study = create_or_resume_study(config, url, "s")
+    run_evolution(config, study, quiet=True, evaluate=stub_fitness())
+    calls: list[float] = []
+    doc = reevaluate_study(
+        config, study, url, evaluator_factory=lambda c: stub_fitness(calls), quiet=True
+    )
+    assert doc is not None and doc["complete"]
+    assert doc["n_complete"] == 6 and doc["top_k"] == 1
+    assert doc["top_trials"] == [t.number for t in top_candidates(study, 1)]
+    assert stale_ranking(study) is None
+    # The study grows, and its new trials beat every ranked candidate.
+    grown = dataclasses.replace(config, search=dataclasses.replace(config.search, n_trials=9))
+
+    def better(encoder, runner, report):  # noqa: ANN001, ANN202
+        result = stub_fitness()(encoder, runner, report)
+        return dataclasses.replace(result, fitness=result.fitness + 100.0)
+
+    run_evolution(grown, study, quiet=True, evaluate=better)
+    new_best = study.best_trial
+    assert new_best.number >= 6
+    stale = stale_ranking(study)
+    assert stale is not None and "6 complete trials" in stale and "now has 9" in stale
+    chosen, how = select_trial(study)
+    assert chosen.number == new_best.number and "ranked trials" in how and "stale" in how
+    # ermrl test says it in one stderr line (the training itself is skipped here).
+    import ermrl.cli._test
+
+    out = tmp_path / "run"
+    argv = ["--study-name", "s", "--storage", url, "--agents", "res-ppo", "--seeds", "5",
+            "--training-steps", "64", "--quiet", "--out", str(out)]  # fmt: skip
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(ermrl.cli._test, "run_test_phase", lambda *a, **k: object())
+        err = io.StringIO()
+        mp.setattr(sys, "stderr", err)
+        assert ermrl.cli._test.test_main(argv) == 0
+    lines = err.getvalue().strip().splitlines()
+    assert len(lines) == 1 and "ranking is stale" in lines[0]
+    assert f"testing trial {new_best.number}" in lines[0]
+    # The next re-evaluation re-ranks; the finished run of a candidate still ranked is reused.
+    calls.clear()
+    doc = reevaluate_study(
+        grown, study, url, evaluator_factory=lambda c: stub_fitness(calls), quiet=True
+    )
+    assert doc is not None and doc["complete"] and doc["n_complete"] == 9
+    assert new_best.number in doc["top_trials"]
+    assert calls == [round(new_best.params["sr"], 6)]
+    assert stale_ranking(study) is None
+    assert select_trial(study)[1].startswith("re-evaluated best of")
+
+
+@pytest.mark.parametrize(
+    ("seeds", "used_by"), [(["1001"], "re-evaluation"), (["7", "0"], "by evolution")]
+)
+def test_test_seeds_used_by_evolution_or_reevaluation_are_refused(
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    seeds: list[str],
+    used_by: str,
+) -> None:
+    """The selection saw those seeds: one line, exit 2, nothing written."""
+    import ermrl.cli._test
+    from ermrl.cli._test import test_main
+
+    monkeypatch.setattr(ermrl.cli._test, "run_test_phase", lambda *a, **k: object())  # no training
+    url = f"sqlite:///{tmp_path}/s.db"
+    config = make_config(n_trials=4, popsize=4, reevaluate_top=1, reevaluate_seeds=2)
+    study = create_or_resume_study(config, url, "s")
+    run_evolution(config, study, quiet=True, evaluate=stub_fitness())
+    reevaluate_study(config, study, url, evaluator_factory=lambda c: stub_fitness(), quiet=True)
+    assert used_reevaluation_seeds(study) == (1001, 1002)
+    capsys.readouterr()
+    out = tmp_path / "run"
+    with pytest.raises(SystemExit) as exc:
+        test_main(["--study-name", "s", "--storage", url, "--agents", "ppo", "--seeds", *seeds,
+                   "--training-steps", "64", "--quiet", "--out", str(out)])  # fmt: skip
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and used_by in err, err
+    assert not out.exists()
 
 
 def test_reevaluation_waits_for_an_unfinished_study(tmp_path: Path) -> None:

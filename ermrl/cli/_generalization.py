@@ -470,6 +470,8 @@ def test_generalization_main(
         fail(prog, str(err))
     if warning:
         _shout(warning)
+    if plan.warning:  # also with --quiet: the selection is not the one a ranking would give
+        print(f"{prog}: warning: {plan.warning}", file=sys.stderr, flush=True)
     if not args.quiet:
         best = describe_selection(plan.chosen)
         print(

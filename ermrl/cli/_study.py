@@ -362,8 +362,13 @@ def _show(args: argparse.Namespace, prog: str) -> int:
         )
     reevaluation = info["reevaluation"]
     if isinstance(reevaluation, dict) and reevaluation.get("candidates"):
+        from ermrl.search import stale_ranking
+
         seeds = reevaluation["seeds"]
         state = "" if reevaluation.get("complete") else " (incomplete)"
+        stale = stale_ranking(study)
+        if stale is not None:
+            state += f" (stale, not used by ermrl test: {stale})"
         print(
             f"re-evaluated{state} on {len(seeds)} fresh seeds x "
             f"{reevaluation['training_steps']} steps (study {reevaluation['study']!r}):"
@@ -371,8 +376,11 @@ def _show(args: argparse.Namespace, prog: str) -> int:
         for row in reevaluation["candidates"]:
             tag = " (reference)" if row.get("reference") else ""
             params = " ".join(f"{k}={v:.4g}" for k, v in row["params"].items())
+            value = (
+                f"FAILED ({row.get('fail_reason')})" if row.get("failed") else _fmt(row["fitness"])
+            )
             print(
-                f"  trial {row['trial']}{tag}: {_fmt(row['fitness'])} "
+                f"  trial {row['trial']}{tag}: {value} "
                 f"[evolution {_fmt(row['evolution_fitness'])}] ({params})"
             )
     if info["workers"]:

@@ -6,7 +6,6 @@ import argparse
 import os
 import sys
 import textwrap
-import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -267,6 +266,42 @@ class TestPlan:
     seeds: tuple[int, ...]
     settings: Any
     out: Path
+    warning: str | None = None
+    """A line for stderr before anything runs: the stored ranking is stale."""
+
+
+def check_test_seeds(
+    seeds: Sequence[int],
+    evolution_seeds: Sequence[int],
+    reevaluation_seeds: Sequence[int],
+    study_name: str,
+) -> None:
+    """Refuse test seeds that evolution or the re-evaluation trained on: the selection saw
+    them, so results on them are not independent of it.
+
+    Args:
+        seeds: The test seeds.
+        evolution_seeds: The study's seeds.
+        reevaluation_seeds: The seeds its re-evaluation used
+            (:func:`~ermrl.search.used_reevaluation_seeds`).
+        study_name: Named in the message.
+
+    Raises:
+        ConfigError: with the seeds that overlap, in one line.
+    """
+    used = [
+        (what, sorted(set(seeds) & set(other)))
+        for what, other in (
+            ("evolution", evolution_seeds),
+            (f"the re-evaluation ({study_name}.reeval)", reevaluation_seeds),
+        )
+    ]
+    overlaps = [f"{found} by {what}" for what, found in used if found]
+    if overlaps:
+        raise ConfigError(
+            f"test seeds already used to select the trial: {'; '.join(overlaps)}; results on them "
+            "are not independent of the selection (omit --seeds for 5 unused ones)"
+        )
 
 
 def plan_test_phase(
@@ -292,7 +327,8 @@ def plan_test_phase(
         observe: The mask that decides the default agents.
 
     Raises:
-        ConfigError: bad settings, a bad ``--out``, or an agent that cannot be built.
+        ConfigError: bad settings, test seeds evolution or the re-evaluation used, a bad
+            ``--out``, or an agent that cannot be built.
     """
     from ermrl.agents import check_ppo_config, parse_overrides
     from ermrl.experiments import (
@@ -302,16 +338,11 @@ def plan_test_phase(
         study_agents,
     )
     from ermrl.experiments._test_phase import check_out_folder
+    from ermrl.search import stale_ranking, used_reevaluation_seeds
 
     problem = config.problem
     seeds = tuple(args.seeds) if args.seeds else default_test_seeds(problem.seeds)
-    reused = sorted(set(seeds) & set(problem.seeds))
-    if reused:
-        warnings.warn(
-            f"test seeds {reused} were also used by evolution; results on them are not "
-            "independent of the selection",
-            stacklevel=2,
-        )
+    check_test_seeds(seeds, problem.seeds, used_reevaluation_seeds(study), study.study_name)
     seeds = select_seeds(seeds, os.environ.get("SLURM_ARRAY_TASK_ID"))
     choose_agents(args, config, observe)
     overrides = parse_overrides(args.ppo)
@@ -344,7 +375,17 @@ def plan_test_phase(
         overwrite=args.overwrite,
         tensorboard=Path(tensorboard) if tensorboard else None,
     )
-    return TestPlan(agents, chosen, seeds, settings, out)
+    warning = None
+    # Only when the ranking would have picked the trial: not with --trial, nor when no agent
+    # uses the evolved trial (chosen is None).
+    stale = None if chosen is None or args.trial is not None else stale_ranking(study)
+    if chosen is not None and stale is not None:
+        warning = (
+            f"the re-evaluated ranking is stale and not used ({stale}); testing trial "
+            f"{chosen.number}, the best evolution fitness (run the evolve command again to "
+            "re-rank, or pass --trial N)"
+        )
+    return TestPlan(agents, chosen, seeds, settings, out, warning)
 
 
 # What a test command reports as one line before anything runs.
@@ -447,6 +488,8 @@ def test_main(argv: Sequence[str] | None = None, prog: str = "ermrl test") -> in
         )
     except setup_errors() as err:
         fail(prog, str(err))
+    if plan.warning:  # also with --quiet: the selection is not the one a ranking would give
+        print(f"{prog}: warning: {plan.warning}", file=sys.stderr, flush=True)
     if not args.quiet:
         best = describe_selection(plan.chosen)
         print(

@@ -34,7 +34,9 @@ from ermrl.search._reevaluate import (
     reevaluation_seeds,
     reevaluation_study_name,
     select_trial,
+    stale_ranking,
     top_candidates,
+    used_reevaluation_seeds,
 )
 from ermrl.search._samplers import (
     RESTART_STRATEGIES,
@@ -102,10 +104,12 @@ __all__ = [
     "reevaluation_study_name",
     "reference_returns",
     "select_trial",
+    "stale_ranking",
     "top_candidates",
     "run_evolution",
     "sample_params",
     "scores_path",
     "study_config",
     "update_scores",
+    "used_reevaluation_seeds",
 ]

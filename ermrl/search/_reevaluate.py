@@ -10,7 +10,13 @@ so they get everything evolution trials get: any number of workers share them, a
 candidate is retried, SIGTERM and Ctrl-C lose nothing, and re-running the command resumes.
 
 The ranking is recorded in the evolution study's user attribute ``ermrl_reevaluation`` (plain
-JSON), which the test phase reads (:func:`select_trial`).
+JSON), which the test phase reads (:func:`select_trial`). A candidate whose run fails on the fresh
+seeds (diverges, finishes no episode, or loses its worker more often than the retries allow) is
+ranked last with its ``fail_reason``; only a run cut short by a signal (Ctrl-C, SIGTERM) is queued
+again by the next call. The ranking records what it covered (``n_complete``, ``top_k``,
+``top_trials``): once the study has grown and its best candidates are others
+(:func:`stale_ranking`), the test phase no longer uses it, and the next re-evaluation re-ranks,
+reusing the finished runs of the candidates still among the best.
 """
 
 from __future__ import annotations
@@ -36,7 +42,9 @@ __all__ = [
     "reevaluation_study_name",
     "reevaluate_study",
     "select_trial",
+    "stale_ranking",
     "top_candidates",
+    "used_reevaluation_seeds",
 ]
 
 REEVALUATION_ATTR = "ermrl_reevaluation"
@@ -127,49 +135,115 @@ def _seed_values(trial: FrozenTrial) -> list[float]:
     return [float(v) for v in attrs.get(key) or [] if v is not None]
 
 
+def _interrupted(trial: FrozenTrial) -> bool:
+    """Whether a FAIL run was cut short by a signal (Ctrl-C, SIGTERM) rather than failing."""
+    reason = str(trial.user_attrs.get("fail_reason", ""))
+    return reason == "interrupted" or reason.startswith("interrupted by ")
+
+
+def _candidate_runs(rstudy: optuna.Study) -> dict[int, list[FrozenTrial]]:
+    """The re-evaluation runs of each candidate (evolution trial number), in trial order."""
+    runs: dict[int, list[FrozenTrial]] = {}
+    for t in rstudy.get_trials(deepcopy=False):
+        number = t.user_attrs.get(CANDIDATE_ATTR)
+        if number is not None:
+            runs.setdefault(int(number), []).append(t)
+    return runs
+
+
+def _needs_run(runs: list[FrozenTrial]) -> bool:
+    """Whether a candidate must be queued: it has no run yet, or its last one was interrupted
+    by a signal and neither finished nor was queued again."""
+    if not runs:
+        return True
+    if any(t.state in (TrialState.COMPLETE, TrialState.RUNNING, TrialState.WAITING) for t in runs):
+        return False
+    return _interrupted(runs[-1])
+
+
+def _n_complete(study: optuna.Study) -> int:
+    return len(study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)))
+
+
 def record_reevaluation(
-    study: optuna.Study, rstudy: optuna.Study, rconfig: EvolveConfig, candidates: list[int]
+    study: optuna.Study,
+    rstudy: optuna.Study,
+    rconfig: EvolveConfig,
+    candidates: list[int],
+    top_k: int,
 ) -> dict[str, Any]:
     """Write the ranking of the re-evaluated candidates into ``study`` (``ermrl_reevaluation``).
+
+    A candidate whose run failed for good (no COMPLETE run, none running or queued, and the last
+    one not interrupted by a signal) is ranked after every measured one, with ``failed: true``,
+    ``fitness: null`` and its ``fail_reason``. The ranking is ``complete`` when every candidate
+    is measured or failed; ``pending`` counts the others (running or queued in some worker).
 
     Args:
         study: The evolution study.
         rstudy: Its re-evaluation study.
         rconfig: The re-evaluation configuration (seeds, budget).
-        candidates: Trial numbers of the current candidates.
+        candidates: Trial numbers of the current candidates (:func:`top_candidates`).
+        top_k: The ``k`` they are the top of (``--reevaluate-top``).
 
     Returns:
         The recorded document.
     """
     evolved = {t.number: t for t in study.get_trials(deepcopy=False)}
+    runs = _candidate_runs(rstudy)
     rows: list[dict[str, Any]] = []
-    for t in rstudy.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)):
-        number = t.user_attrs.get(CANDIDATE_ATTR)
-        if number not in candidates or t.value is None:
-            continue
-        values = _seed_values(t)
-        source = evolved.get(int(number))
-        rows.append(
-            {
-                "trial": int(number),
-                "reference": bool(source is not None and source.user_attrs.get("reference")),
-                "params": dict(t.params),
-                "fitness": float(t.value),
-                "std": float(np.std(values, ddof=1)) if len(values) > 1 else None,
-                "seed_values": values,
-                "evolution_fitness": None if source is None else source.value,
-                "reevaluation_trial": t.number,
-            }
+    failed: list[dict[str, Any]] = []
+    pending = 0
+    for number in candidates:
+        mine = runs.get(number, [])
+        source = evolved.get(number)
+        row: dict[str, Any] = {
+            "trial": number,
+            "reference": bool(source is not None and source.user_attrs.get("reference")),
+            "params": dict(source.params) if source is not None else {},
+            "fitness": None,
+            "std": None,
+            "seed_values": [],
+            "evolution_fitness": None if source is None else source.value,
+            "reevaluation_trial": None,
+        }
+        done = next(
+            (t for t in mine if t.state == TrialState.COMPLETE and t.value is not None), None
         )
+        if done is not None:
+            values = _seed_values(done)
+            row.update(
+                params=dict(done.params),
+                fitness=float(done.value),  # type: ignore[arg-type]
+                std=float(np.std(values, ddof=1)) if len(values) > 1 else None,
+                seed_values=values,
+                reevaluation_trial=done.number,
+            )
+            rows.append(row)
+        elif _needs_run(mine) or any(
+            t.state in (TrialState.RUNNING, TrialState.WAITING) for t in mine
+        ):
+            pending += 1
+        else:
+            last = mine[-1]
+            reason = last.user_attrs.get("fail_reason") or last.state.name.lower()
+            row.update(failed=True, fail_reason=str(reason), reevaluation_trial=last.number)
+            failed.append(row)
     rows.sort(key=lambda r: (-r["fitness"], r["trial"]))
+    failed.sort(key=lambda r: r["trial"])
     doc = {
         "study": rstudy.study_name,
         "seeds": list(rconfig.problem.seeds),
         "training_steps": rconfig.problem.budget.training_steps,
         "fitness_mode": rconfig.problem.budget.fitness,
-        "complete": len(rows) == len(candidates),
+        "complete": pending == 0,
+        "pending": pending,
         "best_trial": rows[0]["trial"] if rows else None,
-        "candidates": rows,
+        "candidates": rows + failed,
+        # What the ranking covers, so that a study that grew since is seen (stale_ranking).
+        "n_complete": _n_complete(study),
+        "top_k": top_k,
+        "top_trials": list(candidates),
     }
     study.set_user_attr(REEVALUATION_ATTR, doc)
     return doc
@@ -249,12 +323,13 @@ def reevaluate_study(
         max_retry=max_retry,
     )
     with study_lock(rstudy):
-        trials = rstudy.get_trials(deepcopy=False)
-        present = {t.user_attrs.get(CANDIDATE_ATTR) for t in trials}
+        # A candidate is queued once; again only when a signal cut its last run short. Finished
+        # runs of candidates still among the best are reused (a study that grew is re-ranked).
+        runs = _candidate_runs(rstudy)
         for t in candidates:
-            if t.number not in present:
+            if _needs_run(runs.get(t.number, [])):
                 rstudy.enqueue_trial(dict(t.params), user_attrs={CANDIDATE_ATTR: t.number})
-        n_total = len(present - {None} | set(numbers))
+        n_total = len(set(runs) | set(numbers))
     rconfig = dataclasses.replace(
         rconfig, search=dataclasses.replace(rconfig.search, n_trials=n_total)
     )
@@ -274,24 +349,97 @@ def reevaluate_study(
         queued_only=True,
     )
     with study_lock(study):
-        doc = record_reevaluation(study, rstudy, rconfig, numbers)
+        doc = record_reevaluation(study, rstudy, rconfig, numbers, k)
     if doc["candidates"]:
         say("re-evaluated ranking (mean over fresh seeds; evolution fitness in brackets):")
         for row in doc["candidates"]:
             tag = " (reference)" if row["reference"] else ""
-            std = "" if row["std"] is None else f" ± {row['std']:.3g}"
             evo = row["evolution_fitness"]
+            if row.get("failed"):
+                value = f"FAILED ({row['fail_reason']}), ranked last"
+            else:
+                std = "" if row["std"] is None else f" ± {row['std']:.3g}"
+                value = f"{row['fitness']:.4g}{std}"
             say(
-                f"  trial {row['trial']}{tag}: {row['fitness']:.4g}{std} "
+                f"  trial {row['trial']}{tag}: {value} "
                 f"[{'-' if evo is None else f'{evo:.4g}'}] {format_params(row['params'])}"
             )
     if not doc["complete"]:
-        say("re-evaluation incomplete: other workers still run candidates; re-run to finish")
+        say(
+            f"re-evaluation incomplete: {doc['pending']} candidate(s) still running or queued in "
+            "other workers; the last of them to finish records the ranking (or run this command "
+            "again once they are done)"
+        )
     return doc
+
+
+def stale_ranking(study: optuna.Study) -> str | None:
+    """Why the stored ranking no longer covers the study's best candidates, or ``None``.
+
+    The ranking is stale when the study's ``top_k`` best trials (:func:`top_candidates`) are no
+    longer the ones it ranked: trials were added since (a larger ``--n-trials``, evolution
+    resumed) and some beat a ranked candidate. A ranking recorded before ermrl kept ``top_k``
+    is compared with the top ``K`` and ``K - 1`` (the reference may be one of them).
+
+    Args:
+        study: An evolution study.
+
+    Returns:
+        ``None`` when there is no ranking or it is current; else a phrase saying what it covered
+        and what the study's best candidates are now.
+    """
+    doc = study.user_attrs.get(REEVALUATION_ATTR)
+    if not isinstance(doc, dict):
+        return None
+    recorded = doc.get("top_trials")
+    top_k = doc.get("top_k")
+    if recorded is None or top_k is None:  # recorded before ermrl kept its coverage
+        recorded = [int(r["trial"]) for r in doc.get("candidates") or []]
+        ks = [len(recorded), len(recorded) - 1]
+    else:
+        ks = [int(top_k)]
+    now: list[int] = []
+    for k in ks:
+        if k < 1:
+            continue
+        now = [t.number for t in top_candidates(study, k)]
+        if set(now) == set(recorded):
+            return None
+    covered = doc.get("n_complete")
+    of = "" if covered is None else f" of {covered} complete trials"
+    return (
+        f"it ranked trials {', '.join(map(str, recorded))}{of}; the study now has "
+        f"{_n_complete(study)} complete trials and its best candidates are trials "
+        f"{', '.join(map(str, now))}"
+    )
+
+
+def used_reevaluation_seeds(study: optuna.Study) -> tuple[int, ...]:
+    """The seeds a study's re-evaluation trained on: those of the stored ranking and of the
+    sibling study ``<study>.reeval`` (empty when there is neither)."""
+    from ermrl.search._study import STUDY_CONFIG_ATTR
+
+    seeds: set[int] = set()
+    doc = study.user_attrs.get(REEVALUATION_ATTR)
+    if isinstance(doc, dict):
+        seeds.update(int(s) for s in doc.get("seeds") or [])
+    storage = study._storage
+    try:
+        study_id = storage.get_study_id_from_name(reevaluation_study_name(study.study_name))
+    except KeyError:
+        return tuple(sorted(seeds))
+    stored = storage.get_study_user_attrs(study_id).get(STUDY_CONFIG_ATTR)
+    if isinstance(stored, dict):
+        seeds.update(int(s) for s in (stored.get("problem") or {}).get("seeds") or [])
+    return tuple(sorted(seeds))
 
 
 def select_trial(study: optuna.Study, trial_number: int | None = None) -> tuple[FrozenTrial, str]:
     """The trial the test phase should use, and how it was chosen.
+
+    Without ``trial_number``: the best of a complete and current re-evaluated ranking; else the
+    best evolution fitness, skipping the candidates that failed their re-evaluation. A stale
+    ranking (:func:`stale_ranking`) is not used, and the phrase says why.
 
     Args:
         study: An evolution study.
@@ -299,10 +447,10 @@ def select_trial(study: optuna.Study, trial_number: int | None = None) -> tuple[
 
     Returns:
         The trial and a phrase saying how it was selected: ``"trial N (--trial)"``,
-        ``"re-evaluated best of K candidates ..."`` or ``"best evolution fitness ..."``.
+        ``"re-evaluated best of K candidates ..."`` or ``"best evolution fitness (...)"``.
 
     Raises:
-        ConfigError: no such trial, or no COMPLETE trial.
+        ConfigError: no such trial, no COMPLETE trial, or every re-evaluated candidate failed.
     """
     trials = {t.number: t for t in study.get_trials(deepcopy=False)}
     if trial_number is not None:
@@ -310,20 +458,42 @@ def select_trial(study: optuna.Study, trial_number: int | None = None) -> tuple[
             raise ConfigError(f"study {study.study_name!r} has no trial {trial_number}")
         return trials[trial_number], f"trial {trial_number} (--trial)"
     doc = study.user_attrs.get(REEVALUATION_ATTR)
-    if isinstance(doc, dict) and doc.get("complete") and doc.get("best_trial") in trials:
-        seeds = doc["seeds"]
-        how = (
-            f"re-evaluated best of {len(doc['candidates'])} candidates "
-            f"({len(seeds)} fresh seeds x {doc['training_steps']} steps)"
-        )
-        return trials[doc["best_trial"]], how
-    try:
-        best = study.best_trial
-    except ValueError as err:
-        raise ConfigError(f"study {study.study_name!r} has no COMPLETE trial yet") from err
-    why = (
-        "re-evaluation incomplete"
-        if isinstance(doc, dict)
-        else "no re-evaluation; evolve with --reevaluate-top K for an unbiased pick"
-    )
+    stale = stale_ranking(study)
+    rows = (doc.get("candidates") or []) if isinstance(doc, dict) else []
+    failed = {int(r["trial"]) for r in rows if r.get("failed")}
+    if isinstance(doc, dict) and doc.get("complete") and stale is None:
+        if doc.get("best_trial") in trials:
+            seeds = doc["seeds"]
+            how = (
+                f"re-evaluated best of {len(rows)} candidates "
+                f"({len(seeds)} fresh seeds x {doc['training_steps']} steps"
+                + (f"; {len(failed)} failed, ranked last" if failed else "")
+                + ")"
+            )
+            return trials[doc["best_trial"]], how
+        if rows and len(failed) == len(rows):
+            raise ConfigError(
+                f"every re-evaluated candidate of study {study.study_name!r} failed on the fresh "
+                f"seeds (trials {', '.join(map(str, sorted(failed)))}); pass --trial N to test "
+                "one anyway"
+            )
+    complete = [
+        t
+        for t in trials.values()
+        if t.state == TrialState.COMPLETE
+        and t.value is not None
+        and math.isfinite(t.value)
+        and t.number not in failed
+    ]
+    if not complete:
+        raise ConfigError(f"study {study.study_name!r} has no COMPLETE trial yet")
+    best = min(complete, key=lambda t: (-float(t.value), t.number))  # type: ignore[arg-type]
+    if not isinstance(doc, dict):
+        why = "no re-evaluation; evolve with --reevaluate-top K for an unbiased pick"
+    elif stale is not None:
+        why = f"re-evaluated ranking stale: {stale}; run the evolve command again to re-rank"
+    else:
+        why = "re-evaluation incomplete"
+    if failed:
+        why += f"; trials {', '.join(map(str, sorted(failed)))} skipped: failed re-evaluation"
     return best, f"best evolution fitness ({why})"
