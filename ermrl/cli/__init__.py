@@ -15,7 +15,10 @@ __all__ = ["main", "evolve_main", "test_main", "COMMANDS"]
 # name -> ("module:function", one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "evolve": ("ermrl.cli._evolve:evolve_main", "evolve reservoirs for one task (evolve_res.py)"),
-    "study": ("ermrl.cli._study:study_main", "create, list, show, export, delete, fail-stale"),
+    "study": (
+        "ermrl.cli._study:study_main",
+        "create, list, show, export, import, delete, fail-stale",
+    ),
     "test": (
         "ermrl.cli._test:test_main",
         "train the best reservoir against PPO baselines (test.py)",

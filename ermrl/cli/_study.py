@@ -1,9 +1,13 @@
-"""``ermrl study``: create, list, show, export, delete studies, fail stale trials, repair
-journals.
+"""``ermrl study``: create, list, show, export, import, delete studies, fail stale trials,
+repair journals.
 
 Before a SLURM array starts many workers on one storage, create the study once with
 ``ermrl study create`` (same options as ``ermrl evolve``): the configuration is checked before
 any job is queued, and no worker races on a fresh database.
+
+``ermrl study export --out X.json`` writes the whole study (and its re-evaluation study) as a
+plain JSON snapshot, and ``ermrl study import --snapshot X.json`` restores it in another storage,
+so that an evolution resumes on another machine (:mod:`ermrl.storage._snapshot`).
 """
 
 from __future__ import annotations
@@ -43,6 +47,8 @@ DESCRIPTION = textwrap.dedent(
       ermrl study list --storage sqlite:///ermrl.db
       ermrl study show --storage sqlite:///ermrl.db --study-name pendulum
       ermrl study export --storage sqlite:///ermrl.db --study-name pendulum --out trials.parquet
+      ermrl study export --storage sqlite:///ermrl.db --study-name pendulum --out pendulum.json
+      ermrl study import --storage sqlite:///other.db --snapshot pendulum.json
       ermrl study fail-stale --storage studies.log --study-name pendulum --older-than 2h
       ermrl study delete --storage sqlite:///ermrl.db --study-name pendulum --yes
       ermrl study repair --storage studies.log
@@ -101,11 +107,46 @@ def build_study_parser(prog: str = "ermrl study") -> ArgumentParser:
     show = _study_parser(sub, "show", "best trial, trials by state, workers, running trials")
     show.add_argument("--json", action="store_true", help="print one JSON document")
 
-    export = _study_parser(sub, "export", "all trials with params and user attributes")
+    export = _study_parser(
+        sub,
+        "export",
+        "all trials with params and user attributes (.csv, .parquet), or the whole study as a "
+        "JSON snapshot (.json) that 'ermrl study import' restores in another storage",
+    )
     export.add_argument(
         "--out",
         required=True,
-        help="output file: .csv, .parquet, or - for CSV on stdout",
+        help="output file: .csv, .parquet, .json (snapshot: every trial, attribute and "
+        "distribution, the CMA-ES state, and the study's re-evaluation study), or - for CSV on "
+        "stdout",
+    )
+
+    imp = sub.add_parser(
+        "import",
+        help="create a study (and its re-evaluation study) from a JSON snapshot of 'export'",
+        description="Create the study of a snapshot written by 'ermrl study export --out "
+        "X.json', with its trial numbers, states, parameters, attributes and CMA-ES state, so "
+        "that 'ermrl evolve' resumes it here. A trial that was running at export is imported "
+        "as FAIL and queued again with the same parameters. A study of that name that is "
+        "already there is refused, unless it is identical (then nothing is done).",
+        formatter_class=HelpFormatter,
+    )
+    imp.add_argument(
+        "--storage", type=storage_arg, required=True, help="target storage URL (as for evolve)"
+    )
+    imp.add_argument(
+        "--snapshot", required=True, metavar="FILE.json", help="a snapshot from export"
+    )
+    imp.add_argument(
+        "--study-name",
+        default=None,
+        help="import under this name (default: the exported name; <name>.reeval follows)",
+    )
+    imp.add_argument(
+        "--max-retry",
+        type=nonneg_int,
+        default=3,
+        help="retries of one trial at most, for trials running at export; 0: only fail them",
     )
 
     delete = _study_parser(sub, "delete", "delete a study and all its trials")
@@ -433,16 +474,26 @@ def trials_frame(study: Any) -> Any:
 
 def _export(args: argparse.Namespace, prog: str) -> int:
     study = _open_study(args, prog)
+    out = Path(args.out)
+    suffix = out.suffix.lower()
+    if args.out != "-" and suffix not in (".csv", ".parquet", ".json"):
+        fail(prog, f"--out must end in .csv, .parquet or .json, got {args.out!r}")
+    if args.out != "-" and not out.parent.exists():
+        fail(prog, f"directory {out.parent} does not exist")
+    if suffix == ".json":
+        from ermrl.storage import snapshot_counts, write_snapshot
+
+        try:
+            doc = write_snapshot(study, out)
+        except OSError as err:
+            fail(prog, f"cannot write {out}: {err.strerror or err}")
+        counts = ", ".join(f"{name!r} ({n} trials)" for name, n in snapshot_counts(doc).items())
+        print(f"wrote a snapshot of {counts} to {out}")
+        return 0
     frame = trials_frame(study)
     if args.out == "-":
         frame.to_csv(sys.stdout, index=False)
         return 0
-    out = Path(args.out)
-    suffix = out.suffix.lower()
-    if suffix not in (".csv", ".parquet"):
-        fail(prog, f"--out must end in .csv or .parquet, got {args.out!r}")
-    if not out.parent.exists():
-        fail(prog, f"directory {out.parent} does not exist")
     if suffix == ".csv":
         frame.to_csv(out, index=False)
     else:
@@ -451,6 +502,33 @@ def _export(args: argparse.Namespace, prog: str) -> int:
         except ImportError as err:
             fail(prog, f"Parquet needs pyarrow ({err}); write .csv instead")
     print(f"wrote {len(frame)} trials of {args.study_name!r} to {out}")
+    return 0
+
+
+def _import(args: argparse.Namespace, prog: str) -> int:
+    from ermrl.storage import (
+        LockTimeout,
+        SnapshotError,
+        StorageError,
+        StudyExists,
+        import_snapshot,
+        read_snapshot,
+    )
+
+    if args.study_name is not None and not args.study_name.strip():
+        fail(prog, "--study-name is empty")
+    try:
+        snapshot = read_snapshot(args.snapshot)
+        result = import_snapshot(snapshot, args.storage, args.study_name, max_retry=args.max_retry)
+    except (SnapshotError, StudyExists, StorageError, LockTimeout) as err:
+        fail(prog, str(err))
+    for name in result.created:
+        print(f"imported study {name!r} ({result.n_trials[name]} trials) into {args.storage}")
+    for name in result.identical:
+        print(f"study {name!r} in {args.storage} is identical to the snapshot: nothing to import")
+    for name, number, retry in result.interrupted:
+        then = f"retried as trial {retry}" if retry is not None else "not retried"
+        print(f"trial {number} of {name!r} was running at export: imported as FAIL, {then}")
     return 0
 
 
@@ -516,6 +594,7 @@ _ACTIONS = {
     "list": _list,
     "show": _show,
     "export": _export,
+    "import": _import,
     "delete": _delete,
     "fail-stale": _fail_stale,
     "repair": _repair,

@@ -1,5 +1,6 @@
 """Opening Optuna storages (SQLite, PostgreSQL, MySQL, journal files, Redis) and studies, the
-locks that let many workers share one study, and the recovery of trials whose worker died."""
+locks that let many workers share one study, the recovery of trials whose worker died, and
+studies as plain JSON snapshots that carry a study from one storage to another."""
 
 from ermrl.storage._heartbeat import (
     HEARTBEAT_ATTR,
@@ -28,6 +29,23 @@ from ermrl.storage._open import (
     worker_info,
 )
 from ermrl.storage._repair import repair_journal, torn_tail
+from ermrl.storage._snapshot import (
+    RELATED_SUFFIXES,
+    SNAPSHOT_FORMAT,
+    SNAPSHOT_VERSION,
+    Snapshot,
+    SnapshotError,
+    SnapshotImport,
+    StudyExists,
+    StudySnapshot,
+    import_snapshot,
+    load_snapshot,
+    parse_snapshot,
+    read_snapshot,
+    snapshot_counts,
+    study_to_snapshot,
+    write_snapshot,
+)
 from ermrl.storage._url import StorageKind, StorageURL, parse_storage_url
 
 __all__ = [
@@ -38,25 +56,40 @@ __all__ = [
     "HEARTBEAT_ATTR",
     "HeartbeatJournalStorage",
     "LockTimeout",
+    "RELATED_SUFFIXES",
     "RetryStaleTrial",
+    "SNAPSHOT_FORMAT",
+    "SNAPSHOT_VERSION",
+    "Snapshot",
+    "SnapshotError",
+    "SnapshotImport",
     "StorageError",
     "StorageKind",
     "StorageURL",
+    "StudyExists",
     "StudyNotFound",
+    "StudySnapshot",
     "fail_stale",
     "fail_stale_trials",
     "find_stale_trials",
+    "import_snapshot",
     "last_seen",
+    "load_snapshot",
     "load_study",
     "normalize_url",
     "open_storage",
+    "parse_snapshot",
     "parse_storage_url",
+    "read_snapshot",
     "repair_journal",
+    "snapshot_counts",
     "storage_kind",
     "storage_lock",
     "storage_url",
     "study_lock",
     "study_names",
+    "study_to_snapshot",
     "torn_tail",
     "worker_info",
+    "write_snapshot",
 ]
