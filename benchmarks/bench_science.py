@@ -116,7 +116,11 @@ def _task_result(out: Path) -> dict[str, Any]:
     """Per-agent final returns of a test folder and the bootstrap CIs of the differences."""
     import numpy as np
 
-    from ermrl.analysis import bootstrap_mean_diff_ci, load_run_results
+    from ermrl.analysis import (
+        bootstrap_mean_diff_ci,
+        load_run_results,
+        paired_bootstrap_mean_diff_ci,
+    )
 
     runs = load_run_results(out)
     agents: dict[str, Any] = {}
@@ -141,10 +145,7 @@ def _task_result(out: Path) -> dict[str, Any]:
         # Both agents ran on the same seeds (env and PPO streams): the per-seed differences
         # give a paired interval beside the independent one.
         if agents[a]["seeds"] == agents[b]["seeds"] and len(x) > 1:
-            d = np.asarray(x) - np.asarray(y)
-            rng = np.random.default_rng(0)
-            means = d[rng.integers(0, len(d), size=(10_000, len(d)))].mean(axis=1)
-            out["paired_ci95"] = [float(v) for v in np.quantile(means, [0.025, 0.975])]
+            out["paired_ci95"] = list(paired_bootstrap_mean_diff_ci(x, y))
         return out
 
     return {

@@ -50,6 +50,7 @@ from ermrl.analysis._stats import (
     bootstrap_mean_diff_ci,
     compare_agents,
     final_returns_table,
+    paired_bootstrap_mean_diff_ci,
     welch_t_test,
 )
 from ermrl.analysis._study import (
@@ -100,6 +101,7 @@ __all__ = [
     "best_params_table",
     "bootstrap_mean_diff_ci",
     "compare_agents",
+    "paired_bootstrap_mean_diff_ci",
     "curves_on_grid",
     "dominant_frequency",
     "dynamics_figure",

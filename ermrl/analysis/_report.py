@@ -665,6 +665,8 @@ def _test_section(state: _State, runs: Path, band: str) -> None:
                     "welch_t",
                     "welch_dof",
                     "p_value",
+                    "paired_ci_low",
+                    "paired_ci_high",
                 ]
             ].rename(
                 columns={
@@ -676,13 +678,17 @@ def _test_section(state: _State, runs: Path, band: str) -> None:
                     "welch_t": "Welch t",
                     "welch_dof": "dof",
                     "p_value": "p (two-sided)",
+                    "paired_ci_low": "paired 95% CI low",
+                    "paired_ci_high": "paired 95% CI high",
                 }
             )
         )
         doc.p(
             f"Mean difference = mean(`{evolved}`) − mean(baseline) of the final returns; percentile "
-            "bootstrap (10 000 resamples) and Welch's unequal-variance t-test. With few seeds "
-            "both are rough: report them with the number of seeds."
+            "bootstrap (10 000 resamples) and Welch's unequal-variance t-test. The paired interval "
+            "resamples the per-seed differences over the seeds both agents ran (same env and "
+            "initialization streams). With few seeds all are rough: report them with the number "
+            "of seeds."
         )
     state.sections.append(doc)
 

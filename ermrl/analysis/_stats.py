@@ -17,6 +17,7 @@ __all__ = [
     "bootstrap_mean_diff_ci",
     "compare_agents",
     "final_returns_table",
+    "paired_bootstrap_mean_diff_ci",
     "welch_t_test",
 ]
 
@@ -103,6 +104,47 @@ def bootstrap_mean_diff_ci(
     return float(low), float(high)
 
 
+def paired_bootstrap_mean_diff_ci(
+    a: Sequence[float] | np.ndarray,
+    b: Sequence[float] | np.ndarray,
+    *,
+    confidence: float = 0.95,
+    n_resamples: int = 10_000,
+    seed: int = 0,
+) -> tuple[float, float]:
+    """Percentile bootstrap confidence interval of ``mean(a - b)`` over paired values.
+
+    Two agents trained on the same seeds share their env and initialization streams, so the
+    per-seed differences remove the seed's own luck from the comparison: the seeds (pairs) are
+    resampled, not each group on its own.
+
+    Args:
+        a: Values of the first agent, shape ``(n,)``, in seed order.
+        b: Values of the second agent on the same seeds, shape ``(n,)``.
+        confidence: Coverage of the interval.
+        n_resamples: Bootstrap resamples.
+        seed: Seed of the resampling generator.
+
+    Returns:
+        ``(low, high)``; ``(nan, nan)`` with fewer than 2 pairs or a NaN in either.
+
+    Raises:
+        ValueError: ``a`` and ``b`` differ in length.
+    """
+    x = np.asarray(a, dtype=np.float64)
+    y = np.asarray(b, dtype=np.float64)
+    if x.shape != y.shape:
+        raise ValueError(f"paired values need equal lengths, got {x.shape} and {y.shape}")
+    d = x - y
+    if len(d) < 2 or not np.all(np.isfinite(d)):
+        return math.nan, math.nan
+    rng = np.random.default_rng(seed)
+    means = d[rng.integers(0, len(d), size=(n_resamples, len(d)))].mean(axis=1)
+    alpha = (1 - confidence) / 2
+    low, high = np.quantile(means, [alpha, 1 - alpha])
+    return float(low), float(high)
+
+
 def final_returns_table(
     results: pd.DataFrame, agents: Sequence[str] | None = None, metric: str = "final_return"
 ) -> pd.DataFrame:
@@ -182,8 +224,10 @@ def compare_agents(
 
     Returns:
         One row per baseline: ``candidate, baseline, n_candidate, n_baseline, mean_diff,
-        boot_ci_low, boot_ci_high, welch_t, welch_dof, p_value``, where ``mean_diff`` is
-        ``mean(candidate) - mean(baseline)``.
+        boot_ci_low, boot_ci_high, welch_t, welch_dof, p_value, n_paired, paired_ci_low,
+        paired_ci_high``, where ``mean_diff`` is ``mean(candidate) - mean(baseline)`` and the
+        paired interval (:func:`paired_bootstrap_mean_diff_ci`) is over the seeds both agents
+        ran (NaN when ``results`` has no ``seed`` column or fewer than 2 shared seeds).
     """
     if baselines is None:
         baselines = [a for a in AGENTS if a != candidate]
@@ -198,9 +242,15 @@ def compare_agents(
         "welch_t",
         "welch_dof",
         "p_value",
+        "n_paired",
+        "paired_ci_low",
+        "paired_ci_high",
     ]
     if results.empty or metric not in results:
         return pd.DataFrame(columns=columns)
+    by_seed = None
+    if "seed" in results:
+        by_seed = results.groupby(["agent", "seed"])[metric].mean().unstack("agent")
     a = _clean(results.loc[results["agent"] == candidate, metric])
     rows = []
     for baseline in baselines:
@@ -211,6 +261,17 @@ def compare_agents(
             a, b, confidence=confidence, n_resamples=n_resamples, seed=seed
         )
         test = welch_t_test(a, b)
+        n_paired, paired = 0, (math.nan, math.nan)
+        if by_seed is not None and baseline in by_seed and candidate in by_seed:
+            pairs = by_seed[[candidate, baseline]].dropna()
+            n_paired = len(pairs)
+            paired = paired_bootstrap_mean_diff_ci(
+                pairs[candidate].to_numpy(),
+                pairs[baseline].to_numpy(),
+                confidence=confidence,
+                n_resamples=n_resamples,
+                seed=seed,
+            )
         rows.append(
             {
                 "candidate": candidate,
@@ -223,6 +284,9 @@ def compare_agents(
                 "welch_t": test.statistic,
                 "welch_dof": test.dof,
                 "p_value": test.p_value,
+                "n_paired": n_paired,
+                "paired_ci_low": paired[0],
+                "paired_ci_high": paired[1],
             }
         )
     return pd.DataFrame(rows, columns=columns)
