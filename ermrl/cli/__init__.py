@@ -38,6 +38,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "ermrl.cli._scores:scores_main",
         "measure random-policy returns for the normalized fitness",
     ),
+    "run": (
+        "ermrl.cli._run:run_main",
+        "a whole experiment from one YAML file: evolve, re-evaluate, test, report",
+    ),
     "expert": (
         "ermrl.cli._expert:expert_main",
         "train and evaluate experts for imitation (BC, DAgger)",

@@ -610,8 +610,15 @@ def learner_flags(args: argparse.Namespace, learner: str) -> dict[str, Any]:
     return dict(given.get(learner, {}))
 
 
-def config_from_args(args: argparse.Namespace) -> EvolveConfig:
-    """Build and validate the run's configuration (raises ConfigError / env errors)."""
+def config_from_args(args: argparse.Namespace, *, build_agent: bool = True) -> EvolveConfig:
+    """Build and validate the run's configuration (raises ConfigError / env errors).
+
+    Args:
+        args: The parsed options.
+        build_agent: Also build the agent once on the real env (and reservoir), so that what
+            PPO or the encoder would only refuse in the first trial is refused now; ``False``
+            (``ermrl run --dry-run``) checks the options and tables only.
+    """
     from ermrl.agents import check_ppo_config, parse_overrides, resolve_ppo_config
     from ermrl.learners import get_learner
 
@@ -646,7 +653,8 @@ def config_from_args(args: argparse.Namespace) -> EvolveConfig:
     )
     # Whatever PPO or the encoder would refuse in the first trial is refused now, before the
     # study (and a FAIL trial) exists.
-    check_ppo_config(problem.task, problem.encoder, ppo)
+    if build_agent:
+        check_ppo_config(problem.task, problem.encoder, ppo)
     if ppo.backend == "population":
         from ermrl.population import check_population_config
 

@@ -145,8 +145,16 @@ def build_evolve_generalization_parser(
     return parser
 
 
-def generalization_config_from_args(args: argparse.Namespace) -> EvolveConfig:
-    """Build and validate a multi-task configuration (raises ConfigError / env errors)."""
+def generalization_config_from_args(
+    args: argparse.Namespace, *, build_agent: bool = True
+) -> EvolveConfig:
+    """Build and validate a multi-task configuration (raises ConfigError / env errors).
+
+    Args:
+        args: The parsed options.
+        build_agent: Also build each task's agent once (see
+            :func:`ermrl.cli._evolve.config_from_args`); ``False`` checks the options only.
+    """
     from ermrl.agents import check_ppo_config, parse_overrides
     from ermrl.envs import get_suite
     from ermrl.search import generalization_config, generalization_tasks
@@ -197,7 +205,7 @@ def generalization_config_from_args(args: argparse.Namespace) -> EvolveConfig:
         hyperparams=args.hyperparams,
     )
     # What PPO or the encoder would refuse in the first trial is refused before the study exists.
-    for task in tasks:
+    for task in tasks if build_agent else ():
         check_ppo_config(task.task, config.problem.encoder, task.ppo, where=task.task.env_id)
     if args.backend == "population":
         from ermrl.population import check_population_config

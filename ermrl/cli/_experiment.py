@@ -1,0 +1,971 @@
+"""A whole experiment in one YAML file: evolution, re-evaluation, test phase and report.
+
+An experiment file composes ermrl's own commands; it never copies their logic. Each stage is a
+mapping whose keys are the options of the command that runs it, spelled as their ``argparse``
+destinations (``n_trials`` for ``--n-trials``, ``fixed_input_scaling: true`` for a flag), so
+everything a command accepts an experiment accepts, and a key no command knows is refused with
+the nearest valid one. The stages:
+
+- ``evolve``: ``ermrl evolve`` once per entry of ``tasks`` (one study per task, the same
+  settings for all), or ``ermrl evolve-generalization`` when the stage names a ``suite`` or
+  ``env_ids`` (one study over the task set);
+- ``reevaluate``: ``top``, ``seeds`` and ``steps``, passed to the same command as
+  ``--reevaluate-top/--reevaluate-seeds/--reevaluate-steps`` (the worker that finds the budget
+  spent re-trains the best candidates; see ``ermrl evolve --help``);
+- ``test``: ``ermrl test`` per task, or ``ermrl test-generalization`` once per entry of its
+  ``env_ids`` for a generalization study;
+- ``report``: ``ermrl report`` per test folder.
+
+``variants`` holds named overrides (for example ``quick`` for CI), merged key by key over the
+stages; a variant's results go to ``<out>/<variant>``, so they never mix with the full run's.
+
+The study and the run folders are the state: a stage is done when the storage or the folders
+say so, and running the file again resumes the first unfinished stage.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import copy
+import difflib
+import io
+import math
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from ermrl.config import ConfigError
+
+__all__ = [
+    "Experiment",
+    "ExperimentError",
+    "Step",
+    "TOP_LEVEL_KEYS",
+    "estimate_seconds",
+    "experiment_plan",
+    "format_duration",
+    "load_experiment",
+    "resolved_document",
+    "throughput",
+]
+
+#: Keys of an experiment file, each with what it holds.
+TOP_LEVEL_KEYS: dict[str, str] = {
+    "name": "the experiment's name (required); results go to runs/<name> unless `out` is set",
+    "description": "free text: the question, and how the scale differs from the paper's",
+    "out": "results folder (default: runs/<name>)",
+    "storage": "Optuna storage of the studies (default: sqlite:///<out>/ermrl.db)",
+    "publish": "folder that receives the plain-file results (summary, per-seed CSV, trials)",
+    "tasks": "env ids of a single-task experiment (one study each, the same settings)",
+    "evolve": "ermrl evolve (or evolve-generalization) options",
+    "reevaluate": "top, seeds, steps: re-train the best candidates on fresh seeds",
+    "test": "ermrl test (or test-generalization) options",
+    "report": "ermrl report options",
+    "variants": "named overrides of the stages, e.g. quick (selected with --variant)",
+}
+STAGES = ("evolve", "reevaluate", "test", "report")
+REEVALUATE_KEYS = {
+    "top": "reevaluate_top",
+    "seeds": "reevaluate_seeds",
+    "steps": "reevaluate_steps",
+}
+# Options ermrl run sets itself (per task and folder); the file must not set them.
+_RESERVED = {
+    "evolve": {"env_id", "storage", "study_name", "quiet", "help"},
+    "test": {"storage", "study_name", "out", "env_id", "quiet", "help"},
+    "report": {"storage", "study_name", "runs", "out", "quiet", "help"},
+}
+
+
+class ExperimentError(ConfigError):
+    """An experiment file that cannot run: one line, naming the file and the key."""
+
+
+# ---------------------------------------------------------------------------------------------
+# Loading
+
+
+def _nearest(word: str, choices: Iterable[str]) -> str:
+    match = difflib.get_close_matches(word, list(choices), n=1, cutoff=0.5)
+    return f" (did you mean {match[0]!r}?)" if match else f" (valid: {', '.join(sorted(choices))})"
+
+
+def _merge(base: Any, over: Any) -> Any:
+    """``over`` merged into ``base`` key by key (mappings), else ``over``."""
+    if isinstance(base, Mapping) and isinstance(over, Mapping):
+        out = dict(base)
+        for key, value in over.items():
+            out[key] = _merge(base.get(key), value) if key in base else copy.deepcopy(value)
+        return out
+    return copy.deepcopy(over)
+
+
+@dataclass(frozen=True)
+class TaskLine:
+    """One task of a single-task experiment, with its own scale overrides (if any)."""
+
+    env_id: str
+    overrides: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Experiment:
+    """A parsed experiment file (variant applied).
+
+    Attributes:
+        path: The file.
+        name: The experiment's name.
+        variant: The variant applied (``None``: the file as written).
+        out: Results folder.
+        storage: Optuna storage URL.
+        publish: Folder for the plain-file results (``None``: not published).
+        tasks: Single-task experiments: one line per task; empty for a generalization one.
+        stages: ``{"evolve" | "reevaluate" | "test" | "report": options}``.
+        document: The file's mapping with the variant merged in.
+    """
+
+    path: Path
+    name: str
+    variant: str | None
+    out: Path
+    storage: str
+    publish: Path | None
+    tasks: tuple[TaskLine, ...]
+    stages: Mapping[str, Mapping[str, Any]]
+    document: Mapping[str, Any]
+
+    @property
+    def generalization(self) -> bool:
+        """Whether evolution runs on a task set (``suite`` or ``env_ids`` in ``evolve``)."""
+        evolve = self.stages.get("evolve", {})
+        return "suite" in evolve or "env_ids" in evolve
+
+
+def _mapping(value: Any, where: str) -> dict[str, Any]:
+    if value is None:
+        return {}
+    if not isinstance(value, Mapping):
+        raise ExperimentError(f"{where}: expected a mapping of options, got {value!r}")
+    bad = [k for k in value if not isinstance(k, str)]
+    if bad:
+        raise ExperimentError(f"{where}: option names must be words, got {bad[0]!r}")
+    return dict(value)
+
+
+def load_experiment(path: str | Path, variant: str | None = None) -> Experiment:
+    """Read an experiment file and apply a variant.
+
+    Args:
+        path: The YAML file.
+        variant: A key of its ``variants`` (``None``: the file as written).
+
+    Returns:
+        The experiment (not yet checked against the commands: see :func:`experiment_plan`).
+
+    Raises:
+        ExperimentError: unreadable file, unknown key (with the nearest valid one), wrong type,
+            unknown variant.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as err:
+        raise ExperimentError(f"{path}: cannot read ({err.strerror or err})") from None
+    try:
+        doc = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        where = f" line {mark.line + 1}" if mark is not None else ""
+        problem = getattr(err, "problem", None) or str(err).splitlines()[0]
+        raise ExperimentError(f"{path}:{where} not valid YAML ({problem})") from None
+    if not isinstance(doc, Mapping):
+        raise ExperimentError(f"{path}: an experiment file is a mapping (name:, evolve:, ...)")
+    for key in doc:
+        if key not in TOP_LEVEL_KEYS:
+            raise ExperimentError(
+                f"{path}: unknown key {key!r}{_nearest(str(key), TOP_LEVEL_KEYS)}"
+            )
+    variants = _mapping(doc.get("variants"), f"{path}: variants")
+    base = {k: v for k, v in doc.items() if k != "variants"}
+    if variant is not None:
+        if variant not in variants:
+            have = ", ".join(variants) or "none"
+            raise ExperimentError(f"{path}: no variant {variant!r} (variants: {have})")
+        over = _mapping(variants[variant], f"{path}: variants.{variant}")
+        for key in over:
+            if key not in TOP_LEVEL_KEYS or key in ("variants", "name"):
+                valid = [k for k in TOP_LEVEL_KEYS if k not in ("variants", "name")]
+                raise ExperimentError(
+                    f"{path}: variants.{variant}: unknown key {key!r}{_nearest(str(key), valid)}"
+                )
+        base = _merge(base, over)
+    name = base.get("name")
+    if not isinstance(name, str) or not name.strip() or "/" in name:
+        raise ExperimentError(f"{path}: name: a word is required (it names the results folder)")
+    out = Path(str(base.get("out") or Path("runs") / name))
+    if variant is not None and "out" not in _mapping(variants[variant], "variants"):
+        out = out / variant
+    storage = str(base.get("storage") or f"sqlite:///{out / 'ermrl.db'}")
+    # A variant (a CI-sized run, say) publishes only where it says so itself.
+    publish = (
+        base.get("publish")
+        if variant is None
+        else _mapping(variants[variant], "variants").get("publish")
+    )
+    stages = {s: _mapping(base.get(s), f"{path}: {s}") for s in STAGES}
+    for key in stages["reevaluate"]:
+        if key not in REEVALUATE_KEYS:
+            raise ExperimentError(
+                f"{path}: reevaluate: unknown key {key!r}{_nearest(key, REEVALUATE_KEYS)}"
+            )
+    tasks = _tasks(base.get("tasks"), path)
+    generalization = "suite" in stages["evolve"] or "env_ids" in stages["evolve"]
+    if generalization and tasks:
+        raise ExperimentError(
+            f"{path}: tasks: a generalization experiment (evolve.suite or evolve.env_ids) has no "
+            "tasks list; name the test tasks in test.env_ids"
+        )
+    if not generalization and not tasks:
+        raise ExperimentError(
+            f"{path}: tasks: list the env ids to evolve on (or give evolve.suite for "
+            "generalization)"
+        )
+    if generalization and not stages["test"].get("env_ids") and base.get("test") is not None:
+        raise ExperimentError(f"{path}: test.env_ids: name the unseen tasks to test on")
+    return Experiment(
+        path=path,
+        name=name,
+        variant=variant,
+        out=out,
+        storage=storage,
+        publish=None if publish is None else Path(str(publish)),
+        tasks=tasks,
+        stages=stages,
+        document=base,
+    )
+
+
+def _tasks(value: Any, path: Path) -> tuple[TaskLine, ...]:
+    if value is None:
+        return ()
+    if not isinstance(value, list):
+        raise ExperimentError(f"{path}: tasks: a list of env ids, got {value!r}")
+    out = []
+    for item in value:
+        if isinstance(item, str):
+            out.append(TaskLine(item))
+            continue
+        entry = _mapping(item, f"{path}: tasks")
+        env_id = entry.pop("env_id", None)
+        if not isinstance(env_id, str):
+            raise ExperimentError(f"{path}: tasks: each entry is an env id or has env_id: ...")
+        for key in entry:
+            if key not in ("evolve", "reevaluate", "test", "report"):
+                raise ExperimentError(
+                    f"{path}: tasks.{env_id}: unknown key {key!r}{_nearest(key, STAGES)}"
+                )
+        out.append(
+            TaskLine(
+                env_id, {k: _mapping(v, f"{path}: tasks.{env_id}.{k}") for k, v in entry.items()}
+            )
+        )
+    ids = [t.env_id for t in out]
+    if len(set(ids)) != len(ids):
+        raise ExperimentError(f"{path}: tasks: each task once, got {ids}")
+    return tuple(out)
+
+
+# ---------------------------------------------------------------------------------------------
+# Options -> argv, checked by the commands' own parsers
+
+
+def _options(parser: argparse.ArgumentParser) -> dict[str, argparse.Action]:
+    return {a.dest: a for a in parser._actions if a.option_strings and a.dest != "help"}
+
+
+def _flag(action: argparse.Action) -> str:
+    longs = [s for s in action.option_strings if s.startswith("--") and not s.startswith("--no-")]
+    return longs[0] if longs else action.option_strings[0]
+
+
+def _word(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        return repr(value)
+    if isinstance(value, (Mapping, list)):
+        return yaml.safe_dump(value, default_flow_style=True, width=10**6).strip()
+    return str(value)
+
+
+def options_to_argv(
+    parser: argparse.ArgumentParser, options: Mapping[str, Any], where: str
+) -> list[str]:
+    """The command-line words that give a command these options.
+
+    Args:
+        parser: The command's parser.
+        options: ``{dest: value}``; ``true``/``false`` for flags, lists for several values,
+            mappings for ``KEY=VALUE`` options (``ppo: {learning_rate: 1.0e-4}``) and
+            ``{learner: {KEY: VALUE}}`` for ``--for-learner``.
+        where: Names the options in errors (``file: evolve``).
+
+    Raises:
+        ExperimentError: an unknown key (with the nearest valid one) or a value of the wrong
+            shape.
+    """
+    known = _options(parser)
+    argv: list[str] = []
+    for key, value in options.items():
+        action = known.get(key)
+        if action is None:
+            raise ExperimentError(f"{where}: unknown key {key!r}{_nearest(key, list(known))}")
+        flag = _flag(action)
+        if isinstance(action, argparse.BooleanOptionalAction) or action.nargs == 0:
+            if not isinstance(value, bool):
+                raise ExperimentError(f"{where}: {key}: true or false, got {value!r}")
+            if isinstance(action, argparse.BooleanOptionalAction):
+                argv.append(flag if value else "--no-" + flag[2:])
+            elif value:
+                argv.append(flag)
+            continue
+        if value is None:
+            continue
+        if action.nargs == "?" and isinstance(value, bool):
+            if value:
+                argv.append(flag)
+            continue
+        if key == "for_learner":
+            if not isinstance(value, Mapping):
+                raise ExperimentError(f"{where}: for_learner: {{LEARNER: {{KEY: VALUE}}}}")
+            for learner, settings in value.items():
+                pairs = _mapping(settings, f"{where}: for_learner.{learner}")
+                argv += [flag, str(learner), *(f"{k}={_word(v)}" for k, v in pairs.items())]
+            continue
+        many = action.nargs in ("+", "*") or (isinstance(action.nargs, int) and action.nargs > 1)
+        if isinstance(value, Mapping):
+            if not many:
+                raise ExperimentError(f"{where}: {key}: one value, got a mapping")
+            argv += [flag, *(f"{k}={_word(v)}" for k, v in value.items())]
+        elif isinstance(value, list):
+            if not many:
+                raise ExperimentError(f"{where}: {key}: one value, got a list")
+            if not value:
+                raise ExperimentError(f"{where}: {key}: an empty list")
+            argv += [flag, *map(_word, value)]
+        else:
+            argv += [flag, _word(value)]
+    return argv
+
+
+def parse_checked(
+    parser: argparse.ArgumentParser, argv: list[str], where: str
+) -> argparse.Namespace:
+    """Parse ``argv`` as the command would, turning its one-line error into an ExperimentError."""
+    err = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(err):
+            return parser.parse_args(argv)
+    except SystemExit:
+        text = err.getvalue().strip().splitlines()
+        message = text[-1] if text else "invalid options"
+        message = message.split(": error: ", 1)[-1].removesuffix(" (see --help)")
+        raise ExperimentError(f"{where}: {message}") from None
+
+
+# ---------------------------------------------------------------------------------------------
+# Throughput and wall-time estimates
+
+
+def throughput(env_id: str, backend: str, n_procs: int, learner: str = "ppo") -> float:
+    """Estimated env steps per second of a training layout (``ermrl/data/throughput.yml``).
+
+    Args:
+        env_id: The task.
+        backend: ``"population"`` or ``"sb3"``.
+        n_procs: Processes (the table holds 2-process rates; 1 process runs at half of it).
+        learner: The learner (some are slower per step than PPO).
+    """
+    from importlib import resources
+
+    table = yaml.safe_load(resources.files("ermrl.data").joinpath("throughput.yml").read_text())
+    rates = table.get(backend) or table["sb3"]
+    rate = float(rates.get(env_id, rates["default"]))
+    if learner != "ppo":
+        rate = float(table["sb3"].get(env_id, table["sb3"]["default"]))
+        rate *= float(table.get("learner_factor", {}).get(learner, 1.0))
+    return rate * min(max(n_procs, 1), 2) / 2
+
+
+def format_duration(seconds: float) -> str:
+    """``1h05m``, ``12m30s``, ``40s``."""
+    if not math.isfinite(seconds):
+        return "?"
+    seconds = max(0, int(round(seconds)))
+    if seconds >= 3600:
+        return f"{seconds // 3600}h{(seconds % 3600) // 60:02d}m"
+    if seconds >= 60:
+        return f"{seconds // 60}m{seconds % 60:02d}s"
+    return f"{seconds}s"
+
+
+def estimate_seconds(parts: Sequence[tuple[int, float]]) -> float:
+    """Wall seconds of ``(env steps, steps/s)`` parts run one after the other."""
+    return sum(steps / rate for steps, rate in parts if rate > 0)
+
+
+# ---------------------------------------------------------------------------------------------
+# The plan
+
+
+@dataclass
+class Step:
+    """One command of the plan.
+
+    Attributes:
+        stage: ``evolve``, ``reevaluate``, ``test`` or ``report``.
+        label: The task (or task set) it is about.
+        command: The ``ermrl`` subcommand.
+        argv: Its arguments.
+        env_steps: Env steps it trains in all (0: none).
+        seconds: Estimated wall seconds for all of it.
+        status: Reads the storage and folders: ``(done, remaining fraction, text)``.
+        study_name: The study it reads or writes.
+        folder: The folder it writes (test and report steps).
+    """
+
+    stage: str
+    label: str
+    command: str
+    argv: list[str]
+    env_steps: int
+    seconds: float
+    status: Callable[[], tuple[bool, float, str]]
+    study_name: str
+    folder: Path | None = None
+
+    @property
+    def command_line(self) -> str:
+        import shlex
+
+        return shlex.join(["ermrl", self.command, *self.argv])
+
+
+def _stage(exp: Experiment, stage: str, task: TaskLine | None) -> dict[str, Any]:
+    options = dict(exp.stages.get(stage, {}))
+    if task is not None and stage in task.overrides:
+        options = _merge(options, task.overrides[stage])
+    for key in _RESERVED.get(stage, ()):
+        if key in options and not (stage == "test" and key == "env_ids"):
+            raise ExperimentError(
+                f"{exp.path}: {stage}: {key} is set by ermrl run (per task and folder)"
+            )
+    return options
+
+
+def _reevaluate_argv(exp: Experiment, task: TaskLine | None) -> list[str]:
+    options = _stage(exp, "reevaluate", task)
+    mapped = {REEVALUATE_KEYS[k]: v for k, v in options.items()}
+    return [w for k, v in mapped.items() for w in (f"--{k.replace('_', '-')}", _word(v))]
+
+
+def experiment_plan(
+    exp: Experiment, *, tasks: Sequence[str] | None = None, build_agents: bool = True
+) -> list[Step]:
+    """Every command of the experiment, checked by the commands' own parsers and configuration.
+
+    Nothing is written: each stage's options are parsed as its command would parse them, the
+    evolution configuration is built (what PPO or the encoder would refuse is refused now), and
+    a study already in the storage must have the same problem and search space.
+
+    Args:
+        exp: The experiment.
+        tasks: Only these tasks (env ids; for a generalization experiment, test tasks).
+        build_agents: Also build each evolution agent once on its env (the commands' own
+            check); ``False`` (the dry run) checks options, tables and the storage only.
+
+    Returns:
+        The steps, in the order ``ermrl run`` runs them.
+
+    Raises:
+        ExperimentError: a key or value the commands refuse, or a study that contradicts the
+            file (one line).
+    """
+    if exp.generalization:
+        return _generalization_plan(exp, tasks, build_agents)
+    chosen = list(exp.tasks)
+    if tasks:
+        unknown = [t for t in tasks if t not in {x.env_id for x in exp.tasks}]
+        if unknown:
+            raise ExperimentError(
+                f"{exp.path}: --task {unknown[0]}: not a task of this experiment "
+                f"({', '.join(t.env_id for t in exp.tasks)})"
+            )
+        chosen = [t for t in exp.tasks if t.env_id in tasks]
+    steps: list[Step] = []
+    for task in chosen:
+        steps += _single_task_steps(exp, task, build_agents)
+    return steps
+
+
+def _evolve_parts(
+    exp: Experiment, task: TaskLine | None, parser: Any, where: str
+) -> tuple[list[str], argparse.Namespace]:
+    options = _stage(exp, "evolve", task)
+    argv = ([] if task is None else ["--env-id", task.env_id]) + options_to_argv(
+        parser, options, where
+    )
+    argv += _reevaluate_argv(exp, task)
+    argv += ["--storage", exp.storage]
+    args = parse_checked(parser, argv, where)
+    return argv, args
+
+
+def _config_error(exp: Experiment, where: str, build: Callable[[], Any]) -> Any:
+    from ermrl.envs import UnknownEnvError, UnsupportedObserveError
+
+    try:
+        return build()
+    except (ConfigError, UnknownEnvError, UnsupportedObserveError) as err:
+        raise ExperimentError(f"{where}: {err}") from None
+
+
+def _single_task_steps(exp: Experiment, task: TaskLine, build_agents: bool) -> list[Step]:
+    from ermrl.cli._evolve import build_evolve_parser, config_from_args
+    from ermrl.cli._report import build_report_parser
+    from ermrl.cli._test import build_test_parser
+
+    where = f"{exp.path}: {task.env_id}: evolve"
+    argv, args = _evolve_parts(exp, task, build_evolve_parser(), where)
+    config = _config_error(exp, where, lambda: config_from_args(args, build_agent=build_agents))
+    study_name = config.default_study_name
+    argv += ["--study-name", study_name]
+    _check_study(exp, config, study_name, where)
+    problem = config.problem
+    n_seeds = len(problem.seeds)
+    steps_per_trial = n_seeds * problem.budget.training_steps
+    backend = problem.ppo.backend
+    learner = problem.ppo.learner
+    rate = throughput(task.env_id, backend, config.n_procs, learner)
+    n_trials = config.search.n_trials
+    evolve = Step(
+        "evolve", task.env_id, "evolve", argv, n_trials * steps_per_trial,
+        n_trials * steps_per_trial / rate,
+        _evolve_status(exp.storage, study_name, n_trials), study_name,
+    )  # fmt: skip
+    steps = [evolve]
+    search = config.search
+    if search.reevaluate_top > 0:
+        re_steps = search.reevaluate_steps or problem.budget.training_steps
+        total = (search.reevaluate_top + 1) * search.reevaluate_seeds * re_steps
+        steps.append(
+            Step(
+                "reevaluate",
+                task.env_id,
+                "evolve",
+                argv,
+                total,
+                total / rate,
+                _reevaluate_status(exp.storage, study_name),
+                study_name,
+            )  # fmt: skip
+        )
+    if "test" in exp.document or exp.stages["test"]:
+        steps.append(
+            _test_step(
+                exp,
+                task,
+                study_name,
+                build_test_parser(),
+                config,
+                exp.out / task.env_id / "test",
+                None,
+            )
+        )
+    if "report" in exp.document or exp.stages["report"]:
+        steps.append(
+            _report_step(
+                exp,
+                task,
+                study_name,
+                build_report_parser(),
+                steps[-1].folder if steps[-1].stage == "test" else None,
+                exp.out / task.env_id / "report",
+            )
+        )
+    return steps
+
+
+def _test_step(
+    exp: Experiment,
+    task: TaskLine | None,
+    study_name: str,
+    parser: Any,
+    config: Any,
+    folder: Path,
+    env_id: str | None,
+) -> Step:
+    from ermrl.config import AGENT_KINDS
+
+    label = env_id or (task.env_id if task else "")
+    where = f"{exp.path}: {label}: test"
+    options = {k: v for k, v in _stage(exp, "test", task).items() if k != "env_ids"}
+    argv = (["--env-id", env_id] if env_id else []) + options_to_argv(parser, options, where)
+    argv += ["--storage", exp.storage, "--study-name", study_name, "--out", str(folder)]
+    args = parse_checked(parser, argv, where)
+    agents = list(args.agents or [n for n, k in AGENT_KINDS.items() if k.default])
+    seeds = list(args.seeds or range(5))
+    per_run = args.training_steps
+    test_env = env_id or (task.env_id if task else "")
+    backend = args.backend or config.problem.ppo.backend
+    parts = []
+    for agent in agents:
+        learner = AGENT_KINDS[agent].learner or config.problem.ppo.learner
+        agent_backend = backend if learner == config.problem.ppo.learner else "sb3"
+        rate = throughput(test_env, agent_backend, args.n_procs, learner)
+        parts.append((len(seeds) * per_run, rate))
+    total = len(agents) * len(seeds) * per_run
+    return Step(
+        "test", label, "test-generalization" if env_id else "test", argv, total,
+        estimate_seconds(parts), _test_status(folder, agents, seeds), study_name, folder,
+    )  # fmt: skip
+
+
+def _report_step(
+    exp: Experiment,
+    task: TaskLine | None,
+    study_name: str,
+    parser: Any,
+    runs: Path | None,
+    folder: Path,
+    label: str | None = None,
+) -> Step:
+    name = label or (task.env_id if task else "")
+    where = f"{exp.path}: {name}: report"
+    argv = options_to_argv(parser, _stage(exp, "report", task), where)
+    argv += ["--storage", exp.storage, "--study-name", study_name, "--out", str(folder)]
+    if runs is not None:
+        argv += ["--runs", str(runs)]
+    parse_checked(parser, argv, where)
+    return Step(
+        "report", name, "report", argv, 0, 30.0, _report_status(folder, runs), study_name, folder
+    )
+
+
+def _generalization_plan(
+    exp: Experiment, only: Sequence[str] | None, build_agents: bool
+) -> list[Step]:
+    from ermrl.cli._generalization import (
+        build_evolve_generalization_parser,
+        build_test_generalization_parser,
+        generalization_config_from_args,
+    )
+    from ermrl.cli._report import build_report_parser
+    from ermrl.search import generalization_study_name
+
+    where = f"{exp.path}: evolve"
+    argv, args = _evolve_parts(exp, None, build_evolve_generalization_parser(), where)
+    config = _config_error(
+        exp, where, lambda: generalization_config_from_args(args, build_agent=build_agents)
+    )
+    study_name = generalization_study_name(config)
+    argv += ["--study-name", study_name]
+    _check_study(exp, config, study_name, where, kind="generalization")
+    gen = config.generalization
+    label = gen.suite or "+".join(gen.env_ids)
+    problem = config.problem
+    n_trials = config.search.n_trials
+    per_task = len(problem.seeds) * problem.budget.training_steps
+    parts = [
+        (
+            n_trials * per_task,
+            throughput(t.task.env_id, problem.ppo.backend, config.n_procs, problem.ppo.learner),
+        )
+        for t in gen.tasks
+    ]
+    total = n_trials * per_task * len(gen.tasks)
+    steps = [
+        Step(
+            "evolve",
+            label,
+            "evolve-generalization",
+            argv,
+            total,
+            estimate_seconds(parts),
+            _evolve_status(exp.storage, study_name, n_trials),
+            study_name,
+        )  # fmt: skip
+    ]
+    search = config.search
+    if search.reevaluate_top > 0:
+        re_steps = search.reevaluate_steps or problem.budget.training_steps
+        re_total = (search.reevaluate_top + 1) * search.reevaluate_seeds * re_steps
+        re_parts = [(re_total, rate) for _, rate in ((0, p[1]) for p in parts)]
+        steps.append(
+            Step(
+                "reevaluate",
+                label,
+                "evolve-generalization",
+                argv,
+                re_total * len(gen.tasks),
+                estimate_seconds(re_parts),
+                _reevaluate_status(exp.storage, study_name),
+                study_name,
+            )  # fmt: skip
+        )
+    env_ids = exp.stages["test"].get("env_ids") or []
+    if isinstance(env_ids, str):
+        env_ids = [env_ids]
+    if not isinstance(env_ids, list):
+        raise ExperimentError(f"{exp.path}: test.env_ids: a list of env ids")
+    if only:
+        unknown = [t for t in only if t not in env_ids]
+        if unknown:
+            raise ExperimentError(
+                f"{exp.path}: --task {unknown[0]}: not a test task of this experiment "
+                f"({', '.join(env_ids) or 'none'})"
+            )
+        env_ids = [e for e in env_ids if e in only]
+    test_parser = build_test_generalization_parser()
+    report_parser = build_report_parser()
+    for env_id in env_ids:
+        folder = exp.out / "test" / env_id
+        steps.append(_test_step(exp, None, study_name, test_parser, config, folder, env_id))
+        if "report" in exp.document or exp.stages["report"]:
+            steps.append(
+                _report_step(
+                    exp,
+                    None,
+                    study_name,
+                    report_parser,
+                    folder,
+                    exp.out / "report" / env_id,
+                    label=env_id,
+                )
+            )
+    return steps
+
+
+# ---------------------------------------------------------------------------------------------
+# State: what the storage and the folders say is done
+
+
+def _storage_exists(url: str) -> bool:
+    from ermrl.storage import parse_storage_url
+
+    spec = parse_storage_url(url)
+    path = getattr(spec, "path", None)
+    return path is None or Path(path).exists()
+
+
+@contextlib.contextmanager
+def _study(storage: str, study_name: str) -> Iterator[Any]:
+    """The study, read-only (``None`` when the storage or the study does not exist yet)."""
+    from ermrl.storage import StorageError, StudyNotFound, load_study
+
+    if not _storage_exists(storage):
+        yield None
+        return
+    try:
+        study = load_study(study_name, storage)
+    except (StudyNotFound, StorageError):
+        yield None
+        return
+    yield study
+
+
+def _check_study(
+    exp: Experiment, config: Any, study_name: str, where: str, kind: str = "evolve"
+) -> None:
+    """Refuse a file whose evolution contradicts the study already in the storage."""
+    from ermrl.config import to_dict
+    from ermrl.search import STUDY_CONFIG_ATTR
+    from ermrl.search._study import config_diffs
+
+    with _study(exp.storage, study_name) as study:
+        if study is None:
+            return
+        stored = study.user_attrs.get(STUDY_CONFIG_ATTR)
+        if stored is None:
+            return
+        new = to_dict(config)
+        keys = (
+            ("problem", "space", "generalization")
+            if kind == "generalization"
+            else ("problem", "space")
+        )
+        diffs = [d for key in keys for d in config_diffs(new.get(key), stored.get(key), key)]
+        if diffs:
+            raise ExperimentError(
+                f"{where}: study {study_name!r} in {exp.storage} was evolved with other settings ("
+                + "; ".join(diffs[:3])
+                + (" ..." if len(diffs) > 3 else "")
+                + "); change the file back, or set another out/storage"
+            )
+
+
+def _evolve_status(
+    storage: str, study_name: str, n_trials: int
+) -> Callable[[], tuple[bool, float, str]]:
+    def status() -> tuple[bool, float, str]:
+        from optuna.trial import TrialState
+
+        with _study(storage, study_name) as study:
+            if study is None:
+                return False, 1.0, "not started"
+            trials = study.get_trials(deepcopy=False)
+            done = sum(t.state in (TrialState.COMPLETE, TrialState.PRUNED) for t in trials)
+            busy = sum(t.state in (TrialState.RUNNING, TrialState.WAITING) for t in trials)
+            finished = done >= n_trials and busy == 0
+            left = max(n_trials - done, 0) / max(n_trials, 1)
+            text = f"{min(done, n_trials)}/{n_trials} trials" + (
+                f", {busy} running or queued" if busy else ""
+            )
+            return finished, left, text
+
+    return status
+
+
+def _reevaluate_status(storage: str, study_name: str) -> Callable[[], tuple[bool, float, str]]:
+    def status() -> tuple[bool, float, str]:
+        from ermrl.search import REEVALUATION_ATTR
+
+        with _study(storage, study_name) as study:
+            if study is None:
+                return False, 1.0, "not started"
+            doc = study.user_attrs.get(REEVALUATION_ATTR)
+            if not isinstance(doc, Mapping):
+                return False, 1.0, "not started"
+            if doc.get("complete") and not doc.get("stale"):
+                return True, 0.0, f"ranking complete (best trial {doc.get('best_trial')})"
+            return False, 0.5, "ranking incomplete" + (" (stale)" if doc.get("stale") else "")
+
+    return status
+
+
+def _test_status(
+    folder: Path, agents: Sequence[str], seeds: Sequence[int]
+) -> Callable[[], tuple[bool, float, str]]:
+    def status() -> tuple[bool, float, str]:
+        from ermrl.analysis._results import RUNS_DIR
+
+        total = len(agents) * len(seeds)
+        done = sum(
+            (folder / RUNS_DIR / agent / f"seed_{seed}" / "result.json").exists()
+            for agent in agents
+            for seed in seeds
+        )
+        if done == 0:
+            return False, 1.0, "not started" if not folder.exists() else f"0/{total} runs"
+        return done == total, (total - done) / total, f"{done}/{total} runs"
+
+    return status
+
+
+def _report_status(folder: Path, runs: Path | None) -> Callable[[], tuple[bool, float, str]]:
+    def status() -> tuple[bool, float, str]:
+        report = folder / "report.md"
+        if not report.exists():
+            return False, 1.0, "not written"
+        summary = None if runs is None else runs / "summary.csv"
+        if (
+            summary is not None
+            and summary.exists()
+            and summary.stat().st_mtime > report.stat().st_mtime
+        ):
+            return False, 1.0, "older than the test results"
+        return True, 0.0, f"written ({report})"
+
+    return status
+
+
+def resolved_document(exp: Experiment, steps: Sequence[Step]) -> dict[str, Any]:
+    """The experiment with every default filled in: each command's full options, as run."""
+    commands: list[dict[str, Any]] = []
+    for step in steps:
+        if step.stage == "reevaluate":
+            continue
+        commands.append(_resolved_command(step))
+    return {
+        "name": exp.name,
+        "variant": exp.variant,
+        "file": str(exp.path),
+        "out": str(exp.out),
+        "storage": exp.storage,
+        "publish": None if exp.publish is None else str(exp.publish),
+        "description": exp.document.get("description"),
+        "file_as_written": {k: v for k, v in exp.document.items()},
+        "commands": commands,
+    }
+
+
+def _resolved_command(step: Step) -> dict[str, Any]:
+    from ermrl.cli import COMMANDS
+
+    builders = {
+        "evolve": "ermrl.cli._evolve:build_evolve_parser",
+        "evolve-generalization": "ermrl.cli._generalization:build_evolve_generalization_parser",
+        "test": "ermrl.cli._test:build_test_parser",
+        "test-generalization": "ermrl.cli._generalization:build_test_generalization_parser",
+        "report": "ermrl.cli._report:build_report_parser",
+    }
+    assert step.command in COMMANDS
+    from ermrl.cli import _load
+
+    parser = _load(builders[step.command])()
+    args = vars(parser.parse_args(step.argv))
+    options = {k: _plain(v) for k, v in sorted(args.items())}
+    return {
+        "stage": step.stage if step.stage != "evolve" else "evolve+reevaluate",
+        "task": step.label,
+        "command": step.command_line,
+        "options": options,
+        "env_steps": step.env_steps,
+    }
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, (str, int, float, bool)) or value is None:
+        return value
+    if isinstance(value, Mapping):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if hasattr(value, "__dataclass_fields__"):
+        from ermrl.config import to_dict
+
+        return _plain(to_dict(value))
+    return str(value)
+
+
+def publish_step(exp: Experiment, step: Step) -> list[Path]:
+    """Copy a finished test or report step's plain files to ``exp.publish``.
+
+    Plain files only (CSV, JSON, Markdown, HTML, PNG, YAML, TXT), never models or arrays; the
+    test folder's per-run ``result.json`` files keep their ``agents/<agent>/seed_<s>/`` layout.
+
+    Returns:
+        The files written.
+    """
+    import shutil
+
+    if exp.publish is None or step.folder is None or not step.folder.exists():
+        return []
+    dest = exp.publish / step.label / step.stage
+    written = []
+    for src in sorted(step.folder.rglob("*")):
+        if not src.is_file() or src.suffix.lower() not in _PLAIN or src.name.startswith("."):
+            continue
+        rel = src.relative_to(step.folder)
+        target = dest / rel
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(src, target)
+        written.append(target)
+    return written
+
+
+_PLAIN = {".csv", ".json", ".md", ".html", ".png", ".yaml", ".yml", ".txt"}

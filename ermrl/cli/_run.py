@@ -1,0 +1,190 @@
+"""``ermrl run EXPERIMENT.yaml``: a whole experiment (evolve, re-evaluate, test, report) in one file.
+
+The file composes ermrl's own commands (see :mod:`ermrl.cli._experiment`); this module only
+prints the plan, writes the resolved configuration and runs the unfinished steps in order.
+"""
+
+from __future__ import annotations
+
+import sys
+import textwrap
+from collections.abc import Sequence
+
+from ermrl.cli._common import EXIT_INTERRUPTED, ArgumentParser, HelpFormatter, fail
+
+__all__ = ["build_run_parser", "run_main"]
+
+STAGE_CHOICES = ("evolve", "reevaluate", "test", "report")
+
+DESCRIPTION = textwrap.dedent(
+    """\
+    Run a whole experiment described by one YAML file: evolution (one study per task, or one
+    over a task set), re-evaluation of the best candidates on fresh seeds, the test phase
+    against baselines, and the report. Each stage runs the ermrl command of the same name with
+    the options the file gives it.
+
+    The plan (each command, its env steps and an estimated wall time) is printed first. Running
+    the file again skips the finished stages and resumes an interrupted one: the study and the
+    run folders are the state. Workers started with --stage evolve (SLURM array tasks, say)
+    share the studies; the later stages then run once, from one more `ermrl run FILE`.
+
+    examples:
+      ermrl run experiments/paper/h2_locomotion.yaml --dry-run
+      ermrl run experiments/paper/h2_locomotion.yaml --task Swimmer-v5
+      ermrl run experiments/paper/h1_partial_observability.yaml --variant quick
+      ermrl run experiments/paper/h3_generalization.yaml --stage evolve   # one worker
+    """
+)
+
+
+def build_run_parser(prog: str = "ermrl run") -> ArgumentParser:
+    parser = ArgumentParser(prog=prog, description=DESCRIPTION, formatter_class=HelpFormatter)
+    parser.add_argument("file", metavar="EXPERIMENT.yaml", help="the experiment file")
+    parser.add_argument(
+        "--variant",
+        default=None,
+        help="apply this entry of the file's `variants` (e.g. quick); its results go to "
+        "<out>/<variant>",
+    )
+    parser.add_argument(
+        "--task",
+        nargs="+",
+        default=None,
+        metavar="ENV_ID",
+        help="only these tasks (for a generalization experiment: these test tasks)",
+    )
+    parser.add_argument(
+        "--stage",
+        nargs="+",
+        choices=STAGE_CHOICES,
+        default=None,
+        help="only these stages (default: all, in order)",
+    )
+    parser.add_argument(
+        "--dry-run",
+        action="store_true",
+        help="print the plan (commands, env steps, estimated wall time, what is done) and stop",
+    )
+    parser.add_argument("--quiet", action="store_true", help="no plan and no progress lines")
+    return parser
+
+
+def _plan_lines(
+    exp: object, steps: Sequence[object], statuses: Sequence[tuple[bool, float, str]]
+) -> list[str]:
+    from ermrl.cli._experiment import Experiment, Step, format_duration
+
+    assert isinstance(exp, Experiment)
+    head = f"experiment {exp.name!r}" + (f" (variant {exp.variant})" if exp.variant else "")
+    lines = [
+        f"{head} from {exp.path}",
+        f"  storage {exp.storage}; results {exp.out}"
+        + (f"; published to {exp.publish}" if exp.publish else ""),
+    ]
+    total_steps = 0
+    total_seconds = 0.0
+    left_seconds = 0.0
+    for index, (step, (done, left, text)) in enumerate(zip(steps, statuses), start=1):
+        assert isinstance(step, Step)
+        mark = "done" if done else "todo"
+        size = f"{step.env_steps / 1e6:.4g}M env steps" if step.env_steps else "no training"
+        lines.append(
+            f"  {index:>2}. [{mark}] {step.stage:<10} {step.label:<16} {size}, "
+            f"~{format_duration(step.seconds)} ({text})"
+        )
+        if step.stage == "reevaluate":
+            lines.append("      (run by the evolve command once the budget is spent)")
+        else:
+            lines.append(f"      {step.command_line}")
+        total_steps += step.env_steps
+        total_seconds += step.seconds
+        left_seconds += 0.0 if done else step.seconds * left
+    lines.append(
+        f"  total {total_steps / 1e6:.4g}M env steps, ~{format_duration(total_seconds)} on 2 cores; "
+        f"left ~{format_duration(left_seconds)} (estimates from ermrl/data/throughput.yml)"
+    )
+    return lines
+
+
+def run_main(argv: Sequence[str] | None = None, prog: str = "ermrl run") -> int:
+    """Entry point of ``ermrl run``."""
+    import yaml
+
+    from ermrl._io import write_atomic
+    from ermrl.cli import COMMANDS, _load
+    from ermrl.cli._common import quiet_libraries
+    from ermrl.cli._experiment import (
+        ExperimentError,
+        experiment_plan,
+        load_experiment,
+        resolved_document,
+    )
+    from ermrl.storage import StorageError
+
+    parser = build_run_parser(prog)
+    args = parser.parse_args(argv)
+    quiet_libraries()
+    try:
+        exp = load_experiment(args.file, args.variant)
+        steps = experiment_plan(exp, tasks=args.task, build_agents=not args.dry_run)
+        statuses = [step.status() for step in steps]
+    except (ExperimentError, StorageError) as err:
+        fail(prog, str(err))
+    if args.stage:
+        keep = set(args.stage)
+        chosen = [(s, st) for s, st in zip(steps, statuses) if s.stage in keep]
+    else:
+        chosen = list(zip(steps, statuses))
+    if not args.quiet or args.dry_run:
+        for line in _plan_lines(exp, [s for s, _ in chosen], [st for _, st in chosen]):
+            print(line, flush=True)
+    if args.dry_run:
+        return 0
+    try:
+        resolved = resolved_document(exp, steps)
+        write_atomic(
+            exp.out / "experiment.resolved.yaml",
+            "# ermrl run: the experiment as run, every command's options filled in\n"
+            + yaml.safe_dump(resolved, sort_keys=False, width=100),
+        )
+    except OSError as err:
+        fail(prog, f"cannot write {exp.out}: {err.strerror or err}")
+    for step, _ in chosen:
+        done, _, text = step.status()
+        if done:
+            if not args.quiet:
+                print(f"[{step.stage} {step.label}] done ({text}): skipped", flush=True)
+            continue
+        if not args.quiet:
+            print(f"[{step.stage} {step.label}] {step.command_line}", flush=True)
+        run = _load(COMMANDS[step.command][0])
+        try:
+            code = int(run(step.argv, prog=f"ermrl {step.command}") or 0)
+        except SystemExit as err:
+            code = err.code if isinstance(err.code, int) else 1
+        except KeyboardInterrupt:
+            print(f"{prog}: interrupted; rerun the same command to resume", file=sys.stderr)
+            return EXIT_INTERRUPTED
+        if code != 0:
+            print(
+                f"{prog}: stage {step.stage} of {step.label} stopped (exit code {code}); "
+                "rerun the same command to resume",
+                file=sys.stderr,
+            )
+            return code
+        if exp.publish is not None and step.stage in ("test", "report"):
+            _publish(exp, step)
+    if not args.quiet:
+        print(
+            f"done: experiment {exp.name!r}; resolved configuration in {exp.out}/experiment.resolved.yaml",
+            flush=True,
+        )
+    return 0
+
+
+def _publish(exp: object, step: object) -> None:
+    """Copy a finished step's plain files to the experiment's publish folder."""
+    from ermrl.cli._experiment import Experiment, Step, publish_step
+
+    assert isinstance(exp, Experiment) and isinstance(step, Step)
+    publish_step(exp, step)

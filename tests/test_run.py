@@ -1,0 +1,310 @@
+"""``ermrl run EXPERIMENT.yaml``: plans, refusals before anything is written, resumption.
+
+Real CLI processes on real SQLite studies with real (tiny) training; nothing is mocked.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import resource
+import signal
+import subprocess
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+import optuna
+import pytest
+import yaml
+from optuna.trial import TrialState
+
+from ermrl.cli._experiment import (
+    ExperimentError,
+    experiment_plan,
+    load_experiment,
+    options_to_argv,
+)
+from ermrl.storage import open_storage
+
+ROOT = Path(__file__).resolve().parents[1]
+PAPER = sorted((ROOT / "experiments" / "paper").glob("*.yaml"))
+
+
+def ermrl(cwd: Path, *args: str, timeout: float = 900) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "ermrl", *args],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        timeout=timeout,
+    )
+
+
+def write(tmp_path: Path, doc: dict, name: str = "exp.yaml") -> Path:
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return path
+
+
+# A tiny single-task experiment: Pendulum with velocities hidden, a few hundred steps per agent.
+TINY = {
+    "name": "tiny",
+    "tasks": ["Pendulum-v1"],
+    "evolve": {
+        "observe": "positions",
+        "units": 20,
+        "n_trials": 3,
+        "n_seeds": 1,
+        "training_steps": 256,
+        "n_envs": 1,
+        "ppo": {"n_steps": 128, "batch_size": 64, "n_epochs": 2},
+    },
+    "reevaluate": {"top": 1, "seeds": 1},
+    "test": {"agents": ["ppo", "res-ppo"], "seeds": [10], "training_steps": 256},
+    "report": {"dynamics": False, "interactive": False, "html": False},
+}
+
+
+def test_paper_files_exist_with_a_quick_variant() -> None:
+    names = {p.stem for p in PAPER}
+    assert {"h1_partial_observability", "h2_locomotion", "h3_generalization"} <= names
+    for path in PAPER:
+        doc = yaml.safe_load(path.read_text())
+        assert "quick" in doc["variants"], path
+        # The header states the scale and how it differs from the paper's.
+        head = path.read_text().split("\nname:")[0]
+        assert "Scale" in head and "Differences from the paper" in head, path
+
+
+@pytest.mark.parametrize("path", PAPER, ids=lambda p: p.stem)
+def test_dry_run_prints_the_plan_quickly_and_writes_nothing(tmp_path: Path, path: Path) -> None:
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    done = ermrl(tmp_path, "run", str(path), "--dry-run")
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    # CPU seconds, not wall seconds: the work the plan takes, whatever else the host runs.
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    assert done.returncode == 0, done.stderr
+    out = done.stdout
+    assert "evolve" in out and "test" in out and "report" in out
+    assert "ermrl evolve" in out and "--training-steps 300000" in out
+    assert "M env steps" in out and "total" in out and "left" in out
+    assert list(tmp_path.iterdir()) == []  # nothing written, no storage created
+    # Target: under 10 s (one process, so its CPU time is its wall time on an idle core).
+    assert cpu < 10, cpu
+
+
+def test_the_plan_counts_env_steps_from_the_file(tmp_path: Path) -> None:
+    exp = load_experiment(ROOT / "experiments" / "paper" / "h2_locomotion.yaml")
+    steps = experiment_plan(exp, tasks=["Swimmer-v5"], build_agents=False)
+    by_stage = {s.stage: s for s in steps}
+    assert by_stage["evolve"].env_steps == 100 * 3 * 300_000
+    assert by_stage["reevaluate"].env_steps == (3 + 1) * 3 * 300_000
+    assert by_stage["test"].env_steps == 3 * 5 * 1_000_000
+    assert by_stage["evolve"].seconds > 0
+    # Per-task overrides change the scale of that task only.
+    ant = experiment_plan(exp, tasks=["Ant-v5"], build_agents=False)[0]
+    assert ant.env_steps == 60 * 3 * 300_000
+
+
+def test_a_variant_goes_to_its_own_folder_and_storage(tmp_path: Path) -> None:
+    path = ROOT / "experiments" / "paper" / "h2_locomotion.yaml"
+    full = load_experiment(path)
+    quick = load_experiment(path, "quick")
+    assert quick.out == full.out / "quick"
+    assert quick.storage != full.storage
+    assert quick.publish is None  # CI-sized results are never published
+    assert [t.env_id for t in quick.tasks] == ["Swimmer-v5"]
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"nmae": "x"}, "unknown key 'nmae' (did you mean 'name'?)"),
+        (
+            {"evolve": {**TINY["evolve"], "n_trails": 4}},
+            "unknown key 'n_trails' (did you mean 'n_trials'?)",
+        ),
+        ({"evolve": {**TINY["evolve"], "n_trials": 0}}, "n-trials"),
+        ({"evolve": {**TINY["evolve"], "sampler": "annealing"}}, "invalid choice: 'annealing'"),
+        ({"evolve": {**TINY["evolve"], "units": 20000}}, "units must be in [1, 10000]"),
+        ({"test": {**TINY["test"], "agents": ["res-pop"]}}, "res-pop"),
+        ({"reevaluate": {"tops": 2}}, "did you mean 'top'?"),
+        ({"report": {"dynamic": True}}, "did you mean 'dynamics'?"),
+        ({"tasks": ["NoSuchEnv-v0"]}, "NoSuchEnv-v0"),
+        ({"tasks": []}, "tasks"),
+        ({"evolve": {**TINY["evolve"], "storage": "sqlite:///x.db"}}, "set by ermrl run"),
+        ({"evolve": {**TINY["evolve"], "fixed_input_scaling": "yes"}}, "'yes' is not a number"),
+    ],
+)
+def test_a_bad_file_fails_in_one_line_before_anything_is_written(
+    tmp_path: Path, change: dict, message: str
+) -> None:
+    path = write(tmp_path, {**TINY, **change})
+    done = ermrl(tmp_path, "run", str(path))
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert message in done.stderr, done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1, done.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["exp.yaml"]
+
+
+def test_an_unknown_variant_and_an_unreadable_file_are_one_line(tmp_path: Path) -> None:
+    path = write(tmp_path, TINY)
+    done = ermrl(tmp_path, "run", str(path), "--variant", "qiuck")
+    assert done.returncode == 2 and "no variant 'qiuck'" in done.stderr
+    (tmp_path / "bad.yaml").write_text("name: [unclosed\n")
+    done = ermrl(tmp_path, "run", "bad.yaml")
+    assert done.returncode == 2 and "not valid YAML" in done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1
+    done = ermrl(tmp_path, "run", "missing.yaml")
+    assert done.returncode == 2 and "cannot read" in done.stderr
+
+
+def test_a_file_that_contradicts_the_stored_study_is_refused(tmp_path: Path) -> None:
+    path = write(tmp_path, TINY)
+    exp = load_experiment(path)
+    (step,) = [s for s in experiment_plan(exp, build_agents=False) if s.stage == "evolve"]
+    # The same study, created with 30 units instead of the file's 20.
+    argv = [a if a != "20" else "30" for a in step.argv]
+    os.makedirs(tmp_path / "runs" / "tiny")
+    created = ermrl(tmp_path, "study", "create", *argv)
+    assert created.returncode == 0, created.stderr
+    before = sorted(p.name for p in (tmp_path / "runs" / "tiny").iterdir())
+    done = ermrl(tmp_path, "run", str(path))
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert "evolved with other settings" in done.stderr and "units" in done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1
+    assert sorted(p.name for p in (tmp_path / "runs" / "tiny").iterdir()) == before
+
+
+def test_options_become_the_commands_own_flags() -> None:
+    from ermrl.cli._evolve import build_evolve_parser
+
+    parser = build_evolve_parser()
+    argv = options_to_argv(
+        parser,
+        {
+            "observe": "positions",
+            "n_trials": 5,
+            "fixed_input_scaling": True,
+            "reference_trial": False,
+            "sr_range": [0.01, 10],
+            "ppo": {"learning_rate": 1.0e-4, "n_steps": 64},
+            "quiet": True,
+        },
+        "here",
+    )
+    assert argv == [
+        "--observe", "positions", "--n-trials", "5", "--fixed-input-scaling",
+        "--no-reference-trial", "--sr-range", "0.01", "10",
+        "--ppo", "learning_rate=0.0001", "n_steps=64", "--quiet",
+    ]  # fmt: skip
+    args = parser.parse_args(["--env-id", "Pendulum-v1", *argv])
+    assert isinstance(args, argparse.Namespace) and args.fixed_input_scaling == 1.0
+    with pytest.raises(ExperimentError, match="true or false"):
+        options_to_argv(parser, {"quiet": "no"}, "here")
+    with pytest.raises(ExperimentError, match="one value, got a list"):
+        options_to_argv(parser, {"n_trials": [1, 2]}, "here")
+
+
+def _load(url: str, name: str) -> optuna.Study:
+    return optuna.load_study(study_name=name, storage=open_storage(url))
+
+
+def test_a_run_finishes_every_stage_then_skips_them_all(tmp_path: Path) -> None:
+    path = write(tmp_path, TINY)
+    done = ermrl(tmp_path, "run", str(path))
+    assert done.returncode == 0, done.stdout + done.stderr
+    out = tmp_path / "runs" / "tiny"
+    # The plan is printed at the start of the real run too.
+    assert done.stdout.index("total") < done.stdout.index("[evolve Pendulum-v1]")
+    resolved = yaml.safe_load((out / "experiment.resolved.yaml").read_text())
+    evolve = resolved["commands"][0]
+    # Every default is filled in, not only what the file set.
+    assert evolve["options"]["sampler"] == "cmaes" and evolve["options"]["n_trials"] == 3
+    assert evolve["options"]["reevaluate_top"] == 1 and "grace_period" in evolve["options"]
+    assert (out / "Pendulum-v1" / "test" / "summary.csv").exists()
+    assert (out / "Pendulum-v1" / "report" / "report.md").exists()
+    study = _load(f"sqlite:///{out}/ermrl.db", "Pendulum-v1__positions__256steps")
+    assert study.user_attrs["ermrl_reevaluation"]["complete"]
+    again = ermrl(tmp_path, "run", str(path))
+    assert again.returncode == 0, again.stderr
+    assert again.stdout.count("skipped") == 4, again.stdout
+    assert len(_load(f"sqlite:///{out}/ermrl.db", study.study_name).get_trials()) == 3
+
+
+def _wait_for(predicate, timeout: float, log: Path) -> None:  # noqa: ANN001
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return
+        time.sleep(0.2)
+    raise AssertionError(f"timed out; log:\n{log.read_text()}")
+
+
+def _start(tmp_path: Path, args: list[str], log_name: str) -> tuple[subprocess.Popen, Path]:
+    log_path = tmp_path / log_name
+    log = open(log_path, "w")  # noqa: SIM115 (closed by the process's end)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "ermrl", *args],
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+        cwd=tmp_path,
+    )
+    return proc, log_path
+
+
+@pytest.mark.slow
+def test_a_quick_paper_file_survives_kill_9_in_evolution_and_in_the_test(tmp_path: Path) -> None:
+    """Killed during evolution and again during the test, the rerun trains nothing twice."""
+    path = ROOT / "experiments" / "paper" / "h1_partial_observability.yaml"
+    exp = load_experiment(path, "quick")
+    out = tmp_path / exp.out
+    url = f"sqlite:///{out}/ermrl.db"
+    name = "Pendulum-v1__positions__2048steps"
+    args = ["run", str(path), "--variant", "quick"]
+
+    def running() -> bool:
+        try:
+            return bool(_load(url, name).get_trials(states=[TrialState.RUNNING]))
+        except Exception:  # the study does not exist yet
+            return False
+
+    proc, log = _start(tmp_path, args, "first.log")
+    _wait_for(running, 300, log)
+    time.sleep(1.0)  # inside the generation's training
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait(10)
+    killed = {t.number for t in _load(url, name).get_trials(states=[TrialState.RUNNING])}
+    assert killed
+
+    test_dir = out / "Pendulum-v1" / "test" / "agents"
+
+    def some_runs_done() -> bool:
+        return len(list(test_dir.glob("*/seed_*/result.json"))) >= 2
+
+    proc, log = _start(tmp_path, args, "second.log")
+    _wait_for(some_runs_done, 600, log)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait(10)
+    finished = {p: p.stat().st_mtime_ns for p in test_dir.glob("*/seed_*/result.json")}
+    total = 4 * 2  # the quick variant: 4 agents x 2 seeds
+    assert 2 <= len(finished) < total, finished
+
+    done = ermrl(tmp_path, *args)
+    assert done.returncode == 0, done.stdout + done.stderr
+    trials = _load(url, name).get_trials()
+    states = Counter(t.state for t in trials)
+    # The killed generation's trials failed and were retried; no finished trial ran again.
+    assert states[TrialState.COMPLETE] == 3, states
+    assert {t.number for t in trials if t.state == TrialState.FAIL} == killed
+    complete = [t for t in trials if t.state == TrialState.COMPLETE]
+    assert len({tuple(sorted(t.params.items())) for t in complete}) == 3
+    # The test runs that had finished were not trained again; the others were.
+    after = {p: p.stat().st_mtime_ns for p in test_dir.glob("*/seed_*/result.json")}
+    assert len(after) == total
+    assert all(after[p] == mtime for p, mtime in finished.items())
+    assert "skip" in done.stdout
+    assert (out / "Pendulum-v1" / "report" / "report.md").exists()
