@@ -308,3 +308,41 @@ def test_a_quick_paper_file_survives_kill_9_in_evolution_and_in_the_test(tmp_pat
     assert all(after[p] == mtime for p, mtime in finished.items())
     assert "skip" in done.stdout
     assert (out / "Pendulum-v1" / "report" / "report.md").exists()
+
+
+def test_a_snapshot_carries_an_unfinished_evolution_to_a_fresh_machine(tmp_path: Path) -> None:
+    """Stop part-way, snapshot to the published folder, lose runs/: the run resumes from it."""
+    path = write(tmp_path, {**TINY, "publish": "published"})
+    exp = load_experiment(path)
+    (step,) = [s for s in experiment_plan(exp, build_agents=False) if s.stage == "evolve"]
+    # Two of the three trials, by the evolve command the file composes.
+    partial = [a if a != "3" else "2" for a in step.argv]
+    (tmp_path / "runs" / "tiny").mkdir(parents=True)
+    done = ermrl(tmp_path, "evolve", *partial)
+    assert done.returncode == 0, done.stderr
+    snap = ermrl(tmp_path, "run", str(path), "--snapshot")
+    assert snap.returncode == 0, snap.stderr
+    snapshot = tmp_path / "published" / "Pendulum-v1" / "study.json"
+    assert snapshot.exists() and "2 trials" in snap.stdout
+    original = {
+        t.number: t.params
+        for t in _load(f"sqlite:///{tmp_path}/runs/tiny/ermrl.db", step.study_name).get_trials()
+    }
+    # A fresh machine: the committed files only.
+    import shutil
+
+    shutil.rmtree(tmp_path / "runs")
+    plan = ermrl(tmp_path, "run", str(path), "--dry-run")
+    assert plan.returncode == 0 and "2 finished trials, imported when run" in plan.stdout
+    assert not (tmp_path / "runs").exists()
+    done = ermrl(tmp_path, "run", str(path))
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert f"imported {snapshot.relative_to(tmp_path)}" in done.stdout
+    trials = _load(f"sqlite:///{tmp_path}/runs/tiny/ermrl.db", step.study_name).get_trials()
+    assert [t.number for t in trials] == [0, 1, 2]
+    assert all(t.state == TrialState.COMPLETE for t in trials)
+    assert {t.number: t.params for t in trials if t.number < 2} == original
+    # The evolution went on from the stored CMA-ES state, not from a new start.
+    assert trials[2].system_attrs.get("cma:n_restarts", 0) == 0
+    assert (tmp_path / "published" / "Pendulum-v1" / "test" / "summary.csv").exists()
+    assert (tmp_path / "published" / "Pendulum-v1" / "report" / "report.md").exists()

@@ -969,3 +969,87 @@ def publish_step(exp: Experiment, step: Step) -> list[Path]:
 
 
 _PLAIN = {".csv", ".json", ".md", ".html", ".png", ".yaml", ".yml", ".txt"}
+
+
+# ---------------------------------------------------------------------------------------------
+# Snapshots: a study as one plain JSON file, so a run continues on another machine
+
+
+def snapshot_path(exp: Experiment, step: Step) -> Path:
+    """Where an evolution step's study snapshot lives: ``<publish or out>/<task>/study.json``."""
+    return (exp.publish or exp.out) / step.label / "study.json"
+
+
+def write_snapshots(exp: Experiment, steps: Sequence[Step]) -> list[tuple[Step, Path, int]]:
+    """Write a snapshot of every evolution study that exists (and its re-evaluation study).
+
+    A study is read while workers may still write to it: what was COMPLETE stays so, and the
+    trials running at that moment are retried when the snapshot is imported.
+
+    Returns:
+        ``(step, file, trials)`` for each snapshot written.
+    """
+    from ermrl.storage import write_snapshot
+
+    out = []
+    for step in steps:
+        if step.stage != "evolve":
+            continue
+        with _study(exp.storage, step.study_name) as study:
+            if study is None:
+                continue
+            path = snapshot_path(exp, step)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            doc = write_snapshot(study, path)
+            out.append((step, path, len(doc["trials"])))
+    return out
+
+
+def import_snapshots(exp: Experiment, steps: Sequence[Step]) -> list[tuple[Step, Path, int]]:
+    """Import the snapshot of every evolution study the storage does not hold yet.
+
+    Returns:
+        ``(step, file, trials)`` for each study imported.
+
+    Raises:
+        ExperimentError: a snapshot that cannot be imported (one line).
+    """
+    from ermrl.storage import (
+        LockTimeout,
+        SnapshotError,
+        StorageError,
+        StudyExists,
+        import_snapshot,
+    )
+
+    out = []
+    for step in steps:
+        if step.stage != "evolve":
+            continue
+        path = snapshot_path(exp, step)
+        if not path.exists():
+            continue
+        with _study(exp.storage, step.study_name) as study:
+            if study is not None:
+                continue
+        try:
+            result = import_snapshot(path, exp.storage, step.study_name)
+        except (SnapshotError, StudyExists, StorageError, LockTimeout) as err:
+            raise ExperimentError(f"{path}: cannot import ({err})") from None
+        out.append((step, path, len(result.study.get_trials(deepcopy=False))))
+    return out
+
+
+def snapshot_status(exp: Experiment, step: Step) -> str | None:
+    """For a study the storage lacks: what its snapshot holds (``None``: no snapshot)."""
+    import json
+
+    path = snapshot_path(exp, step)
+    if not path.exists():
+        return None
+    try:
+        trials = json.loads(path.read_text())["trials"]
+        done = sum(t.get("state") in ("COMPLETE", "PRUNED") for t in trials)
+    except (OSError, ValueError, KeyError, TypeError):
+        return f"snapshot {path} unreadable"
+    return f"snapshot {path}: {done} finished trials, imported when run"

@@ -65,6 +65,13 @@ def build_run_parser(prog: str = "ermrl run") -> ArgumentParser:
         action="store_true",
         help="print the plan (commands, env steps, estimated wall time, what is done) and stop",
     )
+    parser.add_argument(
+        "--snapshot",
+        action="store_true",
+        help="write each evolution study as one plain JSON file, <publish or out>/<task>/"
+        "study.json, and stop (commit it: a later `ermrl run` on another machine imports it "
+        "and resumes the evolution where it stopped)",
+    )
     parser.add_argument("--quiet", action="store_true", help="no plan and no progress lines")
     return parser
 
@@ -106,6 +113,17 @@ def _plan_lines(
     return lines
 
 
+def _status(exp: object, step: object) -> tuple[bool, float, str]:
+    """A step's status; for an evolution the storage lacks, what its snapshot holds."""
+    from ermrl.cli._experiment import Experiment, Step, snapshot_status
+
+    assert isinstance(exp, Experiment) and isinstance(step, Step)
+    done, left, text = step.status()
+    if step.stage == "evolve" and text == "not started":
+        text = snapshot_status(exp, step) or text
+    return done, left, text
+
+
 def run_main(argv: Sequence[str] | None = None, prog: str = "ermrl run") -> int:
     """Entry point of ``ermrl run``."""
     import yaml
@@ -116,8 +134,10 @@ def run_main(argv: Sequence[str] | None = None, prog: str = "ermrl run") -> int:
     from ermrl.cli._experiment import (
         ExperimentError,
         experiment_plan,
+        import_snapshots,
         load_experiment,
         resolved_document,
+        write_snapshots,
     )
     from ermrl.storage import StorageError
 
@@ -127,9 +147,16 @@ def run_main(argv: Sequence[str] | None = None, prog: str = "ermrl run") -> int:
     try:
         exp = load_experiment(args.file, args.variant)
         steps = experiment_plan(exp, tasks=args.task, build_agents=not args.dry_run)
-        statuses = [step.status() for step in steps]
+        statuses = [_status(exp, step) for step in steps]
     except (ExperimentError, StorageError) as err:
         fail(prog, str(err))
+    if args.snapshot:
+        try:
+            for step, path, n in write_snapshots(exp, steps):
+                print(f"wrote {path}: study {step.study_name!r}, {n} trials", flush=True)
+        except OSError as err:
+            fail(prog, f"cannot write the snapshot: {err.strerror or err}")
+        return 0
     if args.stage:
         keep = set(args.stage)
         chosen = [(s, st) for s, st in zip(steps, statuses) if s.stage in keep]
@@ -149,6 +176,11 @@ def run_main(argv: Sequence[str] | None = None, prog: str = "ermrl run") -> int:
         )
     except OSError as err:
         fail(prog, f"cannot write {exp.out}: {err.strerror or err}")
+    try:
+        for step, path, n in import_snapshots(exp, steps):
+            print(f"imported {path}: study {step.study_name!r}, {n} trials", flush=True)
+    except ExperimentError as err:
+        fail(prog, str(err))
     for step, _ in chosen:
         done, _, text = step.status()
         if done:
@@ -174,6 +206,8 @@ def run_main(argv: Sequence[str] | None = None, prog: str = "ermrl run") -> int:
             return code
         if exp.publish is not None and step.stage in ("test", "report"):
             _publish(exp, step)
+        if exp.publish is not None and step.stage == "evolve":
+            write_snapshots(exp, [step])
     if not args.quiet:
         print(
             f"done: experiment {exp.name!r}; resolved configuration in {exp.out}/experiment.resolved.yaml",
