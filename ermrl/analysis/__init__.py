@@ -36,6 +36,14 @@ from ermrl.analysis._replay import (
     rollout,
 )
 from ermrl.analysis._report import ReportResult, notebook_parameters, write_report
+from ermrl.analysis._reproduction import (
+    Hypothesis,
+    TaskFiles,
+    TaskResult,
+    task_result,
+    verdict,
+    write_reproduction_page,
+)
 from ermrl.analysis._results import (
     curves_on_grid,
     load_curves,
@@ -101,6 +109,12 @@ __all__ = [
     "best_params_table",
     "bootstrap_mean_diff_ci",
     "compare_agents",
+    "Hypothesis",
+    "TaskFiles",
+    "TaskResult",
+    "task_result",
+    "verdict",
+    "write_reproduction_page",
     "paired_bootstrap_mean_diff_ci",
     "curves_on_grid",
     "dominant_frequency",

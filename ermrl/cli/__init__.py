@@ -42,6 +42,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "ermrl.cli._run:run_main",
         "a whole experiment from one YAML file: evolve, re-evaluate, test, report",
     ),
+    "reproduction": (
+        "ermrl.cli._reproduction:reproduction_main",
+        "the reproduction page of experiment files, from their published results",
+    ),
     "expert": (
         "ermrl.cli._expert:expert_main",
         "train and evaluate experts for imitation (BC, DAgger)",

@@ -57,6 +57,7 @@ __all__ = [
 TOP_LEVEL_KEYS: dict[str, str] = {
     "name": "the experiment's name (required); results go to runs/<name> unless `out` is set",
     "description": "free text: the question, and how the scale differs from the paper's",
+    "claim": "the claim this experiment tests, quoted from its source (the reproduction page)",
     "out": "results folder (default: runs/<name>)",
     "storage": "Optuna storage of the studies (default: sqlite:///<out>/ermrl.db)",
     "publish": "folder that receives the plain-file results (summary, per-seed CSV, trials)",
@@ -1053,3 +1054,33 @@ def snapshot_status(exp: Experiment, step: Step) -> str | None:
     except (OSError, ValueError, KeyError, TypeError):
         return f"snapshot {path} unreadable"
     return f"snapshot {path}: {done} finished trials, imported when run"
+
+
+def hypothesis_of(exp: Experiment, file: str | None = None) -> Any:
+    """The experiment as a :class:`~ermrl.analysis.Hypothesis` of the reproduction page."""
+    from ermrl.analysis import Hypothesis, TaskFiles
+
+    steps = experiment_plan(exp, build_agents=False)
+    evolve = [s for s in steps if s.stage == "evolve"]
+    base = exp.publish or exp.out
+    tasks = []
+    for test in (s for s in steps if s.stage == "test"):
+        source = (
+            evolve[0] if exp.generalization else next(s for s in evolve if s.label == test.label)
+        )
+        argv = source.argv
+        n_trials = int(argv[argv.index("--n-trials") + 1]) if "--n-trials" in argv else 0
+        tasks.append(
+            TaskFiles(
+                test.label, source.label, base / test.label, snapshot_path(exp, source), n_trials
+            )
+        )
+    description = exp.document.get("description")
+    claim = exp.document.get("claim")
+    return Hypothesis(
+        exp.name,
+        file or str(exp.path),
+        None if claim is None else str(claim).strip(),
+        None if description is None else str(description),
+        tuple(tasks),
+    )
