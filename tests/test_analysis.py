@@ -457,3 +457,37 @@ def test_report_of_a_study_without_trials(tmp_path: Path) -> None:
     assert "No COMPLETE trial yet." in md
     assert "not created by ermrl" in md
     assert result.figures["optimization_history"].exists()
+
+
+def test_the_gait_is_the_joint_angles_frequency_and_is_marked_on_the_spectra() -> None:
+    from ermrl.analysis import gait_frequency, joint_angles, spectrum_comparison_figure
+
+    n, dt = 800, 0.04  # Swimmer-v5: 3 position values (angles), then 5 velocities
+    t = np.arange(n) * dt
+    angles = np.stack([np.sin(2 * np.pi * 1.5 * t + k) for k in range(3)], axis=1)
+    velocities = np.stack([np.sin(2 * np.pi * 4.0 * t + k) for k in range(5)], axis=1)
+    states = np.tanh(np.stack([np.sin(2 * np.pi * 2.5 * t + k) for k in range(10)], axis=1))
+    rec = DynamicsRecording(
+        observations=np.concatenate([angles, 3 * velocities], axis=1),
+        actions=angles[:, :2],
+        rewards=np.ones(n),
+        states=states,
+        dt=dt,
+        env_id="Swimmer-v5",
+        observe="all",
+        agent="res-ppo",
+        seed=10,
+        obs_indices=np.arange(8),
+    )
+    np.testing.assert_array_equal(joint_angles(rec), angles)
+    assert gait_frequency(rec) == pytest.approx(1.5, abs=0.1)
+    summary = spectrum_summary(rec)["signals"]
+    assert summary["joint angles (gait)"]["dominant_frequency"] == pytest.approx(1.5, abs=0.1)
+    assert summary["observations"]["dominant_frequency"] == pytest.approx(4.0, abs=0.1)
+    fig = spectrum_comparison_figure({"res-ppo": rec})
+    labels = [line.get_label() for line in fig.axes[0].get_lines()]
+    gait = f"gait of RES-PPO (evolved reservoir) (joint angles): {gait_frequency(rec):.3g} Hz"
+    assert gait in labels, labels
+    # Velocities only: no joint angles, no gait.
+    blind = DynamicsRecording(**{**rec.__dict__, "observe": "velocities"})
+    assert joint_angles(blind) is None and math.isnan(gait_frequency(blind))

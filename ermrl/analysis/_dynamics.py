@@ -39,6 +39,8 @@ __all__ = [
     "DynamicsRecording",
     "dominant_frequency",
     "dynamics_figure",
+    "gait_frequency",
+    "joint_angles",
     "power_spectrum",
     "record_dynamics",
     "spectrum_comparison_figure",
@@ -394,7 +396,12 @@ def spectrum_figure(recording: DynamicsRecording, *, title: str | None = None) -
     """
     dt = recording.dt if math.isfinite(recording.dt) else 1.0
     unit = "Hz" if math.isfinite(recording.dt) else "cycles per step"
-    colors = {"reservoir states": "tab:orange", "observations": "tab:blue", "actions": "tab:green"}
+    colors = {
+        "reservoir states": "tab:orange",
+        "observations": "tab:blue",
+        "joint angles (gait)": "black",
+        "actions": "tab:green",
+    }
     with paper_style():
         fig, ax = new_figure(figsize=(7.0, 4.4))
         if recording.n_steps < 4:
@@ -472,6 +479,18 @@ def spectrum_comparison_figure(
         if not drawn or first is None:
             empty_axes(ax, "no reservoir agent recorded")
             return fig
+        # The gait of the first (evolved) agent's learned policy: its joint-angle spectrum.
+        gait = gait_frequency(first)
+        if math.isfinite(gait):
+            unit_short = "Hz" if math.isfinite(first.dt) else "cycles/step"
+            ax.axvline(
+                gait,
+                color="black",
+                ls=":",
+                lw=1.6,
+                label=f"gait of {AGENT_LABELS.get(first.agent, first.agent)} "
+                f"(joint angles): {gait:.3g} {unit_short}",
+            )
         unit = "Hz" if math.isfinite(first.dt) else "cycles per step"
         ax.set_yscale("log")
         ax.set_xlabel(f"Frequency ({unit})")
@@ -517,11 +536,49 @@ def write_dynamics(
     return paths
 
 
+def joint_angles(recording: DynamicsRecording) -> np.ndarray | None:
+    """The position part of the recorded observations (joint angles and body orientation).
+
+    Its spectrum is the gait: the frequency at which a locomotion policy moves its joints.
+
+    Returns:
+        Shape ``(T, k)``; ``None`` when the episode's observation holds no positions
+        (``observe="velocities"``) or the task has no known position/velocity split.
+    """
+    obs = recording.observations
+    if recording.observe == "positions":
+        return obs
+    if recording.observe != "all":
+        return None
+    try:
+        from ermrl.envs import observation_indices
+
+        indices = observation_indices(recording.env_id, "positions")
+    except Exception:  # a task without a known split
+        return None
+    if not indices or max(indices) >= obs.shape[1]:
+        return None
+    return obs[:, list(indices)]
+
+
+def gait_frequency(recording: DynamicsRecording) -> float:
+    """Dominant frequency of the joint angles (:func:`joint_angles`); NaN when unknown."""
+    angles = joint_angles(recording)
+    if angles is None or recording.n_steps < 4:
+        return math.nan
+    dt = recording.dt if math.isfinite(recording.dt) else 1.0
+    freqs, power = power_spectrum(angles, dt)
+    return dominant_frequency(freqs, power)
+
+
 def _signals(recording: DynamicsRecording) -> dict[str, np.ndarray]:
     out = {}
     if recording.states.shape[1] > 0:
         out["reservoir states"] = recording.states
     out["observations"] = recording.observations
+    angles = joint_angles(recording)
+    if angles is not None and recording.observe == "all":
+        out["joint angles (gait)"] = angles
     out["actions"] = recording.actions
     return out
 
