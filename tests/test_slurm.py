@@ -125,3 +125,44 @@ def test_evolve_array_then_test_array(
         for seed in (10, 11)
     ]
     assert (out / "summary.csv").exists()
+
+
+def test_an_experiment_file_evolution_array_then_the_rest_once(
+    slurm_env: dict[str, str], tmp_path: Path
+) -> None:
+    """`ermrl run FILE --stage evolve` array tasks share the study; one more job finishes it."""
+    import yaml
+
+    (tmp_path / "slurm" / "logs").mkdir(parents=True)
+    doc = {
+        "name": "slurm-exp",
+        "tasks": ["Pendulum-v1"],
+        "evolve": {
+            "observe": "positions", "units": 20, "n_trials": N_TRIALS, "n_seeds": 1,
+            "training_steps": 256, "n_envs": 1, "popsize": 2,
+            "ppo": {"n_steps": 128, "batch_size": 64, "n_epochs": 2},
+            "heartbeat_interval": 2, "grace_period": 20,
+        },
+        "reevaluate": {"top": 1, "seeds": 1},
+        "test": {"agents": ["ppo", "res-ppo"], "seeds": [10], "training_steps": 256},
+        "report": {"dynamics": False, "interactive": False, "html": False},
+    }  # fmt: skip
+    path = tmp_path / "exp.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    script = str(SLURM / "run_experiment.sbatch")
+    env = {**slurm_env, "ERMRL_EXPERIMENT": str(path), "ERMRL_STAGE": "evolve"}
+    job = sbatch(env, tmp_path, "--array=0-1", "--cpus-per-task=1", script)
+    url = f"sqlite:///{tmp_path}/runs/slurm-exp/ermrl.db"
+    study = optuna.load_study(
+        study_name="Pendulum-v1__positions__256steps", storage=open_storage(url)
+    )
+    trials = study.get_trials()
+    assert Counter(t.state for t in trials) == {TrialState.COMPLETE: N_TRIALS}
+    assert {t.user_attrs["worker_slurm_array_job_id"] for t in trials} == {job}
+    assert not (tmp_path / "runs" / "slurm-exp" / "Pendulum-v1" / "test").exists()
+    env.pop("ERMRL_STAGE")
+    sbatch(env, tmp_path, "--array=0", "--cpus-per-task=1", script)
+    out = tmp_path / "runs" / "slurm-exp" / "Pendulum-v1"
+    assert (out / "test" / "summary.csv").exists()
+    assert (out / "report" / "report.md").exists()
+    assert len(study.get_trials()) == N_TRIALS  # the final job trained no more trials
