@@ -106,6 +106,17 @@ def test_the_plan_counts_env_steps_from_the_file(tmp_path: Path) -> None:
     # Per-task overrides change the scale of that task only.
     ant = experiment_plan(exp, tasks=["Ant-v5"], build_agents=False)[0]
     assert ant.env_steps == 60 * 3 * 300_000
+    # A task the file does not list runs with the file's settings.
+    hopper = experiment_plan(exp, tasks=["Hopper-v5"], build_agents=False)
+    assert [s.label for s in hopper] == ["Hopper-v5"] * 4
+    assert hopper[0].env_steps == 100 * 3 * 300_000 and "--fixed-input-scaling" in hopper[0].argv
+    with pytest.raises(ExperimentError, match="NoSuchEnv-v0"):
+        experiment_plan(exp, tasks=["NoSuchEnv-v0"], build_agents=False)
+    gen = load_experiment(ROOT / "experiments" / "paper" / "h3_generalization.yaml")
+    tests = [
+        s for s in experiment_plan(gen, tasks=["Ant-v5"], build_agents=False) if s.stage == "test"
+    ]
+    assert [(s.command, s.label) for s in tests] == [("test-generalization", "Ant-v5")]
 
 
 def test_a_variant_goes_to_its_own_folder_and_storage(tmp_path: Path) -> None:

@@ -500,13 +500,9 @@ def experiment_plan(
         return _generalization_plan(exp, tasks, build_agents)
     chosen = list(exp.tasks)
     if tasks:
-        unknown = [t for t in tasks if t not in {x.env_id for x in exp.tasks}]
-        if unknown:
-            raise ExperimentError(
-                f"{exp.path}: --task {unknown[0]}: not a task of this experiment "
-                f"({', '.join(t.env_id for t in exp.tasks)})"
-            )
-        chosen = [t for t in exp.tasks if t.env_id in tasks]
+        # A task the file does not name runs with the file's settings (one set per hypothesis).
+        listed = {t.env_id: t for t in exp.tasks}
+        chosen = [listed.get(t, TaskLine(t)) for t in dict.fromkeys(tasks)]
     steps: list[Step] = []
     for task in chosen:
         steps += _single_task_steps(exp, task, build_agents)
@@ -724,13 +720,8 @@ def _generalization_plan(
     if not isinstance(env_ids, list):
         raise ExperimentError(f"{exp.path}: test.env_ids: a list of env ids")
     if only:
-        unknown = [t for t in only if t not in env_ids]
-        if unknown:
-            raise ExperimentError(
-                f"{exp.path}: --task {unknown[0]}: not a test task of this experiment "
-                f"({', '.join(env_ids) or 'none'})"
-            )
-        env_ids = [e for e in env_ids if e in only]
+        # Test tasks the file does not name run with the file's test settings.
+        env_ids = list(dict.fromkeys(only))
     test_parser = build_test_generalization_parser()
     report_parser = build_report_parser()
     for env_id in env_ids:

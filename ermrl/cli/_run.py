@@ -51,7 +51,8 @@ def build_run_parser(prog: str = "ermrl run") -> ArgumentParser:
         nargs="+",
         default=None,
         metavar="ENV_ID",
-        help="only these tasks (for a generalization experiment: these test tasks)",
+        help="only these tasks (for a generalization experiment: these test tasks); a task "
+        "the file does not list runs with the file's settings",
     )
     parser.add_argument(
         "--stage",
