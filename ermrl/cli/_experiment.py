@@ -671,7 +671,7 @@ def _generalization_plan(
     )
     study_name = generalization_study_name(config)
     argv += ["--study-name", study_name]
-    _check_study(exp, config, study_name, where, kind="generalization")
+    _check_study(exp, config, study_name, where)
     gen = config.generalization
     label = gen.suite or "+".join(gen.env_ids)
     problem = config.problem
@@ -770,13 +770,9 @@ def _study(storage: str, study_name: str) -> Iterator[Any]:
     yield study
 
 
-def _check_study(
-    exp: Experiment, config: Any, study_name: str, where: str, kind: str = "evolve"
-) -> None:
+def _check_study(exp: Experiment, config: Any, study_name: str, where: str) -> None:
     """Refuse a file whose evolution contradicts the study already in the storage."""
-    from ermrl.config import to_dict
-    from ermrl.search import STUDY_CONFIG_ATTR
-    from ermrl.search._study import config_diffs
+    from ermrl.search import STUDY_CONFIG_ATTR, resume_conflicts
 
     with _study(exp.storage, study_name) as study:
         if study is None:
@@ -784,13 +780,7 @@ def _check_study(
         stored = study.user_attrs.get(STUDY_CONFIG_ATTR)
         if stored is None:
             return
-        new = to_dict(config)
-        keys = (
-            ("problem", "space", "generalization")
-            if kind == "generalization"
-            else ("problem", "space")
-        )
-        diffs = [d for key in keys for d in config_diffs(new.get(key), stored.get(key), key)]
+        diffs = resume_conflicts(config, stored)
         if diffs:
             raise ExperimentError(
                 f"{where}: study {study_name!r} in {exp.storage} was evolved with other settings ("

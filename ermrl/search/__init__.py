@@ -60,6 +60,7 @@ from ermrl.search._study import (
     STUDY_COMMAND_ATTR,
     STUDY_CONFIG_ATTR,
     create_or_resume_study,
+    resume_conflicts,
     sample_params,
     study_config,
 )
@@ -70,6 +71,7 @@ __all__ = [
     "SAMPLERS",
     "STUDY_COMMAND_ATTR",
     "STUDY_CONFIG_ATTR",
+    "resume_conflicts",
     "EvolutionSummary",
     "FitnessResult",
     "GeneralizationFitness",

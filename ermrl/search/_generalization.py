@@ -37,7 +37,6 @@ from ermrl.config import (
     Problem,
     SearchConfig,
     TaskConfig,
-    to_dict,
 )
 from ermrl.search._evolve import EvaluateFn
 from ermrl.search._objective import (
@@ -49,12 +48,7 @@ from ermrl.search._objective import (
     train_runs,
 )
 from ermrl.search._scores import load_scores, reference_returns
-from ermrl.search._study import (
-    STUDY_CONFIG_ATTR,
-    config_diffs,
-    create_or_resume_study,
-    refuse_other_config,
-)
+from ermrl.search._study import STUDY_CONFIG_ATTR, create_or_resume_study
 
 __all__ = [
     "GeneralizationFitness",
@@ -465,9 +459,5 @@ def create_or_resume_generalization_study(
             f"study {study_name!r} already exists and is not a generalization study; "
             "pick another --study-name"
         )
-    # The table and PPO-file paths are provenance only: their values are compared per task.
-    provenance = ("scores", "hyperparams")
-    new = {k: v for k, v in to_dict(config.generalization).items() if k not in provenance}
-    old = {k: v for k, v in stored.items() if k not in provenance}
-    refuse_other_config(study_name, config_diffs(new, old, "generalization"))
+    # create_or_resume_study compared the task sets too (resume_conflicts).
     return study

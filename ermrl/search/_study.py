@@ -31,6 +31,7 @@ __all__ = [
     "enqueue_reference",
     "make_study_sampler",
     "refuse_other_config",
+    "resume_conflicts",
     "sample_params",
     "search_distributions",
     "study_config",
@@ -138,6 +139,33 @@ def config_diffs(new: Any, stored: Any, path: str) -> list[str]:
     return [] if new == stored else [f"{path}: {stored!r} in the study, {new!r} now"]
 
 
+# Provenance only (file paths of the score and PPO tables): their values are compared per task.
+_PROVENANCE = ("scores", "hyperparams")
+
+
+def resume_conflicts(config: EvolveConfig, stored: dict[str, Any]) -> list[str]:
+    """What keeps ``config`` from resuming a study stored with configuration ``stored``.
+
+    The problem and the search space must match; for a multi-task study, also the task set,
+    PPO settings per task, reference returns, target column and ``--ppo``/``--n-envs``
+    options (not the paths of the score and PPO tables).
+
+    Args:
+        config: The configuration now.
+        stored: The study's ``ermrl_config`` attribute.
+
+    Returns:
+        One line per difference (:func:`config_diffs`); empty when the study can resume.
+    """
+    new = to_dict(config)
+    diffs = [d for key in _MUST_MATCH for d in config_diffs(new[key], stored.get(key), key)]
+    if config.generalization is not None and stored.get("generalization") is not None:
+        now = {k: v for k, v in new["generalization"].items() if k not in _PROVENANCE}
+        old = {k: v for k, v in stored["generalization"].items() if k not in _PROVENANCE}
+        diffs += config_diffs(now, old, "generalization")
+    return diffs
+
+
 def refuse_other_config(study_name: str, diffs: list[str]) -> None:
     """Refuse to resume a study whose stored configuration differs (nothing if ``diffs`` is empty).
 
@@ -228,7 +256,5 @@ def create_or_resume_study(
                     stacklevel=2,
                 )
             return study
-    refuse_other_config(
-        study_name, [d for key in _MUST_MATCH for d in config_diffs(new[key], stored.get(key), key)]
-    )
+    refuse_other_config(study_name, resume_conflicts(config, stored))
     return study
