@@ -5,7 +5,10 @@ from __future__ import annotations
 import json
 import math
 import os
+import pickle
 import signal
+import subprocess
+import sys
 import threading
 import time
 import warnings
@@ -14,6 +17,7 @@ from pathlib import Path
 import optuna
 import pandas as pd
 import pytest
+import redis
 from optuna.distributions import FloatDistribution
 from optuna.storages import fail_stale_trials
 from optuna.trial import TrialState, create_trial
@@ -40,6 +44,7 @@ from ermrl.storage import (
     find_stale_trials,
     normalize_url,
     open_storage,
+    parse_storage_url,
     storage_kind,
     storage_lock,
     storage_url,
@@ -526,3 +531,38 @@ def test_study_cli_fail_stale_on_a_journal(
     assert f"failed and retry trial {number}" in capsys.readouterr().out
     states = [t.state for t in optuna.load_study(study_name="j", storage=open_storage(url)).trials]
     assert states == [TrialState.FAIL, TrialState.WAITING]
+
+
+class _RunsCode:
+    """A pickle that runs a shell command when it is loaded (what a snapshot key may hold)."""
+
+    def __init__(self, command: str) -> None:
+        self.command = command
+
+    def __reduce__(self) -> tuple[object, tuple[str]]:
+        return (os.system, (self.command,))
+
+
+@pytest.mark.services
+def test_a_redis_snapshot_is_never_unpickled_and_the_log_is_replayed(
+    redis_url: str, tmp_path: Path
+) -> None:
+    optuna.create_study(study_name="kept", storage=open_storage(redis_url))
+    spec = parse_storage_url(redis_url)
+    marker = tmp_path / "ran"
+    client = redis.Redis.from_url(spec.url)
+    client.set(f"{spec.prefix}:snapshot", pickle.dumps(_RunsCode(f"touch {marker}")))
+    client.close()
+
+    done = subprocess.run(
+        [sys.executable, "-c", "import sys; from ermrl.cli import main; sys.exit(main())"]
+        + ["study", "list", "--storage", redis_url],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 0, done.stderr
+    assert not marker.exists()
+    assert "kept" in done.stdout
+    warning = [line for line in done.stderr.splitlines() if "snapshot" in line]
+    assert len(warning) == 1 and f"{spec.prefix}:snapshot" in warning[0], done.stderr

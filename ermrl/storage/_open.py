@@ -9,7 +9,8 @@ Accepted URLs:
 - ``journal:///path.log`` or any path ending in ``.log``: an append-only journal file (works on
   NFS);
 - ``redis://host:port[/db][?prefix=NAME]``: Optuna's journal over Redis (``prefix`` keeps
-  several journals apart in one database).
+  several journals apart in one database). Optuna's pickled ``<prefix>:snapshot`` is never
+  loaded (a pickle can run code): the log is replayed instead (:class:`PlainRedisBackend`).
 
 Every storage is opened with the same guarantees: the schema is created under an inter-process
 lock (no ``table studies already exists`` when many workers start at once on a fresh file),
@@ -21,6 +22,7 @@ dead worker is failed and retried.
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import warnings
 import weakref
@@ -30,6 +32,7 @@ from typing import Any, Literal
 import optuna
 from optuna.exceptions import ExperimentalWarning
 from optuna.storages import BaseStorage
+from optuna.storages.journal import JournalRedisBackend
 
 from ermrl.storage._heartbeat import HeartbeatJournalStorage, RetryStaleTrial, base_storage
 from ermrl.storage._locks import LOCK_TIMEOUT_S, storage_lock
@@ -58,6 +61,8 @@ SQLITE_BUSY_TIMEOUT_S = 60
 DEFAULT_HEARTBEAT_INTERVAL = 60
 DEFAULT_GRACE_PERIOD = 300
 DEFAULT_MAX_RETRY = 3
+
+_log = logging.getLogger("ermrl.storage")
 
 # URL each storage was opened from (the claim lock of a study is found from its storage).
 _OPENED_FROM: weakref.WeakKeyDictionary[BaseStorage, StorageURL] = weakref.WeakKeyDictionary()
@@ -90,6 +95,35 @@ def normalize_url(url: str) -> str:
     except StorageError:
         return url
     return spec.url if spec.is_rdb else url
+
+
+class PlainRedisBackend(JournalRedisBackend):
+    """Optuna's Redis journal backend that never loads or saves a pickled snapshot.
+
+    ``JournalStorage`` unpickles ``<prefix>:snapshot`` when it opens a Redis journal, so whoever
+    can write that key could run code in every command that opens the storage, read-only ones
+    included. The snapshot is only a shortcut: the log holds every operation, and replaying it
+    gives the same studies. A snapshot found there is ignored, with one warning per process.
+    """
+
+    def load_snapshot(self) -> bytes | None:
+        key = f"{self._prefix}:snapshot"
+        if (self._url, key) not in _SNAPSHOTS_WARNED and self._redis.exists(key):
+            _SNAPSHOTS_WARNED.add((self._url, key))
+            _log.warning(
+                "ignoring Redis key %s (a pickled snapshot, never loaded: the journal log is "
+                "replayed instead); delete it with: redis-cli -u %s DEL %s",
+                key,
+                self._url,
+                key,
+            )
+        return None
+
+    def save_snapshot(self, snapshot: bytes) -> None:
+        """Write nothing: no pickle is stored for anyone to load."""
+
+
+_SNAPSHOTS_WARNED: set[tuple[str, str]] = set()
 
 
 def _short(err: BaseException) -> str:
@@ -183,9 +217,7 @@ def _open(spec: StorageURL, heartbeat: dict[str, Any], mode: str) -> BaseStorage
             ) from err
         return HeartbeatJournalStorage(JournalFileBackend(str(path)), **heartbeat)
     if spec.kind == "redis":
-        from optuna.storages.journal import JournalRedisBackend
-
-        backend = JournalRedisBackend(spec.url, prefix=spec.prefix)
+        backend = PlainRedisBackend(spec.url, prefix=spec.prefix)
         storage = HeartbeatJournalStorage(backend, **heartbeat)
         storage.get_all_studies()  # fail now if the server is unreachable
         return storage
