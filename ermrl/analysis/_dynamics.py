@@ -123,9 +123,16 @@ class DynamicsRecording:
 
     @classmethod
     def load(cls, path: str | Path) -> DynamicsRecording:
-        """Read a recording written by :meth:`save`."""
+        """Read a recording written by :meth:`save`.
+
+        Raises:
+            ermrl.envs.UnknownEnvError: its env id is not a registered id (never imported).
+        """
+        from ermrl.envs import check_registered_env_id
+
         with np.load(path, allow_pickle=False) as data:
             meta = json.loads(str(data["meta"]))
+            check_registered_env_id(meta["env_id"], path)  # never import a module it names
             return cls(
                 observations=data["observations"],
                 actions=data["actions"],

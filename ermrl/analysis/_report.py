@@ -259,14 +259,19 @@ def write_report(
 
     Raises:
         ermrl.storage.StudyNotFound: no such study.
+        ermrl.envs.UnknownEnvError: the test phase's ``config.yaml`` names an env id that is
+            not registered (checked before anything is written).
     """
     from ermrl import __version__
+    from ermrl.analysis._results import CONFIG_FILE, load_run_config
     from ermrl.analysis._study import open_study
 
     out = Path(out) if out is not None else Path("reports") / study_name
     runs_path = Path(runs) if runs is not None else Path("runs") / study_name
     runs_given = runs is not None
     study = open_study(study_name, storage)  # first: no empty report folder for a bad study
+    if (runs_path / CONFIG_FILE).is_file():
+        load_run_config(runs_path)  # refuses an env id that is not registered, up front
     out.mkdir(parents=True, exist_ok=True)
     state = _State(out=out, study=study, storage=storage)
     has_runs = (runs_path / "agents").is_dir()

@@ -173,14 +173,24 @@ def summarize(results: pd.DataFrame, agents: Sequence[str] | None = None) -> pd.
 def load_run_config(out: str | Path) -> dict[str, Any]:
     """The ``config.yaml`` of a test-phase folder (task, encoder, agents, study, ...).
 
+    The task's env id is checked against the registry (:func:`ermrl.envs.check_registered_env_id`):
+    a ``module:Id`` there is refused, never imported, since the file may come from anyone.
+
     Raises:
         FileNotFoundError: ``out`` has no ``config.yaml`` (not a test-phase folder).
+        ermrl.envs.UnknownEnvError: its task's env id is not a registered id.
     """
     import yaml
+
+    from ermrl.envs import check_registered_env_id
 
     path = Path(out) / CONFIG_FILE
     if not path.is_file():
         raise FileNotFoundError(
             f"{path} not found: {out} is not a test-phase folder (made by `ermrl test --out`)"
         )
-    return dict(yaml.safe_load(path.read_text()) or {})
+    config = dict(yaml.safe_load(path.read_text()) or {})
+    task = config.get("task")
+    if isinstance(task, dict) and "env_id" in task:
+        check_registered_env_id(task["env_id"], path)
+    return config

@@ -59,10 +59,11 @@ def dynamics_main(argv: Sequence[str] | None = None, prog: str = "ermrl dynamics
     parser = build_dynamics_parser(prog)
     args = parser.parse_args(argv)
     from ermrl.analysis import record_dynamics, spectrum_summary, write_dynamics
+    from ermrl.envs import UnknownEnvError
 
     try:
         recording = record_dynamics(**run_folder_kwargs(args))
-    except FileNotFoundError as err:
+    except (FileNotFoundError, UnknownEnvError) as err:
         fail(prog, str(err))
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)

@@ -77,6 +77,7 @@ def report_main(argv: Sequence[str] | None = None, prog: str = "ermrl report") -
     import optuna
 
     from ermrl.analysis import write_report
+    from ermrl.envs import UnknownEnvError
     from ermrl.storage import StorageError, StudyNotFound, load_study
 
     parser = build_report_parser(prog)
@@ -105,7 +106,7 @@ def report_main(argv: Sequence[str] | None = None, prog: str = "ermrl report") -
             html_page=args.html,
             quiet=args.quiet,
         )
-    except (StorageError, StudyNotFound, FileNotFoundError) as err:
+    except (StorageError, StudyNotFound, FileNotFoundError, UnknownEnvError) as err:
         fail(prog, str(err))
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)

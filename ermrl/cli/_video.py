@@ -66,6 +66,7 @@ def video_main(argv: Sequence[str] | None = None, prog: str = "ermrl video") -> 
     parser = build_video_parser(prog)
     args = parser.parse_args(argv)
     from ermrl.analysis import GLBackendError, record_video
+    from ermrl.envs import UnknownEnvError
 
     try:
         result = record_video(
@@ -77,7 +78,7 @@ def video_main(argv: Sequence[str] | None = None, prog: str = "ermrl video") -> 
         )
     except GLBackendError as err:
         fail(prog, str(err), code=EXIT_NO_GL)
-    except FileNotFoundError as err:
+    except (FileNotFoundError, UnknownEnvError) as err:
         fail(prog, str(err))
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)

@@ -2,7 +2,13 @@
 suites (``--suite NAME``), POPGym memory tasks (``popgym-<Name>-v0``) and ermrl's registered
 variants (``AntNoContact-v5``)."""
 
-from ermrl.envs._factory import check_env_id, make_env, observation_indices, observation_split
+from ermrl.envs._factory import (
+    check_env_id,
+    check_registered_env_id,
+    make_env,
+    observation_indices,
+    observation_split,
+)
 from ermrl.envs._masks import (
     OBSERVE_MODES,
     ObservationMask,
@@ -30,6 +36,7 @@ __all__ = [
     "UnknownSuiteError",
     "UnsupportedObserveError",
     "check_env_id",
+    "check_registered_env_id",
     "get_suite",
     "is_popgym_id",
     "load_suites",

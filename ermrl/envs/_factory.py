@@ -7,8 +7,10 @@ POPGym ids (``popgym-<Name>-v0``) are registered on first use, so :func:`check_e
 
 from __future__ import annotations
 
+import sys
 import warnings
 from collections.abc import Mapping
+from os import PathLike
 from typing import Any
 
 import gymnasium
@@ -21,6 +23,7 @@ from ermrl.envs._masks import (
     ObservationMask,
     ObservationSplit,
     ObserveMode,
+    UnknownEnvError,
     UnsupportedObserveError,
     _derive_mujoco_split,
     _is_mujoco_entry_point,
@@ -36,7 +39,13 @@ from ermrl.envs._popgym import (
     register_popgym,
 )
 
-__all__ = ["check_env_id", "make_env", "observation_indices", "observation_split"]
+__all__ = [
+    "check_env_id",
+    "check_registered_env_id",
+    "make_env",
+    "observation_indices",
+    "observation_split",
+]
 
 # MuJoCo >= 3.3 warns, on every model load, that gymnasium's own XML files use the deprecated
 # `settotalmass` attribute. Nothing ermrl or its users can fix; it would flood progress output.
@@ -79,6 +88,50 @@ def check_env_id(env_id: str) -> None:
     """
     register_popgym(env_id)
     _masks.check_env_id(env_id)
+
+
+def check_registered_env_id(env_id: object, source: str | PathLike[str]) -> str:
+    """Check an env id read from a file: it must be registered already; nothing is imported.
+
+    ``gymnasium.make("module:Env-v0")`` imports ``module``, so a ``module:`` id in a file that
+    someone else wrote (a run folder's ``config.yaml``, an expert's ``expert.json``) would run
+    that module's code when ermrl builds the env. An id read from a file must therefore be in
+    gymnasium's registry already: gymnasium's own tasks, ermrl's variants (registered when
+    :mod:`ermrl.envs` is imported) or a POPGym task (ermrl imports the ``popgym`` package
+    itself, whatever the file says). A ``module:`` prefix passes only when that module is
+    imported already (importing it again runs nothing). Ids the user types on the command line
+    go through :func:`check_env_id`, which may import their module.
+
+    Args:
+        env_id: The id as read from the file.
+        source: The file it was read from, named in the error.
+
+    Returns:
+        ``env_id``, now known to be a registered id.
+
+    Raises:
+        UnknownEnvError: One line naming ``source``, when the id is not a string, names a
+            module that is not imported yet, or is not registered.
+    """
+    if not isinstance(env_id, str) or not env_id:
+        raise UnknownEnvError(f"{source}: env id must be a non-empty string, got {env_id!r}")
+    module, name = env_id.split(":", 1) if ":" in env_id else ("", env_id)
+    if module and module not in sys.modules and not (module == "popgym" and is_popgym_id(name)):
+        raise UnknownEnvError(
+            f"{source}: env id {env_id!r} names the module {module!r}, which gymnasium would "
+            "import; an env id read from a file must be a registered id (ermrl never imports "
+            "a module that a file names)"
+        )
+    try:
+        register_popgym(name)  # imports the popgym package for a popgym- id, nothing else
+    except UnknownEnvError as err:
+        raise UnknownEnvError(f"{source}: {err}") from None
+    if name not in gymnasium.registry:
+        raise UnknownEnvError(
+            f"{source}: unknown env id {env_id!r}: not a registered gymnasium id (an env id "
+            "read from a file is never imported)"
+        )
+    return env_id
 
 
 def observation_split(env_id: str) -> ObservationSplit:

@@ -287,6 +287,15 @@ class Expert:
 
 
 def _read_info(path: Path) -> ExpertInfo:
+    """Read ``expert.json`` of ``path``; its env id must be registered (never imported).
+
+    Raises:
+        FileNotFoundError: no such folder or no ``expert.json``.
+        ValueError: the document is malformed, or its env id is not a registered id
+            (:class:`ermrl.envs.UnknownEnvError`, naming the file).
+    """
+    from ermrl.envs import check_registered_env_id
+
     file = path / EXPERT_FILE
     if not path.is_dir():
         raise FileNotFoundError(f"no expert folder {str(path)!r}")
@@ -297,9 +306,11 @@ def _read_info(path: Path) -> ExpertInfo:
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
         raise ValueError(f"{file}: not a JSON file ({err})") from None
     try:
-        return ExpertInfo.from_dict(data)
+        info = ExpertInfo.from_dict(data)
     except ValueError as err:
         raise ValueError(f"{file}: {err}") from None
+    check_registered_env_id(info.env_id, file)  # never import a module the file names
+    return info
 
 
 def _loading_config(ppo: PPOConfig) -> PPOConfig:
@@ -332,13 +343,11 @@ def load_expert(path: str | Path) -> Expert:
         ValueError: a file is corrupt or does not fit the recorded settings.
     """
     from ermrl.agents import POLICY_FILE, load_normalize_stats, load_policy, make_vec_env
-    from ermrl.envs import check_env_id
 
     folder = Path(path)
     info = _read_info(folder)
     if info.algo not in expert_algos() or info.ppo.learner != info.algo:
         raise ValueError(f"{folder / EXPERT_FILE}: unknown expert algorithm {info.algo!r}")
-    check_env_id(info.env_id)
     policy_file = folder / POLICY_FILE
     if not policy_file.is_file():
         raise FileNotFoundError(f"{str(folder)!r} holds no {POLICY_FILE}")
