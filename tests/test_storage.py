@@ -49,6 +49,7 @@ from ermrl.storage import (
     storage_lock,
     storage_url,
 )
+from ermrl.storage import _locks as locks_module
 from ermrl.storage import fail_stale_trials as ermrl_fail_stale_trials
 
 optuna.logging.set_verbosity(optuna.logging.WARNING)
@@ -157,15 +158,62 @@ def test_storage_lock_is_exclusive(fresh_storage: str) -> None:
     thread.start()
     assert held.wait(10)
     try:
-        if storage_kind(fresh_storage) != "journal":  # the symlink lock has no timeout
-            with pytest.raises(LockTimeout):
-                with storage_lock(fresh_storage, "study-a", timeout=0.3):
-                    pass
+        with pytest.raises(LockTimeout):
+            with storage_lock(fresh_storage, "study-a", timeout=0.3):
+                pass
     finally:
         release.set()
         thread.join()
     with storage_lock(fresh_storage, "study-a", timeout=5):
         pass
+
+
+def test_a_journal_lock_whose_owner_is_gone_is_broken_after_the_grace_period(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # What an older ermrl left: a link to <log>.ermrl, a file that never exists. Optuna's stale
+    # check stats that target and retried at once forever, at full CPU.
+    monkeypatch.setattr(locks_module, "_JOURNAL_LOCK_GRACE_S", 0.5)
+    url = f"{tmp_path}/l.log"
+    open_storage(url)
+    link = tmp_path / "l.log.ermrl.lock"
+    link.symlink_to(tmp_path / "l.log.ermrl")
+    took: list[float] = []
+
+    def take() -> None:
+        start = time.monotonic()
+        with storage_lock(url, "s", timeout=20):
+            took.append(time.monotonic() - start)
+
+    thread = threading.Thread(target=take, daemon=True)
+    thread.start()
+    thread.join(15)
+    assert not thread.is_alive(), "the stale lock was never broken"
+    assert took and 0.5 <= took[0] < 5
+    assert not os.path.lexists(link)  # released after use
+    assert [p.name for p in tmp_path.iterdir() if "aside" in p.name] == []
+
+
+@pytest.mark.slow
+def test_evolve_on_a_journal_with_a_dead_workers_lock_goes_on(tmp_path: Path) -> None:
+    (tmp_path / "l.log.ermrl.lock").symlink_to(tmp_path / "l.log.ermrl")
+    start = time.monotonic()
+    done = subprocess.run(
+        [sys.executable, "-c", "import sys; from ermrl.cli import main; sys.exit(main())"]
+        + ["evolve", "--env-id", "Pendulum-v1", "--n-trials", "1", "--n-seeds", "1"]
+        + ["--training-steps", "256", "--n-envs", "1", "--units", "20"]
+        + ["--ppo", "n_steps=128", "batch_size=64", "n_epochs=2"]
+        + ["--storage", "l.log", "--study-name", "s"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=240,
+    )
+    assert done.returncode == 0, done.stderr
+    assert time.monotonic() - start >= 30  # the documented grace period
+    assert "broke the lock" in done.stderr
+    study = optuna.load_study(study_name="s", storage=open_storage(f"{tmp_path}/l.log"))
+    assert [t.state for t in study.trials] == [TrialState.COMPLETE]
 
 
 # -- heartbeats and retries ---------------------------------------------------------------------

@@ -11,7 +11,7 @@ others for long:
 - SQLite: ``fcntl.flock`` on ``<db>.lock`` next to the database (released by the kernel when the
   process dies; needs a local file system, as SQLite itself does);
 - journal file: a symlink lock ``<log>.ermrl.lock`` (Optuna's NFS-safe scheme; a lock left by a
-  dead process is broken after 30 s);
+  dead process, i.e. a link unchanged for 30 s, is broken, whatever it points at);
 - PostgreSQL: a session advisory lock (``pg_advisory_lock``) on its own connection;
 - MySQL / MariaDB: ``GET_LOCK`` on its own connection;
 - Redis: a ``redis-py`` lock with a 120 s expiry.
@@ -22,8 +22,10 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import hashlib
+import logging
 import os
 import time
+import uuid
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -39,7 +41,10 @@ from ermrl.storage._url import (
 __all__ = ["LockTimeout", "storage_lock", "sqlite_path", "journal_path", "redis_parts", "lock_key"]
 
 LOCK_TIMEOUT_S = 600.0
+# Seconds a journal lock link may stay unchanged before it is taken for a dead owner's and broken.
 _JOURNAL_LOCK_GRACE_S = 30
+
+_log = logging.getLogger("ermrl.storage")
 
 
 class LockTimeout(TimeoutError):
@@ -99,17 +104,83 @@ def _flock(path: Path, timeout: float) -> Iterator[None]:
         os.close(fd)
 
 
-@contextlib.contextmanager
-def _symlink_lock(path: Path) -> Iterator[None]:
-    from optuna.storages.journal import JournalFileSymlinkLock
+def _link_identity(path: Path) -> tuple[int, int] | None:
+    """The symlink itself (inode and modification time), not what it points at."""
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        return None
+    return (st.st_ino, st.st_mtime_ns)
 
-    lock = JournalFileSymlinkLock(str(path), grace_period=_JOURNAL_LOCK_GRACE_S)
-    lock.acquire()
+
+def _remove_link(path: Path, expected: tuple[int, int]) -> bool:
+    """Remove the lock link if it is still the one seen (``expected``); keep any other.
+
+    The link is first renamed to a unique name, so when several processes remove it at once
+    only one succeeds; a link that was replaced meanwhile (a live worker's fresh lock) is put
+    back when the name is still free.
+
+    Returns:
+        Whether the expected link was removed.
+    """
+    aside = path.with_name(f"{path.name}.{uuid.uuid4().hex}.aside")
+    try:
+        os.rename(path, aside)
+    except FileNotFoundError:
+        return False  # released or broken by someone else meanwhile
+    if _link_identity(aside) == expected:
+        os.unlink(aside)
+        return True
+    with contextlib.suppress(FileExistsError):
+        os.link(aside, path, follow_symlinks=False)  # the same link (inode and time) again
+    os.unlink(aside)
+    return False
+
+
+@contextlib.contextmanager
+def _symlink_lock(path: Path, target: Path, timeout: float) -> Iterator[None]:
+    """Optuna's NFS-safe symlink lock on ``<path>.lock``, with a stale check that works.
+
+    Optuna's ``JournalFileSymlinkLock`` judges a lock stale by the ``stat`` of the file the link
+    points at; when that file does not exist (older ermrl pointed at ``<log>.ermrl``, which
+    never does), it retries at once forever, at full CPU. Here the link itself is checked
+    (``lstat``): a link unchanged for :data:`_JOURNAL_LOCK_GRACE_S` seconds of this process's
+    clock (immune to clock skew between NFS clients) is broken, whatever it points at.
+    """
+    link = Path(f"{path}.lock")
+    deadline = time.monotonic() + timeout
+    delay = 0.001
+    seen: tuple[int, int] | None = None
+    seen_since = time.monotonic()
+    while True:
+        try:
+            os.symlink(target, link)
+            mine = _link_identity(link)
+            break
+        except FileExistsError:
+            pass
+        now = time.monotonic()
+        current = _link_identity(link)
+        if current != seen:
+            seen, seen_since = current, now
+        elif current is not None and now - seen_since > _JOURNAL_LOCK_GRACE_S:
+            if _remove_link(link, current):
+                _log.warning(
+                    "broke the lock %s: unchanged for %g s, its owner is gone",
+                    link,
+                    _JOURNAL_LOCK_GRACE_S,
+                )
+            seen, delay = None, 0.001
+            continue
+        if now > deadline:
+            raise LockTimeout(f"could not lock {link} within {timeout:.0f} s")
+        time.sleep(delay)
+        delay = min(delay * 2, 0.05)
     try:
         yield
     finally:
-        with contextlib.suppress(RuntimeError):  # broken by another process after the grace
-            lock.release()
+        if mine is not None:  # else broken by another process at once (held past the grace)
+            _remove_link(link, mine)
 
 
 _ENGINES: dict[str, Any] = {}
@@ -211,5 +282,7 @@ def storage_lock(
             with _flock(Path(f"{spec.path}.lock"), timeout):
                 yield
         else:
-            with _symlink_lock(Path(f"{spec.path}.ermrl")):
+            # The link points at the journal itself: a file that exists, so Optuna's own stale
+            # check (in older ermrl workers sharing the journal) can stat it.
+            with _symlink_lock(Path(f"{spec.path}.ermrl"), spec.path, timeout):
                 yield
