@@ -132,3 +132,33 @@ def test_an_in_memory_sqlite_storage_is_refused(
     assert "in-memory" in message
     with pytest.raises(StorageError, match="in-memory"):
         open_storage(url)
+
+
+@pytest.mark.parametrize(
+    "url",
+    [
+        "sqlite:///file::memory:?cache=shared&uri=true",
+        "sqlite:///file:memdb1?uri=true&cache=shared&mode=memory",
+        "sqlite:///:MEMORY:",
+    ],
+)
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["evolve", "--env-id", "Pendulum-v1", "--training-steps", "256", "--n-trials", "1"],
+        ["study", "create", "--study-name", "X"],
+        ["study", "list"],
+    ],
+    ids=lambda a: " ".join(a[:2]),
+)
+def test_every_spelling_of_an_in_memory_sqlite_database_is_refused_writing_nothing(
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+    argv: list[str],
+    url: str,
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    message = _fails_in_one_line([*argv, "--storage", url], capsys)
+    assert "in-memory" in message
+    assert _files(tmp_path) == []  # no .lock file, no run folder

@@ -124,7 +124,24 @@ def test_an_unsupported_url_gives_todays_one_line_error(url: str) -> None:
     assert normalize_url(url) == url  # documented: other URLs are returned unchanged
 
 
-@pytest.mark.parametrize("url", ["sqlite://", "sqlite:///:memory:", "sqlite:///?mode=ro"])
+IN_MEMORY = [
+    "sqlite://",
+    "sqlite:///",
+    "sqlite:///:memory:",
+    "sqlite:///?mode=ro",
+    # However spelled: case, percent-encoding, SQLite URI filenames, query order, memdb VFS.
+    "SQLITE:///:MEMORY:",
+    "sqlite:///%3Amemory%3A",
+    "sqlite:///file::memory:?cache=shared&uri=true",
+    "sqlite:///FILE::Memory:?uri=true",
+    "sqlite:///file:memdb1?mode=memory&cache=shared&uri=true",
+    "sqlite:///file:memdb1?uri=true&cache=shared&Mode=MEMORY",
+    "sqlite+pysqlite:///file:memdb1?mode=memory&uri=true",
+    "sqlite:///file:/x.db?vfs=memdb&uri=true",
+]
+
+
+@pytest.mark.parametrize("url", IN_MEMORY)
 def test_an_in_memory_sqlite_database_is_refused_in_one_line(url: str) -> None:
     with pytest.raises(StorageError, match="in-memory SQLite database") as caught:
         parse_storage_url(url)

@@ -6,8 +6,9 @@ imports nothing else from :mod:`ermrl.storage`, so any of them can import it.
 
 Accepted URLs:
 
-- ``sqlite:///path.db`` (in-memory databases, ``sqlite://`` and ``sqlite:///:memory:``, are
-  refused: no later command could read their trials);
+- ``sqlite:///path.db`` (in-memory databases are refused, however spelled: ``sqlite://``,
+  ``sqlite:///:memory:``, ``sqlite:///file::memory:?uri=true``, ``...?mode=memory``; no later
+  command could read their trials);
 - ``postgresql://...`` (or ``postgres://...``) and ``mysql://...``, with or without a driver
   (``postgresql+psycopg2://``, ``mysql+pymysql://``);
 - ``journal:///path.log`` or any path ending in ``.log`` (no scheme);
@@ -116,12 +117,40 @@ def parse_storage_url(url: str) -> StorageURL:
 
 def sqlite_file(url: str) -> Path | None:
     """The database file of a ``sqlite:///`` URL (``None`` for in-memory databases)."""
+    if _sqlite_in_memory(url):
+        return None
     rest = url.split("://", 1)[1] if "://" in url else url
     rest = rest[1:] if rest.startswith("/") else rest  # sqlite:///rel.db, sqlite:////abs.db
     rest = rest.split("?", 1)[0]
-    if not rest or rest == ":memory:":
+    if not rest:
         return None
     return Path(rest).expanduser()
+
+
+def _sqlite_in_memory(url: str) -> bool:
+    """Whether a SQLite URL names an in-memory database, however it is spelled.
+
+    The URL is read as SQLAlchemy reads it (percent-decoded, query taken apart), then matched
+    without regard to case: no path, ``:memory:``, a SQLite URI filename ``file::memory:`` or
+    ``file:`` alone, or a query with ``mode=memory`` or ``vfs=memdb`` in any position.
+    """
+    from sqlalchemy.engine import make_url
+    from sqlalchemy.exc import ArgumentError
+
+    try:
+        parsed = make_url(url)
+    except (ArgumentError, ValueError):
+        return False  # not a URL SQLAlchemy could open: left to the path checks
+    database = (parsed.database or "").lower()
+    if database.startswith("file:"):
+        database = database[len("file:") :].split("?", 1)[0] or ":memory:"
+    if database in ("", ":memory:"):
+        return True
+    for key, values in parsed.query.items():
+        for value in (values,) if isinstance(values, str) else values:
+            if (key.lower(), value.lower()) in (("mode", "memory"), ("vfs", "memdb")):
+                return True
+    return False
 
 
 def journal_file(url: str) -> Path:
