@@ -36,7 +36,10 @@ continue the same CMA-ES run, generation and restart. With the default attribute
     regime by finished runs).
 
 The sampler always restores the optimizer and the restart state from the most recent COMPLETE
-trial carrying ``cma:state:*``; nothing is kept only in process memory.
+trial carrying ``cma:state:*``; nothing is kept only in process memory. When that state is
+malformed (a chunk cut short or edited, a ``cma:restart_state`` that does not describe a
+restart state), a warning is logged and CMA-ES starts a new run, exactly as for a pickled
+optimizer below: a resume never crashes on it.
 
 Nothing read from the storage is ever unpickled: anyone who can write to a shared storage could
 otherwise run code on every worker. A study written by an older ermrl stored the optimizer
@@ -251,6 +254,7 @@ class RestartCmaEsSampler(CmaEsSampler):
         self._restart_strategy: RestartStrategy = restart_strategy
         self._inc_popsize = inc_popsize
         self._warned_legacy = False
+        self._warned_malformed = False
 
     @property
     def restart_strategy(self) -> RestartStrategy:
@@ -473,7 +477,9 @@ class RestartCmaEsSampler(CmaEsSampler):
         The state is plain data (:func:`restore_optimizer`); nothing is unpickled. When the
         latest stored state is an optimizer pickled by an older ermrl (``{prefix}optimizer:*``),
         it is left unread: a warning is logged and a new run starts (see
-        :meth:`_legacy_restart`).
+        :meth:`_legacy_restart`). A malformed state (chunks that do not decode to an
+        optimizer, a restart state that is not one) is handled the same way, with its own
+        warning (:meth:`_malformed_restart`).
 
         Args:
             completed_trials: Completed trials, ordered by trial number.
@@ -487,11 +493,20 @@ class RestartCmaEsSampler(CmaEsSampler):
             chunks = {k: v for k, v in t.system_attrs.items() if k.startswith(state_prefix)}
             raw = t.system_attrs.get(self._attr_key_restart_state)
             if chunks:
-                optimizer = restore_optimizer(json.loads(_join_chunks(chunks, state_prefix)))
-                if isinstance(raw, dict):
-                    state = _RestartState.from_dict(raw)
-                else:
-                    state = _RestartState.initial(optimizer.population_size)
+                try:
+                    optimizer = restore_optimizer(json.loads(_join_chunks(chunks, state_prefix)))
+                    # Read what sample_relative needs now, so a hollow optimizer fails here.
+                    population_size = int(optimizer.population_size)
+                    if min(population_size, int(optimizer.dim), int(optimizer.generation)) < 0:
+                        raise ValueError("negative popsize, dimension or generation")
+                    if raw is None:
+                        state = _RestartState.initial(population_size)
+                    elif isinstance(raw, dict):
+                        state = _RestartState.from_dict(raw)
+                    else:
+                        raise TypeError(f"{self._attr_key_restart_state} is not a mapping")
+                except (ValueError, TypeError, KeyError, AttributeError) as err:
+                    return None, self._malformed_restart(t, raw, err)
                 return optimizer, state
             if any(k.startswith(pickle_prefix) for k in t.system_attrs):
                 return None, self._legacy_restart(t, raw)
@@ -509,11 +524,7 @@ class RestartCmaEsSampler(CmaEsSampler):
             never told to the old run), the stored popsize and BIPOP budgets. The caller builds
             its optimizer as the first run's (start point, step size), the same in every worker.
         """
-        old = (
-            _RestartState.from_dict(raw)
-            if isinstance(raw, dict)
-            else _RestartState.initial(self._popsize or 0)
-        )
+        old = self._stored_restart_state(trial, raw)
         if not self._warned_legacy:
             _logger.warning(
                 "RestartCmaEsSampler: trial %d holds a CMA-ES optimizer pickled by an older "
@@ -524,6 +535,55 @@ class RestartCmaEsSampler(CmaEsSampler):
             )
             self._warned_legacy = True
         return replace(old, n_restarts=old.n_restarts + 1)
+
+    def _malformed_restart(self, trial: FrozenTrial, raw: Any, error: Exception) -> _RestartState:
+        """Restart state of the run that replaces a malformed stored CMA-ES state.
+
+        As :meth:`_legacy_restart`: the state is ignored (one warning per sampler), and a new
+        run starts with a restart index one past the stored one, so that the trials of the run
+        whose state was lost are never told to the new optimizer. The trials keep their values.
+
+        Args:
+            trial: The trial carrying the malformed state.
+            raw: Its ``{prefix}restart_state``, if any (used when it is readable).
+            error: Why the state could not be read.
+
+        Returns:
+            The state of the new run.
+        """
+        old = self._stored_restart_state(trial, raw)
+        if not self._warned_malformed:
+            reason = str(error).strip().splitlines()[0] if str(error).strip() else ""
+            _logger.warning(
+                "RestartCmaEsSampler: trial %d holds a malformed CMA-ES state (%s: %s); it is "
+                "ignored, and CMA-ES starts run %d afresh (the trials in the study are kept).",
+                trial.number,
+                type(error).__name__,
+                reason,
+                old.n_restarts + 1,
+            )
+            self._warned_malformed = True
+        return replace(old, n_restarts=old.n_restarts + 1)
+
+    def _stored_restart_state(self, trial: FrozenTrial, raw: Any) -> _RestartState:
+        """The restart state stored on ``trial``, or what its labels tell when it is unreadable.
+
+        Args:
+            trial: A trial that stored (or tried to store) the sampler's state.
+            raw: Its ``{prefix}restart_state``, if any.
+
+        Returns:
+            The stored state; failing that, the first run's with the trial's restart index
+            (``{prefix}n_restarts``, 0 when missing) and popsize 0 (the caller's default).
+        """
+        if isinstance(raw, dict):
+            try:
+                return _RestartState.from_dict(raw)
+            except (KeyError, TypeError, ValueError):
+                pass
+        label = trial.system_attrs.get(self._attr_key_n_restarts, 0)
+        n_restarts = label if isinstance(label, int) and label >= 0 else 0
+        return replace(_RestartState.initial(self._popsize or 0), n_restarts=n_restarts)
 
     def _store_state(
         self,
