@@ -11,13 +11,14 @@ import sys
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Literal
 
 import optuna
 import pytest
 from optuna.trial import TrialState
 
 from ermrl.cli._study import study_main
-from ermrl.storage import open_storage, repair_journal, torn_tail
+from ermrl.storage import StorageError, open_storage, repair_journal, torn_tail
 
 optuna.logging.set_verbosity(optuna.logging.WARNING)
 
@@ -203,3 +204,56 @@ def test_a_damaged_sqlite_database_is_one_line_and_exit_2(
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and "Traceback" not in done.stderr
     assert "is damaged" in lines[0] and '".recover"' in lines[0] and "backup" in lines[0]
+
+
+NOT_JOURNALS = {
+    "text": b"2026-11-25 15:00:01 INFO server started\nsecond line\n",
+    "one line, no newline": b"x" * 111,
+    "json lines": b'{"level":"info","msg":"hi"}\n{"op_code":0}\n',
+    "binary": bytes(range(256)),
+}
+
+
+@pytest.mark.parametrize("content", NOT_JOURNALS.values(), ids=NOT_JOURNALS)
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["study", "repair"],
+        ["study", "list"],
+        ["study", "create", "--study-name", "X"],
+        ["evolve", "--env-id", "Pendulum-v1", "--training-steps", "256", "--n-trials", "1"],
+    ],
+    ids=lambda c: " ".join(c[:2]),
+)
+def test_a_file_that_is_not_a_journal_is_refused_untouched(
+    tmp_path: Path, content: bytes, command: list[str]
+) -> None:
+    path = tmp_path / "some.log"
+    path.write_bytes(content)
+    done = _ermrl(*command, "--storage", str(path), cwd=tmp_path)
+    assert done.returncode == 2, done.stdout + done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "not an Optuna journal" in lines[0], done.stderr
+    assert path.read_bytes() == content
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["some.log"]
+
+
+def test_a_journal_whose_first_record_was_cut_short_is_still_repaired(tmp_path: Path) -> None:
+    path = tmp_path / "s.log"
+    path.write_bytes(b'{"op_code":0,"worker_id":"a-0","study_na')
+    assert repair_journal(path) is not None
+    assert path.read_bytes() == b""
+    _journal_study(path, n_trials=1)
+
+
+@pytest.mark.parametrize("mode", ["create", "write", "read"])
+def test_a_storage_path_that_is_a_directory_says_so_and_leaves_no_lock(
+    tmp_path: Path, mode: Literal["create", "write", "read"]
+) -> None:
+    for url in (f"{tmp_path}/d.log", f"sqlite:///{tmp_path}/d.db"):
+        where = Path(url.removeprefix("sqlite:///"))
+        where.mkdir()
+        with pytest.raises(StorageError, match="is a directory") as caught:
+            open_storage(url, mode=mode)
+        assert "free some space" not in str(caught.value) and "\n" not in str(caught.value)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d.db", "d.log"]

@@ -576,10 +576,12 @@ def _repair(args: argparse.Namespace, prog: str) -> int:
     if kind != "journal":
         fail(prog, f"only journal files can be repaired, not {kind} storages ({args.storage})")
     path = journal_path(args.storage)
-    if not path.is_file():
+    if not path.is_file() and not path.is_dir():
         fail(prog, f"no journal file {path}")
     try:
         aside = repair_journal(path)
+    except StorageError as err:  # a directory, or not a journal: left untouched
+        fail(prog, str(err))
     except OSError as err:
         fail(prog, f"cannot set aside the partial record of {path}: {err.strerror or err}")
     if aside is None:

@@ -36,7 +36,7 @@ from optuna.storages.journal import JournalRedisBackend
 
 from ermrl.storage._heartbeat import HeartbeatJournalStorage, RetryStaleTrial, base_storage
 from ermrl.storage._locks import LOCK_TIMEOUT_S, storage_lock
-from ermrl.storage._repair import repair_journal
+from ermrl.storage._repair import check_journal, repair_journal
 from ermrl.storage._url import StorageError, StorageKind, StorageURL, parse_storage_url
 
 __all__ = [
@@ -202,6 +202,7 @@ def _open(spec: StorageURL, heartbeat: dict[str, Any], mode: str) -> BaseStorage
         assert path is not None, spec
         if not path.parent.exists():
             raise StorageError(f"directory {path.parent} of journal {path} does not exist")
+        check_journal(path)  # a directory, or a file that is not a journal: left untouched
         if mode != "create" and not path.is_file():
             raise StorageError(f"no journal file {path} (check --storage)")
         if mode == "read":
@@ -228,6 +229,10 @@ def _open(spec: StorageURL, heartbeat: dict[str, Any], mode: str) -> BaseStorage
         parent = path.resolve().parent
         if not parent.exists():
             raise StorageError(f"directory {parent} of SQLite database does not exist")
+        if path.is_dir():  # before the schema lock creates <path>.lock next to it
+            raise StorageError(
+                f"SQLite database {path} is a directory, not a file (check --storage)"
+            )
         if mode != "create" and not path.is_file():
             raise StorageError(f"no SQLite database {path} (check --storage)")
         _check_sqlite(path)

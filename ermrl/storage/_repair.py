@@ -14,15 +14,63 @@ while it does. Workers call it before they use a journal (:func:`~ermrl.storage.
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 from datetime import datetime, timezone
 from pathlib import Path
 
-__all__ = ["torn_tail", "repair_journal"]
+from ermrl.storage._url import StorageError
+
+__all__ = ["check_journal", "torn_tail", "repair_journal"]
 
 _log = logging.getLogger("ermrl.storage")
 _TAIL_CHUNK = 1 << 16
+# How a record written by Optuna's JournalFileBackend begins (compact JSON, op_code first).
+_RECORD_START = b'{"op_code":'
+_FIRST_LINE_MAX = 1 << 20
+
+
+def check_journal(path: Path | str) -> None:
+    """Refuse a path that is not an Optuna journal file, before anything reads or writes it.
+
+    A missing or empty file is a new journal. Otherwise the first line must be a journal
+    record: a JSON object with ``op_code`` and ``worker_id``. A file that is one line without a
+    newline is a journal whose first record was cut short when it begins as Optuna's records
+    do (``{"op_code":``), so that :func:`repair_journal` can set it aside.
+
+    Args:
+        path: The journal file.
+
+    Raises:
+        StorageError: the path is a directory, or a file that is not a journal (one line; the
+            file is left untouched).
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise StorageError(f"journal {path} is a directory, not a file (check --storage)")
+    try:
+        with open(path, "rb") as f:
+            head = f.readline(_FIRST_LINE_MAX)
+    except FileNotFoundError:
+        return
+    if not head:
+        return
+    if head.endswith(b"\n"):
+        try:
+            record = json.loads(head)
+        except ValueError:  # JSONDecodeError, UnicodeDecodeError
+            record = None
+        ok = isinstance(record, dict) and {"op_code", "worker_id"} <= record.keys()
+    else:  # one partial line: a cut first record, or not a journal at all
+        ok = len(head) < _FIRST_LINE_MAX and (
+            head.startswith(_RECORD_START) or _RECORD_START.startswith(head)
+        )
+    if not ok:
+        raise StorageError(
+            f"{path} is not an Optuna journal (its first line is not a journal record); it was "
+            "left untouched: check --storage, or give a new .log file"
+        )
 
 
 def torn_tail(path: Path) -> int:
@@ -68,11 +116,13 @@ def repair_journal(path: Path | str) -> Path | None:
         The file the partial record was moved to, or ``None`` when the journal was intact.
 
     Raises:
+        StorageError: the path is not a journal file (:func:`check_journal`; left untouched).
         OSError: the partial record could not be set aside (the journal is unchanged).
     """
     from optuna.storages.journal import JournalFileSymlinkLock
 
     path = Path(path)
+    check_journal(path)
     if torn_tail(path) == 0:
         return None
     lock = JournalFileSymlinkLock(str(path))
