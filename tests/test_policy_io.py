@@ -171,3 +171,22 @@ def test_report_leaves_out_the_dynamics_of_a_run_with_only_model_zip(
     _dynamics_section(state, runs)
     assert any("model.zip" in note and "re-train" in note for note in state.notes)
     assert not marker.exists()
+
+
+@pytest.mark.parametrize(("umask", "mode"), [(0o022, 0o644), (0o027, 0o640)])
+def test_policy_file_gets_the_usual_permissions(tmp_path: Path, umask: int, mode: int) -> None:
+    """policy.pt is readable as the umask allows, like every other file of a run folder
+    (``mkstemp`` alone makes it 0600, unreadable by colleagues sharing the results)."""
+    import os
+    import stat
+
+    model_path = tmp_path / "model.zip"
+    old = os.umask(umask)
+    try:
+        train_agent(
+            TASK, None, TINY_PPO, BudgetConfig(training_steps=256), 0, model_path=model_path
+        )
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE((tmp_path / "policy.pt").stat().st_mode) == mode
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []

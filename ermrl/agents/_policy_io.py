@@ -11,11 +11,12 @@ also saves every trained policy's weights as ``policy.pt``, a ``torch.save`` of 
 
 from __future__ import annotations
 
-import os
-import tempfile
+import io
 import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
+
+from ermrl._io import write_atomic
 
 if TYPE_CHECKING:
     from stable_baselines3 import PPO
@@ -41,22 +42,19 @@ def policy_path(model_path: str | Path) -> Path:
 def save_policy(model: PPO, path: str | Path) -> None:
     """Save ``model.policy.state_dict()`` (CPU tensors only) to ``path``, atomically.
 
+    The file gets the usual permissions, ``0o666`` less the umask, as every file of a run
+    folder (:func:`ermrl._io.write_atomic`).
+
     Args:
         model: The trained model.
         path: The file (see :func:`policy_path`).
     """
     import torch
 
-    path = Path(path)
     state = {name: tensor.detach().cpu() for name, tensor in model.policy.state_dict().items()}
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    os.close(fd)
-    try:
-        torch.save(state, tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+    buffer = io.BytesIO()
+    torch.save(state, buffer)
+    write_atomic(path, buffer.getvalue())
 
 
 def load_policy(path: str | Path, ppo: PPOConfig, env: Any) -> PPO:
