@@ -342,3 +342,36 @@ def test_n_envs_must_be_a_whole_number(tmp_path, capsys, value):  # noqa: ANN001
     err = _refused(evolve_main, _evolve(tmp_path, "--ppo", f"n_envs={value}"), capsys)
     assert "n_envs" in err
     assert not (tmp_path / "s.db").exists()
+
+
+# -- the study name -------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("name", "expected"), [("", "empty"), ("   ", "empty"), ("s" * 513, "512 characters")]
+)
+def test_evolve_refuses_a_bad_study_name(tmp_path, capsys, name, expected):  # noqa: ANN001
+    """An empty name would silently become the default one; Optuna's study_name column holds
+    512 characters (MySQL fails with a DataError traceback on longer)."""
+    err = _refused(evolve_main, _evolve(tmp_path, "--study-name", name), capsys)
+    assert "--study-name" in err and expected in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_512_character_study_name_is_accepted(tmp_path):  # noqa: ANN001
+    assert evolve_main(_evolve(tmp_path, "--study-name", "s" * 512)) == 0
+
+
+@pytest.mark.parametrize("name", ["", " ", "s" * 513])
+def test_test_and_report_refuse_a_bad_study_name(study_url, tmp_path, capsys, name):  # noqa: ANN001
+    from ermrl.cli._report import report_main
+    from ermrl.cli._test import test_main
+
+    out = tmp_path / "out"
+    err = _refused(
+        test_main, _test_argv(url=study_url, out=out)[2:] + ["--study-name", name], capsys
+    )
+    assert "--study-name" in err
+    argv = ["--storage", study_url, "--study-name", name, "--out", str(out)]
+    assert "--study-name" in _refused(report_main, argv, capsys)
+    assert not out.exists()

@@ -14,6 +14,7 @@ __all__ = [
     "fail",
     "add_storage_args",
     "storage_arg",
+    "study_name_arg",
     "add_stale_gradient_arg",
     "add_for_learner_arg",
     "parse_for_learner",
@@ -99,6 +100,27 @@ def storage_arg(text: str) -> str:
     return text
 
 
+# Optuna's `studies.study_name` column is a VARCHAR(512): MySQL refuses a longer name with a
+# DataError (SQLite would store it, so a study could not move to a server later).
+MAX_STUDY_NAME_LENGTH = 512
+
+
+def study_name_arg(text: str) -> str:
+    """An ``argparse`` type for ``--study-name``: not blank, at most 512 characters.
+
+    An empty name would silently become the default one; a longer one does not fit Optuna's
+    database column. Checked while parsing, before any storage is opened.
+    """
+    if not text.strip():
+        raise argparse.ArgumentTypeError("the study name is empty")
+    if len(text) > MAX_STUDY_NAME_LENGTH:
+        raise argparse.ArgumentTypeError(
+            f"the study name has {len(text)} characters; Optuna stores at most "
+            f"{MAX_STUDY_NAME_LENGTH} characters"
+        )
+    return text
+
+
 def add_storage_args(parser: argparse.ArgumentParser, *, study_required: bool) -> None:
     parser.add_argument(
         "--storage",
@@ -109,6 +131,7 @@ def add_storage_args(parser: argparse.ArgumentParser, *, study_required: bool) -
     )
     parser.add_argument(
         "--study-name",
+        type=study_name_arg,
         required=study_required,
         default=None,
         help="study name"
