@@ -47,6 +47,8 @@ from ermrl.analysis._reproduction import (
     write_reproduction_page,
 )
 from ermrl.analysis._results import (
+    RunFolderError,
+    check_run_folder,
     curves_on_grid,
     load_curves,
     load_run_config,
@@ -103,6 +105,7 @@ __all__ = [
     "PaperFigure",
     "ReportResult",
     "Rollout",
+    "RunFolderError",
     "StudyOverview",
     "TrainedAgent",
     "VideoResult",
@@ -110,6 +113,7 @@ __all__ = [
     "available_runs",
     "best_params_table",
     "bootstrap_mean_diff_ci",
+    "check_run_folder",
     "compare_agents",
     "Hypothesis",
     "TaskFiles",

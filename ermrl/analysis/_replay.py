@@ -15,14 +15,20 @@ statistics, frozen, as training's own evaluation did.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ermrl.analysis._results import RUNS_DIR, load_run_config, run_dir
+from ermrl.analysis._results import (
+    RUNS_DIR,
+    RunFolderError,
+    load_run_config,
+    read_run_result,
+    read_run_settings,
+    run_dir,
+)
 
 __all__ = ["Rollout", "TrainedAgent", "available_runs", "load_trained_agent", "rollout"]
 
@@ -136,6 +142,8 @@ def load_trained_agent(
             and seed (the message lists the available ones), or only an SB3 ``model.zip``
             without ``policy.pt`` (made before ermrl saved plain weights: it is never
             unpickled; re-train the run).
+        RunFolderError: its ``config.yaml``, ``settings.json`` or ``result.json`` is damaged
+            (the message names the file), checked before anything runs.
     """
     run = Path(run)
     if not run.is_dir():
@@ -173,8 +181,9 @@ def load_trained_agent(
         )
 
     settings_path = folder / "settings.json"
-    settings = json.loads(settings_path.read_text()) if settings_path.is_file() else {}
+    settings = read_run_settings(settings_path) if settings_path.is_file() else {}
     ppo = settings.get("ppo") or config.get("ppo")
+    ppo_source = settings_path if settings.get("ppo") else run / "config.yaml"
     normalize_path: Path | None = stats_path(model_path)
     if not normalize_path.is_file():  # type: ignore[union-attr]
         if isinstance(ppo, dict) and ppo.get("normalize"):
@@ -193,16 +202,27 @@ def load_trained_agent(
             "has a 'ppo' entry): the policy cannot be rebuilt"
         )
     result_path = folder / "result.json"
+    reservoirs_source = result_path
     if result_path.is_file():
-        result = json.loads(result_path.read_text())
+        result = read_run_result(result_path)
         reservoirs = result.get("reservoirs")
         observe = result.get("observe") or observe
     agents = config.get("agents") or {}
     if reservoirs is None and agent in agents:
         reservoirs = agents[agent]
+        reservoirs_source = run / "config.yaml"
+    if not isinstance(observe, str):
+        raise RunFolderError(result_path, f"'observe' is not a mask name: {observe!r}")
     encoder = None
     if reservoirs is not None:
+        if not isinstance(reservoirs, list) or not all(isinstance(r, dict) for r in reservoirs):
+            raise RunFolderError(
+                reservoirs_source, f"the {agent} reservoirs are not a list of mappings"
+            )
         encoder = {**dict(config.get("encoder") or {}), "reservoirs": reservoirs}
+    _check_config("ppo", ppo, ppo_source)
+    if encoder is not None:
+        _check_config("encoder", encoder, reservoirs_source)
     return TrainedAgent(
         run=run,
         agent=agent,
@@ -331,6 +351,18 @@ def rollout(
         fps=fps,
         ended=ended,
     )
+
+
+def _check_config(kind: str, data: dict[str, Any], source: Path) -> None:
+    """Refuse PPO or encoder settings that do not build (``RunFolderError`` naming ``source``)."""
+    from ermrl.config import EncoderConfig, PPOConfig, from_dict
+
+    cls = PPOConfig if kind == "ppo" else EncoderConfig
+    try:
+        from_dict(cls, data)
+    except Exception as err:  # any damage: wrong types, unknown values, bad nesting
+        detail = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise RunFolderError(source, f"its {kind} settings do not build: {detail}") from None
 
 
 def _plain_scene(env: Any) -> None:

@@ -259,19 +259,27 @@ def write_report(
 
     Raises:
         ermrl.storage.StudyNotFound: no such study.
+        ermrl.analysis.RunFolderError: a file of the test-phase folder is damaged (checked
+            before anything is written).
         ermrl.envs.UnknownEnvError: the test phase's ``config.yaml`` names an env id that is
             not registered (checked before anything is written).
     """
     from ermrl import __version__
-    from ermrl.analysis._results import CONFIG_FILE, load_run_config
-    from ermrl.analysis._study import open_study
+    from ermrl.analysis._replay import load_trained_agent
+    from ermrl.analysis._results import check_run_folder
+    from ermrl.analysis._study import open_study, study_config_or_none
 
     out = Path(out) if out is not None else Path("reports") / study_name
     runs_path = Path(runs) if runs is not None else Path("runs") / study_name
     runs_given = runs is not None
     study = open_study(study_name, storage)  # first: no empty report folder for a bad study
-    if (runs_path / CONFIG_FILE).is_file():
-        load_run_config(runs_path)  # refuses an env id that is not registered, up front
+    if runs_path.is_dir():
+        # Every file the report reads, checked up front: a damaged one (or an env id that is
+        # not registered) stops the report before its folder is created.
+        check_run_folder(runs_path)
+        if dynamics:  # and the runs the dynamics section replays
+            for agent, seed in _dynamics_runs(runs_path, study_config_or_none(study)):
+                load_trained_agent(runs_path, agent, seed)
     out.mkdir(parents=True, exist_ok=True)
     state = _State(out=out, study=study, storage=storage)
     has_runs = (runs_path / "agents").is_dir()
@@ -703,6 +711,22 @@ def _evolved_agent(state: _State) -> str:
     return evolved_agent(state.config.space.family if state.config else "esn")
 
 
+def _dynamics_runs(runs: Path, config: Any) -> list[tuple[str, int]]:
+    """``(agent, seed)`` the dynamics section replays: the evolved agent's smallest saved seed,
+    and the unevolved agent on that seed when it was saved too (none without the former)."""
+    from ermrl.analysis._replay import available_runs
+
+    family = config.space.family if config else "esn"
+    evolved, unevolved = evolved_agent(family), unevolved_agent(family)
+    models = available_runs(runs)
+    seeds = sorted(s for a, s in models if a == evolved)
+    if not seeds:
+        return []
+    return [(evolved, seeds[0])] + (
+        [(unevolved, seeds[0])] if (unevolved, seeds[0]) in models else []
+    )
+
+
 def _dynamics_section(state: _State, runs: Path) -> None:
     from ermrl.analysis._dynamics import (
         record_dynamics,
@@ -710,23 +734,18 @@ def _dynamics_section(state: _State, runs: Path) -> None:
         spectrum_summary,
         write_dynamics,
     )
-    from ermrl.analysis._replay import available_runs
 
-    models = available_runs(runs)
     evolved = _evolved_agent(state)
-    unevolved = unevolved_agent(state.config.space.family if state.config else "esn")
-    seeds = sorted(s for a, s in models if a == evolved)
-    if not seeds:
+    replayed = _dynamics_runs(runs, state.config)
+    if not replayed:
         state.notes.append(
             f"reservoir dynamics: no saved {evolved} policy.pt in {runs} (test phase run with "
             f"--no-save-models, without {evolved}, or by an older ermrl that saved only "
             "model.zip, which is never unpickled: re-train)"
         )
         return
-    seed = seeds[0]
-    recordings = {evolved: record_dynamics(runs, evolved, seed)}
-    if (unevolved, seed) in models:
-        recordings[unevolved] = record_dynamics(runs, unevolved, seed)
+    seed = replayed[0][1]
+    recordings = {agent: record_dynamics(runs, agent, s) for agent, s in replayed}
     doc = _Doc()
     doc.h(2, "Reservoir dynamics")
     rec = recordings[evolved]

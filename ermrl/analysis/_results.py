@@ -13,6 +13,8 @@ import pandas as pd
 
 __all__ = [
     "RUNS_DIR",
+    "RunFolderError",
+    "check_run_folder",
     "run_dir",
     "load_run_results",
     "load_curves",
@@ -26,6 +28,162 @@ RUNS_DIR = "agents"
 CURVE_COLUMNS = ["agent", "seed", "env_step", "episode_return"]
 GRID_COLUMNS = ["agent", "env_step", "mean", "std", "sem", "ci95", "n_seeds"]
 CONFIG_FILE = "config.yaml"
+RESULT_FILE = "result.json"
+EPISODES_FILE = "episodes.csv"
+SETTINGS_FILE = "settings.json"
+EPISODE_COLUMNS = ("env_step", "episode_return")
+# config.yaml entries that are mappings when present (ermrl test writes them so).
+CONFIG_MAPPINGS = ("task", "encoder", "ppo", "settings", "agents", "agent_observe", "agent_ppo")
+
+
+class RunFolderError(ValueError):
+    """A file of a test-phase folder that is not what ``ermrl test`` writes.
+
+    Raised before anything is written from it; ``str(err)`` is one line naming the file and
+    the problem.
+
+    Attributes:
+        path: The damaged file.
+        problem: What is wrong with it.
+    """
+
+    def __init__(self, path: str | Path, problem: str) -> None:
+        self.path = Path(path)
+        self.problem = problem
+        super().__init__(f"{path}: {problem}")
+
+
+def _read_text(path: Path) -> str:
+    try:
+        return path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise RunFolderError(path, "missing (the run folder is incomplete)") from None
+    except UnicodeDecodeError:
+        raise RunFolderError(path, "not UTF-8 text") from None
+    except OSError as err:
+        raise RunFolderError(path, f"cannot be read: {err.strerror or err}") from None
+
+
+def _read_json_object(path: Path) -> dict[str, Any]:
+    try:
+        data = json.loads(_read_text(path))
+    except json.JSONDecodeError as err:
+        raise RunFolderError(path, f"not JSON ({err.msg} at line {err.lineno})") from None
+    except RecursionError:
+        raise RunFolderError(path, "not JSON (nested too deeply)") from None
+    if not isinstance(data, dict):
+        raise RunFolderError(path, f"not a JSON object ({_kind(data)})")
+    return data
+
+
+def _kind(value: Any) -> str:
+    """``value``'s JSON/YAML type with its article: ``a list``, ``an integer``, ``null``."""
+    if value is None:
+        return "null"
+    names = {bool: "a boolean", int: "an integer", float: "a number", str: "a string"}
+    names.update({list: "a list", dict: "a mapping"})
+    return names.get(type(value), f"a {type(value).__name__}")
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def read_run_result(path: str | Path) -> dict[str, Any]:
+    """A run's ``result.json``, checked: an object with ``agent``, ``seed`` and ``final_return``.
+
+    Raises:
+        RunFolderError: the file is missing, not a JSON object, or lacks one of those keys or
+            holds a value of the wrong type (``eval_return`` too, when present).
+    """
+    path = Path(path)
+    record = _read_json_object(path)
+    for key in ("agent", "seed", "final_return"):
+        if key not in record:
+            raise RunFolderError(path, f"no {key!r} key")
+    if not isinstance(record["agent"], str) or not record["agent"]:
+        raise RunFolderError(path, f"'agent' is {_kind(record['agent'])}, not a name")
+    if not isinstance(record["seed"], int) or isinstance(record["seed"], bool):
+        raise RunFolderError(path, f"'seed' is {_kind(record['seed'])}, not an integer")
+    for key in ("final_return", "eval_return"):
+        value = record.get(key)
+        if value is not None and not _is_number(value):
+            raise RunFolderError(path, f"{key!r} is {_kind(value)}, not a number")
+    return record
+
+
+def read_episodes(path: str | Path) -> pd.DataFrame:
+    """A run's ``episodes.csv``, checked: numeric columns ``env_step`` and ``episode_return``.
+
+    Raises:
+        RunFolderError: the file is missing, empty, not CSV, lacks a column or holds a value
+            that is not a number.
+    """
+    path = Path(path)
+    _read_text(path)  # missing, unreadable, not text
+    try:
+        episodes = pd.read_csv(path)
+    except pd.errors.EmptyDataError:
+        raise RunFolderError(path, "empty (no header line)") from None
+    except (pd.errors.ParserError, ValueError) as err:
+        raise RunFolderError(path, f"not CSV ({str(err).strip().splitlines()[0]})") from None
+    missing = [c for c in EPISODE_COLUMNS if c not in episodes.columns]
+    if missing:
+        raise RunFolderError(
+            path,
+            f"no column {' and '.join(missing)} (columns: {', '.join(map(str, episodes.columns))})",
+        )
+    for column in EPISODE_COLUMNS:
+        values = pd.to_numeric(episodes[column], errors="coerce")
+        bad = values.isna() & episodes[column].notna()
+        if bad.any():
+            row = int(bad.to_numpy().argmax())
+            raise RunFolderError(
+                path,
+                f"{column} {episodes[column].iloc[row]!r} on data line {row + 1} is not a number",
+            )
+        episodes[column] = values
+    return episodes
+
+
+def read_run_settings(path: str | Path) -> dict[str, Any]:
+    """A run's ``settings.json``, checked: a JSON object whose ``ppo``, if any, is an object.
+
+    Raises:
+        RunFolderError: the file is not a JSON object, or its ``ppo`` is not one.
+    """
+    path = Path(path)
+    settings = _read_json_object(path)
+    ppo = settings.get("ppo")
+    if ppo is not None and not isinstance(ppo, dict):
+        raise RunFolderError(path, f"'ppo' is {_kind(ppo)}, not a mapping")
+    return settings
+
+
+def _finished_runs(out: str | Path) -> list[Path]:
+    return sorted(Path(out).glob(f"{RUNS_DIR}/*/seed_*/{RESULT_FILE}"))
+
+
+def check_run_folder(out: str | Path) -> None:
+    """Read every file of a test-phase folder that the report and replays use, and check it.
+
+    Checks ``config.yaml`` (when present: :func:`load_run_config`) and, for each finished run,
+    ``result.json``, ``episodes.csv`` and ``settings.json`` (when present). Call it before
+    writing anything derived from the folder, so that a damaged file stops the command
+    cleanly.
+
+    Raises:
+        RunFolderError: a damaged file, named with its problem.
+        ermrl.envs.UnknownEnvError: ``config.yaml`` names an env id that is not registered.
+    """
+    out = Path(out)
+    if (out / CONFIG_FILE).exists():
+        load_run_config(out)
+    for path in _finished_runs(out):
+        read_run_result(path)
+        read_episodes(path.parent / EPISODES_FILE)
+        if (path.parent / SETTINGS_FILE).exists():
+            read_run_settings(path.parent / SETTINGS_FILE)
 
 
 def run_dir(out: str | Path, agent: str, seed: int) -> Path:
@@ -34,19 +192,24 @@ def run_dir(out: str | Path, agent: str, seed: int) -> Path:
 
 
 def load_run_results(out: str | Path) -> pd.DataFrame:
-    """One row per finished run (those with a ``result.json``) under ``out``."""
-    rows = []
-    for path in sorted(Path(out).glob(f"{RUNS_DIR}/*/seed_*/result.json")):
-        rows.append(json.loads(path.read_text()))
-    return pd.DataFrame(rows)
+    """One row per finished run (those with a ``result.json``) under ``out``.
+
+    Raises:
+        RunFolderError: a ``result.json`` is damaged (see :func:`read_run_result`).
+    """
+    return pd.DataFrame([read_run_result(path) for path in _finished_runs(out)])
 
 
 def load_curves(out: str | Path) -> pd.DataFrame:
-    """All finished runs' training episodes: columns ``agent, seed, env_step, episode_return``."""
+    """All finished runs' training episodes: columns ``agent, seed, env_step, episode_return``.
+
+    Raises:
+        RunFolderError: a ``result.json`` or ``episodes.csv`` is damaged or missing.
+    """
     frames = []
-    for path in sorted(Path(out).glob(f"{RUNS_DIR}/*/seed_*/result.json")):
-        record = json.loads(path.read_text())
-        episodes = pd.read_csv(path.parent / "episodes.csv")
+    for path in _finished_runs(out):
+        record = read_run_result(path)
+        episodes = read_episodes(path.parent / EPISODES_FILE)
         episodes.insert(0, "seed", record["seed"])
         episodes.insert(0, "agent", record["agent"])
         frames.append(episodes)
@@ -178,6 +341,8 @@ def load_run_config(out: str | Path) -> dict[str, Any]:
 
     Raises:
         FileNotFoundError: ``out`` has no ``config.yaml`` (not a test-phase folder).
+        RunFolderError: it is not YAML, not a mapping, has no ``task.env_id``, or an entry of
+            the wrong type.
         ermrl.envs.UnknownEnvError: its task's env id is not a registered id.
     """
     import yaml
@@ -189,8 +354,39 @@ def load_run_config(out: str | Path) -> dict[str, Any]:
         raise FileNotFoundError(
             f"{path} not found: {out} is not a test-phase folder (made by `ermrl test --out`)"
         )
-    config = dict(yaml.safe_load(path.read_text()) or {})
+    try:
+        config = yaml.safe_load(_read_text(path))
+    except yaml.YAMLError as err:
+        where = getattr(err, "problem_mark", None)
+        line = f" at line {where.line + 1}" if where is not None else ""
+        raise RunFolderError(
+            path, f"not YAML ({getattr(err, 'problem', None) or 'parse error'}{line})"
+        ) from None
+    except RecursionError:
+        raise RunFolderError(path, "not YAML (nested too deeply)") from None
+    if not isinstance(config, dict):
+        raise RunFolderError(path, f"not a mapping ({_kind(config)})")
+    for key in CONFIG_MAPPINGS:
+        value = config.get(key)
+        if value is not None and not isinstance(value, dict):
+            raise RunFolderError(path, f"{key!r} is {_kind(value)}, not a mapping")
     task = config.get("task")
-    if isinstance(task, dict) and "env_id" in task:
-        check_registered_env_id(task["env_id"], path)
+    if not task or "env_id" not in task:
+        raise RunFolderError(path, "no 'task' with an 'env_id' (not written by ermrl test)")
+    if not isinstance(task["env_id"], str):
+        raise RunFolderError(path, f"'task.env_id' is {_kind(task['env_id'])}, not an id")
+    if not isinstance(task.get("observe", ""), str):
+        raise RunFolderError(path, f"'task.observe' is {_kind(task['observe'])}, not a mask")
+    seeds = (config.get("settings") or {}).get("seeds")
+    if seeds is not None and not (
+        isinstance(seeds, list)
+        and all(isinstance(s, int) and not isinstance(s, bool) for s in seeds)
+    ):
+        raise RunFolderError(path, "'settings.seeds' is not a list of integers")
+    params = config.get("params")
+    if params is not None and not (
+        isinstance(params, dict) and all(_is_number(v) for v in params.values())
+    ):
+        raise RunFolderError(path, "'params' is not a mapping of numbers")
+    check_registered_env_id(task["env_id"], path)
     return config

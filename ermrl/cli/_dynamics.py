@@ -58,12 +58,12 @@ def dynamics_main(argv: Sequence[str] | None = None, prog: str = "ermrl dynamics
     """Entry point of ``ermrl dynamics``."""
     parser = build_dynamics_parser(prog)
     args = parser.parse_args(argv)
-    from ermrl.analysis import record_dynamics, spectrum_summary, write_dynamics
+    from ermrl.analysis import RunFolderError, record_dynamics, spectrum_summary, write_dynamics
     from ermrl.envs import UnknownEnvError
 
     try:
         recording = record_dynamics(**run_folder_kwargs(args))
-    except (FileNotFoundError, UnknownEnvError) as err:
+    except (FileNotFoundError, UnknownEnvError, RunFolderError) as err:
         fail(prog, str(err))
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)

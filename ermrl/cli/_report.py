@@ -76,7 +76,7 @@ def report_main(argv: Sequence[str] | None = None, prog: str = "ermrl report") -
     """Entry point of ``ermrl report``."""
     import optuna
 
-    from ermrl.analysis import write_report
+    from ermrl.analysis import RunFolderError, write_report
     from ermrl.envs import UnknownEnvError
     from ermrl.storage import StorageError, StudyNotFound, load_study
 
@@ -106,7 +106,7 @@ def report_main(argv: Sequence[str] | None = None, prog: str = "ermrl report") -
             html_page=args.html,
             quiet=args.quiet,
         )
-    except (StorageError, StudyNotFound, FileNotFoundError, UnknownEnvError) as err:
+    except (StorageError, StudyNotFound, FileNotFoundError, UnknownEnvError, RunFolderError) as err:
         fail(prog, str(err))
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)

@@ -65,7 +65,7 @@ def video_main(argv: Sequence[str] | None = None, prog: str = "ermrl video") -> 
     """Entry point of ``ermrl video``."""
     parser = build_video_parser(prog)
     args = parser.parse_args(argv)
-    from ermrl.analysis import GLBackendError, record_video
+    from ermrl.analysis import GLBackendError, RunFolderError, record_video
     from ermrl.envs import UnknownEnvError
 
     try:
@@ -78,7 +78,7 @@ def video_main(argv: Sequence[str] | None = None, prog: str = "ermrl video") -> 
         )
     except GLBackendError as err:
         fail(prog, str(err), code=EXIT_NO_GL)
-    except (FileNotFoundError, UnknownEnvError) as err:
+    except (FileNotFoundError, UnknownEnvError, RunFolderError) as err:
         fail(prog, str(err))
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
