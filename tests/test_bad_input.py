@@ -375,3 +375,40 @@ def test_test_and_report_refuse_a_bad_study_name(study_url, tmp_path, capsys, na
     argv = ["--storage", study_url, "--study-name", name, "--out", str(out)]
     assert "--study-name" in _refused(report_main, argv, capsys)
     assert not out.exists()
+
+
+# -- study export ---------------------------------------------------------------------------------
+
+
+def _fill(folder) -> None:  # noqa: ANN001
+    """Write into ``folder`` (a small tmpfs) until it is full."""
+    with open(folder / "filler", "wb", buffering=0) as handle, contextlib.suppress(OSError):
+        while True:
+            handle.write(b"\0" * 4096)
+
+
+@pytest.mark.parametrize("suffix", [".csv", ".parquet", ".json"])
+@pytest.mark.parametrize("where", ["read-only", "full"])
+def test_study_export_that_cannot_be_written(study_url, tmp_path, capsys, suffix, where):  # noqa: ANN001
+    """A read-only folder or a full disk (real tmpfs mounts: root ignores chmod): one line,
+    exit 2, no partial or temporary file, and an earlier export left whole."""
+    from ermrl.cli._study import study_main
+
+    if suffix == ".parquet":
+        pytest.importorskip("pyarrow")
+    options = ("ro",) if where == "read-only" else ("size=64k",)
+    with _tmpfs(tmp_path / "mnt", *options) as folder:
+        out = folder / f"trials{suffix}"
+        if where == "full":
+            out.write_text("an earlier export\n")
+            _fill(folder)
+        argv = ["export", "--storage", study_url, "--study-name", "s", "--out", str(out)]
+        err = _refused(study_main, argv, capsys)
+        assert f"cannot write {out}" in err
+        reason = "Read-only file system" if where == "read-only" else "No space left on device"
+        assert reason in err
+        if where == "full":
+            assert out.read_text() == "an earlier export\n"
+            assert sorted(p.name for p in folder.iterdir()) == ["filler", out.name]
+        else:
+            assert list(folder.iterdir()) == []

@@ -24,6 +24,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from ermrl._io import write_atomic
 from ermrl.cli._common import (
     ArgumentParser,
     HelpFormatter,
@@ -486,7 +487,7 @@ def _export(args: argparse.Namespace, prog: str) -> int:
         try:
             doc = write_snapshot(study, out)
         except OSError as err:
-            fail(prog, f"cannot write {out}: {err.strerror or err}")
+            fail(prog, _write_error(out, err))
         counts = ", ".join(f"{name!r} ({n} trials)" for name, n in snapshot_counts(doc).items())
         print(f"wrote a snapshot of {counts} to {out}")
         return 0
@@ -494,15 +495,30 @@ def _export(args: argparse.Namespace, prog: str) -> int:
     if args.out == "-":
         frame.to_csv(sys.stdout, index=False)
         return 0
+    # Built in memory, then written to a temporary name and renamed: a read-only folder or a
+    # full disk leaves no partial file under --out (nor a previous export damaged).
+    data: str | bytes
     if suffix == ".csv":
-        frame.to_csv(out, index=False)
+        data = frame.to_csv(index=False)
     else:
         try:
-            frame.to_parquet(out, index=False)
+            data = frame.to_parquet(None, index=False)
         except ImportError as err:
             fail(prog, f"Parquet needs pyarrow ({err}); write .csv instead")
+    try:
+        write_atomic(out, data)
+    except OSError as err:
+        fail(prog, _write_error(out, err))
     print(f"wrote {len(frame)} trials of {args.study_name!r} to {out}")
     return 0
+
+
+def _write_error(out: Path, err: OSError) -> str:
+    """One line for an export that could not be written (read-only folder, full disk, ...)."""
+    return (
+        f"cannot write {out}: {err.strerror or err}; nothing was written (free space, or "
+        "choose a writable --out)"
+    )
 
 
 def _import(args: argparse.Namespace, prog: str) -> int:
