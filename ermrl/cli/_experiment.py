@@ -29,6 +29,7 @@ import argparse
 import contextlib
 import copy
 import difflib
+import functools
 import io
 import math
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
@@ -382,6 +383,15 @@ def parse_checked(
 # Throughput and wall-time estimates
 
 
+@functools.lru_cache(maxsize=1)
+def _throughput_table() -> dict[str, Any]:
+    """``ermrl/data/throughput.yml``, read once per process."""
+    from importlib import resources
+
+    text = resources.files("ermrl.data").joinpath("throughput.yml").read_text()
+    return dict(yaml.safe_load(text))
+
+
 def throughput(env_id: str, backend: str, n_procs: int, learner: str = "ppo") -> float:
     """Estimated env steps per second of a training layout (``ermrl/data/throughput.yml``).
 
@@ -391,9 +401,7 @@ def throughput(env_id: str, backend: str, n_procs: int, learner: str = "ppo") ->
         n_procs: Processes (the table holds 2-process rates; 1 process runs at half of it).
         learner: The learner (some are slower per step than PPO).
     """
-    from importlib import resources
-
-    table = yaml.safe_load(resources.files("ermrl.data").joinpath("throughput.yml").read_text())
+    table = _throughput_table()
     rates = table.get(backend) or table["sb3"]
     rate = float(rates.get(env_id, rates["default"]))
     if learner != "ppo":

@@ -11,6 +11,7 @@ import textwrap
 from collections.abc import Sequence
 
 from ermrl.cli._common import EXIT_INTERRUPTED, ArgumentParser, HelpFormatter, fail
+from ermrl.cli._experiment import Experiment, Step, publish_step, snapshot_status
 
 __all__ = ["build_run_parser", "run_main"]
 
@@ -78,11 +79,10 @@ def build_run_parser(prog: str = "ermrl run") -> ArgumentParser:
 
 
 def _plan_lines(
-    exp: object, steps: Sequence[object], statuses: Sequence[tuple[bool, float, str]]
+    exp: Experiment, steps: Sequence[Step], statuses: Sequence[tuple[bool, float, str]]
 ) -> list[str]:
-    from ermrl.cli._experiment import Experiment, Step, format_duration
+    from ermrl.cli._experiment import format_duration
 
-    assert isinstance(exp, Experiment)
     head = f"experiment {exp.name!r}" + (f" (variant {exp.variant})" if exp.variant else "")
     lines = [
         f"{head} from {exp.path}",
@@ -93,7 +93,6 @@ def _plan_lines(
     total_seconds = 0.0
     left_seconds = 0.0
     for index, (step, (done, left, text)) in enumerate(zip(steps, statuses), start=1):
-        assert isinstance(step, Step)
         mark = "done" if done else "todo"
         size = f"{step.env_steps / 1e6:.4g}M env steps" if step.env_steps else "no training"
         lines.append(
@@ -114,11 +113,8 @@ def _plan_lines(
     return lines
 
 
-def _status(exp: object, step: object) -> tuple[bool, float, str]:
+def _status(exp: Experiment, step: Step) -> tuple[bool, float, str]:
     """A step's status; for an evolution the storage lacks, what its snapshot holds."""
-    from ermrl.cli._experiment import Experiment, Step, snapshot_status
-
-    assert isinstance(exp, Experiment) and isinstance(step, Step)
     done, left, text = step.status()
     if step.stage == "evolve" and text == "not started":
         text = snapshot_status(exp, step) or text
@@ -206,7 +202,7 @@ def run_main(argv: Sequence[str] | None = None, prog: str = "ermrl run") -> int:
             )
             return code
         if exp.publish is not None and step.stage in ("test", "report"):
-            _publish(exp, step)
+            publish_step(exp, step)
         if exp.publish is not None and step.stage == "evolve":
             write_snapshots(exp, [step])
     if not args.quiet:
@@ -215,11 +211,3 @@ def run_main(argv: Sequence[str] | None = None, prog: str = "ermrl run") -> int:
             flush=True,
         )
     return 0
-
-
-def _publish(exp: object, step: object) -> None:
-    """Copy a finished step's plain files to the experiment's publish folder."""
-    from ermrl.cli._experiment import Experiment, Step, publish_step
-
-    assert isinstance(exp, Experiment) and isinstance(step, Step)
-    publish_step(exp, step)
