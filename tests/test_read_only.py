@@ -162,3 +162,52 @@ def test_every_spelling_of_an_in_memory_sqlite_database_is_refused_writing_nothi
     message = _fails_in_one_line([*argv, "--storage", url], capsys)
     assert "in-memory" in message
     assert _files(tmp_path) == []  # no .lock file, no run folder
+
+
+def _tables(url: str) -> list[str]:
+    import sqlalchemy
+
+    from ermrl.storage import normalize_url
+
+    engine = sqlalchemy.create_engine(normalize_url(url))
+    try:
+        return sorted(sqlalchemy.inspect(engine).get_table_names())
+    finally:
+        engine.dispose()
+
+
+@pytest.mark.parametrize(
+    "kind",
+    [
+        "sqlite",
+        pytest.param("postgresql", marks=pytest.mark.services),
+        pytest.param("mysql", marks=pytest.mark.services),
+    ],
+)
+def test_readers_on_an_empty_database_leave_it_empty(
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+    request: pytest.FixtureRequest,
+    kind: str,
+) -> None:
+    """A 0-byte SQLite file, or a server database without tables: every reader (and delete)
+    says in one line that it holds no ermrl study, and creates no Optuna schema there."""
+    monkeypatch.chdir(tmp_path)
+    if kind == "sqlite":
+        (tmp_path / "empty.db").touch()
+        url = "sqlite:///empty.db"
+    else:
+        url = request.getfixturevalue({"postgresql": "postgres_url", "mysql": "mysql_url"}[kind])
+    for argv in [*READERS, ["study", "delete", "--study-name", "X", "--yes"]]:
+        message = _fails_in_one_line([*argv, "--storage", url], capsys)
+        assert "holds no ermrl study" in message, argv
+        if kind == "sqlite":
+            assert _files(tmp_path) == ["empty.db"], argv
+            assert (tmp_path / "empty.db").stat().st_size == 0, argv
+        else:
+            assert _tables(url) == [], argv
+    with pytest.raises(StorageError, match="holds no ermrl study"):
+        load_study("X", url)
+    open_storage(url)  # workers still create the schema
+    assert "studies" in _tables(url)

@@ -153,7 +153,8 @@ def open_storage(
             is created; ``"write"``: the file must exist; ``"read"`` (commands that only read
             a study): the file must exist and nothing is created or changed next to it (no
             lock file, no schema, no journal repair: Optuna reads a journal's complete
-            records).
+            records). In both, a database without Optuna's tables (a 0-byte SQLite file, an
+            empty server database) is a :class:`StorageError`, and is left without them.
 
     Returns:
         An Optuna storage.
@@ -241,11 +242,34 @@ def _open(spec: StorageURL, heartbeat: dict[str, Any], mode: str) -> BaseStorage
     else:
         engine_kwargs["pool_pre_ping"] = True
         engine_kwargs["connect_args"] = {"connect_timeout": 10}
+    if mode != "create" and not _has_optuna_schema(spec, engine_kwargs):
+        # RDBStorage would create the tables: a reader must leave an empty database as it is.
+        raise StorageError(
+            f"{spec} holds no ermrl study: the database is empty (no Optuna tables), and was "
+            "left so (check --storage)"
+        )
     if mode == "read":  # the schema exists: no lock (and no lock file) needed
         return optuna.storages.RDBStorage(spec.url, engine_kwargs=engine_kwargs, **heartbeat)
     # Many workers starting at once on a fresh database race on CREATE TABLE: one at a time.
     with storage_lock(spec, "schema"):
         return optuna.storages.RDBStorage(spec.url, engine_kwargs=engine_kwargs, **heartbeat)
+
+
+def _has_optuna_schema(spec: StorageURL, engine_kwargs: dict[str, Any]) -> bool:
+    """Whether an RDB storage holds Optuna's tables, looked up without creating any.
+
+    ``optuna.storages.RDBStorage`` creates its schema when it opens a database, so a read-only
+    command would otherwise turn a 0-byte SQLite file or an empty server database into an Optuna
+    one.
+    """
+    import sqlalchemy
+
+    engine = sqlalchemy.create_engine(spec.url, **engine_kwargs)
+    try:
+        tables = set(sqlalchemy.inspect(engine).get_table_names())
+    finally:
+        engine.dispose()
+    return bool(tables & {"studies", "alembic_version"})
 
 
 def damaged_sqlite_message(path: os.PathLike[str] | str, detail: str) -> str:
