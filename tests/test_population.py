@@ -6,10 +6,16 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
+import gymnasium
 import numpy as np
 import pytest
 import torch
+from gymnasium import spaces
+from stable_baselines3.common.buffers import RolloutBuffer
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.vec_env import VecNormalize
 
+import ermrl.population._ppo as ppo_module
 from ermrl.agents import (
     derive_seeds,
     frozen_normalize_env,
@@ -20,12 +26,13 @@ from ermrl.agents import (
     resolve_ppo_config,
     with_overrides,
 )
-from ermrl.agents._normalize import stats_path
+from ermrl.agents._normalize import normalize_env, stats_path
 from ermrl.agents._train import RunResult, TrainingDiverged
 from ermrl.config import (
     BudgetConfig,
     ConfigError,
     EncoderConfig,
+    NormalizeConfig,
     PPOConfig,
     ReservoirParams,
     TaskConfig,
@@ -36,6 +43,7 @@ from ermrl.population import (
     PopulationJob,
     PopulationPPO,
     check_population_config,
+    compute_gae,
     train_population,
 )
 
@@ -249,6 +257,9 @@ SB3_CASES = {
     "pendulum-gsde": ("Pendulum-v1", {"use_sde": True}),
     "pendulum-gauss": ("Pendulum-v1", {"use_sde": False}),
     "cartpole": ("CartPole-v1", {}),  # linear learning rate and clip range schedules
+    # The value loss on values clipped around the old ones (constant, then a linear schedule).
+    "pendulum-clip-range-vf": ("Pendulum-v1", {"use_sde": False, "clip_range_vf": 0.05}),
+    "cartpole-clip-range-vf-schedule": ("CartPole-v1", {"clip_range_vf": "lin_0.05"}),
 }
 
 
@@ -266,11 +277,7 @@ def sb3_rollout(env_id: str, overrides: dict[str, Any]) -> tuple[Any, PPOConfig,
     )
     env = make_vec_env(task, ppo.n_envs, 3, None, 0)
     model = get_learner("ppo").build(env, ppo, seed=4)
-    total = 4 * model.n_steps * model.n_envs  # progress remaining 0.75 after one rollout
-    total, callback = model._setup_learn(total, None)
-    callback.on_training_start(locals(), globals())
-    assert model.collect_rollouts(model.env, callback, model.rollout_buffer, model.n_steps)
-    model._update_current_progress_remaining(model.num_timesteps, total)
+    collect_one_rollout(model)
     return model, ppo, task
 
 
@@ -300,9 +307,11 @@ def test_the_population_update_equals_sb3_ppo_train(case: str) -> None:
     rng = np.random.default_rng(9)
     others = [[rng.permutation(T) for _ in range(model.n_epochs)] for _ in range(2)]
 
-    def run(first: list[np.ndarray], first_perms: list[np.ndarray]) -> PopulationPPO:
+    def run(
+        first: list[np.ndarray], first_perms: list[np.ndarray], settings: PPOConfig = ppo
+    ) -> PopulationPPO:
         jobs = [PopulationJob(None, s) for s in (1, 2, 3)]
-        population = PopulationPPO(task, ppo, jobs)
+        population = PopulationPPO(task, settings, jobs)
         population.policy.load_sb3_state(0, start)
         population.policy.refresh()
         stacked = []
@@ -326,6 +335,15 @@ def test_the_population_update_equals_sb3_ppo_train(case: str) -> None:
     # parameter order; the population runs baddbmm and fused Adam. Last-bit differences grow over
     # the 320 Adam steps to ~1e-6 (measured 0.15e-6 to 1.1e-6); a semantic difference is >1e-3.
     assert diff < 3e-6
+    if "clip_range_vf" in overrides:
+        # The clipping is engaged: without it, the same data ends far from SB3's weights.
+        unclipped = dataclasses.replace(
+            ppo, hyperparams={k: v for k, v in ppo.hyperparams.items() if k != "clip_range_vf"}
+        )
+        other = run(data0, perms0, unclipped).policy.sb3_state(0)
+        apart = max(float((other[k] - theirs[k]).abs().max()) for k in other)
+        print(f"{case}: without clip_range_vf, max |population - SB3| = {apart:.3g}")
+        assert apart > 1e-3
     # Agents 1 and 2 end the same whatever agent 0's data.
     shuffled = [a[::-1].copy() * (1 if j == 1 else 2) for j, a in enumerate(data0)]
     again = run(shuffled, [p[::-1].copy() for p in perms0])
@@ -337,6 +355,295 @@ def test_the_population_update_equals_sb3_ppo_train(case: str) -> None:
         not torch.equal(value.detach()[0], again.policy.params[name].detach()[0])
         for name, value in population.policy.params.items()
     )
+
+
+# -- 3b. the same rollouts, GAE and normalization as SB3 ----------------------------------------
+# CartPole cut at 20 steps: a rollout with terminations and truncations.
+SHORT_CARTPOLE = "ErmrlTestShortCartPole-v0"
+
+
+class ReplayedNoise:
+    """Stands in for an agent's numpy stream in a rollout: hands back the noise SB3 drew.
+
+    ``normals`` are the standard normal tensors SB3's torch distributions drew, in order (a
+    Gaussian action's, or gSDE's exploration matrices); ``skip`` is a shape the population never
+    asks for (gSDE's single ``exploration_mat``, which SB3 draws besides the per-env matrices and
+    does not use in rollouts). ``choices`` are SB3's categorical actions: with two actions, the
+    population's inverse-CDF draw ``u = a`` picks action ``a``.
+    """
+
+    def __init__(
+        self,
+        normals: list[np.ndarray],
+        choices: list[np.ndarray],
+        skip: tuple[int, ...] | None = None,
+    ) -> None:
+        self.normals, self.choices, self.skip = list(normals), list(choices), skip
+
+    def standard_normal(self, shape: tuple[int, ...], dtype: Any = np.float64) -> np.ndarray:
+        x = self.normals.pop(0)
+        while x.shape == self.skip:
+            x = self.normals.pop(0)
+        assert x.shape == tuple(shape), (x.shape, shape)
+        return x.astype(dtype)
+
+    def random(self, n: int) -> np.ndarray:
+        u = self.choices.pop(0).reshape(-1).astype(np.float64)
+        assert u.shape == (n,)
+        return u
+
+    @property
+    def unused(self) -> int:
+        return len([x for x in self.normals if x.shape != self.skip]) + len(self.choices)
+
+
+class EpisodeEnds(BaseCallback):
+    """Counts SB3's episode ends in a rollout: ``(terminated, truncated)``."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.terminated = self.truncated = 0
+
+    def _on_step(self) -> bool:
+        for done, info in zip(self.locals["dones"], self.locals["infos"]):
+            if done:
+                if info.get("TimeLimit.truncated", False):
+                    self.truncated += 1
+                else:
+                    self.terminated += 1
+        return True
+
+
+def collect_one_rollout(model: Any, callback: BaseCallback | None = None) -> None:
+    """SB3's ``learn`` up to the end of its first ``collect_rollouts`` (no training)."""
+    total = 4 * model.n_steps * model.n_envs  # progress remaining 0.75 after one rollout
+    total, callback = model._setup_learn(total, callback)
+    callback.on_training_start(locals(), globals())
+    assert model.collect_rollouts(model.env, callback, model.rollout_buffer, model.n_steps)
+    model._update_current_progress_remaining(model.num_timesteps, total)
+
+
+ROLLOUT_CASES = {
+    # Pendulum's 200-step limit inside the rollout: truncations, bootstrapped from the last state.
+    "pendulum-gauss": ("Pendulum-v1", {"n_steps": 256, "use_sde": False}),
+    "pendulum-gauss-normalize": (
+        "Pendulum-v1",
+        {"n_steps": 256, "use_sde": False, "normalize": True},
+    ),
+    # gSDE, new matrices every 4 steps. Its noise is a function of the state, so the closed loop
+    # amplifies last-bit differences (1e-7 at the first steps, 4e-4 in the observations after 256
+    # steps): a shorter rollout, without truncation (the cases above bootstrap).
+    "pendulum-gsde": ("Pendulum-v1", {"n_steps": 64}),
+    "cartpole-terminations-and-truncations": (SHORT_CARTPOLE, {"n_steps": 96, "batch_size": 64}),
+}
+
+
+@pytest.fixture
+def short_cartpole(monkeypatch: pytest.MonkeyPatch) -> str:
+    """CartPole with a 20-step time limit, registered for one test."""
+    spec = gymnasium.envs.registration.EnvSpec(
+        SHORT_CARTPOLE,
+        entry_point="gymnasium.envs.classic_control.cartpole:CartPoleEnv",
+        max_episode_steps=20,
+    )
+    monkeypatch.setitem(gymnasium.registry, SHORT_CARTPOLE, spec)
+    return SHORT_CARTPOLE
+
+
+@pytest.mark.parametrize("case", list(ROLLOUT_CASES))
+def test_a_population_rollout_equals_sb3_collect_rollouts(
+    case: str, short_cartpole: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Same env seeds, weights and noise: agent 0's rollout (observations, actions, log-probs,
+    values, rewards with the truncation bootstrap, episode starts) and its advantages and returns
+    equal SB3's RolloutBuffer after collect_rollouts."""
+    env_id, overrides = ROLLOUT_CASES[case]
+    torch.set_num_threads(1)
+    table_id = "CartPole-v1" if env_id == SHORT_CARTPOLE else env_id
+    ppo = ppo_for(table_id, n_envs=2, **overrides)
+    task = TaskConfig(env_id, "all")
+    population = PopulationPPO(task, ppo, [PopulationJob(None, 21), PopulationJob(None, 22)])
+    env = normalize_env(make_vec_env(task, ppo.n_envs, population.seeds[0].env), ppo)
+    model = get_learner("ppo").build(env, ppo, seed=4)
+    env.seed(population.seeds[0].env)  # as train_agent: building seeded the envs with the agent's
+    population.policy.load_sb3_state(0, model.policy.state_dict())
+    population.policy.refresh()
+
+    # SB3's rollout, recording the noise its torch distributions draw.
+    normals: list[np.ndarray] = []
+    choices: list[np.ndarray] = []
+    draw_normal = torch.distributions.normal._standard_normal
+    draw_choice = torch.distributions.Categorical.sample
+
+    def recorded_normal(*args: Any, **kwargs: Any) -> torch.Tensor:
+        x = draw_normal(*args, **kwargs)
+        normals.append(x.numpy().copy())
+        return x
+
+    def recorded_choice(self: Any, *args: Any, **kwargs: Any) -> torch.Tensor:
+        x = draw_choice(self, *args, **kwargs)
+        choices.append(x.numpy().copy())
+        return x
+
+    ends = EpisodeEnds()
+    with monkeypatch.context() as m:
+        m.setattr(torch.distributions.normal, "_standard_normal", recorded_normal)
+        m.setattr(torch.distributions.Categorical, "sample", recorded_choice)
+        collect_one_rollout(model, ends)
+    if model.n_steps > 200:
+        assert ends.truncated > 0, "no truncation: the bootstrap is not exercised"
+    if env_id == SHORT_CARTPOLE:
+        assert ends.terminated > 0 and ends.truncated > 0
+        assert population.spec.action_dim == 2
+
+    # The population's rollout, agent 0 fed the same noise; the update is skipped.
+    skip = tuple(model.policy.log_std.shape) if population.spec.use_sde else None
+    replay = ReplayedNoise(normals, choices, skip)
+    population.rngs[0] = replay  # type: ignore[call-overload]
+    seen: dict[str, np.ndarray] = {}
+    gae = ppo_module.compute_gae
+
+    def spy_gae(*args: Any) -> tuple[np.ndarray, np.ndarray]:
+        seen["rewards"], seen["starts"] = args[0], args[2]
+        return gae(*args)
+
+    def spy_train(progress: float, *arrays: np.ndarray) -> None:
+        keys = ("observations", "actions", "values", "log_probs", "advantages", "returns")
+        seen.update(zip(keys, arrays))
+
+    monkeypatch.setattr(ppo_module, "compute_gae", spy_gae)
+    monkeypatch.setattr(population, "_train", spy_train)
+    population.learn(model.n_steps * model.n_envs)
+    assert replay.unused == 0
+
+    buf = model.rollout_buffer
+    diffs = {}
+    for key, ours in seen.items():
+        theirs = getattr(buf, "episode_starts" if key == "starts" else key)
+        ours = ours[0].reshape(theirs.shape)
+        diffs[key] = float(np.abs(ours - theirs).max())
+    print(f"{case}: max |population - SB3| " + ", ".join(f"{k} {v:.2g}" for k, v in diffs.items()))
+    assert diffs["starts"] == 0.0
+    if population.discrete:
+        assert diffs["actions"] == 0.0
+    # Not bitwise: SB3 runs torch, the rollout numpy (last-bit differences in the MLP and the
+    # Gaussian log-probability); a semantic difference (a missing bootstrap, a wrong start) is
+    # > 1e-2.
+    assert max(diffs.values()) < 1e-4
+    population.close()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_compute_gae_equals_sb3_rollout_buffer(seed: int) -> None:
+    """Random rewards, values and episode ends (a done on the last step too): the population's
+    GAE equals RolloutBuffer.compute_returns_and_advantage for each agent."""
+    rng = np.random.default_rng(seed)
+    P, T, E, gamma, lam = 3, 16, 4, 0.97, 0.9
+    rewards = rng.standard_normal((P, T, E)).astype(np.float32)
+    values = rng.standard_normal((P, T, E)).astype(np.float32)
+    starts = (rng.random((P, T, E)) < 0.2).astype(np.float32)
+    starts[:, 0] = 1.0
+    last_values = rng.standard_normal((P, E)).astype(np.float32)
+    dones = rng.random((P, E)) < 0.5
+    dones[:, 0], dones[:, 1] = True, False
+    advantages, returns = compute_gae(rewards, values, starts, last_values, dones, gamma, lam)
+    box = spaces.Box(-1.0, 1.0, (1,), np.float32)
+    for p in range(P):
+        buf = RolloutBuffer(T, box, box, gamma=gamma, gae_lambda=lam, n_envs=E)
+        for t in range(T):
+            buf.add(
+                np.zeros((E, 1), np.float32),
+                np.zeros((E, 1), np.float32),
+                rewards[p, t],
+                starts[p, t],
+                torch.from_numpy(values[p, t]),
+                torch.zeros(E),
+            )
+        buf.compute_returns_and_advantage(torch.from_numpy(last_values[p]), dones[p])
+        # The same float32 operations in the same order: bitwise equal.
+        np.testing.assert_array_equal(advantages[p], buf.advantages)
+        np.testing.assert_array_equal(returns[p], buf.returns)
+
+
+@pytest.mark.parametrize(
+    ("env_id", "with_encoder", "normalize"),
+    [
+        ("Pendulum-v1", False, NormalizeConfig()),
+        ("Pendulum-v1", True, NormalizeConfig(clip_obs=1.0, clip_reward=0.5)),
+        ("CartPole-v1", True, NormalizeConfig(norm_reward=False)),
+        ("CartPole-v1", False, NormalizeConfig(norm_obs=False)),
+    ],
+    ids=["pendulum", "pendulum-reservoir-clipped", "cartpole-reservoir-obs", "cartpole-reward"],
+)
+def test_per_agent_normalization_equals_sb3_vec_normalize(
+    env_id: str, with_encoder: bool, normalize: NormalizeConfig
+) -> None:
+    """Three agents' normalized observations and rewards and their running statistics (mean,
+    variance, count of observations and discounted returns) equal one SB3 VecNormalize each,
+    fed the same actions, over episode ends."""
+    task = TaskConfig(env_id, "all")
+    gamma = 0.95
+    encoders = [encoder(k) for k in range(3)] if with_encoder else None
+    env_seeds, res_seeds = [11, 222, 3333], [5, 66, 777]
+    pop = PopulationEnvs(task, 2, env_seeds, encoders, res_seeds, normalize, gamma)
+    venvs = [
+        VecNormalize(
+            make_vec_env(task, 2, env_seeds[p], encoders[p] if encoders else None, res_seeds[p]),
+            norm_obs=normalize.norm_obs,
+            norm_reward=normalize.norm_reward,
+            clip_obs=normalize.clip_obs,
+            clip_reward=normalize.clip_reward,
+            gamma=gamma,
+            epsilon=normalize.epsilon,
+        )
+        for p in range(3)
+    ]
+    worst = {"obs": 0.0, "reward": 0.0, "stats": 0.0}
+
+    def compare_stats() -> None:
+        for p, venv in enumerate(venvs):
+            pairs: list[tuple[Any, Any]] = [(pop.ret_rms, venv.ret_rms)]
+            if normalize.norm_obs:
+                pairs.append((pop.obs_rms, venv.obs_rms))
+            for ours, theirs in pairs:
+                assert ours is not None
+                assert ours.count[p] == theirs.count
+                for name in ("mean", "var"):
+                    diff = np.abs(getattr(ours, name)[p] - getattr(theirs, name)).max()
+                    worst["stats"] = max(worst["stats"], float(diff))
+            np.testing.assert_allclose(pop.returns[p], venv.returns, atol=1e-6, rtol=0)
+
+    try:
+        obs = pop.reset()
+        for p, venv in enumerate(venvs):
+            worst["obs"] = max(worst["obs"], float(np.abs(obs[p] - venv.reset()).max()))
+        rng = np.random.default_rng(0)
+        ends = 0
+        for _ in range(250):
+            if pop.discrete:
+                actions = rng.integers(0, 2, (3, 2))
+            else:
+                actions = rng.uniform(-2, 2, (3, 2, 1)).astype(np.float32)
+            obs, rewards, _, dones, _, _ = pop.step(actions)
+            ends += int(dones.sum())
+            for p, venv in enumerate(venvs):
+                o, r, d, _ = venv.step(actions[p])
+                np.testing.assert_array_equal(dones[p], d)
+                worst["obs"] = max(worst["obs"], float(np.abs(obs[p] - o).max()))
+                # As PPO stores them: float32 (VecNormalize casts, the population's learn does).
+                ours = rewards[p].astype(np.float32)
+                worst["reward"] = max(worst["reward"], float(np.abs(ours - r).max()))
+            compare_stats()
+        assert ends > 0
+        print(f"{env_id}: max |population - VecNormalize| {worst}")
+        # float32 batches are averaged in another order (axis 1 of [P, n, d] against axis 0
+        # of [n, d]): last-bit differences only; a wrong rule (clip, epsilon, discount, reset
+        # of the return) is > 1e-3.
+        assert max(worst.values()) < 1e-6
+    finally:
+        pop.close()
+        for venv in venvs:
+            venv.close()
 
 
 # -- 4. a diverged agent is dropped -------------------------------------------------------------

@@ -13,6 +13,7 @@ from ermrl.population._ppo import (
     PopulationJob,
     PopulationPPO,
     check_population_config,
+    compute_gae,
     train_population,
 )
 
@@ -25,6 +26,7 @@ __all__ = [
     "RunningStats",
     "StackedPolicy",
     "check_population_config",
+    "compute_gae",
     "policy_spec",
     "split_jobs",
     "train_population",

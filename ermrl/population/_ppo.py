@@ -33,7 +33,13 @@ from ermrl.config import BudgetConfig, ConfigError, EncoderConfig, PPOConfig, Ta
 from ermrl.population._envs import PopulationEnvs
 from ermrl.population._policy import StackedAdam, StackedPolicy, policy_spec
 
-__all__ = ["PopulationJob", "PopulationPPO", "check_population_config", "train_population"]
+__all__ = [
+    "PopulationJob",
+    "PopulationPPO",
+    "check_population_config",
+    "compute_gae",
+    "train_population",
+]
 
 # SB3 PPO's defaults for the keys the population backend reads.
 _DEFAULTS: dict[str, Any] = {
@@ -97,6 +103,52 @@ def check_population_config(ppo: PPOConfig) -> None:
         policy_spec(settings["policy_kwargs"] or {}, 1, 1, False, bool(settings["use_sde"]))
     except ValueError as err:
         raise ConfigError(str(err)) from None
+
+
+def compute_gae(
+    rewards: np.ndarray,
+    values: np.ndarray,
+    episode_starts: np.ndarray,
+    last_values: np.ndarray,
+    dones: np.ndarray,
+    gamma: float,
+    gae_lambda: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """SB3's ``RolloutBuffer.compute_returns_and_advantage`` for every agent at once.
+
+    ``delta_t = r_t + gamma * V_{t+1} * (1 - start_{t+1}) - V_t`` and
+    ``A_t = delta_t + gamma * gae_lambda * (1 - start_{t+1}) * A_{t+1}``, where after the last
+    step ``V`` is ``last_values`` and ``start`` is ``dones``. A truncated episode's bootstrap,
+    ``gamma * V(last observation)``, is already in its last reward (as SB3 adds it in
+    ``collect_rollouts``).
+
+    Args:
+        rewards: ``[P, n_steps, E]`` rewards (float32).
+        values: ``[P, n_steps, E]`` values of the observations.
+        episode_starts: ``[P, n_steps, E]``, 1 where the observation is an episode's first.
+        last_values: ``[P, E]`` values of the observations after the last step.
+        dones: ``[P, E]``, whether the last step ended an episode.
+        gamma: Discount.
+        gae_lambda: GAE's lambda.
+
+    Returns:
+        ``(advantages, returns)``, each ``[P, n_steps, E]`` float32; ``returns = advantages +
+        values``.
+    """
+    n_steps = rewards.shape[1]
+    adv = np.zeros(rewards.shape, np.float32)
+    last_gae = np.zeros(last_values.shape, np.float32)
+    for t in reversed(range(n_steps)):
+        if t == n_steps - 1:
+            non_terminal = 1.0 - dones.astype(np.float32)
+            next_values = last_values
+        else:
+            non_terminal = 1.0 - episode_starts[:, t + 1]
+            next_values = values[:, t + 1]
+        delta = rewards[:, t] + gamma * next_values * non_terminal - values[:, t]
+        last_gae = delta + gamma * gae_lambda * non_terminal * last_gae
+        adv[:, t] = last_gae
+    return adv, adv + values
 
 
 def _schedule(value: Any) -> Any:
@@ -309,19 +361,7 @@ class PopulationPPO:
                 break
             t0 = time.perf_counter()
             _, _, last_values = self.policy.forward_np(obs)
-            adv = np.zeros((P, n_steps, E), np.float32)
-            last_gae = np.zeros((P, E), np.float32)
-            for t in reversed(range(n_steps)):
-                if t == n_steps - 1:
-                    non_terminal = 1.0 - dones.astype(np.float32)
-                    next_values = last_values
-                else:
-                    non_terminal = 1.0 - buf_start[:, t + 1]
-                    next_values = buf_val[:, t + 1]
-                delta = buf_rew[:, t] + gamma * next_values * non_terminal - buf_val[:, t]
-                last_gae = delta + gamma * lam * non_terminal * last_gae
-                adv[:, t] = last_gae
-            returns = adv + buf_val
+            adv, returns = compute_gae(buf_rew, buf_val, buf_start, last_values, dones, gamma, lam)
             self.timings["policy"] += time.perf_counter() - t0
             progress = 1.0 - float(self.num_timesteps) / float(total_timesteps)
             t0 = time.perf_counter()
