@@ -137,3 +137,61 @@ def test_cli_smoke_writes_table(tmp_path: Path) -> None:
     assert set(table) == {"CartPole-v1", "Hopper-v5"}
     assert table["Hopper-v5"].random_episodes == 3
     assert "Hopper-v5" in proc.stdout and "no target return for CartPole-v1" in proc.stdout
+
+
+_HEADER = ",".join(SCORE_COLUMNS)
+
+
+@pytest.mark.parametrize(
+    ("content", "problem"),
+    [
+        (b"", "no env_id column"),
+        (b"foo,bar\n1,2\n", "no env_id column"),
+        (b"[1, 2]\n", "no env_id column"),
+        (f"{_HEADER}\nCartPole-v1,abc,,,,,,,,,\n".encode(), "'random_mean' has a bad value 'abc'"),
+        (f"{_HEADER}\nCartPole-v1,1,1,1.5,,,,,,,\n".encode(), "'random_episodes' has a bad value"),
+        (f"{_HEADER}\nCartPole-v1,1,1,-3,,,,,,,\n".encode(), "'random_episodes' has a bad value"),
+        (f"{_HEADER}\n,1,1,1,,,,,,,\n".encode(), "a row has no env_id"),
+        (f"{_HEADER}\nCartPole-v1,nan,,,,,,,,,\n".encode(), "'random_mean' has a bad value 'nan'"),
+        (f"{_HEADER}\nCartPole-v1,1,,,1e400,,,,,,\n".encode(), "'random_mean_length' has a bad"),
+        (b"\xff\xfe\x00bad", "is not UTF-8 text"),
+        (b"env_id\n" + b"x" * 200_000 + b"\n", "is not a CSV table"),
+    ],
+    ids=[
+        "empty",
+        "no-env-id",
+        "json",
+        "text",
+        "float-int",
+        "negative-int",
+        "no-env",
+        "nan",
+        "overflow",
+        "binary",
+        "huge-field",
+    ],
+)
+def test_cli_refuses_a_crafted_table_before_measuring(
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+    content: bytes,
+    problem: str,
+) -> None:
+    """``--out`` naming a damaged or crafted table: one line naming the file and the problem,
+    exit 2, before any episode is run, and the file left as it was (no temporary file)."""
+    import ermrl.search._scores as scores_module
+
+    def no_measuring(*args: object, **kwargs: object) -> None:
+        raise AssertionError("measured before the table was checked")
+
+    monkeypatch.setattr(scores_module, "measure_random_returns", no_measuring)
+    out = tmp_path / "scores.csv"
+    out.write_bytes(content)
+    with pytest.raises(SystemExit) as exc:
+        scores_main(["--env-ids", "CartPole-v1", "--episodes", "1", "--out", str(out), "--quiet"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and str(out) in err and problem in err, err
+    assert out.read_bytes() == content
+    assert [p.name for p in tmp_path.iterdir()] == ["scores.csv"]

@@ -65,6 +65,7 @@ def scores_main(argv: Sequence[str] | None = None, prog: str = "ermrl scores") -
     from ermrl.envs import UnknownEnvError, check_env_id, get_suite
     from ermrl.search._scores import (
         format_scores,
+        load_scores,
         measure_random_returns,
         scores_path,
         update_scores,
@@ -84,6 +85,8 @@ def scores_main(argv: Sequence[str] | None = None, prog: str = "ermrl scores") -
         path = scores_path(args.out)
         if path.exists() and not path.is_file():
             raise ConfigError(f"{path} is not a file")
+        if path.exists():
+            load_scores(path)  # a damaged table is refused before minutes of episodes
     except (ConfigError, UnknownEnvError) as err:
         fail(prog, str(err))
     if not args.quiet:
@@ -94,7 +97,13 @@ def scores_main(argv: Sequence[str] | None = None, prog: str = "ermrl scores") -
         try:
             table = update_scores([score], path)
         except OSError as err:
-            fail(prog, f"cannot write {path}: {err.strerror}; pass --out FILE")
+            fail(
+                prog,
+                f"cannot write {path}: {err.strerror or err}; the score of {env_id} was not "
+                "recorded and the table is whole (pass --out FILE)",
+            )
+        except ConfigError as err:  # the table was changed by someone else since it was checked
+            fail(prog, str(err))
         rows.append(table[env_id])
         if not args.quiet:
             print(

@@ -32,6 +32,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from ermrl._io import write_atomic
 from ermrl.config import ConfigError
 
 __all__ = [
@@ -177,9 +178,15 @@ def _parse_row(row: Mapping[str, str | None], where: str) -> ReferenceScore:
                 values[name] = None
                 continue
             try:
-                values[name] = int(raw) if name in _INTS else float(raw)
+                value = int(raw) if name in _INTS else float(raw)
             except ValueError as err:
                 raise ConfigError(f"{where}: column {name!r} has a bad value {raw!r}") from err
+            if not math.isfinite(value) or (name in _INTS and value < 0):
+                raise ConfigError(
+                    f"{where}: column {name!r} has a bad value {raw!r} (a finite number, and a "
+                    "count or seed >= 0, is expected)"
+                )
+            values[name] = value
         else:
             values[name] = raw
     if not values["env_id"]:
@@ -206,16 +213,25 @@ def load_scores(path: str | os.PathLike[str] | None = None) -> dict[str, Referen
             raise ConfigError(f"score table {file} does not exist")
         return {}
     try:
-        text = file.read_text()
+        text = file.read_text(encoding="utf-8")
     except OSError as err:
         raise ConfigError(f"cannot read score table {file}: {err.strerror}") from err
+    except UnicodeDecodeError as err:
+        raise ConfigError(
+            f"score table {file} is not UTF-8 text (byte {err.start}: {err.reason})"
+        ) from err
     reader = csv.DictReader(io.StringIO(text))
-    if reader.fieldnames is None or "env_id" not in reader.fieldnames:
-        raise ConfigError(f"score table {file} has no env_id column")
     table: dict[str, ReferenceScore] = {}
-    for i, row in enumerate(reader, start=2):
-        score = _parse_row(row, f"{file}:{i}")
-        table[score.env_id] = score
+    try:
+        if reader.fieldnames is None or "env_id" not in reader.fieldnames:
+            raise ConfigError(f"score table {file} has no env_id column")
+        for row in reader:
+            score = _parse_row(row, f"{file}:{reader.line_num}")
+            table[score.env_id] = score
+    except csv.Error as err:  # a field over csv.field_size_limit(), ...
+        raise ConfigError(
+            f"score table {file} is not a CSV table (line {reader.line_num}: {err})"
+        ) from err
     return table
 
 
@@ -317,18 +333,19 @@ def _fmt(value: Any) -> str:
 
 
 def write_scores(table: Mapping[str, ReferenceScore], path: str | os.PathLike[str]) -> None:
-    """Write a reference table as CSV, rows sorted by env id (atomically)."""
+    """Write a reference table as CSV, rows sorted by env id (atomically: a full disk leaves
+    the old table whole and no temporary file).
+
+    Raises:
+        OSError: the file cannot be written.
+    """
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
     writer.writerow(SCORE_COLUMNS)
     for env_id in sorted(table):
         row = table[env_id]
         writer.writerow([_fmt(getattr(row, name)) for name in SCORE_COLUMNS])
-    file = Path(path)
-    file.parent.mkdir(parents=True, exist_ok=True)
-    tmp = file.with_name(f".{file.name}.tmp{os.getpid()}")
-    tmp.write_text(buffer.getvalue())
-    os.replace(tmp, file)
+    write_atomic(path, buffer.getvalue())
 
 
 def update_scores(
