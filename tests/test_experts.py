@@ -269,6 +269,72 @@ def test_load_expert_refuses_a_foreign_document(ppo_expert: Path, tmp_path: Path
         load_expert(folder)
 
 
+def _hyperparams(**values: object) -> dict[str, object]:
+    return {"hyperparams": values}
+
+
+@pytest.mark.parametrize(
+    ("ppo", "top", "problem"),
+    [
+        (_hyperparams(policy_kwargs={"net_arch": "foo"}), {}, "settings cannot build"),
+        (_hyperparams(policy_kwargs={"net_arch": ["a", "b"]}), {}, "settings cannot build"),
+        (_hyperparams(policy_kwargs={"net_arch": {"pi": "foo"}}), {}, "settings cannot build"),
+        (_hyperparams(policy_kwargs="foo"), {}, "settings cannot build"),
+        (_hyperparams(n_steps="x"), {}, "settings cannot build"),
+        (_hyperparams(learning_rate="fast"), {}, "learning rate schedule"),
+        (_hyperparams(foo=1), {}, "foo"),
+        ({"normalize": "yes"}, {}, "malformed expert document"),
+        (None, {"ppo": [1]}, "malformed expert document"),
+        (None, {"versions": [1, 2]}, "malformed expert document"),
+        (None, {"observation_shape": 3}, "malformed expert document"),
+    ],
+    ids=[
+        "net-arch-foo",
+        "net-arch-strings",
+        "net-arch-dict",
+        "policy-kwargs-string",
+        "n-steps-string",
+        "learning-rate-string",
+        "unknown-setting",
+        "normalize-string",
+        "ppo-list",
+        "versions-list",
+        "shape-int",
+    ],
+)
+def test_eval_refuses_wrong_types_in_expert_json(
+    ppo: dict[str, dict[str, object]] | None,
+    top: dict[str, object],
+    problem: str,
+    ppo_expert: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """A crafted ``expert.json`` (``net_arch: foo`` and other wrong types): one line naming the
+    file and the problem, exit 2, and no file written."""
+    folder = tmp_path / "expert"
+    folder.mkdir()
+    for file in ppo_expert.iterdir():
+        (folder / file.name).write_bytes(file.read_bytes())
+    data = json.loads((folder / EXPERT_FILE).read_text())
+    if ppo is not None:
+        for key, value in ppo.items():
+            if key == "hyperparams":
+                assert isinstance(value, dict)
+                data["ppo"]["hyperparams"].update(value)
+            else:
+                data["ppo"][key] = value
+    data.update(top)
+    (folder / EXPERT_FILE).write_text(json.dumps(data))
+    before = sorted(p.name for p in tmp_path.rglob("*"))
+    out = tmp_path / "returns.csv"
+    _refused(["eval", "--expert", str(folder), "--out", str(out)], capsys, problem)
+    err = capsys.readouterr().err
+    _refused(["eval", "--expert", str(folder)], capsys, str(folder / EXPERT_FILE))
+    assert not err
+    assert sorted(p.name for p in tmp_path.rglob("*")) == before
+
+
 def test_help_shows_examples(capsys: pytest.CaptureFixture[str]) -> None:
     for argv in (["--help"], ["train", "--help"], ["eval", "--help"]):
         with pytest.raises(SystemExit) as exc:

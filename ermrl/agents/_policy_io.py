@@ -75,9 +75,12 @@ def load_policy(path: str | Path, ppo: PPOConfig, env: Any) -> PPO:
 
     Raises:
         ValueError: The file does not hold a state dict of this network.
+        ConfigError: ``ppo`` does not build an agent (``policy_kwargs={net_arch: foo}``, a
+            string where a number belongs, ...).
     """
     import torch
 
+    from ermrl.config import ConfigError
     from ermrl.learners import get_learner
 
     state = torch.load(str(path), map_location="cpu", weights_only=True)
@@ -85,9 +88,16 @@ def load_policy(path: str | Path, ppo: PPOConfig, env: Any) -> PPO:
         isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in state.items()
     ):
         raise ValueError(f"{path} does not hold a policy state dict (names to tensors)")
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # rollout-size hints about a buffer never filled here
-        model = get_learner(ppo.learner).build(env, ppo, device="cpu")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # rollout-size hints about a buffer never filled here
+            model = get_learner(ppo.learner).build(env, ppo, device="cpu")
+    except Exception as err:  # noqa: BLE001 - whatever SB3 or torch refuses (net_arch: foo, ...)
+        text = str(err).strip()
+        first = text.splitlines()[0] if text else type(err).__name__
+        raise ConfigError(
+            f"the recorded {ppo.learner} settings cannot build the agent ({first})"
+        ) from None
     try:
         model.policy.load_state_dict(state)
     except RuntimeError as err:

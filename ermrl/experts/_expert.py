@@ -171,7 +171,7 @@ class ExpertInfo:
                 versions={str(k): str(v) for k, v in data.get("versions", {}).items()},
                 command=data.get("command"),
             )
-        except (KeyError, TypeError, ValueError, ConfigError) as err:
+        except (KeyError, TypeError, ValueError, AttributeError, ConfigError) as err:
             raise ValueError(f"malformed expert document ({type(err).__name__}: {err})") from None
 
 
@@ -367,6 +367,8 @@ def load_expert(path: str | Path) -> Expert:
             )
         try:
             model = load_policy(policy_file, _loading_config(info.ppo), env)
+        except ConfigError as err:  # settings that do not build: the fault of expert.json
+            raise ValueError(f"{folder / EXPERT_FILE}: {err}") from None
         except (RuntimeError, EOFError, OSError, pickle.UnpicklingError) as err:  # not torch's
             first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
             raise ValueError(f"{policy_file}: not a policy file ({first})") from None
