@@ -1,4 +1,5 @@
-"""Damaged storages: a journal with a torn last record is repaired, never glued to the next one."""
+"""Damaged storages: unreadable journal records (file or Redis) are set aside by a repair, a record
+is never glued to a partial one, and a damaged journal or database stops a command in one line."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from typing import Literal
 
 import optuna
 import pytest
+import redis
 from optuna.trial import TrialState
 
 from ermrl.cli._study import study_main
@@ -156,14 +158,14 @@ def test_a_full_disk_during_a_write_tears_the_journal_and_the_next_worker_repair
 # -- a damaged SQLite database --------------------------------------------------------------------
 
 
-def _ermrl(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+def _ermrl(*args: str, cwd: Path, timeout: float = 300) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
         [sys.executable, "-c", "import sys; from ermrl.cli import main; sys.exit(main())", *args],
         cwd=cwd,
         env={**os.environ, "PYTHONPATH": str(ROOT)},
         capture_output=True,
         text=True,
-        timeout=300,
+        timeout=timeout,
     )
 
 
@@ -257,3 +259,213 @@ def test_a_storage_path_that_is_a_directory_says_so_and_leaves_no_lock(
             open_storage(url, mode=mode)
         assert "free some space" not in str(caught.value) and "\n" not in str(caught.value)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["d.db", "d.log"]
+
+
+# -- unreadable records anywhere in a journal file -----------------------------------------------
+
+_TORN = b'{"op_code":8,"worker_id":"other-0","trial_id":0,"user_attr":{"k'
+
+
+def _say_set_aside(out: str, n: int) -> None:
+    lines = out.strip().splitlines()
+    assert len(lines) == 1 and f"set aside {n} unreadable record" in lines[0], out
+
+
+def test_a_torn_record_of_another_process_is_never_glued_to_the_next_one(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "s.log"
+    study = optuna.create_study(study_name="s", storage=open_storage(str(path)))
+    study.optimize(lambda t: t.suggest_float("x", 0, 1), n_trials=2)
+    with open(path, "ab") as f:  # another process dies mid-write while this worker runs
+        f.write(_TORN)
+
+    # The worker's next record starts on a line of its own; its next read stops in one line.
+    with pytest.raises(StorageError, match="ermrl study repair") as caught:
+        study.set_user_attr("after", 1)
+    assert "\n" not in str(caught.value)
+    assert _TORN + b"\n" in path.read_bytes().splitlines(keepends=True)
+
+    assert study_main(["repair", "--storage", str(path)]) == 0
+    _say_set_aside(capsys.readouterr().out, 1)
+    (aside,) = _asides(path)
+    assert aside.read_bytes() == _TORN + b"\n"
+    for line in path.read_bytes().splitlines():
+        json.loads(line)
+    again = optuna.load_study(study_name="s", storage=open_storage(str(path)))
+    assert again.user_attrs == {"after": 1} and len(_values(path)) == 2
+    again.optimize(lambda t: t.suggest_float("x", 0, 1), n_trials=1)
+    assert len(_values(path)) == 3
+
+
+def _garbage_last_line(lines: list[bytes]) -> list[bytes]:
+    return [*lines, b"not a record\n"]
+
+
+def _garbage_middle_line(lines: list[bytes]) -> list[bytes]:
+    return [*lines[:4], b'{"op_code":5,"worker_id":\x00\xff\n', *lines[4:]]
+
+
+def _glued_records(lines: list[bytes]) -> list[bytes]:
+    """What an older ermrl wrote: a torn record, the next one glued onto it."""
+    return [*lines[:-1], _TORN + lines[-1]]
+
+
+def _json_but_no_record(lines: list[bytes]) -> list[bytes]:
+    return [*lines[:3], b'{"level":"info"}\n', *lines[3:]]
+
+
+DAMAGE = {
+    "garbage last line": (_garbage_last_line, b"not a record\n"),
+    "garbage middle line": (_garbage_middle_line, b'{"op_code":5,"worker_id":\x00\xff\n'),
+    "glued records": (_glued_records, _TORN + b"\n"),
+    "json but no record": (_json_but_no_record, b'{"level":"info"}\n'),
+}
+
+
+@pytest.mark.parametrize("damage", DAMAGE.values(), ids=DAMAGE)
+def test_study_repair_sets_aside_unreadable_records_anywhere(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], damage: tuple[object, bytes]
+) -> None:
+    damage_fn, set_aside = damage
+    path = tmp_path / "s.log"
+    values = _journal_study(path, n_trials=3)
+    lines = path.read_bytes().splitlines(keepends=True)
+    path.write_bytes(b"".join(damage_fn(lines)))  # type: ignore[operator]
+
+    assert study_main(["repair", "--storage", f"journal://{path}"]) == 0
+    _say_set_aside(capsys.readouterr().out, 1)
+    (aside,) = _asides(path)
+    assert aside.read_bytes() == set_aside
+    assert path.read_bytes().splitlines(keepends=True) == lines  # every record is kept
+    assert _values(path) == values
+    assert study_main(["repair", "--storage", str(path)]) == 0
+    assert "intact" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("damage", DAMAGE.values(), ids=DAMAGE)
+def test_a_worker_that_resumes_sets_aside_unreadable_records_first(
+    tmp_path: Path, damage: tuple[object, bytes]
+) -> None:
+    damage_fn, _ = damage
+    path = tmp_path / "s.log"
+    values = _journal_study(path, n_trials=3)
+    lines = path.read_bytes().splitlines(keepends=True)
+    path.write_bytes(b"".join(damage_fn(lines)))  # type: ignore[operator]
+    study = optuna.load_study(study_name="s", storage=open_storage(str(path)))
+    study.optimize(lambda t: t.suggest_float("x", 0, 1), n_trials=1)
+    assert _values(path)[:3] == values and len(_values(path)) == 4
+    assert len(_asides(path)) == 1
+
+
+def test_a_journal_with_an_unreadable_middle_record_is_one_line_and_exit_2(
+    tmp_path: Path,
+) -> None:
+    path = tmp_path / "s.log"
+    _journal_study(path, n_trials=2)
+    lines = path.read_bytes().splitlines(keepends=True)
+    path.write_bytes(b"".join(_garbage_middle_line(lines)))
+    done = _ermrl("study", "show", "--study-name", "s", "--storage", str(path), cwd=tmp_path)
+    assert done.returncode == 2, done.stdout + done.stderr
+    lines_err = done.stderr.strip().splitlines()
+    assert len(lines_err) == 1 and "Traceback" not in done.stderr
+    assert f"ermrl study repair --storage {path}" in lines_err[0]
+
+
+# -- Redis journals --------------------------------------------------------------------------------
+
+
+def _redis_records(url: str) -> tuple[redis.Redis, str, list[bytes]]:
+    """A client on the journal's database, its key prefix and its records in order."""
+    from ermrl.storage import parse_storage_url
+
+    spec = parse_storage_url(url)
+    client = redis.Redis.from_url(spec.url)
+    last = int(client.get(f"{spec.prefix}:log_number") or -1)
+    records = [client.get(f"{spec.prefix}:log:{n}") for n in range(last + 1)]
+    assert all(r is not None for r in records)
+    return client, spec.prefix, [r for r in records if r is not None]
+
+
+def _rewrite(client: redis.Redis, prefix: str, records: list[bytes | None], last: int) -> None:
+    for key in client.scan_iter(f"{prefix}:log:*"):
+        client.delete(key)
+    for n, record in enumerate(records):
+        if record is not None:
+            client.set(f"{prefix}:log:{n}", record)
+    client.set(f"{prefix}:log_number", last)
+
+
+_Damaged = tuple[list[bytes | None], int, list[bytes]]  # records, log_number, set aside
+_TORN_REDIS = b'{"op_code": 4, "worker_id": "x", "st'
+_GARBAGE = b"\x00garbage"
+
+
+def _redis_torn_last(records: list[bytes]) -> _Damaged:
+    return [*records, _TORN_REDIS], len(records), [_TORN_REDIS]
+
+
+def _redis_garbage_middle(records: list[bytes]) -> _Damaged:
+    return [*records[:3], _GARBAGE, *records[3:]], len(records), [_GARBAGE]
+
+
+def _redis_log_number_ahead(records: list[bytes]) -> _Damaged:
+    return list(records), len(records) + 4, []
+
+
+def _redis_missing_and_ahead(records: list[bytes]) -> _Damaged:
+    """A record number never written (a lost write), a record after it, then nothing."""
+    after = b'{"op_code": 2, "worker_id": "x", "study_id": 0, "user_attr": {"after": 1}}'
+    return [*records, None, after], len(records) + 3, []
+
+
+REDIS_DAMAGE = {
+    "torn last record": _redis_torn_last,
+    "garbage middle record": _redis_garbage_middle,
+    "log_number ahead": _redis_log_number_ahead,
+    "missing record": _redis_missing_and_ahead,
+}
+
+
+@pytest.mark.services
+@pytest.mark.parametrize("damage", REDIS_DAMAGE.values(), ids=REDIS_DAMAGE)
+def test_a_damaged_redis_journal_is_one_line_then_study_repair_fixes_it(
+    redis_url: str,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    damage: object,
+) -> None:
+    study = optuna.create_study(study_name="s", storage=open_storage(redis_url))
+    study.optimize(lambda t: t.suggest_float("x", 0, 1), n_trials=3)
+    values = [t.value for t in study.trials]
+    client, prefix, records = _redis_records(redis_url)
+    damaged, last, aside = damage(records)  # type: ignore[operator]
+    _rewrite(client, prefix, damaged, last)
+
+    # Every command stops in one line (none hangs), and says how to repair.
+    for command in (["study", "list"], ["study", "show", "--study-name", "s"]):
+        done = _ermrl(*command, "--storage", redis_url, cwd=tmp_path, timeout=60)
+        assert done.returncode == 2, done.stdout + done.stderr
+        lines = done.stderr.strip().splitlines()
+        assert len(lines) == 1 and "Traceback" not in done.stderr, done.stderr
+        assert f"ermrl study repair --storage {redis_url}" in lines[0]
+
+    assert study_main(["repair", "--storage", redis_url]) == 0
+    out = capsys.readouterr().out
+    assert len(out.strip().splitlines()) == 1 and redis_url in out, out
+    if aside:
+        assert f"set aside {len(aside)} unreadable record" in out
+        (side,) = client.keys(f"{prefix}:torn-*")
+        assert sorted(client.hgetall(side).values()) == aside
+    else:
+        assert not client.keys(f"{prefix}:torn-*")
+    n_kept = len([d for d in damaged if d is not None]) - len(aside)
+    assert int(client.get(f"{prefix}:log_number") or -2) == n_kept - 1
+    assert study_main(["repair", "--storage", redis_url]) == 0
+    assert "intact" in capsys.readouterr().out
+
+    again = optuna.load_study(study_name="s", storage=open_storage(redis_url))
+    assert [t.value for t in again.trials] == values
+    again.optimize(lambda t: t.suggest_float("x", 0, 1), n_trials=1)
+    assert len(again.get_trials(states=(TrialState.COMPLETE,))) == 4
+    client.close()

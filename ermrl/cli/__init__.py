@@ -17,7 +17,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "evolve": ("ermrl.cli._evolve:evolve_main", "evolve reservoirs for one task (evolve_res.py)"),
     "study": (
         "ermrl.cli._study:study_main",
-        "create, list, show, export, import, delete, fail-stale",
+        "create, list, show, export, import, delete, fail-stale, repair",
     ),
     "test": (
         "ermrl.cli._test:test_main",

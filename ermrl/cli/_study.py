@@ -53,6 +53,7 @@ DESCRIPTION = textwrap.dedent(
       ermrl study fail-stale --storage studies.log --study-name pendulum --older-than 2h
       ermrl study delete --storage sqlite:///ermrl.db --study-name pendulum --yes
       ermrl study repair --storage studies.log
+      ermrl study repair --storage "redis://localhost:6379/0?prefix=ermrl"
     """
 )
 
@@ -178,14 +179,24 @@ def build_study_parser(prog: str = "ermrl study") -> ArgumentParser:
 
     repair = sub.add_parser(
         "repair",
-        help="set aside the partial last record of a journal file (full disk, dead node)",
-        description="A journal whose last write was cut short ends with a partial record. "
-        "Move it to FILE.torn-<UTC time> and cut the journal back to its last complete "
-        "record (workers also do this when they open the journal).",
+        help="set aside the unreadable records of a journal (file or Redis) and renumber it",
+        description="A journal holds records no command can read when a write was cut short "
+        "(full disk, dead node), when another process appended a partial record, or when a "
+        "record is garbage: every command then stops with one line that asks for this repair.\n"
+        "Journal file: every unreadable record, anywhere in the file, is moved to "
+        "FILE.torn-<UTC time> (a valid record glued onto a partial one is kept); every other "
+        "record stays, in order (workers also do this when they open the journal to write).\n"
+        "Redis journal: unreadable records are moved to the hash PREFIX:torn-<UTC time>, the "
+        "others are renumbered without gaps and PREFIX:log_number is set to the last of them "
+        "(a log_number ahead of the stored records made every command wait forever).\n"
+        "One line says how many records were set aside, and where.",
         formatter_class=HelpFormatter,
     )
     repair.add_argument(
-        "--storage", type=storage_arg, required=True, help="journal:///file.log or file.log"
+        "--storage",
+        type=storage_arg,
+        required=True,
+        help="journal:///file.log, file.log or redis://host:port[/db][?prefix=NAME]",
     )
     return parser
 
@@ -582,28 +593,44 @@ def _fail_stale(args: argparse.Namespace, prog: str) -> int:
 
 
 def _repair(args: argparse.Namespace, prog: str) -> int:
-    from ermrl.storage import StorageError, repair_journal, storage_kind
-    from ermrl.storage._locks import journal_path
+    from ermrl.storage import (
+        JournalRepair,
+        StorageError,
+        parse_storage_url,
+        repair_journal,
+        repair_redis_journal,
+    )
 
     try:
-        kind = storage_kind(args.storage)
+        spec = parse_storage_url(args.storage)
     except StorageError as err:
         fail(prog, str(err))
-    if kind != "journal":
-        fail(prog, f"only journal files can be repaired, not {kind} storages ({args.storage})")
-    path = journal_path(args.storage)
-    if not path.is_file() and not path.is_dir():
-        fail(prog, f"no journal file {path}")
-    try:
-        aside = repair_journal(path)
-    except StorageError as err:  # a directory, or not a journal: left untouched
-        fail(prog, str(err))
-    except OSError as err:
-        fail(prog, f"cannot set aside the partial record of {path}: {err.strerror or err}")
-    if aside is None:
-        print(f"{path}: intact, nothing to repair")
+    if spec.kind not in ("journal", "redis"):
+        fail(
+            prog,
+            f"only journal storages (journal files, redis://) can be repaired, not {spec.kind} "
+            f"storages ({args.storage})",
+        )
+    repair: JournalRepair | None
+    if spec.kind == "redis":
+        try:
+            repair = repair_redis_journal(spec)
+        except StorageError as err:
+            fail(prog, str(err))
+        where = args.storage
     else:
-        print(f"{path}: moved a partial last record ({aside.stat().st_size} bytes) to {aside}")
+        path = spec.path
+        assert path is not None, spec
+        if not path.is_file() and not path.is_dir():
+            fail(prog, f"no journal file {path}")
+        try:
+            repair = repair_journal(path)
+        except StorageError as err:  # a directory, or not a journal: left untouched
+            fail(prog, str(err))
+        except OSError as err:
+            fail(prog, f"cannot set aside the unreadable records of {path}: {err.strerror or err}")
+        where = str(path)
+    print(f"{where}: intact, nothing to repair" if repair is None else repair.describe())
     return 0
 
 

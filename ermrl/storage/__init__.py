@@ -28,7 +28,7 @@ from ermrl.storage._open import (
     study_names,
     worker_info,
 )
-from ermrl.storage._repair import repair_journal, torn_tail
+from ermrl.storage._repair import JournalRepair, repair_journal, repair_redis_journal, torn_tail
 from ermrl.storage._snapshot import (
     RELATED_SUFFIXES,
     SNAPSHOT_FORMAT,
@@ -55,6 +55,7 @@ __all__ = [
     "DEFAULT_STORAGE",
     "HEARTBEAT_ATTR",
     "HeartbeatJournalStorage",
+    "JournalRepair",
     "LockTimeout",
     "RELATED_SUFFIXES",
     "RetryStaleTrial",
@@ -82,6 +83,7 @@ __all__ = [
     "parse_storage_url",
     "read_snapshot",
     "repair_journal",
+    "repair_redis_journal",
     "snapshot_counts",
     "storage_kind",
     "storage_lock",

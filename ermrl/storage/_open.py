@@ -10,7 +10,8 @@ Accepted URLs:
   NFS);
 - ``redis://host:port[/db][?prefix=NAME]``: Optuna's journal over Redis (``prefix`` keeps
   several journals apart in one database). Optuna's pickled ``<prefix>:snapshot`` is never
-  loaded (a pickle can run code): the log is replayed instead (:class:`PlainRedisBackend`).
+  loaded (a pickle can run code): the log is replayed instead (:class:`PlainRedisBackend`),
+  and a missing or unreadable record stops a command in one line instead of a wait forever.
 
 Every storage is opened with the same guarantees: the schema is created under an inter-process
 lock (no ``table studies already exists`` when many workers start at once on a fresh file),
@@ -32,8 +33,8 @@ from typing import Any, Literal
 import optuna
 from optuna.exceptions import ExperimentalWarning
 from optuna.storages import BaseStorage
-from optuna.storages.journal import JournalRedisBackend
 
+from ermrl.storage._backends import LineJournalFileBackend, PlainRedisBackend
 from ermrl.storage._heartbeat import HeartbeatJournalStorage, RetryStaleTrial, base_storage
 from ermrl.storage._locks import LOCK_TIMEOUT_S, storage_lock
 from ermrl.storage._repair import check_journal, repair_journal
@@ -95,35 +96,6 @@ def normalize_url(url: str) -> str:
     except StorageError:
         return url
     return spec.url if spec.is_rdb else url
-
-
-class PlainRedisBackend(JournalRedisBackend):
-    """Optuna's Redis journal backend that never loads or saves a pickled snapshot.
-
-    ``JournalStorage`` unpickles ``<prefix>:snapshot`` when it opens a Redis journal, so whoever
-    can write that key could run code in every command that opens the storage, read-only ones
-    included. The snapshot is only a shortcut: the log holds every operation, and replaying it
-    gives the same studies. A snapshot found there is ignored, with one warning per process.
-    """
-
-    def load_snapshot(self) -> bytes | None:
-        key = f"{self._prefix}:snapshot"
-        if (self._url, key) not in _SNAPSHOTS_WARNED and self._redis.exists(key):
-            _SNAPSHOTS_WARNED.add((self._url, key))
-            _log.warning(
-                "ignoring Redis key %s (a pickled snapshot, never loaded: the journal log is "
-                "replayed instead); delete it with: redis-cli -u %s DEL %s",
-                key,
-                self._url,
-                key,
-            )
-        return None
-
-    def save_snapshot(self, snapshot: bytes) -> None:
-        """Write nothing: no pickle is stored for anyone to load."""
-
-
-_SNAPSHOTS_WARNED: set[tuple[str, str]] = set()
 
 
 def _short(err: BaseException) -> str:
@@ -197,8 +169,6 @@ def open_storage(
 
 def _open(spec: StorageURL, heartbeat: dict[str, Any], mode: str) -> BaseStorage:
     if spec.kind == "journal":
-        from optuna.storages.journal import JournalFileBackend
-
         path = spec.path
         assert path is not None, spec
         if not path.parent.exists():
@@ -206,20 +176,19 @@ def _open(spec: StorageURL, heartbeat: dict[str, Any], mode: str) -> BaseStorage
         check_journal(path)  # a directory, or a file that is not a journal: left untouched
         if mode != "create" and not path.is_file():
             raise StorageError(f"no journal file {path} (check --storage)")
-        if mode == "read":
-            return HeartbeatJournalStorage(JournalFileBackend(str(path)), **heartbeat)
-        try:
-            # A record cut short (full disk, dead node) would be glued to the next one.
-            repair_journal(path)
-        except OSError as err:
-            raise StorageError(
-                f"journal {path} ends with a partial record that could not be set aside "
-                f"({err.strerror or err}); free some space and run: ermrl study repair "
-                f"--storage {spec}"
-            ) from err
-        return HeartbeatJournalStorage(JournalFileBackend(str(path)), **heartbeat)
+        if mode != "read":
+            try:
+                # A record cut short, or garbage, would stop every read from here on.
+                repair_journal(path)
+            except OSError as err:
+                raise StorageError(
+                    f"journal {path} has unreadable records that could not be set aside "
+                    f"({err.strerror or err}); free some space and run: ermrl study repair "
+                    f"--storage {spec}"
+                ) from err
+        return HeartbeatJournalStorage(LineJournalFileBackend(str(path), spec.raw), **heartbeat)
     if spec.kind == "redis":
-        backend = PlainRedisBackend(spec.url, prefix=spec.prefix)
+        backend = PlainRedisBackend(spec.url, prefix=spec.prefix, storage=spec.raw)
         storage = HeartbeatJournalStorage(backend, **heartbeat)
         storage.get_all_studies()  # fail now if the server is unreachable
         return storage

@@ -1,15 +1,26 @@
-"""Repairing a journal file whose last record was cut short.
+"""Repairing a journal (file or Redis) that holds records no command can read.
 
-A journal is a file of JSON records, one per line, only ever appended to. When a write is cut
-short (the disk filled up, the file system hit its quota, the node died mid-write), the file ends
-with a partial line. Optuna still reads the complete records before it, but the next worker
-appends straight after the partial line, which makes one undecodable line: from then on every
-read fails with ``JSONDecodeError``.
+A journal file is JSON records, one per line, only ever appended to. When a write is cut short
+(the disk filled up, the file system hit its quota, the node died mid-write), the file ends with
+a partial line; an older ermrl (or plain Optuna) then appended the next record straight after
+it, which glued the two into one undecodable line. A line can also be garbage for other reasons
+(written by hand, a bad disk). Optuna reads a journal up to its first unreadable record and then
+fails, so every command fails.
 
-:func:`repair_journal` moves the partial record to ``<file>.torn-<UTC time>`` and cuts the
-journal back to its last complete record, under the journal's own write lock, so no worker writes
-while it does. Workers call it before they use a journal (:func:`~ermrl.storage.open_storage`);
-``ermrl study repair`` calls it by hand. The partial record is never merged or dropped silently.
+:func:`repair_journal` finds every unreadable record of a journal file (anywhere, not only at
+its end), moves it to ``<file>.torn-<UTC time>`` and keeps every other record, in order, under
+the journal's own write lock, so no worker writes while it does. A record glued onto a partial
+one is kept and only the partial one is set aside. Workers call it before they use a journal
+(:func:`~ermrl.storage.open_storage`); ``ermrl study repair`` calls it by hand.
+
+A Redis journal numbers its records ``<prefix>:log:0``, ``:log:1``, ... up to the counter
+``<prefix>:log_number``. :func:`repair_redis_journal` moves unreadable records to the hash
+``<prefix>:torn-<UTC time>`` (field: the record's old number), renumbers the records that are
+left without gaps, and sets ``log_number`` to the last of them, in one transaction that is
+retried if a worker appends meanwhile.
+
+Nothing is merged or dropped silently: what is set aside stays there, and a warning (or
+``ermrl study repair``'s one line) says how many records and where.
 """
 
 from __future__ import annotations
@@ -17,18 +28,112 @@ from __future__ import annotations
 import json
 import logging
 import os
+import stat
+from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import Any
 
-from ermrl.storage._url import StorageError
+from ermrl.storage._url import StorageError, StorageURL, parse_storage_url
 
-__all__ = ["check_journal", "torn_tail", "repair_journal"]
+__all__ = [
+    "JournalRepair",
+    "check_journal",
+    "is_journal_record",
+    "journal_record",
+    "repair_journal",
+    "repair_redis_journal",
+    "torn_tail",
+]
 
 _log = logging.getLogger("ermrl.storage")
 _TAIL_CHUNK = 1 << 16
+_COPY_CHUNK = 1 << 20
 # How a record written by Optuna's JournalFileBackend begins (compact JSON, op_code first).
 _RECORD_START = b'{"op_code":'
 _FIRST_LINE_MAX = 1 << 20
+_REDIS_BATCH = 1000
+
+
+def _op_codes() -> frozenset[int]:
+    from optuna.storages.journal._storage import JournalOperation
+
+    return frozenset(int(op) for op in JournalOperation)
+
+
+_OP_CODES = _op_codes()
+
+
+def is_journal_record(value: object) -> bool:
+    """Whether a decoded value is an Optuna journal record: a JSON object with a known integer
+    ``op_code`` and a string ``worker_id``."""
+    if not isinstance(value, dict):
+        return False
+    op_code = value.get("op_code")
+    return type(op_code) is int and op_code in _OP_CODES and isinstance(value.get("worker_id"), str)
+
+
+def journal_record(raw: bytes | str) -> dict[str, Any] | None:
+    """The journal record encoded in ``raw``, or ``None`` when it is not one (see
+    :func:`is_journal_record`)."""
+    try:
+        value = json.loads(raw)
+    except (ValueError, RecursionError):  # JSONDecodeError, UnicodeDecodeError
+        return None
+    return value if is_journal_record(value) else None
+
+
+@dataclass(frozen=True)
+class JournalRepair:
+    """What a repair changed in a journal.
+
+    Attributes:
+        journal: The journal: its file, or its Redis storage URL.
+        aside: Where the set-aside records are kept: the file ``<journal>.torn-<UTC time>``
+            (one record a line; a partial last record without its newline) or the Redis hash
+            ``<prefix>:torn-<UTC time>`` (field: the record's old number); ``None`` when no
+            record was set aside.
+        n_records: Unreadable records set aside.
+        n_bytes: Their size in bytes.
+        partial: Whether the last of them was a partial last line (a write cut short).
+        n_missing: Redis: record numbers below ``log_number`` that held no record; the records
+            after them were renumbered.
+        log_number: Redis: ``log_number`` before and after, when it did not name the last
+            stored record (``None`` before: the key was missing or not a number).
+    """
+
+    journal: str
+    aside: str | None = None
+    n_records: int = 0
+    n_bytes: int = 0
+    partial: bool = False
+    n_missing: int = 0
+    log_number: tuple[int | None, int] | None = None
+
+    def describe(self) -> str:
+        """One line: what was set aside, renumbered and fixed."""
+        parts = []
+        if self.n_records:
+            s = "" if self.n_records == 1 else "s"
+            last = ", the last one partial" if self.partial else ""
+            parts.append(
+                f"set aside {self.n_records} unreadable record{s} ({self.n_bytes} bytes{last}) "
+                f"in {self.aside}"
+            )
+        if self.n_missing:
+            s = "" if self.n_missing == 1 else "s"
+            parts.append(f"renumbered the records after {self.n_missing} missing number{s}")
+        if self.log_number is not None:
+            before, after = self.log_number
+            parts.append(
+                f"set log_number from {'none' if before is None else before} to {after} "
+                f"({after + 1} records)"
+            )
+        return f"{self.journal}: " + "; ".join(parts)
+
+
+def _stamp() -> str:
+    return datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S.%fZ")
 
 
 def check_journal(path: Path | str) -> None:
@@ -61,7 +166,8 @@ def check_journal(path: Path | str) -> None:
             record = json.loads(head)
         except ValueError:  # JSONDecodeError, UnicodeDecodeError
             record = None
-        ok = isinstance(record, dict) and {"op_code", "worker_id"} <= record.keys()
+        # A first record glued onto a partial one (an older ermrl) is repaired, not refused.
+        ok = is_journal_record(record) or head.startswith(_RECORD_START)
     else:  # one partial line: a cut first record, or not a journal at all
         ok = len(head) < _FIRST_LINE_MAX and (
             head.startswith(_RECORD_START) or _RECORD_START.startswith(head)
@@ -100,63 +206,243 @@ def torn_tail(path: Path) -> int:
     return size
 
 
-def repair_journal(path: Path | str) -> Path | None:
-    """Set aside the partial last record of a journal file, if there is one.
+def _damage(path: Path) -> list[tuple[int, int, int]]:
+    """Byte spans of a journal file's unreadable records, in order.
 
-    The check is made again under the journal's write lock (the one Optuna's
+    Each span is ``(start, cut, end)``: the line ``[start, end)`` is unreadable, its bytes
+    ``[start, cut)`` are set aside and ``[cut, end)`` (a valid record glued onto a partial one;
+    empty otherwise) are kept. A last line without its newline is always set aside whole.
+    """
+    spans = []
+    offset = 0
+    with open(path, "rb") as f:
+        for line in f:
+            start, offset = offset, offset + len(line)
+            if line.endswith(b"\n") and journal_record(line) is not None:
+                continue
+            cut = offset
+            if line.endswith(b"\n"):
+                glued = line.find(_RECORD_START, 1)
+                while glued > 0:
+                    if journal_record(line[glued:]) is not None:
+                        cut = start + glued
+                        break
+                    glued = line.find(_RECORD_START, glued + 1)
+            spans.append((start, cut, offset))
+    return spans
+
+
+def repair_journal(path: Path | str) -> JournalRepair | None:
+    """Set aside every unreadable record of a journal file, if there is any.
+
+    The file is read again under the journal's write lock (the one Optuna's
     ``JournalFileBackend`` takes to append), so a record another worker is writing right now is
-    never mistaken for a torn one. The partial bytes are written to ``<file>.torn-<UTC time>``
-    (and synced) before the journal is cut back, so a failure (e.g. the disk is still full)
-    leaves the journal as it was.
+    never mistaken for a torn one. The unreadable records are written to
+    ``<file>.torn-<UTC time>`` (and synced) before the journal changes, so a failure (e.g. the
+    disk is still full) leaves the journal as it was. A partial last record alone is cut off in
+    place; otherwise the kept records are written to a new file that replaces the journal in
+    one step. Workers that have the journal open stay consistent: none could read past an
+    unreadable record, and the records after it keep their numbers.
 
     Args:
         path: The journal file.
 
     Returns:
-        The file the partial record was moved to, or ``None`` when the journal was intact.
+        What was set aside, or ``None`` when every record was readable.
 
     Raises:
         StorageError: the path is not a journal file (:func:`check_journal`; left untouched).
-        OSError: the partial record could not be set aside (the journal is unchanged).
+        OSError: the records could not be set aside (the journal is unchanged).
     """
     from optuna.storages.journal import JournalFileSymlinkLock
 
     path = Path(path)
     check_journal(path)
-    if torn_tail(path) == 0:
+    if not path.is_file() or not _damage(path):
         return None
     lock = JournalFileSymlinkLock(str(path))
     lock.acquire()
     try:
-        n_torn = torn_tail(path)  # a write that was in progress has ended now
-        if n_torn == 0:
+        spans = _damage(path)  # a write that was in progress has ended now
+        if not spans:
             return None
         size = os.path.getsize(path)
-        keep = size - n_torn
-        with open(path, "rb") as f:
-            f.seek(keep)
-            partial = f.read()
-        stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S.%fZ")
-        aside = path.with_name(f"{path.name}.torn-{stamp}")
+        partial = spans[-1][2] == size and spans[-1][1] == size and torn_tail(path) > 0
+        aside = path.with_name(f"{path.name}.torn-{_stamp()}")
+        n_bytes = 0
         try:
-            with open(aside, "xb") as f:
-                f.write(partial)
-                f.flush()
-                os.fsync(f.fileno())
+            with open(path, "rb") as src, open(aside, "xb") as out:
+                for start, cut, end in spans:
+                    src.seek(start)
+                    piece = src.read(cut - start)
+                    n_bytes += len(piece)
+                    out.write(piece if cut == end else piece + b"\n")
+                out.flush()
+                os.fsync(out.fileno())
         except OSError:
             aside.unlink(missing_ok=True)
             raise
-        with open(path, "r+b") as f:
-            f.truncate(keep)
-            f.flush()
-            os.fsync(f.fileno())
+        if len(spans) == 1 and partial:
+            with open(path, "r+b") as f:
+                f.truncate(spans[0][0])
+                f.flush()
+                os.fsync(f.fileno())
+        else:
+            _rewrite_without(path, spans)
     finally:
         lock.release()
+    s = "" if len(spans) == 1 else "s"
     _log.warning(
-        "journal %s ended with a partial record (%d bytes, e.g. a full disk during a write); "
-        "moved it to %s",
+        "journal %s had %d unreadable record%s (%d bytes%s: a write cut short, or garbage); "
+        "moved them to %s",
         path,
-        n_torn,
+        len(spans),
+        s,
+        n_bytes,
+        ", the last one partial" if partial else "",
         aside,
     )
-    return aside
+    return JournalRepair(
+        journal=str(path),
+        aside=str(aside),
+        n_records=len(spans),
+        n_bytes=n_bytes,
+        partial=partial,
+    )
+
+
+def _rewrite_without(path: Path, spans: list[tuple[int, int, int]]) -> None:
+    """Replace ``path`` by a copy without the bytes ``[start, cut)`` of each span."""
+    new = path.with_name(f".{path.name}.repair-{_stamp()}")
+    try:
+        with open(path, "rb") as src, open(new, "xb") as out:
+            os.chmod(new, stat.S_IMODE(os.fstat(src.fileno()).st_mode))
+            position = 0
+            for start, cut, _ in [*spans, (os.fstat(src.fileno()).st_size, 0, 0)]:
+                src.seek(position)
+                left = start - position
+                while left > 0:
+                    chunk = src.read(min(left, _COPY_CHUNK))
+                    if not chunk:
+                        break
+                    out.write(chunk)
+                    left -= len(chunk)
+                position = cut
+            out.flush()
+            os.fsync(out.fileno())
+        os.replace(new, path)
+    except BaseException:
+        new.unlink(missing_ok=True)
+        raise
+    try:
+        fd = os.open(path.parent, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def repair_redis_journal(url: str | StorageURL) -> JournalRepair | None:
+    """Set aside the unreadable records of a Redis journal and renumber the others.
+
+    The records ``<prefix>:log:N`` are read in order of ``N``. Unreadable ones go to the hash
+    ``<prefix>:torn-<UTC time>`` (field ``N``); the rest are renumbered ``0, 1, ...`` (closing
+    the gaps of numbers that hold no record) and ``<prefix>:log_number`` is set to the last of
+    them, as Optuna counts it. All of it is one ``MULTI``/``EXEC`` transaction that watches
+    ``log_number``: when a worker appends meanwhile, it is read and done again. Workers that
+    have the journal open stay consistent: none could read past a missing or unreadable
+    record, and the records before it keep their numbers.
+
+    Args:
+        url: The ``redis://`` storage URL (``?prefix=NAME`` selects the journal).
+
+    Returns:
+        What was changed, or ``None`` when the journal was intact.
+
+    Raises:
+        StorageError: not a Redis URL, or the server cannot be reached (one line).
+    """
+    import redis
+
+    spec = url if isinstance(url, StorageURL) else parse_storage_url(url)
+    if spec.kind != "redis":
+        raise StorageError(f"{spec} is not a Redis journal")
+    try:
+        client = redis.Redis.from_url(spec.url)
+        try:
+            with client.pipeline() as pipe:
+                while True:
+                    try:
+                        return _repair_redis(pipe, spec)
+                    except redis.WatchError:
+                        continue  # a worker appended meanwhile: read again
+        finally:
+            client.close()
+    except redis.RedisError as err:
+        text = str(err).strip().splitlines()
+        raise StorageError(
+            f"cannot repair Redis journal {spec}: {text[0] if text else type(err).__name__}"
+        ) from err
+
+
+def _glob_escape(text: str) -> str:
+    return "".join("\\" + c if c in "*?[]\\" else c for c in text)
+
+
+def _repair_redis(pipe: Any, spec: StorageURL) -> JournalRepair | None:
+    prefix = spec.prefix
+    counter = f"{prefix}:log_number"
+    pipe.watch(counter)
+    raw = pipe.get(counter)
+    try:
+        log_number: int | None = None if raw is None else int(raw)
+    except ValueError:
+        log_number = None
+    head = f"{prefix}:log:".encode()
+    numbers = []
+    for key in pipe.scan_iter(match=_glob_escape(prefix) + ":log:*", count=1000):
+        suffix = key[len(head) :] if key.startswith(head) else b""
+        if suffix.isdigit() and str(int(suffix)).encode() == suffix:
+            numbers.append(int(suffix))
+    numbers.sort()
+    kept: list[tuple[int, bytes]] = []
+    bad: list[tuple[int, bytes]] = []
+    for start in range(0, len(numbers), _REDIS_BATCH):
+        batch = numbers[start : start + _REDIS_BATCH]
+        for number, value in zip(batch, pipe.mget([f"{prefix}:log:{n}" for n in batch])):
+            if value is None:
+                continue  # deleted meanwhile
+            (kept if journal_record(value) is not None else bad).append((number, value))
+    last = len(kept) - 1
+    if raw is None and not numbers:
+        return None  # a new journal: nothing written yet
+    n_missing = numbers[-1] + 1 - len(numbers) if numbers else 0
+    in_place = all(number == i for i, (number, _) in enumerate(kept))
+    if not bad and in_place and log_number == last:
+        return None
+    aside = f"{prefix}:torn-{_stamp()}"
+    pipe.multi()
+    if bad:
+        pipe.hset(aside, mapping={str(number): value for number, value in bad})
+    for i, (number, value) in enumerate(kept):
+        if number != i:
+            pipe.set(f"{prefix}:log:{i}", value)
+    for number in numbers:
+        if number > last:
+            pipe.delete(f"{prefix}:log:{number}")
+    pipe.set(counter, last)
+    pipe.execute()
+    repair = JournalRepair(
+        journal=spec.raw,
+        aside=aside if bad else None,
+        n_records=len(bad),
+        n_bytes=sum(len(value) for _, value in bad),
+        n_missing=n_missing,
+        log_number=None if log_number == last else (log_number, last),
+    )
+    _log.warning("repaired Redis journal: %s", repair.describe())
+    return repair
