@@ -225,6 +225,8 @@ def test_the_learners_benchmark_runs_in_quick_mode(tmp_path: Path) -> None:
     for r in runs:
         assert r["error"] == "", r["error"]
         for key in ("final_eval_return", "last10_return", "return_at_25pct", "wall_seconds"):
+            if key == "last10_return" and r["learner"] in ("dagger", "imitation-sac"):
+                continue  # the expert acts in every episode of 1000 steps: none is the learner's
             assert math.isfinite(float(r[key])), (key, r)
         assert int(r["env_steps"]) >= 1000
         steps = [step for step, _ in json.loads(r["checkpoints"])]

@@ -274,7 +274,10 @@ def test_test_gives_the_dagger_agents_their_own_settings(
     out = tmp / "test"
     proc = _cli(
         *_test_args(url, out, "--agents", "ppo", "dagger", "res-dagger"),
+        # beta 1 then 0 (beta_iterations=1): the last of the 400 steps' two episodes is the
+        # imitator's alone, so the training return measures it
         *("--for-learner", "dagger", f"expert={tiny_expert}", "steps_per_iteration=200"),
+        *("--for-learner", "dagger", "beta_iterations=1"),
         *("--for-learner", "dagger", "epochs=1"),
         cwd=tmp,
     )

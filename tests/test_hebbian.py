@@ -119,6 +119,59 @@ def test_the_expected_update_climbs_the_policy_gradient(baseline: str) -> None:
     assert np.linalg.norm(expected - truth) < 0.15 * np.linalg.norm(truth)
 
 
+class DelayedBandit(gym.Env[np.ndarray, np.ndarray]):
+    """A two-step MDP: context +-1 at step 0 (reward 0); the second observation says whether the
+    first action's sign matched the context (+1) or not (-1); step 1 pays 1 if it did, and ends."""
+
+    observation_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+    action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+
+    def reset(self, *, seed: int | None = None, options: Any = None) -> tuple[np.ndarray, dict]:
+        super().reset(seed=seed)
+        self.t = 0
+        self.context = float(self.np_random.choice([-1.0, 1.0]))
+        return np.array([self.context], np.float32), {}
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
+        if self.t == 0:
+            self.t, self.correct = 1, bool(np.sign(action[0]) == self.context)
+            return np.array([1.0 if self.correct else -1.0], np.float32), 0.0, False, False, {}
+        return np.array([self.context], np.float32), float(self.correct), True, False, {}
+
+
+@pytest.mark.parametrize("baseline", ["critic", "td"])
+def test_the_critics_expected_update_is_the_discounted_policy_gradient(baseline: str) -> None:
+    """Actor-critic with eligibility traces (Sutton and Barto 2018, 13.6) on a two-step MDP.
+
+    With lambda = 1 the actor's trace decays by gamma, so each step's eligibility psi_k h_k is
+    modulated by sum_{t>=k} gamma^(t-k) delta_t = G_k - V(h_k): unbiased for any critic. The
+    only reward is gamma r_1, set by a_0, so E[update] = gamma dP(correct)/dJ_out, whatever
+    the (fixed, wrong) critic says. The old rules were not: ``critic`` modulated psi_0 h_0 by
+    r_1 - V(h_1), and V(h_1) depends on a_0; ``td`` decayed the trace by lambda, not gamma lambda.
+    """
+    gamma = 0.5
+    env = DummyVecEnv([DelayedBandit] * 64)
+    env.seed(1)
+    config = {"units": 20, "spectral_radius": 0.5, "bias_scaling": 1.0, "readout_scaling": 0.5}
+    config |= {"input_scaling": 3.0, "baseline": baseline, "trace_decay": 1.0, "gamma": gamma}
+    agent = HebbianAgent(env, settings(**config, critic_lr=1e-300), seed=1)
+    critic = np.random.default_rng(0).normal(0.0, 1.0, agent.policy.critic_w.shape)
+    agent.policy.critic_w[...] = critic  # a fixed critic (critic_lr ~ 0) whose V(h_1) varies
+    agent.policy.critic_b[...] = 0.3
+    updates: list[np.ndarray] = []
+
+    def record() -> None:  # keep J_out fixed: collect G instead of applying it
+        updates.append(agent.G / agent.n_envs)
+        agent.G[...] = 0.0
+
+    agent._apply_update = record  # type: ignore[method-assign]
+    agent.learn(64 * 2 * 1000)
+    assert len(updates) == 1000  # one update per episode end (every env ends at step 2)
+    np.testing.assert_array_equal(agent.policy.critic_w, critic)
+    expected, truth = np.mean(updates, axis=0), gamma * true_gradient(agent)
+    assert np.linalg.norm(expected - truth) < 0.15 * np.linalg.norm(truth)
+
+
 def success_rate(agent: HebbianAgent) -> float:
     """Expected success of the stochastic policy over both contexts."""
     sigma = agent.settings["sigma"]

@@ -14,11 +14,12 @@ import torch
 
 from ermrl.agents import resolve_ppo_config
 from ermrl.agents._policy_io import load_policy, policy_path
-from ermrl.agents._train import derive_seeds, make_vec_env, train_agent
+from ermrl.agents._train import NoEpisodeFinished, derive_seeds, make_vec_env, train_agent
 from ermrl.config import BudgetConfig, ConfigError, EncoderConfig, ReservoirParams, TaskConfig
 from ermrl.experts import load_expert
 from ermrl.learners import get_learner
 from ermrl.learners._imitation import (
+    MIXTURE_EPISODE_KEY,
     FullObservations,
     ImitationPolicy,
     bc_fit,
@@ -98,6 +99,62 @@ def test_rollout_executes_the_expert_with_probability_beta_and_always_labels_by_
     np.testing.assert_allclose(rollout.actions[by_expert], rollout.expert_actions[by_expert])
     learner_actions = rollout.actions[~by_expert]
     assert not np.allclose(learner_actions, rollout.expert_actions[~by_expert])
+
+
+def test_rollout_hides_the_episodes_the_expert_acted_in(tiny_expert: Path) -> None:
+    """Only episodes whose every executed action was the learner's keep their Monitor record."""
+    expert = load_expert(tiny_expert)
+    venv = make_vec_env(TaskConfig(PENDULUM, "positions"), 2, 3)
+    records: list[tuple[int, str]] = []  # (env, key) of each finished episode, in order
+
+    def on_step(infos: Any, dones: Any, rewards: Any, actions: Any) -> bool:
+        for e, info in enumerate(infos):
+            for key in ("episode", MIXTURE_EPISODE_KEY):
+                if key in info:
+                    records.append((e, key))
+        return True
+
+    try:
+        full = FullObservations(venv)
+        obs = venv.reset()
+        mixed = np.zeros(2, dtype=bool)
+        rollout = dagger_rollout(
+            venv, ImitationPolicy(2, 1, [8]), expert, 0.004, 1000, np.random.default_rng(5),
+            obs, full.after_reset(), full=full, on_step=on_step, episode_mixed=mixed,
+        )  # fmt: skip
+    finally:
+        venv.close()
+    # Pendulum episodes are 200 steps: 5 per env; an episode is mixed iff the expert acted in it
+    who = rollout.expert_executed.reshape(1000, 2)
+    expected = sorted(
+        (e, MIXTURE_EPISODE_KEY if who[200 * k : 200 * (k + 1), e].any() else "episode")
+        for k in range(5)
+        for e in range(2)
+    )
+    assert sorted(records) == expected
+    keys = {key for _, key in records}
+    assert keys == {"episode", MIXTURE_EPISODE_KEY}  # beta 0.004 gives both kinds here
+    assert not mixed.any()  # every episode ended: the next ones start learner-only
+
+
+def test_dagger_training_returns_count_only_learner_only_episodes(tiny_expert: Path) -> None:
+    # iteration 0 (steps 1-200, one Pendulum episode) is the expert's alone (beta 1); from
+    # iteration 1 on beta is 0: the imitator's episodes end at steps 400 and 600
+    ppo = _config("dagger", tiny_expert, steps_per_iteration=200, beta_iterations=1, epochs=1)
+    budget = BudgetConfig(training_steps=600, fitness="last", n_last_episodes=10)
+    result = train_agent(TaskConfig(PENDULUM), None, ppo, budget, seed=0)
+    assert result.episode_steps == [400, 600]
+    assert result.last_return == pytest.approx(np.mean(result.episode_returns))
+
+
+def test_dagger_with_the_expert_acting_throughout_has_no_training_fitness(
+    tiny_expert: Path,
+) -> None:
+    # one iteration, beta 1: every training episode is the expert's, none measures the learner
+    ppo = _config("dagger", tiny_expert, steps_per_iteration=600, epochs=1)
+    budget = BudgetConfig(training_steps=600, fitness="last")
+    with pytest.raises(NoEpisodeFinished, match="none of the 3 episodes .* learner's alone"):
+        train_agent(TaskConfig(PENDULUM), None, ppo, budget, seed=0)
 
 
 def test_dagger_run_counts_expert_executed_steps_per_iteration(tiny_expert: Path) -> None:
@@ -224,7 +281,8 @@ def test_dagger_through_train_agent(
     budget = BudgetConfig(training_steps=1000, fitness="eval", n_eval_episodes=1)
     result = train_agent(task, encoder, ppo, budget, seed=1, model_path=tmp_path / "model.zip")
     assert result.env_steps == 1000
-    assert len(result.episode_returns) == 5  # Pendulum episodes are 200 steps
+    # Pendulum episodes are 200 steps: 5 ended, all with beta > 0, so none is a training episode
+    assert result.episode_returns == []
     assert result.eval_return is not None and np.isfinite(result.eval_return)
     assert spies and spies[0].shapes == {(1, 3)}  # the expert sees the full observation
     # the learner sees the masked (2) or encoded (20 units) observation
@@ -318,7 +376,9 @@ def test_evolve_cli_with_dagger(tiny_expert: Path, tmp_path: Path) -> None:
     argv = [sys.executable, "-m", "ermrl", "evolve", "--env-id", PENDULUM, "--observe", "positions"]
     argv += ["--learner", "dagger", "--n-trials", "2", "--n-seeds", "1", "--training-steps", "400"]
     argv += ["--storage", url, "--study-name", "imitate", "--sampler-seed", "1"]
-    argv += ["--ppo", f"expert={tiny_expert}", "steps_per_iteration=200", "epochs=1"]
+    # beta 1 over the first 200 steps, then 0: the last Pendulum episode is the imitator's alone
+    argv += ["--ppo", f"expert={tiny_expert}", "steps_per_iteration=200", "beta_iterations=1"]
+    argv += ["epochs=1"]
     proc = subprocess.run(argv, cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     import optuna

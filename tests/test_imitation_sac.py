@@ -12,7 +12,13 @@ import torch
 
 from ermrl.agents import resolve_ppo_config
 from ermrl.agents._policy_io import load_policy, policy_path
-from ermrl.agents._train import derive_seeds, make_vec_env, save_trained, train_agent
+from ermrl.agents._train import (
+    NoEpisodeFinished,
+    derive_seeds,
+    make_vec_env,
+    save_trained,
+    train_agent,
+)
 from ermrl.config import BudgetConfig, ConfigError, EncoderConfig, ReservoirParams, TaskConfig
 from ermrl.experiments._results import write_run
 from ermrl.learners import get_learner
@@ -144,7 +150,9 @@ def test_through_train_agent_and_reload(
     budget = BudgetConfig(training_steps=800, fitness="eval", n_eval_episodes=1)
     result = train_agent(task, encoder, ppo, budget, seed=1, model_path=tmp_path / "model.zip")
     assert result.env_steps == 800
-    assert len(result.episode_returns) == 4
+    # Pendulum episodes are 200 steps: the first two are partly the expert's (beta 1, then 0.5)
+    # and are no training episodes; the actor acts alone from step 400 on
+    assert result.episode_steps == [600, 800]
     assert result.eval_return is not None and np.isfinite(result.eval_return)
     assert result.phase_steps is not None and result.phase_steps["pretrain_env_steps"] == 600
     write_run(tmp_path / "run", LEARNER, result)  # the test phase's record of a run
@@ -223,6 +231,25 @@ def test_pretrained_actor_swings_up_before_sac_starts(good_expert: Path) -> None
     result = train_agent(TaskConfig(PENDULUM, "all"), None, ppo, budget, seed=0)
     print("imitation-sac after pretraining: eval", result.eval_return)
     assert result.eval_return is not None and result.eval_return > -600  # random: about -1200
+
+
+def test_pretraining_by_the_expert_alone_gives_no_training_fitness(expert: Path) -> None:
+    # one DAgger iteration of beta 1 fills the budget: every episode is the expert's
+    ppo = _config(expert, **{**SMALL, "pretrain_steps": 600, "steps_per_iteration": 600})
+    budget = BudgetConfig(training_steps=600, fitness="last")
+    with pytest.raises(NoEpisodeFinished, match="none of the 3 episodes .* learner's alone"):
+        train_agent(TaskConfig(PENDULUM), None, ppo, budget, seed=1)
+
+
+def test_an_episode_reaching_back_into_mixed_pretraining_is_no_training_episode(
+    expert: Path,
+) -> None:
+    # pretraining ends at step 300, mid-episode: the episode of steps 201-400 had beta 1 (the
+    # expert) then SAC, so only the episodes ending at 600 and 800 are the actor's alone
+    ppo = _config(expert, **{**SMALL, "pretrain_steps": 300, "steps_per_iteration": 300})
+    budget = BudgetConfig(training_steps=800, fitness="last")
+    result = train_agent(TaskConfig(PENDULUM), None, ppo, budget, seed=1)
+    assert result.episode_steps == [600, 800]
 
 
 def test_several_envs_count_every_env_step(expert: Path) -> None:

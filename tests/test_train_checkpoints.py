@@ -60,7 +60,8 @@ def test_dagger_checkpoints(tiny_expert: Path) -> None:  # noqa: F811
         {"expert": str(tiny_expert), "steps_per_iteration": 300, "epochs": 1},
         learner="dagger",
     )
-    budget = BudgetConfig(training_steps=600, n_eval_episodes=1)
+    # beta > 0 throughout: no training episode is the imitator's alone, so fitness is eval
+    budget = BudgetConfig(training_steps=600, fitness="eval", n_eval_episodes=1)
     result = train_agent(PENDULUM, None, ppo, budget, seed=2, evaluate=True, eval_at=(300, 600))
     assert [step for step, _ in result.checkpoint_returns] == [300, 600]
     assert result.checkpoint_returns[-1][1] == result.eval_return

@@ -157,7 +157,13 @@ def _episode_callback(result: RunResult, budget: BudgetConfig, report: ReportFn 
     ]
 
     class EpisodeRecorder(BaseCallback):
-        """Records episode returns from Monitor infos and reports intermediate returns."""
+        """Records episode returns from Monitor infos and reports intermediate returns.
+
+        An imitation learner moves the record of an episode its expert acted in to
+        ``info["mixture_episode"]``: such episodes are only counted (``mixture_episodes``).
+        """
+
+        mixture_episodes = 0
 
         def _on_step(self) -> bool:
             # Called on every env step: look at the infos only when an episode ended (Monitor
@@ -168,6 +174,8 @@ def _episode_callback(result: RunResult, budget: BudgetConfig, report: ReportFn 
                     if episode is not None:
                         result.episode_returns.append(float(episode["r"]))
                         result.episode_steps.append(int(self.num_timesteps))
+                    elif "mixture_episode" in info:
+                        self.mixture_episodes += 1
             while checkpoints and self.num_timesteps >= checkpoints[0]:
                 step = checkpoints.pop(0)
                 if report is not None and result.episode_returns:
@@ -365,7 +373,8 @@ def train_agent(
         model = learner.build(env, ppo, seed=seeds.agent, tensorboard_log=tensorboard_log)
         # PPO(seed=...) reseeds the env with the agent seed; give the envs their own seed.
         env.seed(seeds.env)
-        callback: Any = _episode_callback(result, budget, report)
+        recorder = _episode_callback(result, budget, report)
+        callback: Any = recorder
         if eval_at:
 
             def checkpoint() -> float:
@@ -395,6 +404,15 @@ def train_agent(
             raise TrainingDiverged(f"seed {seed}: non-finite episode return")
         if result.episode_returns:
             result.last_return = float(np.mean(result.episode_returns[-budget.n_last_episodes :]))
+        elif budget.fitness == "last" and recorder.mixture_episodes:
+            raise NoEpisodeFinished(
+                f"seed {seed}: none of the {recorder.mixture_episodes} episodes of "
+                f"{task.env_id} that ended within {budget.training_steps} training steps was "
+                "the learner's alone (the expert acted in each, and an imitation learner's "
+                "training returns count only learner-only episodes); raise --training-steps "
+                "past the expert's share (beta), or measure by evaluation (--fitness eval; "
+                "--eval in a test phase)"
+            )
         elif budget.fitness == "last":
             raise NoEpisodeFinished(
                 f"seed {seed}: no episode of {task.env_id} ended within "

@@ -15,6 +15,15 @@ those are counted apart, in :attr:`ImitationAgent.expert_env_steps`, not as lear
 budget's steps are then the learner's own rollouts (no learning), whose episodes are the run's
 training episodes. The expert's own training steps are in its ``expert.json``
 (:class:`~ermrl.experts.ExpertInfo`).
+
+Which episodes are the run's training episodes (``--fitness last``, the pruning reports): only
+*learner-only* ones, in which every executed action was the imitator's. A DAgger episode in
+which the expert executed any action is hidden from the callback (its Monitor record moves to
+``info["mixture_episode"]``, :func:`~ermrl.learners._imitation.hide_mixture_episodes`), since its
+return scores the expert in part. With the linear schedule, learner-only episodes begin once
+``beta`` reaches 0 (after ``beta_iterations * steps_per_iteration`` env steps); a budget that
+ends before has none, and ``--fitness last`` fails that run (``--fitness eval`` evaluates the
+imitator alone, deterministically). BC's episodes are all the imitator's.
 """
 
 from __future__ import annotations
@@ -87,6 +96,8 @@ class ImitationAgent:
         iterations: One record per fit: ``beta``, ``steps`` (learner env steps of the
             iteration), ``expert_executed``, ``learner_executed``, ``dataset`` (labels fitted)
             and ``loss`` (last epoch's mean loss).
+        episode_mixed: Whether the expert has executed an action in each env's current
+            episode, ``(n_envs,)``; such an episode is not reported as a training episode.
     """
 
     def __init__(
@@ -131,6 +142,8 @@ class ImitationAgent:
         self.rng = np.random.default_rng(mixture_seq)
         self._observations: list[np.ndarray] = []
         self._targets: list[np.ndarray] = []
+        # whether the expert has executed an action in each env's current episode
+        self.episode_mixed = np.zeros(self.n_envs, dtype=bool)
 
     # -- SB3-like interface -------------------------------------------------------------------
 
@@ -258,6 +271,7 @@ class ImitationAgent:
 
         obs = np.asarray(self.env.reset())
         full_obs = full.after_reset()
+        self.episode_mixed[:] = False
         self._check_full(full_obs)
         if self.mode == "bc" and not self.iterations:
             per_env = math.ceil(int(s["n_expert_transitions"]) / n_envs)
@@ -276,6 +290,7 @@ class ImitationAgent:
             )
             obs = np.asarray(self.env.reset())  # the learner's episodes start afresh
             full_obs = full.after_reset()
+            self.episode_mixed[:] = False
         if callback is not None:
             callback.init_callback(self)  # type: ignore[arg-type]
             callback.on_training_start(locals(), globals())
@@ -302,6 +317,7 @@ class ImitationAgent:
                 full_obs,
                 full=full,
                 on_step=on_step,
+                episode_mixed=self.episode_mixed,
             )
             obs, full_obs = rollout.obs, rollout.full_obs
             self._add(rollout.observations, rollout.expert_actions)

@@ -1,7 +1,8 @@
 """``hebbian``: a leaky-integrator network whose readout learns by a reward-modulated Hebbian rule.
 
-The agent of cristianocapone/RL_ML_class (Ant-v4), with that code's bugs fixed (see
-``REFERENCES.md`` and issue 16): no backprop, no replay, one online pass. ``N`` leaky units with
+The agent of cristianocapone/RL_ML_class (https://github.com/cristianocapone/RL_ML_class,
+``network.py`` and its Ant-v4 notebooks), with that code's bugs fixed (issue 16): no backprop,
+no replay, one online pass. ``N`` leaky units with
 per-unit time constants ``tau`` spread log-uniformly over ``[tau_min, tau_max]``::
 
     alpha = exp(-dt / tau)
@@ -11,7 +12,38 @@ per-unit time constants ``tau`` spread log-uniformly over ``[tau_min, tau_max]``
     G    += (r_t - b_t) e_t                      (each step once)
     J_out <- J_out + Adam(G / n_envs - l2 J_out)  (at each episode end, or every k steps); G <- 0
 
-Only ``J_out`` (and the critic) learn; ``J``, ``J_in`` and ``b`` are fixed. The model
+With a critic (``baseline: critic`` or ``td``) the rule is actor-critic with eligibility traces
+(Sutton and Barto 2018, section 13.6): a linear critic ``V(h) = w.h + c`` learns by TD(lambda_c)
+(``critic_lambda``), and the actor's trace decays by ``gamma lambda`` and is modulated by the
+TD error::
+
+    delta_t = r_t + gamma V(h_{t+1}) - V(h_t)      (V = 0 after a terminal step)
+    e_t     = gamma lambda e_{t-1} + ((a_t - mu_t) * (1 - mu_t^2)) h_t^T / sigma^2
+    G      += delta_t e_t
+
+so step ``k``'s eligibility is weighted by ``sum_{t>=k} (gamma lambda)^(t-k) delta_t``, the
+GAE(lambda) advantage of step ``k``: with ``lambda = 1`` it is ``G_k - V(h_k)``, an unbiased
+policy gradient for any critic. Two earlier rules were biased and are gone: ``critic`` used
+``G += (r_t - V(h_t)) e_t`` with a trace decaying by ``lambda``, whose terms
+``psi_k V(h_t)``, ``t > k``, do not vanish in expectation (``h_t`` depends on ``a_k``), pushing
+the policy towards low-value states; ``td`` decayed the trace by ``lambda`` alone, unbiased only
+when ``lambda = gamma`` (``trace_decay`` is an evolved gene, so it rarely is). Both names now
+run the same rule; ``critic`` is kept so that existing settings load.
+
+Only ``J_out`` (and the critic) learn; ``J``, ``J_in`` and ``b`` are fixed.
+
+Deviations from the original beyond its bugs (all deliberate):
+
+- **tanh in the leaky dynamics, with the bias inside it.** The original's ``step_`` applies
+  ``tanh`` only when called with ``if_tanh=True`` (its notebooks do), and that branch drops the
+  external field ``h``; here ``tanh`` is always applied, to ``J h + J_in o + b``.
+- **1/sigma^2 in the eligibility.** The original's trace is ``(a - mu)(1 - mu^2) h^T``, without
+  the ``1 / sigma^2`` of the Gaussian score; here it is included, so the update is the policy
+  gradient's estimate (Adam is nearly invariant to that constant scale, except through eps).
+- **Adam's eps.** The original's ``Adam`` class defaults to ``epsilon = 1e-5``; here ``adam_eps``
+  defaults to ``1e-8`` (Kingma and Ba's value, torch's default).
+- **The accumulator.** The original added ``r e`` to its accumulator twice per step; here each
+  step counts once. The model
 (:class:`~ermrl.learners._hebbian_model.HebbianAgent`, numpy only) lives in
 :mod:`ermrl.learners._hebbian_model`, imported when an agent is built. It is not an SB3 algorithm
 but offers what ermrl uses of one: ``learn`` (with SB3 callbacks), ``predict`` (recurrent: the
@@ -41,8 +73,9 @@ from ermrl.learners._base import Learner
 __all__ = ["HebbianLearner", "BASELINES", "GENES", "REWARDS", "SHARED_KEYS"]
 
 MAX_UNITS = 4096
-# Baselines b_t: none (b = 0), a running mean of the reward, a linear critic V(h) trained by
-# TD(lambda) (b_t = V(h_t)), or that critic's TD error as the modulator (r_t - b_t := delta_t).
+# Baselines b_t: none (b = 0), a running mean of the reward, or a linear critic V(h) trained by
+# TD(lambda): critic and td both modulate the actor's trace (decaying by gamma lambda) by the
+# critic's TD error, actor-critic with eligibility traces (td is the name; critic is kept).
 BASELINES = ("none", "mean", "critic", "td")
 # The reward that modulates plasticity: the task's, or the torso's forward velocity
 # info["x_velocity"] (the original's choice on Ant; MuJoCo locomotion tasks report it).

@@ -383,6 +383,10 @@ class HebbianAgent:
         )
         update_every = int(s["update_every"])
         use_critic = baseline in ("critic", "td")
+        # With a critic, actor-critic with eligibility traces (Sutton and Barto 2018, 13.6): the
+        # actor's trace decays by gamma * lambda and each step's TD error modulates it, so
+        # G = sum_k psi_k h_k^T sum_{t>=k} (gamma lambda)^(t-k) delta_t (GAE(lambda) per step k).
+        actor_decay = gamma * trace_decay if use_critic else trace_decay
         n = policy.J.shape[0]
         eligibility = np.zeros((n_envs, self.act_dim, n), dtype=dtype)
         critic_trace = np.zeros((n_envs, n), dtype=dtype)
@@ -406,7 +410,7 @@ class HebbianAgent:
                 actions = mu + sigma * self.rng.standard_normal(mu.shape)
                 # e = lambda e + ((a - mu)(1 - mu^2) / sigma^2) h^T, per env
                 psi = (actions - mu) * (1.0 - mu * mu) / (sigma * sigma)
-            eligibility *= trace_decay
+            eligibility *= actor_decay
             eligibility += psi[:, :, None] * h[:, None, :]
             new_obs, rewards, dones, infos = self.env.step(self._env_action(actions))
             new_obs = np.asarray(new_obs, dtype=dtype)
@@ -437,7 +441,7 @@ class HebbianAgent:
                 critic_bias_trace += 1.0
                 policy.critic_w += critic_lr * (delta @ critic_trace) / n_envs
                 policy.critic_b += critic_lr * float(delta @ critic_bias_trace) / n_envs
-                modulator = delta if baseline == "td" else reward - value
+                modulator = delta  # critic and td alike (r_t - V(h_t) was biased for t > k)
                 critic_trace[dones] = 0.0
                 critic_bias_trace[dones] = 0.0
             elif baseline == "mean":
@@ -448,7 +452,8 @@ class HebbianAgent:
                     self.baseline_weight = decay * self.baseline_weight + (1.0 - decay)
             else:
                 modulator = reward
-            # G += (r - b) e, summed over envs (the update divides by n_envs)
+            # G += (r - b) e (with a critic, delta e), summed over envs (the update divides by
+            # n_envs)
             self.G += np.tensordot(modulator.astype(dtype), eligibility, axes=1)
             eligibility[dones] = 0.0
 

@@ -22,6 +22,14 @@ on), and ``inverse``, ``beta_i = 1 / (1 + i)``. Panjete/mujocoagents (whose DAgg
 replaces) labelled a state with the *learner's own* action with probability ``1 - beta``; that
 trains the learner on its own outputs and is not DAgger.
 
+Training episodes are the learner's alone. A mixture rollout's episode in which the expert
+executed even one action scores the expert in part, so its Monitor record
+(``info["episode"]``) is moved to ``info["mixture_episode"]`` (:data:`MIXTURE_EPISODE_KEY`,
+:func:`hide_mixture_episodes`) before anything reads it: ermrl's training returns (the
+``--fitness last`` measure, the pruning reports) count only *learner-only* episodes, in which
+every executed action was the learner's. :func:`dagger_rollout` does this given
+``episode_mixed``; :class:`LearnerOnlyEpisodes` does it for an SB3 algorithm's env.
+
 Example::
 
     policy = ImitationPolicy(obs_dim=2, act_dim=1, hidden_sizes=(64, 64))
@@ -43,25 +51,31 @@ from typing import Any, Literal
 import numpy as np
 import torch
 from gymnasium import spaces
+from stable_baselines3.common.vec_env import VecEnvWrapper
 from torch import nn
 
 from ermrl.envs._masks import FULL_OBSERVATION_KEY
 
 __all__ = [
     "BETA_SCHEDULES",
+    "MIXTURE_EPISODE_KEY",
     "BetaSchedule",
     "DaggerRollout",
     "FullObservations",
     "ImitationPolicy",
+    "LearnerOnlyEpisodes",
     "bc_fit",
     "beta",
     "dagger_rollout",
+    "hide_mixture_episodes",
     "scale_actions",
     "unscale_actions",
 ]
 
 BetaSchedule = Literal["linear", "inverse"]
 BETA_SCHEDULES: tuple[str, ...] = ("linear", "inverse")
+# Where the Monitor record of an episode in which the expert acted is moved (out of "episode").
+MIXTURE_EPISODE_KEY = "mixture_episode"
 
 # Called after every env step of a rollout with (infos, dones, rewards, actions); False stops it.
 StepHook = Callable[[list[dict[str, Any]], np.ndarray, np.ndarray, np.ndarray], bool]
@@ -248,6 +262,73 @@ class FullObservations:
         return np.stack(rows)
 
 
+def hide_mixture_episodes(
+    infos: Sequence[dict[str, Any]], dones: np.ndarray, episode_mixed: np.ndarray
+) -> int:
+    """Move the Monitor record of every finished episode the expert acted in out of the way.
+
+    For each env ``e`` whose episode just ended (``dones[e]``) and in which a non-learner action
+    was executed (``episode_mixed[e]``), ``infos[e]["episode"]`` becomes
+    ``infos[e][MIXTURE_EPISODE_KEY]``, so readers of Monitor records (ermrl's training returns,
+    SB3's episode statistics) see only learner-only episodes. ``episode_mixed`` is then cleared
+    for every env whose episode ended (the next one starts learner-only).
+
+    Args:
+        infos: The step's infos, one dict per env (changed in place).
+        dones: Which envs' episodes ended at this step, ``(E,)``.
+        episode_mixed: Whether the expert acted in each env's current episode, ``(E,)`` bool
+            (changed in place).
+
+    Returns:
+        The number of episode records hidden.
+    """
+    hidden = 0
+    ended = np.asarray(dones, dtype=bool)
+    for e in np.flatnonzero(ended & episode_mixed).tolist():
+        if "episode" in infos[e]:
+            infos[e][MIXTURE_EPISODE_KEY] = infos[e].pop("episode")
+            hidden += 1
+    episode_mixed[ended] = False
+    return hidden
+
+
+class LearnerOnlyEpisodes(VecEnvWrapper):
+    """A ``VecEnv`` whose Monitor records are those of learner-only episodes.
+
+    The agent calls :meth:`expert_acts` before each step with who executes the expert's action;
+    after the step, :func:`hide_mixture_episodes` hides the record of every episode that
+    ended with at least one expert action in it. A reset starts every env learner-only.
+
+    Args:
+        venv: The learner's ``VecEnv``.
+    """
+
+    def __init__(self, venv: Any) -> None:
+        super().__init__(venv)
+        self.episode_mixed = np.zeros(self.num_envs, dtype=bool)
+        self._pending = np.zeros(self.num_envs, dtype=bool)
+
+    def expert_acts(self, by_expert: np.ndarray) -> None:
+        """Record that the next step executes the expert's action in the envs of ``by_expert``
+        (``(E,)`` bool)."""
+        self._pending = np.asarray(by_expert, dtype=bool).reshape(self.num_envs).copy()
+
+    def reset(self) -> Any:
+        self.episode_mixed[:] = False
+        self._pending[:] = False
+        return self.venv.reset()
+
+    def step_async(self, actions: np.ndarray) -> None:
+        self.episode_mixed |= self._pending
+        self._pending = np.zeros(self.num_envs, dtype=bool)
+        self.venv.step_async(actions)
+
+    def step_wait(self) -> Any:
+        obs, rewards, dones, infos = self.venv.step_wait()
+        hide_mixture_episodes(infos, dones, self.episode_mixed)
+        return obs, rewards, dones, infos
+
+
 @dataclass
 class DaggerRollout:
     """What one DAgger rollout visited (``T`` steps of ``E`` envs, ``n = T * E`` rows).
@@ -295,6 +376,7 @@ def dagger_rollout(
     *,
     full: FullObservations | None = None,
     on_step: StepHook | None = None,
+    episode_mixed: np.ndarray | None = None,
 ) -> DaggerRollout:
     """Roll out the mixture policy for ``n_steps`` steps of every env, labelling with the expert.
 
@@ -316,6 +398,10 @@ def dagger_rollout(
         full: Reads the full observations after each step (default: built from ``venv``).
         on_step: Called after every step as ``on_step(infos, dones, rewards, actions)``;
             returning ``False`` ends the rollout early.
+        episode_mixed: Whether the expert has acted in each env's current episode, ``(E,)``
+            bool, carried across rollouts and updated in place; when given, the Monitor record
+            of an episode the expert acted in is hidden (:func:`hide_mixture_episodes`) before
+            ``on_step`` sees the infos.
 
     Returns:
         The visited states, their labels and who acted (:class:`DaggerRollout`).
@@ -342,8 +428,12 @@ def dagger_rollout(
         labels.append(expert_action)
         executed.append(action)
         who.append(by_expert)
+        if episode_mixed is not None:
+            episode_mixed |= by_expert
         obs, rewards, dones, infos = venv.step(action)
         full_obs = full.after_step()
+        if episode_mixed is not None:
+            hide_mixture_episodes(infos, dones, episode_mixed)
         if on_step is not None and not on_step(infos, dones, rewards, action):
             stopped = True
             break

@@ -32,6 +32,14 @@ in ``num_timesteps`` (the learner's env-step budget):
 
 The expert's own training is not part of the budget: its steps are in its ``expert.json``, and
 :attr:`ImitationSAC.phase_steps` records, apart, what each phase used.
+
+Training episodes (``--fitness last``, the pruning reports) are the learner's alone: the env is
+wrapped in :class:`~ermrl.learners._imitation.LearnerOnlyEpisodes`, so an episode in which the
+expert executed any action (in phase 1, with ``beta_i > 0``; an episode that reaches back into
+it) is hidden from the callback (its Monitor record moves to ``info["mixture_episode"]``). The
+run's training returns are those of the actor's own episodes: its deterministic mean in
+phase 1 once ``beta`` is 0, SAC's sampled actions in phase 3 (DAgger blocks included, where the
+actor acts and the expert only labels).
 """
 
 from __future__ import annotations
@@ -49,7 +57,14 @@ from torch.nn import functional as F
 
 from ermrl.config import ConfigError
 from ermrl.learners._dagger_model import load_expert_for
-from ermrl.learners._imitation import FullObservations, bc_fit, beta, scale_actions, unscale_actions
+from ermrl.learners._imitation import (
+    FullObservations,
+    LearnerOnlyEpisodes,
+    bc_fit,
+    beta,
+    scale_actions,
+    unscale_actions,
+)
 
 __all__ = ["ActorMean", "ImitationSAC"]
 
@@ -110,7 +125,11 @@ class ImitationSAC(SAC):
             if expert is not None
             else load_expert_for(env, imitation["expert"], "imitation-sac")
         )
-        super().__init__(policy, env, learning_starts=int(imitation["pretrain_steps"]), **kwargs)
+        # the expert acts in phase 1: its episodes are hidden from the training returns
+        self._episodes = LearnerOnlyEpisodes(env)
+        super().__init__(
+            policy, self._episodes, learning_starts=int(imitation["pretrain_steps"]), **kwargs
+        )
         mixture_seq, block_seq, shuffle_seq = np.random.SeedSequence(self.seed).spawn(3)
         self._mixture_rng = np.random.default_rng(mixture_seq)
         self._block_rng = np.random.default_rng(block_seq)
@@ -143,6 +162,7 @@ class ImitationSAC(SAC):
         return [
             *super()._excluded_save_params(),
             "expert",
+            "_episodes",
             "_full",
             "_full_obs",
             "_label_obs",
@@ -232,6 +252,7 @@ class ImitationSAC(SAC):
                 mean = ActorMean(self.actor)(obs.to(self.device)).cpu().numpy()
             action = unscale_actions(space, mean)  # type: ignore[arg-type]
             action[by_expert] = expert_action[by_expert]
+        self._episodes.expert_acts(by_expert)
         self.phase_steps["pretrain_env_steps"] += n_envs
         self.phase_steps["expert_executed_steps"] += int(np.count_nonzero(by_expert))
         buffer_action = np.clip(self.policy.scale_action(action), -1.0, 1.0)
