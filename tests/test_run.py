@@ -357,3 +357,27 @@ def test_a_snapshot_carries_an_unfinished_evolution_to_a_fresh_machine(tmp_path:
     assert trials[2].system_attrs.get("cma:n_restarts", 0) == 0
     assert (tmp_path / "published" / "Pendulum-v1" / "test" / "summary.csv").exists()
     assert (tmp_path / "published" / "Pendulum-v1" / "report" / "report.md").exists()
+
+
+def test_the_plan_counts_a_snapshots_finished_trials_as_done(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A run that continues from a snapshot is estimated for the trials still to train only."""
+    import json
+
+    from ermrl.cli._run import _status
+
+    monkeypatch.chdir(tmp_path)  # the file's paths are relative to where ermrl runs
+    path = write(tmp_path, {**TINY, "publish": "published"})
+    exp = load_experiment(path)
+    (step,) = [s for s in experiment_plan(exp, build_agents=False) if s.stage == "evolve"]
+    snapshot = tmp_path / "published" / "Pendulum-v1" / "study.json"
+    snapshot.parent.mkdir(parents=True)
+    states = ["COMPLETE", "COMPLETE", "RUNNING"]
+    snapshot.write_text(json.dumps({"trials": [{"state": s} for s in states]}))
+    done, left, text = _status(exp, step)
+    assert not done
+    assert left == pytest.approx(1 / 3)  # 2 of the 3 trials finished; the running one is redone
+    assert "2 finished trials" in text
+    snapshot.write_text("{not json")
+    assert _status(exp, step)[1] == 1.0 and "unreadable" in _status(exp, step)[2]

@@ -1030,8 +1030,12 @@ def import_snapshots(exp: Experiment, steps: Sequence[Step]) -> list[tuple[Step,
     return out
 
 
-def snapshot_status(exp: Experiment, step: Step) -> str | None:
-    """For a study the storage lacks: what its snapshot holds (``None``: no snapshot)."""
+def snapshot_status(exp: Experiment, step: Step) -> tuple[float, str] | None:
+    """For a study the storage lacks: the fraction of its budget left and what its snapshot holds.
+
+    ``None``: no snapshot. The fraction counts the snapshot's finished trials as done, so the
+    plan's "left" estimate of a run that continues from a snapshot is the part still to train.
+    """
     import json
 
     path = snapshot_path(exp, step)
@@ -1040,9 +1044,12 @@ def snapshot_status(exp: Experiment, step: Step) -> str | None:
     try:
         trials = json.loads(path.read_text())["trials"]
         done = sum(t.get("state") in ("COMPLETE", "PRUNED") for t in trials)
-    except (OSError, ValueError, KeyError, TypeError):
-        return f"snapshot {path} unreadable"
-    return f"snapshot {path}: {done} finished trials, imported when run"
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return 1.0, f"snapshot {path} unreadable"
+    argv = step.argv
+    n_trials = int(argv[argv.index("--n-trials") + 1]) if "--n-trials" in argv else 0
+    left = max(n_trials - done, 0) / n_trials if n_trials else 1.0
+    return left, f"snapshot {path}: {done} finished trials, imported when run"
 
 
 def hypothesis_of(exp: Experiment, file: str | None = None) -> Any:

@@ -117,7 +117,9 @@ def _status(exp: Experiment, step: Step) -> tuple[bool, float, str]:
     """A step's status; for an evolution the storage lacks, what its snapshot holds."""
     done, left, text = step.status()
     if step.stage == "evolve" and text == "not started":
-        text = snapshot_status(exp, step) or text
+        from_snapshot = snapshot_status(exp, step)
+        if from_snapshot is not None:
+            left, text = from_snapshot
     return done, left, text
 
 
