@@ -11,6 +11,7 @@ import pandas as pd
 import pytest
 from matplotlib.figure import Figure
 from matplotlib.text import Text
+from scipy import stats
 
 import ermrl.analysis as analysis
 from ermrl.analysis import (
@@ -173,6 +174,26 @@ def test_welch_matches_the_formula_and_is_nan_when_undefined() -> None:
     assert 0 < result.p_value < 1
     assert math.isnan(welch_t_test([1.0], [2.0, 3.0]).p_value)
     assert math.isnan(welch_t_test([1.0, 1.0], [2.0, 2.0]).statistic)
+    # Welch's interval: mean difference +- t(dof) * standard error.
+    half = stats.t.ppf(0.975, result.dof) * math.sqrt(va + vb)
+    diff = np.mean(a) - np.mean(b)
+    assert (result.ci_low, result.ci_high) == pytest.approx((diff - half, diff + half))
+    wide = welch_t_test(a, b, confidence=0.99)
+    assert wide.ci_low < result.ci_low and wide.ci_high > result.ci_high
+
+
+def test_two_seeds_are_flagged_and_welch_is_wider_than_the_bootstrap() -> None:
+    """On 2 seeds the percentile bootstrap can exclude 0 where Welch's t interval does not."""
+    data = pd.DataFrame(
+        {"agent": ["res-ppo"] * 2 + ["ppo"] * 2, "seed": [0, 1, 0, 1],
+         "final_return": [-700.0, -698.0, -690.0, -676.0]}
+    )  # fmt: skip
+    row = compare_agents(data, "res-ppo", ["ppo"]).iloc[0]
+    assert bool(row["few_seeds"])
+    assert row["boot_ci_high"] < 0 < row["welch_ci_high"]
+    assert row["welch_ci_low"] < row["boot_ci_low"]
+    five = compare_agents(fake_results(), "res-ppo", ["ppo"]).iloc[0]
+    assert not bool(five["few_seeds"])
 
 
 def test_bootstrap_ci_is_reproducible_and_covers_the_difference() -> None:

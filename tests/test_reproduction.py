@@ -49,6 +49,17 @@ def test_the_verdict_follows_the_ci_of_res_ppo_minus_ppo(res: list[float], word:
     assert "res-ppo − random-res-ppo = +0" in why and "inside the noise" in why
 
 
+def test_reproduced_needs_welchs_interval_above_zero_too() -> None:
+    """Two seeds whose percentile bootstrap lies above 0 are not enough to call it reproduced."""
+    data = runs({"res-ppo": [110.0, 104.0], "ppo": [100.0, 101.0]})
+    comparison = compare_agents(data, "res-ppo", ["ppo"])
+    row = comparison.iloc[0]
+    assert row["boot_ci_low"] > 0 > row["welch_ci_low"]
+    word, why = verdict(comparison)
+    assert word == "partly", why
+    assert "Welch CI" in why and "unreliable" in why
+
+
 def test_no_runs_is_not_a_verdict() -> None:
     assert verdict(pd.DataFrame())[0] == "not run"
 
@@ -99,7 +110,7 @@ def test_the_page_is_recomputed_from_the_published_per_seed_files(tmp_path: Path
     text = md.read_text()
     low, high = bootstrap_mean_diff_ci(values["res-ppo"], values["ppo"])
     diff = np.mean(values["res-ppo"]) - np.mean(values["ppo"])
-    assert f"res-ppo − ppo = {diff:+.4g}, 95% CI [{low:+.4g}, {high:+.4g}]" in text
+    assert f"res-ppo − ppo = {diff:+.4g}, 95% bootstrap CI [{low:+.4g}, {high:+.4g}]" in text
     assert "**Verdict: reproduced.**" in text and "**Verdict: not run yet.**" in text
     assert "reproduced (on 1 of 2 tasks; pending: Ant-v5)" in text
     assert "40/100 trials finished" in text and "36M env steps" in text

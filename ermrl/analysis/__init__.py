@@ -58,6 +58,7 @@ from ermrl.analysis._results import (
     t_quantile,
 )
 from ermrl.analysis._stats import (
+    FEW_SEEDS,
     WelchResult,
     bootstrap_mean_diff_ci,
     compare_agents,
@@ -102,6 +103,7 @@ __all__ = [
     "GLBackendError",
     "GL_BACKENDS",
     "DynamicsRecording",
+    "FEW_SEEDS",
     "PaperFigure",
     "ReportResult",
     "Rollout",

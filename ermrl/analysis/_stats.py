@@ -13,6 +13,7 @@ from ermrl.analysis._results import t_quantile
 from ermrl.config import AGENTS, EVOLVED_AGENT
 
 __all__ = [
+    "FEW_SEEDS",
     "WelchResult",
     "bootstrap_mean_diff_ci",
     "compare_agents",
@@ -22,6 +23,11 @@ __all__ = [
 ]
 
 METRICS = ("final_return", "eval_return")
+
+#: Below this many seeds per agent, a confidence interval is flagged: the percentile bootstrap
+#: is too narrow on 2-4 values (it cannot reach beyond the sample's range), so a report shows
+#: Welch's t interval beside it and marks the comparison ``few_seeds``.
+FEW_SEEDS = 5
 
 
 @dataclass(frozen=True)
@@ -33,22 +39,34 @@ class WelchResult:
             both groups without variance).
         dof: Welch-Satterthwaite degrees of freedom.
         p_value: Two-sided p-value.
+        ci_low: Lower end of Welch's t confidence interval of ``mean(a) - mean(b)``.
+        ci_high: Upper end of that interval.
     """
 
     statistic: float
     dof: float
     p_value: float
+    ci_low: float = math.nan
+    ci_high: float = math.nan
 
 
-def welch_t_test(a: Sequence[float] | np.ndarray, b: Sequence[float] | np.ndarray) -> WelchResult:
+def welch_t_test(
+    a: Sequence[float] | np.ndarray,
+    b: Sequence[float] | np.ndarray,
+    *,
+    confidence: float = 0.95,
+) -> WelchResult:
     """Welch's t-test (two-sided) of the difference of means of two independent samples.
+
+    Computed by :func:`scipy.stats.ttest_ind` with ``equal_var=False``, interval included.
 
     Args:
         a: Values of the first group, shape ``(n_a,)`` (NaNs are dropped).
         b: Values of the second group, shape ``(n_b,)``.
+        confidence: Coverage of the t interval.
 
     Returns:
-        The statistic, degrees of freedom and p-value (all NaN when undefined).
+        The statistic, degrees of freedom, p-value and interval (all NaN when undefined).
 
     Example:
         >>> round(welch_t_test([1.0, 2.0, 3.0], [4.0, 5.0, 6.0]).statistic, 3)
@@ -66,7 +84,10 @@ def welch_t_test(a: Sequence[float] | np.ndarray, b: Sequence[float] | np.ndarra
         return nan
     result = stats.ttest_ind(x, y, equal_var=False)
     dof = (vx + vy) ** 2 / (vx**2 / (len(x) - 1) + vy**2 / (len(y) - 1))
-    return WelchResult(float(result.statistic), float(dof), float(result.pvalue))
+    ci = result.confidence_interval(confidence)
+    return WelchResult(
+        float(result.statistic), float(dof), float(result.pvalue), float(ci.low), float(ci.high)
+    )
 
 
 def bootstrap_mean_diff_ci(
@@ -224,10 +245,13 @@ def compare_agents(
 
     Returns:
         One row per baseline: ``candidate, baseline, n_candidate, n_baseline, mean_diff,
-        boot_ci_low, boot_ci_high, welch_t, welch_dof, p_value, n_paired, paired_ci_low,
-        paired_ci_high``, where ``mean_diff`` is ``mean(candidate) - mean(baseline)`` and the
-        paired interval (:func:`paired_bootstrap_mean_diff_ci`) is over the seeds both agents
-        ran (NaN when ``results`` has no ``seed`` column or fewer than 2 shared seeds).
+        boot_ci_low, boot_ci_high, welch_t, welch_dof, p_value, welch_ci_low, welch_ci_high,
+        n_paired, paired_ci_low, paired_ci_high, few_seeds``, where ``mean_diff`` is
+        ``mean(candidate) - mean(baseline)``, the Welch interval is Student's t with
+        Welch-Satterthwaite degrees of freedom at the same coverage, the paired interval
+        (:func:`paired_bootstrap_mean_diff_ci`) is over the seeds both agents ran (NaN when
+        ``results`` has no ``seed`` column or fewer than 2 shared seeds), and ``few_seeds``
+        flags a group of fewer than :data:`FEW_SEEDS` runs.
     """
     if baselines is None:
         baselines = [a for a in AGENTS if a != candidate]
@@ -242,9 +266,12 @@ def compare_agents(
         "welch_t",
         "welch_dof",
         "p_value",
+        "welch_ci_low",
+        "welch_ci_high",
         "n_paired",
         "paired_ci_low",
         "paired_ci_high",
+        "few_seeds",
     ]
     if results.empty or metric not in results:
         return pd.DataFrame(columns=columns)
@@ -260,7 +287,7 @@ def compare_agents(
         low, high = bootstrap_mean_diff_ci(
             a, b, confidence=confidence, n_resamples=n_resamples, seed=seed
         )
-        test = welch_t_test(a, b)
+        test = welch_t_test(a, b, confidence=confidence)
         n_paired, paired = 0, (math.nan, math.nan)
         if by_seed is not None and baseline in by_seed and candidate in by_seed:
             pairs = by_seed[[candidate, baseline]].dropna()
@@ -284,9 +311,12 @@ def compare_agents(
                 "welch_t": test.statistic,
                 "welch_dof": test.dof,
                 "p_value": test.p_value,
+                "welch_ci_low": test.ci_low,
+                "welch_ci_high": test.ci_high,
                 "n_paired": n_paired,
                 "paired_ci_low": paired[0],
                 "paired_ci_high": paired[1],
+                "few_seeds": min(len(a), len(b)) < FEW_SEEDS,
             }
         )
     return pd.DataFrame(rows, columns=columns)
