@@ -345,7 +345,7 @@ def write_scores(table: Mapping[str, ReferenceScore], path: str | os.PathLike[st
     for env_id in sorted(table):
         row = table[env_id]
         writer.writerow([_fmt(getattr(row, name)) for name in SCORE_COLUMNS])
-    write_atomic(path, buffer.getvalue())
+    write_atomic(Path(path), buffer.getvalue())
 
 
 def update_scores(
