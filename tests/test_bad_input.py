@@ -412,3 +412,97 @@ def test_study_export_that_cannot_be_written(study_url, tmp_path, capsys, suffix
             assert sorted(p.name for p in folder.iterdir()) == ["filler", out.name]
         else:
             assert list(folder.iterdir()) == []
+
+
+# -- report --out ---------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def reported_study_url(study_url):  # noqa: ANN001, ANN201
+    """``study_url`` with three completed trials (told by hand: nothing is trained)."""
+    import optuna
+
+    from ermrl.config import EvolveConfig, from_dict
+    from ermrl.search._study import sample_params
+
+    study = optuna.load_study(study_name="s", storage=study_url)
+    config = from_dict(EvolveConfig, study.user_attrs["ermrl_config"])
+    for i in range(3):
+        trial = study.ask()
+        sample_params(trial, config.space)
+        study.tell(trial, -100.0 - i)
+    return study_url
+
+
+@pytest.mark.parametrize("where", ["read-only", "full"])
+def test_report_that_cannot_be_written(reported_study_url, tmp_path, capsys, where):  # noqa: ANN001
+    """A read-only folder or a full disk under --out (real tmpfs mounts: root ignores chmod
+    0555): one line, exit 2, no partial report or staging folder, and an earlier report's file
+    left whole."""
+    from ermrl.cli._report import report_main
+
+    options = ("ro",) if where == "read-only" else ("size=64k",)
+    with _tmpfs(tmp_path / "mnt", *options) as folder:
+        out = folder / "report"
+        if where == "full":
+            out.mkdir()
+            (out / "report.md").write_text("an earlier report\n")
+            _fill(folder)
+        argv = ["--study-name", "s", "--storage", reported_study_url, "--out", str(out)]
+        err = _refused(report_main, [*argv, "--quiet", "--no-interactive"], capsys)
+        assert f"cannot write the report {out}" in err and "nothing was written" in err
+        reason = "Read-only file system" if where == "read-only" else "No space left on device"
+        assert reason in err
+        if where == "full":
+            assert sorted(p.name for p in folder.iterdir()) == ["filler", "report"]
+            assert [p.name for p in out.iterdir()] == ["report.md"]
+            assert (out / "report.md").read_text() == "an earlier report\n"
+        else:
+            assert list(folder.iterdir()) == []
+
+
+# -- dynamics --out -------------------------------------------------------------------------------
+
+
+def _tiny_recording():  # noqa: ANN202
+    """A synthetic 64-step recording (nothing is trained or replayed)."""
+    import numpy as np
+
+    from ermrl.analysis import DynamicsRecording
+
+    rng = np.random.default_rng(0)
+    return DynamicsRecording(
+        observations=rng.normal(size=(64, 3)),
+        actions=rng.normal(size=(64, 1)),
+        rewards=rng.normal(size=64),
+        states=np.tanh(rng.normal(size=(64, 8))),
+        dt=0.05,
+        env_id="Pendulum-v1",
+        observe="all",
+        agent="res-ppo",
+        seed=10,
+        obs_indices=np.arange(3),
+    )
+
+
+@pytest.mark.parametrize("where", ["read-only", "full"])
+def test_dynamics_that_cannot_be_written(tmp_path, capsys, monkeypatch, where):  # noqa: ANN001
+    """A read-only folder or a full disk under --out (real tmpfs mounts: root ignores chmod
+    0555; the episode is a synthetic recording): one line, exit 2, no partial file."""
+    import ermrl.analysis
+    from ermrl.cli._dynamics import dynamics_main
+
+    monkeypatch.setattr(ermrl.analysis, "record_dynamics", lambda **kwargs: _tiny_recording())
+    options = ("ro",) if where == "read-only" else ("size=64k",)
+    with _tmpfs(tmp_path / "mnt", *options) as folder:
+        out = folder / "dynamics"
+        if where == "full":
+            _fill(folder)
+        argv = ["--run", str(tmp_path), "--out", str(out), "--quiet"]
+        err = _refused(dynamics_main, argv, capsys)
+        assert f"cannot write {out}" in err and "nothing was written" in err
+        reason = "Read-only file system" if where == "read-only" else "No space left on device"
+        assert reason in err
+        assert sorted(p.name for p in folder.iterdir()) == (
+            [] if where == "read-only" else ["filler"]
+        )

@@ -28,6 +28,7 @@ from typing import Any, TextIO
 
 import pandas as pd
 
+from ermrl._io import staged_folder
 from ermrl.analysis._style import save_figure, task_title
 from ermrl.config import AGENTS, LearnerSpace, evolved_agent, unevolved_agent
 
@@ -280,60 +281,68 @@ def write_report(
         if dynamics:  # and the runs the dynamics section replays
             for agent, seed in _dynamics_runs(runs_path, study_config_or_none(study)):
                 load_trained_agent(runs_path, agent, seed)
-    out.mkdir(parents=True, exist_ok=True)
-    state = _State(out=out, study=study, storage=storage)
-    has_runs = (runs_path / "agents").is_dir()
-    if not has_runs:
-        why = "does not exist" if not runs_path.exists() else "has no agents/ folder"
-        state.notes.append(
-            f"test phase: {runs_path} {why}"
-            + ("" if runs_given else " (pass --runs, or run `ermrl test` first)")
-        )
-    steps: list[tuple[str, Callable[[], Any]]] = [
-        ("study and trials", lambda: _study_section(state)),
-        ("evolution figures", lambda: _evolution_section(state)),
-    ]
-    if interactive:
-        steps.append(("interactive HTML figures", lambda: _interactive_section(state)))
-    steps.append(("generalization", lambda: _generalization_section(state)))
-    if has_runs:
-        steps.append(
-            ("test-phase figures and statistics", lambda: _test_section(state, runs_path, band))
-        )
-        if dynamics:
-            steps.append(("reservoir dynamics", lambda: _dynamics_section(state, runs_path)))
-    progress = _Progress(len(steps) + 1, quiet, stream)
-    for name, func in steps:
-        progress.step(name, func)
+    # Written into a staged folder, moved into --out once complete: a full disk or a
+    # read-only folder leaves no partial report (nor an earlier one half overwritten).
+    with staged_folder(out) as stage:
+        state = _State(out=stage, study=study, storage=storage)
+        has_runs = (runs_path / "agents").is_dir()
+        if not has_runs:
+            why = "does not exist" if not runs_path.exists() else "has no agents/ folder"
+            state.notes.append(
+                f"test phase: {runs_path} {why}"
+                + ("" if runs_given else " (pass --runs, or run `ermrl test` first)")
+            )
+        steps: list[tuple[str, Callable[[], Any]]] = [
+            ("study and trials", lambda: _study_section(state)),
+            ("evolution figures", lambda: _evolution_section(state)),
+        ]
+        if interactive:
+            steps.append(("interactive HTML figures", lambda: _interactive_section(state)))
+        steps.append(("generalization", lambda: _generalization_section(state)))
+        if has_runs:
+            steps.append(
+                ("test-phase figures and statistics", lambda: _test_section(state, runs_path, band))
+            )
+            if dynamics:
+                steps.append(("reservoir dynamics", lambda: _dynamics_section(state, runs_path)))
+        progress = _Progress(len(steps) + 1, quiet, stream)
+        for name, func in steps:
+            progress.step(name, func)
 
-    def finish() -> tuple[Path, Path | None]:
-        doc = _Doc()
-        doc.h(1, f"Report: study `{study_name}`")
-        doc.p(
-            f"Generated {_dt.datetime.now().isoformat(timespec='seconds')} by ermrl "
-            f"{__version__} from `{storage}`" + (f" and `{runs_path}`" if has_runs else "") + "."
-        )
-        if state.notes:
-            doc.p("Left out:")
-            doc.bullets(state.notes)
-        for section in [*state.sections, *([state.appendix] if state.appendix else [])]:
-            for kind, value in section.blocks:
-                doc.blocks.append((kind, value))
-        md_path = out / "report.md"
-        md_path.write_text(doc.markdown())
-        html_path = None
-        if html_page:
-            html_path = out / "report.html"
-            html_path.write_text(doc.html(f"ermrl report: {study_name}"))
-        return md_path, html_path
+        def finish() -> tuple[Path, Path | None]:
+            doc = _Doc()
+            doc.h(1, f"Report: study `{study_name}`")
+            doc.p(
+                f"Generated {_dt.datetime.now().isoformat(timespec='seconds')} by ermrl "
+                f"{__version__} from `{storage}`"
+                + (f" and `{runs_path}`" if has_runs else "")
+                + "."
+            )
+            if state.notes:
+                doc.p("Left out:")
+                doc.bullets(state.notes)
+            for section in [*state.sections, *([state.appendix] if state.appendix else [])]:
+                for kind, value in section.blocks:
+                    doc.blocks.append((kind, value))
+            md_path = stage / "report.md"
+            md_path.write_text(doc.markdown())
+            html_path = None
+            if html_page:
+                html_path = stage / "report.html"
+                html_path.write_text(doc.html(f"ermrl report: {study_name}"))
+            return md_path, html_path
 
-    md_path, html_path = progress.step("report.md", finish)
+        md_path, html_path = progress.step("report.md", finish)
+
+    def moved(path: Path) -> Path:
+        return out / path.relative_to(stage)
+
     return ReportResult(
         out=out,
-        markdown=md_path,
-        html=html_path,
-        figures=dict(state.figures),
-        tables=dict(state.tables),
+        markdown=moved(md_path),
+        html=None if html_path is None else moved(html_path),
+        figures={name: moved(path) for name, path in state.figures.items()},
+        tables={name: moved(path) for name, path in state.tables.items()},
         notes=tuple(state.notes),
     )
 

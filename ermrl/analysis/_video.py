@@ -27,6 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ermrl._io import staged_folder
+
 __all__ = [
     "GL_BACKENDS",
     "GLBackendError",
@@ -291,6 +293,8 @@ def record_video(
     Raises:
         GLBackendError: no OpenGL backend works here (MuJoCo envs).
         FileNotFoundError: no saved model for that agent and seed.
+        OSError: the video cannot be written (a full disk, a read-only folder); nothing is
+            left next to the run.
     """
     from ermrl.analysis._replay import load_trained_agent, rollout
 
@@ -311,14 +315,21 @@ def record_video(
         if out is not None
         else Path(run) / "videos" / f"{trained.agent}_seed{trained.seed}.mp4"
     )
-    paths: list[Path] = []
-    try:
-        paths.append(write_mp4(episode.frames, mp4, episode.fps))
-    except Exception as err:  # no ffmpeg: fall back to a GIF rather than nothing
-        warnings.warn(f"could not write {mp4} ({err}); writing a GIF instead", stacklevel=2)
-        gif = True
-    if gif:
-        paths.append(write_gif(episode.frames, mp4.with_suffix(".gif"), episode.fps))
+    names: list[str] = []
+    # Staged, then moved next to the run: a full disk or a read-only folder (OSError) leaves
+    # no partial video.
+    with staged_folder(mp4.parent) as stage:
+        try:
+            names.append(write_mp4(episode.frames, stage / mp4.name, episode.fps).name)
+        except OSError:
+            raise
+        except Exception as err:  # no ffmpeg: fall back to a GIF rather than nothing
+            warnings.warn(f"could not write {mp4} ({err}); writing a GIF instead", stacklevel=2)
+            gif = True
+        if gif:
+            gif_path = stage / mp4.with_suffix(".gif").name
+            names.append(write_gif(episode.frames, gif_path, episode.fps).name)
+    paths = [mp4.parent / name for name in names]
     height, width = episode.frames[0].shape[:2]
     return VideoResult(
         paths=tuple(paths),

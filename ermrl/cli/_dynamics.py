@@ -58,6 +58,7 @@ def dynamics_main(argv: Sequence[str] | None = None, prog: str = "ermrl dynamics
     """Entry point of ``ermrl dynamics``."""
     parser = build_dynamics_parser(prog)
     args = parser.parse_args(argv)
+    from ermrl._io import staged_folder
     from ermrl.analysis import RunFolderError, record_dynamics, spectrum_summary, write_dynamics
     from ermrl.envs import UnknownEnvError
 
@@ -69,7 +70,18 @@ def dynamics_main(argv: Sequence[str] | None = None, prog: str = "ermrl dynamics
         print(f"{prog}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
     out = Path(args.out) if args.out else Path(args.run) / "dynamics"
-    paths = write_dynamics(recording, out, n_units=args.units, window_steps=args.window_steps)
+    try:  # staged, then moved into out: a full disk or read-only folder leaves no partial file
+        with staged_folder(out) as stage:
+            staged = write_dynamics(
+                recording, stage, n_units=args.units, window_steps=args.window_steps
+            )
+    except OSError as err:
+        fail(
+            prog,
+            f"cannot write {out}: {err.strerror or err}; nothing was written (free space, or "
+            "choose a writable --out)",
+        )
+    paths = {name: out / path.relative_to(stage) for name, path in staged.items()}
     if not args.quiet:
         summary = spectrum_summary(recording)
         unit = summary["frequency_unit"]

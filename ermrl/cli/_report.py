@@ -108,6 +108,12 @@ def report_main(argv: Sequence[str] | None = None, prog: str = "ermrl report") -
         )
     except (StorageError, StudyNotFound, FileNotFoundError, UnknownEnvError, RunFolderError) as err:
         fail(prog, str(err))
+    except OSError as err:  # a read-only folder, a full disk: the report was staged, not written
+        fail(
+            prog,
+            f"cannot write the report {args.out or Path('reports') / args.study_name}: "
+            f"{err.strerror or err}; nothing was written (free space, or choose a writable --out)",
+        )
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED

@@ -6,6 +6,7 @@ import argparse
 import sys
 import textwrap
 from collections.abc import Sequence
+from pathlib import Path
 
 from ermrl.cli._common import (
     EXIT_INTERRUPTED,
@@ -80,6 +81,13 @@ def video_main(argv: Sequence[str] | None = None, prog: str = "ermrl video") -> 
         fail(prog, str(err), code=EXIT_NO_GL)
     except (FileNotFoundError, UnknownEnvError, RunFolderError) as err:
         fail(prog, str(err))
+    except OSError as err:  # a read-only folder, a full disk: the video was staged, not written
+        fail(
+            prog,
+            f"cannot write the video {args.out or Path(args.run) / 'videos'}: "
+            f"{err.strerror or err}; "
+            "nothing was written (free space, or choose a writable --out)",
+        )
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
