@@ -506,3 +506,34 @@ def test_dynamics_that_cannot_be_written(tmp_path, capsys, monkeypatch, where): 
         assert sorted(p.name for p in folder.iterdir()) == (
             [] if where == "read-only" else ["filler"]
         )
+
+
+def test_staged_folder_keeps_other_files_and_leaves_nothing_on_error(tmp_path):  # noqa: ANN001
+    """Files the block did not write stay; an error leaves the folder as it was, and creates
+    no folder (a full disk is simulated by raising ENOSPC inside the block)."""
+    from ermrl._io import staged_folder
+
+    out = tmp_path / "report"
+    (out / "figures").mkdir(parents=True)
+    (out / "notes.txt").write_text("mine\n")
+    (out / "figures" / "a.png").write_text("old\n")
+    with staged_folder(out) as stage:
+        (stage / "figures").mkdir()
+        (stage / "figures" / "a.png").write_text("new\n")
+        (stage / "report.md").write_text("# report\n")
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*")) == [
+        "figures",
+        "figures/a.png",
+        "notes.txt",
+        "report.md",
+    ]
+    assert (out / "figures" / "a.png").read_text() == "new\n"
+    with pytest.raises(OSError), staged_folder(out) as stage:
+        (stage / "report.md").write_text("half")
+        raise OSError(errno.ENOSPC, "No space left on device")
+    assert (out / "report.md").read_text() == "# report\n"
+    assert len(list(out.rglob("*"))) == 4
+    fresh = tmp_path / "new" / "deeper"
+    with pytest.raises(OSError), staged_folder(fresh) as stage:
+        raise OSError(errno.ENOSPC, "No space left on device")
+    assert not (tmp_path / "new").exists()
