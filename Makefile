@@ -12,7 +12,7 @@ TORCH_SPEC ?= torch==2.13.0
 STORAGE ?= sqlite:///ermrl.db
 PYTEST_ARGS ?=
 
-.PHONY: install system-deps demo test test-slow lint typecheck clean
+.PHONY: install system-deps demo test test-slow lint typecheck docs docs-serve cli-docs clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -53,5 +53,17 @@ lint: install
 typecheck: install
 	$(PY) -m mypy
 
+# The documentation site (mkdocs.yml, pages in docs/), built strictly: a broken link, a missing
+# page or a docstring mkdocstrings cannot read fails the build. Written to site/.
+docs: install
+	$(VENV)/bin/mkdocs build --strict --site-dir site
+
+docs-serve: install
+	$(VENV)/bin/mkdocs serve
+
+# docs/cli.md is generated from the argparse parsers (tests/test_docs.py fails when it is stale).
+cli-docs: install
+	$(PY) -m ermrl.cli._docs docs/cli.md
+
 clean:
-	rm -rf $(VENV) runs reports ermrl.db .pytest_cache
+	rm -rf $(VENV) runs reports site ermrl.db .pytest_cache

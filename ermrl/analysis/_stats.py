@@ -68,7 +68,7 @@ def welch_t_test(
     Returns:
         The statistic, degrees of freedom, p-value and interval (all NaN when undefined).
 
-    Example:
+    Examples:
         >>> round(welch_t_test([1.0, 2.0, 3.0], [4.0, 5.0, 6.0]).statistic, 3)
         -3.674
     """

@@ -1028,7 +1028,7 @@ def cma_generation_info(study: optuna.Study) -> list[dict[str, Any]]:
         * ``"restart"`` (int | None): restart index of the CMA-ES run (0 = first run).
         * ``"generation"`` (int | None): generation within that run.
         * ``"global_generation"`` (int | None): 0-based rank of ``(restart, generation)``
-          among the pairs present, i.e. a generation counter running across restarts.
+            among the pairs present, i.e. a generation counter running across restarts.
         * ``"popsize"`` (int | None): population size of that run.
         * ``"regime"`` (str | None): ``"large"`` or ``"small"`` (BIPOP regime).
 

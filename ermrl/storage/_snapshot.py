@@ -228,7 +228,7 @@ def study_to_snapshot(study: optuna.Study, *, related: bool = True) -> dict[str,
     Returns:
         The snapshot (see the module docstring); :func:`json.dump` writes it as it is.
 
-    Example:
+    Examples:
         >>> import optuna
         >>> study = optuna.create_study(study_name="demo", direction="maximize")
         >>> study.optimize(lambda t: t.suggest_float("x", 0, 1), n_trials=2)
@@ -612,7 +612,7 @@ def import_snapshot(
         StorageError: the storage cannot be opened.
         LockTimeout: a study's lock could not be taken.
 
-    Example:
+    Examples:
         >>> # ermrl study export --storage sqlite:///old.db --study-name pend --out pend.json
         >>> result = import_snapshot("pend.json", "sqlite:///new.db")  # doctest: +SKIP
         >>> result.study.trials[-1].number  # doctest: +SKIP
