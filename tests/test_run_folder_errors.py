@@ -165,3 +165,36 @@ def test_the_loaders_raise_run_folder_error_naming_the_file(
 def test_an_undamaged_folder_passes_the_checks(tiny: TinyStudy) -> None:
     check_run_folder(tiny.runs)
     assert not load_curves(tiny.runs).empty
+
+
+@pytest.mark.parametrize(
+    "case",
+    ["episodes-not-numbers", "result-not-json", "result-no-final-return", "settings-garbage"],
+)
+def test_test_phase_rerun_on_a_damaged_finished_run_is_one_line_and_writes_nothing(
+    tiny: TinyStudy, tmp_path: Path, case: str
+) -> None:
+    """A rerun of ``ermrl test`` keeps its finished runs and reads them back for the summary:
+    a damaged one stops it before anything is trained or written."""
+    from tests._analysis_data import STEPS, TEST_SEEDS
+
+    runs, path = _damaged(tiny, tmp_path, case)
+    before = {p: p.stat().st_mtime_ns for p in runs.rglob("*")}
+    proc = _ermrl(
+        "test",
+        "--training-steps",
+        str(STEPS),
+        "--seeds",
+        *map(str, TEST_SEEDS),
+        "--out",
+        str(runs),
+        "--storage",
+        tiny.storage,
+        "--study-name",
+        tiny.study_name,
+        "--quiet",
+        cwd=tmp_path,
+    )
+    _assert_one_line(proc, path)
+    assert "--overwrite" in proc.stderr
+    assert {p: p.stat().st_mtime_ns for p in runs.rglob("*")} == before

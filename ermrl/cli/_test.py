@@ -205,17 +205,25 @@ def run_or_exit(prog: str, out: Path, run: Callable[[], T]) -> T | None:
         exits with ``EXIT_INTERRUPTED``).
 
     Raises:
-        SystemExit: exit code 2 when ``--out`` holds runs made with other settings, when a run
+        SystemExit: exit code 2 when ``--out`` holds runs made with other settings or a damaged
+            finished run, when a run
             ends no episode or diverges, or when a full disk, a quota or a read-only folder
             stops a write.
     """
     from ermrl.agents import NoEpisodeFinished, TrainingDiverged
+    from ermrl.analysis import RunFolderError
     from ermrl.experiments._test_phase import WRITE_ERRNOS, write_error_message
 
     try:
         return run()
     except ConfigError as err:  # --out holds runs made with other settings
         fail(prog, str(err))
+    except RunFolderError as err:  # a finished run in --out that would be kept is damaged
+        fail(
+            prog,
+            f"{err}; move that run folder away, or rerun with --overwrite to retrain the "
+            "runs asked for",
+        )
     except (NoEpisodeFinished, TrainingDiverged) as err:  # a run could not be measured
         fail(prog, f"{err}; finished runs are kept in {out}")
     except OSError as err:  # a full disk, a quota, a read-only folder

@@ -49,7 +49,13 @@ from ermrl.analysis import (
     run_dir,
     summarize,
 )
-from ermrl.analysis._results import RUNS_DIR
+from ermrl.analysis._results import (
+    EPISODES_FILE,
+    RUNS_DIR,
+    read_episodes,
+    read_run_result,
+    read_run_settings,
+)
 from ermrl.config import (
     AGENT_KINDS,
     AGENTS,
@@ -463,6 +469,8 @@ def check_finished_runs(
     Raises:
         ConfigError: some finished runs were made with other settings, or have no record
             (written before ermrl kept one), naming them and the differing keys.
+        RunFolderError: a finished run that would be kept (and read back by the summary) has
+            a damaged ``result.json``, ``episodes.csv`` or ``settings.json``.
     """
     if not expected:
         return
@@ -481,13 +489,16 @@ def check_finished_runs(
         requested = name in expected and seed in seeds
         if requested and overwrite:
             continue
+        # A run that is kept is read back by the summary: a damaged one stops us now.
+        read_run_result(path)
+        read_episodes(folder / EPISODES_FILE)
         label = f"{name} seed {seed}"
         record_path = folder / RUN_SETTINGS_FILE
         if not record_path.is_file():
             unrecorded.append(label)
             outside += [] if requested else [label]
             continue
-        stored = json.loads(record_path.read_text())
+        stored = read_run_settings(record_path)
         if name in expected:
             keys = settings_diff(stored, {**expected[name], "seed": seed})
         else:
