@@ -469,3 +469,32 @@ def test_a_damaged_redis_journal_is_one_line_then_study_repair_fixes_it(
     again.optimize(lambda t: t.suggest_float("x", 0, 1), n_trials=1)
     assert len(again.get_trials(states=(TrialState.COMPLETE,))) == 4
     client.close()
+
+
+@pytest.mark.parametrize("when", ["creating", "running"])
+def test_evolve_on_a_full_disk_under_its_journal(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], when: str
+) -> None:
+    """A journal file on a full disk (a real tmpfs, filled up): one line and exit 2, whether the
+    study cannot be created or a running worker cannot append; finished trials are kept."""
+    from ermrl.cli._evolve import evolve_main
+    from tests.test_bad_input import FAST, _fill, _tmpfs
+
+    with _tmpfs(tmp_path / "mnt", "size=256k") as folder:
+        journal = folder / "j.log"
+        argv = ["--env-id", "Pendulum-v1", *FAST, "--storage", str(journal), "--quiet"]
+        if when == "running":
+            assert evolve_main([*argv, "--n-trials", "1"]) == 0
+            before = journal.read_bytes()
+        _fill(folder)
+        with pytest.raises(SystemExit) as exc:
+            evolve_main([*argv, "--n-trials", "2"])
+        assert exc.value.code == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1, err
+        assert f"cannot write to {journal}" in err and "No space left on device" in err
+        if when == "running":
+            assert journal.read_bytes().startswith(before)  # the finished trial is kept
+            assert "finished trials are kept" in err
+        else:
+            assert "was not created" in err

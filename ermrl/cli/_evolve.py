@@ -692,6 +692,21 @@ def interrupted_message(err: Interrupted) -> str:
     )
 
 
+def study_write_failure(err: OSError, storage: str) -> str | None:
+    """One line for a study that could not be created because its storage cannot be written.
+
+    ``None``: not a full disk, a quota or a read-only folder (the caller re-raises).
+    """
+    from ermrl.experiments._test_phase import WRITE_ERRNOS
+
+    if err.errno not in WRITE_ERRNOS:
+        return None
+    return (
+        f"cannot write to {storage}: {err.strerror or err}; the study was not created (or "
+        "not changed): free space (or fix the folder) and rerun"
+    )
+
+
 def run_and_report(
     prog: str,
     config: EvolveConfig,
@@ -728,8 +743,11 @@ def run_and_report(
         0 when the worker finished, ``EXIT_TERMINATED`` (143) when stopped by a signal,
         ``EXIT_INTERRUPTED`` (130) on Ctrl-C.
     """
+    from ermrl.experiments._test_phase import WRITE_ERRNOS
     from ermrl.search import Interrupted, format_params, reevaluate_study, run_evolution
+    from ermrl.storage import StorageError
 
+    where = storage_url or "the storage"
     try:
         summary = run_evolution(config, study, quiet=quiet, **run_kwargs)
         if storage_url is not None and config.search.reevaluate_top > 0:
@@ -754,6 +772,18 @@ def run_and_report(
         )
         print(f"{prog}: interrupted{' ' if number is None else ''}{closed}", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except StorageError as err:  # e.g. another process damaged a journal while this one ran
+        fail(prog, str(err))
+    except OSError as err:  # a full disk, a quota or a read-only folder under a journal file
+        if err.errno not in WRITE_ERRNOS:
+            raise
+        fail(
+            prog,
+            f"cannot write to {where}: {err.strerror or err}; its finished trials are kept, "
+            "a trial cut short is retried once its heartbeat is stale (or run ermrl study "
+            "fail-stale), and a record cut short is set aside when the next worker opens the "
+            "journal: free space (or fix the folder) and rerun",
+        )
     if not quiet:
         best = (
             "none yet"
@@ -795,6 +825,11 @@ def evolve_main(argv: Sequence[str] | None = None, prog: str = "ermrl evolve") -
         )
     except (ConfigError, StorageError, LockTimeout) as err:
         fail(prog, str(err))
+    except OSError as err:  # a full disk or read-only folder under a journal file
+        message = study_write_failure(err, args.storage)
+        if message is None:
+            raise
+        fail(prog, message)
     if not args.quiet:
         print(
             f"study {study_name!r} in {args.storage}: {config.problem.task.label}, "

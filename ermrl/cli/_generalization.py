@@ -31,6 +31,7 @@ from ermrl.cli._evolve import (
     run_and_report,
     search_from_args,
     space_from_args,
+    study_write_failure,
 )
 from ermrl.cli._test import (
     add_test_args,
@@ -274,6 +275,11 @@ def evolve_generalization_main(
         )
     except (ConfigError, StorageError, LockTimeout) as err:
         fail(prog, str(err))
+    except OSError as err:  # a full disk or read-only folder under a journal file
+        message = study_write_failure(err, args.storage)
+        if message is None:
+            raise
+        fail(prog, message)
     gen = config.generalization
     if not args.quiet:
         suite = f" (suite {gen.suite})" if gen.suite else ""
