@@ -73,11 +73,11 @@ DESCRIPTION = textwrap.dedent(
     l2; see --gene). Re-running the same command resumes the study; several workers may share it.
 
     examples:
-      evolve_res.py --env-id Pendulum-v1 --observe positions --n-trials 20 --n-seeds 2 \\
+      ermrl evolve --env-id Pendulum-v1 --observe positions --n-trials 20 --n-seeds 2 \\
           --training-steps 20000 --storage sqlite:///ermrl.db
-      evolve_res.py --env-id CartPole-v1 --observe positions --encoder rtu --n-trials 20 \\
+      ermrl evolve --env-id CartPole-v1 --observe positions --encoder rtu --n-trials 20 \\
           --training-steps 20000 --storage sqlite:///ermrl.db
-      evolve_res.py --env-id Ant-v5 --learner hebbian --gene sigma=0.02:0.5 --n-trials 24 \\
+      ermrl evolve --env-id Ant-v5 --learner hebbian --gene sigma=0.02:0.5 --n-trials 24 \\
           --training-steps 40000 --storage sqlite:///ermrl.db
     """
 )
@@ -843,7 +843,7 @@ def evolve_main(argv: Sequence[str] | None = None, prog: str = "ermrl evolve") -
         study,
         quiet=args.quiet,
         fitness_name="fitness",
-        next_command=f"test.py --study-name {shlex.quote(study_name)} "
+        next_command=f"ermrl test --study-name {shlex.quote(study_name)} "
         f"--storage {shlex.quote(args.storage)}",
         storage_url=args.storage,
         study_kwargs=study_kwargs,

@@ -68,9 +68,9 @@ EVOLVE_DESCRIPTION = textwrap.dedent(
     (their shape depends on the task's observation and action sizes).
 
     examples:
-      evolve_generalization.py --suite no_halfcheetah --n-reservoirs 2 --n-trials 100 \\
+      ermrl evolve-generalization --suite no_halfcheetah --n-reservoirs 2 --n-trials 100 \\
           --training-steps 300000 --storage sqlite:///ermrl.db
-      evolve_generalization.py --env-ids Swimmer-v5 Hopper-v5 --n-trials 2 --n-seeds 1 \\
+      ermrl evolve-generalization --env-ids Swimmer-v5 Hopper-v5 --n-trials 2 --n-seeds 1 \\
           --training-steps 2048 --storage sqlite:///ermrl.db --study-name demo
     """
 )
@@ -86,10 +86,10 @@ TEST_DESCRIPTION = textwrap.dedent(
     PPO table and the study's --ppo overrides. When the env has reference scores, summary.csv
     also has normalized returns. A loud WARNING is printed when the test env was one of the
     evolution tasks (then this is not a generalization test). SLURM_ARRAY_TASK_ID selects one
-    seed of the list, as in test.py.
+    seed of the list, as in ermrl test.
 
     example:
-      test_generalization.py --study-name S --storage sqlite:///ermrl.db --env-id HalfCheetah-v5 \\
+      ermrl test-generalization --study-name S --storage sqlite:///ermrl.db --env-id HalfCheetah-v5 \\
           --training-steps 1000000 --seeds 10 11 12
     """
 )
@@ -302,7 +302,7 @@ def evolve_generalization_main(
         study,
         quiet=args.quiet,
         fitness_name="normalized fitness",
-        next_command=f"test_generalization.py --study-name {shlex.quote(study_name)} "
+        next_command=f"ermrl test-generalization --study-name {shlex.quote(study_name)} "
         f"--storage {shlex.quote(args.storage)} --env-id {_suggested_test_env(config)}",
         evaluate=generalization_evaluator(config, quiet=args.quiet),
         storage_url=args.storage,

@@ -62,8 +62,8 @@ DESCRIPTION = textwrap.dedent(
     setting other learners refuse, such as the dagger learner's expert, goes in --for-learner.
 
     examples:
-      test.py --study-name S --storage sqlite:///ermrl.db --training-steps 1000000 --seeds 10 11 12
-      test.py --study-name S --agents ppo dagger res-dagger --for-learner dagger expert=experts/hopper
+      ermrl test --study-name S --storage sqlite:///ermrl.db --training-steps 1000000 --seeds 10 11 12
+      ermrl test --study-name S --agents ppo dagger res-dagger --for-learner dagger expert=experts/hopper
     """
 )
 
@@ -475,7 +475,7 @@ def test_main(argv: Sequence[str] | None = None, prog: str = "ermrl test") -> in
         if getattr(config, "generalization", None) is not None:
             raise ConfigError(
                 f"study {args.study_name!r} evolved on several tasks; test it on an unseen task "
-                "with test_generalization.py --env-id ENV"
+                "with ermrl test-generalization --env-id ENV"
             )
         problem = config.problem
         choose_agents(args, config, problem.task.observe)
