@@ -364,3 +364,11 @@ def test_run_or_exit_turns_a_test_phases_expected_failures_into_one_line(
         assert len(capsys.readouterr().err.strip().splitlines()) == 1
     with pytest.raises(OSError):  # not a write failure: a bug, shown as such
         run_or_exit("ermrl test", tmp_path, raises(OSError(errno.EBADF, "bad file descriptor")))
+
+
+def test_counts_in_printed_lines_agree_in_number() -> None:
+    from ermrl._text import plural
+
+    assert [plural(n, "seed") for n in (0, 1, 2)] == ["0 seeds", "1 seed", "2 seeds"]
+    assert plural(1, "fresh seed") == "1 fresh seed"
+    assert plural(2, "quantity", "quantities") == "2 quantities"

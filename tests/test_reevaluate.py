@@ -366,4 +366,4 @@ def test_cli_reevaluates_and_test_phase_says_which_trial_it_used(tmp_path: Path)
         capture_output=True, text=True, timeout=120, cwd=tmp_path,
     )  # fmt: skip
     assert show.returncode == 0, show.stderr
-    assert "re-evaluated on 1 fresh seeds x 384 steps (study 's.reeval')" in show.stdout
+    assert "re-evaluated on 1 fresh seed x 384 steps (study 's.reeval')" in show.stdout

@@ -10,6 +10,7 @@ import textwrap
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
+from ermrl._text import plural
 from ermrl.cli._common import (
     EXIT_INTERRUPTED,
     EXIT_TERMINATED,
@@ -791,7 +792,7 @@ def run_and_report(
             else f"{summary.best_value:.4g} with {format_params(summary.best_params or {})}"
         )
         print(
-            f"done: this worker ran {summary.trials_run} trials ({summary.completed} complete, "
+            f"done: this worker ran {plural(summary.trials_run, 'trial')} ({summary.completed} complete, "
             f"{summary.pruned} pruned, {summary.failed} failed); best {fitness_name} {best}\n"
             f"next: {next_command}",
             flush=True,
@@ -833,8 +834,8 @@ def evolve_main(argv: Sequence[str] | None = None, prog: str = "ermrl evolve") -
     if not args.quiet:
         print(
             f"study {study_name!r} in {args.storage}: {config.problem.task.label}, "
-            f"{len(config.problem.seeds)} seeds x {config.problem.budget.training_steps} steps per trial, "
-            f"{config.search.sampler} sampler, {config.search.n_trials} trials",
+            f"{plural(len(config.problem.seeds), 'seed')} x {config.problem.budget.training_steps} steps per trial, "
+            f"{config.search.sampler} sampler, {plural(config.search.n_trials, 'trial')}",
             flush=True,
         )
     return run_and_report(

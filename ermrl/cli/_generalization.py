@@ -12,6 +12,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from ermrl._text import plural
 from ermrl.cli._common import (
     EXIT_INTERRUPTED,
     ArgumentParser,
@@ -285,9 +286,9 @@ def evolve_generalization_main(
         suite = f" (suite {gen.suite})" if gen.suite else ""
         print(
             f"study {study_name!r} in {args.storage}: {len(gen.tasks)} tasks{suite}, "
-            f"{len(config.problem.seeds)} seeds x {config.problem.budget.training_steps} steps "
+            f"{plural(len(config.problem.seeds), 'seed')} x {config.problem.budget.training_steps} steps "
             f"per task per trial, {config.space.n_reservoirs} reservoir(s), "
-            f"{config.search.sampler} sampler, {config.search.n_trials} trials",
+            f"{config.search.sampler} sampler, {plural(config.search.n_trials, 'trial')}",
             flush=True,
         )
         for t in gen.tasks:

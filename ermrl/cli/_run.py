@@ -10,6 +10,7 @@ import sys
 import textwrap
 from collections.abc import Sequence
 
+from ermrl._text import plural
 from ermrl.cli._common import EXIT_INTERRUPTED, ArgumentParser, HelpFormatter, fail
 from ermrl.cli._experiment import Experiment, Step, publish_step, snapshot_status
 
@@ -152,7 +153,7 @@ def run_main(argv: Sequence[str] | None = None, prog: str = "ermrl run") -> int:
     if args.snapshot:
         try:
             for step, path, n in write_snapshots(exp, steps):
-                print(f"wrote {path}: study {step.study_name!r}, {n} trials", flush=True)
+                print(f"wrote {path}: study {step.study_name!r}, {plural(n, 'trial')}", flush=True)
         except OSError as err:
             fail(prog, f"cannot write the snapshot: {err.strerror or err}")
         return 0
@@ -177,7 +178,7 @@ def run_main(argv: Sequence[str] | None = None, prog: str = "ermrl run") -> int:
         fail(prog, f"cannot write {exp.out}: {err.strerror or err}")
     try:
         for step, path, n in import_snapshots(exp, steps):
-            print(f"imported {path}: study {step.study_name!r}, {n} trials", flush=True)
+            print(f"imported {path}: study {step.study_name!r}, {plural(n, 'trial')}", flush=True)
     except ExperimentError as err:
         fail(prog, str(err))
     for step, _ in chosen:

@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from ermrl._io import write_atomic
+from ermrl._text import plural
 from ermrl.cli._common import (
     ArgumentParser,
     HelpFormatter,
@@ -292,7 +293,7 @@ def _create(args: argparse.Namespace, prog: str) -> int:
     configured = "with" if "ermrl_config" in study.user_attrs else "without"
     if not args.quiet:
         print(
-            f"study {args.study_name!r} {what} in {args.storage} ({n} trials, {configured} an "
+            f"study {args.study_name!r} {what} in {args.storage} ({plural(n, 'trial')}, {configured} an "
             "ermrl configuration)"
         )
     return 0
@@ -423,7 +424,7 @@ def _show(args: argparse.Namespace, prog: str) -> int:
         if stale is not None:
             state += f" (stale, not used by ermrl test: {stale})"
         print(
-            f"re-evaluated{state} on {len(seeds)} fresh seeds x "
+            f"re-evaluated{state} on {plural(len(seeds), 'fresh seed')} x "
             f"{reevaluation['training_steps']} steps (study {reevaluation['study']!r}):"
         )
         for row in reevaluation["candidates"]:
@@ -439,7 +440,7 @@ def _show(args: argparse.Namespace, prog: str) -> int:
     if info["workers"]:
         print(f"workers ({len(info['workers'])}):")
         for worker, n in info["workers"].items():
-            print(f"  {worker}: {n} trials")
+            print(f"  {worker}: {plural(n, 'trial')}")
     for run in info["running"]:
         print(
             f"running: trial {run['number']} on {run['worker']}, "
@@ -499,7 +500,9 @@ def _export(args: argparse.Namespace, prog: str) -> int:
             doc = write_snapshot(study, out)
         except OSError as err:
             fail(prog, _write_error(out, err))
-        counts = ", ".join(f"{name!r} ({n} trials)" for name, n in snapshot_counts(doc).items())
+        counts = ", ".join(
+            f"{name!r} ({plural(n, 'trial')})" for name, n in snapshot_counts(doc).items()
+        )
         print(f"wrote a snapshot of {counts} to {out}")
         return 0
     frame = trials_frame(study)
@@ -520,7 +523,7 @@ def _export(args: argparse.Namespace, prog: str) -> int:
         write_atomic(out, data)
     except OSError as err:
         fail(prog, _write_error(out, err))
-    print(f"wrote {len(frame)} trials of {args.study_name!r} to {out}")
+    print(f"wrote {plural(len(frame), 'trial')} of {args.study_name!r} to {out}")
     return 0
 
 
@@ -550,7 +553,9 @@ def _import(args: argparse.Namespace, prog: str) -> int:
     except (SnapshotError, StudyExists, StorageError, LockTimeout) as err:
         fail(prog, str(err))
     for name in result.created:
-        print(f"imported study {name!r} ({result.n_trials[name]} trials) into {args.storage}")
+        print(
+            f"imported study {name!r} ({plural(result.n_trials[name], 'trial')}) into {args.storage}"
+        )
     for name in result.identical:
         print(f"study {name!r} in {args.storage} is identical to the snapshot: nothing to import")
     for name, number, retry in result.interrupted:
@@ -567,10 +572,10 @@ def _delete(args: argparse.Namespace, prog: str) -> int:
     study = _open_study(args, prog, mode="write")
     n = len(study.get_trials(deepcopy=False))
     if not args.yes:
-        fail(prog, f"study {args.study_name!r} has {n} trials; pass --yes to delete it")
+        fail(prog, f"study {args.study_name!r} has {plural(n, 'trial')}; pass --yes to delete it")
     with storage_lock(args.storage, args.study_name):
         optuna.delete_study(study_name=args.study_name, storage=study._storage)
-    print(f"deleted study {args.study_name!r} ({n} trials) from {args.storage}")
+    print(f"deleted study {args.study_name!r} ({plural(n, 'trial')}) from {args.storage}")
     return 0
 
 

@@ -40,6 +40,7 @@ import pandas as pd
 import yaml
 
 from ermrl._io import write_atomic
+from ermrl._text import plural
 from ermrl.agents import RunResult, pool_size, train_agent, training_pool
 from ermrl.analysis import (
     curves_on_grid,
@@ -751,7 +752,7 @@ def _train_populations(
         _say(
             stream,
             quiet,
-            f"[population] {len(group)} runs ({', '.join(names)}) on {task.label}, trained in "
+            f"[population] {plural(len(group), 'run')} ({', '.join(names)}) on {task.label}, trained in "
             f"lockstep in {min(settings.n_procs, len(group))} process(es)",
         )
         results = train_population_parallel(

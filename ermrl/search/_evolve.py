@@ -34,6 +34,7 @@ import optuna
 from optuna.storages._heartbeat import BaseHeartbeat, get_heartbeat_thread, is_heartbeat_enabled
 from optuna.trial import TrialState
 
+from ermrl._text import plural
 from ermrl.agents import NoEpisodeFinished, TrainingDiverged
 from ermrl.config import EncoderConfig, EvolveConfig
 from ermrl.search._claim import (
@@ -261,7 +262,7 @@ def run_evolution(
         )  # fmt: skip
         if failed_in_a_row >= n_trials:
             say(
-                f"stopping: the last {failed_in_a_row} trials of this worker failed "
+                f"stopping: the last {plural(failed_in_a_row, 'trial')} of this worker failed "
                 "(FAIL trials do not count towards the budget; is the problem broken?)"
             )
             return False
@@ -378,7 +379,7 @@ def run_evolution(
             n_tasks = len(config.generalization.tasks) if config.generalization else 1
             say(
                 f"population backend: generations of up to {generation} candidates x "
-                f"{len(problem.seeds)} seeds = {generation * len(problem.seeds)} agents per task "
+                f"{plural(len(problem.seeds), 'seed')} = {generation * len(problem.seeds)} agents per task "
                 f"({n_tasks} task(s)), trained in lockstep in "
                 f"{min(config.n_procs, generation * len(problem.seeds))} process(es)"
             )

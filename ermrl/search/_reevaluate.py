@@ -31,6 +31,7 @@ import numpy as np
 import optuna
 from optuna.trial import FrozenTrial, TrialState
 
+from ermrl._text import plural
 from ermrl.config import ConfigError, EvolveConfig, Problem
 from ermrl.storage import study_lock
 
@@ -466,7 +467,7 @@ def select_trial(study: optuna.Study, trial_number: int | None = None) -> tuple[
             seeds = doc["seeds"]
             how = (
                 f"re-evaluated best of {len(rows)} candidates "
-                f"({len(seeds)} fresh seeds x {doc['training_steps']} steps"
+                f"({plural(len(seeds), 'fresh seed')} x {doc['training_steps']} steps"
                 + (f"; {len(failed)} failed, ranked last" if failed else "")
                 + ")"
             )
