@@ -23,10 +23,12 @@ EXIT_NO_GL = 3
 
 DESCRIPTION = textwrap.dedent(
     """\
-    Render one episode of a trained agent of a test-phase folder with MuJoCo's offscreen
-    renderer, on the CPU without a display, and write it as MP4 (H.264) and optionally GIF.
-    The OpenGL backend (EGL or OSMesa from Mesa) is chosen automatically by trying a tiny render;
-    --gl forces one. Exit code 3 when no backend works (the message says what to install).
+    Render one episode of a trained agent of a test-phase folder, on the CPU without a display,
+    and write it as MP4 (H.264) and optionally GIF. Any task with an rgb_array renderer works:
+    MuJoCo tasks through MuJoCo's offscreen renderer, whose OpenGL backend (EGL or OSMesa from
+    Mesa) is chosen automatically by trying a tiny render (--gl forces one), and classic
+    control (CartPole, Pendulum) through pygame. Exit code 3 when no OpenGL backend works (the
+    message says what to install).
 
     example:
       ermrl video --run runs/S --agent res-ppo --seed 10
