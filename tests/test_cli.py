@@ -372,3 +372,19 @@ def test_counts_in_printed_lines_agree_in_number() -> None:
     assert [plural(n, "seed") for n in (0, 1, 2)] == ["0 seeds", "1 seed", "2 seeds"]
     assert plural(1, "fresh seed") == "1 fresh seed"
     assert plural(2, "quantity", "quantities") == "2 quantities"
+
+
+def test_no_option_shows_its_default_twice() -> None:
+    """A help text that says its default in words gets no second '(default: None)'."""
+    import re
+
+    from ermrl.cli._docs import _subparsers, cli_parsers
+
+    pending = list(cli_parsers())
+    doubled = []
+    while pending:
+        name, parser = pending.pop()
+        pending += [(f"{name} {sub}", p) for sub, p in _subparsers(parser)]
+        text = " ".join(parser.format_help().split())
+        doubled += [f"{name}: {m}" for m in re.findall(r"default[^()]*\) \(default: [^)]*\)", text)]
+    assert not doubled, doubled
