@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """Evolve reservoirs on a set of tasks (same as ``ermrl evolve-generalization``)."""
 
-from ermrl.cli._generalization import evolve_generalization_main
+from ermrl.cli import run_command
 
 if __name__ == "__main__":
-    raise SystemExit(evolve_generalization_main(prog="evolve_generalization.py"))
+    raise SystemExit(run_command("evolve-generalization", prog="evolve_generalization.py"))

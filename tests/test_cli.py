@@ -216,12 +216,14 @@ def test_default_test_seeds_avoid_evolution_seeds(evolved: tuple[Path, str]) -> 
     assert seeds == [2, 3, 4, 5, 6]  # evolution trained on 0 and 1
 
 
-def _n_trials(db: Path) -> int:
+def _n_trials(db: Path, state: str | None = None) -> int:
+    """Trials in the study database (of one state, e.g. ``RUNNING``, when given)."""
     if not db.exists():
         return 0
+    query = "select count(*) from trials" + ("" if state is None else " where state = ?")
     with sqlite3.connect(db) as con:
         try:
-            return con.execute("select count(*) from trials").fetchone()[0]
+            return con.execute(query, () if state is None else (state,)).fetchone()[0]
         except sqlite3.OperationalError:  # the file exists before its schema does
             return 0
 
@@ -324,7 +326,8 @@ def test_ctrl_c_marks_the_running_trial_failed_and_exits(tmp_path: Path) -> None
         cmd, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
     )
     deadline = time.time() + 120
-    while time.time() < deadline and _n_trials(tmp_path / "s.db") == 0:
+    # Running, not only queued: the reference trial is queued (WAITING) before it is claimed.
+    while time.time() < deadline and _n_trials(tmp_path / "s.db", "RUNNING") == 0:
         time.sleep(0.5)
     time.sleep(2)
     proc.send_signal(signal.SIGINT)
@@ -388,3 +391,26 @@ def test_no_option_shows_its_default_twice() -> None:
         text = " ".join(parser.format_help().split())
         doubled += [f"{name}: {m}" for m in re.findall(r"default[^()]*\) \(default: [^)]*\)", text)]
     assert not doubled, doubled
+
+
+@pytest.mark.parametrize("command", [["-m", "ermrl", "evolve"], ["evolve_generalization.py"]])
+def test_ctrl_c_during_start_up_is_one_line(tmp_path: Path, command: list[str]) -> None:
+    """SIGINT while the command still imports torch and builds envs: no traceback, exit 130."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    root = Path(__file__).resolve().parents[1]
+    script = [str(root / command[0])] if command[0].endswith(".py") else command
+    proc = subprocess.Popen(
+        [sys.executable, *script, "--n-trials", "1",
+         "--storage", f"sqlite:///{tmp_path}/s.db"],
+        cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    time.sleep(0.5)  # inside the imports: they take seconds
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert "interrupted" in err

@@ -10,7 +10,7 @@ import sys
 from collections.abc import Sequence
 from typing import Any
 
-__all__ = ["main", "evolve_main", "test_main", "COMMANDS"]
+__all__ = ["main", "evolve_main", "run_command", "test_main", "COMMANDS"]
 
 # name -> ("module:function", one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -58,12 +58,27 @@ def _load(target: str) -> Any:
     return getattr(importlib.import_module(module), func)
 
 
+def run_command(name: str, argv: Sequence[str] | None = None, prog: str | None = None) -> int:
+    """Run the subcommand ``name``; return its exit code.
+
+    Ctrl-C during its start-up (imports, env construction: several seconds), before the
+    command's own handling takes over, is one line on stderr and exit code 130, not a
+    traceback.
+    """
+    prog = prog or f"ermrl {name}"
+    try:
+        return int(_load(COMMANDS[name][0])(argv, prog=prog))
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return 130  # ermrl.cli._common.EXIT_INTERRUPTED, without importing it first
+
+
 def evolve_main(argv: Sequence[str] | None = None, prog: str = "ermrl evolve") -> int:
-    return int(_load(COMMANDS["evolve"][0])(argv, prog=prog))
+    return run_command("evolve", argv, prog)
 
 
 def test_main(argv: Sequence[str] | None = None, prog: str = "ermrl test") -> int:
-    return int(_load(COMMANDS["test"][0])(argv, prog=prog))
+    return run_command("test", argv, prog)
 
 
 test_main.__test__ = False  # type: ignore[attr-defined]  # not a pytest test
@@ -96,7 +111,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 2
-    return int(_load(COMMANDS[name][0])(rest, prog=f"ermrl {name}"))
+    return run_command(name, rest)
 
 
 if __name__ == "__main__":
