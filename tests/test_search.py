@@ -187,6 +187,14 @@ def test_evolution_records_trials_and_resumes(tmp_path) -> None:  # noqa: ANN001
     assert {"ermrl", "gymnasium", "stable_baselines3"} <= set(attrs["versions"])
     assert attrs["worker_pid"] > 0 and attrs["worker_hostname"]
     assert trials[0].value == pytest.approx(sum(attrs["returns_last"]) / 2)
+    # The training curve is stored as intermediate values (no pruner): optuna-dashboard draws
+    # it; its last point is the fitness, and the objective has a name.
+    curve = trials[0].intermediate_values
+    assert len(curve) >= 2 and max(curve) == 256, curve  # each seed's 256 steps
+    assert curve[256] == pytest.approx(trials[0].value)
+    assert study.metric_names == [
+        "fitness (mean return of the last 2 training episodes, mean over seeds)"
+    ]
 
     # the study stores its config and command: the test phase needs nothing else
     reloaded = optuna.load_study(study_name="s", storage=url)
@@ -306,3 +314,20 @@ def _alive(pid: int) -> bool:
             return f.read().split()[2] != "Z"  # a zombie has exited
     except FileNotFoundError:
         return False
+
+
+def test_learning_curve_is_the_last_measure_taken_early() -> None:
+    from ermrl.agents import RunResult
+    from ermrl.search._objective import FitnessResult
+
+    a = RunResult(
+        seed=0, episode_returns=[1.0, 3.0, 5.0], episode_steps=[30, 60, 100], env_steps=100
+    )
+    b = RunResult(seed=1, episode_returns=[2.0, 4.0], episode_steps=[50, 100], env_steps=100)
+    result = FitnessResult(fitness=4.0, mode="last", runs=[a, b], n_last=2)
+    curve = dict(result.learning_curve(n_points=5))
+    # Step 20: no episode ended; step 40: seed 1 has none yet; then the last-2 means.
+    assert list(curve) == [60, 80, 100]
+    assert curve[60] == pytest.approx(((1 + 3) / 2 + 2) / 2)
+    assert curve[100] == pytest.approx(((3 + 5) / 2 + (2 + 4) / 2) / 2)
+    assert FitnessResult(fitness=0.0, mode="last", runs=[RunResult(seed=0)]).learning_curve() == []

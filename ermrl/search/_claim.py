@@ -128,6 +128,10 @@ def record(
         if result is not None:
             for key, value in result.user_attrs().items():
                 trial.set_user_attr(key, value)
+            # A pruner reports its own; otherwise the training curve, for optuna-dashboard.
+            if not study._storage.get_trial(trial._trial_id).intermediate_values:
+                for step, value in result.learning_curve():
+                    trial.report(value, step)
         if state == TrialState.COMPLETE:
             assert result is not None
             return study.tell(trial, result.fitness)

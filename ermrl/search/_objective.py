@@ -76,6 +76,7 @@ class FitnessResult:
             result depends on it.
         backend: What trained the runs (``sb3`` or ``population``).
         population: Agents trained together (the population backend; 1 otherwise).
+        n_last: Training episodes the ``last`` measure averages (for :meth:`learning_curve`).
     """
 
     fitness: float
@@ -85,6 +86,7 @@ class FitnessResult:
     dtype: str | None = None
     backend: str = "sb3"
     population: int = 1
+    n_last: int = 10
 
     @property
     def env_steps(self) -> int:
@@ -104,6 +106,34 @@ class FitnessResult:
             "n_episodes": [len(r.episode_returns) for r in self.runs],
             **self.totals(),
         }
+
+    def learning_curve(self, n_points: int = 10) -> list[tuple[int, float]]:
+        """The candidate's training curve at ``n_points`` evenly spaced env steps.
+
+        At each step, the mean over seeds of the mean return of each run's last
+        :attr:`n_last` training episodes ended by then (the ``last`` fitness measure, taken early). Steps at
+        which some run has ended no episode yet are left out. Stored as the trial's intermediate
+        values, so optuna-dashboard draws per-trial learning curves with or without a pruner.
+
+        Returns:
+            ``[(env_step, value), ...]`` in step order.
+        """
+        total = max((r.env_steps for r in self.runs), default=0)
+        if total <= 0 or not all(r.episode_steps for r in self.runs):
+            return []
+        curve = []
+        for k in range(1, n_points + 1):
+            step = round(total * k / n_points)
+            values = []
+            for run in self.runs:
+                ended = np.asarray(run.episode_steps) <= step
+                returns = np.asarray(run.episode_returns, dtype=float)[ended]
+                if len(returns) == 0:
+                    break
+                values.append(float(returns[-self.n_last :].mean()))
+            else:
+                curve.append((step, float(np.mean(values))))
+        return curve
 
     def totals(self) -> dict[str, Any]:
         """The part of :meth:`user_attrs` every fitness shares: ``env_steps``, ``wall_seconds``,
@@ -349,6 +379,7 @@ def evaluate_encoders(
                 dtype=encoder.dtype,
                 backend="population",
                 population=len(encoders) * len(problem.seeds),
+                n_last=problem.budget.n_last_episodes,
             )
         )
     return out
@@ -394,4 +425,5 @@ def evaluate_encoder(
         runs=runs,
         wall_seconds=time.perf_counter() - start,
         dtype=None if encoder is None else encoder.dtype,
+        n_last=problem.budget.n_last_episodes,
     )

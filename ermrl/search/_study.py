@@ -185,6 +185,25 @@ def refuse_other_config(study_name: str, diffs: list[str]) -> None:
         )
 
 
+def metric_name(config: EvolveConfig) -> str:
+    """What a study's objective value is, in words (optuna-dashboard labels its axes with it)."""
+    budget = config.problem.budget
+    measure = (
+        f"mean return of the last {budget.n_last_episodes} training episodes"
+        if budget.fitness == "last"
+        else f"mean return of {budget.n_eval_episodes} deterministic episodes after training"
+    )
+    what = "normalized fitness" if config.generalization is not None else "fitness"
+    return f"{what} ({measure}, mean over seeds)"
+
+
+def name_metric(study: optuna.Study, config: EvolveConfig) -> None:
+    """Name the study's objective (:func:`metric_name`), shown by optuna-dashboard."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+        study.set_metric_names([metric_name(config)])
+
+
 def create_or_resume_study(
     config: EvolveConfig | None,
     storage_url: str,
@@ -243,6 +262,7 @@ def create_or_resume_study(
         new = to_dict(config)
         stored = study.user_attrs.get(STUDY_CONFIG_ATTR)
         if stored is None:
+            name_metric(study, config)
             study.set_user_attr(STUDY_CONFIG_ATTR, new)
             study.set_user_attr(STUDY_KIND_ATTR, kind)
             study.set_user_attr(STUDY_COMMAND_ATTR, command or " ".join(sys.argv))
