@@ -1150,11 +1150,6 @@ class EvolveConfig:
             raise ConfigError("the encoder and the search space disagree on n_reservoirs")
         elif self.space.family != encoder.family:
             raise ConfigError("the encoder and the search space are of different families")
-        if self.space.family != "esn" and self.problem.ppo.backend == "population":
-            raise ConfigError(
-                "the population backend runs echo state reservoirs only: use --backend sb3 "
-                f"with the {self.space.family} encoder"
-            )
         if self.generalization is not None and self.problem.task not in (
             t.task for t in self.generalization.tasks
         ):

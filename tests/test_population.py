@@ -35,6 +35,7 @@ from ermrl.config import (
     NormalizeConfig,
     PPOConfig,
     ReservoirParams,
+    RTUParams,
     TaskConfig,
 )
 from ermrl.learners import get_learner
@@ -52,6 +53,14 @@ def encoder(k: int, units: int = 12, **options: Any) -> EncoderConfig:
     """An encoder whose reservoir hyperparameters depend on ``k`` (same structure for all k)."""
     params = ReservoirParams(
         units=units, sr=0.6 + 0.1 * k, lr=0.3 + 0.1 * k, input_scaling=0.5 + 0.2 * k
+    )
+    return EncoderConfig(reservoirs=(params,), **options)
+
+
+def rtu_encoder(k: int, units: int = 6, **options: Any) -> EncoderConfig:
+    """A frozen RTU layer whose ranges depend on ``k`` (same structure for all k)."""
+    params = RTUParams(
+        units=units, r_min=0.2, r_max=0.99 - 0.05 * k, theta_max=1.0 + k, input_scaling=0.5 + k
     )
     return EncoderConfig(reservoirs=(params,), **options)
 
@@ -99,6 +108,13 @@ CASES = {
         512,
         True,
     ),
+    # A frozen RTU layer (a linear reservoir; the policy sees tanh of its states).
+    "cartpole-rtu": (
+        TaskConfig("CartPole-v1", "positions"),
+        {"n_steps": 16, "batch_size": 64, "n_epochs": 2},
+        512,
+        "rtu",
+    ),
 }
 
 
@@ -119,6 +135,8 @@ def test_an_agents_result_does_not_depend_on_the_population(case: str) -> None:
     def make(k: int) -> EncoderConfig | None:
         if not with_encoder:
             return None
+        if with_encoder == "rtu":
+            return rtu_encoder(k)
         enc = encoder(k)
         if "two-reservoirs" in case:
             second = dataclasses.replace(enc.reservoirs[0], sr=1.5 - 0.1 * k, units=8)
@@ -168,14 +186,29 @@ ENCODER_OPTIONS = {
     "two-reservoirs": {"two": True},
     "reset-never": {"reset": "never"},
     "float64": {"dtype": "float64"},
+    # Frozen RTU layers: the linear update, tanh of the states shown to the policy.
+    "rtu": {"rtu": True},
+    "rtu-two-skip-exposed-float64": {
+        "rtu": True,
+        "two": True,
+        "skip_connection": True,
+        "exposed_units": 5,
+        "dtype": "float64",
+    },
 }
 
 
 def option_encoder(k: int, option: str) -> EncoderConfig:
     options = dict(ENCODER_OPTIONS[option])
-    enc = encoder(k, **{key: v for key, v in options.items() if key != "two"})
-    if options.get("two"):
-        second = ReservoirParams(units=12, sr=1.1 - 0.1 * k, lr=0.9, input_scaling=1.0 + k)
+    rtu = options.pop("rtu", False)
+    two = options.pop("two", False)
+    enc = rtu_encoder(k, **options) if rtu else encoder(k, **options)
+    if two:
+        second: ReservoirParams | RTUParams = (
+            RTUParams(units=6, r_max=0.8, theta_max=0.5 + k, input_scaling=2.0)
+            if rtu
+            else ReservoirParams(units=12, sr=1.1 - 0.1 * k, lr=0.9, input_scaling=1.0 + k)
+        )
         enc = dataclasses.replace(enc, reservoirs=(*enc.reservoirs, second))
     return enc
 
@@ -435,6 +468,23 @@ ROLLOUT_CASES = {
     # steps): a shorter rollout, without truncation (the cases above bootstrap).
     "pendulum-gsde": ("Pendulum-v1", {"n_steps": 64}),
     "cartpole-terminations-and-truncations": (SHORT_CARTPOLE, {"n_steps": 96, "batch_size": 64}),
+    # The same PPO on reservoir states (the agents' own encoders): an echo state network, and a
+    # frozen RTU layer (the policy sees tanh of its linear states), over episode ends.
+    "pendulum-gauss-esn-normalize": (
+        "Pendulum-v1",
+        {"n_steps": 256, "use_sde": False, "normalize": True},
+        encoder,
+    ),
+    "pendulum-gauss-rtu-normalize": (
+        "Pendulum-v1",
+        {"n_steps": 256, "use_sde": False, "normalize": True},
+        rtu_encoder,
+    ),
+    "cartpole-rtu-terminations-and-truncations": (
+        SHORT_CARTPOLE,
+        {"n_steps": 96, "batch_size": 64},
+        rtu_encoder,
+    ),
 }
 
 
@@ -456,14 +506,21 @@ def test_a_population_rollout_equals_sb3_collect_rollouts(
 ) -> None:
     """Same env seeds, weights and noise: agent 0's rollout (observations, actions, log-probs,
     values, rewards with the truncation bootstrap, episode starts) and its advantages and returns
-    equal SB3's RolloutBuffer after collect_rollouts."""
-    env_id, overrides = ROLLOUT_CASES[case]
+    equal SB3's RolloutBuffer after collect_rollouts (with an encoder: on the SB3 path's
+    ReservoirVecEnv with the agent's reservoir seed)."""
+    env_id, overrides, *make_encoder = ROLLOUT_CASES[case]
     torch.set_num_threads(1)
     table_id = "CartPole-v1" if env_id == SHORT_CARTPOLE else env_id
     ppo = ppo_for(table_id, n_envs=2, **overrides)
     task = TaskConfig(env_id, "all")
-    population = PopulationPPO(task, ppo, [PopulationJob(None, 21), PopulationJob(None, 22)])
-    env = normalize_env(make_vec_env(task, ppo.n_envs, population.seeds[0].env), ppo)
+    encoders = [make_encoder[0](k) if make_encoder else None for k in (0, 1)]
+    population = PopulationPPO(
+        task, ppo, [PopulationJob(encoders[0], 21), PopulationJob(encoders[1], 22)]
+    )
+    seeds = population.seeds[0]
+    env = normalize_env(
+        make_vec_env(task, ppo.n_envs, seeds.env, encoders[0], seeds.reservoir), ppo
+    )
     model = get_learner("ppo").build(env, ppo, seed=4)
     env.seed(population.seeds[0].env)  # as train_agent: building seeded the envs with the agent's
     population.policy.load_sb3_state(0, model.policy.state_dict())

@@ -5,6 +5,7 @@ Real CLI workers on a real SQLite study with real (tiny) training; nothing is mo
 
 from __future__ import annotations
 
+import argparse
 import os
 import signal
 import subprocess
@@ -182,3 +183,157 @@ def test_a_generalization_evolution_trains_each_task_as_a_population(tmp_path: P
         assert t.user_attrs["population"] == 6
         assert set(t.user_attrs["task_seed_returns"]) == {"Hopper-v5", "Swimmer-v5"}
         assert all(len(v) == 2 for v in t.user_attrs["task_seed_returns"].values())
+
+
+# -- the default backend ------------------------------------------------------------------------
+def evolve_args(*extra: str) -> argparse.Namespace:
+    from ermrl.cli._evolve import build_evolve_parser
+
+    base = ["--env-id", "Pendulum-v1", "--observe", "positions", "--units", "20"]
+    return build_evolve_parser().parse_args([*base, "--storage", "sqlite:///unused.db", *extra])
+
+
+@pytest.mark.parametrize("extra", [[], ["--encoder", "rtu"]], ids=["esn", "rtu"])
+def test_population_is_the_default_for_ppo_on_reservoir_states(extra: list[str]) -> None:
+    """No --backend: PPO on an ESN's or an RTU layer's states trains with population, silently."""
+    from ermrl.cli._evolve import config_from_args
+
+    notes: list[str] = []
+    config = config_from_args(evolve_args(*extra), build_agent=False, notes=notes)
+    assert config.problem.ppo.backend == "population"
+    assert notes == []
+    explicit = config_from_args(evolve_args(*extra, "--backend", "sb3"), build_agent=False)
+    assert explicit.problem.ppo.backend == "sb3"
+
+
+FALLBACKS = {
+    "another-learner": (["--learner", "lstm-ppo"], "trains the ppo learner only, not 'lstm-ppo'"),
+    "target_kl": (["--ppo", "target_kl=0.01"], "does not implement target_kl"),
+    "pruner": (["--pruner", "median"], "no intermediate returns to --pruner median"),
+}
+
+
+@pytest.mark.parametrize("case", list(FALLBACKS))
+def test_the_default_falls_back_to_sb3_with_the_reason(case: str) -> None:
+    """No --backend where population cannot train the runs: sb3, and one reason to print."""
+    from ermrl.cli._evolve import config_from_args
+
+    extra, message = FALLBACKS[case]
+    notes: list[str] = []
+    config = config_from_args(evolve_args(*extra), build_agent=False, notes=notes)
+    assert config.problem.ppo.backend == "sb3"
+    assert len(notes) == 1 and message in notes[0] and "\n" not in notes[0]
+    assert "--backend sb3" not in notes[0]  # a reason, not an error's hint
+
+
+def spend(url: str, name: str, argv: list[str]) -> None:
+    """Create the study these options make, with its one-trial budget already spent (resuming
+    it trains nothing)."""
+    from ermrl.cli._evolve import build_evolve_parser, config_from_args
+    from ermrl.search import create_or_resume_study
+
+    config = config_from_args(build_evolve_parser().parse_args(argv), build_agent=False)
+    study = create_or_resume_study(config, url, name)
+    study.add_trial(optuna.trial.create_trial(value=0.0))
+
+
+def test_a_study_created_with_sb3_resumes_with_sb3_when_no_backend_is_given(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The stored backend wins over the default; an explicit other backend is refused."""
+    from ermrl.cli._evolve import evolve_main
+
+    url = f"sqlite:///{tmp_path}/s.db"
+    argv = [*TINY[:-2], "--storage", url, "--study-name", "old", "--n-trials", "1", "--quiet"]
+    spend(url, "old", [*argv, "--backend", "sb3"])
+    assert evolve_main(argv) == 0
+    err = capsys.readouterr().err.strip()
+    assert err == (
+        "ermrl evolve: training with the sb3 backend: study 'old' was created with it "
+        "(a study never mixes backends)"
+    )
+    assert study_config(load(url, "old")).problem.ppo.backend == "sb3"
+    with pytest.raises(SystemExit) as refused:
+        evolve_main([*argv, "--backend", "population"])
+    assert refused.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert "already exists with another configuration" in err and "backend" in err
+    assert "\n" not in err
+
+
+def test_the_fallback_is_one_line_and_a_population_study_resumes_silently(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """evolve with a pruner and no --backend: one stderr line with the reason; a study made
+    with the default (population) resumes with it and prints nothing."""
+    from ermrl.cli._evolve import evolve_main
+
+    url = f"sqlite:///{tmp_path}/s.db"
+    argv = [*TINY[:-2], "--storage", url, "--n-trials", "1", "--quiet"]
+    pruned = [*argv, "--study-name", "pruned", "--pruner", "median"]
+    spend(url, "pruned", pruned)
+    assert evolve_main(pruned) == 0
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("ermrl evolve: training with the sb3 backend: ")
+    assert "--pruner median" in err and "\n" not in err
+    default = [*argv, "--study-name", "new"]
+    spend(url, "new", default)
+    assert study_config(load(url, "new")).problem.ppo.backend == "population"
+    assert evolve_main(default) == 0
+    assert capsys.readouterr().err == ""
+
+
+def test_an_rtu_evolution_with_no_backend_trains_with_population(tmp_path: Path) -> None:
+    """ermrl evolve --encoder rtu, no --backend: whole generations on the population backend."""
+    url = f"sqlite:///{tmp_path}/s.db"
+    done = evolve(
+        tmp_path, *TINY[:-2], "--encoder", "rtu", "--storage", url, "--study-name", "r",
+        "--popsize", "2", "--n-seeds", "1", "--n-trials", "2",
+    )  # fmt: skip
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "population backend: generations of up to 2 candidates" in done.stdout
+    assert done.stderr == ""
+    study = load(url, "r")
+    assert study_config(study).problem.ppo.backend == "population"
+    assert study_config(study).space.family == "rtu"
+    trials = study.get_trials()
+    assert [t.state for t in trials] == [TrialState.COMPLETE] * 2
+    assert all(t.user_attrs["backend"] == "population" for t in trials)
+
+
+def test_the_test_phase_defaults_to_population_where_it_applies(tmp_path: Path) -> None:
+    """No --backend in a test phase: population; sb3 with a reason for --tensorboard, another
+    learner, or an --out whose finished runs were made with sb3 (not with --overwrite)."""
+    import json
+
+    from ermrl.agents import resolve_ppo_config
+    from ermrl.cli._test import with_backend
+    from ermrl.config import TaskConfig
+
+    task = TaskConfig("Pendulum-v1", "positions")
+    ppo = resolve_ppo_config("Pendulum-v1", backend="sb3")
+
+    def choose(base: object = ppo, out: Path | None = None, **flags: object) -> tuple[str, list]:
+        args = argparse.Namespace(**{"backend": None, "tensorboard": None, "overwrite": False})
+        vars(args).update(flags)
+        notes: list[str] = []
+        return with_backend(base, args, task=task, out=out, notes=notes).backend, notes
+
+    assert choose() == ("population", [])
+    assert choose(backend="sb3") == ("sb3", [])
+    backend, notes = choose(tensorboard="tb")
+    assert backend == "sb3" and len(notes) == 1 and "--tensorboard" in notes[0]
+    lstm = resolve_ppo_config("Pendulum-v1", learner="lstm-ppo")
+    backend, notes = choose(lstm)
+    assert backend == "sb3" and len(notes) == 1 and "ppo learner only" in notes[0]
+    # An --out with a finished sb3 run of this learner keeps sb3; another learner's does not count.
+    run = tmp_path / "agents" / "ppo" / "seed_10"
+    run.mkdir(parents=True)
+    (run / "settings.json").write_text(json.dumps({"ppo": {"hyperparams": {}}}))
+    assert choose(out=tmp_path) == ("population", [])  # not finished: no result.json
+    (run / "result.json").write_text("{}")
+    backend, notes = choose(out=tmp_path)
+    assert backend == "sb3" and len(notes) == 1 and "finished runs" in notes[0]
+    assert choose(out=tmp_path, overwrite=True) == ("population", [])
+    (run / "settings.json").write_text(json.dumps({"ppo": {"learner": "lstm-ppo"}}))
+    assert choose(out=tmp_path) == ("population", [])

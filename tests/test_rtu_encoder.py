@@ -131,13 +131,11 @@ def test_an_rtu_study_configuration_round_trips_and_esn_dicts_are_unchanged(
     assert from_dict(ReservoirSpace, esn) == ReservoirSpace()
     with pytest.raises(ConfigError, match="different families"):
         EvolveConfig(problem, ReservoirSpace(), SearchConfig())
-    with pytest.raises(ConfigError, match="echo state reservoirs only"):
-        population = PPOConfig(backend="population")
-        EvolveConfig(
-            Problem(problem.task, problem.encoder, population, problem.budget),
-            space,
-            SearchConfig(),
-        )
+    # The population backend runs RTU encoders too.
+    population = PPOConfig(backend="population")
+    EvolveConfig(
+        Problem(problem.task, problem.encoder, population, problem.budget), space, SearchConfig()
+    )
 
 
 def test_agents_follow_the_studys_encoder_family() -> None:
@@ -232,7 +230,6 @@ def test_the_test_phase_trains_rtu_ppo_next_to_ppo_with_its_own_flag(tmp_path: P
 @pytest.mark.parametrize(
     ("flags", "message"),
     [
-        (["--backend", "population"], "the population backend runs echo state reservoirs only"),
         (["--r-max-range", "0.5", "1.5"], "the r_max range must stay within (0, 1]"),
         (["--units", "6000"], "at most 10000 state values"),
         (["--theta-max-range", "2", "1"], "low must be < high"),

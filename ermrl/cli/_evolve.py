@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import shlex
 import sys
 import textwrap
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 from ermrl._text import plural
@@ -58,7 +59,10 @@ __all__ = [
     "add_problem_args",
     "command_line",
     "evolve_main",
+    "keep_study_backend",
+    "print_backend_notes",
     "run_and_report",
+    "stored_backend",
 ]
 
 DESCRIPTION = textwrap.dedent(
@@ -119,12 +123,14 @@ def add_problem_args(parser: argparse.ArgumentParser, *, multi_task: bool = Fals
     add_for_learner_arg(g)
     g.add_argument(
         "--backend",
-        choices=("sb3", "population"),
-        default="sb3",
-        help="what trains the agents: sb3 (one Stable-Baselines3 process per agent, the "
-        "default) or population (a whole generation's candidates x seeds trained in lockstep "
-        "with the same PPO, several times faster per core; ppo learner only, no --pruner). "
-        "Stored with the study: a study never mixes backends",
+        choices=("population", "sb3"),
+        default=None,
+        help="what trains the agents: population (a whole generation's candidates x seeds "
+        "trained in lockstep with the same PPO, several times faster per core; ppo learner "
+        "only, no --pruner) or sb3 (the reference implementation: one Stable-Baselines3 "
+        "process per agent). Default: population where it applies, else sb3 with one line "
+        "saying why. Stored with the study: a study never mixes backends, and a resumed study "
+        "keeps its own",
     )
     g.add_argument(
         "--training-steps",
@@ -611,7 +617,9 @@ def learner_flags(args: argparse.Namespace, learner: str) -> dict[str, Any]:
     return dict(given.get(learner, {}))
 
 
-def config_from_args(args: argparse.Namespace, *, build_agent: bool = True) -> EvolveConfig:
+def config_from_args(
+    args: argparse.Namespace, *, build_agent: bool = True, notes: list[str] | None = None
+) -> EvolveConfig:
     """Build and validate the run's configuration (raises ConfigError / env errors).
 
     Args:
@@ -619,9 +627,12 @@ def config_from_args(args: argparse.Namespace, *, build_agent: bool = True) -> E
         build_agent: Also build the agent once on the real env (and reservoir), so that what
             PPO or the encoder would only refuse in the first trial is refused now; ``False``
             (``ermrl run --dry-run``) checks the options and tables only.
+        notes: Receives the one-line reason when ``--backend`` is left out and the population
+            backend does not apply (the run then trains with sb3).
     """
     from ermrl.agents import check_ppo_config, parse_overrides, resolve_ppo_config
     from ermrl.learners import get_learner
+    from ermrl.population import choose_backend
 
     validate_task(args.env_id, args.observe)
     learner = getattr(args, "learner", "ppo")
@@ -632,8 +643,16 @@ def config_from_args(args: argparse.Namespace, *, build_agent: bool = True) -> E
         table_path=args.hyperparams,
         torch_threads=args.torch_threads,
         learner=learner,
-        backend=getattr(args, "backend", "sb3"),
     )
+    backend, why = choose_backend(
+        getattr(args, "backend", None),
+        ppo,
+        (TaskConfig(env_id=args.env_id, observe=args.observe),),
+        pruner=getattr(args, "pruner", "none"),
+    )
+    if why is not None and notes is not None:
+        notes.append(why)
+    ppo = dataclasses.replace(ppo, backend=backend)
     space: SearchSpaceConfig
     if get_learner(learner).genes:
         space, encoder = learner_space_from_args(args, ppo), None
@@ -661,6 +680,65 @@ def config_from_args(args: argparse.Namespace, *, build_agent: bool = True) -> E
 
         check_population_config(ppo)
     return config
+
+
+def stored_backend(storage: str, study_name: str) -> str | None:
+    """The backend an existing study was created with (``None``: no such study or storage, or
+    a study without an ermrl configuration). Reads only: nothing is created."""
+    from ermrl.search import STUDY_CONFIG_ATTR
+    from ermrl.storage import StorageError, StudyNotFound, load_study
+
+    try:
+        stored = load_study(study_name, storage).user_attrs.get(STUDY_CONFIG_ATTR)
+    except (StorageError, StudyNotFound):
+        return None
+    if not isinstance(stored, Mapping):
+        return None
+    ppo = (stored.get("problem") or {}).get("ppo") or {}
+    return str(ppo.get("backend", "sb3")) if isinstance(ppo, Mapping) else None
+
+
+def keep_study_backend(
+    args: argparse.Namespace,
+    config: EvolveConfig,
+    storage: str,
+    study_name: str,
+    build: Callable[[argparse.Namespace], EvolveConfig],
+    notes: list[str],
+) -> tuple[argparse.Namespace, EvolveConfig]:
+    """A resumed study keeps the backend it was created with when ``--backend`` is left out.
+
+    Args:
+        args: The parsed options.
+        config: The configuration built from them.
+        storage: The study's storage.
+        study_name: The study's name.
+        build: Builds the configuration from options (``config_from_args``, ...).
+        notes: The one-line notes to print; replaced by the study's when it keeps its backend.
+
+    Returns:
+        ``(args, config)``, with ``--backend`` set to the study's and the configuration rebuilt
+        when the study was created with another backend than the one chosen now.
+    """
+    if getattr(args, "backend", None) is not None:
+        return args, config
+    kept = stored_backend(storage, study_name)
+    if kept is None or kept == config.problem.ppo.backend:
+        return args, config
+    args = argparse.Namespace(**{**vars(args), "backend": kept})
+    notes[:] = [f"study {study_name!r} was created with it (a study never mixes backends)"]
+    return args, build(args)
+
+
+def print_backend_notes(prog: str, config: EvolveConfig, notes: Sequence[str]) -> None:
+    """One line on stderr (also with ``--quiet``) per reason the run trains with its backend
+    when ``--backend`` was left out."""
+    for note in notes:
+        print(
+            f"{prog}: training with the {config.problem.ppo.backend} backend: {note}",
+            file=sys.stderr,
+            flush=True,
+        )
 
 
 def command_line(prog: str, argv: Sequence[str] | None) -> str:
@@ -809,11 +887,16 @@ def evolve_main(argv: Sequence[str] | None = None, prog: str = "ermrl evolve") -
     parser = build_evolve_parser(prog)
     quiet_libraries()
     args = parser.parse_args(argv)
+    notes: list[str] = []
     try:
-        config = config_from_args(args)
+        config = config_from_args(args, notes=notes)
+        study_name = args.study_name or config.default_study_name
+        args, config = keep_study_backend(
+            args, config, args.storage, study_name, config_from_args, notes
+        )
     except (ConfigError, UnknownEnvError, UnsupportedObserveError) as err:
         fail(prog, str(err))
-    study_name = args.study_name or config.default_study_name
+    print_backend_notes(prog, config, notes)
     command = command_line(prog, argv)
     study_kwargs = {
         "heartbeat_interval": args.heartbeat_interval or None,

@@ -549,6 +549,10 @@ def _single_task_steps(exp: Experiment, task: TaskLine, build_agents: bool) -> l
     config = _config_error(exp, where, lambda: config_from_args(args, build_agent=build_agents))
     study_name = config.default_study_name
     argv += ["--study-name", study_name]
+    config = _keep_study_backend(
+        exp, where, args, config, study_name,
+        lambda a: config_from_args(a, build_agent=build_agents),
+    )  # fmt: skip
     _check_study(exp, config, study_name, where)
     problem = config.problem
     n_seeds = len(problem.seeds)
@@ -626,7 +630,14 @@ def _test_step(
     seeds = list(args.seeds or range(5))
     per_run = args.training_steps
     test_env = env_id or (task.env_id if task else "")
-    backend = args.backend or config.problem.ppo.backend
+    backend = args.backend
+    if backend is None:  # as the test command chooses (the env's spaces aside)
+        from ermrl.population import population_refusal
+
+        refused = population_refusal(
+            config.problem.ppo, tensorboard=bool(getattr(args, "tensorboard", None))
+        )
+        backend = "sb3" if refused else "population"
     parts = []
     for agent in agents:
         learner = AGENT_KINDS[agent].learner or config.problem.ppo.learner
@@ -679,6 +690,10 @@ def _generalization_plan(
     )
     study_name = generalization_study_name(config)
     argv += ["--study-name", study_name]
+    config = _keep_study_backend(
+        exp, where, args, config, study_name,
+        lambda a: generalization_config_from_args(a, build_agent=build_agents),
+    )  # fmt: skip
     _check_study(exp, config, study_name, where)
     gen = config.generalization
     label = gen.suite or "+".join(gen.env_ids)
@@ -776,6 +791,27 @@ def _study(storage: str, study_name: str) -> Iterator[Any]:
         yield None
         return
     yield study
+
+
+def _keep_study_backend(
+    exp: Experiment,
+    where: str,
+    args: argparse.Namespace,
+    config: Any,
+    study_name: str,
+    build: Callable[[argparse.Namespace], Any],
+) -> Any:
+    """The configuration with the backend the study was created with, when the file sets no
+    ``backend`` and the study exists (as the evolve command resumes it)."""
+    from ermrl.cli._evolve import keep_study_backend
+
+    if not _storage_exists(exp.storage):
+        return config
+    return _config_error(
+        exp,
+        where,
+        lambda: keep_study_backend(args, config, exp.storage, study_name, build, [])[1],
+    )
 
 
 def _check_study(exp: Experiment, config: Any, study_name: str, where: str) -> None:

@@ -28,7 +28,9 @@ from ermrl.cli._evolve import (
     budget_from_args,
     command_line,
     encoder_from_args,
+    keep_study_backend,
     learner_flags,
+    print_backend_notes,
     run_and_report,
     search_from_args,
     space_from_args,
@@ -38,6 +40,7 @@ from ermrl.cli._test import (
     add_test_args,
     choose_agents,
     plan_test_phase,
+    print_notes,
     run_test_phase,
     setup_errors,
     with_backend,
@@ -148,7 +151,7 @@ def build_evolve_generalization_parser(
 
 
 def generalization_config_from_args(
-    args: argparse.Namespace, *, build_agent: bool = True
+    args: argparse.Namespace, *, build_agent: bool = True, notes: list[str] | None = None
 ) -> EvolveConfig:
     """Build and validate a multi-task configuration (raises ConfigError / env errors).
 
@@ -156,6 +159,8 @@ def generalization_config_from_args(
         args: The parsed options.
         build_agent: Also build each task's agent once (see
             :func:`ermrl.cli._evolve.config_from_args`); ``False`` checks the options only.
+        notes: Receives the one-line reason when ``--backend`` is left out and the population
+            backend does not apply to some task (the study then trains with sb3).
     """
     from ermrl.agents import check_ppo_config, parse_overrides
     from ermrl.envs import get_suite
@@ -188,8 +193,21 @@ def generalization_config_from_args(
         scores=args.scores,
         target_column=args.target_column,
         learner=args.learner,
-        backend=args.backend,
+        backend=args.backend or "sb3",
     )
+    if args.backend is None:  # population where it applies to every task; a study has one
+        from ermrl.population import choose_backend
+
+        backend, why = "population", None
+        for t in tasks:
+            backend, why = choose_backend(None, t.ppo, (t.task,), pruner=args.pruner)
+            if why is not None:
+                if notes is not None:
+                    notes.append(f"{t.task.env_id}: {why}")
+                break
+        tasks = tuple(
+            dataclasses.replace(t, ppo=dataclasses.replace(t.ppo, backend=backend)) for t in tasks
+        )
     space = space_from_args(args)
     config = generalization_config(
         tasks,
@@ -209,7 +227,7 @@ def generalization_config_from_args(
     # What PPO or the encoder would refuse in the first trial is refused before the study exists.
     for task in tasks if build_agent else ():
         check_ppo_config(task.task, config.problem.encoder, task.ppo, where=task.task.env_id)
-    if args.backend == "population":
+    if config.problem.ppo.backend == "population":
         from ermrl.population import check_population_config
 
         check_population_config(config.problem.ppo)
@@ -254,12 +272,17 @@ def evolve_generalization_main(
     parser = build_evolve_generalization_parser(prog)
     quiet_libraries()
     args = parser.parse_args(argv)
+    notes: list[str] = []
     try:
-        config = generalization_config_from_args(args)
+        config = generalization_config_from_args(args, notes=notes)
+        study_name = args.study_name or generalization_study_name(config)
+        args, config = keep_study_backend(
+            args, config, args.storage, study_name, generalization_config_from_args, notes
+        )
     except (ConfigError, UnknownEnvError, UnsupportedObserveError) as err:
         fail(prog, str(err))
     assert config.generalization is not None
-    study_name = args.study_name or generalization_study_name(config)
+    print_backend_notes(prog, config, notes)
     # Cluster options of add_search_args (heartbeats, retries), forwarded like ermrl evolve does.
     study_kwargs: dict[str, Any] = {}
     if getattr(args, "heartbeat_interval", None) is not None:
@@ -446,6 +469,7 @@ def test_generalization_main(
     quiet_libraries()
     args = parser.parse_args(argv)
     warning: str | None = None
+    notes: list[str] = []
     try:
         study = load_study(args.study_name, args.storage)
         config = study_config(study)
@@ -457,8 +481,15 @@ def test_generalization_main(
         evolution_ids = _evolution_env_ids(config)
         warning = overlap_warning(args.env_id, evolution_ids, args.study_name)
         choose_agents(args, config, observe)
-        ppo = with_backend(_test_ppo(config, args.env_id, args), args)
         task = dataclasses.replace(problem.task, env_id=args.env_id, observe=observe)
+        default_out = Path("runs") / f"{args.study_name}__{args.env_id}"
+        ppo = with_backend(
+            _test_ppo(config, args.env_id, args),
+            args,
+            task=task,
+            out=Path(args.out) if args.out else default_out,
+            notes=notes,
+        )
         # The test env's settings (the study's, a table's, --ppo): refused now, not by a run.
         check_ppo_config(task, problem.encoder, ppo, where=args.env_id)
         plan = plan_test_phase(
@@ -467,7 +498,7 @@ def test_generalization_main(
             config,
             task,
             ppo,
-            Path("runs") / f"{args.study_name}__{args.env_id}",
+            default_out,
             observe=observe,
         )
         scores = args.scores
@@ -483,6 +514,7 @@ def test_generalization_main(
             reference = None
     except setup_errors() as err:
         fail(prog, str(err))
+    print_notes(prog, ppo, notes)
     if warning:
         _shout(warning)
     if plan.warning:  # also with --quiet: the selection is not the one a ranking would give

@@ -130,11 +130,13 @@ def add_test_args(
     add_for_learner_arg(parser)
     parser.add_argument(
         "--backend",
-        choices=("sb3", "population"),
+        choices=("population", "sb3"),
         default=None,
-        help="what trains the agents of the study's learner: sb3 (one Stable-Baselines3 process "
-        "per run) or population (all seeds of an agent trained in lockstep, PPO only); "
-        "default: the study's backend. Agents with another learner always train with sb3",
+        help="what trains the agents of the study's learner: population (all seeds of an agent "
+        "trained in lockstep, PPO only) or sb3 (the reference implementation: one "
+        "Stable-Baselines3 process per run). Default: population where it applies (not with "
+        "--tensorboard, nor into an --out whose finished runs were made with sb3), else sb3 "
+        "with one line saying why. Agents with another learner always train with sb3",
     )
     parser.add_argument(
         "--save-models",
@@ -397,12 +399,54 @@ def plan_test_phase(
 
 
 # What a test command reports as one line before anything runs.
-def with_backend(ppo: Any, args: argparse.Namespace) -> Any:
-    """The study's learner settings with ``--backend`` applied (and checked for it)."""
+def with_backend(
+    ppo: Any,
+    args: argparse.Namespace,
+    *,
+    task: Any = None,
+    out: Path | None = None,
+    notes: list[str] | None = None,
+) -> Any:
+    """The study's learner settings with the backend that trains its agents.
+
+    ``--backend`` when given (checked for it). Left out: population where it applies, unless
+    ``out`` holds finished runs of this learner made with sb3 (a test folder never mixes
+    backends; not with ``--overwrite``), else sb3.
+
+    Args:
+        ppo: The settings of the study's learner on the test task.
+        args: The parsed command line (``--backend``, ``--tensorboard``, ``--overwrite``).
+        task: The test task (its env's spaces are checked; ``None``: not checked).
+        out: The test folder.
+        notes: Receives the one-line reason a left-out ``--backend`` is not population.
+    """
     import dataclasses
 
-    if getattr(args, "backend", None):
-        ppo = dataclasses.replace(ppo, backend=args.backend)
+    from ermrl.population import choose_backend
+
+    if getattr(args, "backend", None) is None:
+        from ermrl.experiments._test_phase import finished_backend
+
+        backend, why = choose_backend(
+            None,
+            ppo,
+            () if task is None else (task,),
+            tensorboard=bool(getattr(args, "tensorboard", None)),
+        )
+        if (
+            backend == "population"
+            and out is not None
+            and not getattr(args, "overwrite", False)
+            and finished_backend(out, ppo.learner) == "sb3"
+        ):
+            backend = "sb3"
+            why = (
+                f"the finished runs in {out} were made with it (a test folder never mixes backends)"
+            )
+        if why is not None and notes is not None:
+            notes.append(why)
+        return dataclasses.replace(ppo, backend=backend)
+    ppo = dataclasses.replace(ppo, backend=args.backend)
     if ppo.backend == "population":
         from ermrl.population import check_population_config
 
@@ -410,6 +454,15 @@ def with_backend(ppo: Any, args: argparse.Namespace) -> Any:
         if getattr(args, "tensorboard", None):
             raise ConfigError("--tensorboard logs come from the sb3 backend; use --backend sb3")
     return ppo
+
+
+def print_notes(prog: str, ppo: Any, notes: Sequence[str]) -> None:
+    """One line on stderr (also with ``--quiet``) per reason the study's agents train with
+    their backend when ``--backend`` was left out."""
+    for note in notes:
+        print(
+            f"{prog}: training with the {ppo.backend} backend: {note}", file=sys.stderr, flush=True
+        )
 
 
 def setup_errors() -> tuple[type[BaseException], ...]:
@@ -469,6 +522,7 @@ def test_main(argv: Sequence[str] | None = None, prog: str = "ermrl test") -> in
                 "--tensorboard needs the tensorboard package, which is not installed "
                 "(pip install tensorboard)",
             )
+    notes: list[str] = []
     try:
         study = load_study(args.study_name, args.storage)
         config = study_config(study)
@@ -481,7 +535,14 @@ def test_main(argv: Sequence[str] | None = None, prog: str = "ermrl test") -> in
         choose_agents(args, config, problem.task.observe)
         overrides = parse_overrides(args.ppo)
         own = learner_overrides(args).get(problem.ppo.learner, {})
-        ppo = with_backend(with_overrides(problem.ppo, {**overrides, **own}), args)
+        default_out = Path("runs") / args.study_name
+        ppo = with_backend(
+            with_overrides(problem.ppo, {**overrides, **own}),
+            args,
+            task=problem.task,
+            out=Path(args.out) if args.out else default_out,
+            notes=notes,
+        )
         if overrides or own:  # refused now rather than by the first run
             where = "--ppo" if overrides else f"--for-learner {problem.ppo.learner}"
             check_ppo_config(problem.task, problem.encoder, ppo, where=where)
@@ -491,11 +552,12 @@ def test_main(argv: Sequence[str] | None = None, prog: str = "ermrl test") -> in
             config,
             problem.task,
             ppo,
-            Path("runs") / args.study_name,
+            default_out,
             observe=problem.task.observe,
         )
     except setup_errors() as err:
         fail(prog, str(err))
+    print_notes(prog, ppo, notes)
     if plan.warning:  # also with --quiet: the selection is not the one a ranking would give
         print(f"{prog}: warning: {plan.warning}", file=sys.stderr, flush=True)
     if not args.quiet:

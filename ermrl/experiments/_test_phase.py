@@ -60,6 +60,7 @@ from ermrl.analysis._results import (
 from ermrl.config import (
     AGENT_KINDS,
     AGENTS,
+    BACKENDS,
     FAMILIES,
     AgentKind,
     BudgetConfig,
@@ -448,6 +449,27 @@ def _learner_of(ppo_doc: Mapping[str, Any]) -> str:
     return str(ppo_doc.get("learner", "ppo"))  # left out of stored settings for PPO
 
 
+def finished_backend(out: str | Path, learner: str) -> str | None:
+    """The backend that made the finished runs of ``learner`` under ``out`` (``None``: none).
+
+    Read from each run's ``settings.json`` (the first finished run of that learner whose record
+    names a known backend); records that cannot be read are left to :func:`check_finished_runs`.
+    """
+    for path in sorted(Path(out).glob(f"{RUNS_DIR}/*/seed_*/{RUN_SETTINGS_FILE}")):
+        if not (path.parent / "result.json").is_file():
+            continue
+        try:
+            ppo_doc = json.loads(path.read_text()).get("ppo")
+        except (OSError, ValueError, AttributeError):
+            continue
+        if not isinstance(ppo_doc, dict) or _learner_of(ppo_doc) != learner:
+            continue
+        backend = ppo_doc.get("backend", "sb3")  # left out of stored settings for sb3
+        if backend in BACKENDS:
+            return str(backend)
+    return None
+
+
 def check_finished_runs(
     out: Path,
     expected: Mapping[str, Any],
@@ -719,7 +741,11 @@ def _population_key(args: tuple[Any, ...]) -> str:
     task, encoder, ppo = args[0], args[1], args[2]
     enc = None
     if encoder is not None:
-        enc = {**to_dict(encoder), "reservoirs": [p.units for p in encoder.reservoirs]}
+        enc = {
+            **to_dict(encoder),
+            "family": encoder.family,
+            "reservoirs": [p.units for p in encoder.reservoirs],
+        }
     return json.dumps({"task": to_dict(task), "ppo": to_dict(ppo), "encoder": enc}, sort_keys=True)
 
 
@@ -740,9 +766,7 @@ def _train_populations(
     groups: dict[str, list[tuple[AgentSpec, int, tuple[Any, ...]]]] = {}
     rest = []
     for job in jobs:
-        encoder = job[2][1]
-        # The population backend runs echo state reservoirs only; other runs stay on sb3.
-        if job[2][2].backend == "population" and (encoder is None or encoder.family == "esn"):
+        if job[2][2].backend == "population":
             groups.setdefault(_population_key(job[2]), []).append(job)
         else:
             rest.append(job)

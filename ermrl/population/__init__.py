@@ -1,4 +1,5 @@
-"""The population backend (``--backend population``): many PPO agents trained in lockstep.
+"""The population backend (the default; ``--backend sb3`` is the reference): many PPO agents
+trained in lockstep.
 
 :func:`train_population` trains a whole population (a CMA-ES generation's candidates x seeds, or
 a test phase's runs) in one process, with the semantics of the SB3 path per agent and several
@@ -6,6 +7,7 @@ times its throughput; :func:`train_population_parallel` splits it over processes
 See :mod:`ermrl.population._ppo` for what is shared and what stays per agent.
 """
 
+from ermrl.population._choice import choose_backend, population_refusal
 from ermrl.population._envs import BatchedReservoir, PopulationEnvs, RunningStats
 from ermrl.population._parallel import split_jobs, train_population_parallel
 from ermrl.population._policy import PolicySpec, StackedPolicy, policy_spec
@@ -26,8 +28,10 @@ __all__ = [
     "RunningStats",
     "StackedPolicy",
     "check_population_config",
+    "choose_backend",
     "compute_gae",
     "policy_spec",
+    "population_refusal",
     "split_jobs",
     "train_population",
     "train_population_parallel",

@@ -3,8 +3,9 @@
 Each agent sees exactly what the SB3 path gives one agent (see :func:`ermrl.agents.train_agent`):
 ``gym.make -> ObservationMask`` environments that auto-reset like SB3's ``DummyVecEnv`` (env ``i``
 of an agent first reset with ``env_seed + i``), then the agent's own reservoir (the rule of
-:class:`~ermrl.encoders.ReservoirVecEnv`, its weights from the same reservoirpy initializers and
-seeds), then the agent's own running normalization (SB3 ``VecNormalize``'s rule). The reservoirs of
+:class:`~ermrl.encoders.ReservoirVecEnv`, its weights from the same initializers and seeds: an
+echo state network's or a frozen RTU layer's), then the agent's own running normalization (SB3
+``VecNormalize``'s rule). The reservoirs of
 all agents advance in one batched matrix product; everything else is per agent data in arrays
 with a leading agent axis, so an agent can be dropped by slicing (:meth:`PopulationEnvs.keep`).
 """
@@ -27,11 +28,13 @@ class BatchedReservoir:
     """The reservoirs of ``P`` agents (each its own weights), ``E`` state rows per agent.
 
     Agent ``p`` gets the weights :class:`~ermrl.encoders.ReservoirVecEnv` would build for
-    ``encoders[p]`` and ``seeds[p]``; all agents must share the encoder's structure (units per
-    reservoir, number of reservoirs and encoding options); the hyperparameters may differ.
-    A step is one stacked ``matmul`` of ``[x | u]`` (``P x E x (N + D)``) with each agent's
-    ``M = [W.T; Win.T]``, which numpy computes slice by slice, as one agent's ``ReservoirBank``
-    would: the encodings equal ``ReservoirVecEnv``'s.
+    ``encoders[p]`` and ``seeds[p]``; all agents must share the encoder's structure (family,
+    units per reservoir, number of reservoirs and encoding options); the hyperparameters may
+    differ. A step is one stacked ``matmul`` of ``[x | u]`` (``P x E x (N + D)``) with each
+    agent's ``M = [W.T; Win.T]``, which numpy computes slice by slice, as one agent's
+    ``ReservoirBank`` would: the encodings equal ``ReservoirVecEnv``'s. An echo state network
+    steps ``x <- (1 - lr) x + lr tanh(pre + b)``; a frozen RTU layer (linear) steps ``x <- pre``
+    and the policy sees ``tanh(x)``, as :meth:`~ermrl.encoders.ReservoirBank.emit`.
     """
 
     def __init__(
@@ -42,23 +45,20 @@ class BatchedReservoir:
         action_space: spaces.Space,
         n_envs: int,
     ) -> None:
-        from ermrl.encoders._reservoir import ReservoirBank, reservoir_seeds, reservoir_weights
+        from ermrl.encoders._reservoir import ReservoirBank, encoder_weights, reservoir_seeds
         from ermrl.encoders._vec_env import ActionEncoder
 
         first = encoders[0]
-        if any(enc.family != "esn" for enc in encoders):
-            raise ValueError(
-                "the population backend runs echo state reservoirs only; train other encoders "
-                "with the sb3 backend"
-            )
         for enc in encoders[1:]:
-            if enc.with_reservoirs(first.reservoirs) != first or [
-                p.units for p in enc.reservoirs
-            ] != [p.units for p in first.reservoirs]:
+            if (
+                enc.family != first.family
+                or enc.with_reservoirs(first.reservoirs) != first
+                or [p.units for p in enc.reservoirs] != [p.units for p in first.reservoirs]
+            ):
                 raise ValueError(
-                    "the agents of a population must share the encoder's structure (units, "
-                    "number of reservoirs and encoding options); train such agents in separate "
-                    "populations"
+                    "the agents of a population must share the encoder's structure (family, "
+                    "units, number of reservoirs and encoding options); train such agents in "
+                    "separate populations"
                 )
         self.config = first
         self.action_encoder = ActionEncoder(action_space, dtype=first.dtype)
@@ -70,7 +70,7 @@ class BatchedReservoir:
         banks = [
             ReservoirBank(
                 [
-                    reservoir_weights(p, self.input_dim, s)  # type: ignore[arg-type]
+                    encoder_weights(p, self.input_dim, s)
                     for p, s in zip(enc.reservoirs, reservoir_seeds(seed, enc.n_reservoirs))
                 ],
                 dtype=enc.dtype,
@@ -78,6 +78,8 @@ class BatchedReservoir:
             for enc, seed in zip(encoders, seeds)
         ]
         self.dtype = banks[0].dtype
+        # A frozen RTU layer: x <- [x | u] M, and the policy sees tanh(x).
+        self.linear = banks[0].linear
         self.units = banks[0].units
         self.n_units = banks[0].n_units
         self.M = np.stack([b.M for b in banks])
@@ -115,6 +117,9 @@ class BatchedReservoir:
     def step_all(self) -> None:
         """Advance every row one step (the inputs already written)."""
         pre = np.matmul(self.xu, self.M)
+        if self.linear:
+            self.xu[..., : self.n_units] = pre
+            return
         if self.has_bias:
             pre += self.bias
         np.tanh(pre, out=pre)
@@ -128,6 +133,10 @@ class BatchedReservoir:
         the same rows of one agent)."""
         xu = self.xu[p, rows]
         pre = np.matmul(xu, self.M[p])
+        if self.linear:
+            xu[:, : self.n_units] = pre
+            self.xu[p, rows] = xu
+            return
         if self.has_bias:
             pre += self.bias[p]
         np.tanh(pre, out=pre)
@@ -155,6 +164,8 @@ class BatchedReservoir:
         x = self.xu[p, rows, : self.n_units]
         if self.exposed is not None:
             x = x[..., self.exposed]
+        if self.linear:
+            x = np.tanh(x)
         if not self.config.skip_connection:
             return x.astype(np.float32)
         obs = self.xu[p, rows, self.n_units : self.n_units + self.obs_dim]
