@@ -72,7 +72,7 @@ def test_reference_returns_and_clear_errors() -> None:
     }
     assert reference_returns("A-v0", table) == (-1.0, 9.0)
     assert reference_returns("A-v0", table, target_column="provisional_target") == (-1.0, 4.0)
-    with pytest.raises(MissingScoreError, match=r"`ermrl scores --env-ids Z-v0`"):
+    with pytest.raises(MissingScoreError, match=r"`ermrl scores --env-ids Z-v0 --out scores.csv`"):
         reference_returns("Z-v0", table)
     with pytest.raises(MissingScoreError, match="no target return for 'B-v0'"):
         reference_returns("B-v0", table)
@@ -134,7 +134,8 @@ def test_cli_smoke_writes_table(tmp_path: Path) -> None:
     )
     assert proc.returncode == 0, proc.stderr
     table = load_scores(out)
-    assert set(table) == {"CartPole-v1", "Hopper-v5"}
+    # A new table starts from the packaged rows; the two measured ones are replaced.
+    assert {"CartPole-v1", "Hopper-v5"} <= set(table)
     assert table["Hopper-v5"].random_episodes == 3
     assert "Hopper-v5" in proc.stdout and "no target return for CartPole-v1" in proc.stdout
 
@@ -195,3 +196,19 @@ def test_cli_refuses_a_crafted_table_before_measuring(
     assert err.count("\n") == 1 and str(out) in err and problem in err, err
     assert out.read_bytes() == content
     assert [p.name for p in tmp_path.iterdir()] == ["scores.csv"]
+
+
+def test_cli_never_writes_into_the_installed_package(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Without --out, scores.csv in the current folder starts as a copy of the packaged table."""
+    from ermrl.search._scores import scores_path
+
+    packaged = scores_path()
+    before = packaged.read_bytes()
+    monkeypatch.chdir(tmp_path)
+    scores_main(["--env-ids", "CartPole-v1", "--episodes", "1", "--quiet"])
+    assert packaged.read_bytes() == before
+    table = load_scores(tmp_path / "scores.csv")
+    assert set(load_scores(packaged)) | {"CartPole-v1"} == set(table)
+    assert table["CartPole-v1"].random_episodes == 1

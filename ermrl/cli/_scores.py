@@ -22,10 +22,10 @@ DESCRIPTION = textwrap.dedent(
     write it into the reference table that the generalization fitness
     (R - R_random) / (R_target - R_random) reads.
 
-    By default the packaged table (ermrl/data/scores.csv inside the installed package) is
-    updated in place; --out writes another file (pass it to evolve-generalization with
-    --scores). Other rows and the target columns are kept; a new row of a known MuJoCo body
-    gets its documented targets.
+    The table written is --out, by default scores.csv in the current folder; a new file starts
+    as a copy of the packaged table (ermrl/data/scores.csv), which is never changed. Pass it to
+    evolve-generalization with --scores. Other rows and the target columns are kept; a new row
+    of a known MuJoCo body gets its documented targets.
 
     example:
       ermrl scores --env-ids Ant-v5 Swimmer-v5 --episodes 100
@@ -52,9 +52,9 @@ def build_scores_parser(prog: str = "ermrl scores") -> ArgumentParser:
     parser.add_argument("--seed", type=nonneg_int, default=0, help="seed of the env and actions")
     parser.add_argument(
         "--out",
-        default=None,
+        default="scores.csv",
         metavar="CSV",
-        help="table to update (default: the packaged ermrl/data/scores.csv)",
+        help="table to update; a new file starts from the packaged ermrl/data/scores.csv",
     )
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
     return parser
@@ -90,12 +90,16 @@ def scores_main(argv: Sequence[str] | None = None, prog: str = "ermrl scores") -
     except (ConfigError, UnknownEnvError) as err:
         fail(prog, str(err))
     if not args.quiet:
-        print(f"random-policy returns, {args.episodes} episodes per env -> {path}", flush=True)
+        print(
+            f"random-policy returns, {args.episodes} episodes per env -> {path} "
+            f"(use it with --scores {path})",
+            flush=True,
+        )
     rows = []
     for env_id in env_ids:
         score = measure_random_returns(env_id, args.episodes, args.seed)
         try:
-            table = update_scores([score], path)
+            table = update_scores([score], path, start_from=scores_path())
         except OSError as err:
             fail(
                 prog,

@@ -258,10 +258,14 @@ def reference_returns(
     where = f"score table {scores_path(path)}"
     row = table.get(env_id)
     if row is None or row.random_mean is None:
-        out = "" if path is None else f" --out {path}"
+        then = ""
+        if path is None:  # the packaged table is never written: measure into a table of one's own
+            out, then = " --out scores.csv", " and pass --scores scores.csv"
+        else:
+            out = f" --out {path}"
         raise MissingScoreError(
             f"no random-policy score for {env_id!r} in {where}; run "
-            f"`ermrl scores --env-ids {env_id}{out}` to measure it"
+            f"`ermrl scores --env-ids {env_id}{out}` to measure it{then}"
         )
     target = getattr(row, target_column)
     if target is None:
@@ -349,7 +353,10 @@ def write_scores(table: Mapping[str, ReferenceScore], path: str | os.PathLike[st
 
 
 def update_scores(
-    measured: Iterable[RandomScore], path: str | os.PathLike[str] | None = None
+    measured: Iterable[RandomScore],
+    path: str | os.PathLike[str] | None = None,
+    *,
+    start_from: str | os.PathLike[str] | None = None,
 ) -> dict[str, ReferenceScore]:
     """Write measured random scores into a table, keeping its other rows and its targets.
 
@@ -359,12 +366,17 @@ def update_scores(
     Args:
         measured: New random-policy measurements.
         path: The table to update (``None``: the packaged one).
+        start_from: When ``path`` does not exist yet, the table whose rows it starts with
+            (e.g. the packaged one); ``None``: an empty table.
 
     Returns:
         The updated table.
     """
     file = scores_path(path)
-    table = load_scores(file) if file.exists() else {}
+    if file.exists():
+        table = load_scores(file)
+    else:
+        table = load_scores(start_from) if start_from is not None else {}
     for score in measured:
         old = table.get(score.env_id)
         if old is None:
