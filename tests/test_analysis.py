@@ -512,3 +512,13 @@ def test_the_gait_is_the_joint_angles_frequency_and_is_marked_on_the_spectra() -
     # Velocities only: no joint angles, no gait.
     blind = DynamicsRecording(**{**rec.__dict__, "observe": "velocities"})
     assert joint_angles(blind) is None and math.isnan(gait_frequency(blind))
+
+
+def test_a_short_episode_without_a_peak_has_no_dominant_frequency() -> None:
+    """A 21-step episode's largest bin is the spectral resolution, not an oscillation."""
+    steps = np.arange(21, dtype=float)[:, None]
+    drift = np.hstack([np.exp(-steps / 5), 1 - np.exp(-steps / 8)])  # a transient, no cycle
+    freqs, power = power_spectrum(drift, 0.05)
+    assert math.isnan(dominant_frequency(freqs, power))
+    wave = np.sin(2 * np.pi * 4.0 * np.arange(200)[:, None] * 0.05)  # 4 Hz, 40 cycles
+    assert dominant_frequency(*power_spectrum(wave, 0.05)) == pytest.approx(4.0, abs=0.1)

@@ -227,9 +227,11 @@ def dominant_frequency(
     """Frequency of the strongest peak of the mean power spectrum (NaN if it has none).
 
     A peak is a local maximum of ``log10(mean power)`` above 0 Hz standing out from its
-    surroundings by at least ``min_prominence_decades`` (0.3: a factor of 2). The slow decay of
-    a start-of-episode transient piles power into the lowest bins without a peak, so it is not
-    mistaken for an oscillation. Without any peak, the maximum above 0 Hz is returned.
+    surroundings by at least ``min_prominence_decades`` (0.3: a factor of 2), so it completes
+    at least two cycles in the window (the lowest bin cannot be a local maximum). The slow
+    decay of a start-of-episode transient piles power into the lowest bins without a peak, so
+    it is not mistaken for an oscillation; nor is the largest bin of a spectrum without a peak
+    (on a short episode, that is only the spectral resolution): both give NaN.
 
     Args:
         freqs: Shape ``(F,)``, from :func:`power_spectrum`.
@@ -244,10 +246,14 @@ def dominant_frequency(
     positive = mean[1:]
     log_power = np.log10(np.maximum(positive, positive[positive > 0].min() * 1e-6))
     peaks, _ = find_peaks(log_power, prominence=min_prominence_decades)
-    if len(peaks):
-        best = peaks[int(np.argmax(positive[peaks]))]
-        return float(freqs[1 + best])
-    return float(freqs[1 + int(np.argmax(positive))])
+    if not len(peaks):
+        return math.nan
+    best = peaks[int(np.argmax(positive[peaks]))]
+    return float(freqs[1 + best])
+
+
+def _peak_text(frequency: float, unit: str) -> str:
+    return f"peak {frequency:.3g} {unit}" if math.isfinite(frequency) else "no peak"
 
 
 def spectrum_summary(recording: DynamicsRecording) -> dict[str, Any]:
@@ -427,9 +433,10 @@ def spectrum_figure(recording: DynamicsRecording, *, title: str | None = None) -
                 mean[1:] / peak,
                 color=color,
                 lw=1.2,
-                label=f"{name} (d = {values.shape[1]}): peak {f:.3g} {unit}",
+                label=f"{name} (d = {values.shape[1]}): " + _peak_text(f, unit),
             )
-            ax.axvline(f, color=color, ls="--", lw=1.0, alpha=0.8)
+            if math.isfinite(f):
+                ax.axvline(f, color=color, ls="--", lw=1.0, alpha=0.8)
         ax.set_yscale("log")
         ax.set_xlabel(f"Frequency ({unit})")
         ax.set_ylabel("Relative power spectral density\n(mean over dimensions, peak = 1)")
@@ -479,9 +486,10 @@ def spectrum_comparison_figure(
                 mean[1:] / peak,
                 color=color,
                 lw=1.2,
-                label=f"{AGENT_LABELS.get(agent, agent)}: peak {f:.3g} {unit}",
+                label=f"{AGENT_LABELS.get(agent, agent)}: " + _peak_text(f, unit),
             )
-            ax.axvline(f, color=color, ls="--", lw=1.0, alpha=0.8)
+            if math.isfinite(f):
+                ax.axvline(f, color=color, ls="--", lw=1.0, alpha=0.8)
             drawn += 1
         if not drawn or first is None:
             empty_axes(ax, "no reservoir agent recorded")
