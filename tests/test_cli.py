@@ -14,6 +14,7 @@ from pathlib import Path
 import optuna
 import pandas as pd
 import pytest
+import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ["--n-envs", "1", "--ppo", "n_steps=128", "batch_size=64", "n_epochs=2", "--units", "20"]
@@ -79,6 +80,14 @@ def test_test_phase_writes_all_outputs(evolved: tuple[Path, str]) -> None:
     assert (out / "learning_curves.png").stat().st_size > 10_000
     assert (out / "config.yaml").exists() and "test.py" in (out / "command.txt").read_text()
     assert (out / "agents" / "res-ppo" / "seed_10" / "model.zip").exists()
+    # The shared encoder options carry no reservoirs: each agent's are its own, the evolved
+    # agent's those of the selected trial (not the reference's).
+    config = yaml.safe_load((out / "config.yaml").read_text())
+    assert "reservoirs" not in config["encoder"] and config["encoder"]
+    best = optuna.load_study(study_name="check", storage=url).best_trial
+    (evolved_reservoir,) = config["agents"]["res-ppo"]
+    assert evolved_reservoir["sr"] == pytest.approx(best.params["sr"])
+    assert config["agents"]["random-res-ppo"][0]["sr"] == 1.0
 
     # Re-running resumes: finished runs are skipped, not retrained.
     again = run(str(ROOT / "test.py"), *args, "--seeds", "10", "11", cwd=tmp)

@@ -642,9 +642,12 @@ def run_comparison(
     }
     check_finished_runs(out, expected, settings.seeds, settings.overwrite)
     out.mkdir(parents=True, exist_ok=True)
+    # The encoding options every reservoir agent shares; each agent's own reservoirs are under
+    # `agents` (a top-level `reservoirs` read as the evolved one's, while it was the reference).
+    shared_encoder = {k: v for k, v in to_dict(encoder).items() if k != "reservoirs"}
     config_doc = {
         "task": to_dict(task),
-        "encoder": to_dict(encoder),
+        "encoder": shared_encoder,
         "ppo": to_dict(ppo),
         "settings": {
             k: (str(v) if isinstance(v, Path) else to_dict(v))
