@@ -644,7 +644,11 @@ def run_comparison(
     out.mkdir(parents=True, exist_ok=True)
     # The encoding options every reservoir agent shares; each agent's own reservoirs are under
     # `agents` (a top-level `reservoirs` read as the evolved one's, while it was the reference).
-    shared_encoder = {k: v for k, v in to_dict(encoder).items() if k != "reservoirs"}
+    shared_encoder = (
+        None
+        if encoder is None
+        else {k: v for k, v in to_dict(encoder).items() if k != "reservoirs"}
+    )
     config_doc = {
         "task": to_dict(task),
         "encoder": shared_encoder,
