@@ -41,9 +41,12 @@ ROOT = Path(__file__).resolve().parents[1]
 FORK = multiprocessing.get_context("fork")
 LOCK_ERRORS = ("database is locked", "already exists", "deadlock", "could not serialize")
 # Real CLI workers: Pendulum with velocities hidden, a few hundred steps per trial.
+# The workers claim one trial at a time (--backend sb3): the kill -9 tests count on exactly one
+# trial dying with its worker. The population backend's whole-generation claims survive kill -9
+# and SIGTERM in tests/test_population_cli.py.
 TINY = [
     "--env-id", "Pendulum-v1", "--observe", "positions", "--n-seeds", "1", "--units", "20",
-    "--n-envs", "1", "--ppo", "n_steps=128", "batch_size=64", "n_epochs=2",
+    "--n-envs", "1", "--ppo", "n_steps=128", "batch_size=64", "n_epochs=2", "--backend", "sb3",
 ]  # fmt: skip
 
 
