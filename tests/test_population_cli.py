@@ -311,7 +311,7 @@ def test_the_test_phase_defaults_to_population_where_it_applies(tmp_path: Path) 
     from ermrl.config import TaskConfig
 
     task = TaskConfig("Pendulum-v1", "positions")
-    ppo = resolve_ppo_config("Pendulum-v1", backend="sb3")
+    ppo = resolve_ppo_config("Pendulum-v1", backend="population")  # a study evolved so
 
     def choose(base: object = ppo, out: Path | None = None, **flags: object) -> tuple[str, list]:
         args = argparse.Namespace(**{"backend": None, "tensorboard": None, "overwrite": False})
@@ -321,6 +321,12 @@ def test_the_test_phase_defaults_to_population_where_it_applies(tmp_path: Path) 
 
     assert choose() == ("population", [])
     assert choose(backend="sb3") == ("sb3", [])
+    # A study evolved with sb3 keeps it (one of an older ermrl tests to the same returns).
+    backend, notes = choose(resolve_ppo_config("Pendulum-v1", backend="sb3"))
+    assert backend == "sb3" and len(notes) == 1 and "evolved with it" in notes[0]
+    assert choose(resolve_ppo_config("Pendulum-v1", backend="sb3"), backend="population")[0] == (
+        "population"
+    )
     backend, notes = choose(tensorboard="tb")
     assert backend == "sb3" and len(notes) == 1 and "--tensorboard" in notes[0]
     lstm = resolve_ppo_config("Pendulum-v1", learner="lstm-ppo")

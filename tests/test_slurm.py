@@ -28,7 +28,10 @@ ROOT = Path(__file__).resolve().parents[1]
 SLURM = ROOT / "slurm"
 N_TRIALS = 6
 # Tiny trials: Pendulum with velocities hidden, 256 steps, one seed, a 20-unit reservoir.
+# One trial per claim (--backend sb3), so that the 4 array tasks share the 6 trials: a population
+# worker would claim a whole CMA-ES generation (7 candidates) alone.
 TINY = ["--units", "20", "--n-envs", "1", "--ppo", "n_steps=128", "batch_size=64", "n_epochs=2"]
+TINY += ["--backend", "sb3"]
 WORKER = ["--heartbeat-interval", "2", "--grace-period", "20"]
 
 

@@ -280,7 +280,7 @@ def save_trained(model: Any, model_path: str | Path, stats: dict[str, Any] | Non
     ``model.zip`` is SB3's format (pickles, never read by ermrl); ``policy.pt`` holds the weights
     as plain tensors, the only file ermrl reads a policy from. The zip is written under a
     temporary name and renamed once complete: a full disk never leaves a truncated ``model.zip``
-    under its final name.
+    under its final name, nor a ``model.zip`` without its ``policy.pt``.
     """
     import json
 
@@ -294,9 +294,15 @@ def save_trained(model: Any, model_path: str | Path, stats: dict[str, Any] | Non
         os.replace(partial, model_path)
     finally:
         partial.unlink(missing_ok=True)
-    save_policy(model, policy_path(model_path))
-    if stats is not None:
-        stats_path(model_path).write_text(json.dumps(stats, indent=1) + "\n")
+    try:
+        save_policy(model, policy_path(model_path))
+        if stats is not None:
+            stats_path(model_path).write_text(json.dumps(stats, indent=1) + "\n")
+    except BaseException:
+        # All or nothing: a model.zip without its policy.pt (a full disk) is taken away too.
+        for path in (Path(model_path), policy_path(model_path), stats_path(model_path)):
+            Path(path).unlink(missing_ok=True)
+        raise
 
 
 def train_agent(

@@ -409,7 +409,9 @@ def with_backend(
 ) -> Any:
     """The study's learner settings with the backend that trains its agents.
 
-    ``--backend`` when given (checked for it). Left out: population where it applies, unless
+    ``--backend`` when given (checked for it). Left out: the study's own backend when it was
+    evolved with sb3 (an existing study keeps the backend it was created with, so a study of
+    an older ermrl tests to the same returns); otherwise population where it applies, unless
     ``out`` holds finished runs of this learner made with sb3 (a test folder never mixes
     backends; not with ``--overwrite``), else sb3.
 
@@ -427,6 +429,13 @@ def with_backend(
     if getattr(args, "backend", None) is None:
         from ermrl.experiments._test_phase import finished_backend
 
+        if ppo.backend == "sb3" and ppo.learner == "ppo":
+            if notes is not None:
+                notes.append(
+                    "the study was evolved with it (a study keeps its backend; "
+                    "--backend population to change)"
+                )
+            return ppo
         backend, why = choose_backend(
             None,
             ppo,
