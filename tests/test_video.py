@@ -86,3 +86,32 @@ def test_video_cli_writes_a_playable_mp4_of_halfcheetah(tiny: TinyStudy, tmp_pat
     assert frames[-1].std() > 10
     gif = imageio.mimread(str(out.with_suffix(".gif")))
     assert len(gif) == STEPS // 2 and gif[0].shape[:2] == (240, 240)
+
+
+@pytest.mark.parametrize("where", ["read-only", "full"])
+def test_video_into_a_folder_that_cannot_take_it(
+    tiny: TinyStudy, tmp_path: Path, where: str
+) -> None:
+    """A read-only folder or a full disk (real tmpfs mounts: root ignores chmod): one line on
+    stderr, exit 2, and no partial MP4 or temporary file left."""
+    from tests.test_bad_input import _fill, _tmpfs
+
+    require_gl()
+    options = ("ro",) if where == "read-only" else ("size=64k",)
+    env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "PYOPENGL_PLATFORM")}
+    with _tmpfs(tmp_path / "mnt", *options) as folder:
+        if where == "full":
+            _fill(folder)
+        before = sorted(p.name for p in folder.iterdir())
+        out = folder / "cheetah.mp4"
+        proc = subprocess.run(
+            [sys.executable, "-m", "ermrl", "video", "--run", str(tiny.runs), "--agent",
+             "res-ppo", "--seed", "10", "--max-steps", str(STEPS), "--fast", "--out", str(out)],
+            cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300,
+        )  # fmt: skip
+        assert proc.returncode == 2, proc.stdout + proc.stderr
+        lines = proc.stderr.strip().splitlines()
+        assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+        reason = "Read-only file system" if where == "read-only" else "No space left on device"
+        assert reason in lines[0]
+        assert sorted(p.name for p in folder.iterdir()) == before

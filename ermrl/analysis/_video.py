@@ -228,14 +228,37 @@ def write_mp4(frames: Sequence[np.ndarray], path: str | Path, fps: float) -> Pat
         pixelformat="yuv420p",
         quality=8,
         macro_block_size=16,
-        ffmpeg_log_level="error",
+        ffmpeg_log_level="quiet",  # its errors reach us as the exception below
     )
     try:
-        for frame in frames:
-            writer.append_data(np.asarray(frame, dtype=np.uint8))
-    finally:
-        writer.close()
+        try:
+            for frame in frames:
+                writer.append_data(np.asarray(frame, dtype=np.uint8))
+        finally:
+            writer.close()
+    except OSError as err:
+        raise _write_failure(err, path) from None
     return path
+
+
+def _write_failure(err: OSError, path: Path) -> OSError:
+    """The cause of an ffmpeg write failure as a one-line ``OSError`` naming ``path``.
+
+    ffmpeg dies and its pipe breaks (``EPIPE``, with the ffmpeg command and log in the message)
+    whether the disk is full or the folder read-only: tell which from the folder itself.
+    """
+    import errno
+    import shutil
+
+    code = err.errno or errno.EIO
+    try:
+        if shutil.disk_usage(path.parent).free < 1 << 20:
+            code = errno.ENOSPC
+        elif not os.access(path.parent, os.W_OK):
+            code = errno.EROFS
+    except OSError:
+        pass
+    return OSError(code, os.strerror(code), str(path))
 
 
 def write_gif(
