@@ -43,7 +43,11 @@ Deviations from the original beyond its bugs (all deliberate):
 - **Adam's eps.** The original's ``Adam`` class defaults to ``epsilon = 1e-5``; here ``adam_eps``
   defaults to ``1e-8`` (Kingma and Ba's value, torch's default).
 - **The accumulator.** The original added ``r e`` to its accumulator twice per step; here each
-  step counts once. The model
+  step counts once.
+- **The learning rate.** ``learning_rate`` defaults to 1e-4, the step the original's Adam uses
+  on ``J_out``. A notebook head with ``learning_rate = 0.`` (which would train nothing) has been
+  reported for one version of the original; it is not in the versions of ``code.ipynb`` and
+  ``training_ant.ipynb`` read for ermrl, and ermrl does not copy it. The model
 (:class:`~ermrl.learners._hebbian_model.HebbianAgent`, numpy only) lives in
 :mod:`ermrl.learners._hebbian_model`, imported when an agent is built. It is not an SB3 algorithm
 but offers what ermrl uses of one: ``learn`` (with SB3 callbacks), ``predict`` (recurrent: the
