@@ -431,12 +431,7 @@ def with_backend(
         from ermrl.experiments._test_phase import finished_backend
 
         if ppo.backend == "sb3" and ppo.learner == "ppo":
-            if notes is not None:
-                notes.append(
-                    "the study was evolved with it (a study keeps its backend; "
-                    "--backend population to change)"
-                )
-            return ppo
+            return ppo  # the study's own backend: kept silently, as an evolution resumes it
         backend, why = choose_backend(
             None,
             ppo,
