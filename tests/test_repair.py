@@ -323,16 +323,24 @@ DAMAGE = {
 }
 
 
-@pytest.mark.parametrize("damage", DAMAGE.values(), ids=DAMAGE)
-def test_study_repair_sets_aside_unreadable_records_anywhere(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str], damage: tuple[object, bytes]
-) -> None:
-    damage_fn, set_aside = damage
+def _damaged_journal(
+    tmp_path: Path, damage: tuple[object, bytes]
+) -> tuple[Path, list[bytes], list[float]]:
+    """A 3-trial journal damaged by ``damage``; its path, intact lines and trial values."""
+    damage_fn, _ = damage
     path = tmp_path / "s.log"
     values = _journal_study(path, n_trials=3)
     lines = path.read_bytes().splitlines(keepends=True)
     path.write_bytes(b"".join(damage_fn(lines)))  # type: ignore[operator]
+    return path, lines, values
 
+
+@pytest.mark.parametrize("damage", DAMAGE.values(), ids=DAMAGE)
+def test_study_repair_sets_aside_unreadable_records_anywhere(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], damage: tuple[object, bytes]
+) -> None:
+    _, set_aside = damage
+    path, lines, values = _damaged_journal(tmp_path, damage)
     assert study_main(["repair", "--storage", f"journal://{path}"]) == 0
     _say_set_aside(capsys.readouterr().out, 1)
     (aside,) = _asides(path)
@@ -347,11 +355,7 @@ def test_study_repair_sets_aside_unreadable_records_anywhere(
 def test_a_worker_that_resumes_sets_aside_unreadable_records_first(
     tmp_path: Path, damage: tuple[object, bytes]
 ) -> None:
-    damage_fn, _ = damage
-    path = tmp_path / "s.log"
-    values = _journal_study(path, n_trials=3)
-    lines = path.read_bytes().splitlines(keepends=True)
-    path.write_bytes(b"".join(damage_fn(lines)))  # type: ignore[operator]
+    path, _, values = _damaged_journal(tmp_path, damage)
     study = optuna.load_study(study_name="s", storage=open_storage(str(path)))
     study.optimize(lambda t: t.suggest_float("x", 0, 1), n_trials=1)
     assert _values(path)[:3] == values and len(_values(path)) == 4
