@@ -405,7 +405,15 @@ def test_no_option_shows_its_default_twice() -> None:
 
 @pytest.mark.parametrize("command", [["-m", "ermrl", "evolve"], ["evolve_generalization.py"]])
 def test_ctrl_c_during_start_up_is_one_line(tmp_path: Path, command: list[str]) -> None:
-    """SIGINT while the command still imports torch and builds envs: no traceback, exit 130."""
+    """SIGINT while the command still imports torch and builds envs: no traceback, exit 130.
+
+    On CPython 3.11 a SIGINT that lands while a C extension runs Python code through
+    ``PyRun_String`` (pybind11's ``exec``, used at import time) can set the interpreter's
+    "unhandled KeyboardInterrupt" flag even though ``ermrl.cli.run_command`` catches the
+    exception; the interpreter then ends by re-raising SIGINT on itself after the one-line
+    message. A shell reports both endings as ``$? == 130``, so both are accepted; the
+    message and the absence of a traceback are what a user sees and are checked strictly.
+    """
     import signal
     import subprocess
     import sys
@@ -421,6 +429,6 @@ def test_ctrl_c_during_start_up_is_one_line(tmp_path: Path, command: list[str]) 
     time.sleep(0.5)  # inside the imports: they take seconds
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=120)
-    assert proc.returncode == 130, err
+    assert proc.returncode in (130, -signal.SIGINT), err
     assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
     assert "interrupted" in err
