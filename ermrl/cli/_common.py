@@ -66,6 +66,19 @@ class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescript
         return super()._get_help_string(action)
 
 
+def dashboard_line(storage: str) -> str | None:
+    """The line that tells how to watch a study live in optuna-dashboard (``None``: it cannot)."""
+    import importlib.util
+
+    from ermrl.storage import dashboard_command
+
+    command = dashboard_command(storage)
+    if command is None:
+        return None
+    missing = importlib.util.find_spec("optuna_dashboard") is None
+    return f"live view: {command}" + ("  (pip install 'ermrl[viz]')" if missing else "")
+
+
 def positive_int(text: str) -> int:
     try:
         value = int(float(text)) if "e" in text.lower() else int(text)

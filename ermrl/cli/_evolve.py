@@ -20,6 +20,7 @@ from ermrl.cli._common import (
     add_for_learner_arg,
     add_stale_gradient_arg,
     add_storage_args,
+    dashboard_line,
     fail,
     nonneg_int,
     positive_float,
@@ -921,6 +922,8 @@ def evolve_main(argv: Sequence[str] | None = None, prog: str = "ermrl evolve") -
             f"{config.search.sampler} sampler, {plural(config.search.n_trials, 'trial')}",
             flush=True,
         )
+        if (live := dashboard_line(args.storage)) is not None:
+            print(live, flush=True)
     return run_and_report(
         prog,
         config,

@@ -18,6 +18,7 @@ from ermrl.cli._common import (
     ArgumentParser,
     HelpFormatter,
     add_storage_args,
+    dashboard_line,
     fail,
     positive_int,
     quiet_libraries,
@@ -314,6 +315,8 @@ def evolve_generalization_main(
             f"{config.search.sampler} sampler, {plural(config.search.n_trials, 'trial')}",
             flush=True,
         )
+        if (live := dashboard_line(args.storage)) is not None:
+            print(live, flush=True)
         for t in gen.tasks:
             print(
                 f"  {t.task.label}: R_random {t.random_return:.4g}, R_target "

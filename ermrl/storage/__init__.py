@@ -46,7 +46,7 @@ from ermrl.storage._snapshot import (
     study_to_snapshot,
     write_snapshot,
 )
-from ermrl.storage._url import StorageKind, StorageURL, parse_storage_url
+from ermrl.storage._url import StorageKind, StorageURL, dashboard_command, parse_storage_url
 
 __all__ = [
     "DEFAULT_GRACE_PERIOD",
@@ -67,6 +67,7 @@ __all__ = [
     "StorageError",
     "StorageKind",
     "StorageURL",
+    "dashboard_command",
     "StudyExists",
     "StudyNotFound",
     "StudySnapshot",

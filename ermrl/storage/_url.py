@@ -27,6 +27,7 @@ __all__ = [
     "StorageError",
     "StorageKind",
     "StorageURL",
+    "dashboard_command",
     "journal_file",
     "parse_storage_url",
     "redis_split",
@@ -113,6 +114,25 @@ def parse_storage_url(url: str) -> StorageURL:
         f"unsupported storage URL {url!r}; use sqlite:///file.db, postgresql://..., "
         "mysql://..., journal:///file.log (or file.log) or redis://host:port"
     )
+
+
+def dashboard_command(url: str) -> str | None:
+    """The ``optuna-dashboard`` command that shows the studies of ``url`` live.
+
+    optuna-dashboard (the ``viz`` extra) takes SQLAlchemy URLs, a journal file's path and a
+    Redis URL; it reads a Redis journal without a key prefix only, so a ``?prefix=`` URL gets
+    ``None``, as does a URL that does not parse.
+    """
+    import shlex
+
+    try:
+        parsed = parse_storage_url(url)
+    except StorageError:
+        return None
+    if parsed.kind == "redis" and parsed.prefix:
+        return None
+    target = str(parsed.path) if parsed.kind == "journal" else parsed.url
+    return f"optuna-dashboard {shlex.quote(target)}"
 
 
 def sqlite_file(url: str) -> Path | None:
