@@ -65,7 +65,10 @@ def run_command(name: str, argv: Sequence[str] | None = None, prog: str | None =
     command's own handling takes over, is one line on stderr and exit code 130, not a
     traceback.
     """
+    from ermrl._interrupt import catch_sigint
+
     prog = prog or f"ermrl {name}"
+    catch_sigint()  # a Ctrl-C that a library swallows during start-up is raised again later
     try:
         return int(_load(COMMANDS[name][0])(argv, prog=prog))
     except KeyboardInterrupt:

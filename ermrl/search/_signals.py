@@ -13,6 +13,8 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
+from ermrl._interrupt import sigint_received
+
 __all__ = ["Interrupted", "SignalGuard", "sigterm_as_interrupt"]
 
 
@@ -86,6 +88,9 @@ class SignalGuard:
             return
         previous = {s: signal.signal(s, self._handler) for s in (signal.SIGTERM, signal.SIGINT)}
         try:
+            if sigint_received():  # a Ctrl-C of the start-up that a library swallowed
+                self.pending = signal.SIGINT
+                self.check()
             yield
         finally:
             for sig, handler in previous.items():
