@@ -31,6 +31,7 @@ from ermrl.agents._train import (
     make_vec_env,
     train_agent,
 )
+from ermrl.agents._wandb import WANDB_MISSING, WandbRun, wandb_installed
 
 __all__ = [
     "ACTIVATIONS",
@@ -39,6 +40,8 @@ __all__ = [
     "RunResult",
     "SeedSet",
     "TrainingDiverged",
+    "WANDB_MISSING",
+    "WandbRun",
     "activation_fn",
     "check_ppo_config",
     "derive_seeds",
@@ -61,5 +64,6 @@ __all__ = [
     "stats_path",
     "train_agent",
     "training_pool",
+    "wandb_installed",
     "with_overrides",
 ]

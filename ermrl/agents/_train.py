@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 import threadpoolctl
 
+from ermrl.agents._wandb import WandbRun
 from ermrl.config import BudgetConfig, EncoderConfig, PPOConfig, TaskConfig
 
 __all__ = [
@@ -317,6 +318,8 @@ def train_agent(
     report: ReportFn | None = None,
     tensorboard_log: str | None = None,
     eval_at: Sequence[int] = (),
+    wandb: WandbRun | None = None,
+    callbacks: Sequence[Any] = (),
 ) -> RunResult:
     """Train the learner of ``ppo.learner`` (PPO by default) on a task for one seed and measure
     its returns.
@@ -344,6 +347,10 @@ def train_agent(
             steps later); checkpoints at the full budget run after the last update, so they
             measure the final model. Stored in ``RunResult.checkpoint_returns``. The evaluations
             do not change training (deterministic actions on their own env).
+        wandb: Log the run to Weights & Biases through wandb's SB3 callback (SB3's
+            TensorBoard scalars synced, the outcome in the W&B run's summary); see
+            :mod:`ermrl.agents._wandb`. Needs the ``wandb`` package.
+        callbacks: More SB3 callbacks, called after ermrl's own.
 
     Returns:
         The run's returns and timings.
@@ -361,6 +368,24 @@ def train_agent(
     bad = [s for s in eval_at if not 1 <= int(s) <= budget.training_steps]
     if bad:
         raise ValueError(f"eval_at steps must be in [1, {budget.training_steps}], got {bad}")
+    if wandb is not None:
+        from ermrl.agents._wandb import wandb_run
+
+        with wandb_run(wandb, tensorboard_log) as (wandb_callback, log_dir, run):
+            result = train_agent(
+                task, encoder, ppo, budget, seed, evaluate=evaluate, model_path=model_path,
+                report=report, tensorboard_log=log_dir, eval_at=eval_at,
+                callbacks=(*callbacks, wandb_callback),
+            )  # fmt: skip
+            run.summary.update(
+                {
+                    "ermrl/last_return": result.last_return,
+                    "ermrl/eval_return": result.eval_return,
+                    "ermrl/env_steps": result.env_steps,
+                    "ermrl/wall_seconds": result.wall_seconds,
+                }
+            )
+        return result
     learner = get_learner(ppo.learner)
     torch.set_num_threads(ppo.torch_threads)
     # BLAS (numpy's matrix products in the encoder) gets the same thread budget: with several
@@ -380,7 +405,7 @@ def train_agent(
         # PPO(seed=...) reseeds the env with the agent seed; give the envs their own seed.
         env.seed(seeds.env)
         recorder = _episode_callback(result, budget, report)
-        callback: Any = recorder
+        callback: Any = [recorder, *callbacks] if callbacks else recorder
         if eval_at:
 
             def checkpoint() -> float:
@@ -390,7 +415,7 @@ def train_agent(
                 return float(np.mean(returns))
 
             callback = [
-                callback,
+                *(callback if isinstance(callback, list) else [callback]),
                 _checkpoint_callback(result, eval_at, budget.training_steps, checkpoint),
             ]
         try:

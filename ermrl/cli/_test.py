@@ -169,6 +169,14 @@ def build_test_parser(prog: str = "ermrl test") -> ArgumentParser:
         help="also log training curves for TensorBoard under DIR/<agent>/seed_<s> "
         "(needs: pip install tensorboard)",
     )
+    parser.add_argument(
+        "--wandb",
+        default=None,
+        metavar="PROJECT",
+        help="also log each run to the Weights & Biases project PROJECT (wandb's SB3 callback; "
+        "the runs of one test folder form a group; WANDB_MODE=offline logs locally; "
+        "needs: pip install 'ermrl[wandb]')",
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
     return parser
 
@@ -385,6 +393,7 @@ def plan_test_phase(
         save_models=args.save_models,
         overwrite=args.overwrite,
         tensorboard=Path(tensorboard) if tensorboard else None,
+        wandb=getattr(args, "wandb", None),
     )
     warning = None
     # Only when the ranking would have picked the trial: not with --trial, nor when no agent
@@ -437,6 +446,7 @@ def with_backend(
             ppo,
             () if task is None else (task,),
             tensorboard=bool(getattr(args, "tensorboard", None)),
+            wandb=bool(getattr(args, "wandb", None)),
         )
         if (
             backend == "population"
@@ -456,8 +466,9 @@ def with_backend(
         from ermrl.population import check_population_config
 
         check_population_config(ppo)
-        if getattr(args, "tensorboard", None):
-            raise ConfigError("--tensorboard logs come from the sb3 backend; use --backend sb3")
+        for flag in ("tensorboard", "wandb"):
+            if getattr(args, flag, None):
+                raise ConfigError(f"--{flag} logs come from the sb3 backend; use --backend sb3")
     return ppo
 
 
@@ -527,6 +538,11 @@ def test_main(argv: Sequence[str] | None = None, prog: str = "ermrl test") -> in
                 "--tensorboard needs the tensorboard package, which is not installed "
                 "(pip install tensorboard)",
             )
+    if args.wandb:
+        from ermrl.agents import WANDB_MISSING, wandb_installed
+
+        if not wandb_installed():
+            fail(prog, WANDB_MISSING)
     notes: list[str] = []
     try:
         study = load_study(args.study_name, args.storage)

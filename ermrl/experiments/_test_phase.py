@@ -41,7 +41,7 @@ import yaml
 
 from ermrl._io import write_atomic
 from ermrl._text import plural
-from ermrl.agents import RunResult, pool_size, train_agent, training_pool
+from ermrl.agents import RunResult, WandbRun, pool_size, train_agent, training_pool
 from ermrl.analysis import (
     curves_on_grid,
     load_curves,
@@ -286,6 +286,8 @@ class TestSettings:
         overwrite: Retrain runs that already have results (default: skip them, i.e. resume).
         tensorboard: Log training curves for TensorBoard under ``<tensorboard>/<agent>/seed_<s>``
             (needs the ``tensorboard`` package).
+        wandb: Log each run to this Weights & Biases project, as run ``<agent>-seed<s>`` in
+            the group named after ``out`` (needs the ``wandb`` package).
     """
 
     __test__ = False  # not a pytest test class
@@ -300,6 +302,7 @@ class TestSettings:
     save_models: bool = True
     overwrite: bool = False
     tensorboard: Path | None = None
+    wandb: str | None = None
 
     def __post_init__(self) -> None:
         if self.training_steps < 1:
@@ -360,7 +363,7 @@ def study_reservoirs(
 
 
 def _train_job(args: tuple[Any, ...]) -> RunResult:
-    task, encoder, ppo, budget, seed, evaluate, model_path, tensorboard_log = args
+    task, encoder, ppo, budget, seed, evaluate, model_path, tensorboard_log, wandb = args
     return train_agent(
         task,
         encoder,
@@ -370,6 +373,7 @@ def _train_job(args: tuple[Any, ...]) -> RunResult:
         evaluate=evaluate,
         model_path=model_path,
         tensorboard_log=tensorboard_log,
+        wandb=wandb,
     )
 
 
@@ -686,9 +690,23 @@ def run_comparison(
                 if settings.tensorboard is None
                 else str(Path(settings.tensorboard) / agent.name / f"seed_{seed}")
             )
+            wandb = (
+                None
+                if settings.wandb is None
+                else WandbRun(
+                    project=settings.wandb,
+                    name=f"{agent.name}-seed{seed}",
+                    group=out.resolve().name,
+                    config={
+                        "agent": agent.name, "seed": seed, "env_id": agent.task(task).env_id,
+                        "observe": agent.task(task).observe, "training_steps": budget.training_steps,
+                        **{k: v for k, v in (metadata or {}).items() if isinstance(v, (int, float, str))},
+                    },
+                )
+            )  # fmt: skip
             job = (
                 agent.task(task), enc, ppo_of(agent), budget, seed, settings.evaluate,
-                model_path, tb_log,
+                model_path, tb_log, wandb,
             )  # fmt: skip
             jobs.append((agent, seed, job))
 

@@ -46,6 +46,7 @@ def population_refusal(
     *,
     pruner: str = "none",
     tensorboard: bool = False,
+    wandb: bool = False,
 ) -> str | None:
     """Why the population backend cannot train these runs as SB3 would, in one line.
 
@@ -54,6 +55,7 @@ def population_refusal(
         tasks: The envs the runs train on (their spaces are checked; none: not checked).
         pruner: The study's pruner (``"none"``: no pruning).
         tensorboard: The runs write TensorBoard logs (an SB3 logger).
+        wandb: The runs log to Weights & Biases (wandb's SB3 callback).
 
     Returns:
         The reason, without a hint (``None``: the population backend applies).
@@ -67,6 +69,8 @@ def population_refusal(
         )
     if tensorboard:
         return "--tensorboard logs come from the sb3 backend"
+    if wandb:
+        return "--wandb logs through wandb's callback for the sb3 backend"
     try:
         check_population_config(ppo)
     except (ConfigError, ValueError) as err:
@@ -85,6 +89,7 @@ def choose_backend(
     *,
     pruner: str = "none",
     tensorboard: bool = False,
+    wandb: bool = False,
 ) -> tuple[str, str | None]:
     """The backend of a run: ``requested`` when given, else population where it applies.
 
@@ -97,6 +102,7 @@ def choose_backend(
         tasks: The envs the runs train on.
         pruner: The study's pruner.
         tensorboard: The runs write TensorBoard logs.
+        wandb: The runs log to Weights & Biases.
 
     Returns:
         ``(backend, why)``: ``why`` is the one-line reason an automatic choice fell back to
@@ -104,5 +110,5 @@ def choose_backend(
     """
     if requested is not None:
         return requested, None
-    why = population_refusal(ppo, tasks, pruner=pruner, tensorboard=tensorboard)
+    why = population_refusal(ppo, tasks, pruner=pruner, tensorboard=tensorboard, wandb=wandb)
     return ("sb3", why) if why is not None else ("population", None)

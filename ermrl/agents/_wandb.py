@@ -1,0 +1,77 @@
+"""Weights & Biases logging of one training run, through wandb's own SB3 callback.
+
+A run of :func:`~ermrl.agents.train_agent` with a :class:`WandbRun` opens one W&B run, syncs
+SB3's TensorBoard scalars into it (``sync_tensorboard``: rollout returns, losses, ...) with
+:class:`wandb.integration.sb3.WandbCallback`, and stores the run's outcome in the W&B run's
+summary (``ermrl/last_return``, ``ermrl/eval_return``, ``ermrl/env_steps``). ``WANDB_MODE``,
+``WANDB_DIR`` and the other ``WANDB_*`` variables apply as usual (``WANDB_MODE=offline`` writes
+the runs locally for a later ``wandb sync``).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+__all__ = ["WANDB_MISSING", "WandbRun", "wandb_installed", "wandb_run"]
+
+WANDB_MISSING = (
+    "--wandb needs the wandb package, which is not installed (pip install 'ermrl[wandb]')"
+)
+
+
+@dataclass(frozen=True)
+class WandbRun:
+    """Where and how one training run is logged to W&B (picklable: it travels to workers).
+
+    Attributes:
+        project: The W&B project.
+        name: The run's name, e.g. ``res-ppo-seed10``.
+        group: Groups the runs of one test phase or trial, e.g. the output folder's name.
+        config: Stored as the W&B run's config (agent, seed, task, budget, ...).
+        dir: Where wandb writes its files (``None``: ``WANDB_DIR`` or the working directory).
+    """
+
+    project: str
+    name: str
+    group: str | None = None
+    config: dict[str, Any] = field(default_factory=dict)
+    dir: str | None = None
+
+
+def wandb_installed() -> bool:
+    """Whether the ``wandb`` package can be imported."""
+    return importlib.util.find_spec("wandb") is not None
+
+
+@contextmanager
+def wandb_run(settings: WandbRun, tensorboard_log: str | None) -> Iterator[tuple[Any, str, Any]]:
+    """Open the W&B run of ``settings``; yield ``(callback, tensorboard_log, run)``.
+
+    ``tensorboard_log`` is kept when given, else a folder inside the W&B run: SB3 writes its
+    TensorBoard events there and wandb syncs them. The run is finished on the way out, also
+    when training raised (marked failed then).
+    """
+    import wandb
+    from wandb.integration.sb3 import WandbCallback
+
+    run = wandb.init(
+        project=settings.project,
+        name=settings.name,
+        group=settings.group,
+        config=settings.config,
+        dir=settings.dir,
+        sync_tensorboard=True,
+        reinit="finish_previous",  # WandbCallback logs to the global wandb.run
+    )
+    log_dir = tensorboard_log or str(Path(run.dir) / "tensorboard")
+    failed = True
+    try:
+        yield WandbCallback(verbose=0, log=None), log_dir, run
+        failed = False
+    finally:
+        run.finish(exit_code=1 if failed else 0)
