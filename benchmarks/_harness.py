@@ -2,11 +2,13 @@
 
 The machine is noisy, so a benchmark never compares numbers taken in separate runs: each repeat
 measures every variant once, in a rotating order, and ratios are computed from the medians.
+The science benchmarks' differences of returns share one helper too (:func:`difference`).
 """
 
 from __future__ import annotations
 
 import json
+import math
 import platform
 import statistics
 import sys
@@ -105,3 +107,85 @@ def table(rows: list[dict[str, Any]], columns: Sequence[str]) -> str:
     lines.append("  ".join("-" * w for w in widths))
     lines += ["  ".join(v.ljust(w) for v, w in zip(row, widths)) for row in cells]
     return "\n".join(lines)
+
+
+def difference(
+    a: Sequence[float],
+    b: Sequence[float],
+    seeds_a: Sequence[int] | None = None,
+    seeds_b: Sequence[int] | None = None,
+) -> dict[str, Any]:
+    """``mean(a) - mean(b)`` of two agents' final returns, with every interval a report shows.
+
+    Computed by :func:`ermrl.analysis.compare_agents` (no statistics of its own).
+
+    Args:
+        a: The first agent's final returns, one per seed.
+        b: The second agent's.
+        seeds_a: The seeds of ``a`` (with ``seeds_b``: the paired CI over the shared seeds).
+        seeds_b: The seeds of ``b``.
+
+    Returns:
+        ``diff``, ``ci95`` (percentile bootstrap), ``welch_ci95``, ``p_value`` (Welch's t-test),
+        ``paired_ci95`` (``None`` without seeds or fewer than 2 shared ones) and ``few_seeds``
+        (the flag text, ``""`` with at least ``FEW_SEEDS`` seeds per agent); ``diff`` and the
+        intervals are ``None`` when an agent has no run.
+    """
+    import pandas as pd
+
+    from ermrl.analysis import compare_agents, few_seeds_flag
+
+    none: dict[str, Any] = {
+        "diff": None, "ci95": [None, None], "welch_ci95": [None, None], "p_value": None,
+        "paired_ci95": None, "few_seeds": "",
+    }  # fmt: skip
+    if not len(a) or not len(b):
+        return none
+    paired = seeds_a is not None and seeds_b is not None
+    frame = pd.DataFrame(
+        {
+            "agent": ["a"] * len(a) + ["b"] * len(b),
+            "final_return": [*a, *b],
+            **({"seed": [*seeds_a, *seeds_b]} if paired else {}),  # type: ignore[misc]
+        }
+    )
+    row = compare_agents(frame, "a", ["b"]).iloc[0]
+
+    def number(value: Any) -> float | None:
+        return float(value) if value is not None and math.isfinite(float(value)) else None
+
+    return {
+        "diff": number(row["mean_diff"]),
+        "ci95": [number(row["boot_ci_low"]), number(row["boot_ci_high"])],
+        "welch_ci95": [number(row["welch_ci_low"]), number(row["welch_ci_high"])],
+        "p_value": number(row["p_value"]),
+        "paired_ci95": (
+            [number(row["paired_ci_low"]), number(row["paired_ci_high"])]
+            if row["n_paired"] >= 2
+            else None
+        ),
+        "few_seeds": few_seeds_flag(int(row["n_candidate"]), int(row["n_baseline"])),
+    }
+
+
+def format_difference(d: dict[str, Any], digits: int = 1) -> str:
+    """One table cell: the difference, its bootstrap CI, Welch's CI and p, and the flag.
+
+    Example: ``-6.9 [-13.9, -0.3]; Welch [-28.1, +13.9], p=0.28; few seeds (n=2 < 5)``.
+    Results written before Welch's interval was recorded show the bootstrap CI alone.
+    """
+    if d.get("diff") is None:
+        return "-"
+
+    def ci(pair: list[float | None] | None) -> str:
+        if not pair or pair[0] is None or pair[1] is None:
+            return "-"
+        return f"[{pair[0]:+.{digits}f}, {pair[1]:+.{digits}f}]"
+
+    text = f"{d['diff']:+.{digits}f} {ci(d.get('ci95'))}"
+    if d.get("welch_ci95") is not None:
+        p = d.get("p_value")
+        text += f"; Welch {ci(d['welch_ci95'])}, p={'-' if p is None else f'{p:.2g}'}"
+    if d.get("few_seeds"):
+        text += f"; {d['few_seeds']}"
+    return text

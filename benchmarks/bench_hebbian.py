@@ -31,7 +31,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks._harness import machine  # noqa: E402
+from benchmarks._harness import difference, format_difference, machine  # noqa: E402
 from benchmarks.bench_memory import _agent_rows  # noqa: E402
 from benchmarks.bench_science import _evolution_facts, _run  # noqa: E402
 
@@ -39,24 +39,11 @@ AGENTS = ("hebbian", "random-hebbian", "ppo")
 
 
 def differences(rows: dict[str, Any], a: str, b: str) -> dict[str, Any]:
-    """``mean(a) - mean(b)`` of the final returns with bootstrap 95% CIs: independent samples,
-    and paired on the seeds both agents trained with."""
-    import numpy as np
-
-    from ermrl.analysis import bootstrap_mean_diff_ci
-
-    x, y = rows[a]["final_returns"], rows[b]["final_returns"]
-    if not x or not y:
-        return {"diff": None, "ci95": None, "paired_ci95": None}
-    low, high = bootstrap_mean_diff_ci(x, y)
-    out: dict[str, Any] = {"diff": float(np.mean(x) - np.mean(y)), "ci95": [low, high]}
-    out["paired_ci95"] = None
-    if rows[a]["seeds"] == rows[b]["seeds"] and len(x) > 1:
-        d = np.asarray(x) - np.asarray(y)
-        rng = np.random.default_rng(0)
-        means = d[rng.integers(0, len(d), size=(10_000, len(d)))].mean(axis=1)
-        out["paired_ci95"] = [float(v) for v in np.quantile(means, [0.025, 0.975])]
-    return out
+    """``mean(a) - mean(b)`` of the final returns with 95% CIs (bootstrap, Welch's t with its
+    p-value, and paired on the seeds both agents trained with) and the few-seeds flag."""
+    return difference(
+        rows[a]["final_returns"], rows[b]["final_returns"], rows[a]["seeds"], rows[b]["seeds"]
+    )
 
 
 def zero_action_returns(env_id: str, observe: str, seeds: list[int]) -> list[float]:
@@ -91,23 +78,31 @@ def _ci(ci: list[float] | None) -> str:
 
 def format_table(report: dict[str, Any]) -> str:
     """Markdown: the agents' final returns, then the differences and the selected genes."""
+    from ermrl.analysis import few_seeds_flag
+
     s = report["settings"]
     lines = [
         f"### {report['label']}: {s['n_trials']} trials x {s['n_seeds']} seeds x "
         f"{s['training_steps']} steps of evolution; test {s['test_seeds']} seeds x "
         f"{s['test_steps']} steps",
         "",
-        "| agent | seeds | final return mean ± std | 95% CI | test wall (all seeds) |",
-        "|---|---|---|---|---|",
+        "| agent | seeds | final return mean ± std | 95% CI | test wall (all seeds) | flag |",
+        "|---|---|---|---|---|---|",
     ]
     for agent, row in report["agents"].items():
+        n = len(row["final_returns"])
         lines.append(
-            f"| {agent} | {len(row['final_returns'])} | {_fmt(row['mean'])} ± "
-            f"{_fmt(row['std'])} | {_ci(row['ci95'])} | {row['wall_seconds'] / 60:.1f} min |"
+            f"| {agent} | {n} | {_fmt(row['mean'])} ± "
+            f"{_fmt(row['std'])} | {_ci(row['ci95'])} | {row['wall_seconds'] / 60:.1f} min | "
+            f"{few_seeds_flag(n) if n else ''} |"
         )
-    lines += ["", "| difference | mean | bootstrap 95% CI | paired 95% CI |", "|---|---|---|---|"]
+    lines += [
+        "",
+        "| difference | mean, bootstrap 95% CI; Welch 95% CI, p; flag | paired 95% CI |",
+        "|---|---|---|",
+    ]
     for name, d in report["differences"].items():
-        lines.append(f"| {name} | {_fmt(d['diff'])} | {_ci(d['ci95'])} | {_ci(d['paired_ci95'])} |")
+        lines.append(f"| {name} | {format_difference(d)} | {_ci(d['paired_ci95'])} |")
     zero = report["zero_action_returns"]
     lines.append(
         f"\nzero actions (standing still): {_fmt(sum(zero) / len(zero))} "

@@ -175,7 +175,10 @@ def _fmt(value: Any, digits: int = 1) -> str:
 
 
 def format_table(summary: list[dict[str, Any]], meta: dict[str, Any]) -> str:
-    """Markdown: per learner x observation, the final and 25% returns and steps to the expert."""
+    """Markdown: per learner x observation, the final and 25% returns and steps to the expert
+    (CIs of fewer than ``FEW_SEEDS`` runs flagged)."""
+    from ermrl.analysis import few_seeds_flag
+
     e = meta["expert"]
     lines = [
         f"### {meta['env_id']}: {meta['steps']} learner steps x {len(meta['seeds'])} seeds; "
@@ -184,8 +187,8 @@ def format_table(summary: list[dict[str, Any]], meta: dict[str, Any]) -> str:
         "",
         "| learner | observe | runs | final eval mean ± std [95% CI] | at 25% mean ± std "
         "[95% CI] | reached expert (median step) | reached 90% (median step) | wall / run "
-        "| steps/s |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| steps/s | flag |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in summary:
         lines.append(
@@ -195,7 +198,8 @@ def format_table(summary: list[dict[str, Any]], meta: dict[str, Any]) -> str:
             f"{_fmt(r['at25_ci_high'])}] | {r['reached_expert']} "
             f"({_fmt(r['steps_to_expert_median'], 0)}) | {r['reached_90pct']} "
             f"({_fmt(r['steps_to_90pct_median'], 0)}) | {_fmt(r['wall_seconds_mean'])} s | "
-            f"{_fmt(r['steps_per_second_mean'], 0)} |"
+            f"{_fmt(r['steps_per_second_mean'], 0)} | "
+            f"{few_seeds_flag(int(r['n_runs'])) if r['n_runs'] else ''} |"
         )
     return "\n".join(lines)
 

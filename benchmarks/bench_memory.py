@@ -86,15 +86,17 @@ def _fmt(value: float | None) -> str:
 
 
 def format_table(report: dict[str, Any]) -> str:
-    """Markdown: one table per task, one row per agent."""
+    """Markdown: one table per task, one row per agent (a CI of few seeds flagged)."""
+    from ermrl.analysis import few_seeds_flag
+
     lines = []
     for task in report["tasks"]:
         lines += [
             f"### {task['label']}",
             "",
             "| agent | seeds | final return mean ± std | 95% CI | test wall (all seeds) | "
-            "evolution wall |",
-            "|---|---|---|---|---|---|",
+            "evolution wall | flag |",
+            "|---|---|---|---|---|---|---|",
         ]
         for agent, row in task["agents"].items():
             ci = row["ci95"]
@@ -103,7 +105,8 @@ def format_table(report: dict[str, Any]) -> str:
             lines.append(
                 f"| {agent} | {len(row['final_returns'])} | {_fmt(row['mean'])} ± "
                 f"{_fmt(row['std'])} | {ci_text} | {row['wall_seconds'] / 60:.1f} min | "
-                f"{'-' if evolve is None else f'{evolve / 60:.1f} min'} |"
+                f"{'-' if evolve is None else f'{evolve / 60:.1f} min'} | "
+                f"{few_seeds_flag(n) if (n := len(row['final_returns'])) else ''} |"
             )
         for agent, sel in task["selected"].items():
             params = " ".join(f"{k}={v:.3g}" for k, v in sel["params"].items())

@@ -35,7 +35,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks._harness import machine  # noqa: E402
+from benchmarks._harness import difference, format_difference, machine  # noqa: E402
 
 AGENTS = ("ppo", "ppo-full", "lstm-ppo", "framestack-ppo", "random-res-ppo", "res-ppo")
 BASELINES = ("ppo", "ppo-full", "lstm-ppo", "framestack-ppo", "random-res-ppo")
@@ -113,14 +113,10 @@ def _evolution_facts(storage: str, study_name: str) -> dict[str, Any]:
 
 
 def _task_result(out: Path) -> dict[str, Any]:
-    """Per-agent final returns of a test folder and the bootstrap CIs of the differences."""
+    """Per-agent final returns of a test folder and the differences with their CIs and p."""
     import numpy as np
 
-    from ermrl.analysis import (
-        bootstrap_mean_diff_ci,
-        load_run_results,
-        paired_bootstrap_mean_diff_ci,
-    )
+    from ermrl.analysis import load_run_results
 
     runs = load_run_results(out)
     agents: dict[str, Any] = {}
@@ -136,17 +132,14 @@ def _task_result(out: Path) -> dict[str, Any]:
         }
 
     def ci(a: str, b: str) -> dict[str, Any]:
-        x, y = agents[a]["final_returns"], agents[b]["final_returns"]
-        if not x or not y:  # an agent left out of the test phase (--agents)
-            return {"diff": None, "ci95": [None, None]}
-        low, high = bootstrap_mean_diff_ci(x, y)
-        diff = float(np.mean(x) - np.mean(y)) if x and y else None
-        out: dict[str, Any] = {"diff": diff, "ci95": [low, high]}
-        # Both agents ran on the same seeds (env and PPO streams): the per-seed differences
-        # give a paired interval beside the independent one.
-        if agents[a]["seeds"] == agents[b]["seeds"] and len(x) > 1:
-            out["paired_ci95"] = list(paired_bootstrap_mean_diff_ci(x, y))
-        return out
+        # Bootstrap and Welch CIs, p, the few-seeds flag; and, over the seeds both agents ran
+        # (same env and PPO streams), the paired CI of the per-seed differences.
+        return difference(
+            agents[a]["final_returns"],
+            agents[b]["final_returns"],
+            agents[a]["seeds"],
+            agents[b]["seeds"],
+        )
 
     return {
         "agents": agents,
@@ -178,8 +171,10 @@ def _targets(env_id: str, result: dict[str, Any]) -> dict[str, bool | None]:
         "res-ppo >= random-res-ppo, CI not entirely below 0": (
             None if rr["diff"] is None else bool(rr["diff"] >= 0 and rr["ci95"][1] >= 0)
         ),
-        "res-ppo > ppo, CI entirely above 0": (
-            None if rp["diff"] is None else bool(rp["ci95"][0] > 0)
+        "res-ppo > ppo, bootstrap and Welch CIs entirely above 0": (
+            None
+            if rp["diff"] is None
+            else bool(rp["ci95"][0] > 0 and (rp.get("welch_ci95") or [0.0])[0] > 0)
         ),
     }
     if env_id.startswith("Pendulum"):
@@ -197,6 +192,7 @@ def _fmt(value: float | None, std: float | None = None) -> str:
 def format_table(report: dict[str, Any]) -> str:
     """The Markdown table of a benchmark report (one row per task)."""
     columns = [*AGENTS, "res − random [95% CI]", "res − ppo [95% CI]", "res − lstm [95% CI]"]
+    # each difference: bootstrap [CI]; Welch's t [CI] and p; a flag below FEW_SEEDS seeds
     columns += ["selected trial", "wall", "env steps"]
     head = "| task | " + " | ".join(columns) + " |\n" + "|---" * (len(columns) + 1) + "|\n"
     rows = []
@@ -204,10 +200,7 @@ def format_table(report: dict[str, Any]) -> str:
         agents = task["test"]["agents"]
         cells = [_fmt(agents[a]["mean"], agents[a]["std"]) for a in AGENTS]
 
-        def ci(d: dict[str, Any]) -> str:
-            if d["diff"] is None:
-                return "-"
-            return f"{d['diff']:+.1f} [{d['ci95'][0]:+.1f}, {d['ci95'][1]:+.1f}]"
+        ci = format_difference
 
         sel = task["evolution"]["selected"]
         params = " ".join(f"{k}={v:.3g}" for k, v in sel["params"].items())

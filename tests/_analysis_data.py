@@ -84,3 +84,35 @@ def build_tiny_study(base: Path) -> TinyStudy:
             pytest.fail(f"tiny test phase failed with exit code {code}")
     done.write_text(json.dumps({"study": STUDY_NAME, "storage": storage, "runs": str(runs)}))
     return tiny
+
+
+def assert_self_contained_html(page: Path, elsewhere: Path) -> str:
+    """Move ``page`` alone to ``elsewhere`` and check that it needs no other file.
+
+    Every ``src`` is a ``data:image/png`` URI whose bytes are a PNG, and no ``href`` names a
+    local file. Returns the page's text (read from its new place).
+    """
+    import base64
+    import re
+    from html.parser import HTMLParser
+
+    elsewhere.mkdir(parents=True, exist_ok=True)
+    moved = page.rename(elsewhere / page.name)
+    text = moved.read_text()
+    attrs: list[tuple[str, str, str]] = []
+
+    class Collect(HTMLParser):
+        def handle_starttag(self, tag: str, items: list[tuple[str, str | None]]) -> None:
+            attrs.extend((tag, k, v or "") for k, v in items if k in ("src", "href"))
+
+    Collect().feed(text)
+    images = [v for tag, k, v in attrs if tag == "img" and k == "src"]
+    assert images, "the page has no figure"
+    for tag, key, value in attrs:
+        if key == "src":
+            assert tag == "img" and value.startswith("data:image/png;base64,"), value[:80]
+            assert base64.b64decode(value.split(",", 1)[1]).startswith(b"\x89PNG\r\n\x1a\n")
+        else:
+            assert re.match(r"^[a-z][a-z0-9+.-]*:|^#", value), f"link to a local file: {value}"
+    assert 'src="' not in re.sub(r'src="data:[^"]*"', "", text)
+    return text

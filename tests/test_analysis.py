@@ -18,15 +18,18 @@ from ermrl.analysis import (
     DynamicsRecording,
     GLBackendError,
     PaperFigure,
+    aggregate_iqm,
     bootstrap_mean_diff_ci,
     compare_agents,
     curves_on_grid,
     dominant_frequency,
     dynamics_figure,
+    few_seeds_flag,
     final_returns_figure,
     final_returns_table,
     generations_figure,
     generations_frame,
+    iqm,
     is_generalization_study,
     learning_curves_figure,
     notebook_parameters,
@@ -42,6 +45,7 @@ from ermrl.analysis import (
     summarize,
     task_scores_figure,
     task_scores_frame,
+    task_seed_scores,
     trials_frame,
     welch_t_test,
     write_gif,
@@ -58,6 +62,7 @@ from ermrl.config import (
     TaskConfig,
     to_dict,
 )
+from tests._analysis_data import assert_self_contained_html
 
 optuna.logging.set_verbosity(optuna.logging.WARNING)
 AGENTS = ("ppo", "res-ppo", "random-res-ppo")
@@ -148,6 +153,13 @@ def make_study(n_trials: int = 12, *, generalization: bool = False) -> optuna.St
             attrs = {
                 "task_normalized": {"HalfCheetah-v5": value / 10, "Ant-v5": value / 20},
                 "task_returns": {"HalfCheetah-v5": value * 10, "Ant-v5": value * 5},
+                # two seeds around each mean; references 0 and 100 give the normalized scores
+                "task_seed_returns": {
+                    "HalfCheetah-v5": [value * 10 - 1, value * 10 + 1],
+                    "Ant-v5": [value * 5 - 2, value * 5 + 2],
+                },
+                "task_random_returns": {"HalfCheetah-v5": 0.0, "Ant-v5": 0.0},
+                "task_target_returns": {"HalfCheetah-v5": 100.0, "Ant-v5": 100.0},
             }
         state = optuna.trial.TrialState.FAIL if k == 3 else optuna.trial.TrialState.COMPLETE
         study.add_trial(
@@ -218,6 +230,48 @@ def test_final_returns_table_and_comparison() -> None:
     vs_ppo = comparison.set_index("baseline").loc["ppo"]
     assert vs_ppo["mean_diff"] == pytest.approx(50, abs=10)
     assert vs_ppo["boot_ci_low"] > 0 and vs_ppo["p_value"] < 0.001
+
+
+def test_few_seeds_flag_names_the_smallest_group() -> None:
+    assert few_seeds_flag(2, 7) == "few seeds (n=2 < 5)"
+    assert few_seeds_flag(5, 5) == few_seeds_flag() == ""
+
+
+def test_iqm_is_the_25_percent_trimmed_mean() -> None:
+    x = np.random.default_rng(0).normal(size=(7, 3))
+    assert iqm(x) == pytest.approx(stats.trim_mean(x.ravel(), 0.25))
+    assert iqm([0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 1000.0]) == pytest.approx(3.5)
+    assert iqm([1.0, np.nan, 3.0]) == 2.0
+    assert math.isnan(iqm([]))
+
+
+def test_aggregate_iqm_ci_covers_the_estimate_and_takes_every_layout() -> None:
+    rng = np.random.default_rng(0)
+    scores = rng.normal(size=(10, 4)) + np.array([0.0, 1.0, 2.0, 3.0])  # (n_runs, n_tasks)
+    result = aggregate_iqm(scores, seed=1)
+    assert result.iqm == pytest.approx(stats.trim_mean(scores.ravel(), 0.25))
+    assert result.ci_low < result.iqm < result.ci_high
+    assert (result.n_tasks, result.n_runs, result.few_seeds) == (4, 10, False)
+    assert result == aggregate_iqm(scores, seed=1)  # reproducible
+    by_task = {f"t{k}": scores[:, k] for k in range(4)}
+    assert aggregate_iqm(by_task, seed=1) == result
+    assert aggregate_iqm(list(scores.T), seed=1) == result
+    ragged = aggregate_iqm({"a": [1.0, 2.0, np.nan], "b": [3.0, 4.0, 5.0], "c": [np.nan]})
+    assert (ragged.n_tasks, ragged.n_runs, ragged.few_seeds) == (2, 2, True)
+    assert ragged.ci_low <= ragged.iqm <= ragged.ci_high
+    empty = aggregate_iqm({})
+    assert empty.n_tasks == 0 and math.isnan(empty.iqm)
+
+
+def test_aggregate_iqm_resamples_within_each_task() -> None:
+    """Each resample keeps every task's share: with a constant score per task, the stratified
+    IQM never moves, where a bootstrap of the pooled scores would."""
+    result = aggregate_iqm({"a": [0.0] * 4, "b": [1.0] * 4}, n_resamples=2000)
+    assert result.iqm == result.ci_low == result.ci_high == 0.5
+    pooled = np.array([0.0] * 4 + [1.0] * 4)
+    rng = np.random.default_rng(0)
+    unstratified = stats.trim_mean(pooled[rng.integers(0, 8, size=(2000, 8))], 0.25, axis=1)
+    assert unstratified.min() < 0.5 < unstratified.max()
 
 
 def test_summarize_uses_the_sample_std() -> None:
@@ -293,6 +347,16 @@ def test_figures_of_an_empty_study_say_why() -> None:
     assert param_importances(study) == {}
     assert_paper_ready(optimization_history_figure(frame), "no COMPLETE trial yet")
     assert_paper_ready(param_importances_figure({}), "at least 2 COMPLETE trials")
+
+
+def test_task_seed_scores_are_normalized_like_the_fitness() -> None:
+    trial = make_study(3, generalization=True).trials[0]
+    scores = task_seed_scores(trial.user_attrs)
+    assert set(scores) == {"HalfCheetah-v5", "Ant-v5"}
+    for env_id, values in scores.items():
+        assert values.shape == (2,)
+        assert values.mean() == pytest.approx(trial.user_attrs["task_normalized"][env_id])
+    assert task_seed_scores({"task_normalized": {"Ant-v5": 0.5}}) == {}
 
 
 def test_generalization_scores() -> None:
@@ -466,8 +530,25 @@ def test_report_of_a_generalization_study(tmp_path: Path) -> None:
     )
     md = result.markdown.read_text()
     assert "## Generalization" in md and "Ant-v5" in md
+    assert "interquartile mean (IQM)" in md and "95% stratified bootstrap CI [" in md
+    assert "Few seeds (n=2 < 5)" in md  # two seeds per task
     assert result.figures["task_scores"].read_bytes().startswith(b"\x89PNG")
     assert (tmp_path / "r" / "generalization" / "task_scores.csv").exists()
+
+
+def test_report_html_embeds_its_figures_and_opens_when_moved(tmp_path: Path) -> None:
+    storage = f"sqlite:///{tmp_path / 'g.db'}"
+    _copy_to_sqlite(make_study(8, generalization=True), storage, "gen")
+    result = analysis.write_report(
+        "gen", storage, runs=tmp_path / "none", out=tmp_path / "r", interactive=True
+    )
+    assert result.html is not None
+    text = assert_self_contained_html(result.html, tmp_path / "elsewhere")
+    assert text.count("<img ") == len(result.figures)  # evolution and generalization figures
+    assert "<h2>Evolution</h2>" in text and "<h2>Generalization</h2>" in text
+    assert "<code>interactive/" in text  # the interactive files are named, not linked
+    md = result.markdown.read_text()
+    assert "](evolution/optimization_history.png)" in md  # the Markdown still links its files
 
 
 def test_report_of_a_study_without_trials(tmp_path: Path) -> None:

@@ -12,6 +12,22 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def test_differences_show_welch_and_p_and_flag_few_seeds() -> None:
+    """The benchmarks' difference cells: bootstrap CI, Welch's CI and p, and the flag."""
+    from benchmarks._harness import difference, format_difference
+
+    d = difference([-700.0, -698.0], [-690.0, -676.0], [0, 1], [0, 1])
+    assert d["ci95"][1] < 0 < d["welch_ci95"][1]  # the bootstrap alone would overclaim
+    assert d["few_seeds"] == "few seeds (n=2 < 5)" and d["paired_ci95"] is not None
+    text = format_difference(d)
+    assert "; Welch [" in text and ", p=0." in text and text.endswith("; few seeds (n=2 < 5)")
+    five = difference([1.0, 2.0, 3.0, 4.0, 5.0], [0.0, 2.0, 1.0, 3.0, 2.0])
+    assert five["few_seeds"] == "" and five["paired_ci95"] is None  # no seeds: not paired
+    assert format_difference(difference([], [1.0])) == "-"
+    # Results written before Welch's interval was recorded show the bootstrap CI alone.
+    assert format_difference({"diff": 1.0, "ci95": [0.5, 1.5]}) == "+1.0 [+0.5, +1.5]"
+
+
 @pytest.mark.slow
 def test_benchmarks_run_in_quick_mode(tmp_path: Path) -> None:
     proc = subprocess.run(

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from ermrl.analysis import DynamicsRecording, write_report
-from tests._analysis_data import TinyStudy, build_tiny_study
+from tests._analysis_data import TinyStudy, assert_self_contained_html, build_tiny_study
 
 pytestmark = pytest.mark.slow
 
@@ -83,12 +83,27 @@ def test_report_cli_writes_figures_tables_and_report_md(tiny: TinyStudy, tmp_pat
         assert f"]({rel})" in md
         assert (out / rel).exists()
     assert "single-task study" in md  # generalization left out, with the reason
-    html = (out / "report.html").read_text()
-    assert '<img src="test/learning_curves.png"' in html
+    # Two test seeds: every interval is flagged, Welch's interval and p shown beside the bootstrap.
+    for text in (
+        "95% bootstrap CI",
+        "95% Welch t CI",
+        "p (Welch, two-sided)",
+        "95% CI (Student t)",
+    ):
+        assert text in md
+    assert "**Few seeds (n=2 < 5): every interval below is rough.**" in md
+    assert md.count("| few seeds (n=2 < 5) |") >= 4  # agents and comparisons alike
     comparison = (out / "test" / "comparison.csv").read_text()
-    assert "p_value" in comparison and "ppo" in comparison
+    assert "p_value" in comparison and "welch_ci_low" in comparison and "ppo" in comparison
     trials = (out / "trials.csv").read_text().splitlines()
     assert len(trials) == 5  # header + 4 trials
+    # report.html is one file: moved alone, it still shows every figure (embedded PNGs).
+    html = assert_self_contained_html(out / "report.html", tmp_path / "moved")
+    for heading in ("<h2>Evolution</h2>", "<h3><code>res-ppo</code> against the baselines</h3>",
+                    "<h2>Reservoir dynamics</h2>"):  # fmt: skip
+        assert heading in html
+    assert html.count("<img ") == md.count("![")
+    assert "<strong>Few seeds (n=2 &lt; 5): every interval below is rough.</strong>" in html
 
 
 def test_report_without_runs_still_writes_the_evolution_part(

@@ -24,6 +24,7 @@ __all__ = [
     "is_generalization_study",
     "task_scores_figure",
     "task_scores_frame",
+    "task_seed_scores",
 ]
 
 GENERALIZATION_KIND = "evolve-generalization"
@@ -71,6 +72,38 @@ def task_scores_frame(study: optuna.Study) -> pd.DataFrame:
     for key in ("value", "normalized", "return"):
         frame[key] = pd.to_numeric(frame[key], errors="coerce")
     return frame
+
+
+def task_seed_scores(attrs: Mapping[str, Any]) -> dict[str, np.ndarray]:
+    """Per-seed normalized scores of one generalization trial, per task.
+
+    Each seed's raw return ``R`` (``task_seed_returns``) is normalized with the task's references
+    as the fitness is, ``(R - R_random) / (R_target - R_random)`` (``task_random_returns``,
+    ``task_target_returns``), so that the tasks share one scale and can be pooled by
+    :func:`~ermrl.analysis.aggregate_iqm`.
+
+    Args:
+        attrs: The trial's user attributes (``trial.user_attrs``).
+
+    Returns:
+        ``{env_id: scores of shape (n_seeds,)}`` (NaN for a missing return); empty when the
+        trial did not record per-seed returns or references (older studies, single-task ones).
+    """
+    seeds = attrs.get("task_seed_returns")
+    randoms = attrs.get("task_random_returns")
+    targets = attrs.get("task_target_returns")
+    if not all(isinstance(m, Mapping) for m in (seeds, randoms, targets)):
+        return {}
+    assert isinstance(seeds, Mapping) and isinstance(randoms, Mapping)
+    assert isinstance(targets, Mapping)
+    out: dict[str, np.ndarray] = {}
+    for env_id, values in seeds.items():
+        low, high = _number(randoms.get(env_id)), _number(targets.get(env_id))
+        if not isinstance(values, list) or not np.isfinite(low + high) or high == low:
+            continue
+        raw = np.array([_number(v) for v in values], dtype=np.float64)
+        out[str(env_id)] = (raw - low) / (high - low)
+    return out
 
 
 def task_scores_figure(scores: pd.DataFrame, *, title: str = "") -> PaperFigure:

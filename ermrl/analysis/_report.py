@@ -3,7 +3,8 @@
 The report is built from the study storage and the test-phase folder alone::
 
     reports/<study>/
-      report.md, report.html          the page (same content; the HTML opens offline)
+      report.md, report.html          the page (same content; the HTML embeds its figures, so
+                                      it opens offline and still does when moved on its own)
       trials.csv, best_params.csv     the search, one row per trial / parameter
       evolution/*.png                 history, importances, slices, contour, CMA-ES generations
       interactive/*.html              the same, interactive (Optuna's plotly figures)
@@ -14,9 +15,11 @@ The report is built from the study storage and the test-phase folder alone::
 
 from __future__ import annotations
 
+import base64
 import datetime as _dt
 import html
 import math
+import mimetypes
 import os
 import re
 import sys
@@ -123,25 +126,43 @@ class _Doc:
                 out.append("\n".join(f"- {item}" for item in value))
         return "\n\n".join(out) + "\n"
 
-    def html(self, title: str) -> str:
+    def html(self, title: str, embed: Path | None = None) -> str:
+        """The page as HTML.
+
+        Args:
+            title: The page title.
+            embed: The folder the figures' paths are relative to. When given, every figure is
+                embedded as a ``data:`` URI and links to local files become plain text, so
+                that the page is one self-contained file (it still opens when moved on its
+                own). Without it, figures and links refer to the files.
+        """
+        local = embed is None
         body: list[str] = []
         for kind, value in self.blocks:
             if kind == "h":
-                body.append(f"<h{value[0]}>{_inline(value[1])}</h{value[0]}>")
+                body.append(f"<h{value[0]}>{_inline(value[1], local)}</h{value[0]}>")
             elif kind == "p":
-                body.append(f"<p>{_inline(value)}</p>")
+                body.append(f"<p>{_inline(value, local)}</p>")
             elif kind == "img":
                 src, alt = (html.escape(v) for v in value)
-                body.append(
-                    f'<figure><a href="{src}"><img src="{src}" alt="{alt}"></a>'
-                    f"<figcaption>{alt}</figcaption></figure>"
-                )
+                if embed is None:
+                    body.append(
+                        f'<figure><a href="{src}"><img src="{src}" alt="{alt}"></a>'
+                        f"<figcaption>{alt}</figcaption></figure>"
+                    )
+                else:
+                    body.append(
+                        f'<figure><img src="{_data_uri(embed / value[0])}" alt="{alt}">'
+                        f"<figcaption>{alt} (<code>{src}</code>)</figcaption></figure>"
+                    )
             elif kind == "table":
-                body.append(_html_table(value))
+                body.append(_html_table(value, local))
             elif kind == "code":
                 body.append(f"<pre><code>{html.escape(value[1].rstrip())}</code></pre>")
             elif kind == "ul":
-                body.append("<ul>" + "".join(f"<li>{_inline(i)}</li>" for i in value) + "</ul>")
+                body.append(
+                    "<ul>" + "".join(f"<li>{_inline(i, local)}</li>" for i in value) + "</ul>"
+                )
         style = (
             "body{font-family:system-ui,sans-serif;max-width:60rem;margin:2rem auto;padding:0 1rem;"
             "line-height:1.45;color:#222}img{max-width:100%;border:1px solid #ddd}"
@@ -182,20 +203,35 @@ def _md_table(frame: pd.DataFrame) -> str:
     return "\n".join([header, rule, *rows])
 
 
-def _html_table(frame: pd.DataFrame) -> str:
+def _html_table(frame: pd.DataFrame, local_links: bool = True) -> str:
     head = "".join(f"<th>{html.escape(str(c))}</th>" for c in frame.columns)
     rows = "".join(
-        "<tr>" + "".join(f"<td>{_inline(_fmt(v))}</td>" for v in row) + "</tr>"
+        "<tr>" + "".join(f"<td>{_inline(_fmt(v), local_links)}</td>" for v in row) + "</tr>"
         for row in frame.itertuples(index=False)
     )
     return f"<table><thead><tr>{head}</tr></thead><tbody>{rows}</tbody></table>"
 
 
-def _inline(text: str) -> str:
+def _inline(text: str, local_links: bool = True) -> str:
+    """Inline Markdown (code, bold, links) as HTML; ``local_links=False`` writes a link to a
+    local file (no URL scheme) as its text and path instead, for a self-contained page."""
     escaped = html.escape(text)
     escaped = re.sub(r"`([^`]+)`", r"<code>\1</code>", escaped)
     escaped = re.sub(r"\*\*([^*]+)\*\*", r"<strong>\1</strong>", escaped)
-    return re.sub(r"\[([^\]]+)\]\(([^)]+)\)", r'<a href="\2">\1</a>', escaped)
+
+    def link(match: re.Match[str]) -> str:
+        label, target = match.group(1), match.group(2)
+        if local_links or re.match(r"^[a-z][a-z0-9+.-]*:|^#", target):
+            return f'<a href="{target}">{label}</a>'
+        return f"{label} (<code>{target}</code>)"
+
+    return re.sub(r"\[([^\]]+)\]\(([^)]+)\)", link, escaped)
+
+
+def _data_uri(path: Path) -> str:
+    """The file as a ``data:`` URI (base64), for a figure embedded in a self-contained page."""
+    mime = mimetypes.guess_type(path.name)[0] or "application/octet-stream"
+    return f"data:{mime};base64,{base64.b64encode(path.read_bytes()).decode('ascii')}"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -329,7 +365,7 @@ def write_report(
             html_path = None
             if html_page:
                 html_path = stage / "report.html"
-                html_path.write_text(doc.html(f"ermrl report: {study_name}"))
+                html_path.write_text(doc.html(f"ermrl report: {study_name}", embed=stage))
             return md_path, html_path
 
         md_path, html_path = progress.step("report.md", finish)
@@ -547,7 +583,11 @@ def _interactive_section(state: _State) -> None:
     missing = [f"{name}: {v}" for name, v in written.items() if not isinstance(v, Path)]
     doc = state.evolution_doc or _Doc()
     if links:
-        doc.p("Interactive versions (open in a browser, offline): " + ", ".join(links) + ".")
+        doc.p(
+            "Interactive versions, in the report folder (open in a browser, offline): "
+            + ", ".join(links)
+            + "."
+        )
     for item in missing:
         state.notes.append(f"interactive {item}")
     if state.evolution_doc is None:
@@ -580,7 +620,30 @@ def _generalization_section(state: _State) -> None:
         best = complete[complete["number"] == best_number][["env_id", "normalized", "return"]]
         doc.p(f"Best trial #{int(best_number)}, per task:")
         doc.table(best.rename(columns={"normalized": "normalized score", "return": "mean return"}))
+        _iqm_paragraph(doc, state.study, int(best_number))
     state.sections.append(doc)
+
+
+def _iqm_paragraph(doc: _Doc, study: Any, number: int) -> None:
+    """The IQM over tasks of one trial's per-seed normalized scores, with its stratified CI."""
+    from ermrl.analysis._generalization import task_seed_scores
+    from ermrl.analysis._stats import aggregate_iqm, few_seeds_flag
+
+    trial = next((t for t in study.get_trials(deepcopy=False) if t.number == number), None)
+    scores = task_seed_scores(trial.user_attrs) if trial is not None else {}
+    result = aggregate_iqm(scores)
+    if result.n_tasks == 0:
+        return
+    flag = few_seeds_flag(result.n_runs)
+    doc.p(
+        f"Aggregate over the {result.n_tasks} tasks: interquartile mean (IQM) of the per-seed "
+        f"normalized scores {result.iqm:.4g}, 95% stratified bootstrap CI "
+        f"{_interval(result.ci_low, result.ci_high)} (each task's seeds resampled within the "
+        f"task, 10 000 resamples; {result.n_runs} seed(s) per task)"
+        + (f". **{flag.capitalize()}: the interval is rough.**" if flag else ".")
+        + " The IQM is the mean of the middle half of all (task, seed) scores: less swayed by "
+        "one outlying task or seed than the mean, less noisy than the median."
+    )
 
 
 def _test_section(state: _State, runs: Path, band: str) -> None:
@@ -591,7 +654,12 @@ def _test_section(state: _State, runs: Path, band: str) -> None:
         load_run_config,
         load_run_results,
     )
-    from ermrl.analysis._stats import compare_agents, final_returns_table
+    from ermrl.analysis._stats import (
+        FEW_SEEDS,
+        compare_agents,
+        few_seeds_flag,
+        final_returns_table,
+    )
 
     results = load_run_results(runs)
     curves = load_curves(runs)
@@ -649,13 +717,10 @@ def _test_section(state: _State, runs: Path, band: str) -> None:
     doc.h(3, "Final returns")
     doc.p(
         "Final return of a run: mean return of its last training episodes. "
-        "Mean, sample std and Student-t 95% CI of the mean across seeds."
+        f"Mean, sample std and Student-t 95% CI of the mean across seeds (flagged below "
+        f"{FEW_SEEDS} seeds)."
     )
-    doc.table(
-        table[["agent", "n_seeds", "mean", "std", "ci95_low", "ci95_high", "median"]].rename(
-            columns={"n_seeds": "seeds", "ci95_low": "95% CI low", "ci95_high": "95% CI high"}
-        )
-    )
+    doc.table(_agent_table(table, ["agent", "n_seeds", "mean", "std", "ci95", "median"]))
     if (
         "eval_return" in results
         and pd.to_numeric(results["eval_return"], errors="coerce").notna().any()
@@ -663,11 +728,7 @@ def _test_section(state: _State, runs: Path, band: str) -> None:
         eval_table = final_returns_table(results, order, metric="eval_return")
         state.csv("eval_returns", eval_table, "test/eval_returns.csv")
         doc.h(3, "Evaluation returns (deterministic episodes)")
-        doc.table(
-            eval_table[["agent", "n_seeds", "mean", "std", "ci95_low", "ci95_high"]].rename(
-                columns={"n_seeds": "seeds", "ci95_low": "95% CI low", "ci95_high": "95% CI high"}
-            )
-        )
+        doc.table(_agent_table(eval_table, ["agent", "n_seeds", "mean", "std", "ci95"]))
     evolved = _evolved_agent(state)
     comparison = compare_agents(results, evolved, [a for a in order if a != evolved])
     state.csv("comparison", comparison, "test/comparison.csv")
@@ -675,44 +736,75 @@ def _test_section(state: _State, runs: Path, band: str) -> None:
     if comparison.empty:
         doc.p(f"Needs finished runs of `{evolved}` and of a baseline.")
     else:
+        flags = [
+            few_seeds_flag(int(r.n_candidate), int(r.n_baseline))
+            for r in comparison.itertuples(index=False)
+        ]
+        if any(flags):
+            n_min = int(comparison[["n_candidate", "n_baseline"]].min().min())
+            doc.p(
+                f"**{few_seeds_flag(n_min).capitalize()}: every interval below is rough.** The "
+                f"percentile bootstrap cannot reach beyond the range of {n_min} values and comes "
+                "out too narrow; read Welch's t interval and its p-value first, and run more "
+                "seeds before drawing a conclusion."
+            )
         doc.table(
-            comparison[
-                [
-                    "baseline",
-                    "n_candidate",
-                    "n_baseline",
-                    "mean_diff",
-                    "boot_ci_low",
-                    "boot_ci_high",
-                    "welch_t",
-                    "welch_dof",
-                    "p_value",
-                    "paired_ci_low",
-                    "paired_ci_high",
-                ]
-            ].rename(
-                columns={
-                    "n_candidate": f"seeds {evolved}",
-                    "n_baseline": "seeds baseline",
-                    "mean_diff": "mean difference",
-                    "boot_ci_low": "95% bootstrap CI low",
-                    "boot_ci_high": "95% bootstrap CI high",
-                    "welch_t": "Welch t",
-                    "welch_dof": "dof",
-                    "p_value": "p (two-sided)",
-                    "paired_ci_low": "paired 95% CI low",
-                    "paired_ci_high": "paired 95% CI high",
+            pd.DataFrame(
+                {
+                    "baseline": comparison["baseline"],
+                    f"seeds {evolved}": comparison["n_candidate"],
+                    "seeds baseline": comparison["n_baseline"],
+                    "mean difference": comparison["mean_diff"],
+                    "95% bootstrap CI": _intervals(comparison, "boot_ci"),
+                    "95% Welch t CI": _intervals(comparison, "welch_ci"),
+                    "p (Welch, two-sided)": comparison["p_value"],
+                    "95% paired CI": _intervals(comparison, "paired_ci"),
+                    "flag": flags,
                 }
             )
         )
         doc.p(
-            f"Mean difference = mean(`{evolved}`) − mean(baseline) of the final returns; percentile "
-            "bootstrap (10 000 resamples) and Welch's unequal-variance t-test. The paired interval "
-            "resamples the per-seed differences over the seeds both agents ran (same env and "
-            "initialization streams). With few seeds all are rough: report them with the number "
-            "of seeds."
+            f"Mean difference = mean(`{evolved}`) − mean(baseline) of the final returns. Three "
+            "95% intervals of it: the percentile bootstrap (each agent's seeds resampled, 10 000 "
+            "resamples), Student's t with Welch-Satterthwaite degrees of freedom (Welch's "
+            "unequal-variance t-test, whose two-sided p-value is given), and the paired "
+            "bootstrap of the per-seed differences over the seeds both agents ran (same env and "
+            f"initialization streams). Below {FEW_SEEDS} seeds per agent a comparison is "
+            "flagged: the bootstrap is then too narrow and can exclude 0 where Welch's interval "
+            "does not. The t statistic and degrees of freedom are in `test/comparison.csv`."
         )
     state.sections.append(doc)
+
+
+def _interval(low: float, high: float) -> str:
+    """``[low, high]`` with a sign on each end; ``–`` when undefined."""
+    if not (math.isfinite(low) and math.isfinite(high)):
+        return "–"
+    return f"[{low:+.4g}, {high:+.4g}]"
+
+
+def _intervals(frame: pd.DataFrame, prefix: str) -> list[str]:
+    """The ``{prefix}_low``/``{prefix}_high`` columns of ``frame`` as interval cells."""
+    return [
+        _interval(float(low), float(high))
+        for low, high in zip(frame[f"{prefix}_low"], frame[f"{prefix}_high"], strict=True)
+    ]
+
+
+def _agent_table(table: pd.DataFrame, columns: Sequence[str]) -> pd.DataFrame:
+    """A :func:`~ermrl.analysis.final_returns_table` as shown: the CI as one cell, flagged."""
+    from ermrl.analysis._stats import few_seeds_flag
+
+    shown = pd.DataFrame(
+        {
+            "seeds" if c == "n_seeds" else "95% CI (Student t)" if c == "ci95" else c: (
+                _intervals(table, "ci95") if c == "ci95" else table[c]
+            )
+            for c in columns
+        }
+    )
+    shown["flag"] = [few_seeds_flag(int(n)) for n in table["n_seeds"]]
+    return shown
 
 
 def _evolved_agent(state: _State) -> str:

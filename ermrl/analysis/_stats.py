@@ -1,9 +1,10 @@
-"""Statistics of final returns: per-agent tables and tests of one agent against another."""
+"""Statistics of final returns: per-agent tables, tests of one agent against another, and the
+IQM aggregate of scores over a set of tasks."""
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -14,10 +15,14 @@ from ermrl.config import AGENTS, EVOLVED_AGENT
 
 __all__ = [
     "FEW_SEEDS",
+    "IQMResult",
     "WelchResult",
+    "aggregate_iqm",
     "bootstrap_mean_diff_ci",
     "compare_agents",
+    "few_seeds_flag",
     "final_returns_table",
+    "iqm",
     "paired_bootstrap_mean_diff_ci",
     "welch_t_test",
 ]
@@ -28,6 +33,28 @@ METRICS = ("final_return", "eval_return")
 #: is too narrow on 2-4 values (it cannot reach beyond the sample's range), so a report shows
 #: Welch's t interval beside it and marks the comparison ``few_seeds``.
 FEW_SEEDS = 5
+
+
+def few_seeds_flag(*n_seeds: int) -> str:
+    """The visible flag of an interval computed from fewer than :data:`FEW_SEEDS` seeds.
+
+    Args:
+        n_seeds: The number of seeds (runs) of each group behind the interval.
+
+    Returns:
+        ``"few seeds (n=2 < 5)"`` (``n`` the smallest group), or ``""`` when every group has
+        at least :data:`FEW_SEEDS` seeds or none is given.
+
+    Examples:
+        >>> few_seeds_flag(2, 5)
+        'few seeds (n=2 < 5)'
+        >>> few_seeds_flag(5, 8)
+        ''
+    """
+    if not n_seeds:
+        return ""
+    n = min(int(k) for k in n_seeds)
+    return f"few seeds (n={n} < {FEW_SEEDS})" if n < FEW_SEEDS else ""
 
 
 @dataclass(frozen=True)
@@ -320,6 +347,124 @@ def compare_agents(
             }
         )
     return pd.DataFrame(rows, columns=columns)
+
+
+# ---------------------------------------------------------------------------------------------
+# Aggregates over a set of tasks (Agarwal et al., 2021, "Deep RL at the edge of the statistical
+# precipice"; the method of the `rliable` package).
+#
+# rliable itself is not a dependency: its release (1.2.0) needs `arch`, whose newest release
+# (7.2.0) fails to import beside the newest `statsmodels` (0.15.0) that pip resolves with it
+# (``deprecate_kwarg()`` changed its signature), and it would add arch, statsmodels, seaborn and
+# absl-py for two functions. IQM and the stratified percentile bootstrap below follow
+# `rliable.metrics.aggregate_iqm` and `rliable.library.get_interval_estimates` (whose default
+# interval is the percentile one), with numpy and scipy.
+
+
+@dataclass(frozen=True)
+class IQMResult:
+    """The interquartile mean of scores over a set of tasks, with its stratified bootstrap CI.
+
+    Attributes:
+        iqm: Interquartile mean of all (task, run) scores pooled.
+        ci_low: Lower end of the percentile interval of the stratified bootstrap.
+        ci_high: Upper end of that interval.
+        n_tasks: Tasks with at least one finite score.
+        n_runs: Runs (seeds) of the task that has the fewest.
+        few_seeds: ``n_runs < FEW_SEEDS``: the interval is rough.
+    """
+
+    iqm: float
+    ci_low: float
+    ci_high: float
+    n_tasks: int
+    n_runs: int
+    few_seeds: bool
+
+
+def iqm(values: Sequence[float] | np.ndarray) -> float:
+    """Interquartile mean: the mean of the middle 50% of the values (NaNs dropped).
+
+    The same as ``rliable.metrics.aggregate_iqm``: :func:`scipy.stats.trim_mean` cutting 25% at
+    each end of the flattened values.
+
+    Args:
+        values: Scores of any shape (typically ``(n_runs, n_tasks)``); they are pooled.
+
+    Returns:
+        The IQM (NaN with no finite value).
+
+    Examples:
+        >>> iqm([1.0, 2.0, 3.0, 4.0, 100.0, -100.0, 2.5, 3.5])
+        2.75
+    """
+    from scipy import stats
+
+    x = _clean(np.ravel(np.asarray(values, dtype=np.float64)))
+    return float(stats.trim_mean(x, 0.25)) if len(x) else math.nan
+
+
+def aggregate_iqm(
+    task_scores: Mapping[str, Sequence[float] | np.ndarray]
+    | Sequence[Sequence[float] | np.ndarray]
+    | np.ndarray,
+    *,
+    confidence: float = 0.95,
+    n_resamples: int = 10_000,
+    seed: int = 0,
+) -> IQMResult:
+    """IQM of scores over tasks, with a stratified percentile bootstrap confidence interval.
+
+    Each bootstrap resample draws, for every task on its own, as many runs as the task has, with
+    replacement ("stratified": a resample never trades one task's runs for another's), pools
+    them and takes the IQM. Scores of different tasks must be on one scale (normalized scores,
+    e.g. ``(R - R_random) / (R_target - R_random)``).
+
+    Args:
+        task_scores: Per-task scores: ``{task: values of shape (n_runs,)}``, a sequence of such
+            arrays (tasks may have different numbers of runs), or one array of shape
+            ``(n_runs, n_tasks)`` as rliable takes it. NaNs are dropped; a task left with no
+            value is left out.
+        confidence: Coverage of the interval.
+        n_resamples: Bootstrap resamples.
+        seed: Seed of the resampling generator (the interval is reproducible).
+
+    Returns:
+        The point estimate, the interval, the numbers of tasks and runs, and the few-seeds flag;
+        all NaN with no score at all.
+
+    Examples:
+        >>> result = aggregate_iqm({"a": [0.1, 0.2, 0.3], "b": [0.8, 0.9, 1.0]})
+        >>> round(result.iqm, 3), result.n_tasks, result.few_seeds
+        (0.55, 2, True)
+    """
+    from scipy import stats
+
+    if isinstance(task_scores, Mapping):
+        columns = [_clean(v) for v in task_scores.values()]
+    elif isinstance(task_scores, np.ndarray) and task_scores.ndim == 2:
+        columns = [_clean(task_scores[:, k]) for k in range(task_scores.shape[1])]
+    else:
+        columns = [_clean(v) for v in task_scores]
+    columns = [c for c in columns if len(c)]
+    if not columns:
+        return IQMResult(math.nan, math.nan, math.nan, 0, 0, True)
+    n_runs = min(len(c) for c in columns)
+    rng = np.random.default_rng(seed)
+    resampled = np.concatenate(
+        [c[rng.integers(0, len(c), size=(n_resamples, len(c)))] for c in columns], axis=1
+    )  # (n_resamples, total runs): each task's runs drawn from that task only
+    estimates = stats.trim_mean(resampled, 0.25, axis=1)
+    alpha = (1 - confidence) / 2
+    low, high = np.quantile(estimates, [alpha, 1 - alpha])
+    return IQMResult(
+        iqm=iqm(np.concatenate(columns)),
+        ci_low=float(low),
+        ci_high=float(high),
+        n_tasks=len(columns),
+        n_runs=n_runs,
+        few_seeds=n_runs < FEW_SEEDS,
+    )
 
 
 def _clean(values: Sequence[float] | np.ndarray | pd.Series) -> np.ndarray:
