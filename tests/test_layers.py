@@ -45,7 +45,7 @@ PACKAGE_DIR = Path(__file__).resolve().parents[1] / PACKAGE
 # Lowest first. A unit may import from its own row and the rows above it in this table.
 # The package's own __init__ (only its version) is the bottom: every module may import it.
 LAYERS: tuple[tuple[str, ...], ...] = (
-    ("ermrl", "ermrl._interrupt", "ermrl._io", "ermrl._text"),
+    ("ermrl", "ermrl._interrupt", "ermrl._io", "ermrl._progress", "ermrl._text"),
     ("ermrl.config",),
     ("ermrl.envs",),
     ("ermrl.encoders",),

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 import threadpoolctl
 
+from ermrl._progress import Progress
 from ermrl.agents._wandb import WandbRun
 from ermrl.config import BudgetConfig, EncoderConfig, PPOConfig, TaskConfig
 
@@ -187,6 +188,21 @@ def _episode_callback(result: RunResult, budget: BudgetConfig, report: ReportFn 
     return EpisodeRecorder()
 
 
+def _progress_callback(progress: Progress) -> Any:
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class ProgressCallback(BaseCallback):
+        def _on_step(self) -> bool:
+            progress.update(self.num_timesteps)
+            return True
+
+        def _on_training_end(self) -> None:
+            progress.update(self.num_timesteps)
+            progress.close()
+
+    return ProgressCallback()
+
+
 def _evaluate(
     model: Any,
     task: TaskConfig,
@@ -320,6 +336,7 @@ def train_agent(
     eval_at: Sequence[int] = (),
     wandb: WandbRun | None = None,
     callbacks: Sequence[Any] = (),
+    progress: Progress | None = None,
 ) -> RunResult:
     """Train the learner of ``ppo.learner`` (PPO by default) on a task for one seed and measure
     its returns.
@@ -351,6 +368,8 @@ def train_agent(
             TensorBoard scalars synced, the outcome in the W&B run's summary); see
             :mod:`ermrl.agents._wandb`. Needs the ``wandb`` package.
         callbacks: More SB3 callbacks, called after ermrl's own.
+        progress: Told the learner's env steps as training goes (a line every tenth of the
+            budget or 30 s, with the rate from the first step on), and closed at the end.
 
     Returns:
         The run's returns and timings.
@@ -375,7 +394,7 @@ def train_agent(
             result = train_agent(
                 task, encoder, ppo, budget, seed, evaluate=evaluate, model_path=model_path,
                 report=report, tensorboard_log=log_dir, eval_at=eval_at,
-                callbacks=(*callbacks, wandb_callback),
+                callbacks=(*callbacks, wandb_callback), progress=progress,
             )  # fmt: skip
             run.summary.update(
                 {
@@ -405,6 +424,8 @@ def train_agent(
         # PPO(seed=...) reseeds the env with the agent seed; give the envs their own seed.
         env.seed(seeds.env)
         recorder = _episode_callback(result, budget, report)
+        if progress is not None:
+            callbacks = (*callbacks, _progress_callback(progress))
         callback: Any = [recorder, *callbacks] if callbacks else recorder
         if eval_at:
 

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
+from ermrl._progress import PROGRESS_MODES
 from ermrl.cli._common import (
     EXIT_INTERRUPTED,
     ArgumentParser,
@@ -176,6 +177,13 @@ def build_test_parser(prog: str = "ermrl test") -> ArgumentParser:
         help="also log each run to the Weights & Biases project PROJECT (wandb's SB3 callback; "
         "the runs of one test folder form a group; WANDB_MODE=offline logs locally; "
         "needs: pip install 'ermrl[wandb]')",
+    )
+    parser.add_argument(
+        "--progress",
+        choices=PROGRESS_MODES,
+        default="lines",
+        help="lines: a line per run every tenth of its steps or 30 s, with its rate (counted from "
+        "its first step, start-up excluded) and ETA; none: a line per finished run only",
     )
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
     return parser
@@ -394,6 +402,7 @@ def plan_test_phase(
         overwrite=args.overwrite,
         tensorboard=Path(tensorboard) if tensorboard else None,
         wandb=getattr(args, "wandb", None),
+        progress=getattr(args, "progress", "lines"),
     )
     warning = None
     # Only when the ranking would have picked the trial: not with --trial, nor when no agent

@@ -40,6 +40,7 @@ import pandas as pd
 import yaml
 
 from ermrl._io import write_atomic
+from ermrl._progress import Progress, ProgressMode, duration
 from ermrl._text import plural
 from ermrl.agents import RunResult, WandbRun, pool_size, train_agent, training_pool
 from ermrl.analysis import (
@@ -288,6 +289,8 @@ class TestSettings:
             (needs the ``tensorboard`` package).
         wandb: Log each run to this Weights & Biases project, as run ``<agent>-seed<s>`` in
             the group named after ``out`` (needs the ``wandb`` package).
+        progress: ``"lines"``: a progress line of each run every tenth of its steps or 30 s
+            (:class:`ermrl._progress.Progress`); ``"none"``: a line per finished run only.
     """
 
     __test__ = False  # not a pytest test class
@@ -303,6 +306,7 @@ class TestSettings:
     overwrite: bool = False
     tensorboard: Path | None = None
     wandb: str | None = None
+    progress: ProgressMode = "lines"
 
     def __post_init__(self) -> None:
         if self.training_steps < 1:
@@ -363,7 +367,7 @@ def study_reservoirs(
 
 
 def _train_job(args: tuple[Any, ...]) -> RunResult:
-    task, encoder, ppo, budget, seed, evaluate, model_path, tensorboard_log, wandb = args
+    task, encoder, ppo, budget, seed, evaluate, model_path, tensorboard_log, wandb, progress = args
     return train_agent(
         task,
         encoder,
@@ -374,6 +378,7 @@ def _train_job(args: tuple[Any, ...]) -> RunResult:
         model_path=model_path,
         tensorboard_log=tensorboard_log,
         wandb=wandb,
+        progress=progress,
     )
 
 
@@ -704,9 +709,15 @@ def run_comparison(
                     },
                 )
             )  # fmt: skip
+            progress = Progress(
+                f"{agent.name} seed {seed}",
+                budget.training_steps,
+                mode="none" if quiet else settings.progress,
+                stream=stream if settings.n_procs == 1 else None,  # a worker prints to stdout
+            )
             job = (
                 agent.task(task), enc, ppo_of(agent), budget, seed, settings.evaluate,
-                model_path, tb_log, wandb,
+                model_path, tb_log, wandb, progress,
             )  # fmt: skip
             jobs.append((agent, seed, job))
 
@@ -733,7 +744,7 @@ def run_comparison(
             quiet,
             f"[run {done}/{len(jobs)}] {agent.name} seed {seed}: final return "
             f"{result.last_return:.4g} | {result.steps_per_second:.0f} steps/s | "
-            f"{result.wall_seconds:.0f}s | ETA {eta:.0f}s",
+            f"{result.wall_seconds:.0f}s | ETA {duration(eta)}",
         )
 
     jobs = _train_populations(jobs, budget, settings, finished, stream, quiet)

@@ -1,0 +1,122 @@
+"""Progress of long work (a training run, a generation): steps done, rate and ETA.
+
+One :class:`Progress` per piece of work. It prints a line when a tenth of the work is done or
+``interval`` seconds have passed since the last line, whichever comes first, and a last line at
+the end (``mode="lines"``); ``mode="none"`` prints nothing. The rate counts from the first
+:meth:`Progress.update`, not from the object's creation: start-up (imports, env construction,
+spawning processes) is not work, and counting it made the first run's rate look ten times
+lower than training's.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from collections.abc import Callable
+from typing import Literal, TextIO
+
+__all__ = ["PROGRESS_MODES", "Progress", "ProgressMode", "duration"]
+
+ProgressMode = Literal["lines", "none"]
+PROGRESS_MODES: tuple[ProgressMode, ...] = ("lines", "none")
+
+
+def duration(seconds: float) -> str:
+    """``"1h02m"``, ``"3m05s"``, or ``"?"`` when not finite.
+
+    Examples:
+        >>> duration(3725), duration(185), duration(float("inf"))
+        ('1h02m', '3m05s', '?')
+    """
+    if not math.isfinite(seconds):
+        return "?"
+    whole = int(round(seconds))
+    h, rem = divmod(whole, 3600)
+    m, s = divmod(rem, 60)
+    return f"{h}h{m:02d}m" if h else f"{m}m{s:02d}s"
+
+
+class Progress:
+    """Lines of ``[label] done/total unit (pct) | rate | ETA`` at a steady interval.
+
+    Args:
+        label: What is progressing, e.g. ``"res-ppo seed 10"``.
+        total: The amount of work, e.g. training steps.
+        mode: ``"lines"`` or ``"none"``.
+        interval: Seconds between lines at most.
+        fraction: A line each time this fraction of ``total`` is passed.
+        stream: Where lines go (default: ``sys.stdout`` at each line).
+        unit: The unit of work, for the lines.
+        clock: The clock (tests pass a fake one).
+    """
+
+    def __init__(
+        self,
+        label: str,
+        total: int,
+        *,
+        mode: ProgressMode = "lines",
+        interval: float = 30.0,
+        fraction: float = 0.1,
+        stream: TextIO | None = None,
+        unit: str = "steps",
+        clock: Callable[[], float] | None = None,
+    ) -> None:
+        if mode not in PROGRESS_MODES:
+            raise ValueError(f"progress mode must be one of {PROGRESS_MODES}, got {mode!r}")
+        self.label, self.total, self.mode, self.unit = label, max(int(total), 1), mode, unit
+        self.interval, self.step = interval, max(int(self.total * fraction), 1)
+        self._stream = stream
+        self._clock = clock or time.monotonic
+        self._t0: float | None = None
+        self._done0 = 0
+        self._last_time = 0.0
+        self._next_mark = 0
+        self.done = 0
+        self.lines: list[str] = []  # every line printed, for callers and tests
+
+    def rate(self, now: float | None = None) -> float:
+        """Units per second since the first update (``nan`` before two updates)."""
+        if self._t0 is None:
+            return math.nan
+        elapsed = (self._clock() if now is None else now) - self._t0
+        return (self.done - self._done0) / elapsed if elapsed > 0 else math.nan
+
+    def update(self, done: int) -> None:
+        """Record that ``done`` units are done (a running total); print a line when due."""
+        now = self._clock()
+        self.done = int(done)
+        if self._t0 is None:  # the first update marks the end of start-up
+            self._t0, self._done0, self._last_time = now, self.done, now
+            self._next_mark = (self.done // self.step + 1) * self.step
+            return
+        if self.done >= self._next_mark or now - self._last_time >= self.interval:
+            self._emit(now)
+
+    def close(self) -> None:
+        """Print the last line (once), unless the last update already printed it."""
+        if self._t0 is not None and (not self.lines or self._last_done != self.done):
+            self._emit(self._clock())
+
+    def line(self, now: float) -> str:
+        """The progress line at ``now``."""
+        rate = self.rate(now)
+        left = max(self.total - self.done, 0)
+        eta = left / rate if rate > 0 else math.inf
+        pct = 100.0 * min(self.done, self.total) / self.total
+        rate_text = "?" if not math.isfinite(rate) else f"{rate:.0f}"
+        return (
+            f"[{self.label}] {self.done:,}/{self.total:,} {self.unit} ({pct:.0f}%) | "
+            f"{rate_text} {self.unit}/s | ETA {duration(eta)}"
+        )
+
+    def _emit(self, now: float) -> None:
+        text = self.line(now)
+        self.lines.append(text)
+        self._last_time, self._last_done = now, self.done
+        self._next_mark = (self.done // self.step + 1) * self.step
+        if self.mode == "lines":
+            print(text, file=self._stream or sys.stdout, flush=True)
+
+    _last_done = -1

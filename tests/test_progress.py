@@ -1,0 +1,120 @@
+"""Progress lines inside long work: when they come, what rate they show, and in a real test phase."""
+
+from __future__ import annotations
+
+import io
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from ermrl._progress import Progress, duration
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_rate_excludes_start_up_and_lines_come_every_tenth_or_interval() -> None:
+    clock, out = Clock(), io.StringIO()
+    p = Progress("run", 10_000, interval=30.0, stream=out, clock=clock)
+    clock.now = 100.0  # 100 s of start-up before the first step
+    p.update(0)
+    clock.now = 105.0
+    p.update(500)  # 5%: no line yet
+    assert p.lines == []
+    clock.now = 110.0
+    p.update(1_000)  # 10%: a line, at 100 steps/s (not 1000 / 110 s)
+    assert p.lines == ["[run] 1,000/10,000 steps (10%) | 100 steps/s | ETA 1m30s"]
+    clock.now = 145.0
+    p.update(1_100)  # 35 s since the last line: a line although the next tenth is far
+    assert len(p.lines) == 2 and "(11%)" in p.lines[-1]
+    clock.now = 200.0
+    p.update(10_000)
+    p.close()  # the last update printed the final line: not twice
+    assert p.lines[-1].startswith("[run] 10,000/10,000 steps (100%)") and len(p.lines) == 3
+    assert out.getvalue().splitlines() == p.lines
+
+
+def test_none_prints_nothing_and_bad_mode_is_refused() -> None:
+    out = io.StringIO()
+    p = Progress("run", 10, mode="none", stream=out)
+    for i in range(11):
+        p.update(i)
+    p.close()
+    assert out.getvalue() == ""
+    with pytest.raises(ValueError, match="progress mode"):
+        Progress("run", 10, mode="bar")  # type: ignore[arg-type]
+
+
+def test_duration() -> None:
+    assert duration(59.6) == "1m00s" and duration(7260) == "2h01m" and duration(float("nan")) == "?"
+
+
+def test_train_agent_reports_its_steps() -> None:
+    from ermrl.agents import resolve_ppo_config, train_agent
+    from ermrl.config import BudgetConfig, TaskConfig
+
+    ppo = resolve_ppo_config(
+        "CartPole-v1", {"n_steps": 64, "batch_size": 64, "n_epochs": 1}, n_envs=1
+    )
+    out = io.StringIO()
+    progress = Progress("ppo seed 0", 640, stream=out)
+    train_agent(
+        TaskConfig("CartPole-v1", "all"),
+        None,
+        ppo,
+        BudgetConfig(training_steps=640),
+        0,
+        progress=progress,
+    )
+    lines = out.getvalue().splitlines()
+    assert len(lines) >= 9  # a line per tenth (each rollout of 64 steps is one)
+    assert lines[-1].startswith("[ppo seed 0] 640/640 steps (100%)")
+    assert all(re.search(r"\| \d+ steps/s \| ETA ", line) for line in lines)
+
+
+def ermrl(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "ermrl", *args], cwd=cwd, capture_output=True, text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"}, timeout=600,
+    )  # fmt: skip
+
+
+def test_test_phase_prints_progress_inside_each_run(tmp_path: Path) -> None:
+    names = ["--storage", f"sqlite:///{tmp_path}/s.db", "--study-name", "p"]
+    proc = ermrl(
+        "evolve", "--env-id", "CartPole-v1", "--n-trials", "1", "--n-seeds", "1",
+        "--training-steps", "128", "--n-envs", "1", "--units", "10",
+        "--ppo", "n_steps=64", "batch_size=32", "n_epochs=1", *names, "--quiet", cwd=tmp_path,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    common = [
+        "test",
+        *names,
+        "--agents",
+        "ppo",
+        "res-ppo",
+        "--seeds",
+        "20",
+        "--training-steps",
+        "640",
+        "--backend",
+        "sb3",  # the population backend reports per generation, not per run
+    ]
+    lines = ermrl(*common, "--out", "a", "--n-procs", "2", cwd=tmp_path)
+    assert lines.returncode == 0, lines.stderr
+    for agent in ("ppo", "res-ppo"):  # printed by the worker processes, one run each
+        inside = [x for x in lines.stdout.splitlines() if x.startswith(f"[{agent} seed 20] ")]
+        assert len(inside) >= 5 and "640/640 steps (100%)" in inside[-1], lines.stdout
+    none = ermrl(*common, "--out", "b", "--progress", "none", cwd=tmp_path)
+    assert none.returncode == 0, none.stderr
+    assert not [x for x in none.stdout.splitlines() if x.startswith("[ppo seed 20] ")]
+    assert "[run 2/2]" in none.stdout  # the finished-run lines stay
