@@ -1,7 +1,8 @@
 """Stacked actor-critic MLPs: SB3's PPO ``MlpPolicy`` for ``P`` agents at once.
 
 Each layer holds the weights of every agent in one tensor ``[P, in, out]`` (biases ``[P, 1, out]``),
-so a forward pass is one ``bmm`` per layer. Rollouts run the same weights through numpy (views of
+so a forward pass is one ``bmm`` per layer; these tensors are views into one flat ``[P, N]`` buffer
+(one row per agent), which the gradient clipping and Adam treat as a whole. Rollouts run the same weights through numpy (views of
 the torch tensors), which is several times faster than torch for these small products on a CPU.
 The network is SB3's: separate policy and value MLPs (``net_arch``, default 64-64, tanh), an
 action head (diagonal Gaussian with a state-independent ``log_std``, gSDE, or categorical) and a
