@@ -1,7 +1,8 @@
 """Stacked actor-critic MLPs: SB3's PPO ``MlpPolicy`` for ``P`` agents at once.
 
 Each layer holds the weights of every agent in one tensor ``[P, in, out]`` (biases ``[P, 1, out]``),
-so a forward pass is one ``bmm`` per layer. Rollouts run the same weights through numpy (views of
+so a forward pass is one ``bmm`` per layer; these tensors are views into one flat ``[P, N]`` buffer
+(one row per agent), which the gradient clipping and Adam treat as a whole. Rollouts run the same weights through numpy (views of
 the torch tensors), which is several times faster than torch for these small products on a CPU.
 The network is SB3's: separate policy and value MLPs (``net_arch``, default 64-64, tanh), an
 action head (diagonal Gaussian with a state-independent ``log_std``, gSDE, or categorical) and a
@@ -18,10 +19,14 @@ from typing import Any
 import numpy as np
 import torch
 
-__all__ = ["PolicySpec", "StackedAdam", "StackedPolicy", "policy_spec"]
+__all__ = ["ROW_ALIGN", "PolicySpec", "StackedAdam", "StackedPolicy", "policy_spec"]
 
 LOG_SQRT_2PI = 0.5 * math.log(2 * math.pi)
 SDE_EPSILON = 1e-6  # SB3's StateDependentNoiseDistribution epsilon
+# A row of the flat parameter buffer is padded to a multiple of this many elements (wider than any
+# CPU kernel's unrolled SIMD step), so elementwise kernels treat each agent's elements alike for
+# any number of rows: none falls in a scalar tail that would round differently.
+ROW_ALIGN = 64
 
 
 class PolicySpec:
@@ -146,64 +151,66 @@ def _init_linear(
 
 
 class StackedAdam:
-    """Adam over stacked per-agent weights: ``torch.optim.Adam``'s arithmetic, op for op.
+    """Adam over a population's flat parameter buffer: ``torch.optim.Adam``'s arithmetic, op for op.
 
-    Adam is elementwise, so one Adam over the stacked tensors is one Adam per agent. Written out
-    (with torch's ``_foreach`` ops, as its ``foreach`` implementation) rather than
-    ``torch.optim.Adam`` because building that imports ``torch._dynamo`` (1.4 s per process) and
-    its fused CPU kernel rounds a tensor's SIMD body and scalar tail differently, which would make
-    an agent's update depend on the population size. Slicing agents away is :meth:`keep`.
+    The whole population's weights are one ``[P, N]`` tensor (see :class:`StackedPolicy`), so a step
+    is seven elementwise ops on it, whatever the number of layers. Adam is elementwise, so one Adam
+    over the buffer is one Adam per agent. Written out rather than ``torch.optim.Adam`` because
+    building that imports ``torch._dynamo`` (1.4 s per process) and its fused CPU kernel rounds a
+    tensor's SIMD body and scalar tail differently. Here every row's length ``N`` is a multiple of
+    :data:`ROW_ALIGN` elements, so no agent's element ever falls in a kernel's scalar tail and an
+    agent's update does not depend on the population size. Slicing agents away is :meth:`keep`.
 
     Args:
-        params: The stacked parameters (agent axis first).
+        params: The flat parameters ``[P, N]`` (agent axis first), updated in place.
         lr: Learning rate (set :attr:`lr` to change it).
+        betas: Adam's ``(beta1, beta2)``.
         eps: SB3's PPO uses 1e-5.
     """
 
     def __init__(
         self,
-        params: Sequence[torch.Tensor],
+        params: torch.Tensor,
         lr: float,
         betas: tuple[float, float] = (0.9, 0.999),
         eps: float = 1e-5,
     ) -> None:
-        self.params = list(params)
+        self.params = params
         self.lr, self.betas, self.eps = lr, betas, eps
         self.steps = 0
-        self.exp_avg = [torch.zeros_like(p) for p in self.params]
-        self.exp_avg_sq = [torch.zeros_like(p) for p in self.params]
-
-    def zero_grad(self) -> None:
-        for p in self.params:
-            if p.grad is not None:
-                p.grad.zero_()
+        self.exp_avg = torch.zeros_like(params)
+        self.exp_avg_sq = torch.zeros_like(params)
 
     @torch.no_grad()
-    def step(self) -> None:
+    def step(self, grad: torch.Tensor) -> None:
+        """One Adam step with the gradient ``grad`` (``[P, N]``, as :attr:`params`)."""
         beta1, beta2 = self.betas
         self.steps += 1
-        grads = [p.grad if p.grad is not None else torch.zeros_like(p) for p in self.params]
-        torch._foreach_lerp_(self.exp_avg, grads, 1 - beta1)
-        torch._foreach_mul_(self.exp_avg_sq, beta2)
-        torch._foreach_addcmul_(self.exp_avg_sq, grads, grads, 1 - beta2)
+        self.exp_avg.lerp_(grad, 1 - beta1)
+        self.exp_avg_sq.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
         step = float(self.steps)
-        step_size = -(self.lr / (1 - beta1**step))
-        denom = torch._foreach_sqrt(self.exp_avg_sq)
-        torch._foreach_div_(denom, (1 - beta2**step) ** 0.5)
-        torch._foreach_add_(denom, self.eps)
-        torch._foreach_addcdiv_(self.params, self.exp_avg, denom, step_size)
+        step_size = self.lr / (1 - beta1**step)
+        denom = (self.exp_avg_sq.sqrt() / (1 - beta2**step) ** 0.5).add_(self.eps)
+        self.params.addcdiv_(self.exp_avg, denom, value=-step_size)
 
-    def keep(self, index: torch.Tensor, params: Sequence[torch.Tensor]) -> StackedAdam:
-        """The optimizer of the agents ``index`` (their new, sliced ``params``)."""
+    def keep(self, index: torch.Tensor, params: torch.Tensor) -> StackedAdam:
+        """The optimizer of the agents ``index`` (their new, sliced flat ``params``)."""
         out = StackedAdam(params, self.lr, self.betas, self.eps)
         out.steps = self.steps
-        out.exp_avg = [m[index].clone() for m in self.exp_avg]
-        out.exp_avg_sq = [v[index].clone() for v in self.exp_avg_sq]
+        out.exp_avg = self.exp_avg[index].clone()
+        out.exp_avg_sq = self.exp_avg_sq[index].clone()
         return out
 
 
 class StackedPolicy:
-    """The policies of ``P`` agents as stacked torch parameters.
+    """The policies of ``P`` agents as stacked torch parameters in one flat buffer.
+
+    All weights live in one contiguous tensor :attr:`flat` of shape ``[P, N]``, agent-major: row
+    ``p`` holds agent ``p``'s weights and biases one after another (then zeros up to a multiple of
+    :data:`ROW_ALIGN`). Each entry of :attr:`params` (``pi0.w`` ``[P, in, out]``, ``pi0.b``
+    ``[P, 1, out]``, ..., ``log_std``) is a view into it, so the products read the weights in place
+    while zeroing, per-agent gradient norms and Adam are a few ops on the whole buffer
+    (:meth:`flat_grad`, :class:`StackedAdam`).
 
     Args:
         spec: The network.
@@ -213,7 +220,6 @@ class StackedPolicy:
     def __init__(self, spec: PolicySpec, init_seeds: Sequence[int]) -> None:
         self.spec = spec
         P = len(init_seeds)
-        self.params: dict[str, torch.nn.Parameter] = {}
         shapes: list[tuple[str, int, int, float]] = []
         for prefix, arch in (("pi", spec.pi), ("vf", spec.vf)):
             d = spec.obs_dim
@@ -222,30 +228,67 @@ class StackedPolicy:
                 d = h
         shapes.append(("action", spec.latent_pi, spec.action_dim, 0.01))
         shapes.append(("value", spec.latent_vf, 1, 1.0))
+        # Each parameter's shape per agent, in the order of its block in a row of the buffer.
+        self.layout: dict[str, tuple[int, ...]] = {}
         for name, d_in, d_out, _ in shapes:
-            self.params[f"{name}.w"] = torch.nn.Parameter(torch.zeros(P, d_in, d_out))
-            self.params[f"{name}.b"] = torch.nn.Parameter(torch.zeros(P, 1, d_out))
+            self.layout[f"{name}.w"] = (d_in, d_out)
+            self.layout[f"{name}.b"] = (1, d_out)
         if not spec.discrete:
-            shape = (P, spec.latent_pi, spec.action_dim) if spec.use_sde else (P, spec.action_dim)
-            self.params["log_std"] = torch.nn.Parameter(torch.full(shape, spec.log_std_init))
+            self.layout["log_std"] = (
+                (spec.latent_pi, spec.action_dim) if spec.use_sde else (spec.action_dim,)
+            )
+        used = sum(math.prod(shape) for shape in self.layout.values())
+        self.row_size = -(-used // ROW_ALIGN) * ROW_ALIGN
+        self._bind(torch.zeros(P, self.row_size))
         with torch.no_grad():
+            if not spec.discrete:
+                self.params["log_std"].fill_(spec.log_std_init)
             for p, seed in enumerate(init_seeds):
                 gen = torch.Generator().manual_seed(int(seed))
                 for name, _, _, gain in shapes:
                     w, b = self.params[f"{name}.w"][p], self.params[f"{name}.b"][p, 0]
                     _init_linear(w, b, gain, spec.ortho_init, gen)
+
+    def _bind(self, flat: torch.Tensor) -> None:
+        """Make ``flat`` (``[P, row_size]``) the buffer, :attr:`params` views of it, and
+        :attr:`np` numpy views of those."""
+        self.flat = flat
+        P, offset = flat.shape[0], 0
+        self.params: dict[str, torch.nn.Parameter] = {}
+        for name, shape in self.layout.items():
+            size = math.prod(shape)
+            view = flat[:, offset : offset + size].view(P, *shape)
+            self.params[name] = torch.nn.Parameter(view)  # shares the buffer's storage
+            offset += size
+        self._pad = torch.zeros(P, self.row_size - offset)
         self.refresh()
 
     @property
     def n_agents(self) -> int:
-        return int(self.params["value.w"].shape[0])
+        return int(self.flat.shape[0])
 
     def parameters(self) -> list[torch.nn.Parameter]:
         return list(self.params.values())
 
     def refresh(self) -> None:
-        """Numpy views of the weights (after the parameters were replaced)."""
+        """Numpy views of the weights (they follow every in-place update of the buffer)."""
         self.np = {k: v.detach().numpy() for k, v in self.params.items()}
+
+    def keep(self, index: torch.Tensor) -> None:
+        """Keep only the agents ``index`` (a new buffer: rebuilt views, numpy views included)."""
+        self._bind(self.flat[index].clone())
+
+    def flat_grad(self, grads: Sequence[torch.Tensor | None]) -> torch.Tensor:
+        """The gradients of :meth:`parameters` (``None``: zero) laid out as the buffer, ``[P, N]``.
+
+        One concatenation: each agent's gradient is then one row, so its norm is one reduction.
+        """
+        P = self.n_agents
+        parts = [
+            torch.zeros(P, math.prod(shape)) if g is None else g.reshape(P, -1)
+            for g, shape in zip(grads, self.layout.values())
+        ]
+        return torch.cat([*parts, self._pad], dim=1)
 
     # -- numpy forward (rollouts) --------------------------------------------------------------
     def _mlp_np(self, x: np.ndarray, prefix: str, n: int, p: Any = slice(None)) -> np.ndarray:

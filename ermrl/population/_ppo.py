@@ -5,8 +5,9 @@ environments, seeds, reservoir, normalization, network and PPO update (GAE with 
 bootstrapping, clipped objective, value loss, entropy bonus, advantage normalization, Adam with
 eps 1e-5, gradient clipping, minibatches, epochs, linear schedules, gSDE). What is shared is only
 the arithmetic: environments are stepped one after another, the reservoirs and the policies of all
-agents run as stacked products, and one ``Adam`` steps the stacked weights (Adam is elementwise,
-so that equals one Adam per agent; the gradient clipping is per agent).
+agents run as stacked products, and all weights live in one flat ``[P, N]`` buffer (one row per
+agent) that one ``Adam`` steps in a few ops (Adam is elementwise, so that equals one Adam per
+agent; the gradient clipping is per agent: one norm per row).
 
 Each agent draws from its own random streams (weight initialization, action noise, gSDE
 matrices, minibatch permutations), derived from its seed: its result does not depend on the size
@@ -211,7 +212,7 @@ class PopulationPPO:
         self.clip_range_vf = (
             None if self.s["clip_range_vf"] is None else _schedule(self.s["clip_range_vf"])
         )
-        self.optimizer = StackedAdam(self.policy.parameters(), self.lr(1.0), eps=1e-5)
+        self.optimizer = StackedAdam(self.policy.flat, self.lr(1.0), eps=1e-5)
         self.alive = list(range(len(jobs)))  # position in the arrays -> job index
         self.failed: dict[int, BaseException] = {}
         self.episodes: list[list[tuple[float, int]]] = [[] for _ in jobs]
@@ -237,13 +238,8 @@ class PopulationPPO:
         if self._sde is not None:
             self._sde = self._sde[keep]
         index = torch.from_numpy(keep)
-        new_params = {
-            name: torch.nn.Parameter(param.detach()[index].clone())
-            for name, param in self.policy.params.items()
-        }
-        self.optimizer = self.optimizer.keep(index, list(new_params.values()))
-        self.policy.params = new_params
-        self.policy.refresh()
+        self.policy.keep(index)
+        self.optimizer = self.optimizer.keep(index, self.policy.flat)
         return keep
 
     # -- rollouts ------------------------------------------------------------------------------
@@ -462,22 +458,15 @@ class PopulationPPO:
                 value_loss = ((b_ret - values) ** 2).mean(1)
                 entropy_loss = -entropy.mean(1)
                 loss = policy_loss + ent_coef * entropy_loss + vf_coef * value_loss
-                self.optimizer.zero_grad()
-                loss.sum().backward()
-                # Per-agent clip_grad_norm_ (SB3 clips each agent's whole gradient).
-                grads = [p.grad for p in params if p.grad is not None]
-                norms = torch.stack(
-                    [torch.linalg.vector_norm(g.reshape(P, -1), dim=1) for g in grads]
+                grad = self.policy.flat_grad(
+                    torch.autograd.grad(loss.sum(), params, allow_unused=True)
                 )
-                # Reduced along contiguous rows: the summation order is then the same for any P.
-                total = torch.linalg.vector_norm(norms.T.contiguous(), dim=1)
-                coef = torch.clamp(max_norm / (total + 1e-6), max=1.0)
-                for g in grads:
-                    g.mul_(coef.view(P, *([1] * (g.dim() - 1))))
-                self.optimizer.step()
-        finite = torch.stack(
-            [torch.isfinite(p.detach().reshape(P, -1)).all(1) for p in params]
-        ).all(0)
+                # Per-agent clip_grad_norm_ (SB3 clips each agent's whole gradient): one norm per
+                # row, reduced along a contiguous row, so in the same order for any P.
+                total = torch.linalg.vector_norm(grad, dim=1, keepdim=True)
+                grad.mul_(torch.clamp(max_norm / (total + 1e-6), max=1.0))
+                self.optimizer.step(grad)
+        finite = torch.isfinite(self.policy.flat).all(1)
         if not bool(finite.all()):
             return self._drop(
                 torch.nonzero(~finite).flatten().tolist(), "training diverged (NaN weights)"
