@@ -76,6 +76,16 @@ class Progress:
         self.done = 0
         self.lines: list[str] = []  # every line printed, for callers and tests
 
+    def renamed(self, label: str, *, stream: TextIO | None = None) -> Progress:
+        """A fresh progress of the same work and settings under another label (e.g. the part of
+        a population that a worker process trains; a worker prints to its own stdout)."""
+        other = Progress(
+            label, self.total, mode=self.mode, interval=self.interval, stream=stream,
+            unit=self.unit, clock=self._clock,
+        )  # fmt: skip
+        other.step = self.step
+        return other
+
     def rate(self, now: float | None = None) -> float:
         """Units per second since the first update (``nan`` before two updates)."""
         if self._t0 is None:

@@ -433,7 +433,13 @@ def test_ctrl_c_during_start_up_is_one_line(tmp_path: Path, command: list[str]) 
         cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         env={**os.environ, "PYTHONFAULTHANDLER": "1"},
     )  # fmt: skip
-    time.sleep(0.5)  # inside the imports: they take seconds
+    # Inside the imports: once torch's library is mapped, ermrl's handler is in place (a fixed
+    # delay raced the interpreter's own start-up on a loaded machine).
+    maps, deadline = Path(f"/proc/{proc.pid}/maps"), time.monotonic() + 120
+    while proc.poll() is None and time.monotonic() < deadline:
+        if "libtorch" in maps.read_text(errors="replace"):
+            break
+        time.sleep(0.02)
     proc.send_signal(signal.SIGINT)
     try:
         _, err = proc.communicate(timeout=120)

@@ -118,3 +118,24 @@ def test_test_phase_prints_progress_inside_each_run(tmp_path: Path) -> None:
     assert none.returncode == 0, none.stderr
     assert not [x for x in none.stdout.splitlines() if x.startswith("[ppo seed 20] ")]
     assert "[run 2/2]" in none.stdout  # the finished-run lines stay
+
+
+def test_population_backend_prints_progress_per_population(tmp_path: Path) -> None:
+    from ermrl.agents import resolve_ppo_config
+    from ermrl.config import BudgetConfig, TaskConfig
+    from ermrl.population import PopulationJob, train_population_parallel
+
+    ppo = resolve_ppo_config(
+        "CartPole-v1", {"n_steps": 64, "batch_size": 64, "n_epochs": 1}, n_envs=1
+    )
+    out = io.StringIO()
+    progress = Progress("population of 3 runs", 640, stream=out, unit="steps each")
+    results = train_population_parallel(
+        TaskConfig("CartPole-v1", "all"), ppo, BudgetConfig(training_steps=640),
+        [PopulationJob(None, s) for s in (1, 2, 3)], progress=progress,
+    )  # fmt: skip
+    assert len(results) == 3
+    lines = out.getvalue().splitlines()
+    assert len(lines) >= 9 and lines[-1].startswith(
+        "[population of 3 runs] 640/640 steps each (100%) | "
+    )

@@ -823,6 +823,13 @@ def _train_populations(
             n_procs=settings.n_procs,
             evaluate=settings.evaluate,
             model_paths=[args[6] for _, _, args in group],
+            progress=Progress(
+                f"population of {plural(len(group), 'run')} ({', '.join(names)})",
+                budget.training_steps,
+                mode="none" if quiet else settings.progress,
+                stream=stream if min(settings.n_procs, len(group)) == 1 else None,
+                unit="steps each",
+            ),
         )
         failure: BaseException | None = None
         for (agent, seed, _), result in zip(group, results):

@@ -12,6 +12,7 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
+from ermrl._progress import Progress
 from ermrl.agents._train import RunResult
 from ermrl.config import BudgetConfig, PPOConfig, TaskConfig
 from ermrl.population._ppo import PopulationJob, train_population
@@ -32,8 +33,10 @@ def split_jobs(n_jobs: int, n_parts: int) -> list[range]:
 
 
 def _train_part(args: tuple[Any, ...]) -> list[RunResult | BaseException]:
-    task, ppo, budget, jobs, evaluate, model_paths = args
-    return train_population(task, ppo, budget, jobs, evaluate=evaluate, model_paths=model_paths)
+    task, ppo, budget, jobs, evaluate, model_paths, progress = args
+    return train_population(
+        task, ppo, budget, jobs, evaluate=evaluate, model_paths=model_paths, progress=progress
+    )
 
 
 def train_population_parallel(
@@ -46,6 +49,7 @@ def train_population_parallel(
     pool: ProcessPoolExecutor | None = None,
     evaluate: bool | None = None,
     model_paths: Sequence[str | Path | None] | None = None,
+    progress: Progress | None = None,
 ) -> list[RunResult | BaseException]:
     """:func:`~ermrl.population.train_population` with the jobs split over ``n_procs`` processes.
 
@@ -53,6 +57,8 @@ def train_population_parallel(
         pool: Processes to use (e.g. from :func:`~ermrl.agents.training_pool`, kept across
             generations); ``None`` with ``n_procs > 1``: a pool for this call only.
         n_procs: Parts the population is split into (1: this process).
+        progress: Lines of the population's progress; with several parts, each part's process
+            prints its own, labelled ``part k/n``.
 
     Returns:
         One result or exception per job, in order.
@@ -66,8 +72,13 @@ def train_population_parallel(
             [jobs[i] for i in part],
             evaluate,
             None if model_paths is None else [model_paths[i] for i in part],
+            None
+            if progress is None
+            else progress
+            if len(parts) == 1
+            else progress.renamed(f"{progress.label}, part {k + 1}/{len(parts)}"),
         )
-        for part in parts
+        for k, part in enumerate(parts)
     ]
     if len(parts) == 1:
         return _train_part(args[0])

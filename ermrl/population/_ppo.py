@@ -29,6 +29,7 @@ import threadpoolctl
 import torch
 from gymnasium import spaces
 
+from ermrl._progress import Progress
 from ermrl.agents._train import NoEpisodeFinished, RunResult, TrainingDiverged, derive_seeds
 from ermrl.config import BudgetConfig, ConfigError, EncoderConfig, PPOConfig, TaskConfig
 from ermrl.population._envs import PopulationEnvs
@@ -293,8 +294,9 @@ class PopulationPPO:
         return actions if self.discrete else np.clip(actions, self.low, self.high)
 
     # -- training ------------------------------------------------------------------------------
-    def learn(self, total_timesteps: int) -> None:
-        """Train every agent for ``total_timesteps`` env steps (whole rollouts, as SB3)."""
+    def learn(self, total_timesteps: int, progress: Progress | None = None) -> None:
+        """Train every agent for ``total_timesteps`` env steps (whole rollouts, as SB3);
+        ``progress`` is told each agent's env steps as they go, and closed at the end."""
         start = time.perf_counter()
         s, E = self.s, self.envs.n_envs
         n_steps, gamma, lam = int(s["n_steps"]), float(s["gamma"]), float(s["gae_lambda"])
@@ -334,6 +336,8 @@ class PopulationPPO:
                         break
                 new_obs, rewards, _, dones, terminal, finished = self.envs.step(self._clip(actions))
                 self.num_timesteps += E
+                if progress is not None:
+                    progress.update(self.num_timesteps)
                 for p, _, ret, _ in finished:
                     self.episodes[self.alive[p]].append((ret, self.num_timesteps))
                 rewards = rewards.astype(np.float32)
@@ -359,15 +363,17 @@ class PopulationPPO:
             _, _, last_values = self.policy.forward_np(obs)
             adv, returns = compute_gae(buf_rew, buf_val, buf_start, last_values, dones, gamma, lam)
             self.timings["policy"] += time.perf_counter() - t0
-            progress = 1.0 - float(self.num_timesteps) / float(total_timesteps)
+            remaining = 1.0 - float(self.num_timesteps) / float(total_timesteps)
             t0 = time.perf_counter()
-            kept = self._train(progress, buf_obs, buf_act, buf_val, buf_logp, adv, returns)
+            kept = self._train(remaining, buf_obs, buf_act, buf_val, buf_logp, adv, returns)
             self.timings["update"] += time.perf_counter() - t0
             if kept is not None:  # agents whose weights became NaN were dropped
                 obs, starts = obs[kept], starts[kept]
         self.timings["env"] = self.envs.env_seconds
         self.timings["reservoir"] = self.envs.reservoir_seconds
         self.timings["total"] += time.perf_counter() - start
+        if progress is not None:
+            progress.close()
 
     def _train(
         self,
@@ -540,6 +546,7 @@ def train_population(
     *,
     evaluate: bool | None = None,
     model_paths: Sequence[str | Path | None] | None = None,
+    progress: Progress | None = None,
 ) -> list[RunResult | BaseException]:
     """Train ``jobs`` as one population in this process; one result per job, in order.
 
@@ -556,13 +563,14 @@ def train_population(
         jobs: The agents.
         evaluate: Run deterministic evaluation episodes (default: with the ``eval`` measure).
         model_paths: Per job, where to save the trained agent (``None``: not saved).
+        progress: Told the env steps each agent has made (see :class:`ermrl._progress.Progress`).
     """
     torch.set_num_threads(ppo.torch_threads)
     threadpoolctl.threadpool_limits(ppo.torch_threads)
     start = time.perf_counter()
     population = PopulationPPO(task, ppo, jobs)
     try:
-        population.learn(budget.training_steps)
+        population.learn(budget.training_steps, progress)
         eval_returns: dict[int, list[float]] = {}
         if (evaluate if evaluate is not None else budget.fitness == "eval") and population.n_agents:
             eval_returns = population.evaluate(budget.n_eval_episodes)
