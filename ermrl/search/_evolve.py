@@ -26,7 +26,7 @@ import os
 import sys
 import time
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TextIO
 
@@ -45,7 +45,10 @@ from ermrl.search._claim import (
     record,
     retry_policy,
 )
+from ermrl.search._generalization import generalization_generation
 from ermrl.search._objective import (
+    EvaluateFn,
+    EvaluateGenerationFn,
     FitnessResult,
     SeedRunner,
     decode_candidate,
@@ -91,13 +94,6 @@ class EvolutionSummary:
     best_value: float | None = None
     best_params: dict[str, float] | None = None
 
-
-EvaluateFn = Callable[
-    [EncoderConfig, SeedRunner, Callable[[int, float], None] | None], FitnessResult
-]
-EvaluateGenerationFn = Callable[
-    [Sequence[EncoderConfig], SeedRunner], list[FitnessResult | BaseException]
-]
 
 _FIRST_POLL = 0.5  # seconds between the first claims while waiting for other workers' trials
 
@@ -364,8 +360,6 @@ def run_evolution(
         generation = generation_size(config)
         if evaluate_generation is None:
             if config.generalization is not None:
-                from ermrl.search._generalization import generalization_generation
-
                 evaluate_generation = generalization_generation(config, quiet=quiet, stream=out)
             else:
 
