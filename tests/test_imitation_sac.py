@@ -10,8 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from ermrl.agents import resolve_ppo_config
-from ermrl.agents._policy_io import load_policy, policy_path
+from ermrl.agents import load_policy, policy_path, resolve_ppo_config
 from ermrl.agents._train import (
     NoEpisodeFinished,
     derive_seeds,

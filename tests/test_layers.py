@@ -7,23 +7,36 @@ with where it runs:
 - ``function``: inside a function (deferred until the function is called);
 - ``type-checking``: under ``if TYPE_CHECKING:`` (never runs; a dependency for the type checker).
 
-Two rules:
+Four rules:
 
-1. **No import cycle between units at module level.** A unit is a subpackage (``ermrl.search``)
-   or a top-level module (``ermrl.config``, ``ermrl.__main__``). The graph of ``module`` imports
-   between units must be acyclic: a cycle means which unit finishes importing first depends on
-   which one a caller happened to import first.
-2. **Layering.** :data:`LAYERS` orders the units, lowest first. A module may import from its own
+1. **No import cycle between units, whatever the kind of import.** A unit is a subpackage
+   (``ermrl.search``) or a top-level module (``ermrl.config``, ``ermrl.__main__``). The graph of
+   every import between units (``module``, ``function`` and ``type-checking`` alike) must be
+   acyclic: arrows point one way. A function-level import still makes the importer depend on
+   the imported unit, so one that goes back down the graph closes a circle as surely as a
+   module-level one; at module level a cycle also means which unit finishes importing first
+   depends on which one a caller happened to import first. A back arrow that cannot be avoided
+   goes in :data:`ALLOWED_BACK_IMPORTS` with its reason (none today).
+2. **No import cycle between the modules of one unit**, whatever the kind of import
+   (``ermrl.search._evolve`` uses ``ermrl.search._generalization``, never the other way). Only
+   imports of the unit's own ``__init__`` by its modules are left out: the ``__init__`` imports
+   every module to re-export it, and a module reads the unit's registry through it
+   (``ermrl.learners._base`` reads ``LEARNERS`` from ``ermrl.learners``).
+3. **Layering.** :data:`LAYERS` orders the units, lowest first. A module may import from its own
    layer or a lower one, never a higher one, whatever the kind of import (a function-level or
    ``TYPE_CHECKING`` import still ties the lower layer to the higher one). The order is the one the
    package's concepts give: configuration (and ``ermrl._io``, atomic file writes), then
-   environments, encoders, the inner-loop learners and agents (with the experts that imitation
-   learners query, trained by the agents' loop), the population backend (which
+   environments, encoders, the inner-loop learners (each algorithm, its agent's files and
+   the reading of the expert folders that imitation learners query), the agents (the training
+   loop and the settings it resolves), the experts (trained and evaluated by the agents' loop),
+   the population backend (which
    trains many agents at once with the agents' seeds and files), storage, the outer-loop search,
    analysis (which only reads results: studies and run folders), experiments (the test phase,
    which writes run folders and summarizes them with analysis), and the CLI on top. Storage sits above agents and below search, where the concepts put it: measured, it
    imports no other ermrl unit and only search, analysis and the CLI import it, so it needs no
    other place to avoid violations.
+4. The same cycle check at module level only (rule 1 implies it; its message says which unit
+   would import first).
 
 Violations that exist today are listed in :data:`KNOWN_VIOLATIONS`, each with why it is there,
 so that the test fails on any new one; when one disappears the test fails until it is removed
@@ -34,7 +47,8 @@ from __future__ import annotations
 
 import ast
 import graphlib
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import pytest
@@ -49,7 +63,9 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("ermrl.config",),
     ("ermrl.envs",),
     ("ermrl.encoders",),
-    ("ermrl.learners", "ermrl.agents", "ermrl.experts"),
+    ("ermrl.learners",),
+    ("ermrl.agents",),
+    ("ermrl.experts",),
     ("ermrl.population",),
     ("ermrl.storage",),
     ("ermrl.search",),
@@ -57,11 +73,16 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("ermrl.experiments",),
     ("ermrl.cli", "ermrl.__main__"),
 )
+ALL_KINDS = frozenset({"module", "function", "type-checking"})
 LAYER_OF: dict[str, int] = {unit: i for i, row in enumerate(LAYERS) for unit in row}
 
 # (importer module, imported module) pairs that break the layering today. Each one is a debt:
 # fix it by moving the shared code down a layer, then remove its entry here (the test says so).
 KNOWN_VIOLATIONS: frozenset[tuple[str, str]] = frozenset()
+
+# (importer unit, imported unit) -> why: imports left out of the cycle check between units
+# (rule 1), so that a circle they close is accepted. Empty: every arrow points one way.
+ALLOWED_BACK_IMPORTS: dict[tuple[str, str], str] = {}
 
 
 @dataclass(frozen=True)
@@ -184,14 +205,32 @@ def test_every_unit_has_a_layer() -> None:
     assert not missing, f"give each new subpackage/module a row in LAYERS: {missing}"
 
 
-def module_level_cycle(imports: list[Import]) -> str | None:
-    """A description of one cycle of module-level imports between units, or ``None``."""
+def import_cycle(
+    imports: list[Import],
+    node: Callable[[str], str] = unit_of,
+    kinds: frozenset[str] = ALL_KINDS,
+    skip: Callable[[Import], bool] = lambda imp: False,
+) -> str | None:
+    """A description of one import cycle, or ``None``.
+
+    Args:
+        imports: The imports found.
+        node: The graph's node of a module (its unit by default; the module itself for cycles
+            between the modules of one unit).
+        kinds: The kinds of import that are arrows.
+        skip: Imports that are no arrow.
+
+    Returns:
+        The cycle, importer first (``a -> b -> a``), then the import sites of each arrow.
+    """
+    arrows = [
+        imp
+        for imp in imports
+        if imp.kind in kinds and node(imp.importer) != node(imp.imported) and not skip(imp)
+    ]
     graph: dict[str, set[str]] = {}
-    for imp in imports:
-        a, b = unit_of(imp.importer), unit_of(imp.imported)
-        graph.setdefault(a, set())
-        if imp.kind == "module" and a != b:
-            graph[a].add(b)
+    for imp in arrows:
+        graph.setdefault(node(imp.importer), set()).add(node(imp.imported))
     try:
         tuple(graphlib.TopologicalSorter(graph).static_order())
     except graphlib.CycleError as err:
@@ -200,13 +239,24 @@ def module_level_cycle(imports: list[Import]) -> str | None:
         sites = [
             str(imp)
             for imported, importer in zip(cycle, cycle[1:])
-            for imp in imports
-            if imp.kind == "module"
-            and unit_of(imp.importer) == importer
-            and unit_of(imp.imported) == imported
+            for imp in arrows
+            if node(imp.importer) == importer and node(imp.imported) == imported
         ]
         return " -> ".join(reversed(cycle)) + ":\n  " + "\n  ".join(sites)
     return None
+
+
+def module_level_cycle(imports: list[Import]) -> str | None:
+    """A description of one cycle of module-level imports between units, or ``None``."""
+    return import_cycle(imports, kinds=frozenset({"module"}))
+
+
+def _allowed_back_import(imp: Import) -> bool:
+    return (unit_of(imp.importer), unit_of(imp.imported)) in ALLOWED_BACK_IMPORTS
+
+
+def _imports_own_init(imp: Import) -> bool:
+    return imp.imported == unit_of(imp.importer) != imp.importer
 
 
 def test_no_module_level_cycle_between_units(imports: list[Import]) -> None:
@@ -214,13 +264,51 @@ def test_no_module_level_cycle_between_units(imports: list[Import]) -> None:
     assert cycle is None, f"module-level import cycle between units {cycle}"
 
 
+def test_no_cycle_between_units(imports: list[Import]) -> None:
+    cycle = import_cycle(imports, skip=_allowed_back_import)
+    assert cycle is None, (
+        f"import cycle between units (function-level imports count too) {cycle}\n"
+        "move the shared code down, or list an unavoidable arrow in ALLOWED_BACK_IMPORTS"
+    )
+
+
+def test_allowed_back_imports_still_exist(imports: list[Import]) -> None:
+    found = {(unit_of(imp.importer), unit_of(imp.imported)) for imp in imports}
+    gone = sorted(set(ALLOWED_BACK_IMPORTS) - found)
+    assert not gone, f"gone, remove from ALLOWED_BACK_IMPORTS in tests/test_layers.py: {gone}"
+
+
+@pytest.mark.parametrize("unit", sorted({unit_of(name) for name in package_modules()}))
+def test_no_cycle_between_modules_of_a_unit(imports: list[Import], unit: str) -> None:
+    inside = [imp for imp in imports if unit_of(imp.importer) == unit_of(imp.imported) == unit]
+    cycle = import_cycle(inside, node=lambda module: module, skip=_imports_own_init)
+    assert cycle is None, f"import cycle between modules of {unit} {cycle}"
+
+
 def test_cycle_is_detected() -> None:
-    # Guards the check itself: a function-level import closes no cycle, a module-level one does.
+    # Guards the check itself: a function-level import closes no module-level cycle, but it
+    # does close a cycle between units; an allowed back import closes none.
     down = Import("ermrl.search._evolve", "ermrl.storage._open", "module", 1)
     up = Import("ermrl.storage._open", "ermrl.search", "function", 1)
     assert module_level_cycle([down, up]) is None
-    cycle = module_level_cycle([down, Import(up.importer, up.imported, "module", 1)])
-    assert cycle is not None and "ermrl.search" in cycle and "ermrl.storage" in cycle
+    for found in (import_cycle([down, up]), module_level_cycle([down, replace(up, kind="module")])):
+        assert found is not None and "ermrl.search" in found and "ermrl.storage" in found
+        assert "storage/_open.py" in found  # the import sites are printed
+    assert import_cycle([down, up], skip=lambda imp: imp is up) is None
+
+
+def test_cycle_between_modules_is_detected() -> None:
+    evolve = Import("ermrl.search._evolve", "ermrl.search._generalization", "function", 1)
+    back = Import("ermrl.search._generalization", "ermrl.search._evolve", "type-checking", 1)
+    registry = Import("ermrl.search._evolve", "ermrl.search", "function", 1)
+    init = Import("ermrl.search", "ermrl.search._evolve", "module", 1)
+
+    def cycle(found: list[Import]) -> str | None:
+        return import_cycle(found, node=lambda module: module, skip=_imports_own_init)
+
+    assert cycle([evolve, registry, init]) is None
+    found = cycle([evolve, back, registry, init])
+    assert found is not None and "ermrl.search._generalization" in found
 
 
 def test_parser_resolves_imports(tmp_path: Path) -> None:

@@ -20,7 +20,6 @@ from ermrl.agents._normalize import (
     save_normalize_stats,
     stats_path,
 )
-from ermrl.agents._policy_io import POLICY_FILE, load_policy, policy_path, save_policy
 from ermrl.agents._pool import pool_size, training_pool
 from ermrl.agents._train import (
     NoEpisodeFinished,
@@ -32,6 +31,7 @@ from ermrl.agents._train import (
     train_agent,
 )
 from ermrl.agents._wandb import WANDB_MISSING, WandbRun, wandb_installed
+from ermrl.learners._policy_io import POLICY_FILE, load_policy, policy_path, save_policy
 
 __all__ = [
     "ACTIVATIONS",

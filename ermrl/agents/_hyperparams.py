@@ -5,14 +5,13 @@ from __future__ import annotations
 import dataclasses
 import inspect
 import math
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import yaml
 from stable_baselines3 import PPO, SAC
-from torch import nn
 
 from ermrl.config import (
     ConfigError,
@@ -20,6 +19,13 @@ from ermrl.config import (
     NormalizeConfig,
     PPOConfig,
     TaskConfig,
+)
+from ermrl.learners._kwargs import (
+    ACTIVATIONS,
+    ERMRL_KEYS,
+    activation_fn,
+    linear_schedule,
+    ppo_kwargs,
 )
 
 __all__ = [
@@ -50,40 +56,8 @@ _OWNED_KEYS = {
 }
 _PPO_KEYS = set(inspect.signature(PPO.__init__).parameters) - _OWNED_KEYS
 _SAC_KEYS = set(inspect.signature(SAC.__init__).parameters) - _OWNED_KEYS
-# Keys that ermrl itself reads (never passed to PPO(...)): the number of envs, and
-# rl-baselines3-zoo's `normalize` (VecNormalize).
-_ERMRL_KEYS = {"n_envs", "normalize"}
+_ERMRL_KEYS = ERMRL_KEYS  # read by ermrl, not PPO(...) arguments
 _NORMALIZE_KEYS = tuple(f.name for f in dataclasses.fields(NormalizeConfig))
-
-# The activations a table or --ppo may name as ``policy_kwargs: {activation_fn: relu}``.
-# rl-baselines3-zoo writes ``activation_fn=nn.ReLU`` and evaluates it; ermrl looks the name up
-# here and never imports or evaluates what a file says.
-ACTIVATIONS: dict[str, type[nn.Module]] = {
-    "tanh": nn.Tanh,
-    "relu": nn.ReLU,
-    "elu": nn.ELU,
-    "leaky_relu": nn.LeakyReLU,
-}
-
-
-def activation_fn(name: Any, where: str = "policy_kwargs") -> type[nn.Module]:
-    """The torch module class of an activation named in ``policy_kwargs`` (:data:`ACTIVATIONS`).
-
-    Args:
-        name: The name read from a table, ``--ppo`` or a study (``"relu"``).
-        where: Where the value comes from, for the message.
-
-    Returns:
-        Its class (``nn.ReLU``), for SB3's ``policy_kwargs``.
-
-    Raises:
-        ConfigError: any other value, listing the valid names.
-    """
-    if isinstance(name, str) and name in ACTIVATIONS:
-        return ACTIVATIONS[name]
-    raise ConfigError(
-        f"{where}: policy_kwargs activation_fn {name!r} is not one of {', '.join(ACTIVATIONS)}"
-    )
 
 
 def parse_normalize(value: Any, where: str = "normalize") -> NormalizeConfig | None:
@@ -300,35 +274,6 @@ def _int_n_envs(value: Any) -> int:
     ):
         raise ConfigError(f"n_envs must be a whole number, got {value!r}")
     return int(value)
-
-
-def linear_schedule(initial: float) -> Callable[[float], float]:
-    """A schedule that goes linearly from ``initial`` to 0 over training."""
-
-    def schedule(progress_remaining: float) -> float:
-        return progress_remaining * initial
-
-    return schedule
-
-
-def ppo_kwargs(config: PPOConfig) -> dict[str, Any]:
-    """Keyword arguments for ``PPO(...)`` from a config (``lin_X`` strings become schedules,
-    a ``policy_kwargs`` ``activation_fn`` name its class from :data:`ACTIVATIONS`)."""
-    kwargs: dict[str, Any] = {}
-    for key, value in config.hyperparams.items():
-        if key in _ERMRL_KEYS:
-            continue  # read by ermrl (PPOConfig fields), not a PPO(...) argument
-        if key == "policy_kwargs" and isinstance(value, Mapping) and "activation_fn" in value:
-            value = {**value, "activation_fn": activation_fn(value["activation_fn"], "PPO")}
-        if isinstance(value, str) and value.startswith("lin_"):
-            try:
-                value = linear_schedule(float(value[4:]))
-            except ValueError:
-                raise ConfigError(
-                    f"PPO {key}={value!r}: a linear schedule is lin_<number>, e.g. lin_3e-4"
-                ) from None
-        kwargs[key] = value
-    return kwargs
 
 
 # Ranges of numeric PPO(...) arguments that SB3 itself does not check at construction (a bad

@@ -18,6 +18,7 @@ from typing import Any, cast
 import numpy as np
 
 from ermrl.config import PPOConfig
+from ermrl.learners._normalize_stats import STATS_FORMAT, load_normalize_stats
 
 __all__ = [
     "STATS_FORMAT",
@@ -29,7 +30,6 @@ __all__ = [
     "load_normalize_stats",
 ]
 
-STATS_FORMAT = "ermrl.vecnormalize/1"
 SB3_DEFAULT_GAMMA = 0.99  # PPO's default discount, also VecNormalize's
 
 
@@ -163,18 +163,3 @@ def stats_path(model_path: str | Path) -> Path:
 def save_normalize_stats(venv: Any, path: str | Path) -> None:
     """Write :func:`normalize_stats` of ``venv`` as JSON to ``path``."""
     Path(path).write_text(json.dumps(normalize_stats(venv), indent=1) + "\n")
-
-
-def load_normalize_stats(path: str | Path) -> dict[str, Any]:
-    """Read statistics written by :func:`save_normalize_stats`.
-
-    Raises:
-        ValueError: the file is not such a JSON document.
-    """
-    try:
-        data = json.loads(Path(path).read_text())
-    except json.JSONDecodeError as err:
-        raise ValueError(f"{path}: not a JSON file ({err})") from err
-    if not isinstance(data, dict) or data.get("format") != STATS_FORMAT:
-        raise ValueError(f"{path}: not ermrl normalization statistics ({STATS_FORMAT})")
-    return data

@@ -302,7 +302,7 @@ def save_trained(model: Any, model_path: str | Path, stats: dict[str, Any] | Non
     import json
 
     from ermrl.agents._normalize import stats_path
-    from ermrl.agents._policy_io import policy_path, save_policy
+    from ermrl.learners._policy_io import policy_path, save_policy
 
     partial = Path(f"{model_path}.partial")
     try:

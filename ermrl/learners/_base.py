@@ -98,7 +98,7 @@ class Learner:
 
     def kwargs(self, config: PPOConfig) -> dict[str, Any]:
         """The algorithm's keyword arguments (``lin_X`` strings become schedules)."""
-        from ermrl.agents._hyperparams import ppo_kwargs
+        from ermrl.learners._kwargs import ppo_kwargs
 
         return {k: v for k, v in ppo_kwargs(config).items() if k not in self.own_keys}
 

@@ -57,7 +57,7 @@ def load_expert_for(env: Any, path: Any, learner: str) -> Any:
     Raises:
         ConfigError: no expert there, or an expert of another task, with a one-line reason.
     """
-    from ermrl.experts import is_expert_folder, load_expert
+    from ermrl.learners._expert import is_expert_folder, load_expert
 
     if not is_expert_folder(path):
         raise ConfigError(

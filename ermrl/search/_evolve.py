@@ -28,7 +28,7 @@ import time
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import TextIO
+from typing import Any, TextIO
 
 import optuna
 from optuna.storages._heartbeat import BaseHeartbeat, get_heartbeat_thread, is_heartbeat_enabled
@@ -45,7 +45,10 @@ from ermrl.search._claim import (
     record,
     retry_policy,
 )
+from ermrl.search._generalization import generalization_generation
 from ermrl.search._objective import (
+    EvaluateFn,
+    EvaluateGenerationFn,
     FitnessResult,
     SeedRunner,
     decode_candidate,
@@ -55,6 +58,7 @@ from ermrl.search._objective import (
 from ermrl.search._progress import best_trial, trial_line
 from ermrl.search._pruning import pruning_reporter
 from ermrl.search._signals import SignalGuard
+from ermrl.storage import RetryStaleTrial
 
 __all__ = [
     "EvaluateFn",
@@ -91,13 +95,6 @@ class EvolutionSummary:
     best_value: float | None = None
     best_params: dict[str, float] | None = None
 
-
-EvaluateFn = Callable[
-    [EncoderConfig, SeedRunner, Callable[[int, float], None] | None], FitnessResult
-]
-EvaluateGenerationFn = Callable[
-    [Sequence[EncoderConfig], SeedRunner], list[FitnessResult | BaseException]
-]
 
 _FIRST_POLL = 0.5  # seconds between the first claims while waiting for other workers' trials
 
@@ -186,10 +183,7 @@ def run_evolution(
         KeyboardInterrupt: Ctrl-C (the running trial was closed).
     """
     out = stream or sys.stdout
-    summary = EvolutionSummary()
-    n_trials = config.search.n_trials
     problem = config.problem
-    durations: list[float] = []
     storage = study._storage
     heartbeats = is_heartbeat_enabled(storage)
     # Waiting for other workers' trials at the end: a claim is cheap, so poll at 0.5 s first (a
@@ -197,7 +191,6 @@ def run_evolution(
     interval = 1.0
     if heartbeats and isinstance(storage, BaseHeartbeat):  # always one when heartbeats is True
         interval = float(storage.get_heartbeat_interval() or 1)
-    poll = min(max(interval / 2, 0.5), 5.0)
     retry = retry_policy(study)
     popsize = cma_popsize(config)
     warned_popsize = False
@@ -215,6 +208,7 @@ def run_evolution(
         )
         warned_popsize = True
 
+    n_trials = config.search.n_trials
     done_before = n_counted(study)
     queued = len(study.get_trials(deepcopy=False, states=(TrialState.WAITING,)))
     if done_before >= n_trials and not queued:
@@ -222,99 +216,219 @@ def run_evolution(
             f"study {study.study_name!r} already has {done_before}/{n_trials} trials: nothing to do"
         )
     guard = SignalGuard()
-    waiting_said = False
-    wait = _FIRST_POLL
-    failed_in_a_row = 0
 
-    def finish(
-        claim: Claim,
-        closed: object,
-        state: TrialState,
-        result: FitnessResult | None,
-        note: str,
-        elapsed: float,
-    ) -> bool:
-        """Count and report a recorded trial; ``False`` when the worker must stop."""
-        nonlocal failed_in_a_row
-        assert claim.trial is not None
-        if closed is None:
-            say(
-                f"[trial {claim.trial.number}] was closed by another worker (stale); result dropped"
-            )
-            return True
-        if state == TrialState.COMPLETE:
-            summary.completed += 1
-            failed_in_a_row = 0
-        elif state == TrialState.PRUNED:
-            summary.pruned += 1
-            failed_in_a_row = 0
-        else:
-            summary.failed += 1
-            failed_in_a_row += 1
-        counted = n_counted(study)
-        remaining = max(n_trials - counted, 0)
-        eta = remaining * (sum(durations) / len(durations))
+    generation: int | None = None
+    if problem.ppo.backend == "population":
+        generation = generation_size(config)
+        if evaluate_generation is None:
+            if config.generalization is not None:
+                evaluate_generation = generalization_generation(config, quiet=quiet, stream=out)
+            else:
+
+                def evaluate_generation(
+                    encoders: Sequence[EncoderConfig], runner: SeedRunner
+                ) -> list[FitnessResult | BaseException]:
+                    return evaluate_encoders(encoders, problem, runner=runner)
+
+    with SeedRunner(config.n_procs) as runner, guard.installed():
+        worker = _Worker(
+            config,
+            study,
+            runner,
+            guard,
+            say,
+            heartbeats=heartbeats,
+            poll=min(max(interval / 2, 0.5), 5.0),
+            retry=retry if requeue_interrupted else None,
+            popsize=None if warned_popsize else popsize,
+            evaluate=evaluate,
+            evaluate_generation=evaluate_generation,
+            wait_for_running=wait_for_running,
+            queued_only=queued_only,
+        )
+        if done_before < n_trials or queued:
+            _announce(config, runner, guard, say, generation)
+        while True:
+            guard.check()
+            go_on = worker.run_trial() if generation is None else worker.run_generation(generation)
+            if not go_on:
+                break
+
+    worker.summary.best_value, _, worker.summary.best_params = best_trial(study)
+    return worker.summary
+
+
+def _announce(
+    config: EvolveConfig,
+    runner: SeedRunner,
+    guard: SignalGuard,
+    say: Callable[[str], None],
+    generation: int | None,
+) -> None:
+    """Say how the trials will be trained (and start the process pool, which takes a while)."""
+    problem = config.problem
+    n_tasks = len(config.generalization.tasks) if config.generalization else 1
+    if generation is not None:
         say(
-            trial_line(
-                study, claim.trial.number, claim.params, state, result, note, elapsed,
-                counted=counted, n_trials=n_trials, retry_of=claim.retry_of, eta=eta,
+            f"population backend: generations of up to {generation} candidates x "
+            f"{plural(len(problem.seeds), 'seed')} = {generation * len(problem.seeds)} agents per task "
+            f"({n_tasks} task(s)), trained in lockstep in "
+            f"{min(config.n_procs, generation * len(problem.seeds))} process(es)"
+        )
+    elif config.n_procs > 1:
+        n_runs = n_tasks * len(problem.seeds)
+        with guard.deferred():
+            size = runner.start(n_runs)
+        say(
+            f"{n_runs} training runs per trial on {config.n_procs} cores: "
+            f"{size} single-threaded processes"
+            + (
+                " (more processes than cores keeps every core busy)"
+                if size > config.n_procs
+                else ""
             )
-        )  # fmt: skip
-        if failed_in_a_row >= n_trials:
-            say(
-                f"stopping: the last {plural(failed_in_a_row, 'trial')} of this worker failed "
-                "(FAIL trials do not count towards the budget; is the problem broken?)"
-            )
-            return False
-        return True
+        )
 
-    def wait_for_others(claim: Claim) -> bool:
+
+class _Worker:
+    """One worker of :func:`run_evolution`, in named steps.
+
+    A trial is *claimed* (:meth:`claim`), *trained* (:meth:`train`, or a whole generation with
+    :meth:`train_generation`), *recorded* in the study (:meth:`record`) and *finished*: counted
+    and reported (:meth:`finish`). When the budget is reached while other workers' trials run,
+    the worker *waits* for them (:meth:`wait`). :meth:`run_trial` and :meth:`run_generation`
+    chain the steps, with heartbeats on and signals deferred while the storage is written.
+
+    Args:
+        config: The run's configuration.
+        study: The study the worker claims trials from.
+        runner: Trains the seeds of a candidate.
+        guard: Defers signals while the storage is written.
+        say: Prints a progress line (or nothing, quiet).
+        heartbeats: Whether the storage takes heartbeats (waiting needs them).
+        poll: The longest pause between claims while waiting for other workers.
+        retry: Queues a retry of an interrupted trial (``None``: no retry).
+        popsize: The CMA-ES population size to warn about (``None``: no warning is due).
+        evaluate: The fitness hook of :func:`run_evolution` (``None``: the problem's).
+        evaluate_generation: A generation's fitness (population backend).
+        wait_for_running: Wait for other workers' trials when the budget is reached.
+        queued_only: Claim only queued (WAITING) trials.
+
+    Attributes:
+        summary: What this worker did so far.
+    """
+
+    def __init__(
+        self,
+        config: EvolveConfig,
+        study: optuna.Study,
+        runner: SeedRunner,
+        guard: SignalGuard,
+        say: Callable[[str], None],
+        *,
+        heartbeats: bool,
+        poll: float,
+        retry: RetryStaleTrial | None,
+        popsize: int | None,
+        evaluate: EvaluateFn | None,
+        evaluate_generation: EvaluateGenerationFn | None,
+        wait_for_running: bool,
+        queued_only: bool,
+    ) -> None:
+        self.config = config
+        self.study = study
+        self.runner = runner
+        self.guard = guard
+        self.say = say
+        self.heartbeats = heartbeats
+        self.poll = poll
+        self.retry = retry
+        self.popsize = popsize
+        self.evaluate = evaluate
+        self.evaluate_generation = evaluate_generation
+        self.wait_for_running = wait_for_running
+        self.queued_only = queued_only
+        self.n_trials = config.search.n_trials
+        self.summary = EvolutionSummary()
+        self.durations: list[float] = []  # seconds per trial, for the ETA
+        self.pause = _FIRST_POLL  # before the next claim while waiting
+        self.waiting_said = False
+        self.failed_in_a_row = 0
+
+    def claim(self) -> Claim:
+        """Claim a trial under the storage's lock (``claim.trial is None``: none left)."""
+        with self.guard.deferred():
+            return claim_trial(
+                self.study, self.config.space, self.n_trials, self.heartbeats, self.queued_only
+            )
+
+    def wait(self, claim: Claim) -> bool:
         """Budget reached: wait (``True``: claim again) while other workers' trials run."""
-        nonlocal waiting_said, wait
-        if not (wait_for_running and heartbeats and claim.running > 0):
+        if not (self.wait_for_running and self.heartbeats and claim.running > 0):
             return False
-        if not waiting_said:
-            say(
+        if not self.waiting_said:
+            self.say(
                 f"budget reached; waiting for {claim.running} running trial(s) of "
                 "other workers (a trial whose worker died is retried here)"
             )
-            waiting_said = True
-        time.sleep(wait)
-        wait = min(wait * 1.5, poll)
+            self.waiting_said = True
+        time.sleep(self.pause)
+        self.pause = min(self.pause * 1.5, self.poll)
         return True
 
-    def run_generation(size: int) -> bool:
-        """Claim up to ``size`` trials and train them together (population backend); ``False``
-        when the worker must stop."""
-        nonlocal wait
-        claims: list[Claim] = []
-        last: Claim | None = None
-        for _ in range(size):
-            with guard.deferred():
-                last = claim_trial(study, config.space, n_trials, heartbeats, queued_only)
-            if last.trial is None:
-                break
-            claims.append(last)
-        if not claims:
-            assert last is not None
-            return wait_for_others(last)
-        wait = _FIRST_POLL
-        beats = []
-        for claim in claims:
-            assert claim.trial is not None
-            beats.append(get_heartbeat_thread(claim.trial._trial_id, study._storage))
-            beats[-1].start()
-        summary.trials_run += len(claims)
-        started = time.perf_counter()
+    def train(self, claim: Claim, heartbeat: Any) -> tuple[TrialState, FitnessResult | None, str]:
+        """Train one claimed trial: its state, fitness (``None`` unless trained) and note.
+
+        A trial that diverges or finishes no episode is FAIL, a pruned one PRUNED. Anything
+        else (a signal, a bug) closes the trial (:func:`close_interrupted`) and is re-raised.
+        """
+        assert claim.trial is not None
+        trial = claim.trial
+        use_report = pruning_reporter(trial) if self.config.search.pruner != "none" else None
+        state = TrialState.COMPLETE
+        result: FitnessResult | None = None
+        note = ""
         try:
-            guard.check()  # a signal that arrived during the claims
+            self.guard.check()  # a signal that arrived during the claim
+            # The sampled point is a plain dict; the problem's encoder (or learner) decodes it.
+            encoder, candidate = decode_candidate(
+                self.config.space, claim.params, self.config.problem
+            )
+            if self.evaluate is None:
+                result = evaluate_encoder(encoder, candidate, runner=self.runner, report=use_report)
+            else:  # encoders' studies only (evolve-generalization, its re-evaluation)
+                assert encoder is not None
+                result = self.evaluate(encoder, self.runner, use_report)
+            if not math.isfinite(result.fitness):
+                raise TrainingDiverged(f"non-finite fitness {result.fitness}")
+        except optuna.TrialPruned as err:
+            state, note = TrialState.PRUNED, str(err)
+        except (TrainingDiverged, NoEpisodeFinished) as err:
+            state, note = TrialState.FAIL, str(err)
+        except BaseException as err:
+            close_interrupted(
+                self.study, trial, err, self.guard, self.runner, heartbeat, self.say, self.retry
+            )
+            raise
+        return state, result, note
+
+    def train_generation(
+        self, claims: Sequence[Claim], beats: Sequence[Any]
+    ) -> list[FitnessResult | BaseException]:
+        """Train claimed trials together (population backend): a fitness or a failure each.
+
+        Anything but a divergence or an episode-less run (a signal, a bug) closes every trial
+        (:func:`close_interrupted`) and is re-raised.
+        """
+        try:
+            self.guard.check()  # a signal that arrived during the claims
             encoders = []
             for c in claims:
-                encoder = decode_candidate(config.space, c.params, problem)[0]
+                encoder = decode_candidate(self.config.space, c.params, self.config.problem)[0]
                 assert encoder is not None  # the population backend trains encoders' studies
                 encoders.append(encoder)
-            assert evaluate_generation is not None
-            results = evaluate_generation(encoders, runner)
+            assert self.evaluate_generation is not None
+            results = self.evaluate_generation(encoders, self.runner)
             unexpected = next(
                 (
                     r
@@ -332,128 +446,132 @@ def run_evolution(
                 assert claim.trial is not None
                 try:
                     close_interrupted(
-                        study, claim.trial, err, guard, runner, beat, say,
-                        retry if requeue_interrupted else None,
+                        self.study, claim.trial, err, self.guard, self.runner, beat, self.say,
+                        self.retry,
                     )  # fmt: skip
                 except BaseException as closing:  # noqa: BLE001 (re-raised below)
                     raised = raised or closing
             if raised is not None:
                 raise raised from err
             raise
+        return results
+
+    def record(
+        self,
+        claim: Claim,
+        state: TrialState,
+        result: FitnessResult | None,
+        note: str,
+        elapsed: float,
+    ) -> object:
+        """Tell the study a trained trial's outcome (``None``: another worker closed it)."""
+        assert claim.trial is not None
+        self.durations.append(elapsed)
+        return record(self.study, claim.trial, state, result, note)
+
+    def finish(
+        self,
+        claim: Claim,
+        closed: object,
+        state: TrialState,
+        result: FitnessResult | None,
+        note: str,
+        elapsed: float,
+    ) -> bool:
+        """Count and report a recorded trial; ``False`` when the worker must stop."""
+        assert claim.trial is not None
+        say, summary, n_trials = self.say, self.summary, self.n_trials
+        if closed is None:
+            say(
+                f"[trial {claim.trial.number}] was closed by another worker (stale); result dropped"
+            )
+            return True
+        if state == TrialState.COMPLETE:
+            summary.completed += 1
+            self.failed_in_a_row = 0
+        elif state == TrialState.PRUNED:
+            summary.pruned += 1
+            self.failed_in_a_row = 0
+        else:
+            summary.failed += 1
+            self.failed_in_a_row += 1
+        counted = n_counted(self.study)
+        remaining = max(n_trials - counted, 0)
+        eta = remaining * (sum(self.durations) / len(self.durations))
+        say(
+            trial_line(
+                self.study, claim.trial.number, claim.params, state, result, note, elapsed,
+                counted=counted, n_trials=n_trials, retry_of=claim.retry_of, eta=eta,
+            )
+        )  # fmt: skip
+        if self.failed_in_a_row >= n_trials:
+            say(
+                f"stopping: the last {plural(self.failed_in_a_row, 'trial')} of this worker failed "
+                "(FAIL trials do not count towards the budget; is the problem broken?)"
+            )
+            return False
+        return True
+
+    def run_trial(self) -> bool:
+        """Claim, train, record and finish one trial, or wait; ``False`` when the worker must
+        stop."""
+        claim = self.claim()
+        if claim.trial is None:
+            return self.wait(claim)
+        self.pause = _FIRST_POLL
+        if self.popsize is not None and claim.running > self.popsize:
+            warnings.warn(
+                _popsize_message(self.popsize, claim.running, "trials running at once:"),
+                PopulationWarning,
+                stacklevel=3,  # run_evolution's caller
+            )
+            self.popsize = None  # warned once
+        heartbeat = get_heartbeat_thread(claim.trial._trial_id, self.study._storage)
+        heartbeat.start()
+        self.summary.trials_run += 1
+        started = time.perf_counter()
+        state, result, note = self.train(claim, heartbeat)
+        with self.guard.deferred():
+            heartbeat.join()
+            elapsed = time.perf_counter() - started
+            closed = self.record(claim, state, result, note, elapsed)
+        return self.finish(claim, closed, state, result, note, elapsed)
+
+    def run_generation(self, size: int) -> bool:
+        """Claim up to ``size`` trials, train them together, record and finish each (population
+        backend), or wait; ``False`` when the worker must stop."""
+        claims: list[Claim] = []
+        last: Claim | None = None
+        for _ in range(size):
+            last = self.claim()
+            if last.trial is None:
+                break
+            claims.append(last)
+        if not claims:
+            assert last is not None
+            return self.wait(last)
+        self.pause = _FIRST_POLL
+        beats = []
+        for claim in claims:
+            assert claim.trial is not None
+            beats.append(get_heartbeat_thread(claim.trial._trial_id, self.study._storage))
+            beats[-1].start()
+        self.summary.trials_run += len(claims)
+        started = time.perf_counter()
+        results = self.train_generation(claims, beats)
         outcomes = []
-        with guard.deferred():
+        with self.guard.deferred():
             for beat in beats:
                 beat.join()
             elapsed = (time.perf_counter() - started) / len(claims)
             for claim, outcome in zip(claims, results):
-                assert claim.trial is not None
                 result = outcome if isinstance(outcome, FitnessResult) else None
                 state, note = TrialState.COMPLETE, ""
                 if result is None:
                     state, note = TrialState.FAIL, str(outcome)
                 elif not math.isfinite(result.fitness):
                     state, note = TrialState.FAIL, f"non-finite fitness {result.fitness}"
-                durations.append(elapsed)
-                closed = record(study, claim.trial, state, result, note)
+                closed = self.record(claim, state, result, note, elapsed)
                 outcomes.append((claim, closed, state, result, note))
-        go_on = [finish(*outcome, elapsed) for outcome in outcomes]  # report every trial
+        go_on = [self.finish(*outcome, elapsed) for outcome in outcomes]  # report every trial
         return all(go_on)
-
-    generation: int | None = None
-    if problem.ppo.backend == "population":
-        generation = generation_size(config)
-        if evaluate_generation is None:
-            if config.generalization is not None:
-                from ermrl.search._generalization import generalization_generation
-
-                evaluate_generation = generalization_generation(config, quiet=quiet, stream=out)
-            else:
-
-                def evaluate_generation(
-                    encoders: Sequence[EncoderConfig], runner: SeedRunner
-                ) -> list[FitnessResult | BaseException]:
-                    return evaluate_encoders(encoders, problem, runner=runner)
-
-    with SeedRunner(config.n_procs) as runner, guard.installed():
-        if generation is not None and (done_before < n_trials or queued):
-            n_tasks = len(config.generalization.tasks) if config.generalization else 1
-            say(
-                f"population backend: generations of up to {generation} candidates x "
-                f"{plural(len(problem.seeds), 'seed')} = {generation * len(problem.seeds)} agents per task "
-                f"({n_tasks} task(s)), trained in lockstep in "
-                f"{min(config.n_procs, generation * len(problem.seeds))} process(es)"
-            )
-        elif config.n_procs > 1 and (done_before < n_trials or queued):
-            n_tasks = len(config.generalization.tasks) if config.generalization else 1
-            n_runs = n_tasks * len(problem.seeds)
-            with guard.deferred():
-                size = runner.start(n_runs)
-            say(
-                f"{n_runs} training runs per trial on {config.n_procs} cores: "
-                f"{size} single-threaded processes"
-                + (
-                    " (more processes than cores keeps every core busy)"
-                    if size > config.n_procs
-                    else ""
-                )
-            )
-        while True:
-            guard.check()
-            if generation is not None:
-                if not run_generation(generation):
-                    break
-                continue
-            with guard.deferred():
-                claim = claim_trial(study, config.space, n_trials, heartbeats, queued_only)
-            if claim.trial is None:
-                if wait_for_others(claim):
-                    continue
-                break
-            trial, params = claim.trial, claim.params
-            wait = _FIRST_POLL
-            if popsize is not None and claim.running > popsize and not warned_popsize:
-                warnings.warn(
-                    _popsize_message(popsize, claim.running, "trials running at once:"),
-                    PopulationWarning,
-                    stacklevel=2,
-                )
-                warned_popsize = True
-            heartbeat = get_heartbeat_thread(trial._trial_id, study._storage)
-            heartbeat.start()
-            summary.trials_run += 1
-            started = time.perf_counter()
-            use_report = pruning_reporter(trial) if config.search.pruner != "none" else None
-            state = TrialState.COMPLETE
-            result: FitnessResult | None = None
-            note = ""
-            try:
-                guard.check()  # a signal that arrived during the claim
-                # The sampled point is a plain dict; the problem's encoder (or learner) decodes it.
-                encoder, candidate = decode_candidate(config.space, params, problem)
-                if evaluate is None:
-                    result = evaluate_encoder(encoder, candidate, runner=runner, report=use_report)
-                else:  # encoders' studies only (evolve-generalization, its re-evaluation)
-                    assert encoder is not None
-                    result = evaluate(encoder, runner, use_report)
-                if not math.isfinite(result.fitness):
-                    raise TrainingDiverged(f"non-finite fitness {result.fitness}")
-            except optuna.TrialPruned as err:
-                state, note = TrialState.PRUNED, str(err)
-            except (TrainingDiverged, NoEpisodeFinished) as err:
-                state, note = TrialState.FAIL, str(err)
-            except BaseException as err:
-                close_interrupted(
-                    study, trial, err, guard, runner, heartbeat, say,
-                    retry if requeue_interrupted else None,
-                )  # fmt: skip
-                raise
-            with guard.deferred():
-                heartbeat.join()
-                elapsed = time.perf_counter() - started
-                durations.append(elapsed)
-                closed = record(study, trial, state, result, note)
-            if not finish(claim, closed, state, result, note, elapsed):
-                break
-
-    summary.best_value, _, summary.best_params = best_trial(study)
-    return summary

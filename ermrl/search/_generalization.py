@@ -38,8 +38,8 @@ from ermrl.config import (
     SearchConfig,
     TaskConfig,
 )
-from ermrl.search._evolve import EvaluateFn
 from ermrl.search._objective import (
+    EvaluateFn,
     FitnessResult,
     SeedRunner,
     _finite_or_none,

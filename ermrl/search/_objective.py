@@ -27,6 +27,8 @@ from ermrl.config import (
 )
 
 __all__ = [
+    "EvaluateFn",
+    "EvaluateGenerationFn",
     "FitnessResult",
     "SeedRunner",
     "decode_candidate",
@@ -266,6 +268,14 @@ class SeedRunner:
 
     def __exit__(self, *exc: object) -> None:
         self.close(cancel=exc[0] is not None)
+
+
+# The fitness hooks of :func:`ermrl.search.run_evolution`: one candidate
+# (``evaluate(encoder, runner, report)``), or a whole generation with the population backend.
+EvaluateFn = Callable[[EncoderConfig, SeedRunner, ReportFn | None], FitnessResult]
+EvaluateGenerationFn = Callable[
+    [Sequence[EncoderConfig], SeedRunner], list[FitnessResult | BaseException]
+]
 
 
 def train_runs(
