@@ -224,8 +224,10 @@ def test_ctrl_c_leaves_no_expert(tmp_path: Path) -> None:
         _, err = proc.communicate(timeout=60)
     finally:
         proc.kill()
-    assert proc.returncode == 130, err
-    assert "interrupted; no expert written" in err
+    # 130, or death by SIGINT after the message: CPython 3.11 can re-raise SIGINT at exit after
+    # a caught KeyboardInterrupt (see test_cli's start-up Ctrl-C test); both are $? == 130.
+    assert proc.returncode in (130, -signal.SIGINT), err
+    assert "interrupted; no expert written" in err and "Traceback" not in err
     assert list(tmp_path.iterdir()) == []
 
 
