@@ -139,3 +139,38 @@ def test_population_backend_prints_progress_per_population(tmp_path: Path) -> No
     assert len(lines) >= 9 and lines[-1].startswith(
         "[population of 3 runs] 640/640 steps each (100%) | "
     )
+
+
+@pytest.mark.parametrize("backend", ["sb3", "population"])
+def test_evolution_prints_progress_inside_each_trial(tmp_path: Path, backend: str) -> None:
+    proc = ermrl(
+        "evolve", "--env-id", "CartPole-v1", "--n-trials", "2", "--n-seeds", "2",
+        "--training-steps", "640", "--n-envs", "1", "--units", "10", "--backend", backend,
+        "--ppo", "n_steps=64", "batch_size=64", "n_epochs=1",
+        "--storage", f"sqlite:///{tmp_path}/s.db", cwd=tmp_path,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    out = proc.stdout.splitlines()
+    if backend == "sb3":  # each seed's run, labelled with its trial
+        for trial in (0, 1):
+            for seed in (0, 1):
+                label = f"[trial {trial}, seed {seed} on CartPole-v1] "
+                inside = [x for x in out if x.startswith(label)]
+                assert len(inside) >= 5 and "640/640 steps (100%)" in inside[-1], proc.stdout
+    else:  # the generation's population: 2 candidates x 2 seeds
+        label = "[trials 0-1, 4 agents on CartPole-v1] "
+        inside = [x for x in out if x.startswith(label)]
+        assert len(inside) >= 5 and "640/640 steps each (100%)" in inside[-1], proc.stdout
+    # the progress lines come before the trial's own line
+    first_trial_line = next(i for i, x in enumerate(out) if x.startswith("[trial 0 | "))
+    assert any(x.startswith("[trial") and ", " in x.split("]")[0] for x in out[:first_trial_line])
+    quiet = ermrl(
+        "evolve", "--env-id", "CartPole-v1", "--n-trials", "1", "--n-seeds", "1",
+        "--training-steps", "640", "--n-envs", "1", "--units", "10", "--backend", backend,
+        "--ppo", "n_steps=64", "batch_size=64", "n_epochs=1", "--progress", "none",
+        "--storage", f"sqlite:///{tmp_path}/q.db", cwd=tmp_path,
+    )  # fmt: skip
+    assert quiet.returncode == 0, quiet.stderr
+    assert not [
+        x for x in quiet.stdout.splitlines() if " steps/s | ETA " in x and "fitness" not in x
+    ]

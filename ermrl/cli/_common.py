@@ -66,6 +66,22 @@ class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescript
         return super()._get_help_string(action)
 
 
+def add_progress_arg(
+    parser: argparse.ArgumentParser, *, what: str = "trial (or generation)"
+) -> None:
+    """``--progress lines|none``: progress lines inside each run, or none."""
+    from ermrl._progress import PROGRESS_MODES
+
+    parser.add_argument(
+        "--progress",
+        choices=PROGRESS_MODES,
+        default="lines",
+        help=f"lines: inside each {what}, a line per run (or population) every tenth of its "
+        "steps or 30 s, with its rate (from its first step: start-up excluded) and ETA; "
+        f"none: a line per finished {what.split(' (')[0]} only",
+    )
+
+
 def dashboard_line(storage: str) -> str | None:
     """The line that tells how to watch a study live in optuna-dashboard (``None``: it cannot)."""
     import importlib.util

@@ -18,6 +18,7 @@ from ermrl.cli._common import (
     ArgumentParser,
     HelpFormatter,
     add_for_learner_arg,
+    add_progress_arg,
     add_stale_gradient_arg,
     add_storage_args,
     dashboard_line,
@@ -465,6 +466,7 @@ def add_search_args(parser: argparse.ArgumentParser) -> None:
         help="when the budget is reached, wait for other workers' running trials (and retry "
         "those whose worker died) instead of exiting",
     )
+    add_progress_arg(parser)
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
 
 
@@ -838,6 +840,7 @@ def run_and_report(
                 evaluator_factory=evaluator_factory,
                 quiet=quiet,
                 wait_for_running=run_kwargs.get("wait_for_running", True),
+                progress=run_kwargs.get("progress", "lines"),
                 **(study_kwargs or {}),
             )
     except Interrupted as err:
@@ -935,4 +938,5 @@ def evolve_main(argv: Sequence[str] | None = None, prog: str = "ermrl evolve") -
         storage_url=args.storage,
         study_kwargs=study_kwargs,
         wait_for_running=args.wait_for_running,
+        progress=args.progress,
     )

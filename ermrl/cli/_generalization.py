@@ -291,7 +291,7 @@ def evolve_generalization_main(
     for name in ("grace_period", "max_retry"):
         if hasattr(args, name):
             study_kwargs[name] = getattr(args, name)
-    run_kwargs: dict[str, Any] = {}
+    run_kwargs: dict[str, Any] = {"progress": args.progress}
     if hasattr(args, "wait_for_running"):
         run_kwargs["wait_for_running"] = args.wait_for_running
     try:

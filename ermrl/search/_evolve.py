@@ -34,6 +34,7 @@ import optuna
 from optuna.storages._heartbeat import BaseHeartbeat, get_heartbeat_thread, is_heartbeat_enabled
 from optuna.trial import TrialState
 
+from ermrl._progress import ProgressMode
 from ermrl._text import plural
 from ermrl.agents import NoEpisodeFinished, TrainingDiverged
 from ermrl.config import EncoderConfig, EvolveConfig
@@ -141,6 +142,7 @@ def run_evolution(
     n_workers: int | None = None,
     queued_only: bool = False,
     evaluate_generation: EvaluateGenerationFn | None = None,
+    progress: ProgressMode = "lines",
 ) -> EvolutionSummary:
     """Run trials until the study holds ``config.search.n_trials`` counted trials.
 
@@ -174,6 +176,9 @@ def run_evolution(
             ``evaluate_generation(encoders, runner)`` -> one fitness or exception per candidate
             (default: :func:`~ermrl.search.evaluate_encoders` on ``config.problem``, or the
             multi-task fitness of a generalization config).
+        progress: ``"lines"``: inside a trial (or generation), each run or population prints
+            a line every tenth of its steps or 30 s with its rate and ETA; ``"none"``: one line
+            per finished trial only. ``quiet`` silences both.
 
     Returns:
         What this worker did.
@@ -230,7 +235,10 @@ def run_evolution(
                 ) -> list[FitnessResult | BaseException]:
                     return evaluate_encoders(encoders, problem, runner=runner)
 
-    with SeedRunner(config.n_procs) as runner, guard.installed():
+    with (
+        SeedRunner(config.n_procs, progress="none" if quiet else progress, stream=out) as runner,
+        guard.installed(),
+    ):
         worker = _Worker(
             config,
             study,
@@ -530,6 +538,7 @@ class _Worker:
         heartbeat.start()
         self.summary.trials_run += 1
         started = time.perf_counter()
+        self.runner.label = f"trial {claim.trial.number}"
         state, result, note = self.train(claim, heartbeat)
         with self.guard.deferred():
             heartbeat.join()
@@ -558,6 +567,10 @@ class _Worker:
             beats[-1].start()
         self.summary.trials_run += len(claims)
         started = time.perf_counter()
+        numbers = [c.trial.number for c in claims if c.trial is not None]
+        self.runner.label = (
+            f"trial {numbers[0]}" if len(numbers) == 1 else f"trials {numbers[0]}-{numbers[-1]}"
+        )
         results = self.train_generation(claims, beats)
         outcomes = []
         with self.guard.deferred():

@@ -11,10 +11,12 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TextIO
 
 import numpy as np
 
+from ermrl._progress import Progress, ProgressMode
+from ermrl._text import plural
 from ermrl.agents import RunResult, pool_size, train_agent, training_pool
 from ermrl.config import (
     BudgetConfig,
@@ -181,8 +183,8 @@ def _finite_or_none(value: float | None) -> float | None:
 
 
 def _train_one(args: tuple[Any, ...]) -> RunResult:
-    task, encoder, ppo, budget, seed = args
-    return train_agent(task, encoder, ppo, budget, seed)
+    task, encoder, ppo, budget, seed, progress = args
+    return train_agent(task, encoder, ppo, budget, seed, progress=progress)
 
 
 class SeedRunner:
@@ -196,13 +198,39 @@ class SeedRunner:
     Args:
         n_procs: Cores for the runs (1 runs them one after another, in this process).
         balance: Size the pool with :func:`pool_size` (``False``: ``n_procs`` processes).
+        progress: ``"lines"``: each run (or population) prints a progress line every tenth
+            of its steps or 30 s (:class:`ermrl._progress.Progress`), labelled with
+            :attr:`label` (what is training: ``"trial 12"``); ``"none"``: silent.
+        stream: Where the lines of runs in this process go (workers print to their stdout).
     """
 
-    def __init__(self, n_procs: int = 1, *, balance: bool = True) -> None:
+    def __init__(
+        self,
+        n_procs: int = 1,
+        *,
+        balance: bool = True,
+        progress: ProgressMode = "none",
+        stream: TextIO | None = None,
+    ) -> None:
         self.n_procs = n_procs
         self.balance = balance
         self.n_processes = 0
         self._pool: ProcessPoolExecutor | None = None
+        self.progress = progress
+        self.stream = stream
+        self.label = ""
+
+    def run_progress(
+        self, what: str, total: int, *, in_process: bool, unit: str = "steps"
+    ) -> Progress:
+        """The progress of one run or population: ``"<label>, <what>"``."""
+        return Progress(
+            f"{self.label}, {what}" if self.label else what,
+            total,
+            mode=self.progress,
+            stream=self.stream if in_process else None,
+            unit=unit,
+        )
 
     def processes_for(self, n_jobs: int) -> int:
         """How many processes :meth:`map` uses for ``n_jobs`` runs (1: this process)."""
@@ -244,15 +272,33 @@ class SeedRunner:
             self.close()
             self._pool = training_pool(parts)
             self.n_processes = parts
-        return train_population_parallel(
-            task, ppo, budget, jobs, n_procs=parts, pool=self._pool if parts > 1 else None
+        progress = self.run_progress(
+            f"{plural(len(jobs), 'agent')} on {task.label}",
+            budget.training_steps,
+            in_process=parts == 1,
+            unit="steps each",
         )
+        return train_population_parallel(
+            task, ppo, budget, jobs, n_procs=parts, pool=self._pool if parts > 1 else None,
+            progress=progress,
+        )  # fmt: skip
 
     def map(self, args: Sequence[tuple[Any, ...]]) -> list[RunResult]:
-        if self.start(len(args)) == 1:
-            return [_train_one(a) for a in args]
+        """Train ``(task, encoder, ppo, budget, seed)`` runs; one result each, in order."""
+        in_process = self.start(len(args)) == 1
+        jobs = [
+            (
+                *a,
+                self.run_progress(
+                    f"seed {a[4]} on {a[0].label}", a[3].training_steps, in_process=in_process
+                ),
+            )
+            for a in args
+        ]
+        if in_process:
+            return [_train_one(job) for job in jobs]
         assert self._pool is not None
-        return list(self._pool.map(_train_one, args))
+        return list(self._pool.map(_train_one, jobs))
 
     def close(self, cancel: bool = False) -> None:
         if self._pool is not None:
@@ -319,7 +365,14 @@ def train_runs(
                 ) -> None:
                     report(offset + step, value if normalize is None else normalize(value))
 
-                runs.append(train_agent(task, encoder, ppo, budget, seed, report=run_report))
+                progress = runner.run_progress(
+                    f"seed {seed} on {task.label}", budget.training_steps, in_process=True
+                )
+                runs.append(
+                    train_agent(
+                        task, encoder, ppo, budget, seed, report=run_report, progress=progress
+                    )
+                )
             per_task.append(runs)
         return per_task
     args = [(task, encoder, ppo, budget, seed) for task, ppo, _ in tasks for seed in seeds]

@@ -31,6 +31,7 @@ import numpy as np
 import optuna
 from optuna.trial import FrozenTrial, TrialState
 
+from ermrl._progress import ProgressMode
 from ermrl._text import plural
 from ermrl.config import ConfigError, EvolveConfig, Problem
 from ermrl.storage import study_lock
@@ -262,6 +263,7 @@ def reevaluate_study(
     heartbeat_interval: int | None = None,
     grace_period: int | None = None,
     max_retry: int | None = None,
+    progress: ProgressMode = "lines",
 ) -> dict[str, Any] | None:
     """Re-train the study's best candidates on fresh seeds and record the ranking.
 
@@ -348,6 +350,7 @@ def reevaluate_study(
         evaluate=evaluate,
         wait_for_running=wait_for_running,
         queued_only=True,
+        progress=progress,
     )
     with study_lock(study):
         doc = record_reevaluation(study, rstudy, rconfig, numbers, k)
