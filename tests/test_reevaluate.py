@@ -367,3 +367,26 @@ def test_cli_reevaluates_and_test_phase_says_which_trial_it_used(tmp_path: Path)
     )  # fmt: skip
     assert show.returncode == 0, show.stderr
     assert "re-evaluated on 1 fresh seed x 384 steps (study 's.reeval')" in show.stdout
+
+
+def test_a_crashed_reevaluation_run_is_queued_again_by_the_next_call(tmp_path: Path) -> None:
+    """A run that raised (a bug, a worker that died, code changed under a running command) is
+    not a measurement of its candidate: the next call runs it again and completes the ranking."""
+    url = f"sqlite:///{tmp_path}/s.db"
+    config = make_config(n_trials=4, popsize=4, reevaluate_top=1, reevaluate_seeds=1)
+    study = create_or_resume_study(config, url, "s")
+    run_evolution(config, study, quiet=True, evaluate=stub_fitness(noise={1.0: -100.0}))
+
+    def crash(encoder, runner, report):  # noqa: ANN001, ANN202
+        raise ValueError("not enough values to unpack (expected 7, got 6)")
+
+    with pytest.raises(ValueError, match="unpack"):
+        reevaluate_study(config, study, url, evaluator_factory=lambda c: crash, quiet=True)
+    rstudy = optuna.load_study(study_name=reevaluation_study_name("s"), storage=url)
+    (crashed,) = rstudy.get_trials(states=(TrialState.FAIL,))[:1]
+    assert (
+        crashed.user_attrs["crashed"] is True and "ValueError" in crashed.user_attrs["fail_reason"]
+    )
+    doc = reevaluate_study(config, study, url, evaluator_factory=lambda c: stub_fitness())
+    assert doc is not None and doc["complete"] and len(doc["candidates"]) == 2
+    assert not any(row.get("failed") for row in doc["candidates"])

@@ -30,6 +30,7 @@ from ermrl.storage import RetryStaleTrial, fail_stale_trials, study_lock, worker
 from ermrl.storage._heartbeat import base_storage
 
 __all__ = [
+    "CRASHED_ATTR",
     "COUNTED",
     "Claim",
     "claim_trial",
@@ -39,6 +40,11 @@ __all__ = [
     "requeue",
     "retry_policy",
 ]
+
+# User attribute of a trial closed as FAIL because the program raised (a bug, a worker process
+# that died, code changed under a running command), not because training diverged: its
+# measurement never happened, so a re-evaluation runs it again.
+CRASHED_ATTR = "crashed"
 
 COUNTED = (TrialState.COMPLETE, TrialState.PRUNED, TrialState.RUNNING, TrialState.WAITING)
 
@@ -178,6 +184,8 @@ def close_interrupted(
             if signum is not None and signum != signal.SIGINT:
                 retry_of = requeue(study, trial._trial_id, retry)
             trial.set_user_attr("fail_reason", reason)
+            if signum is None:  # an error of the program, not an outcome of training
+                trial.set_user_attr(CRASHED_ATTR, True)
             study.tell(trial, state=TrialState.FAIL)
         except (UpdateFinishedTrialError, ValueError):
             pass  # already closed by another worker as stale

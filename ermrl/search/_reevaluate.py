@@ -34,6 +34,7 @@ from optuna.trial import FrozenTrial, TrialState
 from ermrl._progress import ProgressMode
 from ermrl._text import plural
 from ermrl.config import ConfigError, EvolveConfig, Problem
+from ermrl.search._claim import CRASHED_ATTR
 from ermrl.storage import study_lock
 
 __all__ = [
@@ -138,9 +139,11 @@ def _seed_values(trial: FrozenTrial) -> list[float]:
 
 
 def _interrupted(trial: FrozenTrial) -> bool:
-    """Whether a FAIL run was cut short by a signal (Ctrl-C, SIGTERM) rather than failing."""
+    """Whether a FAIL run was cut short by a signal (Ctrl-C, SIGTERM) or by an error of the
+    program (:data:`~ermrl.search._claim.CRASHED_ATTR`) rather than failing in training."""
     reason = str(trial.user_attrs.get("fail_reason", ""))
-    return reason == "interrupted" or reason.startswith("interrupted by ")
+    crashed = bool(trial.user_attrs.get(CRASHED_ATTR))
+    return crashed or reason == "interrupted" or reason.startswith("interrupted by ")
 
 
 def _candidate_runs(rstudy: optuna.Study) -> dict[int, list[FrozenTrial]]:
@@ -155,7 +158,7 @@ def _candidate_runs(rstudy: optuna.Study) -> dict[int, list[FrozenTrial]]:
 
 def _needs_run(runs: list[FrozenTrial]) -> bool:
     """Whether a candidate must be queued: it has no run yet, or its last one was interrupted
-    by a signal and neither finished nor was queued again."""
+    by a signal or crashed and neither finished nor was queued again."""
     if not runs:
         return True
     if any(t.state in (TrialState.COMPLETE, TrialState.RUNNING, TrialState.WAITING) for t in runs):
@@ -177,7 +180,7 @@ def record_reevaluation(
     """Write the ranking of the re-evaluated candidates into ``study`` (``ermrl_reevaluation``).
 
     A candidate whose run failed for good (no COMPLETE run, none running or queued, and the last
-    one not interrupted by a signal) is ranked after every measured one, with ``failed: true``,
+    one not interrupted by a signal nor crashed) is ranked after every measured one, with ``failed: true``,
     ``fitness: null`` and its ``fail_reason``. The ranking is ``complete`` when every candidate
     is measured or failed; ``pending`` counts the others (running or queued in some worker).
 
