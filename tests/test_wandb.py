@@ -1,5 +1,6 @@
-"""``ermrl test --wandb PROJECT``: each run logged through wandb's own SB3 callback, checked on
-the files wandb really writes in offline mode (``WANDB_MODE=offline``; no server is reached)."""
+"""``--wandb PROJECT``: an evolution's trials through optuna-integration's callback, a test
+phase's runs through wandb's own SB3 callback; checked on the files wandb really writes in
+offline mode (``WANDB_MODE=offline``; no server is reached)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,8 @@ from pathlib import Path
 import pytest
 
 pytest.importorskip("wandb", reason="wandb is not installed (pip install 'ermrl[wandb]')")
+pytest.importorskip("optuna_integration", reason="optuna-integration is not installed")
+OFFLINE = {"WANDB_MODE": "offline", "WANDB_SILENT": "true"}
 
 TINY = ["--n-envs", "1", "--ppo", "n_steps=64", "batch_size=32", "n_epochs=1", "--units", "10"]
 
@@ -95,5 +98,41 @@ def test_missing_wandb_is_one_line(
     assert exit_.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [
-        "ermrl test: error: --wandb needs the wandb package, which is not installed (pip install 'ermrl[wandb]')"
+        "ermrl test: error: --wandb needs the wandb and optuna-integration packages, which are "
+        "not installed (pip install 'ermrl[wandb]')"
     ]
+
+
+def test_evolution_logs_each_trial_to_one_run_per_worker(tmp_path: Path) -> None:
+    proc = ermrl(
+        "evolve", "--env-id", "CartPole-v1", "--observe", "positions", "--n-trials", "3",
+        "--n-seeds", "1", "--training-steps", "256", *TINY, "--backend", "sb3",
+        "--storage", f"sqlite:///{tmp_path}/e.db", "--study-name", "wbevo",
+        "--wandb", "ermrl-evo", "--quiet",
+        cwd=tmp_path, env={**OFFLINE, "WANDB_DIR": str(tmp_path)},
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    (run,) = (tmp_path / "wandb").glob("offline-run-*/run-*.wandb")  # one run: one worker
+    data = run.read_bytes()
+    for needle in (b"ermrl-evo", b"wbevo", b"input_scaling"):
+        assert needle in data, needle
+    assert data.count(b"fitness") >= 3  # each trial's record
+
+
+def test_evolution_without_wandb_packages_is_one_line_and_writes_nothing(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The packages are installed here, so their absence is simulated."""
+    import ermrl.agents
+    from ermrl.cli import evolve_main
+
+    monkeypatch.setattr(ermrl.agents, "wandb_installed", lambda: False)
+    db = tmp_path / "e.db"
+    with pytest.raises(SystemExit) as exit_:
+        evolve_main(["--env-id", "CartPole-v1", "--storage", f"sqlite:///{db}", "--wandb", "p"])
+    assert exit_.value.code == 2
+    assert capsys.readouterr().err.strip().splitlines() == [
+        "ermrl evolve: error: --wandb needs the wandb and optuna-integration packages, which are "
+        "not installed (pip install 'ermrl[wandb]')"
+    ]
+    assert not db.exists()

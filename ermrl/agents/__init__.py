@@ -30,7 +30,7 @@ from ermrl.agents._train import (
     make_vec_env,
     train_agent,
 )
-from ermrl.agents._wandb import WANDB_MISSING, WandbRun, wandb_installed
+from ermrl.agents._wandb import WANDB_MISSING, WandbRun, study_wandb_callback, wandb_installed
 from ermrl.learners._policy_io import POLICY_FILE, load_policy, policy_path, save_policy
 
 __all__ = [
@@ -62,6 +62,7 @@ __all__ = [
     "save_normalize_stats",
     "save_policy",
     "stats_path",
+    "study_wandb_callback",
     "train_agent",
     "training_pool",
     "wandb_installed",

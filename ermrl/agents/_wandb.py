@@ -17,10 +17,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-__all__ = ["WANDB_MISSING", "WandbRun", "wandb_installed", "wandb_run"]
+__all__ = ["WANDB_MISSING", "WandbRun", "study_wandb_callback", "wandb_installed", "wandb_run"]
 
 WANDB_MISSING = (
-    "--wandb needs the wandb package, which is not installed (pip install 'ermrl[wandb]')"
+    "--wandb needs the wandb and optuna-integration packages, which are not installed "
+    "(pip install 'ermrl[wandb]')"
 )
 
 
@@ -44,8 +45,39 @@ class WandbRun:
 
 
 def wandb_installed() -> bool:
-    """Whether the ``wandb`` package can be imported."""
-    return importlib.util.find_spec("wandb") is not None
+    """Whether ``wandb`` and ``optuna_integration`` (the evolution's callback) can be imported."""
+    return all(importlib.util.find_spec(m) is not None for m in ("wandb", "optuna_integration"))
+
+
+def study_wandb_callback(
+    project: str, study_name: str, config: dict[str, Any], metric_name: str = "fitness"
+) -> tuple[Any, Any]:
+    """optuna-integration's ``WeightsAndBiasesCallback`` for one evolution worker.
+
+    The worker is one W&B run in the group ``study_name`` (several workers: several runs of one
+    group); each recorded trial logs its parameters and ``metric_name`` at step = its number.
+
+    Returns:
+        ``(callback, finish)``: pass ``callback`` to :func:`ermrl.search.run_evolution` and call
+        ``finish()`` when the worker is done.
+    """
+    import os
+    import socket
+
+    import wandb
+    from optuna_integration.wandb import WeightsAndBiasesCallback
+
+    callback = WeightsAndBiasesCallback(
+        metric_name=metric_name,
+        wandb_kwargs={
+            "project": project,
+            "group": study_name,
+            "name": f"{study_name}/{socket.gethostname()}-{os.getpid()}",
+            "job_type": "evolve",
+            "config": config,
+        },
+    )
+    return callback, wandb.finish
 
 
 @contextmanager

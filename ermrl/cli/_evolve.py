@@ -467,6 +467,15 @@ def add_search_args(parser: argparse.ArgumentParser) -> None:
         "those whose worker died) instead of exiting",
     )
     add_progress_arg(parser)
+    parser.add_argument(
+        "--wandb",
+        default=None,
+        metavar="PROJECT",
+        help="also log each trial (its parameters and fitness) to the Weights & Biases project "
+        "PROJECT, through optuna-integration's WeightsAndBiasesCallback: one W&B run per worker, "
+        "grouped by study name (WANDB_MODE=offline logs locally; needs: pip install "
+        "'ermrl[wandb]')",
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
 
 
@@ -789,6 +798,33 @@ def study_write_failure(err: OSError, storage: str) -> str | None:
     )
 
 
+def check_wandb(prog: str, project: str | None) -> None:
+    """``--wandb`` without its packages: one line, before anything is written."""
+    if project is not None:
+        from ermrl.agents import WANDB_MISSING, wandb_installed
+
+        if not wandb_installed():
+            fail(prog, WANDB_MISSING)
+
+
+def wandb_callbacks(
+    prog: str, project: str | None, study_name: str, config: EvolveConfig
+) -> tuple[list[Any], Callable[[], None]]:
+    """The trial callbacks of ``--wandb PROJECT`` (none without it) and what ends them."""
+    if project is None:
+        return [], lambda: None
+    import warnings
+
+    from ermrl.agents import study_wandb_callback
+    from ermrl.config import to_dict
+
+    check_wandb(prog, project)
+    with warnings.catch_warnings():  # optuna marks the callback experimental
+        warnings.simplefilter("ignore")
+        callback, finish = study_wandb_callback(project, study_name, to_dict(config))
+    return [callback], finish
+
+
 def run_and_report(
     prog: str,
     config: EvolveConfig,
@@ -891,6 +927,7 @@ def evolve_main(argv: Sequence[str] | None = None, prog: str = "ermrl evolve") -
     parser = build_evolve_parser(prog)
     quiet_libraries()
     args = parser.parse_args(argv)
+    check_wandb(prog, args.wandb)
     notes: list[str] = []
     try:
         config = config_from_args(args, notes=notes)
@@ -927,16 +964,21 @@ def evolve_main(argv: Sequence[str] | None = None, prog: str = "ermrl evolve") -
         )
         if (live := dashboard_line(args.storage)) is not None:
             print(live, flush=True)
-    return run_and_report(
-        prog,
-        config,
-        study,
-        quiet=args.quiet,
-        fitness_name="fitness",
-        next_command=f"ermrl test --study-name {shlex.quote(study_name)} "
-        f"--storage {shlex.quote(args.storage)}",
-        storage_url=args.storage,
-        study_kwargs=study_kwargs,
-        wait_for_running=args.wait_for_running,
-        progress=args.progress,
-    )
+    callbacks, finish_wandb = wandb_callbacks(prog, args.wandb, study_name, config)
+    try:
+        return run_and_report(
+            prog,
+            config,
+            study,
+            quiet=args.quiet,
+            fitness_name="fitness",
+            next_command=f"ermrl test --study-name {shlex.quote(study_name)} "
+            f"--storage {shlex.quote(args.storage)}",
+            storage_url=args.storage,
+            study_kwargs=study_kwargs,
+            wait_for_running=args.wait_for_running,
+            progress=args.progress,
+            callbacks=callbacks,
+        )
+    finally:
+        finish_wandb()

@@ -27,6 +27,7 @@ from ermrl.cli._evolve import (
     add_problem_args,
     add_search_args,
     budget_from_args,
+    check_wandb,
     command_line,
     encoder_from_args,
     keep_study_backend,
@@ -36,6 +37,7 @@ from ermrl.cli._evolve import (
     search_from_args,
     space_from_args,
     study_write_failure,
+    wandb_callbacks,
 )
 from ermrl.cli._test import (
     add_test_args,
@@ -273,6 +275,7 @@ def evolve_generalization_main(
     parser = build_evolve_generalization_parser(prog)
     quiet_libraries()
     args = parser.parse_args(argv)
+    check_wandb(prog, args.wandb)
     notes: list[str] = []
     try:
         config = generalization_config_from_args(args, notes=notes)
@@ -323,20 +326,25 @@ def evolve_generalization_main(
                 f"{t.target_return:.4g} ({gen.target_column}), n_envs {t.ppo.n_envs}",
                 flush=True,
             )
-    return run_and_report(
-        prog,
-        config,
-        study,
-        quiet=args.quiet,
-        fitness_name="normalized fitness",
-        next_command=f"ermrl test-generalization --study-name {shlex.quote(study_name)} "
-        f"--storage {shlex.quote(args.storage)} --env-id {_suggested_test_env(config)}",
-        evaluate=generalization_evaluator(config, quiet=args.quiet),
-        storage_url=args.storage,
-        study_kwargs=study_kwargs,
-        evaluator_factory=lambda c: generalization_evaluator(c, quiet=args.quiet),
-        **run_kwargs,
-    )
+    callbacks, finish_wandb = wandb_callbacks(prog, args.wandb, study_name, config)
+    try:
+        return run_and_report(
+            prog,
+            config,
+            study,
+            quiet=args.quiet,
+            fitness_name="normalized fitness",
+            next_command=f"ermrl test-generalization --study-name {shlex.quote(study_name)} "
+            f"--storage {shlex.quote(args.storage)} --env-id {_suggested_test_env(config)}",
+            evaluate=generalization_evaluator(config, quiet=args.quiet),
+            storage_url=args.storage,
+            study_kwargs=study_kwargs,
+            evaluator_factory=lambda c: generalization_evaluator(c, quiet=args.quiet),
+            callbacks=callbacks,
+            **run_kwargs,
+        )
+    finally:
+        finish_wandb()
 
 
 # -- test-generalization ------------------------------------------------------------------------

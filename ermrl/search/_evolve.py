@@ -32,7 +32,7 @@ from typing import Any, TextIO
 
 import optuna
 from optuna.storages._heartbeat import BaseHeartbeat, get_heartbeat_thread, is_heartbeat_enabled
-from optuna.trial import TrialState
+from optuna.trial import FrozenTrial, TrialState
 
 from ermrl._progress import ProgressMode
 from ermrl._text import plural
@@ -143,6 +143,7 @@ def run_evolution(
     queued_only: bool = False,
     evaluate_generation: EvaluateGenerationFn | None = None,
     progress: ProgressMode = "lines",
+    callbacks: Sequence[Callable[[optuna.Study, FrozenTrial], None]] = (),
 ) -> EvolutionSummary:
     """Run trials until the study holds ``config.search.n_trials`` counted trials.
 
@@ -179,6 +180,9 @@ def run_evolution(
         progress: ``"lines"``: inside a trial (or generation), each run or population prints
             a line every tenth of its steps or 30 s with its rate and ETA; ``"none"``: one line
             per finished trial only. ``quiet`` silences both.
+        callbacks: Called as ``callback(study, trial)`` with each trial this worker recorded
+            (COMPLETE, PRUNED or FAIL), as :meth:`optuna.study.Study.optimize` calls its
+            callbacks: e.g. optuna-integration's ``WeightsAndBiasesCallback``.
 
     Returns:
         What this worker did.
@@ -253,6 +257,7 @@ def run_evolution(
             evaluate_generation=evaluate_generation,
             wait_for_running=wait_for_running,
             queued_only=queued_only,
+            callbacks=callbacks,
         )
         if done_before < n_trials or queued:
             _announce(config, runner, guard, say, generation)
@@ -321,6 +326,7 @@ class _Worker:
         evaluate_generation: A generation's fitness (population backend).
         wait_for_running: Wait for other workers' trials when the budget is reached.
         queued_only: Claim only queued (WAITING) trials.
+        callbacks: Called with each recorded trial (see :func:`run_evolution`).
 
     Attributes:
         summary: What this worker did so far.
@@ -342,6 +348,7 @@ class _Worker:
         evaluate_generation: EvaluateGenerationFn | None,
         wait_for_running: bool,
         queued_only: bool,
+        callbacks: Sequence[Callable[[optuna.Study, FrozenTrial], None]] = (),
     ) -> None:
         self.config = config
         self.study = study
@@ -356,6 +363,7 @@ class _Worker:
         self.evaluate_generation = evaluate_generation
         self.wait_for_running = wait_for_running
         self.queued_only = queued_only
+        self.callbacks = tuple(callbacks)
         self.n_trials = config.search.n_trials
         self.summary = EvolutionSummary()
         self.durations: list[float] = []  # seconds per trial, for the ETA
@@ -512,6 +520,9 @@ class _Worker:
                 counted=counted, n_trials=n_trials, retry_of=claim.retry_of, eta=eta,
             )
         )  # fmt: skip
+        for callback in self.callbacks:
+            assert isinstance(closed, FrozenTrial)
+            callback(self.study, closed)
         if self.failed_in_a_row >= n_trials:
             say(
                 f"stopping: the last {plural(self.failed_in_a_row, 'trial')} of this worker failed "
