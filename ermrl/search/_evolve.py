@@ -142,7 +142,7 @@ def run_evolution(
     n_workers: int | None = None,
     queued_only: bool = False,
     evaluate_generation: EvaluateGenerationFn | None = None,
-    progress: ProgressMode = "lines",
+    progress: ProgressMode = "none",
     callbacks: Sequence[Callable[[optuna.Study, FrozenTrial], None]] = (),
 ) -> EvolutionSummary:
     """Run trials until the study holds ``config.search.n_trials`` counted trials.
@@ -177,9 +177,9 @@ def run_evolution(
             ``evaluate_generation(encoders, runner)`` -> one fitness or exception per candidate
             (default: :func:`~ermrl.search.evaluate_encoders` on ``config.problem``, or the
             multi-task fitness of a generalization config).
-        progress: ``"lines"``: inside a trial (or generation), each run or population prints
-            a line every tenth of its steps or 30 s with its rate and ETA; ``"none"``: one line
-            per finished trial only. ``quiet`` silences both.
+        progress: ``"lines"`` (the commands' default): inside a trial (or generation), each
+            run or population prints a line every tenth of its steps or 30 s with its rate and
+            ETA; ``"none"``: one line per finished trial only. ``quiet`` silences both.
         callbacks: Called as ``callback(study, trial)`` with each trial this worker recorded
             (COMPLETE, PRUNED or FAIL), as :meth:`optuna.study.Study.optimize` calls its
             callbacks: e.g. optuna-integration's ``WeightsAndBiasesCallback``.

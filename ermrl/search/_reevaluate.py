@@ -266,7 +266,7 @@ def reevaluate_study(
     heartbeat_interval: int | None = None,
     grace_period: int | None = None,
     max_retry: int | None = None,
-    progress: ProgressMode = "lines",
+    progress: ProgressMode = "none",
 ) -> dict[str, Any] | None:
     """Re-train the study's best candidates on fresh seeds and record the ranking.
 
@@ -287,6 +287,7 @@ def reevaluate_study(
         heartbeat_interval: Heartbeats of the re-evaluation trials (as for evolution).
         grace_period: Seconds without heartbeat before a run is failed and retried.
         max_retry: Retries of a run whose worker died.
+        progress: Lines inside each run, as in :func:`~ermrl.search.run_evolution`.
 
     Returns:
         The recorded ranking (see :func:`record_reevaluation`), or ``None`` when re-evaluation
