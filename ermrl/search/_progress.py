@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import math
-
 import optuna
 from optuna.trial import TrialState
 
+from ermrl._progress import duration
 from ermrl.search._objective import FitnessResult
 
 __all__ = ["best_trial", "fmt_duration", "format_params", "trial_line"]
@@ -16,13 +15,7 @@ def format_params(params: dict[str, float]) -> str:
     return " ".join(f"{k}={v:.3g}" for k, v in params.items())
 
 
-def fmt_duration(seconds: float) -> str:
-    if not math.isfinite(seconds):
-        return "?"
-    seconds = int(round(seconds))
-    h, rem = divmod(seconds, 3600)
-    m, s = divmod(rem, 60)
-    return f"{h}h{m:02d}m" if h else f"{m}m{s:02d}s"
+fmt_duration = duration  # "1h02m", "3m05s", "?": the one formatter of ermrl._progress
 
 
 def best_trial(study: optuna.Study) -> tuple[float | None, int | None, dict[str, float] | None]:
