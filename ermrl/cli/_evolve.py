@@ -836,6 +836,7 @@ def run_and_report(
     storage_url: str | None = None,
     study_kwargs: dict[str, Any] | None = None,
     evaluator_factory: Any = None,
+    wandb: str | None = None,
     **run_kwargs: Any,
 ) -> int:
     """Run this worker's trials of ``study`` and print how it ended; return the exit code.
@@ -854,6 +855,7 @@ def run_and_report(
             re-evaluation).
         study_kwargs: heartbeat and retry options of the re-evaluation study.
         evaluator_factory: builds the fitness of the re-evaluation config (multi-task runs).
+        wandb: ``--wandb PROJECT``: each recorded trial is logged there (``None``: not).
         **run_kwargs: passed on to :func:`ermrl.search.run_evolution` (``evaluate``,
             ``wait_for_running``).
 
@@ -866,8 +868,9 @@ def run_and_report(
     from ermrl.storage import StorageError
 
     where = storage_url or "the storage"
+    callbacks, finish_wandb = wandb_callbacks(prog, wandb, study.study_name, config)
     try:
-        summary = run_evolution(config, study, quiet=quiet, **run_kwargs)
+        summary = run_evolution(config, study, quiet=quiet, callbacks=callbacks, **run_kwargs)
         if storage_url is not None and config.search.reevaluate_top > 0:
             reevaluate_study(
                 config,
@@ -903,6 +906,8 @@ def run_and_report(
             "fail-stale), and a record cut short is set aside when the next worker opens the "
             "journal: free space (or fix the folder) and rerun",
         )
+    finally:
+        finish_wandb()
     if not quiet:
         best = (
             "none yet"
@@ -964,21 +969,17 @@ def evolve_main(argv: Sequence[str] | None = None, prog: str = "ermrl evolve") -
         )
         if (live := dashboard_line(args.storage)) is not None:
             print(live, flush=True)
-    callbacks, finish_wandb = wandb_callbacks(prog, args.wandb, study_name, config)
-    try:
-        return run_and_report(
-            prog,
-            config,
-            study,
-            quiet=args.quiet,
-            fitness_name="fitness",
-            next_command=f"ermrl test --study-name {shlex.quote(study_name)} "
-            f"--storage {shlex.quote(args.storage)}",
-            storage_url=args.storage,
-            study_kwargs=study_kwargs,
-            wait_for_running=args.wait_for_running,
-            progress=args.progress,
-            callbacks=callbacks,
-        )
-    finally:
-        finish_wandb()
+    return run_and_report(
+        prog,
+        config,
+        study,
+        quiet=args.quiet,
+        fitness_name="fitness",
+        next_command=f"ermrl test --study-name {shlex.quote(study_name)} "
+        f"--storage {shlex.quote(args.storage)}",
+        storage_url=args.storage,
+        study_kwargs=study_kwargs,
+        wait_for_running=args.wait_for_running,
+        progress=args.progress,
+        wandb=args.wandb,
+    )

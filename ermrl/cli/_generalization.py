@@ -37,7 +37,6 @@ from ermrl.cli._evolve import (
     search_from_args,
     space_from_args,
     study_write_failure,
-    wandb_callbacks,
 )
 from ermrl.cli._test import (
     add_test_args,
@@ -326,25 +325,21 @@ def evolve_generalization_main(
                 f"{t.target_return:.4g} ({gen.target_column}), n_envs {t.ppo.n_envs}",
                 flush=True,
             )
-    callbacks, finish_wandb = wandb_callbacks(prog, args.wandb, study_name, config)
-    try:
-        return run_and_report(
-            prog,
-            config,
-            study,
-            quiet=args.quiet,
-            fitness_name="normalized fitness",
-            next_command=f"ermrl test-generalization --study-name {shlex.quote(study_name)} "
-            f"--storage {shlex.quote(args.storage)} --env-id {_suggested_test_env(config)}",
-            evaluate=generalization_evaluator(config, quiet=args.quiet),
-            storage_url=args.storage,
-            study_kwargs=study_kwargs,
-            evaluator_factory=lambda c: generalization_evaluator(c, quiet=args.quiet),
-            callbacks=callbacks,
-            **run_kwargs,
-        )
-    finally:
-        finish_wandb()
+    return run_and_report(
+        prog,
+        config,
+        study,
+        quiet=args.quiet,
+        fitness_name="normalized fitness",
+        next_command=f"ermrl test-generalization --study-name {shlex.quote(study_name)} "
+        f"--storage {shlex.quote(args.storage)} --env-id {_suggested_test_env(config)}",
+        evaluate=generalization_evaluator(config, quiet=args.quiet),
+        storage_url=args.storage,
+        study_kwargs=study_kwargs,
+        evaluator_factory=lambda c: generalization_evaluator(c, quiet=args.quiet),
+        wandb=args.wandb,
+        **run_kwargs,
+    )
 
 
 # -- test-generalization ------------------------------------------------------------------------
