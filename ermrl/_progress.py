@@ -1,25 +1,55 @@
 """Progress of long work (a training run, a generation): steps done, rate and ETA.
 
-One :class:`Progress` per piece of work. It prints a line when a tenth of the work is done or
-``interval`` seconds have passed since the last line, whichever comes first, and a last line at
-the end (``mode="lines"``); ``mode="none"`` prints nothing. The rate counts from the first
-:meth:`Progress.update`, not from the object's creation: start-up (imports, env construction,
-spawning processes) is not work, and counting it made the first run's rate look ten times
-lower than training's.
+One :class:`Progress` per piece of work, in one of three modes:
+
+- ``"lines"``: a line when a tenth of the work is done or ``interval`` seconds have passed since
+  the last line, whichever comes first, and a last line at the end (logs, SLURM, pipes);
+- ``"bar"``: a live `tqdm <https://tqdm.github.io>`_ bar, on a terminal; it stays on screen
+  when the work ends, as the last line does in ``"lines"`` mode;
+- ``"none"``: nothing.
+
+:func:`default_mode` picks ``"bar"`` when stdout is a terminal and ``"lines"`` otherwise.
+
+The rate counts from the first :meth:`Progress.update`, not from the object's creation:
+start-up (imports, env construction, spawning processes) is not work, and counting it made the
+first run's rate look ten times lower than training's. The bar is created at the first update
+for the same reason (tqdm counts its rate from the bar's creation, and ``smoothing=0`` makes it
+the average since then, as the lines show).
+
+A bar draws only in the process that created the :class:`Progress`. Work sent to worker
+processes (a population split in parts, runs in a pool) prints lines there: bars from several
+processes on one terminal would overwrite each other's rows, having no lock in common, while
+each worker's lines are whole and labelled.
 """
 
 from __future__ import annotations
 
 import math
+import os
 import sys
 import time
 from collections.abc import Callable
-from typing import Literal, TextIO
+from typing import Any, Literal, TextIO
 
-__all__ = ["PROGRESS_MODES", "Progress", "ProgressMode", "duration"]
+__all__ = ["PROGRESS_MODES", "Progress", "ProgressMode", "default_mode", "duration"]
 
-ProgressMode = Literal["lines", "none"]
-PROGRESS_MODES: tuple[ProgressMode, ...] = ("lines", "none")
+ProgressMode = Literal["bar", "lines", "none"]
+PROGRESS_MODES: tuple[ProgressMode, ...] = ("bar", "lines", "none")
+
+
+def default_mode(stream: TextIO | None = None) -> ProgressMode:
+    """``"bar"`` when ``stream`` (default: ``sys.stdout``) is a terminal, else ``"lines"``.
+
+    Examples:
+        >>> import io
+        >>> default_mode(io.StringIO())
+        'lines'
+    """
+    stream = sys.stdout if stream is None else stream
+    try:
+        return "bar" if stream.isatty() else "lines"
+    except (AttributeError, ValueError):  # no isatty, or a closed stream
+        return "lines"
 
 
 def duration(seconds: float) -> str:
@@ -38,12 +68,12 @@ def duration(seconds: float) -> str:
 
 
 class Progress:
-    """Lines of ``[label] done/total unit (pct) | rate | ETA`` at a steady interval.
+    """Lines of ``[label] done/total unit (pct) | rate | ETA`` at a steady interval, or a bar.
 
     Args:
         label: What is progressing, e.g. ``"res-ppo seed 10"``.
         total: The amount of work, e.g. training steps.
-        mode: ``"lines"`` or ``"none"``.
+        mode: ``"bar"``, ``"lines"`` or ``"none"`` (see the module's docstring).
         interval: Seconds between lines at most.
         fraction: A line each time this fraction of ``total`` is passed.
         stream: Where lines go (default: ``sys.stdout`` at each line).
@@ -74,7 +104,21 @@ class Progress:
         self._last_time = 0.0
         self._next_mark = 0
         self.done = 0
-        self.lines: list[str] = []  # every line printed, for callers and tests
+        self.lines: list[str] = []  # every line due (printed in "lines" mode), for callers
+        self._pid = os.getpid()  # a bar draws in this process only
+        self._bar: Any = None
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = dict(self.__dict__)
+        state["_bar"] = None  # a bar stays with its process (a worker gets lines)
+        return state
+
+    @property
+    def shows(self) -> ProgressMode:
+        """What this process shows: the mode, except ``"lines"`` for a bar sent to a worker."""
+        if self.mode == "bar" and os.getpid() != self._pid:
+            return "lines"
+        return self.mode
 
     def renamed(self, label: str, *, stream: TextIO | None = None) -> Progress:
         """A fresh progress of the same work and settings under another label (e.g. the part of
@@ -100,14 +144,37 @@ class Progress:
         if self._t0 is None:  # the first update marks the end of start-up
             self._t0, self._done0, self._last_time = now, self.done, now
             self._next_mark = (self.done // self.step + 1) * self.step
+            if self.shows == "bar":
+                self._bar = self._new_bar()
             return
+        if self._bar is not None:
+            self._bar.update(self.done - self._bar.n)
         if self.done >= self._next_mark or now - self._last_time >= self.interval:
             self._emit(now)
 
     def close(self) -> None:
-        """Print the last line (once), unless the last update already printed it."""
+        """Print the last line (once), unless the last update already printed it; in bar mode,
+        draw the bar at its last count and leave it on screen."""
         if self._t0 is not None and (not self.lines or self._last_done != self.done):
             self._emit(self._clock())
+        if self._bar is not None:
+            self._bar.update(self.done - self._bar.n)
+            self._bar.close()
+            self._bar = None
+
+    def _new_bar(self) -> Any:
+        from tqdm import tqdm
+
+        return tqdm(
+            total=self.total,
+            initial=self.done,  # tqdm's rate is (n - initial) / time since now: start-up excluded
+            desc=self.label,
+            unit=f" {self.unit}",  # "1,988 steps/s", not "1988steps/s"
+            file=self._stream or sys.stdout,
+            smoothing=0,  # the average rate since the first update, as in the lines
+            dynamic_ncols=True,
+            leave=True,
+        )
 
     def line(self, now: float) -> str:
         """The progress line at ``now``."""
@@ -126,7 +193,7 @@ class Progress:
         self.lines.append(text)
         self._last_time, self._last_done = now, self.done
         self._next_mark = (self.done // self.step + 1) * self.step
-        if self.mode == "lines":
+        if self.shows == "lines":
             print(text, file=self._stream or sys.stdout, flush=True)
 
     _last_done = -1

@@ -7,11 +7,19 @@ import os
 import re
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
 
-from ermrl._progress import Progress, duration
+from ermrl._progress import Progress, default_mode, duration
+
+
+class FakeTerminal(io.StringIO):
+    """A stream that says it is a terminal, as a TTY stdout does."""
+
+    def isatty(self) -> bool:
+        return True
 
 
 class Clock:
@@ -51,7 +59,7 @@ def test_none_prints_nothing_and_bad_mode_is_refused() -> None:
     p.close()
     assert out.getvalue() == ""
     with pytest.raises(ValueError, match="progress mode"):
-        Progress("run", 10, mode="bar")  # type: ignore[arg-type]
+        Progress("run", 10, mode="fancy")  # type: ignore[arg-type]
 
 
 def test_duration() -> None:
@@ -79,6 +87,89 @@ def test_train_agent_reports_its_steps() -> None:
     assert len(lines) >= 9  # a line per tenth (each rollout of 64 steps is one)
     assert lines[-1].startswith("[ppo seed 0] 640/640 steps (100%)")
     assert all(re.search(r"\| \d+ steps/s \| ETA ", line) for line in lines)
+
+
+def test_bar_mode_draws_a_tqdm_bar_with_the_total_and_a_rate_without_start_up() -> None:
+    clock, out = Clock(), FakeTerminal()
+    p = Progress("res-ppo seed 3", 5_000, mode="bar", stream=out, clock=clock)
+    time.sleep(0.5)  # start-up: tqdm's clock runs, but the bar does not exist yet
+    for done in range(0, 5_001, 500):
+        p.update(done)
+        time.sleep(0.01)
+    p.close()
+    text = out.getvalue()
+    frames = [f for f in re.split(r"[\r\n]", text) if f.strip()]
+    assert frames and all(f.startswith("res-ppo seed 3: ") for f in frames), text
+    last = frames[-1]
+    assert "100%" in last and "5000/5000" in last and " steps/s]" in last, last
+    # ~5,000 steps in ~0.1 s: a rate counted from creation (0.6 s) would be under 10,000/s.
+    rate = float(re.search(r", ([\d.]+) steps/s\]", last).group(1))  # type: ignore[union-attr]
+    assert rate > 15_000, last
+    assert text.endswith("\n")  # the finished bar stays on screen
+    assert "[res-ppo seed 3]" not in text  # no lines besides the bar
+    assert p.lines  # the lines that were due are still recorded, for callers
+
+
+def test_train_agent_draws_its_bar_on_a_terminal() -> None:
+    from ermrl.agents import resolve_ppo_config, train_agent
+    from ermrl.config import BudgetConfig, TaskConfig
+
+    ppo = resolve_ppo_config(
+        "CartPole-v1", {"n_steps": 64, "batch_size": 64, "n_epochs": 1}, n_envs=1
+    )
+    out = FakeTerminal()
+    progress = Progress("ppo seed 0", 640, mode="bar", stream=out)
+    train_agent(
+        TaskConfig("CartPole-v1", "all"), None, ppo, BudgetConfig(training_steps=640), 0,
+        progress=progress,
+    )  # fmt: skip
+    last = [f for f in re.split(r"[\r\n]", out.getvalue()) if f.strip()][-1]
+    assert last.startswith("ppo seed 0: 100%") and "640/640 [" in last, out.getvalue()
+
+
+def _update_elsewhere(progress: Progress) -> tuple[str, list[str], str]:
+    out = io.StringIO()
+    sys.stdout = out  # this worker's stdout
+    for done in range(0, 101, 10):
+        progress.update(done)
+    progress.close()
+    return progress.shows, progress.lines, out.getvalue()
+
+
+def test_a_bar_sent_to_a_worker_process_prints_lines_there() -> None:
+    from concurrent.futures import ProcessPoolExecutor
+
+    progress = Progress("trial 1, part 2/2", 100, mode="bar")
+    assert progress.shows == "bar"
+    with ProcessPoolExecutor(1) as pool:
+        shows, lines, printed = pool.submit(_update_elsewhere, progress).result(timeout=120)
+    assert shows == "lines" and len(lines) == 10
+    assert printed.splitlines() == lines and lines[-1].startswith("[trial 1, part 2/2] 100/100")
+
+
+def test_the_default_mode_is_a_bar_on_a_terminal_and_lines_elsewhere(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import argparse
+
+    from ermrl.cli._common import progress_mode
+    from ermrl.cli._evolve import build_evolve_parser
+    from ermrl.cli._run import build_run_parser
+    from ermrl.cli._test import build_test_parser
+
+    assert default_mode(FakeTerminal()) == "bar" and default_mode(io.StringIO()) == "lines"
+    for parser, argv in (
+        (build_evolve_parser(), ["--env-id", "CartPole-v1"]),
+        (build_test_parser(), ["--study-name", "s"]),
+        (build_run_parser(), ["exp.yaml"]),
+    ):
+        assert parser.parse_args(argv).progress is None  # resolved after parsing
+        assert parser.parse_args([*argv, "--progress", "lines"]).progress == "lines"
+    monkeypatch.setattr(sys, "stdout", FakeTerminal())
+    assert progress_mode(argparse.Namespace(progress=None)) == "bar"
+    assert progress_mode(argparse.Namespace(progress="none")) == "none"
+    monkeypatch.setattr(sys, "stdout", io.StringIO())
+    assert progress_mode(argparse.Namespace(progress=None)) == "lines"
 
 
 def ermrl(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:

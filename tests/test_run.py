@@ -225,8 +225,10 @@ def _load(url: str, name: str) -> optuna.Study:
 
 def test_a_run_finishes_every_stage_then_skips_them_all(tmp_path: Path) -> None:
     path = write(tmp_path, TINY)
-    done = ermrl(tmp_path, "run", str(path))
+    done = ermrl(tmp_path, "run", str(path), "--progress", "none")
     assert done.returncode == 0, done.stdout + done.stderr
+    # --progress reaches the evolve and test commands (a pipe's default would be lines).
+    assert " steps/s | ETA " not in done.stdout and "[run 2/2]" in done.stdout, done.stdout
     out = tmp_path / "runs" / "tiny"
     # The plan is printed at the start of the real run too.
     assert done.stdout.index("total") < done.stdout.index("[evolve Pendulum-v1]")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
-from typing import Any, NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn
 
 from ermrl.storage import DEFAULT_STORAGE
 
@@ -25,7 +25,12 @@ __all__ = [
     "positive_int",
     "nonneg_int",
     "positive_float",
+    "add_progress_arg",
+    "progress_mode",
 ]
+
+if TYPE_CHECKING:
+    from ermrl._progress import ProgressMode
 
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
@@ -66,20 +71,44 @@ class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescript
         return super()._get_help_string(action)
 
 
+PROGRESS_DEFAULT_HELP = "default: bar when stdout is a terminal, lines otherwise"
+
+
 def add_progress_arg(
-    parser: argparse.ArgumentParser, *, what: str = "trial (or generation)"
+    parser: argparse.ArgumentParser,
+    *,
+    inside: str = "trial (or generation)",
+    finished: str = "trial",
 ) -> None:
-    """``--progress lines|none``: progress lines inside each run, or none."""
+    """``--progress bar|lines|none``: a live bar or progress lines for each run, or none.
+
+    The default (``None``) is resolved by :func:`progress_mode` once the arguments are parsed.
+
+    Args:
+        parser: The command's parser.
+        inside: What the runs are part of ("" for none), for the help.
+        finished: What ``none`` still prints a line for, once finished.
+    """
     from ermrl._progress import PROGRESS_MODES
 
+    where = f" inside each {inside}" if inside else ""
     parser.add_argument(
         "--progress",
         choices=PROGRESS_MODES,
-        default="lines",
-        help=f"lines: inside each {what}, a line per run (or population) every tenth of its "
-        "steps or 30 s, with its rate (from its first step: start-up excluded) and ETA; "
-        f"none: a line per finished {what.split(' (')[0]} only",
+        default=None,
+        help=f"bar: a live bar per run (or population){where}, with its rate (from its first "
+        "step: start-up excluded) and ETA, a population split over processes printing lines "
+        "from each part; lines: a line per run every tenth of its steps or 30 s, with the same "
+        f"rate and ETA; none: a line per finished {finished} only ({PROGRESS_DEFAULT_HELP})",
     )
+
+
+def progress_mode(args: argparse.Namespace) -> ProgressMode:
+    """``args.progress``, or the default for where stdout goes (see :func:`add_progress_arg`)."""
+    from ermrl._progress import default_mode
+
+    value = getattr(args, "progress", None)
+    return default_mode() if value is None else value
 
 
 def dashboard_line(storage: str) -> str | None:

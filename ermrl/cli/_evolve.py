@@ -26,6 +26,7 @@ from ermrl.cli._common import (
     nonneg_int,
     positive_float,
     positive_int,
+    progress_mode,
     quiet_libraries,
 )
 from ermrl.config import (
@@ -62,6 +63,7 @@ __all__ = [
     "command_line",
     "evolve_main",
     "keep_study_backend",
+    "check_tensorboard",
     "print_backend_notes",
     "run_and_report",
     "stored_backend",
@@ -468,6 +470,15 @@ def add_search_args(parser: argparse.ArgumentParser) -> None:
     )
     add_progress_arg(parser)
     parser.add_argument(
+        "--tensorboard",
+        default=None,
+        metavar="DIR",
+        help="also log each trial's training curves for TensorBoard under "
+        "DIR/trial_<n>/seed_<s> (a trial on several tasks: DIR/trial_<n>/<env_id>/seed_<s>); "
+        "the runs then train with the sb3 backend, the population backend writing no "
+        "TensorBoard logs (needs: pip install tensorboard)",
+    )
+    parser.add_argument(
         "--wandb",
         default=None,
         metavar="PROJECT",
@@ -661,6 +672,7 @@ def config_from_args(
         ppo,
         (TaskConfig(env_id=args.env_id, observe=args.observe),),
         pruner=getattr(args, "pruner", "none"),
+        tensorboard=bool(getattr(args, "tensorboard", None)),
     )
     if why is not None and notes is not None:
         notes.append(why)
@@ -691,7 +703,32 @@ def config_from_args(
         from ermrl.population import check_population_config
 
         check_population_config(ppo)
+    check_tensorboard(args, ppo.backend)
     return config
+
+
+def check_tensorboard(args: argparse.Namespace, backend: str) -> None:
+    """``--tensorboard`` needs the sb3 backend and the tensorboard package.
+
+    Raises:
+        ConfigError: ``--tensorboard`` with the population backend (``--backend population``,
+            or a resumed study created with it), or without the tensorboard package.
+    """
+    if not getattr(args, "tensorboard", None):
+        return
+    if backend == "population":
+        raise ConfigError(
+            "--tensorboard logs come from the sb3 backend, and this run trains with the "
+            "population backend (--backend population, or a study created with it; a study "
+            "never mixes backends)"
+        )
+    import importlib.util
+
+    if importlib.util.find_spec("tensorboard") is None:
+        raise ConfigError(
+            "--tensorboard needs the tensorboard package, which is not installed "
+            "(pip install tensorboard)"
+        )
 
 
 def stored_backend(storage: str, study_name: str) -> str | None:
@@ -857,7 +894,7 @@ def run_and_report(
         evaluator_factory: builds the fitness of the re-evaluation config (multi-task runs).
         wandb: ``--wandb PROJECT``: each recorded trial is logged there (``None``: not).
         **run_kwargs: passed on to :func:`ermrl.search.run_evolution` (``evaluate``,
-            ``wait_for_running``).
+            ``wait_for_running``, ``progress``, ``tensorboard``).
 
     Returns:
         0 when the worker finished, ``EXIT_TERMINATED`` (143) when stopped by a signal,
@@ -980,6 +1017,7 @@ def evolve_main(argv: Sequence[str] | None = None, prog: str = "ermrl evolve") -
         storage_url=args.storage,
         study_kwargs=study_kwargs,
         wait_for_running=args.wait_for_running,
-        progress=args.progress,
+        progress=progress_mode(args),
         wandb=args.wandb,
+        tensorboard=args.tensorboard,
     )

@@ -17,16 +17,19 @@ from ermrl.cli._common import (
     EXIT_INTERRUPTED,
     ArgumentParser,
     HelpFormatter,
+    add_progress_arg,
     add_storage_args,
     dashboard_line,
     fail,
     positive_int,
+    progress_mode,
     quiet_libraries,
 )
 from ermrl.cli._evolve import (
     add_problem_args,
     add_search_args,
     budget_from_args,
+    check_tensorboard,
     check_wandb,
     command_line,
     encoder_from_args,
@@ -202,7 +205,9 @@ def generalization_config_from_args(
 
         backend, why = "population", None
         for t in tasks:
-            backend, why = choose_backend(None, t.ppo, (t.task,), pruner=args.pruner)
+            backend, why = choose_backend(
+                None, t.ppo, (t.task,), pruner=args.pruner, tensorboard=bool(args.tensorboard)
+            )
             if why is not None:
                 if notes is not None:
                     notes.append(f"{t.task.env_id}: {why}")
@@ -233,6 +238,7 @@ def generalization_config_from_args(
         from ermrl.population import check_population_config
 
         check_population_config(config.problem.ppo)
+    check_tensorboard(args, config.problem.ppo.backend)
     return config
 
 
@@ -293,7 +299,10 @@ def evolve_generalization_main(
     for name in ("grace_period", "max_retry"):
         if hasattr(args, name):
             study_kwargs[name] = getattr(args, name)
-    run_kwargs: dict[str, Any] = {"progress": args.progress}
+    run_kwargs: dict[str, Any] = {
+        "progress": progress_mode(args),
+        "tensorboard": getattr(args, "tensorboard", None),
+    }
     if hasattr(args, "wait_for_running"):
         run_kwargs["wait_for_running"] = args.wait_for_running
     try:
@@ -382,6 +391,7 @@ def build_test_generalization_parser(prog: str = "ermrl test-generalization") ->
         metavar="CSV",
         help="reference table for the normalized returns (default: the study's)",
     )
+    add_progress_arg(parser, inside="", finished="run")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
     return parser
 

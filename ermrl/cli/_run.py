@@ -6,10 +6,13 @@ prints the plan, writes the resolved configuration and runs the unfinished steps
 
 from __future__ import annotations
 
+import shlex
 import sys
 import textwrap
 from collections.abc import Sequence
+from pathlib import Path
 
+from ermrl._progress import PROGRESS_MODES
 from ermrl._text import plural
 from ermrl.cli._common import EXIT_INTERRUPTED, ArgumentParser, HelpFormatter, fail
 from ermrl.cli._experiment import Experiment, Step, publish_step, snapshot_status
@@ -17,6 +20,10 @@ from ermrl.cli._experiment import Experiment, Step, publish_step, snapshot_statu
 __all__ = ["build_run_parser", "run_main"]
 
 STAGE_CHOICES = ("evolve", "reevaluate", "test", "report")
+# The stages whose commands take --progress (each evolve and test command does).
+PROGRESS_STAGES = ("evolve", "test")
+# The commands that take --tensorboard.
+TENSORBOARD_COMMANDS = ("evolve", "evolve-generalization", "test")
 
 DESCRIPTION = textwrap.dedent(
     """\
@@ -75,8 +82,41 @@ def build_run_parser(prog: str = "ermrl run") -> ArgumentParser:
         "study.json, and stop (commit it: a later `ermrl run` on another machine imports it "
         "and resumes the evolution where it stopped)",
     )
+    parser.add_argument(
+        "--progress",
+        choices=PROGRESS_MODES,
+        default=None,
+        help="progress inside the evolve and test stages, passed to their commands (bar: a live "
+        "bar per run; lines: a line per run every tenth of its steps or 30 s; none: a line per "
+        "finished trial or run only); default: a `progress` the file gives the stage, else bar "
+        "when stdout is a terminal and lines otherwise",
+    )
+    parser.add_argument(
+        "--tensorboard",
+        default=None,
+        metavar="DIR",
+        help="also log training curves for TensorBoard: each evolution's trials under "
+        "DIR/<task>/evolve (its --tensorboard) and each single-task test phase under "
+        "DIR/<task>/test; those stages then train with the sb3 backend (needs: pip install "
+        "tensorboard)",
+    )
     parser.add_argument("--quiet", action="store_true", help="no plan and no progress lines")
     return parser
+
+
+def stage_argv(step: Step, progress: str | None, tensorboard: str | None) -> list[str]:
+    """A step's arguments with ``ermrl run``'s own ``--progress`` and ``--tensorboard`` added
+    (the last of a repeated option wins over the file's).
+
+    ``--tensorboard DIR`` goes to the evolve commands (``DIR/<label>/evolve``) and to ``ermrl
+    test`` (``DIR/<label>/test``); ``test-generalization`` takes none.
+    """
+    argv = list(step.argv)
+    if progress is not None and step.stage in PROGRESS_STAGES:
+        argv += ["--progress", progress]
+    if tensorboard is not None and step.command in TENSORBOARD_COMMANDS:
+        argv += ["--tensorboard", str(Path(tensorboard) / step.label / step.stage)]
+    return argv
 
 
 def _plan_lines(
@@ -187,11 +227,13 @@ def run_main(argv: Sequence[str] | None = None, prog: str = "ermrl run") -> int:
             if not args.quiet:
                 print(f"[{step.stage} {step.label}] done ({text}): skipped", flush=True)
             continue
+        argv = stage_argv(step, args.progress, args.tensorboard)
         if not args.quiet:
-            print(f"[{step.stage} {step.label}] {step.command_line}", flush=True)
+            line = shlex.join(["ermrl", step.command, *argv])
+            print(f"[{step.stage} {step.label}] {line}", flush=True)
         run = _load(COMMANDS[step.command][0])
         try:
-            code = int(run(step.argv, prog=f"ermrl {step.command}") or 0)
+            code = int(run(argv, prog=f"ermrl {step.command}") or 0)
         except SystemExit as err:
             code = err.code if isinstance(err.code, int) else 1
         except KeyboardInterrupt:

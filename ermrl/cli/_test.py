@@ -11,12 +11,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
-from ermrl._progress import PROGRESS_MODES
 from ermrl.cli._common import (
     EXIT_INTERRUPTED,
     ArgumentParser,
     HelpFormatter,
     add_for_learner_arg,
+    add_progress_arg,
     add_stale_gradient_arg,
     add_storage_args,
     fail,
@@ -24,6 +24,7 @@ from ermrl.cli._common import (
     learner_overrides,
     nonneg_int,
     positive_int,
+    progress_mode,
     quiet_libraries,
 )
 from ermrl.config import AGENT_KINDS, AGENTS, ConfigError, default_agents
@@ -178,13 +179,7 @@ def build_test_parser(prog: str = "ermrl test") -> ArgumentParser:
         "the runs of one test folder form a group; WANDB_MODE=offline logs locally; "
         "needs: pip install 'ermrl[wandb]')",
     )
-    parser.add_argument(
-        "--progress",
-        choices=PROGRESS_MODES,
-        default="lines",
-        help="lines: a line per run every tenth of its steps or 30 s, with its rate (counted from "
-        "its first step, start-up excluded) and ETA; none: a line per finished run only",
-    )
+    add_progress_arg(parser, inside="", finished="run")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
     return parser
 
@@ -402,7 +397,7 @@ def plan_test_phase(
         overwrite=args.overwrite,
         tensorboard=Path(tensorboard) if tensorboard else None,
         wandb=getattr(args, "wandb", None),
-        progress=getattr(args, "progress", "lines"),
+        progress=progress_mode(args),
     )
     warning = None
     # Only when the ranking would have picked the trial: not with --trial, nor when no agent

@@ -290,7 +290,8 @@ class TestSettings:
         wandb: Log each run to this Weights & Biases project, as run ``<agent>-seed<s>`` in
             the group named after ``out`` (needs the ``wandb`` package).
         progress: ``"lines"``: a progress line of each run every tenth of its steps or 30 s
-            (:class:`ermrl._progress.Progress`); ``"none"``: a line per finished run only.
+            (:class:`ermrl._progress.Progress`); ``"bar"``: a live bar of each run instead;
+            ``"none"``: a line per finished run only.
     """
 
     __test__ = False  # not a pytest test class

@@ -57,8 +57,9 @@ def train_population_parallel(
         pool: Processes to use (e.g. from :func:`~ermrl.agents.training_pool`, kept across
             generations); ``None`` with ``n_procs > 1``: a pool for this call only.
         n_procs: Parts the population is split into (1: this process).
-        progress: Lines of the population's progress; with several parts, each part's process
-            prints its own, labelled ``part k/n``.
+        progress: The population's progress; with several parts, each part's process
+            prints its own lines, labelled ``part k/n`` (lines even in ``"bar"`` mode: bars of
+            several processes would overwrite each other on one terminal).
 
     Returns:
         One result or exception per job, in order.

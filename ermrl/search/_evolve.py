@@ -28,6 +28,7 @@ import time
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, TextIO
 
 import optuna
@@ -144,6 +145,7 @@ def run_evolution(
     evaluate_generation: EvaluateGenerationFn | None = None,
     progress: ProgressMode = "none",
     callbacks: Sequence[Callable[[optuna.Study, FrozenTrial], None]] = (),
+    tensorboard: str | Path | None = None,
 ) -> EvolutionSummary:
     """Run trials until the study holds ``config.search.n_trials`` counted trials.
 
@@ -177,12 +179,16 @@ def run_evolution(
             ``evaluate_generation(encoders, runner)`` -> one fitness or exception per candidate
             (default: :func:`~ermrl.search.evaluate_encoders` on ``config.problem``, or the
             multi-task fitness of a generalization config).
-        progress: ``"lines"`` (the commands' default): inside a trial (or generation), each
-            run or population prints a line every tenth of its steps or 30 s with its rate and
-            ETA; ``"none"``: one line per finished trial only. ``quiet`` silences both.
+        progress: ``"lines"``: inside a trial (or generation), each run or population prints
+            a line every tenth of its steps or 30 s with its rate and ETA; ``"bar"``: a live bar
+            instead (:mod:`ermrl._progress`; the commands' default on a terminal); ``"none"``:
+            one line per finished trial only. ``quiet`` silences all three.
         callbacks: Called as ``callback(study, trial)`` with each trial this worker recorded
             (COMPLETE, PRUNED or FAIL), as :meth:`optuna.study.Study.optimize` calls its
             callbacks: e.g. optuna-integration's ``WeightsAndBiasesCallback``.
+        tensorboard: Each trial's runs also log training curves for TensorBoard under
+            ``<tensorboard>/trial_<n>/seed_<s>`` (SB3's ``tensorboard_log``; a trial on several
+            tasks: ``trial_<n>/<env_id>/seed_<s>``); ``None``: no logs.
 
     Returns:
         What this worker did.
@@ -240,7 +246,12 @@ def run_evolution(
                     return evaluate_encoders(encoders, problem, runner=runner)
 
     with (
-        SeedRunner(config.n_procs, progress="none" if quiet else progress, stream=out) as runner,
+        SeedRunner(
+            config.n_procs,
+            progress="none" if quiet else progress,
+            stream=out,
+            tensorboard=tensorboard,
+        ) as runner,
         guard.installed(),
     ):
         worker = _Worker(
@@ -550,6 +561,7 @@ class _Worker:
         self.summary.trials_run += 1
         started = time.perf_counter()
         self.runner.label = f"trial {claim.trial.number}"
+        self.runner.trial = claim.trial.number
         state, result, note = self.train(claim, heartbeat)
         with self.guard.deferred():
             heartbeat.join()

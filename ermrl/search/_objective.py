@@ -11,6 +11,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, TextIO
 
 import numpy as np
@@ -183,8 +184,10 @@ def _finite_or_none(value: float | None) -> float | None:
 
 
 def _train_one(args: tuple[Any, ...]) -> RunResult:
-    task, encoder, ppo, budget, seed, progress = args
-    return train_agent(task, encoder, ppo, budget, seed, progress=progress)
+    task, encoder, ppo, budget, seed, tensorboard_log, progress = args
+    return train_agent(
+        task, encoder, ppo, budget, seed, progress=progress, tensorboard_log=tensorboard_log
+    )
 
 
 class SeedRunner:
@@ -200,8 +203,12 @@ class SeedRunner:
         balance: Size the pool with :func:`pool_size` (``False``: ``n_procs`` processes).
         progress: ``"lines"``: each run (or population) prints a progress line every tenth
             of its steps or 30 s (:class:`ermrl._progress.Progress`), labelled with
-            :attr:`label` (what is training: ``"trial 12"``); ``"none"``: silent.
+            :attr:`label` (what is training: ``"trial 12"``); ``"bar"``: a live bar for runs
+            in this process, lines from worker processes; ``"none"``: silent.
         stream: Where the lines of runs in this process go (workers print to their stdout).
+        tensorboard: Each run also logs training curves for TensorBoard (SB3's
+            ``tensorboard_log``) under :meth:`tensorboard_log` (``None``: no logs; the
+            population backend writes none).
     """
 
     def __init__(
@@ -211,6 +218,7 @@ class SeedRunner:
         balance: bool = True,
         progress: ProgressMode = "none",
         stream: TextIO | None = None,
+        tensorboard: str | Path | None = None,
     ) -> None:
         self.n_procs = n_procs
         self.balance = balance
@@ -219,6 +227,19 @@ class SeedRunner:
         self.progress = progress
         self.stream = stream
         self.label = ""
+        self.tensorboard = None if tensorboard is None else Path(tensorboard)
+        self.trial: int | None = None  # the trial training now (its runs' TensorBoard folder)
+
+    def tensorboard_log(self, seed: int, env_id: str | None = None) -> str | None:
+        """The TensorBoard folder of a run: ``<tensorboard>/trial_<n>/seed_<s>``, with an
+        ``<env_id>`` folder before the seed's when a trial trains on several tasks (``None``:
+        no TensorBoard logs)."""
+        if self.tensorboard is None:
+            return None
+        folder = self.tensorboard / ("trial" if self.trial is None else f"trial_{self.trial}")
+        if env_id is not None:
+            folder /= env_id
+        return str(folder / f"seed_{seed}")
 
     def run_progress(
         self, what: str, total: int, *, in_process: bool, unit: str = "steps"
@@ -283,12 +304,16 @@ class SeedRunner:
             progress=progress,
         )  # fmt: skip
 
-    def map(self, args: Sequence[tuple[Any, ...]]) -> list[RunResult]:
-        """Train ``(task, encoder, ppo, budget, seed)`` runs; one result each, in order."""
+    def map(self, args: Sequence[tuple[Any, ...]], *, by_task: bool = False) -> list[RunResult]:
+        """Train ``(task, encoder, ppo, budget, seed)`` runs; one result each, in order.
+
+        ``by_task``: the runs' TensorBoard folders are per task (see :meth:`tensorboard_log`).
+        """
         in_process = self.start(len(args)) == 1
         jobs = [
             (
                 *a,
+                self.tensorboard_log(a[4], a[0].env_id if by_task else None),
                 self.run_progress(
                     f"seed {a[4]} on {a[0].label}", a[3].training_steps, in_process=in_process
                 ),
@@ -368,15 +393,23 @@ def train_runs(
                 progress = runner.run_progress(
                     f"seed {seed} on {task.label}", budget.training_steps, in_process=True
                 )
+                log = runner.tensorboard_log(seed, task.env_id if len(tasks) > 1 else None)
                 runs.append(
                     train_agent(
-                        task, encoder, ppo, budget, seed, report=run_report, progress=progress
-                    )
+                        task,
+                        encoder,
+                        ppo,
+                        budget,
+                        seed,
+                        report=run_report,
+                        progress=progress,
+                        tensorboard_log=log,
+                    )  # fmt: skip
                 )
             per_task.append(runs)
         return per_task
     args = [(task, encoder, ppo, budget, seed) for task, ppo, _ in tasks for seed in seeds]
-    flat = runner.map(args)
+    flat = runner.map(args, by_task=len(tasks) > 1)
     return [flat[i * n_seeds : (i + 1) * n_seeds] for i in range(len(tasks))]
 
 

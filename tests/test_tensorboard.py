@@ -1,0 +1,100 @@
+"""``--tensorboard DIR`` on ``ermrl evolve`` and ``ermrl run``: a real tiny evolution whose runs
+write TensorBoard event files, read back with TensorBoard's own reader."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("tensorboard", reason="--tensorboard needs the tensorboard package")
+
+
+def ermrl(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "ermrl", *args], cwd=cwd, capture_output=True, text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"}, timeout=600,
+    )  # fmt: skip
+
+
+TINY = [
+    "evolve", "--env-id", "CartPole-v1", "--n-trials", "2", "--n-seeds", "1",
+    "--training-steps", "256", "--n-envs", "1", "--units", "10",
+    "--ppo", "n_steps=128", "batch_size=64", "n_epochs=1", "--quiet",
+]  # fmt: skip
+
+
+def scalars(folder: Path) -> dict[str, int]:
+    """``{tag: number of points}`` of the event files under ``folder`` (TensorBoard's reader)."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    found: dict[str, int] = {}
+    for events in folder.rglob("events.out.tfevents.*"):
+        acc = EventAccumulator(str(events))
+        acc.Reload()
+        for tag in acc.Tags()["scalars"]:
+            found[tag] = found.get(tag, 0) + len(acc.Scalars(tag))
+    return found
+
+
+def test_evolve_logs_every_trials_runs_for_tensorboard_with_the_sb3_backend(
+    tmp_path: Path,
+) -> None:
+    tb = tmp_path / "tb"
+    proc = ermrl(
+        *TINY, "--storage", f"sqlite:///{tmp_path}/s.db", "--tensorboard", str(tb), cwd=tmp_path
+    )
+    assert proc.returncode == 0, proc.stderr
+    # --backend left out: sb3, and one line says why.
+    assert "training with the sb3 backend: --tensorboard logs come from the sb3 backend" in (
+        proc.stderr
+    )
+    for trial in (0, 1):
+        found = scalars(tb / f"trial_{trial}" / "seed_0")
+        # Two rollouts of 128 steps: SB3 dumps its logger after each.
+        assert found.get("time/fps", 0) >= 2, found
+        assert "train/loss" in found and "train/entropy_loss" in found, found
+    assert sorted(p.name for p in tb.iterdir()) == ["trial_0", "trial_1"]
+
+
+def test_tensorboard_with_the_population_backend_is_refused_before_anything_is_written(
+    tmp_path: Path,
+) -> None:
+    proc = ermrl(
+        *TINY, "--backend", "population", "--storage", f"sqlite:///{tmp_path}/s.db",
+        "--tensorboard", str(tmp_path / "tb"), cwd=tmp_path,
+    )  # fmt: skip
+    assert proc.returncode == 2
+    assert len(proc.stderr.strip().splitlines()) == 1 and "--tensorboard" in proc.stderr
+    assert not (tmp_path / "s.db").exists() and not (tmp_path / "tb").exists()
+
+
+def test_run_passes_tensorboard_and_progress_to_the_stages_that_take_them(
+    tmp_path: Path,
+) -> None:
+    from ermrl.cli._experiment import experiment_plan, load_experiment
+    from ermrl.cli._run import build_run_parser, stage_argv
+    from ermrl.cli._test import build_test_parser
+
+    path = tmp_path / "exp.yaml"
+    path.write_text(
+        "name: tb\ntasks: [CartPole-v1]\n"
+        "evolve: {units: 10, n_trials: 1, n_seeds: 1, training_steps: 256, n_envs: 1}\n"
+        "test: {agents: [ppo], seeds: [10], training_steps: 256}\nreport: {html: true}\n"
+    )
+    steps = experiment_plan(load_experiment(path), build_agents=False)
+    args = build_run_parser().parse_args(
+        [str(path), "--tensorboard", str(tmp_path / "tb"), "--progress", "none"]
+    )
+    by_stage = {s.stage: stage_argv(s, args.progress, args.tensorboard) for s in steps}
+    evolve, test, report = by_stage["evolve"], by_stage["test"], by_stage["report"]
+    assert evolve[-4:] == [
+        "--progress", "none", "--tensorboard", str(tmp_path / "tb" / "CartPole-v1" / "evolve")
+    ]  # fmt: skip
+    parsed = build_test_parser().parse_args(test)  # the command's own parser takes them
+    assert parsed.tensorboard == str(tmp_path / "tb" / "CartPole-v1" / "test")
+    assert parsed.progress == "none"
+    assert "--tensorboard" not in report and "--progress" not in report
