@@ -22,7 +22,8 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)
 
-# Debian packages for headless MuJoCo rendering (ermrl video); needs root, skipped when present.
+# Debian packages for headless MuJoCo rendering (ermrl video) and the headless Chromium that
+# tests/test_report_browser.py opens report.html in; needs root, skipped when present.
 system-deps:
 	bash scripts/install_system_deps.sh
 

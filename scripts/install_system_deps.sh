@@ -3,11 +3,13 @@
 # offscreen without a display (`ermrl video`, tests/test_video.py).
 #   EGL:    libegl1 libegl-mesa0 libgl1 libgl1-mesa-dri   (MUJOCO_GL=egl, tried first)
 #   OSMesa: libosmesa6                                    (MUJOCO_GL=osmesa, the fallback)
+# and a headless browser, which opens `ermrl report`'s report.html in tests/test_report_browser.py:
+#   chromium, with fonts-dejavu-core for its text
 # Idempotent: installs only what is missing, and runs apt-get update only then.
 # Usage: bash scripts/install_system_deps.sh   (as root, or with sudo available)
 set -euo pipefail
 
-PACKAGES=(libegl1 libegl-mesa0 libgl1 libgl1-mesa-dri libosmesa6)
+PACKAGES=(libegl1 libegl-mesa0 libgl1 libgl1-mesa-dri libosmesa6 chromium fonts-dejavu-core)
 
 missing=()
 for pkg in "${PACKAGES[@]}"; do
