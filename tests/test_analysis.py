@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -603,3 +604,38 @@ def test_a_short_episode_without_a_peak_has_no_dominant_frequency() -> None:
     assert math.isnan(dominant_frequency(freqs, power))
     wave = np.sin(2 * np.pi * 4.0 * np.arange(200)[:, None] * 0.05)  # 4 Hz, 40 cycles
     assert dominant_frequency(*power_spectrum(wave, 0.05)) == pytest.approx(4.0, abs=0.1)
+
+
+def test_the_report_and_study_export_write_the_same_trials_table(tmp_path: Path) -> None:
+    from ermrl.cli._study import study_main
+
+    storage = f"sqlite:///{tmp_path / 'g.db'}"
+    study = make_study(8, generalization=True)  # dict and list user attributes, a FAIL trial
+    _copy_to_sqlite(study, storage, "gen")
+    analysis.write_report(
+        "gen", storage, runs=tmp_path / "none", out=tmp_path / "r", interactive=False,
+        html_page=False,
+    )  # fmt: skip
+    exported = tmp_path / "export.csv"
+    assert (
+        study_main(["export", "--storage", storage, "--study-name", "gen", "--out", str(exported)])
+        == 0
+    )
+    report = pd.read_csv(tmp_path / "r" / "trials.csv")
+    export = pd.read_csv(exported)
+    pd.testing.assert_frame_equal(report, export)
+    # Optuna's own columns first, in its order, then ermrl's.
+    loaded = optuna.load_study(study_name="gen", storage=storage)
+    optuna_columns = list(loaded.trials_dataframe(multi_index=False).columns)
+    assert list(report.columns) == optuna_columns + list(analysis.TRIALS_TABLE_EXTRA)
+    assert {"params_sr", "user_attrs_task_seed_returns", "duration_s", "generation"} <= set(report)
+    assert list(report["state"]) == [t.state.name for t in loaded.trials]
+    # A dict attribute is JSON text, read back as it was stored.
+    first = json.loads(report.loc[0, "user_attrs_task_normalized"])
+    assert first == loaded.trials[0].user_attrs["task_normalized"]
+    parquet = tmp_path / "export.parquet"
+    assert (
+        study_main(["export", "--storage", storage, "--study-name", "gen", "--out", str(parquet)])
+        == 0
+    )
+    assert list(pd.read_parquet(parquet).columns) == list(report.columns)

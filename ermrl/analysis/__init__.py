@@ -72,6 +72,7 @@ from ermrl.analysis._stats import (
     welch_t_test,
 )
 from ermrl.analysis._study import (
+    TRIALS_TABLE_EXTRA,
     StudyOverview,
     best_params_table,
     fitness_label,
@@ -89,6 +90,7 @@ from ermrl.analysis._study import (
     study_config_or_none,
     study_overview,
     trials_frame,
+    trials_table,
     write_interactive_evolution,
 )
 from ermrl.analysis._style import PaperFigure, paper_style, save_figure, task_title
@@ -180,6 +182,8 @@ __all__ = [
     "task_seed_scores",
     "task_title",
     "trials_frame",
+    "trials_table",
+    "TRIALS_TABLE_EXTRA",
     "welch_t_test",
     "write_dynamics",
     "write_gif",

@@ -428,6 +428,7 @@ def _study_section(state: _State) -> None:
         study_config_or_none,
         study_overview,
         trials_frame,
+        trials_table,
     )
 
     study = state.study
@@ -437,7 +438,9 @@ def _study_section(state: _State) -> None:
     state.frame = trials_frame(study)
     state.params = param_names(study, config)
     state.title = task_title(overview.env_id, overview.observe) or overview.name
-    trials_rel = state.csv("trials", state.frame, "trials.csv")
+    # The file has ermrl study export's columns (Optuna's, then ermrl's); the report's own
+    # figures and tables read the analysis frame.
+    trials_rel = state.csv("trials", trials_table(study), "trials.csv")
     best = best_params_table(study, config)
     state.csv("best_params", best, "best_params.csv")
 

@@ -42,6 +42,8 @@ __all__ = [
     "study_config_or_none",
     "study_overview",
     "trials_frame",
+    "trials_table",
+    "TRIALS_TABLE_EXTRA",
     "write_interactive_evolution",
 ]
 
@@ -182,6 +184,56 @@ def trials_frame(study: optuna.Study) -> pd.DataFrame:
         frame[key] = pd.to_numeric(frame[key], errors="coerce")
     frame["popsize"] = pd.to_numeric(frame["popsize"], errors="coerce")
     return frame.sort_values("number").reset_index(drop=True)
+
+
+# ermrl's columns after Optuna's, in the trials table (see trials_table).
+TRIALS_TABLE_EXTRA = (
+    "duration_s", "retry_of", "restart", "generation", "global_generation", "popsize",
+)  # fmt: skip
+
+
+def _plain_cell(value: Any) -> Any:
+    """Lists and dicts (per-seed returns, versions) as JSON text, so CSV and Parquet agree."""
+    import json
+
+    if isinstance(value, (list, dict, tuple)):
+        return json.dumps(value, default=str)
+    return value
+
+
+def trials_table(study: optuna.Study) -> pd.DataFrame:
+    """Every trial as one row, for files: Optuna's own columns, then ermrl's.
+
+    The one table behind ``ermrl study export --out X.csv|.parquet`` and the report's
+    ``trials.csv``: the columns of :meth:`optuna.study.Study.trials_dataframe` (``number``,
+    ``value``, ``datetime_start``, ``datetime_complete``, ``duration``, ``params_<name>``,
+    ``user_attrs_<name>``, ``state``), then :data:`TRIALS_TABLE_EXTRA`: ``duration_s`` (the
+    duration in seconds), ``retry_of`` (the trial a retry replaces) and the CMA-ES generation
+    columns of :func:`trials_frame`, and last ``value`` when Optuna's column is
+    ``values_<metric>`` (a study with a metric name, as ermrl's are; earlier exports had
+    ``value``). Lists and dicts in user attributes are JSON text.
+
+    Returns:
+        One row per trial, by number (an empty frame with no columns for a study without
+        trials).
+    """
+    frame = study.trials_dataframe(multi_index=False)
+    if frame.empty:
+        return frame
+    frame = frame.sort_values("number").reset_index(drop=True)
+    for column in frame.columns:
+        if column.startswith("user_attrs_"):
+            frame[column] = frame[column].map(_plain_cell)
+    trials = {t.number: t for t in study.get_trials(deepcopy=False)}
+    extra = trials_frame(study).set_index("number")
+    frame["duration_s"] = frame["number"].map(extra["duration_s"])
+    frame["retry_of"] = frame["number"].map(lambda n: trials[n].system_attrs.get("failed_trial"))
+    for key in ("restart", "generation", "global_generation", "popsize"):
+        frame[key] = frame["number"].map(extra[key])
+    if "value" not in frame.columns and len(study.directions) == 1:
+        # Optuna names it values_<metric> when the study has a metric name (ermrl's do).
+        frame["value"] = frame["number"].map(lambda n: trials[n].value)
+    return frame
 
 
 def param_names(study: optuna.Study, config: EvolveConfig | None = None) -> list[str]:

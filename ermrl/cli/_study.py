@@ -449,42 +449,6 @@ def _show(args: argparse.Namespace, prog: str) -> int:
     return 0
 
 
-def _json_cell(value: Any) -> Any:
-    if isinstance(value, (list, dict, tuple)):
-        return json.dumps(value, default=str)
-    return value
-
-
-def trials_frame(study: Any) -> Any:
-    """All trials of a study as a DataFrame: number, state, value, times, params, user attrs.
-
-    Lists and dicts in user attributes (per-seed returns, versions) are JSON strings, so the
-    frame writes to CSV and Parquet alike.
-    """
-    import pandas as pd
-
-    rows = []
-    for t in study.get_trials(deepcopy=False):
-        duration = (
-            (t.datetime_complete - t.datetime_start).total_seconds()
-            if t.datetime_start and t.datetime_complete
-            else None
-        )
-        row: dict[str, Any] = {
-            "number": t.number,
-            "state": t.state.name,
-            "value": t.value,
-            "datetime_start": t.datetime_start,
-            "datetime_complete": t.datetime_complete,
-            "duration_s": duration,
-            "retry_of": t.system_attrs.get("failed_trial"),
-        }
-        row.update({f"params_{k}": v for k, v in t.params.items()})
-        row.update({f"user_attrs_{k}": _json_cell(v) for k, v in t.user_attrs.items()})
-        rows.append(row)
-    return pd.DataFrame(rows)
-
-
 def _export(args: argparse.Namespace, prog: str) -> int:
     study = _open_study(args, prog)
     out = Path(args.out)
@@ -505,7 +469,9 @@ def _export(args: argparse.Namespace, prog: str) -> int:
         )
         print(f"wrote a snapshot of {counts} to {out}")
         return 0
-    frame = trials_frame(study)
+    from ermrl.analysis import trials_table
+
+    frame = trials_table(study)
     if args.out == "-":
         frame.to_csv(sys.stdout, index=False)
         return 0
