@@ -10,12 +10,17 @@ A frozen layer of recurrent trace units (:class:`~ermrl.config.RTUParams`) is th
 
 Several reservoirs are fused into one block-diagonal system, so one step is one matrix product
 for all reservoirs and all environments: there is no per-step reservoirpy ``Node`` call.
+
+An NVAR (:class:`~ermrl.encoders._nvar.NVARBank`) has no random weights: its delay line is the
+same update with a fixed 0/1 ``M``, and it emits the delayed inputs and their monomials; it
+offers the same interface (``buffer``, ``step_buffer``, ``emitter``, ``out_units``).
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 from reservoirpy import mat_gen
@@ -168,6 +173,8 @@ class ReservoirBank:
         dtype: Floating type of the state and weights (float64 matches reservoirpy exactly).
     """
 
+    out_bound: ClassVar[float] = 1.0  # the policy sees values in [-1, 1] (states or their tanh)
+
     def __init__(self, weights: Sequence[ReservoirWeights], dtype: type | str = np.float64) -> None:
         if not weights:
             raise ValueError("a ReservoirBank needs at least one reservoir")
@@ -180,6 +187,7 @@ class ReservoirBank:
         self.dtype = np.dtype(dtype)
         self.units = tuple(w.units for w in weights)
         self.n_units = sum(self.units)
+        self.out_units = self.units  # what the policy sees: one value per unit
         self.input_dim = dims.pop()
         W = np.zeros((self.n_units, self.n_units))
         start = 0
@@ -232,6 +240,30 @@ class ReservoirBank:
         if self.linear:
             return np.tanh(states).astype(np.float32)
         return states.astype(np.float32)
+
+    def emitter(
+        self, exposed_units: int | None = None
+    ) -> tuple[Callable[[np.ndarray], np.ndarray], int]:
+        """What the policy sees of a state: ``(emit, width)``.
+
+        ``emit(states)`` maps states of shape ``(..., N)`` to a new float32 array of shape
+        ``(..., width)``: :meth:`emit` of the first ``exposed_units`` units of each reservoir
+        (all units when ``None``).
+        """
+        if exposed_units is None:
+            index = None
+            width = self.n_units
+        else:
+            starts = np.cumsum((0,) + self.units[:-1])
+            index = np.concatenate([np.arange(s, s + exposed_units) for s in starts])
+            width = len(index)
+        linear = self.linear
+
+        def emit(states: np.ndarray) -> np.ndarray:
+            x = states if index is None else states[..., index]
+            return np.tanh(x).astype(np.float32) if linear else x.astype(np.float32)
+
+        return emit, width
 
     def step(self, states: np.ndarray, inputs: np.ndarray) -> np.ndarray:
         """Advance every state row by one step, in place.

@@ -16,7 +16,7 @@ observation of the next episode.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from gymnasium import spaces
@@ -25,7 +25,13 @@ from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvObs, VecEnvStepReturn
 
 from ermrl.config import EncoderConfig
-from ermrl.encoders._reservoir import ReservoirBank, encoder_weights, reservoir_seeds
+from ermrl.encoders._nvar import NVARBank, NVARParams
+from ermrl.encoders._reservoir import (
+    ReservoirBank,
+    ReservoirWeights,
+    encoder_weights,
+    reservoir_seeds,
+)
 
 __all__ = ["ActionEncoder", "ReservoirVecEnv"]
 
@@ -113,8 +119,9 @@ class ReservoirVecEnv(VecEnvWrapper):
         config: Reservoir hyperparameters and encoding options.
         seed: Seed of the reservoir weights (each reservoir gets its own derived seed).
 
-    The policy observes, as float32, the exposed reservoir units, followed, with a skip
-    connection, by ``[observation, encoded previous action, scaled previous reward]``.
+    The policy observes, as float32, the exposed reservoir units (an NVAR's: its exposed
+    features, :class:`~ermrl.encoders._nvar.NVARBank`), followed, with a skip connection, by
+    ``[observation, encoded previous action, scaled previous reward]``.
     """
 
     def __init__(self, venv: VecEnv, config: EncoderConfig, seed: int) -> None:
@@ -130,11 +137,17 @@ class ReservoirVecEnv(VecEnvWrapper):
         self.input_dim = self.obs_dim + self.act_dim + self.rew_dim
 
         self.weight_seeds = reservoir_seeds(seed, config.n_reservoirs)
-        self.weights = [
-            encoder_weights(p, self.input_dim, s)
-            for p, s in zip(config.reservoirs, self.weight_seeds)
-        ]
-        self.bank = ReservoirBank(self.weights, dtype=config.dtype)
+        self.weights: list[ReservoirWeights] = []
+        self.bank: ReservoirBank | NVARBank
+        if config.family == "nvar":  # no random weights: a delay line and its monomials
+            reservoirs = cast("tuple[NVARParams, ...]", config.reservoirs)
+            self.bank = NVARBank(reservoirs, self.input_dim, dtype=config.dtype)
+        else:
+            self.weights = [
+                encoder_weights(p, self.input_dim, s)
+                for p, s in zip(config.reservoirs, self.weight_seeds)
+            ]
+            self.bank = ReservoirBank(self.weights, dtype=config.dtype)
 
         n = venv.num_envs
         N, d_obs, d_act = self.bank.n_units, self.obs_dim, self.action_encoder.dim
@@ -157,14 +170,11 @@ class ReservoirVecEnv(VecEnvWrapper):
         # units): step_wait then copies them directly instead of assembling parts.
         self._state_only = config.exposed_units is None and not config.skip_connection
 
-        if config.exposed_units is None:
-            self._exposed = None
-        else:
-            starts = np.cumsum((0,) + self.bank.units[:-1])
-            self._exposed = np.concatenate([np.arange(s, s + config.exposed_units) for s in starts])
-        n_state = self.bank.n_units if self._exposed is None else len(self._exposed)
-        low: list[np.ndarray] = [np.full(n_state, -1.0)]
-        high: list[np.ndarray] = [np.full(n_state, 1.0)]
+        # What the policy sees of the states (the first exposed_units of each reservoir).
+        self._emit, n_state = self.bank.emitter(config.exposed_units)
+        bound = self.bank.out_bound
+        low: list[np.ndarray] = [np.full(n_state, -bound)]
+        high: list[np.ndarray] = [np.full(n_state, bound)]
         if config.skip_connection:
             a = self.action_encoder
             low += [obs_space.low.astype(np.float64), np.full(a.dim, a.low), np.array([-np.inf])]
@@ -180,12 +190,10 @@ class ReservoirVecEnv(VecEnvWrapper):
     def _policy_obs(self, rows: Any = slice(None), obs: np.ndarray | None = None) -> np.ndarray:
         """The policy's float32 observation for ``rows`` (always a fresh array: SB3 keeps it)."""
         x = self.states[rows]
-        if self._exposed is not None:
-            x = x[:, self._exposed]
         if not self.config.skip_connection:
-            return self.bank.emit(x)
+            return self._emit(x)
         parts = [
-            self.bank.emit(x),
+            self._emit(x),
             self._obs_in[rows] if obs is None else obs,
             self._act_in[rows],
             self._rew_in[rows],
@@ -223,7 +231,7 @@ class ReservoirVecEnv(VecEnvWrapper):
             self._obs_in[:] = obs
             self.bank.step_buffer(self._xu)
             if self._state_only:
-                return self.bank.emit(self.states), rewards, dones, infos
+                return self._emit(self.states), rewards, dones, infos
             return self._policy_obs(), rewards, dones, infos
 
         # Terminal step: feed the true last observation of each finished episode.
@@ -252,7 +260,8 @@ class ReservoirVecEnv(VecEnvWrapper):
 
     # -- helpers for analysis ------------------------------------------------------------------
     def get_states(self) -> np.ndarray:
-        """A copy of the full reservoir states, shape ``(n_envs, sum(units))``."""
+        """A copy of the full reservoir states, shape ``(n_envs, sum(units))`` (an NVAR's: its
+        delay line)."""
         return self.states.copy()
 
     def get_inputs(self) -> np.ndarray:

@@ -8,8 +8,13 @@ See :mod:`ermrl.population._ppo` for what is shared and what stays per agent.
 """
 
 from ermrl.population._choice import choose_backend, population_refusal
-from ermrl.population._envs import BatchedReservoir, PopulationEnvs, RunningStats
-from ermrl.population._parallel import split_jobs, train_population_parallel
+from ermrl.population._envs import (
+    BatchedReservoir,
+    PopulationEnvs,
+    RunningStats,
+    encoder_structure,
+)
+from ermrl.population._parallel import group_jobs, split_jobs, train_population_parallel
 from ermrl.population._policy import PolicySpec, StackedPolicy, policy_spec
 from ermrl.population._ppo import (
     PopulationJob,
@@ -30,6 +35,8 @@ __all__ = [
     "check_population_config",
     "choose_backend",
     "compute_gae",
+    "encoder_structure",
+    "group_jobs",
     "policy_spec",
     "population_refusal",
     "split_jobs",

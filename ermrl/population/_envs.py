@@ -6,22 +6,44 @@ of an agent first reset with ``env_seed + i``), then the agent's own reservoir (
 :class:`~ermrl.encoders.ReservoirVecEnv`, its weights from the same initializers and seeds: an
 echo state network's or a frozen RTU layer's), then the agent's own running normalization (SB3
 ``VecNormalize``'s rule). The reservoirs of
-all agents advance in one batched matrix product; everything else is per agent data in arrays
-with a leading agent axis, so an agent can be dropped by slicing (:meth:`PopulationEnvs.keep`).
+all agents advance in one batched matrix product (NVARs: one batched gather of their delay
+lines); everything else is per agent data in arrays with a leading agent axis, so an agent can be
+dropped by slicing (:meth:`PopulationEnvs.keep`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
-from collections.abc import Sequence
-from typing import Any
+from collections.abc import Hashable, Sequence
+from typing import Any, cast
 
 import numpy as np
 from gymnasium import spaces
 
 from ermrl.config import EncoderConfig, NormalizeConfig, TaskConfig
 
-__all__ = ["BatchedReservoir", "PopulationEnvs", "RunningStats"]
+__all__ = ["BatchedReservoir", "PopulationEnvs", "RunningStats", "encoder_structure"]
+
+
+def encoder_structure(encoder: EncoderConfig | None) -> Hashable:
+    """What the agents of one population must share: the encoder's family, its encoding
+    options and the layout of what the policy sees (units per reservoir; an NVAR's delay and
+    order). The hyperparameters that only change the values (spectral radius, leak rate, input
+    scaling, an NVAR's strides, ...) may differ. ``None``: the raw observation."""
+    from ermrl.encoders._nvar import NVARParams, nvar_structure
+
+    if encoder is None:
+        return None
+    options = tuple(
+        (f.name, getattr(encoder, f.name))
+        for f in dataclasses.fields(encoder)
+        if f.name != "reservoirs"
+    )
+    layout = tuple(
+        nvar_structure(p) if isinstance(p, NVARParams) else p.units for p in encoder.reservoirs
+    )
+    return encoder.family, options, layout
 
 
 class BatchedReservoir:
@@ -34,7 +56,13 @@ class BatchedReservoir:
     agent's ``M = [W.T; Win.T]``, which numpy computes slice by slice, as one agent's
     ``ReservoirBank`` would: the encodings equal ``ReservoirVecEnv``'s. An echo state network
     steps ``x <- (1 - lr) x + lr tanh(pre + b)``; a frozen RTU layer (linear) steps ``x <- pre``
-    and the policy sees ``tanh(x)``, as :meth:`~ermrl.encoders.ReservoirBank.emit`.
+    and the policy sees ``tanh(x)``, as :meth:`~ermrl.encoders.ReservoirBank.emit`. NVARs
+    (:class:`~ermrl.encoders._nvar.NVARBank`) shift their delay lines by one batched gather with
+    each agent's own source columns and input scaling; agents with the same delay and order but
+    other strides share the layout, each delay line padded (with zeros) to the longest, and the
+    policy sees the same features as on the SB3 path. Agents of other structures
+    (:func:`encoder_structure`) are refused: train them as separate populations
+    (:func:`~ermrl.population.train_population_parallel` groups them).
     """
 
     def __init__(
@@ -45,20 +73,18 @@ class BatchedReservoir:
         action_space: spaces.Space,
         n_envs: int,
     ) -> None:
+        from ermrl.encoders._nvar import NVARBank, NVARParams
         from ermrl.encoders._reservoir import ReservoirBank, encoder_weights, reservoir_seeds
         from ermrl.encoders._vec_env import ActionEncoder
 
         first = encoders[0]
+        structure = encoder_structure(first)
         for enc in encoders[1:]:
-            if (
-                enc.family != first.family
-                or enc.with_reservoirs(first.reservoirs) != first
-                or [p.units for p in enc.reservoirs] != [p.units for p in first.reservoirs]
-            ):
+            if encoder_structure(enc) != structure:
                 raise ValueError(
                     "the agents of a population must share the encoder's structure (family, "
-                    "units, number of reservoirs and encoding options); train such agents in "
-                    "separate populations"
+                    "units or NVAR delay and order, number of reservoirs and encoding options); "
+                    "train such agents in separate populations"
                 )
         self.config = first
         self.action_encoder = ActionEncoder(action_space, dtype=first.dtype)
@@ -67,38 +93,46 @@ class BatchedReservoir:
         self.input_dim = (
             obs_dim + (self.act_dim if first.feed_action else 0) + (1 if first.feed_reward else 0)
         )
-        banks = [
-            ReservoirBank(
-                [
-                    encoder_weights(p, self.input_dim, s)
-                    for p, s in zip(enc.reservoirs, reservoir_seeds(seed, enc.n_reservoirs))
-                ],
-                dtype=enc.dtype,
-            )
-            for enc, seed in zip(encoders, seeds)
-        ]
+        banks: list[ReservoirBank] | list[NVARBank]
+        self.nvar = first.family == "nvar"
+        if self.nvar:
+            # One layout for all: each delay line padded to the population's longest window.
+            params = [cast("tuple[NVARParams, ...]", enc.reservoirs) for enc in encoders]
+            windows = [max(p[r].window for p in params) for r in range(first.n_reservoirs)]
+            banks = [NVARBank(p, self.input_dim, first.dtype, windows) for p in params]
+            self.src = np.stack([b.src for b in banks])  # [P, N]
+            self.scale = np.stack([b.scale for b in banks])  # [P, N]
+            self._per_agent: tuple[str, ...] = ("src", "scale")
+        else:
+            banks = [
+                ReservoirBank(
+                    [
+                        encoder_weights(p, self.input_dim, s)
+                        for p, s in zip(enc.reservoirs, reservoir_seeds(seed, enc.n_reservoirs))
+                    ],
+                    dtype=enc.dtype,
+                )
+                for enc, seed in zip(encoders, seeds)
+            ]
+            self.M = np.stack([b.M for b in banks])
+            self.bias = np.stack([b.bias for b in banks])[:, None, :]
+            self.leak = np.stack([b.leak for b in banks])[:, None, :]
+            self.keep_rate = np.stack([b.keep for b in banks])[:, None, :]
+            self.has_bias = bool(np.any(self.bias))
+            self._per_agent = ("M", "bias", "leak", "keep_rate")
         self.dtype = banks[0].dtype
-        # A frozen RTU layer: x <- [x | u] M, and the policy sees tanh(x).
+        # A frozen RTU layer or an NVAR: x <- [x | u] M, and the policy sees emit(x).
         self.linear = banks[0].linear
         self.units = banks[0].units
         self.n_units = banks[0].n_units
-        self.M = np.stack([b.M for b in banks])
-        self.bias = np.stack([b.bias for b in banks])[:, None, :]
-        self.leak = np.stack([b.leak for b in banks])[:, None, :]
-        self.keep_rate = np.stack([b.keep for b in banks])[:, None, :]
-        self.has_bias = bool(np.any(self.bias))
         P, N, d_obs, d_act = len(banks), self.n_units, obs_dim, self.act_dim
         self.xu = np.zeros((P, n_envs, N + self.input_dim), self.dtype)
         # The encoded action and scaled reward are also shown by the skip connection, so they are
         # kept even when they are not fed to the reservoir (then in arrays of their own).
         self.act_in = np.zeros((P, n_envs, d_act), self.dtype)
         self.rew_in = np.zeros((P, n_envs, 1), self.dtype)
-        if first.exposed_units is None:
-            self.exposed: np.ndarray | None = None
-        else:
-            starts = np.cumsum((0,) + self.units[:-1])
-            self.exposed = np.concatenate([np.arange(s, s + first.exposed_units) for s in starts])
-        n_state = N if self.exposed is None else len(self.exposed)
+        # What the policy sees of the states (the same function for every agent).
+        self._emit, n_state = banks[0].emitter(first.exposed_units)
         self.out_dim = n_state + (d_obs + d_act + 1 if first.skip_connection else 0)
 
     # Views of the [x | u] buffer (recomputed after keep(), which replaces the arrays).
@@ -116,6 +150,11 @@ class BatchedReservoir:
 
     def step_all(self) -> None:
         """Advance every row one step (the inputs already written)."""
+        if self.nvar:
+            new = np.take_along_axis(self.xu, self.src[:, None, :], axis=2)
+            new *= self.scale[:, None, :]
+            self.xu[..., : self.n_units] = new
+            return
         pre = np.matmul(self.xu, self.M)
         if self.linear:
             self.xu[..., : self.n_units] = pre
@@ -132,6 +171,11 @@ class BatchedReservoir:
         """Advance rows ``rows`` of agent ``p`` one step (as ``ReservoirBank.step_buffer`` on
         the same rows of one agent)."""
         xu = self.xu[p, rows]
+        if self.nvar:
+            new = xu[:, self.src[p]]
+            new *= self.scale[p]
+            self.xu[p, rows, : self.n_units] = new
+            return
         pre = np.matmul(xu, self.M[p])
         if self.linear:
             xu[:, : self.n_units] = pre
@@ -161,13 +205,9 @@ class BatchedReservoir:
 
     def policy_obs(self, p: Any = slice(None), rows: Any = slice(None)) -> np.ndarray:
         """The policy's float32 observation (``[P, E, out_dim]``, or rows of one agent)."""
-        x = self.xu[p, rows, : self.n_units]
-        if self.exposed is not None:
-            x = x[..., self.exposed]
-        if self.linear:
-            x = np.tanh(x)
+        x = self._emit(self.xu[p, rows, : self.n_units])
         if not self.config.skip_connection:
-            return x.astype(np.float32)
+            return x
         obs = self.xu[p, rows, self.n_units : self.n_units + self.obs_dim]
         parts = [x, obs, self.act_in[p, rows], self.rew_in[p, rows]]
         return np.concatenate(parts, axis=-1).astype(np.float32)
@@ -190,7 +230,7 @@ class BatchedReservoir:
             self.xu[p, rows, -1:] = self.rew_in[p, rows]
 
     def keep(self, idx: np.ndarray) -> None:
-        for name in ("M", "bias", "leak", "keep_rate", "xu", "act_in", "rew_in"):
+        for name in (*self._per_agent, "xu", "act_in", "rew_in"):
             setattr(self, name, getattr(self, name)[idx].copy())
 
 

@@ -3,6 +3,11 @@
 Two processes with half the agents each beat two threads (the environments step in Python), and
 an agent's result does not depend on which part it lands in (its random streams are its own), so
 the split is a plain contiguous one.
+
+Agents whose encoders differ in structure (:func:`~ermrl.population.encoder_structure`: the units,
+an NVAR's delay and order) see observations of different widths, so they cannot share one
+population; they are trained as one population per structure, one after another (an agent's
+result does not depend on the population around it either).
 """
 
 from __future__ import annotations
@@ -15,9 +20,18 @@ from typing import Any
 from ermrl._progress import Progress
 from ermrl.agents._train import RunResult
 from ermrl.config import BudgetConfig, PPOConfig, TaskConfig
+from ermrl.population._envs import encoder_structure
 from ermrl.population._ppo import PopulationJob, train_population
 
-__all__ = ["split_jobs", "train_population_parallel"]
+__all__ = ["group_jobs", "split_jobs", "train_population_parallel"]
+
+
+def group_jobs(jobs: Sequence[PopulationJob]) -> list[list[int]]:
+    """The indices of ``jobs`` grouped by encoder structure, in order of first appearance."""
+    groups: dict[Any, list[int]] = {}
+    for i, job in enumerate(jobs):
+        groups.setdefault(encoder_structure(job.encoder), []).append(i)
+    return list(groups.values())
 
 
 def split_jobs(n_jobs: int, n_parts: int) -> list[range]:
@@ -61,9 +75,26 @@ def train_population_parallel(
             prints its own lines, labelled ``part k/n`` (lines even in ``"bar"`` mode: bars of
             several processes would overwrite each other on one terminal).
 
+    Jobs whose encoders differ in structure (:func:`group_jobs`) are trained as one population
+    per structure, one after another, each split over ``n_procs`` processes.
+
     Returns:
         One result or exception per job, in order.
     """
+    groups = group_jobs(jobs)
+    if len(groups) > 1:
+        results: list[RunResult | BaseException | None] = [None] * len(jobs)
+        for k, group in enumerate(groups):
+            part = train_population_parallel(
+                task, ppo, budget, [jobs[i] for i in group],
+                n_procs=n_procs, pool=pool, evaluate=evaluate,
+                model_paths=None if model_paths is None else [model_paths[i] for i in group],
+                progress=None if progress is None
+                else progress.renamed(f"{progress.label}, structure {k + 1}/{len(groups)}"),
+            )  # fmt: skip
+            for i, result in zip(group, part):
+                results[i] = result
+        return [r for r in results if r is not None]
     parts = split_jobs(len(jobs), n_procs)
     args = [
         (

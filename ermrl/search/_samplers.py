@@ -61,6 +61,16 @@ Randomness never depends on which worker asks or how often it asked before:
 With ``search_space`` given, the space is known before any trial completes, so the first trials
 of a study (for example the first 90 of a 90-task SLURM array) come from the CMA-ES initial
 distribution, not from an independent random sampler.
+
+Integer (and stepped) genes are searched with margin by default: CMA-ES with Margin (Hamano et
+al., GECCO 2022, https://arxiv.org/abs/2205.13482; ``cmaes.CMAwM``) rounds inside the search.
+Each sample is encoded to the nearest grid value by the optimizer itself, the unrounded sample is
+what is told (``x_for_tell``), and the margin keeps at least a small probability of moving to a
+neighbouring integer. Plain CMA-ES with the rounding left to the caller (Optuna's default)
+stalls once its step size falls below the grid spacing: every sample rounds to the same integer,
+and nothing tells the distribution that its neighbours differ. A trial whose parameters were
+fixed (``enqueue_trial``, as the reference trial) is told at its own parameters, not at the point
+asked for it.
 """
 
 from __future__ import annotations
@@ -95,6 +105,7 @@ __all__ = [
     "RestartStrategy",
     "SamplerName",
     "cma_generation_info",
+    "has_discrete_genes",
     "make_sampler",
     "optimizer_state",
     "restore_optimizer",
@@ -206,9 +217,13 @@ class RestartCmaEsSampler(CmaEsSampler):
             come from the initial distribution.
         x0: Start point of the first run (parameter name -> value, external representation);
             ``None``: the centre of the (transformed) box, as in Optuna.
+        with_margin: Search with CMA-ES with Margin (``cmaes.CMAwM``): integer and stepped
+            genes are rounded inside the search. ``None`` (default): on when ``search_space``
+            has such a gene on a linear scale (and neither ``use_separable_cma`` nor
+            ``lr_adapt``, which Optuna cannot combine with it, is asked), off otherwise.
         **kwargs: Further keyword arguments of :class:`optuna.samplers.CmaEsSampler`
             (e.g. ``independent_sampler``, ``consider_pruned_trials``, ``use_separable_cma``,
-            ``with_margin``, ``lr_adapt``). ``restart_strategy``/``inc_popsize`` are never
+            ``lr_adapt``). ``restart_strategy``/``inc_popsize`` are never
             forwarded, so constructing this sampler emits no deprecation warning.
 
     Raises:
@@ -225,6 +240,7 @@ class RestartCmaEsSampler(CmaEsSampler):
         n_startup_trials: int = 0,
         search_space: Mapping[str, BaseDistribution] | None = None,
         x0: Mapping[str, float] | None = None,
+        with_margin: bool | None = None,
         **kwargs: Any,
     ) -> None:
         if restart_strategy not in RESTART_STRATEGIES:
@@ -242,7 +258,24 @@ class RestartCmaEsSampler(CmaEsSampler):
                 f"x0 must name exactly the parameters of the search space {sorted(search_space)}, "
                 f"got {sorted(x0)}."
             )
-        super().__init__(seed=seed, n_startup_trials=n_startup_trials, popsize=popsize, **kwargs)
+        auto = with_margin is None
+        if with_margin is None:
+            with_margin = (
+                search_space is not None
+                and has_discrete_genes(search_space)
+                and not kwargs.get("use_separable_cma", False)
+                and not kwargs.get("lr_adapt", False)
+            )
+        with warnings.catch_warnings():
+            if auto:  # chosen here, not asked for: Optuna's "experimental" warning is noise
+                warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+            super().__init__(
+                seed=seed,
+                n_startup_trials=n_startup_trials,
+                popsize=popsize,
+                with_margin=with_margin,
+                **kwargs,
+            )
         # Optuna deprecates `x0`; the start point is handled here (`_init_optimizer`).
         self._x0 = None if x0 is None else dict(x0)
         self._fixed_space = None if search_space is None else dict(search_space)
@@ -393,9 +426,9 @@ class RestartCmaEsSampler(CmaEsSampler):
             solutions: list[tuple[np.ndarray, float]] = []
             for t in solution_trials[: optimizer.population_size]:
                 assert t.value is not None, "completed trials must have a value"
-                if isinstance(optimizer, cmaes.CMAwM):
+                if isinstance(optimizer, cmaes.CMAwM) and "fixed_params" not in t.system_attrs:
                     x = np.array(t.system_attrs["x_for_tell"])
-                else:
+                else:  # plain CMA-ES, or a trial whose parameters were fixed (enqueued)
                     x = trans.transform(t.params)
                 y = t.value if study.direction == StudyDirection.MINIMIZE else -t.value
                 solutions.append((x, y))
@@ -923,6 +956,18 @@ def _is_compatible(trans: _SearchSpaceTransform, search_space: dict[str, BaseDis
     return names == set(search_space.keys())
 
 
+def has_discrete_genes(search_space: Mapping[str, BaseDistribution]) -> bool:
+    """Whether ``search_space`` has an integer or stepped gene on a linear scale with more than
+    one value (what CMA-ES with Margin rounds inside the search)."""
+    return any(
+        isinstance(d, (IntDistribution, FloatDistribution))
+        and d.step is not None
+        and not d.log
+        and not d.single()
+        for d in search_space.values()
+    )
+
+
 def _check_popsize(popsize: int | None) -> None:
     """Raise ``ValueError`` unless ``popsize`` is ``None`` or an integer >= 2."""
     if popsize is None:
@@ -963,7 +1008,8 @@ def make_sampler(
             generation waits for ``popsize`` COMPLETE trials, and a study whose trials are mostly
             pruned hardly moves). TPE uses pruned trials on its own; random search ignores them.
         search_space: ``"cmaes"`` only: the fixed search space, so that CMA-ES samples from the
-            first trial on (see :class:`RestartCmaEsSampler`).
+            first trial on (see :class:`RestartCmaEsSampler`); with an integer gene, CMA-ES
+            searches with margin (rounding inside the search).
         x0: ``"cmaes"`` only: the start point of the first run (``None``: the box centre).
 
     Returns:

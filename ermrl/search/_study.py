@@ -8,7 +8,7 @@ import warnings
 from typing import Any
 
 import optuna
-from optuna.distributions import FloatDistribution
+from optuna.distributions import BaseDistribution, FloatDistribution, IntDistribution
 
 from ermrl.config import ConfigError, EvolveConfig, SearchConfig, SearchSpace, to_dict
 from ermrl.search._pruning import make_pruner
@@ -44,9 +44,21 @@ STUDY_KIND_ATTR = "ermrl_kind"
 _MUST_MATCH = ("problem", "space")
 
 
-def search_distributions(space: SearchSpace) -> dict[str, FloatDistribution]:
-    """The fixed search space as Optuna distributions (what :func:`sample_params` asks)."""
-    return {name: FloatDistribution(r.low, r.high, log=r.log) for name, r in space.ranges().items()}
+def _is_integer(r: Any) -> bool:
+    """Whether a range is an integer gene (``integer`` set, as on an ``IntRange``)."""
+    return bool(getattr(r, "integer", False))
+
+
+def search_distributions(space: SearchSpace) -> dict[str, BaseDistribution]:
+    """The fixed search space as Optuna distributions (what :func:`sample_params` asks): an
+    ``IntDistribution`` for an integer gene (CMA-ES then rounds inside the search, with margin),
+    a ``FloatDistribution`` otherwise."""
+    return {
+        name: IntDistribution(int(r.low), int(r.high))
+        if _is_integer(r)
+        else FloatDistribution(r.low, r.high, log=r.log)
+        for name, r in space.ranges().items()
+    }
 
 
 def cma_start(search: SearchConfig, space: SearchSpace) -> dict[str, float]:
@@ -95,9 +107,12 @@ def enqueue_reference(study: optuna.Study, space: SearchSpace) -> bool:
 
 
 def sample_params(trial: optuna.Trial, space: SearchSpace) -> dict[str, float]:
-    """Ask a trial for every evolved hyperparameter of the space (fixed order and ranges)."""
+    """Ask a trial for every evolved hyperparameter of the space (fixed order and ranges; an
+    integer gene with ``suggest_int``)."""
     return {
-        name: trial.suggest_float(name, r.low, r.high, log=r.log)
+        name: trial.suggest_int(name, int(r.low), int(r.high))
+        if _is_integer(r)
+        else trial.suggest_float(name, r.low, r.high, log=r.log)
         for name, r in space.ranges().items()
     }
 
