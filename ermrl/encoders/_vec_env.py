@@ -25,7 +25,7 @@ from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvObs, VecEnvStepReturn
 
 from ermrl.config import EncoderConfig
-from ermrl.encoders._nvar import NVARBank, NVARParams
+from ermrl.encoders._nvar_bank import NVARBank, NVARParams
 from ermrl.encoders._reservoir import (
     ReservoirBank,
     ReservoirWeights,

@@ -31,7 +31,7 @@ def encoder_structure(encoder: EncoderConfig | None) -> Hashable:
     options and the layout of what the policy sees (units per reservoir; an NVAR's delay and
     order). The hyperparameters that only change the values (spectral radius, leak rate, input
     scaling, an NVAR's strides, ...) may differ. ``None``: the raw observation."""
-    from ermrl.encoders._nvar import NVARParams, nvar_structure
+    from ermrl.encoders._nvar_bank import NVARParams, nvar_structure
 
     if encoder is None:
         return None
