@@ -17,6 +17,7 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 
 from ermrl.config import ConfigError
+from ermrl.encoders._reservoir import StepBank
 
 __all__ = [
     "NVAR_MAX_FEATURES",
@@ -163,7 +164,7 @@ class _Segment:
     monomials: np.ndarray  # (n_monomials, order), int64
 
 
-class NVARBank:
+class NVARBank(StepBank):
     """Several NVARs on the same input, fused into one state and one gather per step.
 
     The same interface as :class:`~ermrl.encoders.ReservoirBank` (``buffer``, ``step_buffer``,
@@ -294,34 +295,6 @@ class NVARBank:
     def emit(self, states: np.ndarray) -> np.ndarray:
         """All features of ``states`` (shape ``(..., N)``), as a new float32 array."""
         return self.emitter()[0](states)
-
-    def step(self, states: np.ndarray, inputs: np.ndarray) -> np.ndarray:
-        """Advance every state row by one step, in place (``states`` ``(n, N)``, ``inputs``
-        ``(n, input_dim)``); returns ``states``."""
-        xu = np.concatenate([states, inputs], axis=1).astype(self.dtype, copy=False)
-        self.step_buffer(xu)
-        states[:] = xu[:, : self.n_units]
-        return states
-
-    def run(self, inputs: np.ndarray, state: np.ndarray | None = None) -> np.ndarray:
-        """Run one sequence through the delay lines (for tests and analysis, not the hot path).
-
-        Args:
-            inputs: Shape ``(T, input_dim)``.
-            state: Initial state, shape ``(N,)`` (zero history by default).
-
-        Returns:
-            States, shape ``(T, N)`` (:meth:`features` gives what the policy sees of them).
-        """
-        xu = self.buffer(1)
-        if state is not None:
-            xu[0, : self.n_units] = state
-        out = np.empty((len(inputs), self.n_units), self.dtype)
-        for t, u in enumerate(np.asarray(inputs, self.dtype)):
-            xu[0, self.n_units :] = u
-            self.step_buffer(xu)
-            out[t] = xu[0, : self.n_units]
-        return out
 
     def features(self, states: np.ndarray) -> np.ndarray:
         """All features of ``states`` (shape ``(..., N)``) in the state's dtype: the emitter's

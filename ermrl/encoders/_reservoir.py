@@ -160,7 +160,57 @@ def reservoir_seeds(seed: int, n_reservoirs: int) -> list[int]:
     return [int(c.generate_state(1, dtype=np.uint32)[0]) for c in children]
 
 
-class ReservoirBank:
+class StepBank:
+    """What every bank of :class:`~ermrl.encoders.ReservoirVecEnv` shares: stepping whole state
+    arrays and running one sequence, through the bank's own ``buffer`` and ``step_buffer``
+    (the ``[x | u]`` buffer and its in-place update)."""
+
+    n_units: int
+    dtype: np.dtype
+
+    def buffer(self, n: int) -> np.ndarray:
+        raise NotImplementedError
+
+    def step_buffer(self, xu: np.ndarray) -> None:
+        raise NotImplementedError
+
+    def step(self, states: np.ndarray, inputs: np.ndarray) -> np.ndarray:
+        """Advance every state row by one step, in place.
+
+        Args:
+            states: Shape ``(n, N)``; updated in place and returned.
+            inputs: Shape ``(n, input_dim)``.
+
+        Returns:
+            ``states``.
+        """
+        xu = np.concatenate([states, inputs], axis=1).astype(self.dtype, copy=False)
+        self.step_buffer(xu)
+        states[:] = xu[:, : self.n_units]
+        return states
+
+    def run(self, inputs: np.ndarray, state: np.ndarray | None = None) -> np.ndarray:
+        """Run one sequence through the bank (for tests and analysis, not the hot path).
+
+        Args:
+            inputs: Shape ``(T, input_dim)``.
+            state: Initial state, shape ``(N,)`` (zeros by default).
+
+        Returns:
+            States, shape ``(T, N)``.
+        """
+        xu = self.buffer(1)
+        if state is not None:
+            xu[0, : self.n_units] = state
+        out = np.empty((len(inputs), self.n_units), self.dtype)
+        for t, u in enumerate(np.asarray(inputs, self.dtype)):
+            xu[0, self.n_units :] = u
+            self.step_buffer(xu)
+            out[t] = xu[0, : self.n_units]
+        return out
+
+
+class ReservoirBank(StepBank):
     """Several reservoirs fused into one batched leaky-ESN update.
 
     The fused system has ``N = sum(units)`` units: ``W`` is block-diagonal, the input matrices
@@ -264,38 +314,3 @@ class ReservoirBank:
             return np.tanh(x).astype(np.float32) if linear else x.astype(np.float32)
 
         return emit, width
-
-    def step(self, states: np.ndarray, inputs: np.ndarray) -> np.ndarray:
-        """Advance every state row by one step, in place.
-
-        Args:
-            states: Shape ``(n, N)``; updated in place and returned.
-            inputs: Shape ``(n, input_dim)``.
-
-        Returns:
-            ``states``.
-        """
-        xu = np.concatenate([states, inputs], axis=1).astype(self.dtype, copy=False)
-        self.step_buffer(xu)
-        states[:] = xu[:, : self.n_units]
-        return states
-
-    def run(self, inputs: np.ndarray, state: np.ndarray | None = None) -> np.ndarray:
-        """Run one sequence through the bank (for tests and analysis, not the hot path).
-
-        Args:
-            inputs: Shape ``(T, input_dim)``.
-            state: Initial state, shape ``(N,)`` (zeros by default).
-
-        Returns:
-            States, shape ``(T, N)``.
-        """
-        xu = self.buffer(1)
-        if state is not None:
-            xu[0, : self.n_units] = state
-        out = np.empty((len(inputs), self.n_units), self.dtype)
-        for t, u in enumerate(np.asarray(inputs, self.dtype)):
-            xu[0, self.n_units :] = u
-            self.step_buffer(xu)
-            out[t] = xu[0, : self.n_units]
-        return out
