@@ -313,39 +313,27 @@ class NVAREncoder(Encoder):
 
 # -- plain data for the registry: CLI flags and test-phase agents --------------------------------
 
+
 # ``ermrl evolve`` flags of ``--encoder nvar`` (argparse ``add_argument`` keywords as data). The
 # shared ``--n-reservoirs``, ``--input-scaling-range`` and ``--fixed-input-scaling`` apply too.
+def _int_range_flag(field: str, default: tuple[int, int], help: str) -> dict[str, Any]:
+    """The ``--<field>-range LOW HIGH`` flag of an integer gene."""
+    return {
+        "flags": (f"--{field}-range",),
+        "dest": f"{field}_range",
+        "nargs": 2,
+        "type": int,
+        "default": default,
+        "metavar": ("LOW", "HIGH"),
+        "space_field": field,
+        "help": f"--encoder nvar: range of the {field}, {help} (integers)",
+    }
+
+
 CLI_FLAGS: tuple[dict[str, Any], ...] = (
-    {
-        "flags": ("--delay-range",),
-        "dest": "delay_range",
-        "nargs": 2,
-        "type": int,
-        "default": (1, 4),
-        "metavar": ("LOW", "HIGH"),
-        "space_field": "delay",
-        "help": "--encoder nvar: range of the delay, the inputs in the linear part (integers)",
-    },
-    {
-        "flags": ("--order-range",),
-        "dest": "order_range",
-        "nargs": 2,
-        "type": int,
-        "default": (1, 2),
-        "metavar": ("LOW", "HIGH"),
-        "space_field": "order",
-        "help": "--encoder nvar: range of the order, the degree of the monomials (integers)",
-    },
-    {
-        "flags": ("--strides-range",),
-        "dest": "strides_range",
-        "nargs": 2,
-        "type": int,
-        "default": (1, 4),
-        "metavar": ("LOW", "HIGH"),
-        "space_field": "strides",
-        "help": "--encoder nvar: range of the strides, the steps between delayed inputs (integers)",
-    },
+    _int_range_flag("delay", (1, 4), "the inputs in the linear part"),
+    _int_range_flag("order", (1, 2), "the degree of the monomials"),
+    _int_range_flag("strides", (1, 4), "the steps between delayed inputs"),
 )
 
 # Test-phase agents of ``--encoder nvar`` studies, as ``ermrl.config.AgentKind`` fields.
