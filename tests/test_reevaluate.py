@@ -13,6 +13,7 @@ import optuna
 import pytest
 from optuna.trial import TrialState
 
+from ermrl.cli._experiment import _reevaluate_status
 from ermrl.config import ConfigError, EvolveConfig, ReservoirSpace, SearchConfig
 from ermrl.search import (
     REEVALUATION_ATTR,
@@ -177,6 +178,9 @@ def test_a_failed_candidate_is_not_replaced_by_a_random_point(tmp_path: Path) ->
     # Running it again re-trains nothing: a diverged candidate is not queued again.
     reevaluate_study(config, study, url, evaluator_factory=lambda c: diverge, quiet=True)
     assert len(rstudy.get_trials()) == 2
+    # ermrl run's plan counts the stage as done (nothing to rerun) and says why the test stops.
+    done, left, text = _reevaluate_status(url, "s")()
+    assert done and left == 0.0 and "all 2 candidates failed" in text and "--trial" in text
 
 
 def test_a_candidate_that_fails_its_reevaluation_is_ranked_last_and_never_selected(
@@ -214,6 +218,8 @@ def test_a_candidate_that_fails_its_reevaluation_is_ranked_last_and_never_select
     assert chosen.number == doc["best_trial"] != winner.number
     n = len(doc["candidates"])
     assert how.startswith(f"re-evaluated best of {n}") and "1 failed, ranked last" in how
+    done, _, text = _reevaluate_status(url, "s")()
+    assert done and f"best trial {doc['best_trial']}; 1 failed, ranked last" in text
     # An incomplete ranking falls back to the evolution fitness, but never to a failed candidate.
     study.set_user_attr(REEVALUATION_ATTR, {**doc, "complete": False})
     chosen, how = select_trial(study)
@@ -265,6 +271,9 @@ def test_a_ranking_from_before_the_study_grew_is_stale_and_recomputed(tmp_path: 
     assert new_best.number >= 6
     stale = stale_ranking(study)
     assert stale is not None and "6 complete trials" in stale and "now has 9" in stale
+    # ermrl run's plan sees it too: the stage is not done, so the run re-ranks.
+    done, _, text = _reevaluate_status(url, "s")()
+    assert not done and "stale" in text
     chosen, how = select_trial(study)
     assert chosen.number == new_best.number and "ranked trials" in how and "stale" in how
     # ermrl test says it in one stderr line (the training itself is skipped here).

@@ -858,7 +858,7 @@ def _evolve_status(
 
 def _reevaluate_status(storage: str, study_name: str) -> Callable[[], tuple[bool, float, str]]:
     def status() -> tuple[bool, float, str]:
-        from ermrl.search import REEVALUATION_ATTR
+        from ermrl.search import REEVALUATION_ATTR, stale_ranking
 
         with _study(storage, study_name) as study:
             if study is None:
@@ -866,9 +866,18 @@ def _reevaluate_status(storage: str, study_name: str) -> Callable[[], tuple[bool
             doc = study.user_attrs.get(REEVALUATION_ATTR)
             if not isinstance(doc, Mapping):
                 return False, 1.0, "not started"
-            if doc.get("complete") and not doc.get("stale"):
-                return True, 0.0, f"ranking complete (best trial {doc.get('best_trial')})"
-            return False, 0.5, "ranking incomplete" + (" (stale)" if doc.get("stale") else "")
+            if stale_ranking(study) is not None:
+                return False, 0.5, "ranking stale (the study grew since): re-ranked when run"
+            if not doc.get("complete"):
+                return False, 0.5, "ranking incomplete"
+            rows = doc.get("candidates") or []
+            failed = sum(bool(row.get("failed")) for row in rows)
+            if rows and failed == len(rows):
+                # Failed for good (diverged, say): running it again would fail the same way.
+                why = f"all {len(rows)} candidates failed: the test stage stops"
+                return True, 0.0, f"ranking complete, but {why}; test one with ermrl test --trial N"
+            tail = f"; {failed} failed, ranked last" if failed else ""
+            return True, 0.0, f"ranking complete (best trial {doc.get('best_trial')}{tail})"
 
     return status
 
