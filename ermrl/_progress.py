@@ -107,6 +107,7 @@ class Progress:
         self.lines: list[str] = []  # every line due (printed in "lines" mode), for callers
         self._pid = os.getpid()  # a bar draws in this process only
         self._bar: Any = None
+        self.note: str | None = None  # appended to the lines (the bar's postfix): "return -150.2"
 
     def __getstate__(self) -> dict[str, Any]:
         state = dict(self.__dict__)
@@ -148,6 +149,8 @@ class Progress:
                 self._bar = self._new_bar()
             return
         if self._bar is not None:
+            if self.note is not None:
+                self._bar.set_postfix_str(self.note, refresh=False)
             self._bar.update(self.done - self._bar.n)
         if self.done >= self._next_mark or now - self._last_time >= self.interval:
             self._emit(now)
@@ -186,6 +189,7 @@ class Progress:
         return (
             f"[{self.label}] {self.done:,}/{self.total:,} {self.unit} ({pct:.0f}%) | "
             f"{rate_text} {self.unit}/s | ETA {duration(eta)}"
+            + ("" if self.note is None else f" | {self.note}")
         )
 
     def _emit(self, now: float) -> None:

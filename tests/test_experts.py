@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import signal
 import subprocess
 import sys
@@ -202,11 +203,21 @@ def test_train_prints_progress_and_the_eval_return(
     argv += [str(tmp_path / "e"), "--n-eval-episodes", "1", "--ppo", *TINY_PPO]
     assert expert_main(argv) == 0
     lines = capsys.readouterr().out.splitlines()
-    progress = [line for line in lines if "steps/s, ETA" in line]
-    # Every 10% of the steps once an episode (200 steps) has ended: 256, 320, ..., 576.
-    assert [line.split("/")[0] for line in progress] == [str(64 * k) for k in range(4, 10)]
-    assert "recent return" in progress[0]
+    progress = [line for line in lines if line.startswith("[ppo expert on Pendulum-v1] ")]
+    # The progress every training run prints (stdout is not a terminal: lines), a line every
+    # tenth of the steps (each rollout of 64 steps is one).
+    done = [int(line.split("] ")[1].split("/")[0].replace(",", "")) for line in progress]
+    assert done == [64 * k for k in range(1, 11)]
+    assert all(re.search(r"\| \d+ steps/s \| ETA ", line) for line in progress)
+    # The recent return joins the lines once the first episode (200 steps) has ended.
+    returns = ["| recent return " in line for line in progress]
+    assert returns == [False] * 3 + [True] * 7
     assert "eval return" in lines[-1] and "± 0.0 over 1 episodes" in lines[-1]
+    # --progress none: no progress, the start and result lines only; --quiet: the result only.
+    argv[argv.index("--out") + 1] = str(tmp_path / "f")
+    assert expert_main([*argv, "--progress", "none"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 2 and "training a ppo expert" in lines[0] and "eval return" in lines[1]
 
 
 def test_ctrl_c_leaves_no_expert(tmp_path: Path) -> None:

@@ -25,6 +25,7 @@ __all__ = [
     "positive_int",
     "nonneg_int",
     "positive_float",
+    "PROGRESS_DEFAULT_HELP",
     "add_progress_arg",
     "progress_mode",
 ]

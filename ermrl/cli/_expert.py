@@ -4,20 +4,22 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import shlex
 import sys
 import textwrap
 from collections.abc import Sequence
 from pathlib import Path
 
+from ermrl._progress import PROGRESS_MODES, Progress
 from ermrl.cli._common import (
     EXIT_INTERRUPTED,
+    PROGRESS_DEFAULT_HELP,
     ArgumentParser,
     HelpFormatter,
     fail,
     nonneg_int,
     positive_int,
+    progress_mode,
 )
 
 __all__ = ["build_expert_parser", "expert_main"]
@@ -95,7 +97,17 @@ def build_expert_parser(prog: str = "ermrl expert") -> ArgumentParser:
     train.add_argument(
         "--overwrite", action="store_true", help="replace an expert already in --out"
     )
-    train.add_argument("--quiet", action="store_true", help="no progress lines")
+    train.add_argument(
+        "--progress",
+        choices=PROGRESS_MODES,
+        default=None,
+        help="bar: a live bar with the rate (from the first step: start-up excluded), ETA and "
+        "recent return; lines: the same as a line every tenth of the steps or 30 s; none: no "
+        f"progress ({PROGRESS_DEFAULT_HELP})",
+    )
+    train.add_argument(
+        "--quiet", action="store_true", help="no output but errors (--progress none, no start line)"
+    )
     evaluate = sub.add_parser(
         "eval",
         help="evaluate an expert",
@@ -114,20 +126,11 @@ def build_expert_parser(prog: str = "ermrl expert") -> ArgumentParser:
     return parser
 
 
-def _duration(seconds: float) -> str:
-    if not math.isfinite(seconds):
-        return "?"
-    seconds = round(seconds)
-    minutes, secs = divmod(seconds, 60)
-    hours, minutes = divmod(minutes, 60)
-    return f"{hours}h{minutes:02d}m" if hours else f"{minutes}m{secs:02d}s"
-
-
 def _train(args: argparse.Namespace, prog: str, argv: Sequence[str]) -> int:
     from ermrl.agents import TrainingDiverged, parse_overrides
     from ermrl.config import ConfigError
     from ermrl.envs import UnknownEnvError
-    from ermrl.experts import TrainingProgress, check_expert_out, train_expert
+    from ermrl.experts import check_expert_out, train_expert
 
     try:
         overrides = parse_overrides(args.ppo)
@@ -135,14 +138,8 @@ def _train(args: argparse.Namespace, prog: str, argv: Sequence[str]) -> int:
     except (ConfigError, FileExistsError) as err:
         fail(prog, str(err))
 
-    def progress(p: TrainingProgress) -> None:
-        print(
-            f"{p.steps}/{p.total_steps} steps ({100 * p.steps / p.total_steps:.0f}%), recent "
-            f"return {p.recent_return:.1f}, {p.steps_per_second:.0f} steps/s, "
-            f"ETA {_duration(p.eta_seconds)}",
-            flush=True,
-        )
-
+    mode = "none" if args.quiet else progress_mode(args)
+    display = Progress(f"{args.algo} expert on {args.env_id}", args.steps, mode=mode)
     if not args.quiet:
         print(
             f"training a {args.algo} expert on {args.env_id} for {args.steps} steps "
@@ -159,7 +156,7 @@ def _train(args: argparse.Namespace, prog: str, argv: Sequence[str]) -> int:
             overrides=overrides,
             n_eval_episodes=args.n_eval_episodes,
             overwrite=args.overwrite,
-            progress=None if args.quiet else progress,
+            display=display,
             command=shlex.join(["ermrl", "expert", *argv]),
         )
     except (ConfigError, UnknownEnvError, FileExistsError) as err:

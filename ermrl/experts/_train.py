@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from ermrl._io import write_atomic
+from ermrl._progress import Progress
 from ermrl.config import BudgetConfig, ConfigError, TaskConfig
 from ermrl.experts._expert import (
     EXPERT_FILE,
@@ -141,6 +142,7 @@ def train_expert(
     progress: Callable[[TrainingProgress], None] | None = None,
     n_reports: int = DEFAULT_N_REPORTS,
     command: str | None = None,
+    display: Progress | None = None,
 ) -> ExpertInfo:
     """Train an expert on a task's full observation and write its folder.
 
@@ -156,6 +158,9 @@ def train_expert(
         progress: Called ``n_reports`` times during training (once an episode has ended).
         n_reports: Progress reports, evenly spaced over ``steps``.
         command: The command line, recorded in ``expert.json``.
+        display: Told the env steps as training goes (a bar or a line every tenth, as every
+            training run shows, :class:`ermrl._progress.Progress`); its note is the recent
+            return once an episode has ended.
 
     Returns:
         What ``expert.json`` records, evaluation returns included.
@@ -197,6 +202,8 @@ def train_expert(
     def report(step: int, recent: float) -> None:
         nonlocal previous
         elapsed = time.perf_counter() - start
+        if display is not None:
+            display.note = f"recent return {recent:.1f}"
         if progress is not None:
             progress(TrainingProgress(step, steps, recent, elapsed, *previous))
         previous = (step, elapsed)
@@ -212,6 +219,7 @@ def train_expert(
             evaluate=True,
             model_path=partial / "model.zip",
             report=report,
+            progress=display,
         )
         # train_agent also writes SB3's model.zip (pickles): an expert folder holds none.
         (partial / "model.zip").unlink(missing_ok=True)
