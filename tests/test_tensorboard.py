@@ -98,3 +98,42 @@ def test_run_passes_tensorboard_and_progress_to_the_stages_that_take_them(
     assert parsed.tensorboard == str(tmp_path / "tb" / "CartPole-v1" / "test")
     assert parsed.progress == "none"
     assert "--tensorboard" not in report and "--progress" not in report
+
+
+@pytest.mark.slow  # an evolution, then a test phase
+def test_test_generalization_logs_each_agents_runs_for_tensorboard(tmp_path: Path) -> None:
+    storage = f"sqlite:///{tmp_path}/s.db"
+    assert ermrl(*TINY, "--storage", storage, cwd=tmp_path).returncode == 0
+    tb = tmp_path / "tb"
+    proc = ermrl(
+        "test-generalization", "--storage", storage, "--study-name",
+        "CartPole-v1__all__256steps", "--env-id", "CartPole-v1", "--agents", "ppo", "res-ppo",
+        "--seeds", "5", "--training-steps", "256", "--ppo", "n_steps=128", "batch_size=64",
+        "n_epochs=1", "--quiet", "--tensorboard", str(tb), cwd=tmp_path,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    for agent in ("ppo", "res-ppo"):
+        found = scalars(tb / agent / "seed_5")
+        assert found.get("time/fps", 0) >= 2 and "train/loss" in found, (agent, found)
+    assert sorted(p.name for p in tb.iterdir()) == ["ppo", "res-ppo"]
+
+
+def test_every_command_ermrl_run_gives_tensorboard_to_takes_it() -> None:
+    from ermrl.cli._evolve import build_evolve_parser
+    from ermrl.cli._generalization import (
+        build_evolve_generalization_parser,
+        build_test_generalization_parser,
+    )
+    from ermrl.cli._run import TENSORBOARD_COMMANDS
+    from ermrl.cli._test import build_test_parser
+
+    parsers = {
+        "evolve": build_evolve_parser(),
+        "evolve-generalization": build_evolve_generalization_parser(),
+        "test": build_test_parser(),
+        "test-generalization": build_test_generalization_parser(),
+    }
+    assert set(TENSORBOARD_COMMANDS) == set(parsers)
+    for command, parser in parsers.items():
+        options = {o for a in parser._actions for o in a.option_strings}
+        assert "--tensorboard" in options, command

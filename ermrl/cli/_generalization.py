@@ -42,10 +42,12 @@ from ermrl.cli._evolve import (
     study_write_failure,
 )
 from ermrl.cli._test import (
+    add_tensorboard_arg,
     add_test_args,
     choose_agents,
     plan_test_phase,
     print_notes,
+    require_tensorboard,
     run_test_phase,
     setup_errors,
     with_backend,
@@ -391,6 +393,7 @@ def build_test_generalization_parser(prog: str = "ermrl test-generalization") ->
         metavar="CSV",
         help="reference table for the normalized returns (default: the study's)",
     )
+    add_tensorboard_arg(parser)
     add_progress_arg(parser, inside="", finished="run")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
     return parser
@@ -484,6 +487,7 @@ def test_generalization_main(
     parser = build_test_generalization_parser(prog)
     quiet_libraries()
     args = parser.parse_args(argv)
+    require_tensorboard(args, prog)
     warning: str | None = None
     notes: list[str] = []
     try:

@@ -23,7 +23,7 @@ STAGE_CHOICES = ("evolve", "reevaluate", "test", "report")
 # The stages whose commands take --progress (each evolve and test command does).
 PROGRESS_STAGES = ("evolve", "test")
 # The commands that take --tensorboard.
-TENSORBOARD_COMMANDS = ("evolve", "evolve-generalization", "test")
+TENSORBOARD_COMMANDS = ("evolve", "evolve-generalization", "test", "test-generalization")
 
 DESCRIPTION = textwrap.dedent(
     """\
@@ -96,8 +96,8 @@ def build_run_parser(prog: str = "ermrl run") -> ArgumentParser:
         default=None,
         metavar="DIR",
         help="also log training curves for TensorBoard: each evolution's trials under "
-        "DIR/<task>/evolve (its --tensorboard) and each single-task test phase under "
-        "DIR/<task>/test; those stages then train with the sb3 backend (needs: pip install "
+        "DIR/<task>/evolve (its --tensorboard) and each test phase under DIR/<task>/test; "
+        "those stages then train with the sb3 backend (needs: pip install "
         "tensorboard)",
     )
     parser.add_argument("--quiet", action="store_true", help="no plan and no progress lines")

@@ -33,11 +33,13 @@ T = TypeVar("T")
 
 __all__ = [
     "TestPlan",
+    "add_tensorboard_arg",
     "add_test_args",
     "agent_learners",
     "build_test_parser",
     "choose_agents",
     "plan_test_phase",
+    "require_tensorboard",
     "run_or_exit",
     "run_test_phase",
     "select_seeds",
@@ -164,13 +166,7 @@ def build_test_parser(prog: str = "ermrl test") -> ArgumentParser:
         trial_help="test this trial's reservoir instead of the best one",
         ppo_help="PPO overrides on top of the study's, e.g. --ppo learning_rate=1e-4",
     )
-    parser.add_argument(
-        "--tensorboard",
-        default=None,
-        metavar="DIR",
-        help="also log training curves for TensorBoard under DIR/<agent>/seed_<s> "
-        "(needs: pip install tensorboard)",
-    )
+    add_tensorboard_arg(parser)
     parser.add_argument(
         "--wandb",
         default=None,
@@ -523,6 +519,31 @@ def run_test_phase(
     return summary
 
 
+def add_tensorboard_arg(parser: argparse.ArgumentParser) -> None:
+    """``--tensorboard DIR`` of the test-phase commands (their runs train with sb3 then)."""
+    parser.add_argument(
+        "--tensorboard",
+        default=None,
+        metavar="DIR",
+        help="also log training curves for TensorBoard under DIR/<agent>/seed_<s>; the runs "
+        "then train with the sb3 backend (needs: pip install tensorboard)",
+    )
+
+
+def require_tensorboard(args: argparse.Namespace, prog: str) -> None:
+    """Exit 2 in one line when ``--tensorboard`` is given without the tensorboard package."""
+    if not getattr(args, "tensorboard", None):
+        return
+    import importlib.util
+
+    if importlib.util.find_spec("tensorboard") is None:
+        fail(
+            prog,
+            "--tensorboard needs the tensorboard package, which is not installed "
+            "(pip install tensorboard)",
+        )
+
+
 def test_main(argv: Sequence[str] | None = None, prog: str = "ermrl test") -> int:
     """Entry point of ``ermrl test`` and ``test.py``."""
     from ermrl.agents import check_ppo_config, parse_overrides, with_overrides
@@ -533,15 +554,7 @@ def test_main(argv: Sequence[str] | None = None, prog: str = "ermrl test") -> in
     parser = build_test_parser(prog)
     quiet_libraries()
     args = parser.parse_args(argv)
-    if args.tensorboard:
-        import importlib.util
-
-        if importlib.util.find_spec("tensorboard") is None:
-            fail(
-                prog,
-                "--tensorboard needs the tensorboard package, which is not installed "
-                "(pip install tensorboard)",
-            )
+    require_tensorboard(args, prog)
     if args.wandb:
         from ermrl.agents import WANDB_MISSING, wandb_installed
 
