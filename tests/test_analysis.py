@@ -639,3 +639,15 @@ def test_the_report_and_study_export_write_the_same_trials_table(tmp_path: Path)
         == 0
     )
     assert list(pd.read_parquet(parquet).columns) == list(report.columns)
+    # JSON lines: the same table, one record per trial.
+    jsonl = tmp_path / "export.jsonl"
+    assert (
+        study_main(["export", "--storage", storage, "--study-name", "gen", "--out", str(jsonl)])
+        == 0
+    )
+    records = [json.loads(line) for line in jsonl.read_text().splitlines()]
+    assert len(records) == len(report) and list(records[0]) == list(report.columns)
+    assert [r["number"] for r in records] == list(report["number"])
+    assert [r["state"] for r in records] == list(report["state"])
+    assert records[0]["user_attrs_task_normalized"] == report.loc[0, "user_attrs_task_normalized"]
+    assert records[0]["datetime_start"].startswith(str(loaded.trials[0].datetime_start.date()))

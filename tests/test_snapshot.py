@@ -441,7 +441,7 @@ def test_cli_export_and_import_json_smoke(tmp_path: Path) -> None:
     proc = ermrl("import", "--storage", target, "--snapshot", str(out))
     assert proc.returncode == 0 and "identical" in proc.stdout, proc.stderr
     proc = ermrl("export", "--storage", source, "--study-name", "demo", "--out", "x.txt")
-    assert proc.returncode == 2 and ".csv, .parquet or .json" in proc.stderr
+    assert proc.returncode == 2 and ".csv, .parquet, .jsonl or .json" in proc.stderr
     assert_same_trials(
         optuna.load_study(study_name="demo", storage=source),
         optuna.load_study(study_name="demo", storage=open_storage(target)),

@@ -113,13 +113,15 @@ def build_study_parser(prog: str = "ermrl study") -> ArgumentParser:
     export = _study_parser(
         sub,
         "export",
-        "all trials with params and user attributes (.csv, .parquet), or the whole study as a "
-        "JSON snapshot (.json) that 'ermrl study import' restores in another storage",
+        "all trials with params and user attributes (.csv, .parquet, .jsonl), or the whole "
+        "study as a JSON snapshot (.json) that 'ermrl study import' restores in another storage",
     )
     export.add_argument(
         "--out",
         required=True,
-        help="output file: .csv, .parquet, .json (snapshot: every trial, attribute and "
+        help="output file: .csv, .parquet, .jsonl (the same table as JSON lines, one record "
+        "per trial, for jq or pandas.read_json(lines=True)), .json (snapshot: every trial, "
+        "attribute and "
         "distribution, the CMA-ES state, and the study's re-evaluation study), or - for CSV on "
         "stdout",
     )
@@ -453,8 +455,8 @@ def _export(args: argparse.Namespace, prog: str) -> int:
     study = _open_study(args, prog)
     out = Path(args.out)
     suffix = out.suffix.lower()
-    if args.out != "-" and suffix not in (".csv", ".parquet", ".json"):
-        fail(prog, f"--out must end in .csv, .parquet or .json, got {args.out!r}")
+    if args.out != "-" and suffix not in (".csv", ".parquet", ".jsonl", ".json"):
+        fail(prog, f"--out must end in .csv, .parquet, .jsonl or .json, got {args.out!r}")
     if args.out != "-" and not out.parent.exists():
         fail(prog, f"directory {out.parent} does not exist")
     if suffix == ".json":
@@ -480,6 +482,9 @@ def _export(args: argparse.Namespace, prog: str) -> int:
     data: str | bytes
     if suffix == ".csv":
         data = frame.to_csv(index=False)
+    elif suffix == ".jsonl":
+        # ISO dates, not epoch milliseconds; NaN and NaT as null.
+        data = frame.to_json(orient="records", lines=True, date_format="iso")
     else:
         try:
             data = frame.to_parquet(None, index=False)
