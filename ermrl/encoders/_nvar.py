@@ -40,21 +40,13 @@ not registered yet.
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar, Literal, cast
 
 import numpy as np
 
-from ermrl.config import (
-    ConfigError,
-    EncoderConfig,
-    Range,
-    TaskConfig,
-    _box_center,
-    _PerReservoirSpace,
-)
+from ermrl._config_base import ConfigError, Range, TaskConfig, _box_center
 from ermrl.encoders._base import Encoder
 from ermrl.encoders._nvar_bank import (
     NVAR_MAX_FEATURES,
@@ -65,6 +57,7 @@ from ermrl.encoders._nvar_bank import (
     check_nvar_size,
     nvar_width,
 )
+from ermrl.encoders._settings import EncoderConfig, PerReservoirSpace
 
 __all__ = [
     "AGENTS",
@@ -140,7 +133,7 @@ class IntRange(Range):
 
 
 @dataclass(frozen=True)
-class NVARSpace(_PerReservoirSpace):
+class NVARSpace(PerReservoirSpace):
     """The evolved search space of NVARs (``--encoder nvar``): data, not code.
 
     The delay, the order and the strides are integer genes (:class:`IntRange`); the input scaling
@@ -298,12 +291,6 @@ class NVAREncoder(Encoder):
     family = "nvar"
     config_cls = EncoderConfig
     space_cls: ClassVar[type] = NVARSpace
-
-    def decode(
-        self, space: NVARSpace, params: Mapping[str, float], base: EncoderConfig
-    ) -> EncoderConfig:
-        # EncoderConfig's annotation does not list NVARParams until the encoder is registered.
-        return dataclasses.replace(base, reservoirs=space.reservoirs_from(params))  # type: ignore[arg-type]
 
     def wrap_env(self, venv: Any, config: EncoderConfig, seed: int) -> Any:
         from ermrl.encoders._vec_env import ReservoirVecEnv
