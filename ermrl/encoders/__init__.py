@@ -11,6 +11,7 @@ from collections.abc import Mapping
 
 from ermrl._config_base import ConfigError
 from ermrl.encoders._base import Encoder, flag_dest
+from ermrl.encoders._nvar import NVAREncoder
 from ermrl.encoders._reservoir import (
     BIAS_INITS,
     ReservoirBank,
@@ -30,7 +31,9 @@ from ermrl.encoders._vec_env import ActionEncoder, ReservoirVecEnv
 
 # One line per encoder (and its import above); the first is the reference, which a stored
 # configuration without a ``family`` is read as. The order is the CLI's and the docs'.
-ENCODERS: dict[str, Encoder] = {e.name: e for e in (ReservoirEncoder(), RTUEncoder())}
+ENCODERS: dict[str, Encoder] = {
+    e.name: e for e in (ReservoirEncoder(), RTUEncoder(), NVAREncoder())
+}
 
 
 def encoder_for(config: object) -> Encoder:
