@@ -4,6 +4,12 @@ A run's whole configuration is one :class:`EvolveConfig`. It is saved as a study
 (``ermrl_config``) and as ``config.yaml`` next to results, so the test phase and the analysis need
 only the study name and the storage URL.
 
+Only what is generic lives here: tasks, learner settings, budgets, the search, the problem and
+the agent table. Each encoder's settings, search space, flags and agents live in its module of
+:mod:`ermrl.encoders` (this module sits above it and reads its registry); the names every layer
+needs (:class:`ConfigError`, :class:`Range`, the limits, ...) come from :mod:`ermrl._config_base`.
+Both are re-exported, so ``from ermrl.config import ReservoirParams`` keeps working.
+
 Derived values are properties, never fields filled in after parsing.
 """
 
@@ -11,88 +17,117 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Mapping
+import typing
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Literal, Protocol, TypeVar, runtime_checkable
+from typing import Any, ClassVar, TypeVar
 
-ObserveMode = Literal["all", "positions", "velocities"]
-FitnessMode = Literal["last", "eval"]
-ResetMode = Literal["episode", "never"]
-PrunerName = Literal["none", "median", "halving"]
-StartName = Literal["reference", "center"]
-BiasInit = Literal["none", "original"]
+from ermrl._config_base import (
+    BACKENDS,
+    FITNESS_MODES,
+    MAX_EPISODES,
+    MAX_N_ENVS,
+    MAX_SEEDS,
+    MAX_TRAINING_STEPS,
+    MAX_TRIALS,
+    MAX_UNITS,
+    PRUNERS,
+    RESET_MODES,
+    STARTS,
+    AgentKind,
+    ConfigError,
+    FitnessMode,
+    ObserveMode,
+    PrunerName,
+    Range,
+    ResetMode,
+    SearchSpace,
+    StartName,
+    TaskConfig,
+    _box_center,
+    _box_contains,
+    _check_steps,
+)
+from ermrl.encoders import (
+    BIAS_INITS,
+    ENCODERS,
+    EncoderConfig,
+    EncoderParams,
+    EncoderSpace,
+    PerReservoirSpace,
+    ReservoirParams,
+    ReservoirSpace,
+    RTUParams,
+    RTUSpace,
+    encoder_agents,
+    encoder_families,
+    encoder_of_family,
+    reference_encoder,
+)
+from ermrl.encoders._reservoir import BiasInit
 
-FITNESS_MODES: tuple[str, ...] = ("last", "eval")
-RESET_MODES: tuple[str, ...] = ("episode", "never")
-PRUNERS: tuple[str, ...] = ("none", "median", "halving")
-STARTS: tuple[str, ...] = ("reference", "center")
-BACKENDS: tuple[str, ...] = ("sb3", "population")
-BIAS_INITS: tuple[str, ...] = ("none", "original")
-# Encoder families: echo state networks (reservoirpy) and frozen recurrent trace units.
-FAMILIES: tuple[str, ...] = ("esn", "rtu")
+_PerReservoirSpace = PerReservoirSpace  # its name before encoders owned it
 
+__all__ = [
+    "AGENTS",
+    "AGENT_KINDS",
+    "BACKENDS",
+    "BIAS_INITS",
+    "EVOLVED_AGENT",
+    "FAMILIES",
+    "FITNESS_MODES",
+    "MAX_EPISODES",
+    "MAX_N_ENVS",
+    "MAX_SEEDS",
+    "MAX_TRAINING_STEPS",
+    "MAX_TRIALS",
+    "MAX_UNITS",
+    "PRUNERS",
+    "RESET_MODES",
+    "STARTS",
+    "UNEVOLVED_AGENT",
+    "AgentKind",
+    "BiasInit",
+    "BudgetConfig",
+    "ConfigError",
+    "EncoderConfig",
+    "EncoderParams",
+    "EncoderSpace",
+    "EvolveConfig",
+    "FitnessMode",
+    "GeneralizationConfig",
+    "GeneralizationTask",
+    "LearnerSpace",
+    "NormalizeConfig",
+    "ObserveMode",
+    "PPOConfig",
+    "Problem",
+    "PrunerName",
+    "Range",
+    "ReservoirParams",
+    "ReservoirSpace",
+    "ResetMode",
+    "RTUParams",
+    "RTUSpace",
+    "SearchConfig",
+    "SearchSpace",
+    "SearchSpaceConfig",
+    "StartName",
+    "TaskConfig",
+    "default_agents",
+    "evolved_agent",
+    "from_dict",
+    "to_dict",
+    "unevolved_agent",
+]
 
-class ConfigError(ValueError):
-    """A configuration value is invalid. The CLI turns it into a one-line error and exit code 2."""
+# The encoders' families when this module was imported (:func:`ermrl.encoders.encoder_families`
+# reads the registry as it is now).
+FAMILIES: tuple[str, ...] = encoder_families()
 
-
-# Upper limits: a value beyond them is a typo (``--units 1e9``, ``--training-steps 1e30``) that
-# would exhaust memory or never finish; it is refused before anything is written.
-MAX_UNITS = 10_000  # units of all reservoirs of one agent together
-MAX_TRAINING_STEPS = 10**10  # env steps per agent
-MAX_TRIALS = 1_000_000  # trials of one study
-MAX_SEEDS = 1_000  # seeds (agents) per trial
-MAX_N_ENVS = 1_024  # environments per agent
-MAX_EPISODES = 100_000  # episodes averaged by a fitness measure
-
-
-def _check_units(units: int) -> None:
-    if not 1 <= units <= MAX_UNITS:
-        raise ConfigError(f"units must be in [1, {MAX_UNITS}], got {units}")
-
-
-def _check_steps(name: str, steps: int) -> None:
-    if not 1 <= steps <= MAX_TRAINING_STEPS:
-        raise ConfigError(f"{name} must be in [1, {MAX_TRAINING_STEPS:.0e}], got {steps}")
-
-
-@dataclass(frozen=True)
-class AgentKind:
-    """What a test-phase agent is: a (learner, encoder, evolved or not) triple, and its labels.
-
-    Attributes:
-        reservoirs: ``"none"`` (the raw observation), ``"evolved"`` (the selected trial's) or
-            ``"unevolved"`` (reservoirpy's defaults, :meth:`ReservoirSpace.default_reservoirs`).
-            In a study of a learner's genes (:class:`LearnerSpace`) the agent sees the raw
-            observation and ``"evolved"``/``"unevolved"`` are the learner's genes.
-        observe: The agent's own observation mask (``None``: the test task's).
-        description: One line for ``--help`` and the docs.
-        learner: Its learner (a name of :data:`ermrl.learners.LEARNERS`); ``None``: the
-            study's own learner, with the study's settings. An agent with another learner than
-            the study's takes that learner's table settings for the task (and ``--ppo``).
-        label: Its name in figure legends.
-        short_label: Its name on crowded axes.
-        color: Its matplotlib colour, the same in every figure.
-        default: Trained when ``--agents`` is not given (in a study of its family).
-        family: The encoder family of a study it can be tested in (``"esn"``: evolved with
-            ``--encoder reservoir``, ``"rtu"``: with ``--encoder rtu``, ``"hebbian"``: a study
-            of the Hebbian learner's genes); ``None``: any study.
-    """
-
-    reservoirs: Literal["none", "evolved", "unevolved"]
-    observe: ObserveMode | None
-    description: str
-    learner: str | None = None
-    label: str = ""
-    short_label: str = ""
-    color: str = ""
-    default: bool = True
-    family: str | None = None
-
-
-# The registry of test-phase agents (ermrl.experiments builds them): CLI choices, defaults, the
-# analysis' agent order, labels and colours are read from it. One line adds an agent.
-AGENT_KINDS: Mapping[str, AgentKind] = {
+# The agents that belong to no encoder: a learner on the raw observation, or a learner's own
+# evolved genes. Each registered encoder adds its own (:attr:`ermrl.encoders.Encoder.agents`).
+_OWN_AGENTS: dict[str, AgentKind] = {
     "ppo": AgentKind(
         "none", None, "PPO on the raw (masked) observation", "ppo",
         "PPO (raw observation)", "PPO", "tab:blue",
@@ -100,26 +135,6 @@ AGENT_KINDS: Mapping[str, AgentKind] = {
     "ppo-full": AgentKind(
         "none", "all", "PPO on the full, unmasked observation: the ceiling memory should approach",
         "ppo", "PPO (full observation)", "PPO\n(full obs.)", "tab:gray",
-    ),
-    "res-ppo": AgentKind(
-        "evolved", None, "the study's learner on the selected evolved reservoir(s)", None,
-        "RES-PPO (evolved reservoir)", "RES-PPO\n(evolved)", "tab:orange", family="esn",
-    ),
-    "random-res-ppo": AgentKind(
-        "unevolved", None,
-        "the study's learner on unevolved reservoirs (reservoirpy's defaults): what evolution adds",
-        None, "RES-PPO (unevolved reservoir)", "RES-PPO\n(unevolved)", "tab:green",
-        family="esn",
-    ),
-    "rtu-res-ppo": AgentKind(
-        "evolved", None,
-        "the study's learner on the selected evolved frozen RTU layer(s) (--encoder rtu studies)",
-        None, "RTU-RES-PPO (evolved RTU)", "RTU-RES\n(evolved)", "tab:red", family="rtu",
-    ),
-    "random-rtu-res-ppo": AgentKind(
-        "unevolved", None,
-        "the study's learner on frozen RTUs of the paper's initialization (--encoder rtu studies)",
-        None, "RTU-RES-PPO (unevolved RTU)", "RTU-RES\n(unevolved)", "tab:pink", family="rtu",
     ),
     "lstm-ppo": AgentKind(
         "none", None, "RecurrentPPO (LSTM policy) on the raw (masked) observation: memory baseline",
@@ -149,22 +164,11 @@ AGENT_KINDS: Mapping[str, AgentKind] = {
         "none", None, "SAC (off-policy) on the raw (masked) observation", "sac",
         "SAC (raw observation)", "SAC", "black", default=False,
     ),
-    "res-sac": AgentKind(
-        "evolved", None, "SAC on the selected evolved reservoir(s) (its replay holds their states)",
-        "sac", "RES-SAC (evolved reservoir)", "RES-SAC\n(evolved)", "teal", default=False,
-        family="esn",
-    ),
     "dagger": AgentKind(
         "none", None,
         "DAgger on the raw (masked) observation; its expert sees the full state "
         "(--for-learner dagger expert=DIR)",
         "dagger", "DAgger (raw observation)", "DAgger", "navy", default=False,
-    ),
-    "res-dagger": AgentKind(
-        "evolved", None,
-        "DAgger on the selected evolved reservoir(s)' states; its expert sees the full state",
-        "dagger", "RES-DAgger (evolved reservoir)", "RES-DAgger\n(evolved)", "magenta",
-        default=False, family="esn",
     ),
     "imitation-sac": AgentKind(
         "none", None,
@@ -173,27 +177,53 @@ AGENT_KINDS: Mapping[str, AgentKind] = {
         "imitation-sac", "Imitation-SAC (raw observation)", "Imit.-SAC", "chocolate",
         default=False,
     ),
-    "res-imitation-sac": AgentKind(
-        "evolved", None,
-        "imitation-seeded SAC on the selected evolved reservoir(s)' states; its expert sees the "
-        "full state",
-        "imitation-sac", "RES-Imitation-SAC (evolved reservoir)", "RES-Imit.-SAC\n(evolved)",
-        "slateblue", default=False, family="esn",
-    ),
 }  # fmt: skip
-AGENTS: tuple[str, ...] = tuple(AGENT_KINDS)
+_RAW_FIRST = ("ppo", "ppo-full")  # listed before the encoders' agents, the others after
 
 
-def evolved_agent(family: str = "esn") -> str:
-    """The agent on the selected evolved encoder of a study of ``family``: what the report
-    compares and replays."""
+class _AgentTable(Mapping[str, AgentKind]):
+    """The registry of test-phase agents, read afresh on each use: the two raw-observation PPO
+    agents, every registered encoder's agents in registry order, then the other agents."""
+
+    def _table(self) -> dict[str, AgentKind]:
+        table = {name: _OWN_AGENTS[name] for name in _RAW_FIRST}
+        table.update(encoder_agents())  # type: ignore[arg-type]
+        table.update({n: k for n, k in _OWN_AGENTS.items() if n not in _RAW_FIRST})
+        return table
+
+    def __getitem__(self, name: str) -> AgentKind:
+        return self._table()[name]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._table())
+
+    def __len__(self) -> int:
+        return len(self._table())
+
+
+# The registry of test-phase agents (ermrl.experiments builds them): CLI choices, defaults, the
+# analysis' agent order, labels and colours are read from it. A learner's agent is one line of
+# the table above; an encoder's agents come with the encoder.
+AGENT_KINDS: Mapping[str, AgentKind] = _AgentTable()
+AGENTS: tuple[str, ...] = tuple(AGENT_KINDS)  # the table when this module was imported
+
+
+def _reference_family() -> str:
+    return reference_encoder().family
+
+
+def evolved_agent(family: str | None = None) -> str:
+    """The agent on the selected evolved encoder of a study of ``family`` (``None``: the
+    reference encoder's): what the report compares and replays."""
+    family = family or _reference_family()
     return next(
         n for n, k in AGENT_KINDS.items() if k.reservoirs == "evolved" and k.family == family
     )
 
 
-def unevolved_agent(family: str = "esn") -> str:
+def unevolved_agent(family: str | None = None) -> str:
     """The agent on the unevolved reference encoder of a study of ``family``."""
+    family = family or _reference_family()
     return next(
         n for n, k in AGENT_KINDS.items() if k.reservoirs == "unevolved" and k.family == family
     )
@@ -203,228 +233,16 @@ EVOLVED_AGENT = evolved_agent()
 UNEVOLVED_AGENT = unevolved_agent()
 
 
-def default_agents(observe: str, family: str = "esn") -> tuple[str, ...]:
-    """The default agents of a study of encoder ``family``, less those whose own mask is the
-    task's: ``ppo-full`` on an unmasked task would repeat ``ppo`` run for run."""
+def default_agents(observe: str, family: str | None = None) -> tuple[str, ...]:
+    """The default agents of a study of encoder ``family`` (``None``: the reference encoder's),
+    less those whose own mask is the task's: ``ppo-full`` on an unmasked task would repeat
+    ``ppo`` run for run."""
+    family = family or _reference_family()
     return tuple(
         a
         for a, kind in AGENT_KINDS.items()
         if kind.default and kind.observe != observe and kind.family in (None, family)
     )
-
-
-@dataclass(frozen=True)
-class ReservoirParams:
-    """Hyperparameters of one echo state network (reservoirpy ``Reservoir`` arguments).
-
-    The defaults are reservoirpy's own, which is what ``random-res-ppo`` uses as the unevolved
-    reference reservoir.
-
-    Attributes:
-        units: Number of reservoir neurons.
-        sr: Spectral radius of the recurrent matrix ``W``.
-        lr: Leak rate in (0, 1]: ``x <- (1 - lr) x + lr tanh(W x + Win u + b)``.
-        input_scaling: Scale of the input matrix ``Win`` (Bernoulli +-input_scaling entries).
-        rc_connectivity: Density of ``W``.
-        input_connectivity: Density of ``Win``.
-        bias_scaling: Scale of a dense Bernoulli bias (every unit +-bias_scaling); 0 means no
-            bias (reservoirpy 0.4's default).
-        bias_init: ``"none"``: the bias above. ``"original"``: reservoirpy 0.3's default bias,
-            which the original ER-MRL code used: Bernoulli +-1 on ``input_connectivity`` of
-            the units (10 of 100), zero elsewhere; needs ``bias_scaling`` 0. Left out of
-            :func:`to_dict` while ``"none"``, so configs stored before it existed are unchanged.
-    """
-
-    units: int = 100
-    sr: float = 1.0
-    lr: float = 1.0
-    input_scaling: float = 1.0
-    rc_connectivity: float = 0.1
-    input_connectivity: float = 0.1
-    bias_scaling: float = 0.0
-    bias_init: BiasInit = field(default="none", metadata={"omit_if_default": True})
-
-    family: ClassVar[str] = "esn"
-
-    @property
-    def state_dim(self) -> int:
-        """Width of the state the policy can see: one value per unit."""
-        return self.units
-
-    def __post_init__(self) -> None:
-        if self.bias_init not in BIAS_INITS:
-            raise ConfigError(f"bias_init must be one of {BIAS_INITS}, got {self.bias_init!r}")
-        if self.bias_init == "original" and self.bias_scaling > 0:
-            raise ConfigError(
-                "bias_init 'original' draws reservoirpy 0.3's +-1 sparse bias; it cannot be "
-                f"combined with bias_scaling {self.bias_scaling} (a dense bias)"
-            )
-        _check_units(self.units)
-        if not (self.sr > 0 and math.isfinite(self.sr)):
-            raise ConfigError(f"spectral radius sr must be positive, got {self.sr}")
-        if not (0 < self.lr <= 1):
-            raise ConfigError(f"leak rate lr must be in (0, 1], got {self.lr}")
-        if not (self.input_scaling > 0 and math.isfinite(self.input_scaling)):
-            raise ConfigError(f"input_scaling must be positive, got {self.input_scaling}")
-        for name in ("rc_connectivity", "input_connectivity"):
-            value = getattr(self, name)
-            if not (0 < value <= 1):
-                raise ConfigError(f"{name} must be in (0, 1], got {value}")
-        if not (self.bias_scaling >= 0 and math.isfinite(self.bias_scaling)):
-            raise ConfigError(f"bias_scaling must be finite and >= 0, got {self.bias_scaling}")
-
-
-@dataclass(frozen=True)
-class RTUParams:
-    """Hyperparameters of one frozen layer of recurrent trace units (a complex-diagonal reservoir).
-
-    The units of Elelimy et al. (2024), with fixed random weights: each of the ``units`` complex
-    units holds ``(c1, c2)``; with ``g = r cos(theta)``, ``phi = r sin(theta)`` and
-    ``gamma = sqrt(1 - r^2)``::
-
-        c1 <- g c1 - phi c2 + gamma (W1 u)
-        c2 <- g c2 + phi c1 + gamma (W2 u)
-
-    The policy sees ``tanh([c1; c2])`` (``2 * units`` values). ``r^2 ~ U(r_min^2, r_max^2)`` and
-    ``theta ~ U(0, theta_max)`` per unit; ``W1`` and ``W2`` are dense ``N(0, input_scaling^2 /
-    input_dim)``. The defaults are the paper's initialization (r in (0, 1), theta in (0, 2 pi)),
-    the unevolved reference of ``--encoder rtu``.
-
-    Attributes:
-        units: Complex units (the state has ``2 * units`` values).
-        r_min: Lower bound of the decay rates' range, in [0, r_max].
-        r_max: Upper bound of the decay rates' range, in (0, 1].
-        theta_max: Upper bound of the rotation frequencies' range (radians per step).
-        input_scaling: Scale of ``W1`` and ``W2``.
-        family: Always ``"rtu"`` (tells stored configurations apart from echo state networks).
-    """
-
-    units: int = 50
-    r_min: float = 0.0
-    r_max: float = 1.0
-    theta_max: float = 2 * math.pi
-    input_scaling: float = 1.0
-    family: Literal["rtu"] = "rtu"
-
-    @property
-    def state_dim(self) -> int:
-        """Width of the state the policy can see: two values per complex unit."""
-        return 2 * self.units
-
-    def __post_init__(self) -> None:
-        if self.family != "rtu":
-            raise ConfigError(f"RTUParams family must be 'rtu', got {self.family!r}")
-        _check_units(2 * self.units)
-        if not (0 < self.r_max <= 1):
-            raise ConfigError(f"r_max must be in (0, 1], got {self.r_max}")
-        if not (0 <= self.r_min <= self.r_max):
-            raise ConfigError(f"r_min must be in [0, r_max = {self.r_max}], got {self.r_min}")
-        if not (self.theta_max > 0 and math.isfinite(self.theta_max)):
-            raise ConfigError(f"theta_max must be positive, got {self.theta_max}")
-        if not (self.input_scaling > 0 and math.isfinite(self.input_scaling)):
-            raise ConfigError(f"input_scaling must be positive, got {self.input_scaling}")
-
-
-EncoderParams = ReservoirParams | RTUParams
-
-
-@dataclass(frozen=True)
-class EncoderConfig:
-    """How the reservoir(s) turn observations into the policy's input.
-
-    Attributes:
-        reservoirs: One :class:`ReservoirParams` (echo state network) or :class:`RTUParams`
-            (frozen recurrent trace units) per reservoir, all of one family; their states are
-            concatenated.
-        skip_connection: The policy sees ``[state, observation, action, reward]``, not only the state.
-        reset: ``"episode"`` zeroes a row's state when its episode ends; ``"never"`` carries it.
-        exposed_units: Expose only the first N units of each reservoir to the policy (``None``: all).
-        reward_scale: Factor applied to the previous reward before it enters the reservoir.
-        feed_action: Feed the previous action (one-hot or scaled to [-1, 1]) to the reservoir.
-        feed_reward: Feed the previous reward to the reservoir.
-        dtype: Float type of the reservoir state and weights. ``float32`` (default) is about
-            twice as cheap per step. How closely it follows float64 depends on the dynamics
-            (100 units, lr 1, 100 steps of N(0, 1) input, worst of 5 seeds): within ~1e-6 up to
-            sr 1.5, up to 6e-4 at sr 2, and from sr ~2.5 the two trajectories decorrelate
-            (sr 3: 3e-2 apart by step 50, 2.0, the whole tanh range, by step 100). There the
-            reservoir is chaotic and any rounding change separates trajectories; the states
-            stay statistically alike but are not reservoirpy's. ``float64`` reproduces
-            reservoirpy's own states to 1e-10.
-    """
-
-    reservoirs: tuple[EncoderParams, ...] = (ReservoirParams(),)
-    skip_connection: bool = False
-    reset: ResetMode = "episode"
-    exposed_units: int | None = None
-    reward_scale: float = 1.0
-    feed_action: bool = True
-    feed_reward: bool = True
-    dtype: Literal["float64", "float32"] = "float32"
-
-    def __post_init__(self) -> None:
-        if self.dtype not in ("float64", "float32"):
-            raise ConfigError(f"dtype must be float64 or float32, got {self.dtype!r}")
-        if not self.reservoirs:
-            raise ConfigError("an encoder needs at least one reservoir")
-        if len({p.family for p in self.reservoirs}) > 1:
-            raise ConfigError("the reservoirs of one encoder must all be of one family")
-        if self.total_units > MAX_UNITS:
-            raise ConfigError(
-                f"the reservoirs have {self.total_units} units together; at most {MAX_UNITS} "
-                "are allowed"
-            )
-        if self.reset not in RESET_MODES:
-            raise ConfigError(f"reset must be one of {RESET_MODES}, got {self.reset!r}")
-        if self.exposed_units is not None:
-            smallest = min(p.state_dim for p in self.reservoirs)
-            if not (1 <= self.exposed_units <= smallest):
-                raise ConfigError(
-                    f"exposed_units must be in [1, {smallest}] (state size per reservoir), "
-                    f"got {self.exposed_units}"
-                )
-        if not math.isfinite(self.reward_scale):
-            raise ConfigError(f"reward_scale must be finite, got {self.reward_scale}")
-
-    @property
-    def n_reservoirs(self) -> int:
-        return len(self.reservoirs)
-
-    @property
-    def family(self) -> str:
-        """``"esn"`` or ``"rtu"``: the reservoirs' family."""
-        return self.reservoirs[0].family
-
-    @property
-    def total_units(self) -> int:
-        """Width of the concatenated states (an RTU's complex unit counts twice)."""
-        return sum(p.state_dim for p in self.reservoirs)
-
-    @property
-    def exposed_total(self) -> int:
-        if self.exposed_units is None:
-            return self.total_units
-        return self.exposed_units * self.n_reservoirs
-
-    def with_reservoirs(self, reservoirs: tuple[EncoderParams, ...]) -> EncoderConfig:
-        """Return a copy with other reservoir hyperparameters (same encoding options)."""
-        return dataclasses.replace(self, reservoirs=tuple(reservoirs))
-
-
-@dataclass(frozen=True)
-class TaskConfig:
-    """The environment an agent learns.
-
-    Attributes:
-        env_id: Any registered gymnasium id (``Pendulum-v1``, ``HalfCheetah-v5``, ...).
-        observe: Keep the whole observation, only its position part or only its velocity part.
-    """
-
-    env_id: str
-    observe: ObserveMode = "all"
-
-    @property
-    def label(self) -> str:
-        return self.env_id if self.observe == "all" else f"{self.env_id}[{self.observe}]"
 
 
 @dataclass(frozen=True)
@@ -548,308 +366,6 @@ class BudgetConfig:
                 raise ConfigError(f"{name} must be in [1, {MAX_EPISODES}], got {value}")
         if self.n_reports < 0:
             raise ConfigError(f"n_reports must be >= 0, got {self.n_reports}")
-
-
-@dataclass(frozen=True)
-class Range:
-    """A closed interval searched on a log or linear scale."""
-
-    low: float
-    high: float
-    log: bool = True
-
-    def __post_init__(self) -> None:
-        if not (math.isfinite(self.low) and math.isfinite(self.high)):
-            raise ConfigError(f"range bounds must be finite, got [{self.low}, {self.high}]")
-        if not self.low < self.high:
-            raise ConfigError(
-                f"empty or inverted range [{self.low}, {self.high}]: low must be < high"
-            )
-        if self.log and self.low <= 0:
-            raise ConfigError(f"a log-scale range needs low > 0, got [{self.low}, {self.high}]")
-
-
-@runtime_checkable
-class SearchSpace(Protocol):
-    """What the outer loop needs of an encoder's search space (:class:`ReservoirSpace` is one).
-
-    The search samples plain ``{name: value}`` points in :meth:`ranges`; the encoder turns a
-    point into its settings (:meth:`ermrl.encoders.Encoder.decode`), so search code never
-    handles an encoder's own types.
-    """
-
-    @property
-    def param_names(self) -> tuple[str, ...]: ...
-
-    def ranges(self) -> dict[str, Range]: ...
-
-    def reference_params(self) -> dict[str, float]: ...
-
-    def center_params(self) -> dict[str, float]: ...
-
-    def contains(self, params: Mapping[str, float]) -> bool: ...
-
-
-def _box_contains(ranges: Mapping[str, Range], params: Mapping[str, float]) -> bool:
-    """Whether ``params`` name exactly the parameters of ``ranges``, each within its range."""
-    return set(params) == set(ranges) and all(
-        r.low <= params[name] <= r.high for name, r in ranges.items()
-    )
-
-
-def _box_center(ranges: Mapping[str, Range]) -> dict[str, float]:
-    """The centre of a box (the geometric mean of the bounds on a log scale)."""
-    return {
-        name: math.sqrt(r.low * r.high) if r.log else (r.low + r.high) / 2
-        for name, r in ranges.items()
-    }
-
-
-class _PerReservoirSpace:
-    """What the search spaces share: each reservoir has the same evolved parameters, named
-    ``name`` with one reservoir and ``name_0``, ``name_1``, ... with several."""
-
-    n_reservoirs: int
-
-    def _per_reservoir(self) -> dict[str, Range]:
-        """One reservoir's evolved parameters and their ranges, in order."""
-        raise NotImplementedError
-
-    def _reference_values(self) -> dict[str, float]:
-        """One unevolved reference reservoir's evolved parameters."""
-        raise NotImplementedError
-
-    @property
-    def evolved(self) -> tuple[str, ...]:
-        """Names of the evolved hyperparameters of one reservoir."""
-        return tuple(self._per_reservoir())
-
-    def param_name(self, name: str, index: int) -> str:
-        return name if self.n_reservoirs == 1 else f"{name}_{index}"
-
-    @property
-    def param_names(self) -> tuple[str, ...]:
-        return tuple(self.param_name(n, k) for k in range(self.n_reservoirs) for n in self.evolved)
-
-    def ranges(self) -> dict[str, Range]:
-        """Search ranges keyed by Optuna parameter name, in a fixed order."""
-        per = self._per_reservoir()
-        return {self.param_name(n, k): r for k in range(self.n_reservoirs) for n, r in per.items()}
-
-    def _values(self, params: Mapping[str, float], k: int) -> dict[str, float]:
-        """Reservoir ``k``'s evolved values in a trial's parameters.
-
-        Raises:
-            ConfigError: a parameter of this space is missing.
-        """
-        try:
-            return {n: float(params[self.param_name(n, k)]) for n in self.evolved}
-        except KeyError as err:
-            raise ConfigError(f"parameter {err.args[0]!r} missing from {dict(params)}") from err
-
-    def reference_params(self) -> dict[str, float]:
-        """The unevolved reference reservoirs (``default_reservoirs()``) as trial parameters."""
-        one = self._reference_values()
-        return {self.param_name(n, k): one[n] for k in range(self.n_reservoirs) for n in one}
-
-    def contains(self, params: Mapping[str, float]) -> bool:
-        """Whether ``params`` name exactly this space's parameters, each within its range."""
-        return _box_contains(self.ranges(), params)
-
-    def center_params(self) -> dict[str, float]:
-        """The centre of the box (geometric mean of the bounds on a log scale): the paper's start."""
-        return _box_center(self.ranges())
-
-
-@dataclass(frozen=True)
-class ReservoirSpace(_PerReservoirSpace):
-    """The evolved search space of echo state networks: data, not code. Defaults follow the
-    ER-MRL paper.
-
-    Every range is log-scale. The space has a fixed dimension so that CMA-ES never falls back to
-    independent sampling. With one reservoir the parameters are named ``sr``, ``lr`` and
-    ``input_scaling``; with several, ``sr_0``, ``lr_0``, ``input_scaling_0``, ``sr_1``, ...
-
-    Attributes:
-        n_reservoirs: Reservoirs per agent, each with its own hyperparameters and weights.
-        units: Fixed number of units per reservoir.
-        sr: Spectral-radius range.
-        lr: Leak-rate range (within (0, 1]).
-        input_scaling: Input-scaling range, or ``None`` to fix it at ``fixed_input_scaling``.
-        fixed_input_scaling: The value used when ``input_scaling`` is ``None``.
-        rc_connectivity: Fixed recurrent connectivity.
-        input_connectivity: Fixed input connectivity.
-        bias_scaling: Fixed bias scaling.
-        bias_init: Fixed bias initialization (:attr:`ReservoirParams.bias_init`).
-    """
-
-    n_reservoirs: int = 1
-    units: int = 100
-    sr: Range = Range(1e-4, 1e2)
-    lr: Range = Range(1e-2, 1.0)
-    input_scaling: Range | None = Range(1e-1, 10.0)
-    fixed_input_scaling: float = 1.0
-    rc_connectivity: float = 0.1
-    input_connectivity: float = 0.1
-    bias_scaling: float = 0.0
-    bias_init: BiasInit = field(default="none", metadata={"omit_if_default": True})
-
-    family: ClassVar[str] = "esn"
-
-    def __post_init__(self) -> None:
-        if self.n_reservoirs < 1:
-            raise ConfigError(f"n_reservoirs must be >= 1, got {self.n_reservoirs}")
-        _check_units(self.units)
-        if self.n_reservoirs * self.units > MAX_UNITS:
-            raise ConfigError(
-                f"{self.n_reservoirs} reservoirs of {self.units} units: at most {MAX_UNITS} "
-                "units are allowed in all"
-            )
-        if self.lr.high > 1:
-            raise ConfigError(f"the leak-rate range must stay within (0, 1], got {self.lr.high}")
-        # Fail early on a bad fixed value.
-        ReservoirParams(
-            units=self.units,
-            input_scaling=self.fixed_input_scaling,
-            rc_connectivity=self.rc_connectivity,
-            input_connectivity=self.input_connectivity,
-            bias_scaling=self.bias_scaling,
-            bias_init=self.bias_init,
-        )
-
-    def _per_reservoir(self) -> dict[str, Range]:
-        per: dict[str, Range] = {"sr": self.sr, "lr": self.lr}
-        if self.input_scaling is not None:
-            per["input_scaling"] = self.input_scaling
-        return per
-
-    def _reference_values(self) -> dict[str, float]:
-        one = self.default_reservoirs()[0]
-        return {name: float(getattr(one, name)) for name in self.evolved}
-
-    def _reservoir(self, values: Mapping[str, float]) -> ReservoirParams:
-        return ReservoirParams(
-            units=self.units,
-            sr=values["sr"],
-            lr=values["lr"],
-            input_scaling=values.get("input_scaling", self.fixed_input_scaling),
-            rc_connectivity=self.rc_connectivity,
-            input_connectivity=self.input_connectivity,
-            bias_scaling=self.bias_scaling,
-            bias_init=self.bias_init,
-        )
-
-    def reservoirs_from(self, params: Mapping[str, float]) -> tuple[ReservoirParams, ...]:
-        """Build the reservoirs described by a trial's parameters.
-
-        Raises:
-            ConfigError: a parameter of this space is missing.
-        """
-        return tuple(self._reservoir(self._values(params, k)) for k in range(self.n_reservoirs))
-
-    def default_reservoirs(self) -> tuple[ReservoirParams, ...]:
-        """Unevolved reservoirs (reservoirpy defaults for sr, lr and input scaling)."""
-        one = ReservoirParams(
-            units=self.units,
-            input_scaling=self.fixed_input_scaling if self.input_scaling is None else 1.0,
-            rc_connectivity=self.rc_connectivity,
-            input_connectivity=self.input_connectivity,
-            bias_scaling=self.bias_scaling,
-            bias_init=self.bias_init,
-        )
-        return (one,) * self.n_reservoirs
-
-
-@dataclass(frozen=True)
-class RTUSpace(_PerReservoirSpace):
-    """The evolved search space of frozen recurrent trace units (``--encoder rtu``).
-
-    Evolution shapes the ranges the units' parameters are drawn from, as it shapes an ESN's
-    spectral radius: the upper decay rate ``r_max`` (linear scale), the lower one as a fraction
-    of it, ``r_min_ratio`` (linear; ``r_min = r_min_ratio * r_max`` keeps the range ordered in a
-    box), the largest rotation frequency ``theta_max`` (log scale) and the input scaling (log
-    scale). The reference is the paper's initialization: ``r in (0, 1)``, ``theta in (0, 2 pi)``,
-    input scaling 1.
-
-    Attributes:
-        n_reservoirs: RTU layers per agent, each with its own ranges and weights.
-        units: Complex units per layer (the policy sees ``2 * units`` values per layer).
-        r_max: Range of ``r_max``, within (0, 1].
-        r_min_ratio: Range of ``r_min / r_max``, within [0, 1].
-        theta_max: Range of ``theta_max``.
-        input_scaling: Input-scaling range, or ``None`` to fix it at ``fixed_input_scaling``.
-        fixed_input_scaling: The value used when ``input_scaling`` is ``None``.
-        family: Always ``"rtu"`` (stored, so that a study's space reads back as this class).
-    """
-
-    n_reservoirs: int = 1
-    units: int = 50
-    r_max: Range = Range(0.05, 1.0, log=False)
-    r_min_ratio: Range = Range(0.0, 1.0, log=False)
-    theta_max: Range = Range(1e-2, 2 * math.pi)
-    input_scaling: Range | None = Range(1e-1, 10.0)
-    fixed_input_scaling: float = 1.0
-    family: Literal["rtu"] = "rtu"
-
-    def __post_init__(self) -> None:
-        if self.family != "rtu":
-            raise ConfigError(f"RTUSpace family must be 'rtu', got {self.family!r}")
-        if self.n_reservoirs < 1:
-            raise ConfigError(f"n_reservoirs must be >= 1, got {self.n_reservoirs}")
-        if self.n_reservoirs * 2 * self.units > MAX_UNITS:
-            raise ConfigError(
-                f"{self.n_reservoirs} RTU layers of {self.units} complex units: at most "
-                f"{MAX_UNITS} state values are allowed in all"
-            )
-        if not (0 < self.r_max.low and self.r_max.high <= 1):
-            raise ConfigError(f"the r_max range must stay within (0, 1], got {self.r_max}")
-        if not (0 <= self.r_min_ratio.low and self.r_min_ratio.high <= 1):
-            raise ConfigError(
-                f"the r_min_ratio range must stay within [0, 1], got {self.r_min_ratio}"
-            )
-        RTUParams(units=self.units, input_scaling=self.fixed_input_scaling)
-
-    def _per_reservoir(self) -> dict[str, Range]:
-        per = {"r_max": self.r_max, "r_min_ratio": self.r_min_ratio, "theta_max": self.theta_max}
-        if self.input_scaling is not None:
-            per["input_scaling"] = self.input_scaling
-        return per
-
-    def _reference_values(self) -> dict[str, float]:
-        one = self.default_reservoirs()[0]
-        ref = {"r_max": one.r_max, "r_min_ratio": one.r_min / one.r_max}
-        ref["theta_max"] = one.theta_max
-        if self.input_scaling is not None:
-            ref["input_scaling"] = one.input_scaling
-        return ref
-
-    def _reservoir(self, values: Mapping[str, float]) -> RTUParams:
-        return RTUParams(
-            units=self.units,
-            r_min=values["r_min_ratio"] * values["r_max"],
-            r_max=values["r_max"],
-            theta_max=values["theta_max"],
-            input_scaling=values.get("input_scaling", self.fixed_input_scaling),
-        )
-
-    def reservoirs_from(self, params: Mapping[str, float]) -> tuple[RTUParams, ...]:
-        """Build the RTU layers described by a trial's parameters.
-
-        Raises:
-            ConfigError: a parameter of this space is missing.
-        """
-        return tuple(self._reservoir(self._values(params, k)) for k in range(self.n_reservoirs))
-
-    def default_reservoirs(self) -> tuple[RTUParams, ...]:
-        """Unevolved RTU layers: the paper's initialization ranges, input scaling 1."""
-        one = RTUParams(
-            units=self.units,
-            input_scaling=self.fixed_input_scaling if self.input_scaling is None else 1.0,
-        )
-        return (one,) * self.n_reservoirs
-
-
-EncoderSpace = ReservoirSpace | RTUSpace
 
 
 @dataclass(frozen=True)
@@ -1159,7 +675,7 @@ class EvolveConfig:
     def default_study_name(self) -> str:
         task = self.problem.task
         parts = [task.env_id, task.observe, f"{self.problem.budget.training_steps}steps"]
-        if self.space.family != "esn":
+        if self.space.family != _reference_family():
             parts.append(self.space.family)
         if self.space.n_reservoirs > 1:
             parts.append(f"{self.space.n_reservoirs}res")
@@ -1195,23 +711,46 @@ def to_dict(obj: Any) -> Any:
     return obj
 
 
+def _encoder(family: Any) -> Any:
+    """The registered encoder of a stored ``family`` (none stored: the reference encoder).
+
+    Raises:
+        ConfigError: no registered encoder has that family (a name read from a stored
+            configuration is checked against the registry, never imported).
+    """
+    encoder = encoder_of_family(None if family is None else str(family))
+    if encoder is None:
+        raise ConfigError(
+            f"a stored configuration names encoder family {family!r}, which no registered "
+            f"encoder has ({', '.join(e.family for e in ENCODERS.values())})"
+        )
+    return encoder
+
+
+def _field_class(cls: type, key: str) -> type | None:
+    """The dataclass a field of ``cls`` holds, read from its annotation (``Range``,
+    ``Range | None``, an encoder's own range class, ...); ``None`` if it holds none."""
+    hint = typing.get_type_hints(cls).get(key)
+    options = typing.get_args(hint) or (hint,)
+    found = [o for o in options if isinstance(o, type) and dataclasses.is_dataclass(o)]
+    return found[0] if len(found) == 1 else None
+
+
 def from_dict(cls: type[_T], data: Mapping[str, Any]) -> _T:
-    """Inverse of :func:`to_dict` for the dataclasses of this module."""
+    """Inverse of :func:`to_dict` for the dataclasses of this module and of the encoders.
+
+    An encoder's search space and reservoir settings are read as the classes of the registered
+    encoder whose ``family`` they store (:data:`ermrl.encoders.ENCODERS`; none stored: the
+    reference encoder's, as echo state networks were stored); their range fields follow their
+    annotations.
+    """
     hints = {
         (EvolveConfig, "problem"): Problem,
-        (EvolveConfig, "space"): ReservoirSpace,
         (EvolveConfig, "search"): SearchConfig,
         (Problem, "task"): TaskConfig,
         (Problem, "encoder"): EncoderConfig,
         (Problem, "ppo"): PPOConfig,
         (Problem, "budget"): BudgetConfig,
-        (ReservoirSpace, "sr"): Range,
-        (ReservoirSpace, "lr"): Range,
-        (ReservoirSpace, "input_scaling"): Range,
-        (RTUSpace, "r_max"): Range,
-        (RTUSpace, "r_min_ratio"): Range,
-        (RTUSpace, "theta_max"): Range,
-        (RTUSpace, "input_scaling"): Range,
         (EvolveConfig, "generalization"): GeneralizationConfig,
         (GeneralizationTask, "task"): TaskConfig,
         (GeneralizationTask, "ppo"): PPOConfig,
@@ -1223,14 +762,15 @@ def from_dict(cls: type[_T], data: Mapping[str, Any]) -> _T:
         # Studies stored before these options existed started at the box centre, without the
         # reference trial: read them as what they were.
         data = {"start": "center", "reference_trial": False, **data}
+    encoder_owned = any(cls is e.space_cls for e in ENCODERS.values())
     for key, value in data.items():
         if key not in names:
             continue  # tolerate fields added by newer versions
         sub = hints.get((cls, key))
-        if sub is ReservoirSpace and isinstance(value, Mapping) and value.get("family") == "rtu":
-            sub = RTUSpace
-        if sub is ReservoirSpace and isinstance(value, Mapping) and "learner" in value:
-            sub = LearnerSpace
+        if cls is EvolveConfig and key == "space" and isinstance(value, Mapping):
+            sub = LearnerSpace if "learner" in value else _encoder(value.get("family")).space_cls
+        elif encoder_owned:
+            sub = _field_class(cls, key)
         if cls is LearnerSpace and key == "genes":
             value = {str(k): from_dict(Range, v) for k, v in value.items()}
         elif cls is LearnerSpace and key == "reference":
@@ -1238,10 +778,7 @@ def from_dict(cls: type[_T], data: Mapping[str, Any]) -> _T:
         elif sub is not None and value is not None:
             value = from_dict(sub, value)
         elif cls is EncoderConfig and key == "reservoirs":
-            value = tuple(
-                from_dict(RTUParams if v.get("family") == "rtu" else ReservoirParams, v)
-                for v in value
-            )
+            value = tuple(from_dict(_encoder(v.get("family")).params_cls, v) for v in value)
         elif cls is Problem and key == "seeds":
             value = tuple(int(v) for v in value)
         elif cls is PPOConfig and key == "hyperparams":

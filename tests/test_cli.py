@@ -117,10 +117,12 @@ def test_agent_registry_drives_choices_defaults_and_labels() -> None:
     from ermrl.config import AGENTS, ConfigError, default_agents
     from ermrl.experiments import agent_specs
 
+    # The raw-observation PPO agents, each registered encoder's agents, then the learners'.
     assert AGENTS == (
-        "ppo", "ppo-full", "res-ppo", "random-res-ppo", "rtu-res-ppo", "random-rtu-res-ppo",
-        "lstm-ppo", "framestack-ppo", "rtu-ppo", "hebbian", "random-hebbian", "sac", "res-sac",
-        "dagger", "res-dagger", "imitation-sac", "res-imitation-sac",
+        "ppo", "ppo-full", "res-ppo", "random-res-ppo", "res-sac", "res-dagger",
+        "res-imitation-sac", "rtu-res-ppo", "random-rtu-res-ppo", "nvar-res-ppo",
+        "random-nvar-res-ppo", "lstm-ppo", "framestack-ppo", "rtu-ppo", "hebbian",
+        "random-hebbian", "sac", "dagger", "imitation-sac",
     )  # fmt: skip
     assert set(AGENT_LABELS) == set(AGENT_SHORT_LABELS) == set(AGENT_COLORS) == set(AGENTS)
     action = next(a for a in build_test_parser()._actions if a.dest == "agents")

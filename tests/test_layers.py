@@ -25,8 +25,13 @@ Four rules:
 3. **Layering.** :data:`LAYERS` orders the units, lowest first. A module may import from its own
    layer or a lower one, never a higher one, whatever the kind of import (a function-level or
    ``TYPE_CHECKING`` import still ties the lower layer to the higher one). The order is the one the
-   package's concepts give: configuration (and ``ermrl._io``, atomic file writes), then
-   environments, encoders, the inner-loop learners (each algorithm, its agent's files and
+   package's concepts give: what every layer needs of the configuration (``ermrl._config_base``:
+   the configuration error, limits, ranges, tasks and agent kinds; and ``ermrl._io``, atomic file
+   writes), then environments, encoders (each one module that owns its settings, search space,
+   flags and agents, and the registry), the run's configuration (``ermrl.config``: above the
+   encoders, so that it reads a stored study's encoder settings as the registered encoder's
+   classes and lists the registered encoders' agents; it re-exports what it builds on), the
+   inner-loop learners (each algorithm, its agent's files and
    the reading of the expert folders that imitation learners query), the agents (the training
    loop and the settings it resolves), the experts (trained and evaluated by the agents' loop),
    the population backend (which
@@ -59,10 +64,17 @@ PACKAGE_DIR = Path(__file__).resolve().parents[1] / PACKAGE
 # Lowest first. A unit may import from its own row and the rows above it in this table.
 # The package's own __init__ (only its version) is the bottom: every module may import it.
 LAYERS: tuple[tuple[str, ...], ...] = (
-    ("ermrl", "ermrl._interrupt", "ermrl._io", "ermrl._progress", "ermrl._text"),
-    ("ermrl.config",),
+    (
+        "ermrl",
+        "ermrl._config_base",
+        "ermrl._interrupt",
+        "ermrl._io",
+        "ermrl._progress",
+        "ermrl._text",
+    ),
     ("ermrl.envs",),
     ("ermrl.encoders",),
+    ("ermrl.config",),
     ("ermrl.learners",),
     ("ermrl.agents",),
     ("ermrl.experts",),

@@ -5,7 +5,10 @@ from __future__ import annotations
 
 import json
 import math
+import subprocess
+import sys
 import warnings
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -488,3 +491,108 @@ def test_the_agents_and_flags_are_ready_to_register() -> None:
     assert encoder.name == "nvar" and encoder.family == "nvar" and encoder.space_cls is NVARSpace
     assert encoder.accepts(nvar_encoder(NVARParams()))
     assert not encoder.accepts(EncoderConfig())
+
+
+# -- registered: the CLI, the test phase and the report --------------------------------------------
+def test_nvar_is_registered_with_its_agents_and_flags() -> None:
+    from ermrl.config import AGENT_KINDS, default_agents, evolved_agent, unevolved_agent
+    from ermrl.encoders import ENCODERS, encoder_for
+
+    assert isinstance(ENCODERS["nvar"], NVAREncoder)
+    assert encoder_for(nvar_encoder(NVARParams())) is ENCODERS["nvar"]
+    assert set(AGENTS) <= set(AGENT_KINDS)
+    assert (evolved_agent("nvar"), unevolved_agent("nvar")) == tuple(AGENTS)
+    assert default_agents("positions", "nvar") == ("ppo", "ppo-full", *AGENTS)
+    # A stored NVAR study's encoder reads back as NVARs, through the registry.
+    from ermrl.config import from_dict, to_dict
+
+    encoder = nvar_encoder(NVARParams(delay=3, strides=2), NVARParams(order=1))
+    assert from_dict(EncoderConfig, to_dict(encoder)) == encoder
+
+
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [
+        ([], "an NVAR of delay 4 and order 2 on d = 24 inputs has 4,752 features"),
+        (["--delay-range", "1", "2", "--order-range", "2", "3"], "lower the order range"),
+        (["--units", "5"], "--units applies to --encoder reservoir, not to --encoder nvar"),
+    ],
+)
+def test_the_cli_refuses_sizes_over_the_limit_in_one_line_before_anything_is_written(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], flags: list[str], message: str
+) -> None:
+    from ermrl.cli._evolve import evolve_main
+
+    db = tmp_path / "x.db"
+    with pytest.raises(SystemExit) as exit_:
+        evolve_main(["--env-id", "HalfCheetah-v5", "--encoder", "nvar", *flags,
+                     "--storage", f"sqlite:///{db}"])  # fmt: skip
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and "\n" not in err
+    assert not db.exists()
+
+
+def _ermrl(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "ermrl", *args],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+
+
+def test_an_nvar_study_is_evolved_on_both_backends_tested_and_reported(tmp_path: Path) -> None:
+    """``--encoder nvar`` on a partially observable task: evolution (sb3 and population), the
+    test phase's default agents, and the report's replay of the evolved NVAR."""
+    from ermrl.search import study_config
+
+    storage = f"sqlite:///{tmp_path / 'nvar.db'}"
+    tiny = ["--ppo", "n_steps=128", "batch_size=64", "n_epochs=1", "--n-envs", "1"]
+    for backend in ("sb3", "population"):
+        evolve = _ermrl(
+            "evolve", "--env-id", "Pendulum-v1", "--observe", "positions", "--encoder", "nvar",
+            "--delay-range", "1", "3", "--n-trials", "2", "--n-seeds", "1",
+            "--training-steps", "256", "--backend", backend, *tiny,
+            "--storage", storage, "--study-name", f"nvar-{backend}", "--progress", "none",
+            cwd=tmp_path,
+        )  # fmt: skip
+        assert evolve.returncode == 0, evolve.stderr
+        assert "delay=2 order=2 strides=1 input_scaling=1" in evolve.stdout  # the reference
+        study = optuna.load_study(study_name=f"nvar-{backend}", storage=storage)
+        config = study_config(study)
+        assert isinstance(config.space, NVARSpace) and config.problem.ppo.backend == backend
+        assert config.space.delay == IntRange(1, 3)
+        done = [t for t in study.trials if t.state == optuna.trial.TrialState.COMPLETE]
+        assert len(done) == 2 and all(isinstance(t.params["delay"], int) for t in done)
+    out = tmp_path / "test"
+    test = _ermrl(
+        "test", "--study-name", "nvar-sb3", "--storage", storage, "--seeds", "10",
+        "--training-steps", "256", "--ppo", "n_steps=128", "n_envs=1", "--out", str(out),
+        cwd=tmp_path,
+    )  # fmt: skip
+    assert test.returncode == 0, test.stderr
+    summary = (out / "summary.csv").read_text()
+    for agent in ("ppo", "ppo-full", "nvar-res-ppo", "random-nvar-res-ppo"):
+        assert agent in summary
+    settings = json.loads(
+        (out / "agents" / "random-nvar-res-ppo" / "seed_10" / "settings.json").read_text()
+    )
+    assert settings["encoder"]["reservoirs"] == [
+        {"delay": 2, "order": 2, "strides": 1, "input_scaling": 1.0, "family": "nvar"}
+    ]
+    refused = _ermrl(
+        "test", "--study-name", "nvar-sb3", "--storage", storage, "--seeds", "10",
+        "--agents", "res-ppo", "--out", str(tmp_path / "refused"), cwd=tmp_path,
+    )  # fmt: skip
+    assert refused.returncode == 2 and "--encoder reservoir" in refused.stderr
+    report = _ermrl(
+        "report", "--study-name", "nvar-sb3", "--storage", storage, "--runs", str(out),
+        "--out", str(tmp_path / "report"), cwd=tmp_path,
+    )  # fmt: skip
+    assert report.returncode == 0, report.stderr
+    md = (tmp_path / "report" / "report.md").read_text()
+    assert "1 x NVAR (delay 1-3, order 1-2, strides 1-4)" in md
+    assert "### `nvar-res-ppo` against the baselines" in md
+    assert list((tmp_path / "report" / "dynamics").glob("nvar-res-ppo_seed10_*.png"))

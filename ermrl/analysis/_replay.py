@@ -306,6 +306,7 @@ def rollout(
         obs = policy_env.reset()
         if render and fast_render:
             _plain_scene(unwrapped)
+        state_width = int(venv.get_states().shape[1]) if encoder is not None else 0
         observations, actions, rewards, states, frames = [], [], [], [], []
         ended = False
         step = 0
@@ -340,7 +341,9 @@ def rollout(
     finally:
         policy_env.close()
     n = len(rewards)
-    n_units = encoder.total_units if encoder is not None else (len(states[0]) if states else 0)
+    # The encoder's whole state as its wrapper holds it (an NVAR's: its delay line), else the
+    # learner's own.
+    n_units = len(states[0]) if states else state_width
     return Rollout(
         observations=np.asarray(observations, dtype=np.float64).reshape(n, -1),
         actions=np.asarray(actions, dtype=np.float64).reshape(n, -1),

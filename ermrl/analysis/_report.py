@@ -416,7 +416,12 @@ def _evolved_row(config: Any) -> tuple[str, str]:
     space = config.space
     if isinstance(space, LearnerSpace):
         return ("Evolved", f"the {space.learner} learner's {len(space.genes)} genes (no encoder)")
-    return ("Reservoir", f"{space.n_reservoirs} x {space.units} units")
+    from ermrl.encoders import encoder_of_family
+
+    encoder = encoder_of_family(space.family)
+    if encoder is None:
+        return ("Reservoir", f"{space.n_reservoirs} x {space.family}")
+    return ("Reservoir", encoder.describe(space))
 
 
 def _study_section(state: _State) -> None:
@@ -812,7 +817,7 @@ def _agent_table(table: pd.DataFrame, columns: Sequence[str]) -> pd.DataFrame:
 
 def _evolved_agent(state: _State) -> str:
     """The report's study's evolved agent (``res-ppo``, or ``rtu-res-ppo`` for an RTU study)."""
-    return evolved_agent(state.config.space.family if state.config else "esn")
+    return evolved_agent(state.config.space.family if state.config else None)
 
 
 def _dynamics_runs(runs: Path, config: Any) -> list[tuple[str, int]]:
@@ -820,7 +825,7 @@ def _dynamics_runs(runs: Path, config: Any) -> list[tuple[str, int]]:
     and the unevolved agent on that seed when it was saved too (none without the former)."""
     from ermrl.analysis._replay import available_runs
 
-    family = config.space.family if config else "esn"
+    family = config.space.family if config else None
     evolved, unevolved = evolved_agent(family), unevolved_agent(family)
     models = available_runs(runs)
     seeds = sorted(s for a, s in models if a == evolved)

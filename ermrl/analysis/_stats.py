@@ -11,7 +11,7 @@ import numpy as np
 import pandas as pd
 
 from ermrl.analysis._results import t_quantile
-from ermrl.config import AGENTS, EVOLVED_AGENT
+from ermrl.config import AGENT_KINDS, EVOLVED_AGENT
 
 __all__ = [
     "FEW_SEEDS",
@@ -281,7 +281,7 @@ def compare_agents(
         flags a group of fewer than :data:`FEW_SEEDS` runs.
     """
     if baselines is None:
-        baselines = [a for a in AGENTS if a != candidate]
+        baselines = [a for a in AGENT_KINDS if a != candidate]
     columns = [
         "candidate",
         "baseline",

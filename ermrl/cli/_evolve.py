@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import math
 import shlex
 import sys
 import textwrap
@@ -30,7 +29,6 @@ from ermrl.cli._common import (
     quiet_libraries,
 )
 from ermrl.config import (
-    BIAS_INITS,
     FITNESS_MODES,
     PRUNERS,
     RESET_MODES,
@@ -44,12 +42,11 @@ from ermrl.config import (
     PPOConfig,
     Problem,
     Range,
-    ReservoirSpace,
-    RTUSpace,
     SearchConfig,
     SearchSpaceConfig,
     TaskConfig,
 )
+from ermrl.encoders import ENCODERS, flag_dest, get_encoder, reference_encoder
 from ermrl.learners import LEARNERS
 
 if TYPE_CHECKING:
@@ -75,8 +72,9 @@ DESCRIPTION = textwrap.dedent(
 
     Each trial samples sr, lr and input_scaling (per reservoir), trains one PPO agent per seed on
     the reservoir-encoded observations and records the mean return as the trial's fitness.
-    With --encoder rtu the reservoir is a frozen layer of recurrent trace units and the trial
-    samples the ranges its decays and frequencies are drawn from. With --learner hebbian there is
+    --encoder evolves another registered encoder (its choices and flags are listed below): with
+    --encoder rtu the reservoir is a frozen layer of recurrent trace units and the trial samples
+    the ranges its decays and frequencies are drawn from. With --learner hebbian there is
     no encoder: each trial samples the Hebbian learner's genes (its network's spectral radius,
     input and bias scales, time constants, and its plasticity: noise, trace decay, learning rate,
     l2; see --gene). Re-running the same command resumes the study; several workers may share it.
@@ -90,14 +88,6 @@ DESCRIPTION = textwrap.dedent(
           --training-steps 40000 --storage sqlite:///ermrl.db
     """
 )
-
-
-def _range(name: str):  # noqa: ANN202
-    def parse(values: Sequence[str]) -> Range:
-        return Range(float(values[0]), float(values[1]))
-
-    parse.__name__ = name
-    return parse
 
 
 def add_problem_args(parser: argparse.ArgumentParser, *, multi_task: bool = False) -> None:
@@ -216,41 +206,18 @@ def add_problem_args(parser: argparse.ArgumentParser, *, multi_task: bool = Fals
 
     radd(
         "--encoder",
-        choices=("reservoir", "rtu"),
-        default="reservoir",
-        help="'reservoir': echo state networks (evolved sr, lr, input_scaling); 'rtu': frozen "
-        "recurrent trace units, a complex-diagonal reservoir (evolved r_max, r_min_ratio, "
-        "theta_max, input_scaling)",
+        choices=tuple(ENCODERS),
+        default=reference_encoder().name,
+        help="; ".join(f"'{e.name}': {e.description}" for e in ENCODERS.values()),
     )
     radd(
         "--n-reservoirs",
         type=positive_int,
         default=1,
-        help="reservoirs (or RTU layers) per agent, each with its own evolved parameters",
+        help="reservoirs (or RTU layers, NVARs, ...) per agent, each with its own evolved "
+        "parameters",
     )
-    radd(
-        "--units",
-        type=positive_int,
-        default=None,
-        help="units per reservoir, fixed (default 100); with --encoder rtu, complex units per "
-        "layer, each showing the policy 2 values (default 50)",
-    )
-    radd(
-        "--sr-range",
-        nargs=2,
-        type=positive_float,
-        default=[1e-4, 1e2],
-        metavar=("LOW", "HIGH"),
-        help="spectral radius range (log scale)",
-    )
-    radd(
-        "--lr-range",
-        nargs=2,
-        type=positive_float,
-        default=[1e-2, 1.0],
-        metavar=("LOW", "HIGH"),
-        help="leak rate range (log scale, within (0, 1])",
-    )
+    add_encoder_args(radd)
     radd(
         "--input-scaling-range",
         nargs=2,
@@ -267,39 +234,6 @@ def add_problem_args(parser: argparse.ArgumentParser, *, multi_task: bool = Fals
         default=None,
         metavar="VALUE",
         help="do not evolve input scaling; fix it at VALUE (1.0 when no value is given)",
-    )
-    radd(
-        "--r-max-range",
-        nargs=2,
-        type=float,
-        default=[0.05, 1.0],
-        metavar=("LOW", "HIGH"),
-        help="--encoder rtu: range of the largest decay rate r_max (linear, within (0, 1])",
-    )
-    radd(
-        "--theta-max-range",
-        nargs=2,
-        type=positive_float,
-        default=[1e-2, 2 * math.pi],
-        metavar=("LOW", "HIGH"),
-        help="--encoder rtu: range of the largest rotation frequency theta_max (log scale, "
-        "radians per step)",
-    )
-    radd("--rc-connectivity", type=positive_float, default=0.1, help="recurrent connectivity")
-    radd("--input-connectivity", type=positive_float, default=0.1, help="input connectivity")
-    radd(
-        "--bias-scaling",
-        type=float,
-        default=0.0,
-        help="dense Bernoulli bias: every unit +-scale (0: no bias, reservoirpy 0.4's default)",
-    )
-    radd(
-        "--bias-init",
-        choices=BIAS_INITS,
-        default="none",
-        help="'original': reservoirpy 0.3's default bias, which the ER-MRL code had: +-1 on "
-        "--input-connectivity of the units (10%%), zero elsewhere (needs --bias-scaling 0); "
-        "'none': the bias of --bias-scaling",
     )
     radd(
         "--skip-connection",
@@ -542,33 +476,61 @@ def learner_space_from_args(args: argparse.Namespace, ppo: PPOConfig) -> Learner
     return learner.gene_space(ppo, parse_gene_ranges(getattr(args, "gene", []), learner.genes))
 
 
+# The CLI's checked argparse types an encoder's flag data may name (``"type": "positive_int"``).
+FLAG_TYPES: dict[str, Callable[[str], Any]] = {
+    "positive_int": positive_int,
+    "positive_float": positive_float,
+    "nonneg_int": nonneg_int,
+}
+
+
+def add_encoder_args(add: Callable[..., Any]) -> None:
+    """Every registered encoder's flags (:attr:`ermrl.encoders.Encoder.cli_flags`, plain data) as
+    options, through ``add`` (``add_argument``'s signature). A flag that several encoders
+    declare alike becomes one option whose help joins theirs.
+
+    Raises:
+        ValueError: two encoders declare one flag with different keywords (other than help).
+    """
+    merged: dict[str, dict[str, Any]] = {}
+    for encoder in ENCODERS.values():
+        for flag in encoder.cli_flags:
+            options = {k: v for k, v in flag.items() if k != "space_field"}
+            options["dest"] = flag_dest(flag)
+            if isinstance(options.get("type"), str):
+                options["type"] = FLAG_TYPES[options["type"]]
+            known = merged.get(options["dest"])
+            if known is None:
+                merged[options["dest"]] = options
+                continue
+            if {k: v for k, v in known.items() if k != "help"} != {
+                k: v for k, v in options.items() if k != "help"
+            }:
+                raise ValueError(f"encoders declare {flag['flags'][0]} differently")
+            if options.get("help") and options["help"] not in known.get("help", ""):
+                known["help"] = "; ".join(h for h in (known.get("help"), options["help"]) if h)
+    for options in merged.values():
+        add(*options.pop("flags"), **options)
+
+
 def space_from_args(args: argparse.Namespace) -> EncoderSpace:
-    input_scaling = (
-        None if args.fixed_input_scaling is not None else _range("is")(args.input_scaling_range)
-    )
-    if getattr(args, "encoder", "reservoir") == "rtu":
-        return RTUSpace(
-            n_reservoirs=args.n_reservoirs,
-            units=50 if args.units is None else args.units,
-            r_max=Range(float(args.r_max_range[0]), float(args.r_max_range[1]), log=False),
-            theta_max=_range("theta_max")(args.theta_max_range),
-            input_scaling=input_scaling,
-            fixed_input_scaling=args.fixed_input_scaling or 1.0,
-        )
-    return ReservoirSpace(
-        n_reservoirs=args.n_reservoirs,
-        units=100 if args.units is None else args.units,
-        sr=_range("sr")(args.sr_range),
-        lr=_range("lr")(args.lr_range),
-        input_scaling=None
-        if args.fixed_input_scaling is not None
-        else _range("is")(args.input_scaling_range),
-        fixed_input_scaling=args.fixed_input_scaling or 1.0,
-        rc_connectivity=args.rc_connectivity,
-        input_connectivity=args.input_connectivity,
-        bias_scaling=args.bias_scaling,
-        bias_init=args.bias_init,
-    )
+    """The search space of the chosen encoder (``--encoder``) from its flags.
+
+    Raises:
+        ConfigError: a flag of another encoder only, or a bad value.
+    """
+    encoder = get_encoder(getattr(args, "encoder", reference_encoder().name))
+    own = {flag_dest(f) for f in encoder.cli_flags}
+    for other in ENCODERS.values():
+        for flag in other.cli_flags:
+            dest = flag_dest(flag)
+            if dest not in own and getattr(args, dest, None) not in (None, flag.get("default")):
+                raise ConfigError(
+                    f"{flag['flags'][0]} applies to --encoder {other.name}, not to --encoder "
+                    f"{encoder.name}"
+                )
+    space: EncoderSpace = encoder.space_from_args(args)
+    return space
 
 
 def encoder_from_args(args: argparse.Namespace, space: EncoderSpace) -> EncoderConfig:
@@ -667,24 +629,30 @@ def config_from_args(
         torch_threads=args.torch_threads,
         learner=learner,
     )
+    evolves_encoder = not get_learner(learner).genes
+    encoder_name = getattr(args, "encoder", None) if evolves_encoder else None
     backend, why = choose_backend(
         getattr(args, "backend", None),
         ppo,
         (TaskConfig(env_id=args.env_id, observe=args.observe),),
         pruner=getattr(args, "pruner", "none"),
         tensorboard=bool(getattr(args, "tensorboard", None)),
+        encoder=encoder_name,
     )
     if why is not None and notes is not None:
         notes.append(why)
     ppo = dataclasses.replace(ppo, backend=backend)
     space: SearchSpaceConfig
-    if get_learner(learner).genes:
+    if not evolves_encoder:
         space, encoder = learner_space_from_args(args, ppo), None
     else:
         if getattr(args, "gene", []):
             raise ConfigError(f"--gene evolves a learner's genes; learner {learner!r} has none")
         space = space_from_args(args)
         encoder = encoder_from_args(args, space)
+        get_encoder(args.encoder).check(
+            TaskConfig(env_id=args.env_id, observe=args.observe), encoder, space
+        )
     problem = Problem(
         task=TaskConfig(env_id=args.env_id, observe=args.observe),
         encoder=encoder,
@@ -703,6 +671,11 @@ def config_from_args(
         from ermrl.population import check_population_config
 
         check_population_config(ppo)
+        if encoder_name is not None and not get_encoder(encoder_name).population:
+            raise ConfigError(
+                f"the population backend does not step --encoder {encoder_name}'s reservoirs; "
+                "use --backend sb3"
+            )
     check_tensorboard(args, ppo.backend)
     return config
 

@@ -170,6 +170,7 @@ def generalization_config_from_args(
             backend does not apply to some task (the study then trains with sb3).
     """
     from ermrl.agents import check_ppo_config, parse_overrides
+    from ermrl.encoders import get_encoder
     from ermrl.envs import get_suite
     from ermrl.search import generalization_config, generalization_tasks
 
@@ -208,7 +209,12 @@ def generalization_config_from_args(
         backend, why = "population", None
         for t in tasks:
             backend, why = choose_backend(
-                None, t.ppo, (t.task,), pruner=args.pruner, tensorboard=bool(args.tensorboard)
+                None,
+                t.ppo,
+                (t.task,),
+                pruner=args.pruner,
+                tensorboard=bool(args.tensorboard),
+                encoder=args.encoder,
             )
             if why is not None:
                 if notes is not None:
@@ -218,9 +224,12 @@ def generalization_config_from_args(
             dataclasses.replace(t, ppo=dataclasses.replace(t.ppo, backend=backend)) for t in tasks
         )
     space = space_from_args(args)
+    encoder = encoder_from_args(args, space)
+    for t in tasks:  # what depends on a task's sizes is refused before the study exists
+        get_encoder(args.encoder).check(t.task, encoder, space)
     config = generalization_config(
         tasks,
-        encoder=encoder_from_args(args, space),
+        encoder=encoder,
         budget=budget_from_args(args),
         seeds=tuple(range(args.seed, args.seed + args.n_seeds)),
         space=space,

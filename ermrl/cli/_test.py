@@ -27,7 +27,7 @@ from ermrl.cli._common import (
     progress_mode,
     quiet_libraries,
 )
-from ermrl.config import AGENT_KINDS, AGENTS, ConfigError, default_agents
+from ermrl.config import AGENT_KINDS, ConfigError, default_agents
 
 T = TypeVar("T")
 
@@ -104,7 +104,7 @@ def add_test_args(
     parser.add_argument(
         "--agents",
         nargs="+",
-        choices=AGENTS,
+        choices=tuple(AGENT_KINDS),
         default=None,
         help="agents to train (default: "
         + ", ".join(n for n, k in AGENT_KINDS.items() if k.default)

@@ -1,4 +1,5 @@
-"""What an encoder is: its parameters, its search space, and its place in the pipeline.
+"""What an encoder is: its settings, its search space, its flags and agents, and its place in the
+pipeline.
 
 An encoder module subclasses :class:`Encoder` and :mod:`ermrl.encoders` registers one instance
 (:data:`~ermrl.encoders.ENCODERS`). Two places exist:
@@ -11,47 +12,86 @@ An encoder module subclasses :class:`Encoder` and :mod:`ermrl.encoders` register
 
 The outer loop never handles an encoder's own types: it samples a plain ``{name: value}`` dict
 in the ranges of the encoder's space and :meth:`Encoder.decode` turns it into the encoder's
-settings.
+settings. The rest of ermrl reads everything else it needs of an encoder from this class: the
+``ermrl evolve`` flags (:attr:`Encoder.cli_flags`, plain data), the search space they give
+(:meth:`Encoder.space_from_args`), the test-phase agents (:attr:`Encoder.agents`), the checks
+made before a study is written (:meth:`Encoder.check`), how the report describes a study's
+encoder (:meth:`Encoder.describe`) and which agents may share a population
+(:meth:`Encoder.layout`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from typing import Any, ClassVar, Literal
+import argparse
+import dataclasses
+from collections.abc import Hashable, Mapping
+from typing import TYPE_CHECKING, Any, ClassVar, Literal
 
-__all__ = ["Encoder"]
+from ermrl._config_base import AgentKind, Range, TaskConfig
+
+if TYPE_CHECKING:
+    from ermrl.encoders._settings import EncoderConfig
+
+__all__ = ["Encoder", "flag_dest"]
+
+
+def flag_dest(flag: Mapping[str, Any]) -> str:
+    """The ``argparse`` destination of a flag given as data (its ``dest``, else its first long
+    option without dashes)."""
+    return str(flag.get("dest") or flag["flags"][0].lstrip("-").replace("-", "_"))
 
 
 class Encoder:
     """An encoder of observations.
 
     Attributes:
-        name: Registry name.
-        description: One line for the docs.
+        name: Registry name (``--encoder NAME``).
+        description: One line for ``--help`` and the docs.
         place: ``"env"`` (frozen, wraps the env) or ``"policy"`` (trainable, in the policy).
-        family: The reservoirs' family its settings hold (:attr:`ermrl.config.EncoderConfig.family`);
-            two encoders may share a settings class and differ by family.
-        config_cls: Its settings dataclass (stored in a study's configuration).
+        family: The family its reservoirs' settings hold (:attr:`ermrl.config.EncoderConfig.family`),
+            stored with a study's configuration: it tells which encoder reads them back. Unique
+            in the registry.
+        config_cls: Its settings dataclass (stored in a study's configuration):
+            :class:`~ermrl.config.EncoderConfig` for an encoder whose settings are reservoirs
+            and the shared encoding options.
+        params_cls: The settings dataclass of one of its reservoirs (an element of
+            ``EncoderConfig.reservoirs``).
         space_cls: Its search space dataclass: ``ranges()`` (name -> range of every evolved
-            parameter), ``reference_params()``, ``contains()`` and ``center_params()``.
+            parameter), ``reference_params()``, ``contains()``, ``center_params()``,
+            ``reservoirs_from()`` and ``default_reservoirs()`` (the unevolved reference).
+        cli_flags: Its own ``ermrl evolve`` flags as data: each a dict of ``add_argument``
+            keywords with ``flags`` (the option strings) and ``space_field`` (the field of
+            ``space_cls`` it sets; a :class:`~ermrl.config.Range` field takes ``LOW HIGH``
+            and keeps its default's scale); ``type`` may name one of the CLI's checked types
+            (``"positive_int"``, ``"positive_float"``, ``"nonneg_int"``). A flag two encoders declare (same option) becomes
+            one option whose help joins theirs. ``--n-reservoirs``, ``--input-scaling-range``,
+            ``--fixed-input-scaling`` and the encoding options are shared by every encoder.
+        agents: Its test-phase agents (name -> :class:`~ermrl.config.AgentKind`, each of this
+            encoder's family): one evolved and one unevolved agent at least.
+        population: Whether the population backend's batched reservoir steps its reservoirs
+            (:mod:`ermrl.population`); otherwise its studies train with the sb3 backend.
     """
 
     name: ClassVar[str]
     description: ClassVar[str]
     place: ClassVar[Literal["env", "policy"]] = "env"
-    family: ClassVar[str | None] = None
+    family: ClassVar[str]
     config_cls: ClassVar[type]
+    params_cls: ClassVar[type]
     space_cls: ClassVar[type]
+    cli_flags: ClassVar[tuple[Mapping[str, Any], ...]] = ()
+    agents: ClassVar[Mapping[str, AgentKind]] = {}
+    population: ClassVar[bool] = False
 
     def accepts(self, config: Any) -> bool:
-        """Whether ``config`` is this encoder's settings (its class and, if set, its family)."""
+        """Whether ``config`` is this encoder's settings (its class and its family)."""
         if not isinstance(config, self.config_cls):
             return False
-        return self.family is None or getattr(config, "family", None) == self.family
+        return getattr(config, "family", None) == self.family
 
     def decode(self, space: Any, params: Mapping[str, float], base: Any) -> Any:
-        """The encoder settings of a sampled point: ``base`` with the evolved parameters."""
-        raise NotImplementedError
+        """The encoder settings of a sampled point: ``base`` with the evolved reservoirs."""
+        return base.with_reservoirs(space.reservoirs_from(params))
 
     def wrap_env(self, venv: Any, config: Any, seed: int) -> Any:
         """Wrap ``venv`` so that it emits encoded observations (``place == "env"``)."""
@@ -60,3 +100,51 @@ class Encoder:
     def policy_kwargs(self, config: Any) -> dict[str, Any]:
         """``policy_kwargs`` entries that put the encoder in the policy (``place == "policy"``)."""
         return {}
+
+    def space_from_args(self, args: argparse.Namespace) -> Any:
+        """The search space ``ermrl evolve``'s options give: the shared ``--n-reservoirs`` and
+        input scaling, and each of :attr:`cli_flags` into its ``space_field`` (a flag left at
+        ``None`` keeps the space's default).
+
+        Raises:
+            ConfigError: a bad value (the space's own checks).
+        """
+        fields = {f.name: f for f in dataclasses.fields(self.space_cls)}
+        kwargs: dict[str, Any] = {}
+        if "n_reservoirs" in fields:
+            kwargs["n_reservoirs"] = args.n_reservoirs
+        if "input_scaling" in fields:
+            fixed = getattr(args, "fixed_input_scaling", None)
+            low, high = args.input_scaling_range
+            kwargs["input_scaling"] = None if fixed is not None else Range(float(low), float(high))
+            kwargs["fixed_input_scaling"] = 1.0 if fixed is None else fixed
+        for flag in self.cli_flags:
+            name = flag.get("space_field")
+            value = getattr(args, flag_dest(flag), None)
+            if name is None or value is None:
+                continue
+            default = fields[name].default
+            if isinstance(default, Range):  # LOW HIGH, on the default's scale (and type)
+                value = dataclasses.replace(default, low=value[0], high=value[1])
+            kwargs[name] = value
+        return self.space_cls(**kwargs)
+
+    def check(self, task: TaskConfig, config: EncoderConfig, space: Any) -> None:
+        """Refuse, before a study or a run folder is written, what this encoder could only
+        refuse once a trial runs on ``task`` (a size that depends on the task's input).
+
+        Raises:
+            ConfigError: one line saying what to change.
+        """
+
+    def describe(self, space: Any) -> str:
+        """What the study's encoder is, in a few words (a row of the report's study table)."""
+        units = getattr(space, "units", None)
+        if units is None:
+            return f"{space.n_reservoirs} x {self.name}"
+        return f"{space.n_reservoirs} x {units} units"
+
+    def layout(self, params: Any) -> Hashable:
+        """What fixes the layout of what the policy sees of one reservoir (agents of a
+        population share it): its state width by default."""
+        return int(params.state_dim)

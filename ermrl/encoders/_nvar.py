@@ -34,27 +34,21 @@ The output width grows fast with the delay and the order; it also depends on the
 :meth:`NVARSpace.check_input_dim` refuses a search space whose largest corner would, before a
 study is created.
 
-Its settings and agents are plain data here (:data:`CLI_FLAGS`, :data:`AGENTS`); the encoder is
-not registered yet.
+This module is the whole encoder but its batched computation (:mod:`ermrl.encoders._nvar_bank`,
+below the env wrapper): its search space, its ``ermrl evolve`` flags (:data:`CLI_FLAGS`), its
+test-phase agents (:data:`AGENTS`) and :class:`NVAREncoder`, registered by one line of
+:data:`~ermrl.encoders.ENCODERS`.
 """
 
 from __future__ import annotations
 
-import dataclasses
-from collections.abc import Mapping
+from collections.abc import Hashable, Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar, Literal, cast
 
 import numpy as np
 
-from ermrl.config import (
-    ConfigError,
-    EncoderConfig,
-    Range,
-    TaskConfig,
-    _box_center,
-    _PerReservoirSpace,
-)
+from ermrl._config_base import AgentKind, ConfigError, Range, TaskConfig, _box_center
 from ermrl.encoders._base import Encoder
 from ermrl.encoders._nvar_bank import (
     NVAR_MAX_FEATURES,
@@ -63,8 +57,10 @@ from ermrl.encoders._nvar_bank import (
     NVARParams,
     _size_text,
     check_nvar_size,
+    nvar_structure,
     nvar_width,
 )
+from ermrl.encoders._settings import EncoderConfig, PerReservoirSpace
 
 __all__ = [
     "AGENTS",
@@ -140,7 +136,7 @@ class IntRange(Range):
 
 
 @dataclass(frozen=True)
-class NVARSpace(_PerReservoirSpace):
+class NVARSpace(PerReservoirSpace):
     """The evolved search space of NVARs (``--encoder nvar``): data, not code.
 
     The delay, the order and the strides are integer genes (:class:`IntRange`); the input scaling
@@ -284,33 +280,6 @@ class NVARSpace(_PerReservoirSpace):
             )
 
 
-# -- the batched computation ---------------------------------------------------------------------
-class NVAREncoder(Encoder):
-    """The NVAR encoder: decoding of a trial's genes, and the env wrapper
-    (:class:`~ermrl.encoders.ReservoirVecEnv` with an :class:`NVARBank`)."""
-
-    name = "nvar"
-    description = (
-        "next-generation reservoir (NVAR: delayed inputs and their monomials, reservoirpy); "
-        "frozen, wraps the env"
-    )
-    place = "env"
-    family = "nvar"
-    config_cls = EncoderConfig
-    space_cls: ClassVar[type] = NVARSpace
-
-    def decode(
-        self, space: NVARSpace, params: Mapping[str, float], base: EncoderConfig
-    ) -> EncoderConfig:
-        # EncoderConfig's annotation does not list NVARParams until the encoder is registered.
-        return dataclasses.replace(base, reservoirs=space.reservoirs_from(params))  # type: ignore[arg-type]
-
-    def wrap_env(self, venv: Any, config: EncoderConfig, seed: int) -> Any:
-        from ermrl.encoders._vec_env import ReservoirVecEnv
-
-        return ReservoirVecEnv(venv, config, seed=seed)
-
-
 # -- plain data for the registry: CLI flags and test-phase agents --------------------------------
 
 
@@ -336,7 +305,7 @@ CLI_FLAGS: tuple[dict[str, Any], ...] = (
     _int_range_flag("strides", (1, 4), "the steps between delayed inputs"),
 )
 
-# Test-phase agents of ``--encoder nvar`` studies, as ``ermrl.config.AgentKind`` fields.
+# Test-phase agents of ``--encoder nvar`` studies, as :class:`~ermrl.config.AgentKind` fields.
 AGENTS: dict[str, dict[str, Any]] = {
     "nvar-res-ppo": {
         "reservoirs": "evolved",
@@ -363,3 +332,51 @@ AGENTS: dict[str, dict[str, Any]] = {
         "family": "nvar",
     },
 }
+
+
+# -- the encoder ---------------------------------------------------------------------------------
+class NVAREncoder(Encoder):
+    """The NVAR encoder: decoding of a trial's genes, its flags and agents, the size check made
+    before a study exists, and the env wrapper (:class:`~ermrl.encoders.ReservoirVecEnv` with an
+    :class:`NVARBank`)."""
+
+    name = "nvar"
+    description = (
+        "next-generation reservoir (NVAR: delayed inputs and their monomials, reservoirpy; "
+        "evolved delay, order, strides, input_scaling); frozen, wraps the env"
+    )
+    place = "env"
+    family = "nvar"
+    config_cls = EncoderConfig
+    params_cls: ClassVar[type] = NVARParams
+    space_cls: ClassVar[type] = NVARSpace
+    cli_flags: ClassVar[tuple[Mapping[str, Any], ...]] = CLI_FLAGS
+    agents: ClassVar[Mapping[str, AgentKind]] = {n: AgentKind(**f) for n, f in AGENTS.items()}
+    population = True
+
+    def check(self, task: TaskConfig, config: EncoderConfig, space: NVARSpace) -> None:
+        """Refuse a space whose widest point, or a study whose reference NVAR(s), would exceed
+        :data:`NVAR_MAX_FEATURES` features on ``task``'s input (one line, before anything is
+        written)."""
+        input_dim = encoder_input_dim(task, config)
+        space.check_input_dim(input_dim)
+        check_nvar_size(cast("tuple[NVARParams, ...]", config.reservoirs), input_dim)
+
+    def describe(self, space: NVARSpace) -> str:
+        genes = ", ".join(
+            f"{name} {r.low}-{r.high}"
+            for name, r in (
+                ("delay", space.delay),
+                ("order", space.order),
+                ("strides", space.strides),
+            )
+        )
+        return f"{space.n_reservoirs} x NVAR ({genes})"
+
+    def layout(self, params: NVARParams) -> Hashable:
+        return nvar_structure(params)
+
+    def wrap_env(self, venv: Any, config: EncoderConfig, seed: int) -> Any:
+        from ermrl.encoders._vec_env import ReservoirVecEnv
+
+        return ReservoirVecEnv(venv, config, seed=seed)

@@ -16,7 +16,7 @@ from typing import Any, ClassVar, Literal
 
 import numpy as np
 
-from ermrl.config import ConfigError
+from ermrl._config_base import ConfigError
 from ermrl.encoders._reservoir import StepBank
 
 __all__ = [

@@ -4,7 +4,7 @@ The update rule is reservoirpy's ``Reservoir`` rule, applied to ``n_envs`` state
 
     x <- (1 - lr) * x + lr * tanh(W x + Win u + b)
 
-A frozen layer of recurrent trace units (:class:`~ermrl.config.RTUParams`) is the linear case
+A frozen layer of recurrent trace units (:class:`RTUParams`) is the linear case
 ``x <- W x + Win u`` with a block-rotation ``W`` (see :func:`rtu_weights`); the policy then sees
 ``tanh(x)``.
 
@@ -18,17 +18,22 @@ offers the same interface (``buffer``, ``step_buffer``, ``emitter``, ``out_units
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
-from typing import ClassVar
+from dataclasses import dataclass, field
+from typing import ClassVar, Literal
 
 import numpy as np
 from reservoirpy import mat_gen
 from reservoirpy.nodes import Reservoir
 
-from ermrl.config import EncoderParams, ReservoirParams, RTUParams
+from ermrl._config_base import ConfigError, _check_units
 
 __all__ = [
+    "BIAS_INITS",
+    "BiasInit",
+    "ReservoirParams",
+    "RTUParams",
     "ReservoirWeights",
     "ReservoirBank",
     "encoder_weights",
@@ -36,6 +41,121 @@ __all__ = [
     "reservoir_seeds",
     "rtu_weights",
 ]
+
+BiasInit = Literal["none", "original"]
+BIAS_INITS: tuple[str, ...] = ("none", "original")
+
+
+@dataclass(frozen=True)
+class ReservoirParams:
+    """Hyperparameters of one echo state network (reservoirpy ``Reservoir`` arguments).
+
+    The defaults are reservoirpy's own, which is what ``random-res-ppo`` uses as the unevolved
+    reference reservoir.
+
+    Attributes:
+        units: Number of reservoir neurons.
+        sr: Spectral radius of the recurrent matrix ``W``.
+        lr: Leak rate in (0, 1]: ``x <- (1 - lr) x + lr tanh(W x + Win u + b)``.
+        input_scaling: Scale of the input matrix ``Win`` (Bernoulli +-input_scaling entries).
+        rc_connectivity: Density of ``W``.
+        input_connectivity: Density of ``Win``.
+        bias_scaling: Scale of a dense Bernoulli bias (every unit +-bias_scaling); 0 means no
+            bias (reservoirpy 0.4's default).
+        bias_init: ``"none"``: the bias above. ``"original"``: reservoirpy 0.3's default bias,
+            which the original ER-MRL code used: Bernoulli +-1 on ``input_connectivity`` of
+            the units (10 of 100), zero elsewhere; needs ``bias_scaling`` 0. Left out of
+            :func:`to_dict` while ``"none"``, so configs stored before it existed are unchanged.
+    """
+
+    units: int = 100
+    sr: float = 1.0
+    lr: float = 1.0
+    input_scaling: float = 1.0
+    rc_connectivity: float = 0.1
+    input_connectivity: float = 0.1
+    bias_scaling: float = 0.0
+    bias_init: BiasInit = field(default="none", metadata={"omit_if_default": True})
+
+    family: ClassVar[str] = "esn"
+
+    @property
+    def state_dim(self) -> int:
+        """Width of the state the policy can see: one value per unit."""
+        return self.units
+
+    def __post_init__(self) -> None:
+        if self.bias_init not in BIAS_INITS:
+            raise ConfigError(f"bias_init must be one of {BIAS_INITS}, got {self.bias_init!r}")
+        if self.bias_init == "original" and self.bias_scaling > 0:
+            raise ConfigError(
+                "bias_init 'original' draws reservoirpy 0.3's +-1 sparse bias; it cannot be "
+                f"combined with bias_scaling {self.bias_scaling} (a dense bias)"
+            )
+        _check_units(self.units)
+        if not (self.sr > 0 and math.isfinite(self.sr)):
+            raise ConfigError(f"spectral radius sr must be positive, got {self.sr}")
+        if not (0 < self.lr <= 1):
+            raise ConfigError(f"leak rate lr must be in (0, 1], got {self.lr}")
+        if not (self.input_scaling > 0 and math.isfinite(self.input_scaling)):
+            raise ConfigError(f"input_scaling must be positive, got {self.input_scaling}")
+        for name in ("rc_connectivity", "input_connectivity"):
+            value = getattr(self, name)
+            if not (0 < value <= 1):
+                raise ConfigError(f"{name} must be in (0, 1], got {value}")
+        if not (self.bias_scaling >= 0 and math.isfinite(self.bias_scaling)):
+            raise ConfigError(f"bias_scaling must be finite and >= 0, got {self.bias_scaling}")
+
+
+@dataclass(frozen=True)
+class RTUParams:
+    """Hyperparameters of one frozen layer of recurrent trace units (a complex-diagonal reservoir).
+
+    The units of Elelimy et al. (2024), with fixed random weights: each of the ``units`` complex
+    units holds ``(c1, c2)``; with ``g = r cos(theta)``, ``phi = r sin(theta)`` and
+    ``gamma = sqrt(1 - r^2)``::
+
+        c1 <- g c1 - phi c2 + gamma (W1 u)
+        c2 <- g c2 + phi c1 + gamma (W2 u)
+
+    The policy sees ``tanh([c1; c2])`` (``2 * units`` values). ``r^2 ~ U(r_min^2, r_max^2)`` and
+    ``theta ~ U(0, theta_max)`` per unit; ``W1`` and ``W2`` are dense ``N(0, input_scaling^2 /
+    input_dim)``. The defaults are the paper's initialization (r in (0, 1), theta in (0, 2 pi)),
+    the unevolved reference of ``--encoder rtu``.
+
+    Attributes:
+        units: Complex units (the state has ``2 * units`` values).
+        r_min: Lower bound of the decay rates' range, in [0, r_max].
+        r_max: Upper bound of the decay rates' range, in (0, 1].
+        theta_max: Upper bound of the rotation frequencies' range (radians per step).
+        input_scaling: Scale of ``W1`` and ``W2``.
+        family: Always ``"rtu"`` (tells stored configurations apart from echo state networks).
+    """
+
+    units: int = 50
+    r_min: float = 0.0
+    r_max: float = 1.0
+    theta_max: float = 2 * math.pi
+    input_scaling: float = 1.0
+    family: Literal["rtu"] = "rtu"
+
+    @property
+    def state_dim(self) -> int:
+        """Width of the state the policy can see: two values per complex unit."""
+        return 2 * self.units
+
+    def __post_init__(self) -> None:
+        if self.family != "rtu":
+            raise ConfigError(f"RTUParams family must be 'rtu', got {self.family!r}")
+        _check_units(2 * self.units)
+        if not (0 < self.r_max <= 1):
+            raise ConfigError(f"r_max must be in (0, 1], got {self.r_max}")
+        if not (0 <= self.r_min <= self.r_max):
+            raise ConfigError(f"r_min must be in [0, r_max = {self.r_max}], got {self.r_min}")
+        if not (self.theta_max > 0 and math.isfinite(self.theta_max)):
+            raise ConfigError(f"theta_max must be positive, got {self.theta_max}")
+        if not (self.input_scaling > 0 and math.isfinite(self.input_scaling)):
+            raise ConfigError(f"input_scaling must be positive, got {self.input_scaling}")
 
 
 @dataclass(frozen=True)
@@ -146,12 +266,18 @@ def rtu_weights(params: RTUParams, input_dim: int, seed: int) -> ReservoirWeight
     return ReservoirWeights(W=W, Win=Win, bias=np.zeros(2 * n), lr=1.0, linear=True)
 
 
-def encoder_weights(params: EncoderParams, input_dim: int, seed: int) -> ReservoirWeights:
+def encoder_weights(params: object, input_dim: int, seed: int) -> ReservoirWeights:
     """The weights of one reservoir of either family (:func:`reservoir_weights` or
-    :func:`rtu_weights`)."""
+    :func:`rtu_weights`).
+
+    Raises:
+        TypeError: ``params`` are neither an ESN's nor an RTU layer's settings.
+    """
     if isinstance(params, RTUParams):
         return rtu_weights(params, input_dim, seed)
-    return reservoir_weights(params, input_dim, seed)
+    if isinstance(params, ReservoirParams):
+        return reservoir_weights(params, input_dim, seed)
+    raise TypeError(f"no reservoir weights for {type(params).__name__} settings")
 
 
 def reservoir_seeds(seed: int, n_reservoirs: int) -> list[int]:

@@ -1,34 +1,234 @@
 """``reservoir``: echo state networks built with reservoirpy, frozen, wrapping the env.
 
-The reference encoder. Its settings are :class:`~ermrl.config.EncoderConfig` (the reservoirs'
-:class:`~ermrl.config.ReservoirParams` and the encoding options), its search space
-:class:`~ermrl.config.ReservoirSpace` (spectral radius, leak rate, input scaling per reservoir),
-and it wraps the env in a :class:`~ermrl.encoders.ReservoirVecEnv`.
+The reference encoder, in one module: its search space (:class:`ReservoirSpace`: spectral
+radius, leak rate and input scaling per reservoir, log scale), its ``ermrl evolve`` flags
+(:data:`CLI_FLAGS`), its test-phase agents (:data:`AGENTS`) and the encoder itself
+(:class:`ReservoirEncoder`). One reservoir's settings (:class:`~ermrl.encoders.ReservoirParams`,
+reservoirpy's defaults: the unevolved reference) live with the weights they build, in
+:mod:`ermrl.encoders._reservoir`, below the env wrapper (:class:`~ermrl.encoders.ReservoirVecEnv`)
+that steps them.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
-from ermrl.config import EncoderConfig, EncoderSpace, ReservoirSpace
+from ermrl._config_base import MAX_UNITS, AgentKind, ConfigError, Range, _check_units
 from ermrl.encoders._base import Encoder
+from ermrl.encoders._reservoir import BIAS_INITS, BiasInit, ReservoirParams
+from ermrl.encoders._settings import EncoderConfig, PerReservoirSpace
 
-__all__ = ["ReservoirEncoder"]
+__all__ = ["AGENTS", "CLI_FLAGS", "ReservoirEncoder", "ReservoirParams", "ReservoirSpace"]
+
+
+@dataclass(frozen=True)
+class ReservoirSpace(PerReservoirSpace):
+    """The evolved search space of echo state networks: data, not code. Defaults follow the
+    ER-MRL paper.
+
+    Every range is log-scale. The space has a fixed dimension so that CMA-ES never falls back to
+    independent sampling. With one reservoir the parameters are named ``sr``, ``lr`` and
+    ``input_scaling``; with several, ``sr_0``, ``lr_0``, ``input_scaling_0``, ``sr_1``, ...
+
+    Attributes:
+        n_reservoirs: Reservoirs per agent, each with its own hyperparameters and weights.
+        units: Fixed number of units per reservoir.
+        sr: Spectral-radius range.
+        lr: Leak-rate range (within (0, 1]).
+        input_scaling: Input-scaling range, or ``None`` to fix it at ``fixed_input_scaling``.
+        fixed_input_scaling: The value used when ``input_scaling`` is ``None``.
+        rc_connectivity: Fixed recurrent connectivity.
+        input_connectivity: Fixed input connectivity.
+        bias_scaling: Fixed bias scaling.
+        bias_init: Fixed bias initialization (:attr:`ReservoirParams.bias_init`).
+    """
+
+    n_reservoirs: int = 1
+    units: int = 100
+    sr: Range = Range(1e-4, 1e2)
+    lr: Range = Range(1e-2, 1.0)
+    input_scaling: Range | None = Range(1e-1, 10.0)
+    fixed_input_scaling: float = 1.0
+    rc_connectivity: float = 0.1
+    input_connectivity: float = 0.1
+    bias_scaling: float = 0.0
+    bias_init: BiasInit = field(default="none", metadata={"omit_if_default": True})
+
+    family: ClassVar[str] = "esn"
+
+    def __post_init__(self) -> None:
+        if self.n_reservoirs < 1:
+            raise ConfigError(f"n_reservoirs must be >= 1, got {self.n_reservoirs}")
+        _check_units(self.units)
+        if self.n_reservoirs * self.units > MAX_UNITS:
+            raise ConfigError(
+                f"{self.n_reservoirs} reservoirs of {self.units} units: at most {MAX_UNITS} "
+                "units are allowed in all"
+            )
+        if self.lr.high > 1:
+            raise ConfigError(f"the leak-rate range must stay within (0, 1], got {self.lr.high}")
+        # Fail early on a bad fixed value.
+        ReservoirParams(
+            units=self.units,
+            input_scaling=self.fixed_input_scaling,
+            rc_connectivity=self.rc_connectivity,
+            input_connectivity=self.input_connectivity,
+            bias_scaling=self.bias_scaling,
+            bias_init=self.bias_init,
+        )
+
+    def _per_reservoir(self) -> dict[str, Range]:
+        per: dict[str, Range] = {"sr": self.sr, "lr": self.lr}
+        if self.input_scaling is not None:
+            per["input_scaling"] = self.input_scaling
+        return per
+
+    def _reference_values(self) -> dict[str, float]:
+        one = self.default_reservoirs()[0]
+        return {name: float(getattr(one, name)) for name in self.evolved}
+
+    def _reservoir(self, values: Mapping[str, float]) -> ReservoirParams:
+        return ReservoirParams(
+            units=self.units,
+            sr=values["sr"],
+            lr=values["lr"],
+            input_scaling=values.get("input_scaling", self.fixed_input_scaling),
+            rc_connectivity=self.rc_connectivity,
+            input_connectivity=self.input_connectivity,
+            bias_scaling=self.bias_scaling,
+            bias_init=self.bias_init,
+        )
+
+    def reservoirs_from(self, params: Mapping[str, float]) -> tuple[ReservoirParams, ...]:
+        """Build the reservoirs described by a trial's parameters.
+
+        Raises:
+            ConfigError: a parameter of this space is missing.
+        """
+        return tuple(self._reservoir(self._values(params, k)) for k in range(self.n_reservoirs))
+
+    def default_reservoirs(self) -> tuple[ReservoirParams, ...]:
+        """Unevolved reservoirs (reservoirpy defaults for sr, lr and input scaling)."""
+        one = ReservoirParams(
+            units=self.units,
+            input_scaling=self.fixed_input_scaling if self.input_scaling is None else 1.0,
+            rc_connectivity=self.rc_connectivity,
+            input_connectivity=self.input_connectivity,
+            bias_scaling=self.bias_scaling,
+            bias_init=self.bias_init,
+        )
+        return (one,) * self.n_reservoirs
+
+
+def _log_range_flag(name: str, default: tuple[float, float], help: str) -> dict[str, Any]:
+    """The ``--<name>-range LOW HIGH`` flag of a log-scale parameter."""
+    return {
+        "flags": (f"--{name.replace('_', '-')}-range",),
+        "nargs": 2,
+        "type": "positive_float",
+        "default": list(default),
+        "metavar": ("LOW", "HIGH"),
+        "space_field": name,
+        "help": help,
+    }
+
+
+# ``ermrl evolve`` flags of ``--encoder reservoir`` (``add_argument`` keywords as data).
+CLI_FLAGS: tuple[dict[str, Any], ...] = (
+    {
+        "flags": ("--units",),
+        "type": "positive_int",
+        "default": None,
+        "space_field": "units",
+        "help": "--encoder reservoir: units per reservoir, fixed (default 100)",
+    },
+    _log_range_flag("sr", (1e-4, 1e2), "spectral radius range (log scale)"),
+    _log_range_flag("lr", (1e-2, 1.0), "leak rate range (log scale, within (0, 1])"),
+    {
+        "flags": ("--rc-connectivity",),
+        "type": "positive_float",
+        "default": 0.1,
+        "space_field": "rc_connectivity",
+        "help": "recurrent connectivity",
+    },
+    {
+        "flags": ("--input-connectivity",),
+        "type": "positive_float",
+        "default": 0.1,
+        "space_field": "input_connectivity",
+        "help": "input connectivity",
+    },
+    {
+        "flags": ("--bias-scaling",),
+        "type": float,
+        "default": 0.0,
+        "space_field": "bias_scaling",
+        "help": "dense Bernoulli bias: every unit +-scale (0: no bias, reservoirpy 0.4's default)",
+    },
+    {
+        "flags": ("--bias-init",),
+        "choices": BIAS_INITS,
+        "default": "none",
+        "space_field": "bias_init",
+        "help": "'original': reservoirpy 0.3's default bias, which the ER-MRL code had: +-1 on "
+        "--input-connectivity of the units (10%%), zero elsewhere (needs --bias-scaling 0); "
+        "'none': the bias of --bias-scaling",
+    },
+)
+
+# Test-phase agents of ``--encoder reservoir`` studies.
+AGENTS: dict[str, AgentKind] = {
+    "res-ppo": AgentKind(
+        "evolved", None, "the study's learner on the selected evolved reservoir(s)", None,
+        "RES-PPO (evolved reservoir)", "RES-PPO\n(evolved)", "tab:orange", family="esn",
+    ),
+    "random-res-ppo": AgentKind(
+        "unevolved", None,
+        "the study's learner on unevolved reservoirs (reservoirpy's defaults): what evolution adds",
+        None, "RES-PPO (unevolved reservoir)", "RES-PPO\n(unevolved)", "tab:green",
+        family="esn",
+    ),
+    "res-sac": AgentKind(
+        "evolved", None, "SAC on the selected evolved reservoir(s) (its replay holds their states)",
+        "sac", "RES-SAC (evolved reservoir)", "RES-SAC\n(evolved)", "teal", default=False,
+        family="esn",
+    ),
+    "res-dagger": AgentKind(
+        "evolved", None,
+        "DAgger on the selected evolved reservoir(s)' states; its expert sees the full state",
+        "dagger", "RES-DAgger (evolved reservoir)", "RES-DAgger\n(evolved)", "magenta",
+        default=False, family="esn",
+    ),
+    "res-imitation-sac": AgentKind(
+        "evolved", None,
+        "imitation-seeded SAC on the selected evolved reservoir(s)' states; its expert sees the "
+        "full state",
+        "imitation-sac", "RES-Imitation-SAC (evolved reservoir)", "RES-Imit.-SAC\n(evolved)",
+        "slateblue", default=False, family="esn",
+    ),
+}  # fmt: skip
 
 
 class ReservoirEncoder(Encoder):
+    """Echo state networks: :class:`ReservoirSpace` decoded into
+    :class:`~ermrl.encoders.ReservoirParams`, stepped by a
+    :class:`~ermrl.encoders.ReservoirVecEnv`."""
+
     name = "reservoir"
-    description = "echo state network(s) initialized by reservoirpy; frozen, wraps the env"
+    description = (
+        "echo state networks initialized by reservoirpy (evolved sr, lr, input_scaling); "
+        "frozen, wraps the env"
+    )
     place = "env"
     family = "esn"
     config_cls = EncoderConfig
+    params_cls: ClassVar[type] = ReservoirParams
     space_cls: ClassVar[type] = ReservoirSpace
-
-    def decode(
-        self, space: EncoderSpace, params: Mapping[str, float], base: EncoderConfig
-    ) -> EncoderConfig:
-        return base.with_reservoirs(space.reservoirs_from(params))
+    cli_flags: ClassVar[tuple[Mapping[str, Any], ...]] = CLI_FLAGS
+    agents: ClassVar[Mapping[str, AgentKind]] = AGENTS
+    population = True
 
     def wrap_env(self, venv: Any, config: EncoderConfig, seed: int) -> Any:
         from ermrl.encoders._vec_env import ReservoirVecEnv

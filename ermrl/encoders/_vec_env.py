@@ -24,7 +24,6 @@ from numpy.typing import DTypeLike
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvObs, VecEnvStepReturn
 
-from ermrl.config import EncoderConfig
 from ermrl.encoders._nvar_bank import NVARBank, NVARParams
 from ermrl.encoders._reservoir import (
     ReservoirBank,
@@ -32,6 +31,7 @@ from ermrl.encoders._reservoir import (
     encoder_weights,
     reservoir_seeds,
 )
+from ermrl.encoders._settings import EncoderConfig
 
 __all__ = ["ActionEncoder", "ReservoirVecEnv"]
 

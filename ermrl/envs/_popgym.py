@@ -30,7 +30,7 @@ import gymnasium
 import numpy as np
 from gymnasium.wrappers import DtypeObservation, FlattenObservation
 
-from ermrl.config import ConfigError
+from ermrl._config_base import ConfigError
 from ermrl.envs._masks import UnknownEnvError, UnsupportedObserveError
 
 __all__ = [

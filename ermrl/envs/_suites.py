@@ -19,7 +19,7 @@ from typing import Any
 
 import yaml
 
-from ermrl.config import ConfigError
+from ermrl._config_base import ConfigError
 
 __all__ = [
     "Suite",

@@ -62,7 +62,6 @@ from ermrl.config import (
     AGENT_KINDS,
     AGENTS,
     BACKENDS,
-    FAMILIES,
     AgentKind,
     BudgetConfig,
     ConfigError,
@@ -78,6 +77,7 @@ from ermrl.config import (
     to_dict,
     unevolved_agent,
 )
+from ermrl.encoders import encoder_families, encoder_of_family
 from ermrl.experiments._results import write_run
 
 __all__ = [
@@ -161,11 +161,10 @@ def agent_specs(
     for name in names:
         kind = AGENT_KINDS.get(name)
         if kind is None:
-            raise ConfigError(f"unknown agent {name!r}; choose from {', '.join(AGENTS)}")
+            raise ConfigError(f"unknown agent {name!r}; choose from {', '.join(AGENT_KINDS)}")
         if kind.family is not None and family is not None and kind.family != family:
-            flag = {"rtu": "--encoder rtu", "esn": "--encoder reservoir"}.get(
-                kind.family, f"--learner {kind.family}"
-            )
+            owner = encoder_of_family(kind.family)
+            flag = f"--learner {kind.family}" if owner is None else f"--encoder {owner.name}"
             raise ConfigError(
                 f"agent {name!r} needs a study evolved with {flag}; this study evolved "
                 f"{family!r} (its agents: {evolved_agent(family)}, {unevolved_agent(family)})"
@@ -173,7 +172,7 @@ def agent_specs(
         ppo = None
         if kind.learner is not None and learner_settings is not None:
             ppo = learner_settings(kind.learner)
-        if kind.reservoirs != "none" and family not in (None, *FAMILIES):  # learner's genes
+        if kind.reservoirs != "none" and family not in (None, *encoder_families()):  # genes
             if kind.reservoirs == "evolved":
                 if evolved_ppo is None:
                     raise ConfigError(f"agent {name!r} needs the evolved genes")
@@ -775,14 +774,10 @@ def run_comparison(
 
 def _population_key(args: tuple[Any, ...]) -> str:
     """Runs that can share one population: same task and settings, same encoder structure."""
+    from ermrl.population import encoder_structure
+
     task, encoder, ppo = args[0], args[1], args[2]
-    enc = None
-    if encoder is not None:
-        enc = {
-            **to_dict(encoder),
-            "family": encoder.family,
-            "reservoirs": [p.units for p in encoder.reservoirs],
-        }
+    enc = None if encoder is None else repr(encoder_structure(encoder))
     return json.dumps({"task": to_dict(task), "ppo": to_dict(ppo), "encoder": enc}, sort_keys=True)
 
 

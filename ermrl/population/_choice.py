@@ -47,6 +47,7 @@ def population_refusal(
     pruner: str = "none",
     tensorboard: bool = False,
     wandb: bool = False,
+    encoder: str | None = None,
 ) -> str | None:
     """Why the population backend cannot train these runs as SB3 would, in one line.
 
@@ -56,6 +57,9 @@ def population_refusal(
         pruner: The study's pruner (``"none"``: no pruning).
         tensorboard: The runs write TensorBoard logs (an SB3 logger).
         wandb: The runs log to Weights & Biases (wandb's SB3 callback).
+        encoder: The registered encoder the runs evolve (``None``: none, or not checked); one
+            whose reservoirs the batched reservoir does not step
+            (:attr:`ermrl.encoders.Encoder.population`) is refused.
 
     Returns:
         The reason, without a hint (``None``: the population backend applies).
@@ -71,6 +75,11 @@ def population_refusal(
         return "--tensorboard logs come from the sb3 backend"
     if wandb:
         return "--wandb logs through wandb's callback for the sb3 backend"
+    if encoder is not None:
+        from ermrl.encoders import get_encoder
+
+        if not get_encoder(encoder).population:
+            return f"the population backend does not step --encoder {encoder}'s reservoirs"
     try:
         check_population_config(ppo)
     except (ConfigError, ValueError) as err:
@@ -90,6 +99,7 @@ def choose_backend(
     pruner: str = "none",
     tensorboard: bool = False,
     wandb: bool = False,
+    encoder: str | None = None,
 ) -> tuple[str, str | None]:
     """The backend of a run: ``requested`` when given, else population where it applies.
 
@@ -103,6 +113,7 @@ def choose_backend(
         pruner: The study's pruner.
         tensorboard: The runs write TensorBoard logs.
         wandb: The runs log to Weights & Biases.
+        encoder: The registered encoder the runs evolve (see :func:`population_refusal`).
 
     Returns:
         ``(backend, why)``: ``why`` is the one-line reason an automatic choice fell back to
@@ -110,5 +121,7 @@ def choose_backend(
     """
     if requested is not None:
         return requested, None
-    why = population_refusal(ppo, tasks, pruner=pruner, tensorboard=tensorboard, wandb=wandb)
+    why = population_refusal(
+        ppo, tasks, pruner=pruner, tensorboard=tensorboard, wandb=wandb, encoder=encoder
+    )
     return ("sb3", why) if why is not None else ("population", None)

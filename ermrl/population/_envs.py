@@ -41,7 +41,7 @@ def encoder_structure(encoder: EncoderConfig | None) -> Hashable:
         if f.name != "reservoirs"
     )
     layout = tuple(
-        nvar_structure(p) if isinstance(p, NVARParams) else p.units for p in encoder.reservoirs
+        nvar_structure(p) if isinstance(p, NVARParams) else p.state_dim for p in encoder.reservoirs
     )
     return encoder.family, options, layout
 

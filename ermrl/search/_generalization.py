@@ -423,7 +423,9 @@ def generalization_study_name(config: EvolveConfig) -> str:
         config.problem.task.observe,
         f"{config.problem.budget.training_steps}steps",
     ]
-    if config.space.family != "esn":
+    from ermrl.encoders import reference_encoder
+
+    if config.space.family != reference_encoder().family:
         parts.append(config.space.family)
     if config.space.n_reservoirs > 1:
         parts.append(f"{config.space.n_reservoirs}res")
