@@ -244,3 +244,91 @@ def test_a_stored_family_no_encoder_has_is_refused_not_imported() -> None:
 
     with pytest.raises(ConfigError, match="encoder family 'toy'"):
         from_dict(StoredEncoder, {"reservoirs": [{"width": 5, "scale": 1.0, "family": "toy"}]})
+
+
+# -- a toy encoder with a bank: the population backend steps it, naming no family -----------------
+
+
+@dataclass(frozen=True)
+class ToyBankParams:
+    """A memoryless reservoir ``x = tanh(scale * Win u)`` (``W = 0``, leak rate 1)."""
+
+    units: int = 6
+    scale: float = 1.0
+    family: Literal["toybank"] = "toybank"
+
+    @property
+    def state_dim(self) -> int:
+        return self.units
+
+
+class ToyBankEncoder(Encoder):
+    name = "toybank"
+    description = "a memoryless projection tanh(scale * Win u) in a ReservoirBank; wraps the env"
+    family = "toybank"
+    config_cls = EncoderConfig
+    params_cls: ClassVar[type] = ToyBankParams
+    space_cls: ClassVar[type] = ToySpace
+    agents: ClassVar[Mapping[str, AgentKind]] = {
+        "toybank-ppo": AgentKind("evolved", None, "PPO", None, "TB", family="toybank"),
+        "random-toybank-ppo": AgentKind("unevolved", None, "PPO", None, "TB0", family="toybank"),
+    }
+    population = True
+
+    def bank(self, config: EncoderConfig, input_dim: int, seed: int) -> Any:
+        from ermrl.encoders import ReservoirBank, ReservoirWeights, reservoir_seeds
+
+        weights = []
+        for p, s in zip(config.reservoirs, reservoir_seeds(seed, config.n_reservoirs)):
+            rng = np.random.default_rng(s)
+            units, scale = p.units, p.scale  # type: ignore[attr-defined]
+            win = scale * rng.normal(0.0, 1.0 / math.sqrt(input_dim), (units, input_dim))
+            weights.append(ReservoirWeights(np.zeros((units, units)), win, np.zeros(units), 1.0))
+        return ReservoirBank(weights, dtype=config.dtype)
+
+    def wrap_env(self, venv: Any, config: EncoderConfig, seed: int) -> Any:
+        from ermrl.encoders import ReservoirVecEnv
+
+        return ReservoirVecEnv(venv, config, seed=seed)
+
+
+def test_an_encoder_with_a_bank_is_stepped_by_the_population_backend(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The population backend builds each agent's bank through the registry and steps them
+    together (ReservoirBank.stack): its encodings equal the SB3 path's, and nothing in it
+    names the encoder."""
+    from ermrl.agents import make_vec_env, resolve_ppo_config
+    from ermrl.config import TaskConfig
+    from ermrl.population import PopulationEnvs, population_refusal
+
+    monkeypatch.setitem(ENCODERS, "toybank", ToyBankEncoder())
+    assert population_refusal(resolve_ppo_config("CartPole-v1"), encoder="toybank") is None
+    task = TaskConfig("CartPole-v1", "positions")
+    encoders = [
+        EncoderConfig(reservoirs=(ToyBankParams(5, scale),), skip_connection=True)
+        for scale in (0.5, 3.0)
+    ]
+    env_seeds, res_seeds = [1, 2], [7, 8]
+    pop = PopulationEnvs(task, 2, env_seeds, encoders, res_seeds, None, 0.99)
+    venvs = [make_vec_env(task, 2, env_seeds[p], encoders[p], res_seeds[p]) for p in range(2)]
+    try:
+        obs = pop.reset()
+        for p, venv in enumerate(venvs):
+            np.testing.assert_array_equal(obs[p], venv.reset())
+        assert not np.array_equal(obs[0][:, :5], obs[1][:, :5])  # each agent its own scale
+        rng = np.random.default_rng(0)
+        ends = 0
+        for _ in range(100):
+            actions = rng.integers(0, 2, (2, 2))
+            obs, _, _, dones, _, _ = pop.step(actions)
+            for p, venv in enumerate(venvs):
+                o, _, d, _ = venv.step(actions[p])
+                np.testing.assert_array_equal(obs[p], o)
+                np.testing.assert_array_equal(dones[p], d)
+                ends += int(d.sum())
+        assert ends > 0  # the reset path (step_agent) ran too
+    finally:
+        pop.close()
+        for venv in venvs:
+            venv.close()

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-from collections.abc import Hashable, Mapping
+from collections.abc import Hashable, Mapping, Sequence
 from typing import TYPE_CHECKING, Any, ClassVar, Literal
 
 from ermrl._config_base import AgentKind, Range, TaskConfig
@@ -69,7 +69,9 @@ class Encoder:
         agents: Its test-phase agents (name -> :class:`~ermrl.config.AgentKind`, each of this
             encoder's family): one evolved and one unevolved agent at least.
         population: Whether the population backend's batched reservoir steps its reservoirs
-            (:mod:`ermrl.population`); otherwise its studies train with the sb3 backend.
+            (:mod:`ermrl.population`: it needs :meth:`bank` and a bank with a
+            :meth:`~ermrl.encoders._reservoir.StepBank.stack`); otherwise its studies train
+            with the sb3 backend.
     """
 
     name: ClassVar[str]
@@ -96,6 +98,25 @@ class Encoder:
     def wrap_env(self, venv: Any, config: Any, seed: int) -> Any:
         """Wrap ``venv`` so that it emits encoded observations (``place == "env"``)."""
         return venv
+
+    def bank(self, config: Any, input_dim: int, seed: int) -> Any:
+        """The bank (:class:`~ermrl.encoders._reservoir.StepBank`) that steps one agent's
+        reservoirs on inputs of ``input_dim`` values, its random weights from ``seed``: what
+        :class:`~ermrl.encoders.ReservoirVecEnv` wraps an env with. An encoder that wraps the
+        env in its own way (:meth:`wrap_env`) need not have one.
+
+        Raises:
+            NotImplementedError: this encoder has no bank.
+        """
+        raise NotImplementedError(f"--encoder {self.name} has no reservoir bank")
+
+    def population_banks(
+        self, configs: Sequence[Any], seeds: Sequence[int], input_dim: int
+    ) -> list[Any]:
+        """The banks of the agents of one population, in one layout (their
+        :meth:`~ermrl.encoders._reservoir.StepBank.stack` steps them together); each agent's
+        own :meth:`bank` by default."""
+        return [self.bank(c, input_dim, s) for c, s in zip(configs, seeds)]
 
     def policy_kwargs(self, config: Any) -> dict[str, Any]:
         """``policy_kwargs`` entries that put the encoder in the policy (``place == "policy"``)."""

@@ -42,7 +42,7 @@ test-phase agents (:data:`AGENTS`) and :class:`NVAREncoder`, registered by one l
 
 from __future__ import annotations
 
-from collections.abc import Hashable, Mapping
+from collections.abc import Hashable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, Literal, cast
 
@@ -375,6 +375,20 @@ class NVAREncoder(Encoder):
 
     def layout(self, params: NVARParams) -> Hashable:
         return nvar_structure(params)
+
+    def bank(self, config: EncoderConfig, input_dim: int, seed: int) -> NVARBank:
+        """No random weights (``seed`` unused): the delay line and its monomials."""
+        reservoirs = cast("tuple[NVARParams, ...]", config.reservoirs)
+        return NVARBank(reservoirs, input_dim, dtype=config.dtype)
+
+    def population_banks(
+        self, configs: Sequence[EncoderConfig], seeds: Sequence[int], input_dim: int
+    ) -> list[NVARBank]:
+        """One layout for all: each delay line padded (with zeros) to the population's longest
+        window, so agents with the same delay and order but other strides share it."""
+        params = [cast("tuple[NVARParams, ...]", c.reservoirs) for c in configs]
+        windows = [max(p[r].window for p in params) for r in range(len(params[0]))]
+        return [NVARBank(p, input_dim, configs[0].dtype, windows) for p in params]
 
     def wrap_env(self, venv: Any, config: EncoderConfig, seed: int) -> Any:
         from ermrl.encoders._vec_env import ReservoirVecEnv

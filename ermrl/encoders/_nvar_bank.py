@@ -17,7 +17,7 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 
 from ermrl._config_base import ConfigError
-from ermrl.encoders._reservoir import StepBank
+from ermrl.encoders._reservoir import StackedBanks, StepBank
 
 __all__ = [
     "NVAR_MAX_FEATURES",
@@ -236,6 +236,12 @@ class NVARBank(StepBank):
         self.src = src
         self.scale = scale.astype(self.dtype)
 
+    @classmethod
+    def stack(cls, banks: Sequence[Any]) -> StackedBanks:
+        """The NVARs of ``P`` agents (one layout: the same delay, order and padded windows,
+        :meth:`~ermrl.encoders._nvar.NVAREncoder.population_banks`), stepped together."""
+        return _StackedNVARs(banks)
+
     @property
     def M(self) -> np.ndarray:
         """The step as a matrix, ``x <- [x | u] M``: shape ``(N + input_dim, N)``, one nonzero
@@ -307,6 +313,26 @@ class NVARBank(StepBank):
                 product *= states[..., seg.monomials[:, k]]
             parts.append(product)
         return np.concatenate(parts, axis=-1)
+
+
+class _StackedNVARs(StackedBanks):
+    """The NVARs of ``P`` agents: one batched gather shifts every delay line, each agent with
+    its own source columns and input scaling (as each agent's :meth:`NVARBank.step_buffer`)."""
+
+    per_agent = ("src", "scale")
+
+    def __init__(self, banks: Sequence[NVARBank]) -> None:
+        super().__init__(banks)
+        if len({b.n_units for b in banks}) != 1:
+            raise ValueError("the NVARs of a population must share one state layout")
+        self.src = np.stack([b.src for b in banks])  # [P, N]
+        self.scale = np.stack([b.scale for b in banks])  # [P, N]
+        self.n_units = banks[0].n_units
+
+    def step(self, xu: np.ndarray) -> None:
+        new = np.take_along_axis(xu, self.src[:, None, :], axis=2)
+        new *= self.scale[:, None, :]
+        xu[..., : self.n_units] = new
 
 
 def nvar_structure(params: NVARParams) -> tuple[int, int]:

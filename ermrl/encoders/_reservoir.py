@@ -21,7 +21,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import ClassVar, Literal
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 from reservoirpy import mat_gen
@@ -36,6 +36,8 @@ __all__ = [
     "RTUParams",
     "ReservoirWeights",
     "ReservoirBank",
+    "StackedBanks",
+    "StepBank",
     "encoder_weights",
     "reservoir_weights",
     "reservoir_seeds",
@@ -289,10 +291,31 @@ def reservoir_seeds(seed: int, n_reservoirs: int) -> list[int]:
 class StepBank:
     """What every bank of :class:`~ermrl.encoders.ReservoirVecEnv` shares: stepping whole state
     arrays and running one sequence, through the bank's own ``buffer`` and ``step_buffer``
-    (the ``[x | u]`` buffer and its in-place update)."""
+    (the ``[x | u]`` buffer and its in-place update).
+
+    A bank the population backend can step for many agents at once also defines
+    :meth:`stack` (:class:`ReservoirBank` and :class:`~ermrl.encoders._nvar.NVARBank` do)."""
 
     n_units: int
     dtype: np.dtype
+    units: tuple[int, ...]  # state values per reservoir
+    linear: bool  # x <- [x | u] M (an RTU layer's, an NVAR's step)
+    out_bound: ClassVar[float]  # the bound of what the policy sees
+
+    def emitter(
+        self, exposed_units: int | None = None
+    ) -> tuple[Callable[[np.ndarray], np.ndarray], int]:
+        """What the policy sees of a state: ``(emit, width)``."""
+        raise NotImplementedError
+
+    @classmethod
+    def stack(cls, banks: Sequence[Any]) -> StackedBanks:
+        """The banks of ``P`` agents (all of this class and of one layout), stepped together.
+
+        Raises:
+            NotImplementedError: this bank has no batched step.
+        """
+        raise NotImplementedError(f"{cls.__name__} has no batched step for a population")
 
     def buffer(self, n: int) -> np.ndarray:
         raise NotImplementedError
@@ -336,6 +359,64 @@ class StepBank:
         return out
 
 
+class StackedBanks:
+    """The banks of ``P`` agents stepped together on a ``[P, E, N + D]`` buffer ``[x | u]``
+    (:class:`~ermrl.population.BatchedReservoir`): :meth:`step` advances every row of every
+    agent; :meth:`step_agent` advances rows of one agent with that agent's own bank, which
+    computes the same values; :meth:`keep` drops agents. A subclass stacks the per-agent arrays
+    named in :attr:`per_agent` (each with a leading agent axis)."""
+
+    per_agent: tuple[str, ...] = ()
+
+    def __init__(self, banks: Sequence[StepBank]) -> None:
+        self.banks = list(banks)
+
+    def step(self, xu: np.ndarray) -> None:
+        """Advance the states ``xu[..., :N]`` of every agent on the inputs ``xu[..., N:]``."""
+        raise NotImplementedError
+
+    def step_agent(self, p: int, xu: np.ndarray) -> None:
+        """Advance rows of agent ``p`` (``xu``: shape ``(n, N + D)``, updated in place)."""
+        self.banks[p].step_buffer(xu)
+
+    def keep(self, idx: np.ndarray) -> None:
+        """Keep agents ``idx`` only, in that order."""
+        for name in self.per_agent:
+            setattr(self, name, getattr(self, name)[idx].copy())
+        self.banks = [self.banks[i] for i in idx]
+
+
+class _StackedReservoirs(StackedBanks):
+    """Echo state networks or frozen RTU layers of ``P`` agents: one stacked ``matmul`` of
+    ``[x | u]`` with each agent's ``M``, which numpy computes slice by slice, as each agent's
+    :meth:`ReservoirBank.step_buffer` would."""
+
+    per_agent = ("M", "bias", "leak", "keep_rate")
+
+    def __init__(self, banks: Sequence[ReservoirBank]) -> None:
+        super().__init__(banks)
+        self.M = np.stack([b.M for b in banks])
+        self.bias = np.stack([b.bias for b in banks])[:, None, :]
+        self.leak = np.stack([b.leak for b in banks])[:, None, :]
+        self.keep_rate = np.stack([b.keep for b in banks])[:, None, :]
+        self.has_bias = bool(np.any(self.bias))
+        self.linear = banks[0].linear
+        self.n_units = banks[0].n_units
+
+    def step(self, xu: np.ndarray) -> None:
+        pre = np.matmul(xu, self.M)
+        if self.linear:
+            xu[..., : self.n_units] = pre
+            return
+        if self.has_bias:
+            pre += self.bias
+        np.tanh(pre, out=pre)
+        pre *= self.leak
+        x = xu[..., : self.n_units]
+        x *= self.keep_rate
+        x += pre
+
+
 class ReservoirBank(StepBank):
     """Several reservoirs fused into one batched leaky-ESN update.
 
@@ -360,6 +441,7 @@ class ReservoirBank(StepBank):
         if len({w.linear for w in weights}) != 1:
             raise ValueError("a ReservoirBank cannot mix linear (RTU) and tanh reservoirs")
         self.linear = weights[0].linear
+        self.weights = tuple(weights)
         self.dtype = np.dtype(dtype)
         self.units = tuple(w.units for w in weights)
         self.n_units = sum(self.units)
@@ -377,6 +459,11 @@ class ReservoirBank(StepBank):
         self.leak = np.concatenate([np.full(w.units, w.lr) for w in weights]).astype(self.dtype)
         self.keep = (1.0 - self.leak).astype(self.dtype)
         self._has_bias = bool(np.any(self.bias))
+
+    @classmethod
+    def stack(cls, banks: Sequence[Any]) -> StackedBanks:
+        """The reservoirs of ``P`` agents (same units and family), stepped together."""
+        return _StackedReservoirs(banks)
 
     @property
     def W_T(self) -> np.ndarray:

@@ -17,7 +17,14 @@ from typing import Any, ClassVar
 
 from ermrl._config_base import MAX_UNITS, AgentKind, ConfigError, Range, _check_units
 from ermrl.encoders._base import Encoder
-from ermrl.encoders._reservoir import BIAS_INITS, BiasInit, ReservoirParams
+from ermrl.encoders._reservoir import (
+    BIAS_INITS,
+    BiasInit,
+    ReservoirBank,
+    ReservoirParams,
+    encoder_weights,
+    reservoir_seeds,
+)
 from ermrl.encoders._settings import EncoderConfig, PerReservoirSpace
 
 __all__ = ["AGENTS", "CLI_FLAGS", "ReservoirEncoder", "ReservoirParams", "ReservoirSpace"]
@@ -229,6 +236,15 @@ class ReservoirEncoder(Encoder):
     cli_flags: ClassVar[tuple[Mapping[str, Any], ...]] = CLI_FLAGS
     agents: ClassVar[Mapping[str, AgentKind]] = AGENTS
     population = True
+
+    def bank(self, config: EncoderConfig, input_dim: int, seed: int) -> ReservoirBank:
+        """One weight seed per reservoir derived from ``seed``, the weights from reservoirpy's
+        initializers (:func:`~ermrl.encoders.encoder_weights`), fused into one bank."""
+        weights = [
+            encoder_weights(p, input_dim, s)
+            for p, s in zip(config.reservoirs, reservoir_seeds(seed, config.n_reservoirs))
+        ]
+        return ReservoirBank(weights, dtype=config.dtype)
 
     def wrap_env(self, venv: Any, config: EncoderConfig, seed: int) -> Any:
         from ermrl.encoders._vec_env import ReservoirVecEnv

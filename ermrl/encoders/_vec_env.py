@@ -16,7 +16,7 @@ observation of the next episode.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 from gymnasium import spaces
@@ -24,13 +24,7 @@ from numpy.typing import DTypeLike
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvObs, VecEnvStepReturn
 
-from ermrl.encoders._nvar_bank import NVARBank, NVARParams
-from ermrl.encoders._reservoir import (
-    ReservoirBank,
-    ReservoirWeights,
-    encoder_weights,
-    reservoir_seeds,
-)
+from ermrl.encoders._reservoir import ReservoirWeights, StepBank, reservoir_seeds
 from ermrl.encoders._settings import EncoderConfig
 
 __all__ = ["ActionEncoder", "ReservoirVecEnv"]
@@ -136,18 +130,13 @@ class ReservoirVecEnv(VecEnvWrapper):
         self.rew_dim = 1 if config.feed_reward else 0
         self.input_dim = self.obs_dim + self.act_dim + self.rew_dim
 
+        from ermrl.encoders import encoder_for
+
+        # The encoder builds its bank: an ESN's or RTU layer's random weights (one derived seed
+        # per reservoir), an NVAR's delay line.
         self.weight_seeds = reservoir_seeds(seed, config.n_reservoirs)
-        self.weights: list[ReservoirWeights] = []
-        self.bank: ReservoirBank | NVARBank
-        if config.family == "nvar":  # no random weights: a delay line and its monomials
-            reservoirs = cast("tuple[NVARParams, ...]", config.reservoirs)
-            self.bank = NVARBank(reservoirs, self.input_dim, dtype=config.dtype)
-        else:
-            self.weights = [
-                encoder_weights(p, self.input_dim, s)
-                for p, s in zip(config.reservoirs, self.weight_seeds)
-            ]
-            self.bank = ReservoirBank(self.weights, dtype=config.dtype)
+        self.bank: StepBank = encoder_for(config).bank(config, self.input_dim, seed)
+        self.weights: list[ReservoirWeights] = list(getattr(self.bank, "weights", ()))
 
         n = venv.num_envs
         N, d_obs, d_act = self.bank.n_units, self.obs_dim, self.action_encoder.dim

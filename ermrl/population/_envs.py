@@ -16,7 +16,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Hashable, Sequence
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 from gymnasium import spaces
@@ -28,10 +28,11 @@ __all__ = ["BatchedReservoir", "PopulationEnvs", "RunningStats", "encoder_struct
 
 def encoder_structure(encoder: EncoderConfig | None) -> Hashable:
     """What the agents of one population must share: the encoder's family, its encoding
-    options and the layout of what the policy sees (units per reservoir; an NVAR's delay and
-    order). The hyperparameters that only change the values (spectral radius, leak rate, input
-    scaling, an NVAR's strides, ...) may differ. ``None``: the raw observation."""
-    from ermrl.encoders._nvar_bank import NVARParams, nvar_structure
+    options and the layout of what the policy sees of each reservoir
+    (:meth:`~ermrl.encoders.Encoder.layout`: an ESN's units, an NVAR's delay and order). The
+    hyperparameters that only change the values (spectral radius, leak rate, input scaling, an
+    NVAR's strides, ...) may differ. ``None``: the raw observation."""
+    from ermrl.encoders import encoder_for
 
     if encoder is None:
         return None
@@ -40,29 +41,24 @@ def encoder_structure(encoder: EncoderConfig | None) -> Hashable:
         for f in dataclasses.fields(encoder)
         if f.name != "reservoirs"
     )
-    layout = tuple(
-        nvar_structure(p) if isinstance(p, NVARParams) else p.state_dim for p in encoder.reservoirs
-    )
+    layout = tuple(encoder_for(encoder).layout(p) for p in encoder.reservoirs)
     return encoder.family, options, layout
 
 
 class BatchedReservoir:
     """The reservoirs of ``P`` agents (each its own weights), ``E`` state rows per agent.
 
-    Agent ``p`` gets the weights :class:`~ermrl.encoders.ReservoirVecEnv` would build for
-    ``encoders[p]`` and ``seeds[p]``; all agents must share the encoder's structure (family,
-    units per reservoir, number of reservoirs and encoding options); the hyperparameters may
-    differ. A step is one stacked ``matmul`` of ``[x | u]`` (``P x E x (N + D)``) with each
-    agent's ``M = [W.T; Win.T]``, which numpy computes slice by slice, as one agent's
-    ``ReservoirBank`` would: the encodings equal ``ReservoirVecEnv``'s. An echo state network
-    steps ``x <- (1 - lr) x + lr tanh(pre + b)``; a frozen RTU layer (linear) steps ``x <- pre``
-    and the policy sees ``tanh(x)``, as :meth:`~ermrl.encoders.ReservoirBank.emit`. NVARs
-    (:class:`~ermrl.encoders._nvar.NVARBank`) shift their delay lines by one batched gather with
-    each agent's own source columns and input scaling; agents with the same delay and order but
-    other strides share the layout, each delay line padded (with zeros) to the longest, and the
-    policy sees the same features as on the SB3 path. Agents of other structures
-    (:func:`encoder_structure`) are refused: train them as separate populations
-    (:func:`~ermrl.population.train_population_parallel` groups them).
+    Agent ``p`` gets the bank :class:`~ermrl.encoders.ReservoirVecEnv` would build for
+    ``encoders[p]`` and ``seeds[p]`` (its encoder's :meth:`~ermrl.encoders.Encoder.bank`, in
+    the population's layout: :meth:`~ermrl.encoders.Encoder.population_banks`); all agents
+    must share the encoder's structure (:func:`encoder_structure`); the hyperparameters may
+    differ. The banks' :meth:`~ermrl.encoders._reservoir.StepBank.stack` steps every agent at
+    once: for echo state networks and frozen RTU layers one stacked ``matmul`` of ``[x | u]``
+    (``P x E x (N + D)``) with each agent's ``M = [W.T; Win.T]``, which numpy computes slice by
+    slice, as one agent's ``ReservoirBank`` would; for NVARs one batched gather of their delay
+    lines. The encodings equal ``ReservoirVecEnv``'s. Agents of other structures are refused:
+    train them as separate populations (:func:`~ermrl.population.train_population_parallel`
+    groups them).
     """
 
     def __init__(
@@ -73,8 +69,7 @@ class BatchedReservoir:
         action_space: spaces.Space,
         n_envs: int,
     ) -> None:
-        from ermrl.encoders._nvar import NVARBank, NVARParams
-        from ermrl.encoders._reservoir import ReservoirBank, encoder_weights, reservoir_seeds
+        from ermrl.encoders import encoder_for
         from ermrl.encoders._vec_env import ActionEncoder
 
         first = encoders[0]
@@ -93,35 +88,9 @@ class BatchedReservoir:
         self.input_dim = (
             obs_dim + (self.act_dim if first.feed_action else 0) + (1 if first.feed_reward else 0)
         )
-        banks: list[ReservoirBank] | list[NVARBank]
-        self.nvar = first.family == "nvar"
-        if self.nvar:
-            # One layout for all: each delay line padded to the population's longest window.
-            params = [cast("tuple[NVARParams, ...]", enc.reservoirs) for enc in encoders]
-            windows = [max(p[r].window for p in params) for r in range(first.n_reservoirs)]
-            banks = [NVARBank(p, self.input_dim, first.dtype, windows) for p in params]
-            self.src = np.stack([b.src for b in banks])  # [P, N]
-            self.scale = np.stack([b.scale for b in banks])  # [P, N]
-            self._per_agent: tuple[str, ...] = ("src", "scale")
-        else:
-            banks = [
-                ReservoirBank(
-                    [
-                        encoder_weights(p, self.input_dim, s)
-                        for p, s in zip(enc.reservoirs, reservoir_seeds(seed, enc.n_reservoirs))
-                    ],
-                    dtype=enc.dtype,
-                )
-                for enc, seed in zip(encoders, seeds)
-            ]
-            self.M = np.stack([b.M for b in banks])
-            self.bias = np.stack([b.bias for b in banks])[:, None, :]
-            self.leak = np.stack([b.leak for b in banks])[:, None, :]
-            self.keep_rate = np.stack([b.keep for b in banks])[:, None, :]
-            self.has_bias = bool(np.any(self.bias))
-            self._per_agent = ("M", "bias", "leak", "keep_rate")
+        banks = encoder_for(first).population_banks(encoders, seeds, self.input_dim)
+        self.stack = type(banks[0]).stack(banks)
         self.dtype = banks[0].dtype
-        # A frozen RTU layer or an NVAR: x <- [x | u] M, and the policy sees emit(x).
         self.linear = banks[0].linear
         self.units = banks[0].units
         self.n_units = banks[0].n_units
@@ -150,43 +119,13 @@ class BatchedReservoir:
 
     def step_all(self) -> None:
         """Advance every row one step (the inputs already written)."""
-        if self.nvar:
-            new = np.take_along_axis(self.xu, self.src[:, None, :], axis=2)
-            new *= self.scale[:, None, :]
-            self.xu[..., : self.n_units] = new
-            return
-        pre = np.matmul(self.xu, self.M)
-        if self.linear:
-            self.xu[..., : self.n_units] = pre
-            return
-        if self.has_bias:
-            pre += self.bias
-        np.tanh(pre, out=pre)
-        pre *= self.leak
-        x = self.xu[..., : self.n_units]
-        x *= self.keep_rate
-        x += pre
+        self.stack.step(self.xu)
 
     def step_rows(self, p: int, rows: np.ndarray) -> None:
         """Advance rows ``rows`` of agent ``p`` one step (as ``ReservoirBank.step_buffer`` on
         the same rows of one agent)."""
-        xu = self.xu[p, rows]
-        if self.nvar:
-            new = xu[:, self.src[p]]
-            new *= self.scale[p]
-            self.xu[p, rows, : self.n_units] = new
-            return
-        pre = np.matmul(xu, self.M[p])
-        if self.linear:
-            xu[:, : self.n_units] = pre
-            self.xu[p, rows] = xu
-            return
-        if self.has_bias:
-            pre += self.bias[p]
-        np.tanh(pre, out=pre)
-        pre *= self.leak[p]
-        xu[:, : self.n_units] *= self.keep_rate[p]
-        xu[:, : self.n_units] += pre
+        xu = self.xu[p, rows]  # a copy (fancy indexing): step it, then write it back
+        self.stack.step_agent(p, xu)
         self.xu[p, rows] = xu
 
     def set_obs(self, obs: np.ndarray) -> None:
@@ -230,7 +169,8 @@ class BatchedReservoir:
             self.xu[p, rows, -1:] = self.rew_in[p, rows]
 
     def keep(self, idx: np.ndarray) -> None:
-        for name in (*self._per_agent, "xu", "act_in", "rew_in"):
+        self.stack.keep(idx)
+        for name in ("xu", "act_in", "rew_in"):
             setattr(self, name, getattr(self, name)[idx].copy())
 
 
