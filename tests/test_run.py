@@ -387,3 +387,24 @@ def test_the_plan_counts_a_snapshots_finished_trials_as_done(
     assert "2 finished trials" in text
     snapshot.write_text("{not json")
     assert _status(exp, step)[1] == 1.0 and "unreadable" in _status(exp, step)[2]
+
+
+def test_publishing_leaves_out_files_over_the_size_limit(tmp_path: Path) -> None:
+    """The published folder is for version control: a report's self-contained HTML over the
+    limit stays in the results folder, said in the return value; the rest is copied."""
+    from ermrl.cli._experiment import Step, publish_step
+
+    exp = load_experiment(write(tmp_path, {**TINY, "publish": str(tmp_path / "published")}))
+    folder = tmp_path / "out" / "report"
+    (folder / "figures").mkdir(parents=True)
+    (folder / "report.md").write_text("# report\n")
+    (folder / "figures" / "curve.png").write_bytes(b"\x89PNG" + b"0" * 100)
+    (folder / "report.html").write_bytes(b"<html>" + b"x" * 5000)
+    (folder / "model.zip").write_bytes(b"PK")  # never published: not a plain file
+    step = Step("report", "Pendulum-v1", "report", [], 0, 1.0, lambda: (True, 0.0, ""), "s", folder)
+    written, left_out = publish_step(exp, step, max_bytes=1000)
+    dest = tmp_path / "published" / "Pendulum-v1" / "report"
+    assert sorted(written) == [dest / "figures" / "curve.png", dest / "report.md"]
+    assert left_out == [folder / "report.html"] and not (dest / "report.html").exists()
+    written, left_out = publish_step(exp, step)  # the default limit (1 MiB) takes all three
+    assert (dest / "report.html").exists() and left_out == []

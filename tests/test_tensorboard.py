@@ -3,6 +3,7 @@ write TensorBoard event files, read back with TensorBoard's own reader."""
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import subprocess
 import sys
@@ -98,6 +99,35 @@ def test_run_passes_tensorboard_and_progress_to_the_stages_that_take_them(
     assert parsed.tensorboard == str(tmp_path / "tb" / "CartPole-v1" / "test")
     assert parsed.progress == "none"
     assert "--tensorboard" not in report and "--progress" not in report
+
+
+def test_run_plans_tensorboard_stages_as_they_will_run(tmp_path: Path) -> None:
+    """With ``ermrl run --tensorboard``, stages that leave the backend out are estimated at
+    sb3's throughput (the backend their commands will choose), and a stage whose file sets
+    ``backend: population`` is refused in one line before anything is written."""
+    from ermrl.cli._experiment import experiment_plan, load_experiment
+
+    path = tmp_path / "exp.yaml"
+    path.write_text(
+        "name: tb\ntasks: [HalfCheetah-v5]\nout: out\n"
+        "evolve: {n_trials: 2, n_seeds: 1, training_steps: 100000}\n"
+        "test: {agents: [ppo, res-ppo], seeds: [10], training_steps: 100000}\n"
+    )
+    exp = load_experiment(path)
+    plain = {s.stage: s.seconds for s in experiment_plan(exp, build_agents=False)}
+    logged = {
+        s.stage: s.seconds
+        for s in experiment_plan(dataclasses.replace(exp, tensorboard=True), build_agents=False)
+    }
+    for stage in ("evolve", "test"):  # the population backend is several times faster
+        assert logged[stage] > 2 * plain[stage], stage
+
+    path.write_text(path.read_text().replace("n_trials: 2", "n_trials: 2, backend: population"))
+    proc = ermrl("run", str(path), "--tensorboard", "tb", cwd=tmp_path)
+    assert proc.returncode == 2
+    assert len(proc.stderr.strip().splitlines()) == 1
+    assert "--tensorboard logs come from the sb3 backend" in proc.stderr
+    assert not (tmp_path / "out").exists() and not (tmp_path / "tb").exists()
 
 
 @pytest.mark.slow  # an evolution, then a test phase

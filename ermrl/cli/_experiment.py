@@ -128,6 +128,9 @@ class Experiment:
         tasks: Single-task experiments: one line per task; empty for a generalization one.
         stages: ``{"evolve" | "reevaluate" | "test" | "report": options}``.
         document: The file's mapping with the variant merged in.
+        tensorboard: ``ermrl run --tensorboard`` was given: the evolve and test commands get
+            it, so the plan checks and estimates them as they will run (sb3, where the file
+            leaves the backend out).
     """
 
     path: Path
@@ -139,6 +142,7 @@ class Experiment:
     tasks: tuple[TaskLine, ...]
     stages: Mapping[str, Mapping[str, Any]]
     document: Mapping[str, Any]
+    tensorboard: bool = False
 
     @property
     def generalization(self) -> bool:
@@ -527,7 +531,21 @@ def _evolve_parts(
     argv += _reevaluate_argv(exp, task)
     argv += ["--storage", exp.storage]
     args = parse_checked(parser, argv, where)
+    _with_tensorboard(exp, args)
     return argv, args
+
+
+# What stands for ``ermrl run --tensorboard DIR`` in the parsed options the plan checks (the
+# stage's own directory is added when it runs, by ``ermrl run``).
+_TENSORBOARD_IN_PLAN = "<ermrl run --tensorboard>"
+
+
+def _with_tensorboard(exp: Experiment, args: argparse.Namespace) -> None:
+    """Give the parsed options of an evolve or test stage the ``--tensorboard`` that ``ermrl
+    run --tensorboard`` will add, so the plan chooses, checks and estimates its backend as the
+    command will."""
+    if exp.tensorboard:
+        args.tensorboard = _TENSORBOARD_IN_PLAN
 
 
 def _config_error(exp: Experiment, where: str, build: Callable[[], Any]) -> Any:
@@ -626,6 +644,12 @@ def _test_step(
     argv = (["--env-id", env_id] if env_id else []) + options_to_argv(parser, options, where)
     argv += ["--storage", exp.storage, "--study-name", study_name, "--out", str(folder)]
     args = parse_checked(parser, argv, where)
+    _with_tensorboard(exp, args)
+    if args.tensorboard and args.backend == "population":
+        raise ExperimentError(
+            f"{where}: --tensorboard logs come from the sb3 backend, and this stage sets "
+            "backend: population; set backend: sb3 in the file, or leave --tensorboard out"
+        )
     agents = list(args.agents or [n for n, k in AGENT_KINDS.items() if k.default])
     seeds = list(args.seeds or range(5))
     per_run = args.training_steps
@@ -977,33 +1001,45 @@ def _plain(value: Any) -> Any:
     return str(value)
 
 
-def publish_step(exp: Experiment, step: Step) -> list[Path]:
+def publish_step(
+    exp: Experiment, step: Step, max_bytes: int | None = None
+) -> tuple[list[Path], list[Path]]:
     """Copy a finished test or report step's plain files to ``exp.publish``.
 
     Plain files only (CSV, JSON, Markdown, HTML, PNG, YAML, TXT), never models or arrays; the
     test folder's per-run ``result.json`` files keep their ``agents/<agent>/seed_<s>/`` layout.
+    A file over ``max_bytes`` (default :data:`PUBLISH_MAX_BYTES`) is left out: the published
+    folder is meant for version control, and the one such file a report writes is its
+    self-contained ``report.html`` (figures embedded), whose ``report.md`` and PNGs are
+    published beside it.
 
     Returns:
-        The files written.
+        ``(written, left_out)``: the files written, and the files too large to publish.
     """
     import shutil
 
     if exp.publish is None or step.folder is None or not step.folder.exists():
-        return []
+        return [], []
+    limit = PUBLISH_MAX_BYTES if max_bytes is None else max_bytes
     dest = exp.publish / step.label / step.stage
-    written = []
+    written, left_out = [], []
     for src in sorted(step.folder.rglob("*")):
         if not src.is_file() or src.suffix.lower() not in _PLAIN or src.name.startswith("."):
+            continue
+        if src.stat().st_size > limit:
+            left_out.append(src)
             continue
         rel = src.relative_to(step.folder)
         target = dest / rel
         target.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(src, target)
         written.append(target)
-    return written
+    return written, left_out
 
 
 _PLAIN = {".csv", ".json", ".md", ".html", ".png", ".yaml", ".yml", ".txt"}
+# The largest file ``ermrl run`` publishes (1 MiB): what a repository keeps comfortably.
+PUBLISH_MAX_BYTES = 1 << 20
 
 
 # ---------------------------------------------------------------------------------------------

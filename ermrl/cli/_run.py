@@ -6,6 +6,7 @@ prints the plan, writes the resolved configuration and runs the unfinished steps
 
 from __future__ import annotations
 
+import dataclasses
 import shlex
 import sys
 import textwrap
@@ -15,7 +16,13 @@ from pathlib import Path
 from ermrl._progress import PROGRESS_MODES
 from ermrl._text import plural
 from ermrl.cli._common import EXIT_INTERRUPTED, ArgumentParser, HelpFormatter, fail
-from ermrl.cli._experiment import Experiment, Step, publish_step, snapshot_status
+from ermrl.cli._experiment import (
+    PUBLISH_MAX_BYTES,
+    Experiment,
+    Step,
+    publish_step,
+    snapshot_status,
+)
 
 __all__ = ["build_run_parser", "run_main"]
 
@@ -186,6 +193,7 @@ def run_main(argv: Sequence[str] | None = None, prog: str = "ermrl run") -> int:
     quiet_libraries()
     try:
         exp = load_experiment(args.file, args.variant)
+        exp = dataclasses.replace(exp, tensorboard=bool(args.tensorboard))
         steps = experiment_plan(exp, tasks=args.task, build_agents=not args.dry_run)
         statuses = [_status(exp, step) for step in steps]
     except (ExperimentError, StorageError) as err:
@@ -247,7 +255,13 @@ def run_main(argv: Sequence[str] | None = None, prog: str = "ermrl run") -> int:
             )
             return code
         if exp.publish is not None and step.stage in ("test", "report"):
-            publish_step(exp, step)
+            _, left_out = publish_step(exp, step)
+            for path in left_out:
+                print(
+                    f"not published: {path} ({path.stat().st_size / 2**20:.1f} MiB, over "
+                    f"{PUBLISH_MAX_BYTES / 2**20:.0f} MiB); it stays in {exp.out}",
+                    flush=True,
+                )
         if exp.publish is not None and step.stage == "evolve":
             write_snapshots(exp, [step])
     if not args.quiet:
