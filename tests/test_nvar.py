@@ -515,7 +515,7 @@ def test_nvar_is_registered_with_its_agents_and_flags() -> None:
     [
         ([], "an NVAR of delay 4 and order 2 on d = 24 inputs has 4,752 features"),
         (["--delay-range", "1", "2", "--order-range", "2", "3"], "lower the order range"),
-        (["--units", "5"], "--units applies to --encoder reservoir, not to --encoder nvar"),
+        (["--units", "5"], "--units applies to --encoder reservoir or rtu, not to --encoder nvar"),
     ],
 )
 def test_the_cli_refuses_sizes_over_the_limit_in_one_line_before_anything_is_written(

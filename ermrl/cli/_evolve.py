@@ -525,9 +525,12 @@ def space_from_args(args: argparse.Namespace) -> EncoderSpace:
         for flag in other.cli_flags:
             dest = flag_dest(flag)
             if dest not in own and getattr(args, dest, None) not in (None, flag.get("default")):
+                takers = [  # every encoder that declares the flag (--units: two of them)
+                    e.name for e in ENCODERS.values() if dest in map(flag_dest, e.cli_flags)
+                ]
                 raise ConfigError(
-                    f"{flag['flags'][0]} applies to --encoder {other.name}, not to --encoder "
-                    f"{encoder.name}"
+                    f"{flag['flags'][0]} applies to --encoder {' or '.join(takers)}, not to "
+                    f"--encoder {encoder.name}"
                 )
     space: EncoderSpace = encoder.space_from_args(args)
     return space
