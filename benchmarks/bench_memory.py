@@ -1,29 +1,37 @@
-"""Memory benchmark: evolved reservoirs against learned recurrent memory, on partially observable
-tasks.
+"""Memory benchmark: which memory works under partial observability? Evolved reservoirs of three
+kinds against learned memory and a plain delay line, on partially observable tasks.
 
-Five agents get the same training budget on new seeds (the test phase), each with its learner's
+Seven agents get the same training budget on new seeds (the test phase), each with its learner's
 own settings table:
 
 - ``ppo``: PPO on the masked observation (no memory);
-- ``lstm-ppo``: RecurrentPPO with an LSTM (learned memory, BPTT);
+- ``framestack-ppo``: PPO on the last 4 masked observations (a delay line);
+- ``lstm-ppo``: RecurrentPPO with an LSTM (learned memory, BPTT; the zoo's ppo_lstm settings);
 - ``rtu-ppo``: real-time PPO with recurrent trace units learned online by RTRL (learned memory);
 - ``res-ppo``: PPO on an echo state network evolved by CMA-ES (``ermrl evolve``);
 - ``rtu-res-ppo``: PPO on frozen RTUs whose ranges CMA-ES evolved (``ermrl evolve --encoder
-  rtu``).
+  rtu``);
+- ``nvar-res-ppo``: PPO on a next-generation reservoir (NVAR: delayed inputs and their
+  monomials) whose delay, order, strides and input scaling CMA-ES evolved (``ermrl evolve
+  --encoder nvar``).
 
-For each task the benchmark runs, through the ``ermrl`` CLI as a user would: the two evolutions
-(same trials, seeds and steps), the test phase of the ESN study (``ppo lstm-ppo rtu-ppo
-res-ppo``) and that of the RTU study (``rtu-res-ppo``), on the same test seeds and budget. It
-prints a table per task: final return (mean of the last 10 training episodes) mean, std and
-Student-t 95% CI over the seeds, and wall-clock per agent (its test runs; evolved agents also
-show their evolution's wall time). It writes JSON and Markdown; it never fails on a result.
+For each task the benchmark runs, through the ``ermrl`` CLI as a user would: the three
+evolutions (same trials, seeds and steps), the test phase of the ESN study (every agent but the
+evolved RTU and NVAR) and those of the RTU and NVAR studies (their evolved agent), on the same
+test seeds and budget. It prints a table per task: final return (mean of the last 10 training
+episodes) mean, std and Student-t 95% CI over the seeds, and wall-clock per agent (its test
+runs; evolved agents also show their evolution's wall time); then each evolved memory against
+``framestack-ppo``, ``lstm-ppo`` and ``ppo`` (Welch's t: difference, its 95% CI, p), and which
+memory wins the task (the best mean; "clearly" only when Welch's CI against the runner-up
+excludes 0). It writes JSON and Markdown; it never fails on a result.
 
     python benchmarks/bench_memory.py                  # default budgets (hours on 2 cores)
     python benchmarks/bench_memory.py --quick          # smoke test, a few minutes
     python benchmarks/bench_memory.py --tasks CartPole-v1:positions --test-steps 50000
 
-Tasks are ``ENV_ID:OBSERVE``; every budget is an argument. A resumed run skips finished
-trials and test runs (the studies and run folders are kept in the work folder).
+Tasks are ``ENV_ID:OBSERVE``; every budget is an argument (the test budget defaults to the
+science benchmark's, 100k steps x 5 seeds). A resumed run skips finished trials and test runs
+(the studies and run folders are kept in the work folder).
 """
 
 from __future__ import annotations
@@ -39,16 +47,26 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks._harness import machine  # noqa: E402
 from benchmarks.bench_science import _evolution_facts, _run  # noqa: E402
 
-AGENTS = ("ppo", "lstm-ppo", "rtu-ppo", "res-ppo", "rtu-res-ppo")
+AGENTS = (
+    "ppo",
+    "framestack-ppo",
+    "lstm-ppo",
+    "rtu-ppo",
+    "res-ppo",
+    "rtu-res-ppo",
+    "nvar-res-ppo",
+)
 TASKS = (
     "Pendulum-v1:positions",
     "CartPole-v1:positions",
     "popgym-RepeatFirstEasy-v0:all",
     "Hopper-v5:positions",
 )
-# Which study's test phase trains an agent: the RTU study trains its evolved RTU, the ESN study
-# everything else.
-RTU_AGENTS = ("rtu-res-ppo",)
+# The evolved agents and the encoder each one's study evolves. Each study's test phase trains
+# its own evolved agent; the ESN study's also trains the baselines.
+EVOLVED = {"res-ppo": "reservoir", "rtu-res-ppo": "rtu", "nvar-res-ppo": "nvar"}
+# What each evolved memory is compared with.
+BASELINES = ("framestack-ppo", "lstm-ppo", "ppo")
 
 
 def _agent_rows(outs: list[Path], agents: tuple[str, ...]) -> dict[str, Any]:
@@ -77,6 +95,48 @@ def _agent_rows(outs: list[Path], agents: tuple[str, ...]) -> dict[str, Any]:
             "env_steps": int(sub["env_steps"].sum()) if len(sub) else 0,
         }
     return rows
+
+
+def comparisons(agents: dict[str, Any]) -> list[dict[str, Any]]:
+    """Each evolved memory against each baseline: Welch's t on the per-seed final returns."""
+    from ermrl.analysis import welch_t_test
+
+    rows = []
+    for evolved in EVOLVED:
+        for baseline in BASELINES:
+            a = agents.get(evolved, {}).get("final_returns") or []
+            b = agents.get(baseline, {}).get("final_returns") or []
+            if not a or not b:
+                continue
+            w = welch_t_test(a, b)
+            rows.append(
+                {
+                    "agent": evolved,
+                    "baseline": baseline,
+                    "difference": sum(a) / len(a) - sum(b) / len(b),
+                    "ci95": [w.ci_low, w.ci_high],
+                    "p_value": w.p_value,
+                }
+            )
+    return rows
+
+
+def winner(agents: dict[str, Any]) -> dict[str, Any] | None:
+    """The agent with the best mean final return; ``clear`` when Welch's 95% CI of its
+    difference to the runner-up excludes 0."""
+    from ermrl.analysis import welch_t_test
+
+    ranked = sorted(
+        (a for a, row in agents.items() if row["mean"] is not None),
+        key=lambda a: agents[a]["mean"],
+        reverse=True,
+    )
+    if not ranked:
+        return None
+    if len(ranked) == 1:
+        return {"agent": ranked[0], "runner_up": None, "clear": False}
+    w = welch_t_test(agents[ranked[0]]["final_returns"], agents[ranked[1]]["final_returns"])
+    return {"agent": ranked[0], "runner_up": ranked[1], "clear": bool(w.ci_low > 0)}
 
 
 def _fmt(value: float | None) -> str:
@@ -108,6 +168,23 @@ def format_table(report: dict[str, Any]) -> str:
                 f"{'-' if evolve is None else f'{evolve / 60:.1f} min'} | "
                 f"{few_seeds_flag(n) if (n := len(row['final_returns'])) else ''} |"
             )
+        if task.get("comparisons"):
+            lines += [
+                "",
+                "| evolved | against | difference | Welch 95% CI | p |",
+                "|---|---|---|---|---|",
+            ]
+            for c in task["comparisons"]:
+                lo, hi = c["ci95"]
+                lines.append(
+                    f"| {c['agent']} | {c['baseline']} | {_fmt(c['difference'])} | "
+                    f"[{_fmt(lo)}, {_fmt(hi)}] | {_fmt(c['p_value'])} |"
+                )
+        best = task.get("winner")
+        if best is not None:
+            how = "clearly" if best["clear"] else "within the noise of the runner-up"
+            runner = f" ({best['runner_up']})" if best["runner_up"] else ""
+            lines.append(f"\nbest mean: {best['agent']}, {how}{runner}")
         for agent, sel in task["selected"].items():
             params = " ".join(f"{k}={v:.3g}" for k, v in sel["params"].items())
             tag = " (the unevolved reference)" if sel["is_reference"] else ""
@@ -125,7 +202,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--n-trials", type=int, default=20, help="evolution trials per encoder")
     p.add_argument("--n-seeds", type=int, default=1, help="seeds per evolution trial")
     p.add_argument("--training-steps", type=int, default=20_000, help="steps per evolution run")
-    p.add_argument("--test-steps", type=int, default=50_000, help="steps per test run")
+    p.add_argument("--test-steps", type=int, default=100_000, help="steps per test run")
     p.add_argument("--test-seeds", type=int, default=5)
     p.add_argument("--sampler-seed", type=int, default=0)
     p.add_argument("--n-procs", type=int, default=2)
@@ -152,7 +229,7 @@ def main(argv: list[str] | None = None) -> int:
         observe = observe or "all"
         label = f"{env_id}[{observe}]"
         studies: dict[str, str] = {}
-        for encoder, agent in (("reservoir", "res-ppo"), ("rtu", "rtu-res-ppo")):
+        for agent, encoder in EVOLVED.items():
             if agent not in args.agents:
                 continue
             study = (
@@ -167,11 +244,11 @@ def main(argv: list[str] | None = None) -> int:
                  "--study-name", study, "--quiet"],
                 log,
             )  # fmt: skip
-        # The ESN study's test phase trains every agent but the evolved RTU; without an ESN
-        # study (no res-ppo asked for), a tiny one is evolved to host the baselines.
+        # The ESN study's test phase trains every agent but the other evolved encoders'; without
+        # an ESN study (no res-ppo asked for), a tiny one is evolved to host the baselines.
         host = studies.get("res-ppo")
-        esn_agents = [a for a in args.agents if a not in RTU_AGENTS]
-        if esn_agents and host is None:
+        host_agents = [a for a in args.agents if a not in EVOLVED or a == "res-ppo"]
+        if host_agents and host is None:
             host = f"memory__{env_id}__{observe}__host"
             _run(
                 [*py, "evolve", "--env-id", env_id, "--observe", observe, "--n-trials", "1",
@@ -179,14 +256,17 @@ def main(argv: list[str] | None = None) -> int:
                  "--study-name", host, "--quiet"],
                 log,
             )  # fmt: skip
+        phases = [(host, host_agents)] + [
+            (studies.get(agent), [agent]) for agent in EVOLVED if agent != "res-ppo"
+        ]
         outs = []
-        for study, agents in ((host, esn_agents), (studies.get("rtu-res-ppo"), ["rtu-res-ppo"])):
-            if study is None or not agents:
+        for tested, agents in phases:
+            if tested is None or not agents:
                 continue
-            out = work / study
+            out = work / tested
             outs.append(out)
             _run(
-                [*py, "test", "--study-name", study, "--storage", storage,
+                [*py, "test", "--study-name", tested, "--storage", storage,
                  "--training-steps", str(args.test_steps), "--seeds", *seeds,
                  "--agents", *agents, "--n-procs", str(args.n_procs), "--out", str(out),
                  "--no-save-models", "--quiet"],
@@ -199,7 +279,9 @@ def main(argv: list[str] | None = None) -> int:
                 "observe": observe,
                 "label": label,
                 "studies": studies,
-                "agents": _agent_rows(outs, tuple(args.agents)),
+                "agents": (rows := _agent_rows(outs, tuple(args.agents))),
+                "comparisons": comparisons(rows),
+                "winner": winner(rows),
                 "evolution_seconds": {a: f["seconds"] for a, f in facts.items()},
                 "selected": {a: f["selected"] for a, f in facts.items()},
             }

@@ -135,8 +135,9 @@ def test_the_backend_benchmarks_run_in_quick_mode(tmp_path: Path) -> None:
 
 @pytest.mark.slow
 def test_the_memory_benchmark_runs_in_quick_mode(tmp_path: Path) -> None:
-    """bench_memory evolves an ESN and an RTU, tests the five agents on the same seeds, and
-    reports every agent's returns with a CI and its wall time."""
+    """bench_memory evolves an ESN, an RTU and an NVAR, tests the seven agents on the same
+    seeds, reports every agent's returns with a CI and its wall time, each evolved memory
+    against the baselines (Welch) and the best mean."""
     proc = subprocess.run(
         [sys.executable, str(ROOT / "benchmarks" / "bench_memory.py"), "--quick",
          "--tasks", "popgym-RepeatFirstEasy-v0:all", "--out", str(tmp_path / "memory.json")],
@@ -147,14 +148,26 @@ def test_the_memory_benchmark_runs_in_quick_mode(tmp_path: Path) -> None:
     (task,) = report["tasks"]
     assert task["label"] == "popgym-RepeatFirstEasy-v0[all]"
     agents = task["agents"]
-    assert list(agents) == ["ppo", "lstm-ppo", "rtu-ppo", "res-ppo", "rtu-res-ppo"]
+    assert list(agents) == [
+        "ppo", "framestack-ppo", "lstm-ppo", "rtu-ppo", "res-ppo", "rtu-res-ppo", "nvar-res-ppo"
+    ]  # fmt: skip
     for row in agents.values():
         assert row["seeds"] == [10, 11]
         low, high = row["ci95"]
         assert low <= row["mean"] <= high and row["wall_seconds"] > 0
-    assert set(task["selected"]) == {"res-ppo", "rtu-res-ppo"}
+    assert set(task["selected"]) == {"res-ppo", "rtu-res-ppo", "nvar-res-ppo"}
     assert "rtu-res-ppo: trial #" in report["table"] and "r_max=" in report["table"]
-    assert "| rtu-ppo | 2 |" in (tmp_path / "memory.md").read_text()
+    assert "nvar-res-ppo: trial #" in report["table"] and "delay=" in report["table"]
+    pairs = {(c["agent"], c["baseline"]) for c in task["comparisons"]}
+    assert ("nvar-res-ppo", "framestack-ppo") in pairs and len(pairs) == 9
+    for c in task["comparisons"]:
+        mean = agents[c["agent"]]["mean"] - agents[c["baseline"]]["mean"]
+        assert c["difference"] == pytest.approx(mean)
+    best = max(agents, key=lambda a: agents[a]["mean"])
+    assert task["winner"]["agent"] == best
+    text = (tmp_path / "memory.md").read_text()
+    assert "| rtu-ppo | 2 |" in text and "| nvar-res-ppo | framestack-ppo |" in text
+    assert f"best mean: {best}" in text
 
 
 @pytest.mark.slow
