@@ -33,11 +33,10 @@ import pandas as pd
 
 from ermrl._io import staged_folder
 from ermrl.analysis._style import save_figure, task_title
-from ermrl.config import AGENTS, LearnerSpace, evolved_agent, unevolved_agent
+from ermrl.config import AGENT_KINDS, LearnerSpace, evolved_agent, unevolved_agent
 
 __all__ = ["ReportResult", "notebook_parameters", "write_report"]
 
-AGENT_ORDER = AGENTS  # the agent table's order (ermrl.config.AGENT_KINDS)
 ENV_STUDY = "ERMRL_STUDY_NAME"
 ENV_STORAGE = "ERMRL_STORAGE"
 ENV_RUNS = "ERMRL_RUNS"
@@ -678,7 +677,8 @@ def _test_section(state: _State, runs: Path, band: str) -> None:
     task = run_config.get("task") or {}
     title = task_title(task.get("env_id"), task.get("observe")) or state.title
     present = list(dict.fromkeys(results["agent"])) if not results.empty else []
-    order = [a for a in AGENT_ORDER if a in present] + [a for a in present if a not in AGENT_ORDER]
+    table = list(AGENT_KINDS)  # read now: an encoder registered after import has its place
+    order = [a for a in table if a in present] + [a for a in present if a not in table]
     doc = _Doc()
     doc.h(2, f"Test phase (`{runs}`)")
     settings = run_config.get("settings") or {}
