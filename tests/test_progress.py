@@ -211,6 +211,33 @@ def test_test_phase_prints_progress_inside_each_run(tmp_path: Path) -> None:
     assert "[run 2/2]" in none.stdout  # the finished-run lines stay
 
 
+def test_run_lines_count_every_run_when_populations_and_other_learners_mix(
+    tmp_path: Path,
+) -> None:
+    """A test phase whose PPO agents train as a population and whose framestack-ppo runs train
+    one by one (sb3) numbers its finished runs 1..N over both, with a non-negative ETA."""
+    import re
+
+    names = ["--storage", f"sqlite:///{tmp_path}/s.db", "--study-name", "p"]
+    proc = ermrl(
+        "evolve", "--env-id", "CartPole-v1", "--n-trials", "1", "--n-seeds", "1",
+        "--training-steps", "128", "--n-envs", "1", "--units", "10", "--backend", "population",
+        "--ppo", "n_steps=64", "batch_size=64", "n_epochs=1", *names, "--quiet", cwd=tmp_path,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    proc = ermrl(
+        "test", *names, "--agents", "ppo", "res-ppo", "framestack-ppo", "--seeds", "20", "21",
+        "--training-steps", "256", "--n-procs", "1", "--progress", "none", "--out", "t",
+        cwd=tmp_path,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    runs = re.findall(r"^\[run (\d+)/(\d+)\] (\S+) .*ETA (\S+)$", proc.stdout, re.M)
+    assert [(int(k), int(n)) for k, n, _, _ in runs] == [(k, 6) for k in range(1, 7)]
+    assert {a for _, _, a, _ in runs[:4]} == {"ppo", "res-ppo"}  # the populations first
+    assert [a for _, _, a, _ in runs[4:]] == ["framestack-ppo"] * 2
+    assert not any(eta.startswith("-") for _, _, _, eta in runs), proc.stdout
+
+
 def test_population_backend_prints_progress_per_population(tmp_path: Path) -> None:
     from ermrl.agents import resolve_ppo_config
     from ermrl.config import BudgetConfig, TaskConfig

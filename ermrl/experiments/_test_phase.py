@@ -721,12 +721,17 @@ def run_comparison(
             )  # fmt: skip
             jobs.append((agent, seed, job))
 
-    started = time.perf_counter()
+    total = len(jobs)
     done = 0
+    # The ETA counts runs of the current phase only (the populations, then the other runs):
+    # a population trains many runs in the time of one, so one rate for both would mislead.
+    in_populations = sum(1 for job in jobs if job[2][2].backend == "population")
+    phase = {"started": time.perf_counter(), "done": 0, "runs": in_populations or total}
 
     def finished(agent: AgentSpec, seed: int, result: RunResult) -> None:
         nonlocal done
         done += 1
+        phase["done"] += 1
         extra = {
             "env_id": task.env_id,
             "observe": agent.task(task).observe,  # what this agent saw
@@ -737,17 +742,18 @@ def run_comparison(
         record = {**expected[agent.name], "seed": seed}
         write_atomic(folder / RUN_SETTINGS_FILE, json.dumps(record, indent=1) + "\n")
         write_run(folder, agent.name, result, extra)
-        elapsed = time.perf_counter() - started
-        eta = elapsed / done * (len(jobs) - done)
+        elapsed = time.perf_counter() - phase["started"]
+        eta = elapsed / phase["done"] * max(phase["runs"] - phase["done"], 0)
         _say(
             stream,
             quiet,
-            f"[run {done}/{len(jobs)}] {agent.name} seed {seed}: final return "
+            f"[run {done}/{total}] {agent.name} seed {seed}: final return "
             f"{result.last_return:.4g} | {result.steps_per_second:.0f} steps/s | "
             f"{result.wall_seconds:.0f}s | ETA {duration(eta)}",
         )
 
     jobs = _train_populations(jobs, budget, settings, finished, stream, quiet)
+    phase.update(started=time.perf_counter(), done=0, runs=len(jobs))
     if settings.n_procs == 1 or len(jobs) <= 1:
         for agent, seed, args in jobs:
             finished(agent, seed, _train_job(args))
