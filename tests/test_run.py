@@ -365,6 +365,84 @@ def test_a_snapshot_carries_an_unfinished_evolution_to_a_fresh_machine(tmp_path:
     assert (tmp_path / "published" / "Pendulum-v1" / "report" / "report.md").exists()
 
 
+@pytest.mark.slow
+def test_a_snapshot_carries_an_unfinished_test_phase_to_a_fresh_machine(tmp_path: Path) -> None:
+    """The finished test runs go with the snapshot; on a fresh machine they are not retrained,
+    except the runs whose models the report replays (a published run has no model)."""
+    doc = {
+        **TINY,
+        "publish": "published",
+        "test": {"agents": ["ppo", "random-res-ppo", "res-ppo"], "seeds": [10, 11],
+                 "training_steps": 256},
+        "report": {"dynamics": True, "interactive": False, "html": False},
+    }  # fmt: skip
+    path = write(tmp_path, doc)
+    evolved = ermrl(tmp_path, "run", str(path), "--stage", "evolve")
+    assert evolved.returncode == 0, evolved.stdout + evolved.stderr
+    exp = load_experiment(path)
+    (test,) = [s for s in experiment_plan(exp, build_agents=False) if s.stage == "test"]
+    assert test.replayed == (("res-ppo", 10), ("random-res-ppo", 10))
+    # Half of the test phase (seed 10 of each agent), by the test command the file composes.
+    i = test.argv.index("--seeds")
+    half = test.argv[: i + 1] + ["10"] + test.argv[i + 3 :]
+    done = ermrl(tmp_path, "test", *half)
+    assert done.returncode == 0, done.stdout + done.stderr
+    snap = ermrl(tmp_path, "run", str(path), "--snapshot")
+    assert snap.returncode == 0, snap.stderr
+    assert "published 3 finished test runs of Pendulum-v1" in snap.stdout
+    published = tmp_path / "published" / "Pendulum-v1" / "test" / "agents"
+    assert sorted(p.parent.parent.name for p in published.glob("*/seed_10/result.json")) == [
+        "ppo", "random-res-ppo", "res-ppo",
+    ]  # fmt: skip
+    assert not list(published.rglob("*.zip")) and not list(published.rglob("*.pt"))
+    kept = (published / "ppo" / "seed_10" / "result.json").read_text()
+
+    import shutil
+
+    shutil.rmtree(tmp_path / "runs")  # a fresh machine: the committed files only
+    done = ermrl(tmp_path, "run", str(path))
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "restored 1 finished test run of Pendulum-v1" in done.stdout
+    assert "trained again for the report's replay (no model): random-res-ppo seed 10, " \
+        "res-ppo seed 10" in done.stdout  # fmt: skip
+    assert "[skip] ppo seed 10" in done.stdout
+    runs = tmp_path / "runs" / "tiny" / "Pendulum-v1" / "test" / "agents"
+    assert (runs / "ppo" / "seed_10" / "result.json").read_text() == kept
+    assert len(list(runs.glob("*/seed_*/result.json"))) == 6
+    assert (runs / "res-ppo" / "seed_10" / "policy.pt").exists()
+    report = tmp_path / "runs" / "tiny" / "Pendulum-v1" / "report"
+    assert list((report / "dynamics").glob("res-ppo_seed10_*")), sorted(report.rglob("*"))
+
+
+def test_a_run_with_a_file_too_large_to_publish_is_not_carried(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A run is carried whole or not at all: a result.json without its episodes would be
+    a damaged run on the next machine."""
+    import ermrl.cli._experiment as experiment
+
+    monkeypatch.chdir(tmp_path)  # the file's folders are relative to the working directory
+    path = write(tmp_path, {**TINY, "publish": "published"})
+    exp = load_experiment(path)
+    (test,) = [s for s in experiment_plan(exp, build_agents=False) if s.stage == "test"]
+    assert test.folder is not None
+    for agent, size in (("ppo", 10), ("res-ppo", 5000)):
+        run = test.folder / "agents" / agent / "seed_10"
+        run.mkdir(parents=True)
+        (run / "settings.json").write_text("{}")
+        (run / "episodes.csv").write_text("x" * size)
+        (run / "result.json").write_text("{}")
+        (run / "policy.pt").write_bytes(b"model")
+    (test.folder / "agents" / "ppo" / "seed_11").mkdir()  # unfinished: no result.json
+    monkeypatch.setattr(experiment, "PUBLISH_MAX_BYTES", 1000)
+    assert experiment.publish_finished_runs(exp, test) == 1
+    dest = tmp_path / "published" / "Pendulum-v1" / "test" / "agents"
+    assert sorted(p.name for p in (dest / "ppo" / "seed_10").iterdir()) == [
+        "episodes.csv", "result.json", "settings.json",
+    ]  # fmt: skip
+    assert not (dest / "res-ppo").exists() and not (dest / "ppo" / "seed_11").exists()
+
+
 def test_the_plan_counts_a_snapshots_finished_trials_as_done(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -449,6 +449,8 @@ class Step:
         status: Reads the storage and folders: ``(done, remaining fraction, text)``.
         study_name: The study it reads or writes.
         folder: The folder it writes (test and report steps).
+        replayed: ``(agent, seed)`` runs of a test step whose saved models the report replays
+            (its dynamics section); a snapshot carries no models, so these are retrained.
     """
 
     stage: str
@@ -460,6 +462,7 @@ class Step:
     status: Callable[[], tuple[bool, float, str]]
     study_name: str
     folder: Path | None = None
+    replayed: tuple[tuple[str, int], ...] = ()
 
     @property
     def command_line(self) -> str:
@@ -669,9 +672,17 @@ def _test_step(
         rate = throughput(test_env, agent_backend, args.n_procs, learner)
         parts.append((len(seeds) * per_run, rate))
     total = len(agents) * len(seeds) * per_run
+    replayed: tuple[tuple[str, int], ...] = ()
+    if _stage(exp, "report", task).get("dynamics") and not env_id and seeds:
+        from ermrl.config import evolved_agent, unevolved_agent
+
+        family = config.space.family
+        wanted = (evolved_agent(family), unevolved_agent(family))
+        replayed = tuple((a, min(seeds)) for a in wanted if a in agents)
     return Step(
         "test", label, "test-generalization" if env_id else "test", argv, total,
         estimate_seconds(parts), _test_status(folder, agents, seeds), study_name, folder,
+        replayed,
     )  # fmt: skip
 
 
@@ -1109,6 +1120,88 @@ def import_snapshots(exp: Experiment, steps: Sequence[Step]) -> list[tuple[Step,
             raise ExperimentError(f"{path}: cannot import ({err})") from None
         out.append((step, path, len(result.study.get_trials(deepcopy=False))))
     return out
+
+
+def _run_folders(root: Path) -> list[Path]:
+    """The finished run folders (``agents/<agent>/seed_<s>/`` with a ``result.json``) under root."""
+    from ermrl.analysis._results import RUNS_DIR
+
+    return sorted(p.parent for p in root.glob(f"{RUNS_DIR}/*/seed_*/result.json"))
+
+
+def _copy_run(src: Path, dest: Path, limit: int) -> bool:
+    """Copy a run folder's plain files, ``result.json`` (which marks a run finished) last.
+
+    Nothing is copied (``False``) when one of them is over ``limit`` bytes: a run is carried
+    whole or not at all.
+    """
+    import shutil
+
+    files = [
+        f
+        for f in sorted(src.iterdir())
+        if f.is_file() and f.suffix.lower() in _PLAIN and not f.name.startswith(".")
+    ]
+    if any(f.stat().st_size > limit for f in files):
+        return False
+    dest.mkdir(parents=True, exist_ok=True)
+    for f in sorted(files, key=lambda f: f.name == "result.json"):
+        shutil.copyfile(f, dest / f.name)
+    return True
+
+
+def publish_finished_runs(exp: Experiment, step: Step) -> int:
+    """Publish the finished runs of a test step, finished or not, so another machine goes on.
+
+    A test phase longer than one sitting is carried like an evolution: each finished run's
+    plain files (``settings.json``, ``episodes.csv``, ``result.json``; never its model) are
+    copied to ``<publish>/<task>/test/agents/<agent>/seed_<s>/``, and
+    :func:`restore_finished_runs` puts them back on the next machine, where the test phase
+    skips them as it skips any finished run (after checking their settings).
+
+    Returns:
+        The number of runs published (0 without ``publish`` in the file); a run with a file
+        over :data:`PUBLISH_MAX_BYTES` is not (it is trained again elsewhere).
+    """
+    if exp.publish is None or step.stage != "test" or step.folder is None:
+        return 0
+    dest = exp.publish / step.label / step.stage
+    return sum(
+        _copy_run(run, dest / run.relative_to(step.folder), PUBLISH_MAX_BYTES)
+        for run in _run_folders(step.folder)
+    )
+
+
+def restore_finished_runs(exp: Experiment, step: Step) -> tuple[int, list[tuple[str, int]]]:
+    """Put a test step's published finished runs back in its folder where it lacks them.
+
+    The runs whose models the report replays (``step.replayed``) are not restored: a
+    published run has no model, so they are trained again.
+
+    Returns:
+        ``(restored, retrained)``: the number of runs restored, and the ``(agent, seed)``
+        runs left to train again for the report's replay.
+    """
+    if exp.publish is None or step.stage != "test" or step.folder is None:
+        return 0, []
+    source = exp.publish / step.label / step.stage
+    if source.resolve() == step.folder.resolve():
+        return 0, []
+    restored, retrained = 0, []
+    for run in _run_folders(source):
+        rel = run.relative_to(source)
+        target = step.folder / rel
+        if (target / "result.json").exists():
+            continue
+        try:
+            key = (run.parent.name, int(run.name.removeprefix("seed_")))
+        except ValueError:
+            continue
+        if key in step.replayed:
+            retrained.append(key)
+            continue
+        restored += _copy_run(run, target, PUBLISH_MAX_BYTES)
+    return restored, retrained
 
 
 def snapshot_status(exp: Experiment, step: Step) -> tuple[float, str] | None:

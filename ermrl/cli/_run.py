@@ -86,8 +86,9 @@ def build_run_parser(prog: str = "ermrl run") -> ArgumentParser:
         "--snapshot",
         action="store_true",
         help="write each evolution study as one plain JSON file, <publish or out>/<task>/"
-        "study.json, and stop (commit it: a later `ermrl run` on another machine imports it "
-        "and resumes the evolution where it stopped)",
+        "study.json, and the finished test runs' plain files to <publish>/<task>/test/, and "
+        "stop (commit them: a later `ermrl run` on another machine imports the study, puts "
+        "the runs back, and resumes where it stopped)",
     )
     parser.add_argument(
         "--progress",
@@ -183,7 +184,9 @@ def run_main(argv: Sequence[str] | None = None, prog: str = "ermrl run") -> int:
         experiment_plan,
         import_snapshots,
         load_experiment,
+        publish_finished_runs,
         resolved_document,
+        restore_finished_runs,
         write_snapshots,
     )
     from ermrl.storage import StorageError
@@ -202,6 +205,14 @@ def run_main(argv: Sequence[str] | None = None, prog: str = "ermrl run") -> int:
         try:
             for step, path, n in write_snapshots(exp, steps):
                 print(f"wrote {path}: study {step.study_name!r}, {plural(n, 'trial')}", flush=True)
+            for step in steps:
+                n = publish_finished_runs(exp, step)
+                if n:
+                    print(
+                        f"published {plural(n, 'finished test run')} of {step.label} to "
+                        f"{exp.publish}/{step.label}/test",
+                        flush=True,
+                    )
         except OSError as err:
             fail(prog, f"cannot write the snapshot: {err.strerror or err}")
         return 0
@@ -227,8 +238,21 @@ def run_main(argv: Sequence[str] | None = None, prog: str = "ermrl run") -> int:
     try:
         for step, path, n in import_snapshots(exp, steps):
             print(f"imported {path}: study {step.study_name!r}, {plural(n, 'trial')}", flush=True)
+        for step in steps:
+            restored, retrained = restore_finished_runs(exp, step)
+            if restored or retrained:
+                again = ", ".join(f"{a} seed {s}" for a, s in retrained)
+                if again:
+                    again = f"; trained again for the report's replay (no model): {again}"
+                print(
+                    f"restored {plural(restored, 'finished test run')} of {step.label} from "
+                    f"{exp.publish}/{step.label}/test{again}",
+                    flush=True,
+                )
     except ExperimentError as err:
         fail(prog, str(err))
+    except OSError as err:
+        fail(prog, f"cannot restore the published test runs: {err.strerror or err}")
     for step, _ in chosen:
         done, _, text = step.status()
         if done:
@@ -245,9 +269,11 @@ def run_main(argv: Sequence[str] | None = None, prog: str = "ermrl run") -> int:
         except SystemExit as err:
             code = err.code if isinstance(err.code, int) else 1
         except KeyboardInterrupt:
+            publish_finished_runs(exp, step)
             print(f"{prog}: interrupted; rerun the same command to resume", file=sys.stderr)
             return EXIT_INTERRUPTED
         if code != 0:
+            publish_finished_runs(exp, step)
             print(
                 f"{prog}: stage {step.stage} of {step.label} stopped (exit code {code}); "
                 "rerun the same command to resume",
