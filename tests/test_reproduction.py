@@ -60,6 +60,34 @@ def test_reproduced_needs_welchs_interval_above_zero_too() -> None:
     assert "Welch CI" in why and "unreliable" in why
 
 
+def test_the_other_agents_tested_are_compared_too(tmp_path: Path) -> None:
+    """H1 also asks about learned memory: res-ppo against every agent the test phase trained,
+    the paper's baselines first; the verdict still rests on res-ppo − ppo alone."""
+    from ermrl.analysis import task_result
+
+    values = {
+        "ppo": [100.0, 95.0, 105.0, 98.0, 102.0],
+        "random-res-ppo": [110.0, 100.0, 120.0, 105.0, 115.0],
+        "res-ppo": [125.0, 122.0, 130.0, 121.0, 127.0],
+        "framestack-ppo": [150.0, 151.0, 149.0, 152.0, 148.0],
+        "lstm-ppo": [90.0, 160.0, 100.0, 150.0, 120.0],
+        "ppo-full": [200.0, 201.0, 199.0, 202.0, 198.0],
+    }
+    _publish(tmp_path / "CartPole-v1", values)
+    result = task_result(tmp_path / "CartPole-v1", "CartPole-v1", 100, tmp_path / "none")
+    assert list(result.comparison["baseline"]) == [
+        "ppo", "random-res-ppo", "ppo-full", "lstm-ppo", "framestack-ppo",
+    ]  # fmt: skip
+    word, why = verdict(result.comparison)
+    assert word == "reproduced", why
+    assert "res-ppo − framestack-ppo = -25, " in why
+    assert "framestack-ppo = -25, 95% bootstrap CI" in why
+    clauses = dict(c.split(" = ", 1) for c in why.split("; ")[1:])
+    assert clauses["res-ppo − framestack-ppo"].endswith("behind (both CIs below 0)")
+    assert clauses["res-ppo − lstm-ppo"].endswith("inside the noise (a CI spans 0)")
+    assert clauses["res-ppo − ppo-full"].endswith("behind (both CIs below 0)")
+
+
 def test_no_runs_is_not_a_verdict() -> None:
     assert verdict(pd.DataFrame())[0] == "not run"
 

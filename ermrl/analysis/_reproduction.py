@@ -14,7 +14,9 @@ Verdicts, per task, on the paper's claim that the evolved reservoir (``res-ppo``
 The rule was fixed before the paper-scale test phases ran, and it is not tuned per task.
 
 What evolution itself adds (``res-ppo − random-res-ppo``) is reported beside it in words of its
-own. A hypothesis is *reproduced* when all its tasks are, *not reproduced* when none is, and
+own, and so is where ``res-ppo`` stands against every other agent the test phase trained
+(learned memory such as ``lstm-ppo`` and ``framestack-ppo``, or ``ppo-full``, the ceiling): ahead
+or behind when both CIs agree, inside the noise otherwise. A hypothesis is *reproduced* when all its tasks are, *not reproduced* when none is, and
 *partly* otherwise; tasks not yet run are named as such and left out of the verdict.
 """
 
@@ -53,7 +55,8 @@ class TaskResult:
         label: The task (test task for a generalization experiment).
         folder: Its published folder.
         runs: One row per finished test run (``result.json``).
-        comparison: :func:`~ermrl.analysis.compare_agents` of ``res-ppo`` against the baselines.
+        comparison: :func:`~ermrl.analysis.compare_agents` of ``res-ppo`` against the baselines
+            (``ppo``, ``random-res-ppo``), then every other agent tested.
         evolution: ``finished``, ``n_trials``, ``env_steps``, ``wall_seconds`` of the study.
         selection: The selected reservoir(s) and how they were chosen.
     """
@@ -111,7 +114,27 @@ def verdict(comparison: pd.DataFrame) -> tuple[str, str]:
             f"; res-ppo − random-res-ppo = {vs_random['mean_diff']:+.4g}, "
             f"{_intervals(vs_random)}: {add}"
         )
+    others = [] if comparison.empty else [
+        b for b in comparison["baseline"] if b not in BASELINES
+    ]  # fmt: skip
+    for baseline in others:
+        row = _row(comparison, baseline)
+        assert row is not None
+        why += (
+            f"; res-ppo − {baseline} = {row['mean_diff']:+.4g}, {_intervals(row)}: {_standing(row)}"
+        )
     return word, why
+
+
+def _standing(row: dict[str, Any]) -> str:
+    """Where the candidate stands against one baseline: both CIs above 0, below 0, or neither."""
+    lows = [row["boot_ci_low"], row.get("welch_ci_low", math.nan)]
+    highs = [row["boot_ci_high"], row.get("welch_ci_high", math.nan)]
+    if all(math.isfinite(v) and v > 0 for v in lows):
+        return "ahead (both CIs above 0)"
+    if all(math.isfinite(v) and v < 0 for v in highs):
+        return "behind (both CIs below 0)"
+    return "inside the noise (a CI spans 0)"
 
 
 def _intervals(row: dict[str, Any]) -> str:
@@ -147,9 +170,16 @@ def task_result(folder: Path, label: str, n_trials: int, snapshot: Path) -> Task
 
     test = folder / "test"
     runs = load_run_results(test) if test.exists() else pd.DataFrame()
-    comparison = (
-        compare_agents(runs, EVOLVED, list(BASELINES)) if not runs.empty else pd.DataFrame()
-    )
+    comparison = pd.DataFrame()
+    if not runs.empty:
+        # The paper's baselines first, then every other agent the test phase trained (learned
+        # memory, the full observation), in the agent table's order.
+        from ermrl.config import AGENT_KINDS
+
+        tested = set(runs["agent"])
+        others = [a for a in AGENT_KINDS if a in tested and a != EVOLVED and a not in BASELINES]
+        others += sorted(tested - set(AGENT_KINDS) - {EVOLVED} - set(BASELINES))
+        comparison = compare_agents(runs, EVOLVED, [*BASELINES, *others])
     selection: dict[str, Any] = {}
     config = test / "config.yaml"
     if config.exists():
@@ -280,7 +310,10 @@ def write_reproduction_page(
         "(the bootstrap alone is too narrow on a handful of seeds); *partly* when `res-ppo` is "
         "ahead but a CI spans 0; *not reproduced* otherwise. The rule was fixed before the "
         "paper-scale test phases ran. What evolution itself adds, `res-ppo − "
-        "random-res-ppo`, is reported beside it. The paired CI resamples per-seed differences "
+        "random-res-ppo`, is reported beside it, and so is `res-ppo` against every other "
+        "agent a test phase trained (learned memory, the full observation): ahead or behind "
+        "when both CIs agree, inside the noise otherwise. The paired CI resamples per-seed "
+        "differences "
         "(the agents of one seed share its env and initialization streams). A result that "
         "contradicts the paper is reported as such."
     )
