@@ -414,6 +414,44 @@ def test_a_snapshot_carries_an_unfinished_test_phase_to_a_fresh_machine(tmp_path
     assert list((report / "dynamics").glob("res-ppo_seed10_*")), sorted(report.rglob("*"))
 
 
+@pytest.mark.slow
+def test_a_run_killed_in_its_test_phase_has_already_published_its_finished_runs(
+    tmp_path: Path,
+) -> None:
+    """--snapshot-every: a run killed with -9 (a sitting's end) loses at most that much."""
+    doc = {
+        **TINY,
+        "publish": "published",
+        "test": {"agents": ["ppo", "random-res-ppo", "res-ppo"], "seeds": [10, 11, 12],
+                 "training_steps": 2048, "n_procs": 1},
+    }  # fmt: skip
+    path = write(tmp_path, doc)
+    runs = tmp_path / "runs" / "tiny" / "Pendulum-v1" / "test" / "agents"
+    published = tmp_path / "published" / "Pendulum-v1"
+
+    def published_mid_test() -> bool:
+        finished = len(list(runs.glob("*/seed_*/result.json")))
+        carried = len(list((published / "test" / "agents").glob("*/seed_*/result.json")))
+        return carried >= 1 and finished < 9
+
+    proc, log = _start(tmp_path, ["run", str(path), "--snapshot-every", "1"], "run.log")
+    _wait_for(published_mid_test, 600, log)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait(10)
+    # The evolution's study and the finished runs are in the published folder, each run whole.
+    assert (published / "study.json").exists()
+    carried = [p.parent for p in (published / "test" / "agents").glob("*/seed_*/result.json")]
+    assert carried
+    for run in carried:
+        assert sorted(f.name for f in run.iterdir()) == [
+            "episodes.csv", "result.json", "settings.json",
+        ], run  # fmt: skip
+    assert not (published / "test" / "summary.csv").exists()  # the phase did not finish
+    bad = ermrl(tmp_path, "run", str(path), "--snapshot-every", "-1")
+    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1, bad.stderr
+    assert "--snapshot-every" in bad.stderr
+
+
 def test_a_run_with_a_file_too_large_to_publish_is_not_carried(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -32,6 +32,7 @@ import difflib
 import functools
 import io
 import math
+import sys
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -1202,6 +1203,57 @@ def restore_finished_runs(exp: Experiment, step: Step) -> tuple[int, list[tuple[
             continue
         restored += _copy_run(run, target, PUBLISH_MAX_BYTES)
     return restored, retrained
+
+
+def write_snapshot_files(exp: Experiment, steps: Sequence[Step]) -> tuple[int, int]:
+    """Everything ``ermrl run --snapshot`` writes: the evolution snapshots and the finished test
+    runs. Returns ``(studies written, test runs published)``."""
+    studies = write_snapshots(exp, steps)
+    return len(studies), sum(publish_finished_runs(exp, step) for step in steps)
+
+
+class PeriodicSnapshots:
+    """Write :func:`write_snapshot_files` every ``every`` seconds from a background thread.
+
+    A sitting or a machine that ends (a time limit, a preemption, ``kill -9``) then loses at
+    most ``every`` seconds of finished work, as long as the published folder is kept. A
+    snapshot that fails (a locked database, a full disk) is reported on ``stream`` in one line
+    and tried again at the next tick; it never stops the run. Use it as a context manager.
+    """
+
+    def __init__(
+        self, exp: Experiment, steps: Sequence[Step], every: float, stream: Any = None
+    ) -> None:
+        import threading
+
+        self.exp, self.steps, self.every = exp, list(steps), every
+        self.stream = stream if stream is not None else sys.stderr
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, name="ermrl-snapshots", daemon=True)
+        self.written = 0
+
+    def __enter__(self) -> PeriodicSnapshots:
+        if self.exp.publish is not None and self.every > 0:
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=60)
+
+    def _loop(self) -> None:
+        while not self._stop.wait(self.every):
+            try:
+                write_snapshot_files(self.exp, self.steps)
+                self.written += 1
+            except Exception as err:  # noqa: BLE001 - a snapshot must never stop the run
+                print(
+                    f"ermrl run: snapshot skipped, tried again in {format_duration(self.every)} "
+                    f"({type(err).__name__}: {err})",
+                    file=self.stream,
+                    flush=True,
+                )
 
 
 def snapshot_status(exp: Experiment, step: Step) -> tuple[float, str] | None:

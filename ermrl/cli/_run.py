@@ -6,6 +6,7 @@ prints the plan, writes the resolved configuration and runs the unfinished steps
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import shlex
 import sys
@@ -19,6 +20,7 @@ from ermrl.cli._common import EXIT_INTERRUPTED, ArgumentParser, HelpFormatter, f
 from ermrl.cli._experiment import (
     PUBLISH_MAX_BYTES,
     Experiment,
+    PeriodicSnapshots,
     Step,
     publish_step,
     snapshot_status,
@@ -27,6 +29,8 @@ from ermrl.cli._experiment import (
 __all__ = ["build_run_parser", "run_main"]
 
 STAGE_CHOICES = ("evolve", "reevaluate", "test", "report")
+# How often a run with `publish:` writes its snapshot by itself (seconds).
+DEFAULT_SNAPSHOT_EVERY = 600.0
 # The stages whose commands take --progress (each evolve and test command does).
 PROGRESS_STAGES = ("evolve", "test")
 # The commands that take --tensorboard.
@@ -89,6 +93,15 @@ def build_run_parser(prog: str = "ermrl run") -> ArgumentParser:
         "study.json, and the finished test runs' plain files to <publish>/<task>/test/, and "
         "stop (commit them: a later `ermrl run` on another machine imports the study, puts "
         "the runs back, and resumes where it stopped)",
+    )
+    parser.add_argument(
+        "--snapshot-every",
+        type=float,
+        default=DEFAULT_SNAPSHOT_EVERY,
+        metavar="SECONDS",
+        help="while it runs, write the snapshot of --snapshot every SECONDS (0: never), so a "
+        "machine or sitting that ends loses at most that much finished work; only for a file "
+        "with `publish:` (the snapshot is also written when an evolution ends)",
     )
     parser.add_argument(
         "--progress",
@@ -172,12 +185,56 @@ def _status(exp: Experiment, step: Step) -> tuple[bool, float, str]:
     return done, left, text
 
 
+def _run_steps(exp: Experiment, chosen: Sequence[Step], args: argparse.Namespace, prog: str) -> int:
+    """Run the unfinished steps in order; the exit code of the first that stops, else 0."""
+    from ermrl.cli import COMMANDS, _load
+    from ermrl.cli._experiment import publish_finished_runs, write_snapshots
+
+    for step in chosen:
+        done, _, text = step.status()
+        if done:
+            if not args.quiet:
+                print(f"[{step.stage} {step.label}] done ({text}): skipped", flush=True)
+            continue
+        argv = stage_argv(step, args.progress, args.tensorboard)
+        if not args.quiet:
+            line = shlex.join(["ermrl", step.command, *argv])
+            print(f"[{step.stage} {step.label}] {line}", flush=True)
+        run = _load(COMMANDS[step.command][0])
+        try:
+            code = int(run(argv, prog=f"ermrl {step.command}") or 0)
+        except SystemExit as err:
+            code = err.code if isinstance(err.code, int) else 1
+        except KeyboardInterrupt:
+            publish_finished_runs(exp, step)
+            print(f"{prog}: interrupted; rerun the same command to resume", file=sys.stderr)
+            return EXIT_INTERRUPTED
+        if code != 0:
+            publish_finished_runs(exp, step)
+            print(
+                f"{prog}: stage {step.stage} of {step.label} stopped (exit code {code}); "
+                "rerun the same command to resume",
+                file=sys.stderr,
+            )
+            return code
+        if exp.publish is not None and step.stage in ("test", "report"):
+            _, left_out = publish_step(exp, step)
+            for path in left_out:
+                print(
+                    f"not published: {path} ({path.stat().st_size / 2**20:.1f} MiB, over "
+                    f"{PUBLISH_MAX_BYTES / 2**20:.0f} MiB); it stays in {exp.out}",
+                    flush=True,
+                )
+        if exp.publish is not None and step.stage == "evolve":
+            write_snapshots(exp, [step])
+    return 0
+
+
 def run_main(argv: Sequence[str] | None = None, prog: str = "ermrl run") -> int:
     """Entry point of ``ermrl run``."""
     import yaml
 
     from ermrl._io import write_atomic
-    from ermrl.cli import COMMANDS, _load
     from ermrl.cli._common import quiet_libraries
     from ermrl.cli._experiment import (
         ExperimentError,
@@ -193,6 +250,11 @@ def run_main(argv: Sequence[str] | None = None, prog: str = "ermrl run") -> int:
 
     parser = build_run_parser(prog)
     args = parser.parse_args(argv)
+    if not args.snapshot_every >= 0:
+        fail(
+            prog,
+            f"--snapshot-every must be 0 (never) or a number of seconds, not {args.snapshot_every}",
+        )
     quiet_libraries()
     try:
         exp = load_experiment(args.file, args.variant)
@@ -253,43 +315,10 @@ def run_main(argv: Sequence[str] | None = None, prog: str = "ermrl run") -> int:
         fail(prog, str(err))
     except OSError as err:
         fail(prog, f"cannot restore the published test runs: {err.strerror or err}")
-    for step, _ in chosen:
-        done, _, text = step.status()
-        if done:
-            if not args.quiet:
-                print(f"[{step.stage} {step.label}] done ({text}): skipped", flush=True)
-            continue
-        argv = stage_argv(step, args.progress, args.tensorboard)
-        if not args.quiet:
-            line = shlex.join(["ermrl", step.command, *argv])
-            print(f"[{step.stage} {step.label}] {line}", flush=True)
-        run = _load(COMMANDS[step.command][0])
-        try:
-            code = int(run(argv, prog=f"ermrl {step.command}") or 0)
-        except SystemExit as err:
-            code = err.code if isinstance(err.code, int) else 1
-        except KeyboardInterrupt:
-            publish_finished_runs(exp, step)
-            print(f"{prog}: interrupted; rerun the same command to resume", file=sys.stderr)
-            return EXIT_INTERRUPTED
-        if code != 0:
-            publish_finished_runs(exp, step)
-            print(
-                f"{prog}: stage {step.stage} of {step.label} stopped (exit code {code}); "
-                "rerun the same command to resume",
-                file=sys.stderr,
-            )
-            return code
-        if exp.publish is not None and step.stage in ("test", "report"):
-            _, left_out = publish_step(exp, step)
-            for path in left_out:
-                print(
-                    f"not published: {path} ({path.stat().st_size / 2**20:.1f} MiB, over "
-                    f"{PUBLISH_MAX_BYTES / 2**20:.0f} MiB); it stays in {exp.out}",
-                    flush=True,
-                )
-        if exp.publish is not None and step.stage == "evolve":
-            write_snapshots(exp, [step])
+    with PeriodicSnapshots(exp, steps, args.snapshot_every):
+        code = _run_steps(exp, [step for step, _ in chosen], args, prog)
+    if code != 0:
+        return code
     if not args.quiet:
         print(
             f"done: experiment {exp.name!r}; resolved configuration in {exp.out}/experiment.resolved.yaml",
