@@ -5,6 +5,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -59,6 +60,8 @@ def test_report_cli_writes_figures_tables_and_report_md(tiny: TinyStudy, tmp_pat
     )
     assert proc.returncode == 0, proc.stderr
     assert "[report 1/" in proc.stdout and "ETA" in proc.stdout
+    # The ETA is written as every other progress line of ermrl writes it ("1h02m", "3m05s").
+    assert re.search(r"\[report 1/\d+\] .* \| ETA \d+m\d\ds$", proc.stdout, re.M), proc.stdout
     for name in EVOLUTION_FIGURES:
         assert (out / "evolution" / f"{name}.png").read_bytes().startswith(b"\x89PNG")
     for rel in ("test/learning_curves.png", "test/final_returns.png"):

@@ -32,6 +32,7 @@ from typing import Any, TextIO
 import pandas as pd
 
 from ermrl._io import staged_folder
+from ermrl._progress import duration
 from ermrl.analysis._style import save_figure, task_title
 from ermrl.config import AGENT_KINDS, LearnerSpace, evolved_agent, unevolved_agent
 
@@ -237,7 +238,11 @@ def _data_uri(path: Path) -> str:
 
 
 class _Progress:
-    """One line per report step with elapsed time and an ETA (silenced by ``quiet``)."""
+    """One line per report step with its time and an ETA (silenced by ``quiet``).
+
+    Not :class:`ermrl._progress.Progress`, which counts env steps at a rate: a report's steps are
+    a handful of unlike sections; the ETA is written as that module's lines write theirs.
+    """
 
     def __init__(self, total: int, quiet: bool, stream: TextIO | None) -> None:
         self.total = total
@@ -255,7 +260,7 @@ class _Progress:
             eta = elapsed / self.done * (self.total - self.done)
             print(
                 f"[report {self.done}/{self.total}] {name} | {time.perf_counter() - began:.1f}s"
-                f" | ETA {eta:.0f}s",
+                f" | ETA {duration(eta)}",
                 file=self.stream or sys.stdout,
                 flush=True,
             )
