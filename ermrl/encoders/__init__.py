@@ -8,6 +8,7 @@ agents, the stored configurations and the report read this table.
 """
 
 from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
 
 from ermrl._config_base import ConfigError
 from ermrl.encoders._base import Encoder, flag_dest
@@ -27,7 +28,21 @@ from ermrl.encoders._reservoir import (
 from ermrl.encoders._reservoir_encoder import ReservoirEncoder, ReservoirSpace
 from ermrl.encoders._rtu_encoder import RTUEncoder, RTUSpace
 from ermrl.encoders._settings import EncoderConfig, EncoderParams, EncoderSpace, PerReservoirSpace
-from ermrl.encoders._vec_env import ActionEncoder, ReservoirVecEnv
+
+if TYPE_CHECKING:
+    from ermrl.encoders._vec_env import ActionEncoder, ReservoirVecEnv
+
+# Imported on first use (stable-baselines3 and torch under them): the CLI, the configuration
+# and a plan read this package without wrapping an env.
+_LAZY = {"ActionEncoder": "ermrl.encoders._vec_env", "ReservoirVecEnv": "ermrl.encoders._vec_env"}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 # One line per encoder (and its import above); the first is the reference, which a stored
 # configuration without a ``family`` is read as. The order is the CLI's and the docs'.

@@ -21,13 +21,14 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Literal
+from typing import TYPE_CHECKING, Any, ClassVar, Literal
 
 import numpy as np
-from reservoirpy import mat_gen
-from reservoirpy.nodes import Reservoir
 
 from ermrl._config_base import ConfigError, _check_units
+
+if TYPE_CHECKING:
+    from reservoirpy.nodes import Reservoir
 
 __all__ = [
     "BIAS_INITS",
@@ -206,6 +207,11 @@ def reservoir_node(params: ReservoirParams, input_dim: int, seed: int) -> Reserv
     for ``Win``, ``W`` and the bias from ``seed``, so the same seed gives the same ``W`` and bias
     for any ``input_dim`` (this is what "the same reservoir on another task" means in ermrl).
     """
+    # reservoirpy (and scipy.stats under it) is imported here, not with this module: the CLI,
+    # the configuration and a plan read this module without building a reservoir.
+    from reservoirpy import mat_gen
+    from reservoirpy.nodes import Reservoir
+
     bias: object = 0.0
     if params.bias_init == "original":
         bias = mat_gen.bernoulli(input_scaling=1.0, connectivity=params.input_connectivity)
