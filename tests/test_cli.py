@@ -390,7 +390,8 @@ def test_counts_in_printed_lines_agree_in_number() -> None:
 
 
 def test_no_option_shows_its_default_twice() -> None:
-    """A help text that says its default in words gets no second '(default: None)'."""
+    """A help text that says its default in words gets no second '(default: None)', and an
+    option whose default is None shows none at all (33 did)."""
     import re
 
     from ermrl.cli._docs import _subparsers, cli_parsers
@@ -402,6 +403,8 @@ def test_no_option_shows_its_default_twice() -> None:
         pending += [(f"{name} {sub}", p) for sub, p in _subparsers(parser)]
         text = " ".join(parser.format_help().split())
         doubled += [f"{name}: {m}" for m in re.findall(r"default[^()]*\) \(default: [^)]*\)", text)]
+        # Nor does an option left unset by default: its help says what happens then.
+        doubled += [f"{name}: (default: None)" for _ in re.findall(r"\(default: None\)", text)]
     assert not doubled, doubled
 
 

@@ -62,12 +62,13 @@ class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescript
     """Shows defaults and keeps the description's line breaks.
 
     A help text that already says what its default is ("default: the packaged table") gets no
-    second, literal "(default: None)".
+    second one, and an option whose default is ``None`` (not given: its help says what happens)
+    gets no literal "(default: None)".
     """
 
     def _get_help_string(self, action: argparse.Action) -> str | None:
         text = action.help or ""
-        if "default" in text.lower():
+        if "default" in text.lower() or action.default is None:
             return text
         return super()._get_help_string(action)
 
