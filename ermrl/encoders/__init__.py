@@ -44,6 +44,7 @@ def __getattr__(name: str) -> Any:
         return getattr(importlib.import_module(_LAZY[name]), name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
+
 # One line per encoder (and its import above); the first is the reference, which a stored
 # configuration without a ``family`` is read as. The order is the CLI's and the docs'.
 ENCODERS: dict[str, Encoder] = {
