@@ -145,6 +145,17 @@ def test_reevaluation_ranks_on_fresh_seeds_and_the_test_phase_uses_it(tmp_path: 
     chosen, how = select_trial(study)
     assert chosen.number == doc["best_trial"] and how.startswith("re-evaluated best of 2")
     assert "re-evaluated ranking" in out.getvalue()
+    # Each run's line names the evolution trial it re-trains, not its number in the sibling
+    # study (which would read as evolution trials 0 and 1), and so does the best so far.
+    run_lines = [x for x in out.getvalue().splitlines() if x.startswith("[")]
+    candidates = {t.number for t in top_candidates(study, 2)}
+    assert len(run_lines) == 2
+    for line in run_lines:
+        assert line.startswith("[candidate #")
+        named = int(line.split("#")[1].split(" ")[0])
+        best = int(line.split("(#")[1].split(")")[0])
+        assert named in candidates and best in candidates
+    assert f"(#{doc['best_trial']})" in run_lines[-1]
     # An explicit trial wins over the ranking.
     assert select_trial(study, 0)[0].number == 0
     # Running it again re-trains nothing.

@@ -57,7 +57,7 @@ from ermrl.search._objective import (
     evaluate_encoder,
     evaluate_encoders,
 )
-from ermrl.search._progress import best_trial, trial_line
+from ermrl.search._progress import CANDIDATE_ATTR, best_trial, trial_line
 from ermrl.search._pruning import pruning_reporter
 from ermrl.search._signals import SignalGuard
 from ermrl.storage import RetryStaleTrial
@@ -524,11 +524,15 @@ class _Worker:
             self.failed_in_a_row += 1
         counted = n_counted(self.study)
         remaining = max(n_trials - counted, 0)
+        # A re-evaluation run is named by the evolution trial it re-trains.
+        attrs = closed.user_attrs if isinstance(closed, FrozenTrial) else {}
+        candidate = attrs.get(CANDIDATE_ATTR)
         eta = remaining * (sum(self.durations) / len(self.durations))
         say(
             trial_line(
                 self.study, claim.trial.number, claim.params, state, result, note, elapsed,
                 counted=counted, n_trials=n_trials, retry_of=claim.retry_of, eta=eta,
+                candidate=candidate,
             )
         )  # fmt: skip
         for callback in self.callbacks:

@@ -8,6 +8,10 @@ from optuna.trial import TrialState
 from ermrl._progress import duration
 from ermrl.search._objective import FitnessResult
 
+# The user attribute naming the evolution trial a re-evaluation run re-trains (kept here, the
+# lower module, and re-exported by ermrl.search._reevaluate).
+CANDIDATE_ATTR = "candidate"
+
 __all__ = ["best_trial", "fmt_duration", "format_params", "trial_line"]
 
 
@@ -39,8 +43,13 @@ def trial_line(
     n_trials: int,
     retry_of: int | None,
     eta: float,
+    candidate: int | None = None,
 ) -> str:
     """The progress line of a finished trial: its outcome, the study's best and the ETA.
+
+    A re-evaluation run (a trial of the sibling ``<study>.reeval`` study) is named by the
+    evolution trial it re-trains (``[candidate #74 | 1/4]``), and so is the best so far; its own
+    number in the sibling study would read as another evolution trial.
 
     Args:
         study: The study (for its best trial so far).
@@ -54,8 +63,13 @@ def trial_line(
         n_trials: The budget.
         retry_of: The trial it retries, if any.
         eta: Seconds left, estimated.
+        candidate: The evolution trial a re-evaluation run re-trains (``None``: an evolution
+            trial).
     """
     best_value, best_number, _ = best_trial(study)
+    name = f"trial {number}" if candidate is None else f"candidate #{candidate}"
+    if best_number is not None and candidate is not None:
+        best_number = study.best_trial.user_attrs.get(CANDIDATE_ATTR, best_number)
     if state == TrialState.COMPLETE and result is not None:
         outcome = f"fitness {result.fitness:.4g}"
         speed = f"{result.steps_per_second:.0f} steps/s"
@@ -65,6 +79,6 @@ def trial_line(
     best = "-" if best_value is None else f"{best_value:.4g} (#{best_number})"
     retried = "" if retry_of is None else f" | retry of #{retry_of}"
     return (
-        f"[trial {number} | {counted}/{n_trials}{retried}] {format_params(params)} | "
+        f"[{name} | {counted}/{n_trials}{retried}] {format_params(params)} | "
         f"{outcome} | best {best} | {speed} | ETA {fmt_duration(eta)}"
     )

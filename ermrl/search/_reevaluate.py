@@ -35,6 +35,7 @@ from ermrl._progress import ProgressMode
 from ermrl._text import plural
 from ermrl.config import ConfigError, EvolveConfig, Problem
 from ermrl.search._claim import CRASHED_ATTR
+from ermrl.search._progress import CANDIDATE_ATTR
 from ermrl.storage import study_lock
 
 __all__ = [
@@ -51,7 +52,6 @@ __all__ = [
 ]
 
 REEVALUATION_ATTR = "ermrl_reevaluation"
-CANDIDATE_ATTR = "candidate"
 # Re-evaluation seeds start this far above the largest evolution seed, clear of the test phase's
 # default seeds (the five after the largest evolution seed).
 SEED_OFFSET = 1000
