@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -845,6 +846,22 @@ def test_exported_agents_load_and_act_as_in_the_population(normalize: bool, tmp_
         finally:
             env.close()
     population.close()
+
+
+def test_export_does_not_warn_about_a_batch_size_it_never_trains_with(tmp_path: Path) -> None:
+    """The exported model is built on one env; SB3 warns when n_steps x 1 is not a multiple of
+    batch_size, which concerns only training with it (the population trained 4 envs: 192)."""
+    task = TaskConfig("Pendulum-v1", "positions")
+    ppo = ppo_for("Pendulum-v1", n_steps=48, batch_size=64, n_epochs=1)
+    population = PopulationPPO(task, ppo, [PopulationJob(encoder(0), 40)])
+    population.learn(192)
+    model_path = tmp_path / "model.zip"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        population.export(0, model_path)
+    population.close()
+    assert model_path.is_file()
+    assert not [w for w in caught if "mini-batch" in str(w.message)]
 
 
 def test_train_population_saves_the_asked_models(tmp_path: Path) -> None:

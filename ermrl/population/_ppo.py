@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -527,7 +528,13 @@ class PopulationPPO:
             stats = self.envs.normalize_stats(position)
             venv = frozen_normalize_env(venv, stats)
         try:
-            model = learner.build(venv, self.ppo, seed=seeds.agent)
+            with warnings.catch_warnings():
+                # The model only carries the trained weights, on one env: SB3's warning that
+                # n_steps x 1 env is not a multiple of batch_size concerns a training it never does.
+                warnings.filterwarnings(
+                    "ignore", message="You have specified a mini-batch size", category=UserWarning
+                )
+                model = learner.build(venv, self.ppo, seed=seeds.agent)
             model.policy.load_state_dict(self.policy.sb3_state(position))
             model.num_timesteps = self.num_timesteps
             save_trained(model, model_path, stats)
