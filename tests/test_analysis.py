@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -193,6 +194,20 @@ def test_welch_matches_the_formula_and_is_nan_when_undefined() -> None:
     assert (result.ci_low, result.ci_high) == pytest.approx((diff - half, diff + half))
     wide = welch_t_test(a, b, confidence=0.99)
     assert wide.ci_low < result.ci_low and wide.ci_high > result.ci_high
+
+
+def test_welch_against_a_group_at_its_ceiling_is_exact_and_silent() -> None:
+    """Every seed of one agent at the task's ceiling (ppo-full's 500 on CartPole): its variance is
+    0, the other group's carries the test, and nothing warns of precision loss."""
+    ceiling, other = [500.0] * 5, [500.0, 500.0, 447.9, 500.0, 500.0]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        result = welch_t_test(other, ceiling)
+    se = math.sqrt(np.var(other, ddof=1) / 5)
+    assert result.statistic == pytest.approx((np.mean(other) - 500.0) / se)
+    assert result.dof == pytest.approx(4.0)
+    half = stats.t.ppf(0.975, 4.0) * se
+    assert (result.ci_low, result.ci_high) == pytest.approx((-10.42 - half, -10.42 + half))
 
 
 def test_two_seeds_are_flagged_and_welch_is_wider_than_the_bootstrap() -> None:
