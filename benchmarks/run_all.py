@@ -18,6 +18,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks import (  # noqa: E402
     bench_encoder,
+    bench_plan,
     bench_pruning,
     bench_science,
     bench_trial,
@@ -26,6 +27,7 @@ from benchmarks import (  # noqa: E402
 
 BENCHMARKS = {
     "encoder": (bench_encoder.main, [], []),
+    "plan": (bench_plan.main, [], []),
     "trial": (bench_trial.main, [], []),
     "pruning": (bench_pruning.main, [], []),
     "science": (bench_science.main, [], []),

@@ -44,7 +44,7 @@ def test_benchmarks_run_in_quick_mode(tmp_path: Path) -> None:
         timeout=1500,
     )
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    for name in ("encoder", "trial", "pruning", "workers", "science"):
+    for name in ("encoder", "plan", "trial", "pruning", "workers", "science"):
         data = json.loads((tmp_path / f"{name}.json").read_text())
         assert data["machine"]["cpus"] >= 1
     encoder = json.loads((tmp_path / "encoder.json").read_text())["rows"][0]
@@ -56,6 +56,9 @@ def test_benchmarks_run_in_quick_mode(tmp_path: Path) -> None:
     assert encoder["alone_cheaper_x"] == pytest.approx(
         encoder["node_alone_us"] / encoder["ermrl_alone_us"]
     )
+    plan = json.loads((tmp_path / "plan.json").read_text())["rows"]
+    assert [r["variant"] for r in plan][:2] == ["python -c pass", "import ermrl.cli"]
+    assert plan[2]["variant"].startswith("dry-run ") and plan[2]["median_s"] > 0
     assert "target" in proc.stdout  # thresholds are printed, not enforced
     # Long runs report each measurement as it ends (on stderr; stdout keeps the tables).
     assert "HalfCheetah-v5 100 units 8 envs repeat 1/" in proc.stderr
