@@ -11,6 +11,8 @@ STAMP := $(VENV)/.ermrl-installed
 TORCH_SPEC ?= torch==2.13.0
 STORAGE ?= sqlite:///ermrl.db
 PYTEST_ARGS ?=
+# Processes of the default suite (pytest-xdist; a test file stays in one process). 0: one process.
+TEST_WORKERS ?= 2
 
 .PHONY: install system-deps demo test test-slow lint typecheck docs docs-serve cli-docs clean
 
@@ -44,7 +46,7 @@ demo: install
 	@echo "results: runs/demo/summary.csv, runs/demo/learning_curves.png"
 
 test: install
-	$(PY) -m pytest -m "not slow" $(PYTEST_ARGS)
+	$(PY) -m pytest -m "not slow" -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS)
 
 test-slow: install
 	$(PY) -m pytest -m slow $(PYTEST_ARGS)
