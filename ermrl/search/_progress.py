@@ -66,10 +66,16 @@ def trial_line(
         candidate: The evolution trial a re-evaluation run re-trains (``None``: an evolution
             trial).
     """
-    best_value, best_number, _ = best_trial(study)
+    try:
+        top = study.best_trial  # read once: a storage round trip
+    except ValueError:
+        top = None
     name = f"trial {number}" if candidate is None else f"candidate #{candidate}"
-    if best_number is not None and candidate is not None:
-        best_number = study.best_trial.user_attrs.get(CANDIDATE_ATTR, best_number)
+    if top is None:
+        best_value, best_number = None, None
+    else:
+        best_value = top.value
+        best_number = top.number if candidate is None else top.user_attrs.get(CANDIDATE_ATTR)
     if state == TrialState.COMPLETE and result is not None:
         outcome = f"fitness {result.fitness:.4g}"
         speed = f"{result.steps_per_second:.0f} steps/s"
