@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import optuna
@@ -211,3 +212,41 @@ def test_readers_on_an_empty_database_leave_it_empty(
         load_study("X", url)
     open_storage(url)  # workers still create the schema
     assert "studies" in _tables(url)
+
+
+def test_a_reader_waits_for_a_schema_being_created_and_never_stamps_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A reader opened between a worker's CREATE TABLE and its Alembic stamp (a periodic
+    snapshot as an evolution starts) used to stamp the revision itself, outside the schema
+    lock, and the worker then failed on 'UNIQUE constraint failed: alembic_version'. It now
+    waits for the worker's stamp, and says so in one line when none comes."""
+    import threading
+
+    import sqlalchemy
+    from optuna.storages._rdb import models
+
+    import ermrl.storage._open as storage_open
+
+    url = f"sqlite:///{tmp_path / 'half.db'}"
+    engine = sqlalchemy.create_engine(url)
+    models.BaseModel.metadata.create_all(engine)  # a worker's CREATE TABLE, not stamped yet
+    monkeypatch.setattr(storage_open, "SCHEMA_WAIT_S", 0.5)
+    with pytest.raises(StorageError, match="half-made schema"):
+        open_storage(url, mode="read")
+    with engine.connect() as connection:
+        assert not sqlalchemy.inspect(connection).has_table("alembic_version")  # left as it was
+
+    def worker_finishes() -> None:  # the worker's stamp, as RDBStorage writes it
+        time.sleep(0.5)
+        optuna.storages.RDBStorage(url)
+
+    monkeypatch.setattr(storage_open, "SCHEMA_WAIT_S", 30)
+    worker = threading.Thread(target=worker_finishes)
+    worker.start()
+    open_storage(url, mode="read")  # waits for the stamp, then opens
+    worker.join()
+    with engine.connect() as connection:
+        rows = connection.execute(sqlalchemy.text("SELECT * FROM alembic_version")).all()
+    assert len(rows) == 1
+    engine.dispose()

@@ -251,11 +251,16 @@ def test_a_run_finishes_every_stage_then_skips_them_all(tmp_path: Path) -> None:
     assert len(_load(f"sqlite:///{out}/ermrl.db", study.study_name).get_trials()) == 3
 
 
-def _wait_for(predicate, timeout: float, log: Path) -> None:  # noqa: ANN001
+def _wait_for(predicate, timeout: float, log: Path, proc=None) -> None:  # noqa: ANN001
+    """Poll ``predicate``; fail at ``timeout``, or at once when ``proc`` has ended first."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if predicate():
             return
+        if proc is not None and proc.poll() is not None:
+            raise AssertionError(
+                f"the run ended (exit {proc.returncode}) first; log:\n{log.read_text()}"
+            )
         time.sleep(0.2)
     raise AssertionError(f"timed out; log:\n{log.read_text()}")
 
@@ -290,7 +295,7 @@ def test_a_quick_paper_file_survives_kill_9_in_evolution_and_in_the_test(tmp_pat
             return False
 
     proc, log = _start(tmp_path, args, "first.log")
-    _wait_for(running, 300, log)
+    _wait_for(running, 300, log, proc)
     time.sleep(1.0)  # inside the generation's training
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait(10)
@@ -303,7 +308,7 @@ def test_a_quick_paper_file_survives_kill_9_in_evolution_and_in_the_test(tmp_pat
         return len(list(test_dir.glob("*/seed_*/result.json"))) >= 2
 
     proc, log = _start(tmp_path, args, "second.log")
-    _wait_for(some_runs_done, 600, log)
+    _wait_for(some_runs_done, 600, log, proc)
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait(10)
     finished = {p: p.stat().st_mtime_ns for p in test_dir.glob("*/seed_*/result.json")}
@@ -422,8 +427,11 @@ def test_a_run_killed_in_its_test_phase_has_already_published_its_finished_runs(
     doc = {
         **TINY,
         "publish": "published",
+        # 16k steps: each group of runs trains for seconds, several snapshot ticks, so the
+        # check below sees the first group published while the second still trains (at 2048
+        # steps the whole phase could end inside one tick).
         "test": {"agents": ["ppo", "random-res-ppo", "res-ppo"], "seeds": [10, 11, 12],
-                 "training_steps": 2048, "n_procs": 1},
+                 "training_steps": 16384, "n_procs": 1},
     }  # fmt: skip
     path = write(tmp_path, doc)
     runs = tmp_path / "runs" / "tiny" / "Pendulum-v1" / "test" / "agents"
@@ -434,8 +442,8 @@ def test_a_run_killed_in_its_test_phase_has_already_published_its_finished_runs(
         carried = len(list((published / "test" / "agents").glob("*/seed_*/result.json")))
         return carried >= 1 and finished < 9
 
-    proc, log = _start(tmp_path, ["run", str(path), "--snapshot-every", "1"], "run.log")
-    _wait_for(published_mid_test, 600, log)
+    proc, log = _start(tmp_path, ["run", str(path), "--snapshot-every", "0.5"], "run.log")
+    _wait_for(published_mid_test, 600, log, proc)
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait(10)
     # The evolution's study and the finished runs are in the published folder, each run whole.

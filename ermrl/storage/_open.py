@@ -25,6 +25,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import time
 import warnings
 import weakref
 from collections.abc import Iterator
@@ -62,6 +63,8 @@ SQLITE_BUSY_TIMEOUT_S = 60
 DEFAULT_HEARTBEAT_INTERVAL = 60
 DEFAULT_GRACE_PERIOD = 300
 DEFAULT_MAX_RETRY = 3
+# How long a reader waits for a schema another process is creating (seconds).
+SCHEMA_WAIT_S = 30
 
 _log = logging.getLogger("ermrl.storage")
 
@@ -218,10 +221,47 @@ def _open(spec: StorageURL, heartbeat: dict[str, Any], mode: str) -> BaseStorage
             "left so (check --storage)"
         )
     if mode == "read":  # the schema exists: no lock (and no lock file) needed
+        _wait_for_whole_schema(spec, engine_kwargs)
         return optuna.storages.RDBStorage(spec.url, engine_kwargs=engine_kwargs, **heartbeat)
     # Many workers starting at once on a fresh database race on CREATE TABLE: one at a time.
     with storage_lock(spec, "schema"):
         return optuna.storages.RDBStorage(spec.url, engine_kwargs=engine_kwargs, **heartbeat)
+
+
+def _wait_for_whole_schema(
+    spec: StorageURL, engine_kwargs: dict[str, Any], timeout: float | None = None
+) -> None:
+    """Wait until the schema another process is creating is whole (Alembic's revision stamped).
+
+    A reader opened between a worker's CREATE TABLE and its Alembic stamp would stamp the
+    revision itself (``RDBStorage`` does so on a database without one), outside the schema
+    lock, and the worker's own stamp then fails on ``UNIQUE constraint failed:
+    alembic_version.version_num``: a periodic snapshot started with a fresh study stopped its
+    evolution so. A reader never creates anything, so it waits instead.
+    """
+    import sqlalchemy
+
+    timeout = SCHEMA_WAIT_S if timeout is None else timeout
+    deadline = time.monotonic() + timeout
+    while True:
+        engine = sqlalchemy.create_engine(spec.url, **engine_kwargs)
+        try:
+            with engine.connect() as connection:
+                stamped = connection.execute(
+                    sqlalchemy.text("SELECT COUNT(*) FROM alembic_version")
+                ).scalar()
+        except sqlalchemy.exc.DatabaseError:  # the table is not made yet
+            stamped = 0
+        finally:
+            engine.dispose()
+        if stamped:
+            return
+        if time.monotonic() >= deadline:
+            raise StorageError(
+                f"{spec} holds a half-made schema (Optuna's tables without their Alembic "
+                f"revision) after {timeout:g} s: another process may be creating it; try again"
+            )
+        time.sleep(0.2)
 
 
 def _has_optuna_schema(spec: StorageURL, engine_kwargs: dict[str, Any]) -> bool:
