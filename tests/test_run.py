@@ -455,6 +455,7 @@ def test_a_run_killed_in_its_test_phase_has_already_published_its_finished_runs(
             "episodes.csv", "result.json", "settings.json",
         ], run  # fmt: skip
     assert not (published / "test" / "summary.csv").exists()  # the phase did not finish
+    assert (published / "test" / "config.yaml").exists()  # what it trains, for the page
     bad = ermrl(tmp_path, "run", str(path), "--snapshot-every", "-1")
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1, bad.stderr
     assert "--snapshot-every" in bad.stderr
@@ -480,8 +481,12 @@ def test_a_run_with_a_file_too_large_to_publish_is_not_carried(
         (run / "result.json").write_text("{}")
         (run / "policy.pt").write_bytes(b"model")
     (test.folder / "agents" / "ppo" / "seed_11").mkdir()  # unfinished: no result.json
+    (test.folder / "config.yaml").write_text("trial: 7\n")  # written as the phase starts
     monkeypatch.setattr(experiment, "PUBLISH_MAX_BYTES", 1000)
     assert experiment.publish_finished_runs(exp, test) == 1
+    assert (tmp_path / "published" / "Pendulum-v1" / "test" / "config.yaml").read_text() == (
+        "trial: 7\n"
+    )
     dest = tmp_path / "published" / "Pendulum-v1" / "test" / "agents"
     assert sorted(p.name for p in (dest / "ppo" / "seed_10").iterdir()) == [
         "episodes.csv", "result.json", "settings.json",

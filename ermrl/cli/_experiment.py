@@ -1156,7 +1156,8 @@ def publish_finished_runs(exp: Experiment, step: Step) -> int:
 
     A test phase longer than one sitting is carried like an evolution: each finished run's
     plain files (``settings.json``, ``episodes.csv``, ``result.json``; never its model) are
-    copied to ``<publish>/<task>/test/agents/<agent>/seed_<s>/``, and
+    copied to ``<publish>/<task>/test/agents/<agent>/seed_<s>/``, with the phase's
+    ``config.yaml`` (so a page of a phase still running names its selected trial), and
     :func:`restore_finished_runs` puts them back on the next machine, where the test phase
     skips them as it skips any finished run (after checking their settings).
 
@@ -1167,6 +1168,12 @@ def publish_finished_runs(exp: Experiment, step: Step) -> int:
     if exp.publish is None or step.stage != "test" or step.folder is None:
         return 0
     dest = exp.publish / step.label / step.stage
+    config = step.folder / "config.yaml"  # written as the phase starts: its agents, its trial
+    if config.is_file() and config.stat().st_size <= PUBLISH_MAX_BYTES:
+        import shutil
+
+        dest.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(config, dest / config.name)
     return sum(
         _copy_run(run, dest / run.relative_to(step.folder), PUBLISH_MAX_BYTES)
         for run in _run_folders(step.folder)
