@@ -410,3 +410,61 @@ def test_a_crashed_reevaluation_run_is_queued_again_by_the_next_call(tmp_path: P
     doc = reevaluate_study(config, study, url, evaluator_factory=lambda c: stub_fitness())
     assert doc is not None and doc["complete"] and len(doc["candidates"]) == 2
     assert not any(row.get("failed") for row in doc["candidates"])
+
+
+@pytest.mark.parametrize("backend", ["sb3", "population"])
+def test_a_test_phase_trains_once_the_runs_two_agents_share(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, backend: str
+) -> None:
+    """When the selection chose the unevolved reference, res-ppo and random-res-ppo are the
+    same run (the same reservoirs, settings and seed): it is trained once, and both agents'
+    folders hold it, models included, as two trainings would have made them."""
+    import json
+
+    import pandas as pd
+
+    import ermrl.experiments._test_phase as test_phase
+    import ermrl.population as population
+    from ermrl.config import EncoderConfig, PPOConfig, ReservoirParams, TaskConfig
+    from ermrl.experiments import AgentSpec, TestSettings, run_comparison
+
+    trained: list[tuple[str, int]] = []  # (backend, seed) of each run actually trained
+    train_agent = test_phase.train_agent
+    train_population = population.train_population_parallel
+
+    def counting_agent(task, encoder, ppo, budget, seed, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+        trained.append(("sb3", seed))
+        return train_agent(task, encoder, ppo, budget, seed, *args, **kwargs)
+
+    def counting_population(task, ppo, budget, runs, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+        trained.extend(("population", run.seed) for run in runs)
+        return train_population(task, ppo, budget, runs, *args, **kwargs)
+
+    monkeypatch.setattr(test_phase, "train_agent", counting_agent)
+    monkeypatch.setattr(population, "train_population_parallel", counting_population)
+    reference = (ReservoirParams(units=20, sr=1.0, lr=1.0),)
+    ppo = PPOConfig(hyperparams={"n_steps": 128, "batch_size": 64, "n_epochs": 2}, backend=backend)
+    out = tmp_path / "test"
+    stream = io.StringIO()
+    run_comparison(
+        TaskConfig("Pendulum-v1", "positions"),
+        EncoderConfig(reservoirs=reference),
+        ppo,
+        [AgentSpec("random-res-ppo", reference), AgentSpec("res-ppo", reference)],
+        TestSettings(training_steps=256, seeds=(3, 4), out=out),
+        stream=stream,
+    )
+    assert sorted(trained) == [(backend, 3), (backend, 4)]  # two runs trained, not four
+    assert "res-ppo = random-res-ppo" in stream.getvalue()
+    for seed in (3, 4):
+        a, b = (out / "agents" / name / f"seed_{seed}" for name in ("random-res-ppo", "res-ppo"))
+        assert sorted(p.name for p in a.iterdir()) == sorted(p.name for p in b.iterdir())
+        assert (b / "model.zip").is_file() and (b / "policy.pt").is_file()
+        pd.testing.assert_frame_equal(
+            pd.read_csv(a / "episodes.csv"), pd.read_csv(b / "episodes.csv")
+        )
+        record = json.loads((b / "result.json").read_text())
+        assert record["agent"] == "res-ppo" and record["seed"] == seed
+        assert json.loads((b / "settings.json").read_text())["agent"] == "res-ppo"
+    summary = pd.read_csv(out / "summary.csv").set_index("agent")
+    assert summary.loc["res-ppo", "n_seeds"] == 2

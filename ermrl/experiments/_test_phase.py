@@ -27,6 +27,7 @@ import errno
 import json
 import os
 import shlex
+import shutil
 import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -728,7 +729,7 @@ def run_comparison(
     in_populations = sum(1 for job in jobs if job[2][2].backend == "population")
     phase = {"started": time.perf_counter(), "done": 0, "runs": in_populations or total}
 
-    def finished(agent: AgentSpec, seed: int, result: RunResult) -> None:
+    def record(agent: AgentSpec, seed: int, result: RunResult) -> None:
         nonlocal done
         done += 1
         phase["done"] += 1
@@ -751,6 +752,26 @@ def run_comparison(
             f"{result.last_return:.4g} | {result.steps_per_second:.0f} steps/s | "
             f"{result.wall_seconds:.0f}s | ETA {duration(eta)}",
         )
+
+    jobs, twins = _twin_runs(jobs, expected, settings)
+    if twins:
+        names = sorted({f"{t.name} = {a}" for (a, _), ts in twins.items() for t in ts})
+        _say(
+            stream,
+            quiet,
+            f"trained once for both agents of each pair (the same reservoirs and settings): "
+            f"{', '.join(names)}",
+        )
+
+    def finished(agent: AgentSpec, seed: int, result: RunResult) -> None:
+        record(agent, seed, result)
+        for twin in twins.get((agent.name, seed), ()):
+            # The model files (model.zip, policy.pt, normalization stats) for the replay;
+            # record() writes the run's own records.
+            for f in run_dir(out, agent.name, seed).iterdir():
+                if f.is_file() and f.name not in _RECORD_FILES:
+                    shutil.copyfile(f, run_dir(out, twin.name, seed) / f.name)
+            record(twin, seed, result)
 
     jobs = _train_populations(jobs, budget, settings, finished, stream, quiet)
     phase.update(started=time.perf_counter(), done=0, runs=len(jobs))
@@ -776,6 +797,45 @@ def run_comparison(
                 raise
 
     return aggregate(out, [a.name for a in agents], title=task.label)
+
+
+_RECORD_FILES = frozenset({RUN_SETTINGS_FILE, "episodes.csv", "result.json"})
+
+
+def _twin_runs(
+    jobs: list[tuple[AgentSpec, int, tuple[Any, ...]]],
+    expected: Mapping[str, Mapping[str, Any]],
+    settings: TestSettings,
+) -> tuple[list[tuple[AgentSpec, int, tuple[Any, ...]]], dict[tuple[str, int], list[AgentSpec]]]:
+    """The runs to train, and the runs that would repeat one of them exactly.
+
+    Two agents whose runs differ by their name only (``res-ppo`` when the selection chose the
+    unevolved reference: ``random-res-ppo``'s reservoirs) would train the same run twice, bit for
+    bit (a run is a function of its settings and seed). The second, its *twin*, is written from
+    the first one's result instead. Runs logged to TensorBoard or W&B are all trained (each
+    writes its own log).
+
+    Returns:
+        ``(jobs, twins)``: the jobs to train, and per trained ``(agent, seed)`` its twin agents.
+    """
+    if settings.tensorboard is not None or settings.wandb is not None:
+        return jobs, {}
+
+    def key(agent: AgentSpec, seed: int) -> str:
+        doc = {k: v for k, v in expected[agent.name].items() if k != "agent"}
+        return json.dumps({**doc, "seed": seed}, sort_keys=True)
+
+    first: dict[str, tuple[str, int]] = {}
+    kept: list[tuple[AgentSpec, int, tuple[Any, ...]]] = []
+    twins: dict[tuple[str, int], list[AgentSpec]] = {}
+    for agent, seed, args in jobs:
+        k = key(agent, seed)
+        if k in first:
+            twins.setdefault(first[k], []).append(agent)
+        else:
+            first[k] = (agent.name, seed)
+            kept.append((agent, seed, args))
+    return kept, twins
 
 
 def _population_key(args: tuple[Any, ...]) -> str:
