@@ -456,6 +456,10 @@ def test_a_test_phase_trains_once_the_runs_two_agents_share(
     )
     assert sorted(trained) == [(backend, 3), (backend, 4)]  # two runs trained, not four
     assert "res-ppo = random-res-ppo" in stream.getvalue()
+    lines = [line for line in stream.getvalue().splitlines() if line.startswith("[run ")]
+    assert len(lines) == 4
+    if backend == "population":  # one population, so each of its runs' lines: nothing left
+        assert all(line.endswith("ETA 0m00s") for line in lines), lines
     for seed in (3, 4):
         a, b = (out / "agents" / name / f"seed_{seed}" for name in ("random-res-ppo", "res-ppo"))
         assert sorted(p.name for p in a.iterdir()) == sorted(p.name for p in b.iterdir())

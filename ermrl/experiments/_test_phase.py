@@ -724,15 +724,21 @@ def run_comparison(
 
     total = len(jobs)
     done = 0
-    # The ETA counts runs of the current phase only (the populations, then the other runs):
-    # a population trains many runs in the time of one, so one rate for both would mislead.
-    in_populations = sum(1 for job in jobs if job[2][2].backend == "population")
-    phase = {"started": time.perf_counter(), "done": 0, "runs": in_populations or total}
+    # The ETA counts the units of the current phase only: populations (whose runs all finish
+    # at once, so counting their runs read 23 min after the first of 5 runs of a 3-min phase),
+    # then the other runs. _train_populations counts its populations itself.
+    phase: dict[str, Any] = {
+        "started": time.perf_counter(),
+        "done": 0,
+        "units": 1,
+        "per_run": False,
+    }
 
     def record(agent: AgentSpec, seed: int, result: RunResult) -> None:
         nonlocal done
         done += 1
-        phase["done"] += 1
+        if phase["per_run"]:
+            phase["done"] += 1
         extra = {
             "env_id": task.env_id,
             "observe": agent.task(task).observe,  # what this agent saw
@@ -740,11 +746,11 @@ def run_comparison(
         }
         folder = run_dir(out, agent.name, seed)
         # The settings record first: result.json, written last, marks the run as finished.
-        record = {**expected[agent.name], "seed": seed}
-        write_atomic(folder / RUN_SETTINGS_FILE, json.dumps(record, indent=1) + "\n")
+        stored = {**expected[agent.name], "seed": seed}
+        write_atomic(folder / RUN_SETTINGS_FILE, json.dumps(stored, indent=1) + "\n")
         write_run(folder, agent.name, result, extra)
         elapsed = time.perf_counter() - phase["started"]
-        eta = elapsed / phase["done"] * max(phase["runs"] - phase["done"], 0)
+        eta = elapsed / max(phase["done"], 1) * max(phase["units"] - phase["done"], 0)
         _say(
             stream,
             quiet,
@@ -773,8 +779,8 @@ def run_comparison(
                     shutil.copyfile(f, run_dir(out, twin.name, seed) / f.name)
             record(twin, seed, result)
 
-    jobs = _train_populations(jobs, budget, settings, finished, stream, quiet)
-    phase.update(started=time.perf_counter(), done=0, runs=len(jobs))
+    jobs = _train_populations(jobs, budget, settings, finished, stream, quiet, phase)
+    phase.update(started=time.perf_counter(), done=0, units=len(jobs), per_run=True)
     if settings.n_procs == 1 or len(jobs) <= 1:
         for agent, seed, args in jobs:
             finished(agent, seed, _train_job(args))
@@ -854,11 +860,13 @@ def _train_populations(
     finished: Any,
     stream: TextIO | None,
     quiet: bool,
+    phase: dict[str, Any],
 ) -> list[tuple[AgentSpec, int, tuple[Any, ...]]]:
     """Train the runs whose settings ask for the population backend, one population per group
     of runs that can share one (an agent's seeds, and agents alike: res-ppo and random-res-ppo
     train together); returns the other runs. A run that diverged is raised once the others of
-    its population are written."""
+    its population are written. ``phase["done"]`` and ``phase["units"]`` count populations,
+    for the ETA of the runs' lines."""
     from ermrl.population import PopulationJob, train_population_parallel
 
     groups: dict[str, list[tuple[AgentSpec, int, tuple[Any, ...]]]] = {}
@@ -868,6 +876,7 @@ def _train_populations(
             groups.setdefault(_population_key(job[2]), []).append(job)
         else:
             rest.append(job)
+    phase.update(units=len(groups), done=0)
     for group in groups.values():
         task, _, ppo = group[0][2][:3]
         names = sorted({agent.name for agent, _, _ in group})
@@ -893,6 +902,7 @@ def _train_populations(
                 unit="steps each",
             ),
         )
+        phase["done"] += 1  # its runs' lines count it finished
         failure: BaseException | None = None
         for (agent, seed, _), result in zip(group, results):
             if isinstance(result, BaseException):
