@@ -904,3 +904,20 @@ def test_unsupported_settings_are_refused_in_one_line(ppo: PPOConfig) -> None:
 def test_tanh_named_as_the_activation_is_accepted() -> None:
     """SB3's default activation, named in policy_kwargs, is what the population backend trains."""
     check_population_config(ppo_for("Pendulum-v1", policy_kwargs={"activation_fn": "tanh"}))
+
+
+def test_a_progress_total_is_the_steps_whole_rollouts_make() -> None:
+    """A budget that is not a whole number of rollouts is rounded up, as SB3 does: a progress
+    line's total is what the agents make (Pendulum's zoo rollout is 1024 x 4 envs, so 50k steps
+    are 53,248; a line read '53,248/50,000 steps each (100%)')."""
+    from ermrl.population import steps_trained
+
+    assert steps_trained(ppo_for("Pendulum-v1"), 50_000) == 53_248
+    assert steps_trained(ppo_for("Pendulum-v1"), 4096) == 4096
+    task = TaskConfig("Pendulum-v1", "positions")
+    ppo = ppo_for("Pendulum-v1", n_steps=48, batch_size=64, n_epochs=1)
+    assert ppo.n_envs * 48 == 192
+    population = PopulationPPO(task, ppo, [PopulationJob(encoder(0), 40)])
+    population.learn(200)
+    assert population.num_timesteps == steps_trained(ppo, 200) == 384
+    population.close()

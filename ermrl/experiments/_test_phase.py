@@ -867,7 +867,7 @@ def _train_populations(
     train together); returns the other runs. A run that diverged is raised once the others of
     its population are written. ``phase["done"]`` and ``phase["units"]`` count populations,
     for the ETA of the runs' lines."""
-    from ermrl.population import PopulationJob, train_population_parallel
+    from ermrl.population import PopulationJob, steps_trained, train_population_parallel
 
     groups: dict[str, list[tuple[AgentSpec, int, tuple[Any, ...]]]] = {}
     rest = []
@@ -896,7 +896,7 @@ def _train_populations(
             model_paths=[args[6] for _, _, args in group],
             progress=Progress(
                 f"population of {plural(len(group), 'run')} ({', '.join(names)})",
-                budget.training_steps,
+                steps_trained(ppo, budget.training_steps),
                 mode="none" if quiet else settings.progress,
                 stream=stream if min(settings.n_procs, len(group)) == 1 else None,
                 unit="steps each",

@@ -21,6 +21,7 @@ from ermrl.population._ppo import (
     PopulationPPO,
     check_population_config,
     compute_gae,
+    steps_trained,
     train_population,
 )
 
@@ -40,6 +41,7 @@ __all__ = [
     "policy_spec",
     "population_refusal",
     "split_jobs",
+    "steps_trained",
     "train_population",
     "train_population_parallel",
 ]

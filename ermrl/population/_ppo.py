@@ -90,6 +90,13 @@ def _settings(ppo: PPOConfig) -> dict[str, Any]:
     return {**_DEFAULTS, **kwargs}
 
 
+def steps_trained(ppo: PPOConfig, steps: int) -> int:
+    """The env steps each agent makes for a budget of ``steps``: whole rollouts of
+    ``n_steps * n_envs``, as SB3's ``learn`` rounds up (a progress line's total)."""
+    rollout = max(int(_settings(ppo)["n_steps"]) * ppo.n_envs, 1)
+    return -(-int(steps) // rollout) * rollout
+
+
 def check_population_config(ppo: PPOConfig) -> None:
     """Refuse settings the population backend cannot train as SB3 would, in one line.
 

@@ -286,7 +286,7 @@ class SeedRunner:
     ) -> list[RunResult | BaseException]:
         """Train ``jobs`` (:class:`~ermrl.population.PopulationJob`) as one population split
         over ``n_procs`` processes of this runner's pool (the population backend)."""
-        from ermrl.population import split_jobs, train_population_parallel
+        from ermrl.population import split_jobs, steps_trained, train_population_parallel
 
         parts = len(split_jobs(len(jobs), self.n_procs))
         if parts > 1 and (self._pool is None or self.n_processes != parts):
@@ -295,7 +295,7 @@ class SeedRunner:
             self.n_processes = parts
         progress = self.run_progress(
             f"{plural(len(jobs), 'agent')} on {task.label}",
-            budget.training_steps,
+            steps_trained(ppo, budget.training_steps),
             in_process=parts == 1,
             unit="steps each",
         )
