@@ -9,7 +9,6 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.ermrl-installed
 # A CPU build of torch, installed before stable-baselines3 so that pip does not pull a CUDA build.
 TORCH_SPEC ?= torch==2.13.0
-STORAGE ?= sqlite:///ermrl.db
 PYTEST_ARGS ?=
 # Processes of the default suite (pytest-xdist; a test file stays in one process). 0: one process.
 TEST_WORKERS ?= 2
@@ -29,21 +28,13 @@ install: $(STAMP)
 system-deps:
 	bash scripts/install_system_deps.sh
 
-# A small evolution on a partially observable task (Pendulum, velocities hidden), stored in the
-# embedded SQLite database: 10 CMA-ES trials x 2 seeds x 40k steps, the unevolved reference
-# reservoir among them, then the 2 best and the reference re-trained on 2 fresh seeds; then the
-# test phase of the re-evaluated best against PPO and the unevolved reservoir on 3 new seeds.
-# About 4 minutes on 2 cores. Ten trials are too few to leave the box centre (the default start;
-# measured: the demo's best is then the reference itself), so the demo starts at the reference.
-# It names --backend sb3, with which its output in the README was measured; the population
-# backend (the default elsewhere) will take over once the demo's budget is re-measured with it.
+# The demo is an experiment file (experiments/demo.yaml): a small evolution on a partially
+# observable task (Pendulum, velocity hidden) on the population backend, the re-evaluation of its
+# best candidates, the test phase against PPO, PPO on the full observation and the unevolved
+# reservoir on 5 new seeds, and the report. About 4 minutes on 2 cores; rerunning resumes.
 demo: install
-	$(PY) -m ermrl evolve --env-id Pendulum-v1 --observe positions --n-trials 10 --n-seeds 2 \
-		--n-procs 2 --training-steps 40000 --sampler-seed 0 --cma-start reference --reevaluate-top 2 \
-		--reevaluate-seeds 2 --backend sb3 --storage $(STORAGE) --study-name demo
-	$(PY) -m ermrl test --study-name demo --storage $(STORAGE) --training-steps 40000 \
-		--seeds 10 11 12 --n-procs 2 --backend sb3 --out runs/demo
-	@echo "results: runs/demo/summary.csv, runs/demo/learning_curves.png"
+	$(PY) -m ermrl run experiments/demo.yaml
+	@echo "results: runs/demo/Pendulum-v1/test/summary.csv, runs/demo/Pendulum-v1/report/report.html"
 
 test: install
 	$(PY) -m pytest -m "not slow" -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS)

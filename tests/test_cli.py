@@ -74,6 +74,9 @@ def test_test_phase_writes_all_outputs(evolved: tuple[Path, str]) -> None:
     # The study hides velocities, so the defaults include ppo-full.
     assert list(summary["agent"]) == ["ppo", "ppo-full", "res-ppo", "random-res-ppo"]
     assert set(summary["n_seeds"]) == {2}
+    # The printed table leaves out the evaluation columns a run without --eval leaves empty.
+    assert "final_return_mean" in proc.stdout and "eval_return_mean" not in proc.stdout
+    assert "eval_return_mean" in summary.columns
     curves = pd.read_csv(out / "curves.csv")
     assert list(curves.columns) == ["agent", "seed", "env_step", "episode_return"]
     assert set(curves["seed"]) == {10, 11} and len(curves) == 4 * 2 * 2

@@ -511,11 +511,11 @@ def run_test_phase(
 
     summary = run_or_exit(prog, plan.out, run)
     if summary is not None and not args.quiet:
-        print(
-            summary.drop(columns=["seeds"]).to_string(
-                index=False, float_format=lambda v: f"{v:.4g}"
-            )
-        )
+        # Without --eval the evaluation columns are empty: left out of the printed table (they
+        # stay in summary.csv, whose columns do not depend on the options).
+        shown = summary.drop(columns=["seeds"])
+        empty = [c for c in shown.columns if c.startswith("eval_") and shown[c].isna().all()]
+        print(shown.drop(columns=empty).to_string(index=False, float_format=lambda v: f"{v:.4g}"))
     return summary
 
 
