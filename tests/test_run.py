@@ -418,6 +418,7 @@ def test_a_snapshot_carries_an_unfinished_test_phase_to_a_fresh_machine(tmp_path
     ]  # fmt: skip
     assert not list(published.rglob("*.zip")) and not list(published.rglob("*.pt"))
     kept = (published / "ppo" / "seed_10" / "result.json").read_text()
+    replayed = (published / "res-ppo" / "seed_10" / "result.json").read_text()
 
     import shutil
 
@@ -425,13 +426,15 @@ def test_a_snapshot_carries_an_unfinished_test_phase_to_a_fresh_machine(tmp_path
     done = ermrl(tmp_path, "run", str(path))
     assert done.returncode == 0, done.stdout + done.stderr
     assert "restored 1 finished test run of Pendulum-v1" in done.stdout
-    assert "trained again for the report's replay (no model): random-res-ppo seed 10, " \
-        "res-ppo seed 10" in done.stdout  # fmt: skip
+    assert "trained again for the model the report replays, their published results kept: " \
+        "random-res-ppo seed 10, res-ppo seed 10" in done.stdout  # fmt: skip
     assert "[skip] ppo seed 10" in done.stdout
     runs = tmp_path / "runs" / "tiny" / "Pendulum-v1" / "test" / "agents"
     assert (runs / "ppo" / "seed_10" / "result.json").read_text() == kept
     assert len(list(runs.glob("*/seed_*/result.json"))) == 6
     assert (runs / "res-ppo" / "seed_10" / "policy.pt").exists()
+    assert (runs / "res-ppo" / "seed_10" / "result.json").read_text() == replayed
+    assert (runs / "res-ppo" / "seed_10" / "replay-model.json").is_file()
     report = tmp_path / "runs" / "tiny" / "Pendulum-v1" / "report"
     assert list((report / "dynamics").glob("res-ppo_seed10_*")), sorted(report.rglob("*"))
 
@@ -509,6 +512,95 @@ def test_a_run_with_a_file_too_large_to_publish_is_not_carried(
         "episodes.csv", "result.json", "settings.json",
     ]  # fmt: skip
     assert not (dest / "res-ppo").exists() and not (dest / "ppo" / "seed_11").exists()
+
+
+def test_a_run_trained_again_for_its_model_keeps_its_published_result(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A published run has no model, so the run the report replays is trained again on the next
+    machine. Its published records are kept and put back as that training ends: the same seed
+    trained in another population layout returned -662 where the published run had -1136 (H1
+    Pendulum), and that second value silently replaced the first."""
+    import json
+
+    import ermrl.cli._experiment as experiment
+    from ermrl.experiments._results import keep_published_record
+
+    monkeypatch.chdir(tmp_path)
+    path = write(tmp_path, {**TINY, "publish": "published",
+                            "report": {"dynamics": True, "interactive": False, "html": False}})  # fmt: skip
+    exp = load_experiment(path)
+    (test,) = [s for s in experiment_plan(exp, build_agents=False) if s.stage == "test"]
+    assert test.folder is not None and ("res-ppo", 10) in test.replayed
+    published = tmp_path / "published" / "Pendulum-v1" / "test" / "agents"
+    for agent, ret in (("ppo", -1500.0), ("res-ppo", -1136.0)):
+        run = published / agent / "seed_10"
+        run.mkdir(parents=True)
+        (run / "settings.json").write_text(json.dumps({"agent": agent}))
+        (run / "episodes.csv").write_text(f"env_step,episode_return\n200,{ret}\n")
+        (run / "result.json").write_text(json.dumps({"agent": agent, "final_return": ret}))
+
+    assert experiment.restore_finished_runs(exp, test) == (1, [("res-ppo", 10)])
+    target = test.folder / "agents" / "res-ppo" / "seed_10"
+    assert not (target / "result.json").exists()  # to be trained: its model is needed
+    # The new training ends; a periodic snapshot before the records are back publishes nothing
+    # of it.
+    (target / "settings.json").write_text(json.dumps({"agent": "res-ppo"}))
+    (target / "episodes.csv").write_text("env_step,episode_return\n200,-662.0\n")
+    (target / "result.json").write_text(json.dumps({"agent": "res-ppo", "final_return": -662.0}))
+    (target / "model.zip").write_bytes(b"model")
+    experiment.publish_finished_runs(exp, test)
+    assert (
+        json.loads((published / "res-ppo" / "seed_10" / "result.json").read_text())["final_return"]
+        == -1136.0
+    )
+    assert keep_published_record(target) == -1136.0  # what the test phase does as it ends
+    assert json.loads((target / "result.json").read_text())["final_return"] == -1136.0
+    assert "-1136" in (target / "episodes.csv").read_text()
+    assert (target / "model.zip").read_bytes() == b"model"  # the replay's model stays
+    assert json.loads((target / "replay-model.json").read_text())["final_return"] == -662.0
+    assert not (target / "published-record").exists()
+    assert keep_published_record(target) is None  # done once
+    experiment.publish_finished_runs(exp, test)
+    carried = published / "res-ppo" / "seed_10"
+    assert json.loads((carried / "result.json").read_text())["final_return"] == -1136.0
+    assert (carried / "replay-model.json").is_file() and not (carried / "model.zip").exists()
+
+
+def test_the_test_phase_puts_a_kept_record_back_before_its_summary(tmp_path: Path) -> None:
+    """The run trained again for its model ends with its published records back, so the
+    summary, the curves and the page read the published result."""
+    import io
+    import json
+
+    import pandas as pd
+
+    from ermrl.config import EncoderConfig, PPOConfig, ReservoirParams, TaskConfig
+    from ermrl.experiments import AgentSpec, TestSettings, run_comparison
+
+    reservoirs = (ReservoirParams(units=20, sr=0.9, lr=0.5),)
+    kept = tmp_path / "test" / "agents" / "res-ppo" / "seed_3" / "published-record"
+    kept.mkdir(parents=True)
+    (kept / "settings.json").write_text(json.dumps({"agent": "res-ppo"}))
+    (kept / "episodes.csv").write_text("env_step,episode_return\n256,-1.5\n")
+    (kept / "result.json").write_text(
+        json.dumps({"agent": "res-ppo", "seed": 3, "final_return": -1.5})
+    )
+    stream = io.StringIO()
+    summary = run_comparison(
+        TaskConfig("Pendulum-v1", "positions"),
+        EncoderConfig(reservoirs=reservoirs),
+        PPOConfig(hyperparams={"n_steps": 128, "batch_size": 64, "n_epochs": 2}, backend="sb3"),
+        [AgentSpec("res-ppo", reservoirs)],
+        TestSettings(training_steps=256, seeds=(3,), out=tmp_path / "test"),
+        stream=stream,
+    )
+    assert summary.set_index("agent").loc["res-ppo", "final_return_mean"] == -1.5
+    assert "published run's -1.5 kept" in stream.getvalue()
+    run = kept.parent
+    assert (run / "model.zip").is_file() and not kept.exists()
+    assert json.loads((run / "replay-model.json").read_text())["final_return"] != -1.5
+    assert pd.read_csv(tmp_path / "test" / "curves.csv")["episode_return"].tolist() == [-1.5]
 
 
 def test_the_plan_counts_a_snapshots_finished_trials_as_done(

@@ -12,6 +12,7 @@ import numpy as np
 import pandas as pd
 
 __all__ = [
+    "KEPT_RECORD_DIR",
     "RUNS_DIR",
     "RunFolderError",
     "check_run_folder",
@@ -25,6 +26,11 @@ __all__ = [
 ]
 
 RUNS_DIR = "agents"
+#: A run folder's subfolder holding the published records of a run trained again only for the
+#: model the report replays (a published run carries no model): they replace the new training's
+#: records as it ends (:func:`ermrl.experiments._results.keep_published_record`), so a result
+#: once published never changes.
+KEPT_RECORD_DIR = "published-record"
 CURVE_COLUMNS = ["agent", "seed", "env_step", "episode_return"]
 GRID_COLUMNS = ["agent", "env_step", "mean", "std", "sem", "ci95", "n_seeds"]
 CONFIG_FILE = "config.yaml"

@@ -1167,6 +1167,8 @@ def publish_finished_runs(exp: Experiment, step: Step) -> int:
     """
     if exp.publish is None or step.stage != "test" or step.folder is None:
         return 0
+    from ermrl.analysis._results import KEPT_RECORD_DIR
+
     dest = exp.publish / step.label / step.stage
     config = step.folder / "config.yaml"  # written as the phase starts: its agents, its trial
     if config.is_file() and config.stat().st_size <= PUBLISH_MAX_BYTES:
@@ -1177,14 +1179,20 @@ def publish_finished_runs(exp: Experiment, step: Step) -> int:
     return sum(
         _copy_run(run, dest / run.relative_to(step.folder), PUBLISH_MAX_BYTES)
         for run in _run_folders(step.folder)
+        # A run trained again for its model, its published records not yet put back: the
+        # published run stands.
+        if not (run / KEPT_RECORD_DIR / "result.json").is_file()
     )
 
 
 def restore_finished_runs(exp: Experiment, step: Step) -> tuple[int, list[tuple[str, int]]]:
     """Put a test step's published finished runs back in its folder where it lacks them.
 
-    The runs whose models the report replays (``step.replayed``) are not restored: a
-    published run has no model, so they are trained again.
+    The runs whose models the report replays (``step.replayed``) are trained again, a
+    published run having no model; their published records wait in the run folder's
+    ``published-record/`` and replace the new training's as it ends, so the published result
+    stays the result (the same settings and seed in another population layout can return
+    another value: floating-point order).
 
     Returns:
         ``(restored, retrained)``: the number of runs restored, and the ``(agent, seed)``
@@ -1206,7 +1214,12 @@ def restore_finished_runs(exp: Experiment, step: Step) -> tuple[int, list[tuple[
         except ValueError:
             continue
         if key in step.replayed:
-            retrained.append(key)
+            from ermrl.analysis._results import KEPT_RECORD_DIR
+
+            # Trained again for its model; its published records are kept aside and put back
+            # as that training ends (ermrl.experiments.keep_published_record).
+            if _copy_run(run, target / KEPT_RECORD_DIR, PUBLISH_MAX_BYTES):
+                retrained.append(key)
             continue
         restored += _copy_run(run, target, PUBLISH_MAX_BYTES)
     return restored, retrained

@@ -305,7 +305,10 @@ def run_main(argv: Sequence[str] | None = None, prog: str = "ermrl run") -> int:
             if restored or retrained:
                 again = ", ".join(f"{a} seed {s}" for a, s in retrained)
                 if again:
-                    again = f"; trained again for the report's replay (no model): {again}"
+                    again = (
+                        f"; trained again for the model the report replays, their published "
+                        f"results kept: {again}"
+                    )
                 print(
                     f"restored {plural(restored, 'finished test run')} of {step.label} from "
                     f"{exp.publish}/{step.label}/test{again}",

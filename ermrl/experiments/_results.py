@@ -11,8 +11,13 @@ import numpy as np
 import pandas as pd
 
 from ermrl._io import write_atomic
+from ermrl.analysis._results import KEPT_RECORD_DIR
 
-__all__ = ["write_run"]
+__all__ = ["KEPT_RECORD_DIR", "REPLAY_MODEL_FILE", "keep_published_record", "write_run"]
+
+#: What the training for the replay's model gave, written beside the kept records.
+REPLAY_MODEL_FILE = "replay-model.json"
+_RECORDS = ("settings.json", "episodes.csv", "result.json")  # result.json last: marks it finished
 
 
 def write_run(
@@ -49,3 +54,43 @@ def write_run(
     if getattr(result, "phase_steps", None):  # a learner's own split of its env steps
         record["phase_steps"] = result.phase_steps
     write_atomic(folder / "result.json", json.dumps(record, indent=2))
+
+
+def keep_published_record(folder: str | Path) -> float | None:
+    """Put a run's published records back over the ones its new training wrote.
+
+    For a run folder with a :data:`KEPT_RECORD_DIR` (see ``ermrl run``'s restore): its records
+    (``settings.json``, ``episodes.csv``, ``result.json``) replace those just written, the
+    model files stay (the report replays them), and :data:`REPLAY_MODEL_FILE` says what that
+    model's training returned. A run is a function of its settings and seed only up to
+    floating-point order: trained in another population layout its return can differ, so the
+    published one is kept rather than replaced after the fact.
+
+    Returns:
+        The published run's final return, or ``None`` when the folder keeps no record.
+    """
+    import shutil
+
+    folder = Path(folder)
+    kept = folder / KEPT_RECORD_DIR
+    if not (kept / "result.json").is_file():
+        return None
+    new = json.loads((folder / "result.json").read_text())
+    write_atomic(
+        folder / REPLAY_MODEL_FILE,
+        json.dumps(
+            {
+                "note": "the model in this folder was trained again (same settings and seed) "
+                "for the report's replay; the records are the published run's",
+                "final_return": new.get("final_return"),
+                "wall_seconds": new.get("wall_seconds"),
+            },
+            indent=2,
+        ),
+    )
+    for name in _RECORDS:
+        if (kept / name).is_file():
+            shutil.copyfile(kept / name, folder / name)
+    shutil.rmtree(kept)
+    published = json.loads((folder / "result.json").read_text()).get("final_return")
+    return None if published is None else float(published)

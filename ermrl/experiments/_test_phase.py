@@ -79,7 +79,7 @@ from ermrl.config import (
     unevolved_agent,
 )
 from ermrl.encoders import encoder_families, encoder_of_family
-from ermrl.experiments._results import write_run
+from ermrl.experiments._results import keep_published_record, write_run
 
 __all__ = [
     "AGENTS",
@@ -749,13 +749,20 @@ def run_comparison(
         stored = {**expected[agent.name], "seed": seed}
         write_atomic(folder / RUN_SETTINGS_FILE, json.dumps(stored, indent=1) + "\n")
         write_run(folder, agent.name, result, extra)
+        published = keep_published_record(folder)
+        kept = (
+            ""
+            if published is None
+            else f" (the published run's {published:.4g} kept; this training made the model "
+            "the report replays)"
+        )
         elapsed = time.perf_counter() - phase["started"]
         eta = elapsed / max(phase["done"], 1) * max(phase["units"] - phase["done"], 0)
         _say(
             stream,
             quiet,
             f"[run {done}/{total}] {agent.name} seed {seed}: final return "
-            f"{result.last_return:.4g} | {result.steps_per_second:.0f} steps/s | "
+            f"{result.last_return:.4g}{kept} | {result.steps_per_second:.0f} steps/s | "
             f"{result.wall_seconds:.0f}s | ETA {duration(eta)}",
         )
 
