@@ -823,9 +823,9 @@ def _twin_runs(
     """The runs to train, and the runs that would repeat one of them exactly.
 
     Two agents whose runs differ by their name only (``res-ppo`` when the selection chose the
-    unevolved reference: ``random-res-ppo``'s reservoirs) would train the same run twice, bit for
-    bit (a run is a function of its settings and seed). The second, its *twin*, is written from
-    the first one's result instead. Runs logged to TensorBoard or W&B are all trained (each
+    unevolved reference: ``random-res-ppo``'s reservoirs) would train the same run twice, and
+    side by side (the same population, or the same sb3 process layout) bit for bit the same. The
+    second, its *twin*, is written from the first one's result instead. Runs logged to TensorBoard or W&B are all trained (each
     writes its own log).
 
     Returns:
