@@ -159,3 +159,19 @@ def test_the_command_reads_the_paper_files(tmp_path: Path) -> None:
     for name in ("paper-h1", "paper-h2", "paper-h3"):
         assert name in text
     assert (tmp_path / "r.html").exists()
+
+
+def test_a_selected_reference_makes_the_evolution_clause_say_so() -> None:
+    """When the selection chose the unevolved reference, res-ppo and random-res-ppo are the
+    same runs: the page says the difference is 0 by construction, not 'inside the noise' with
+    unpaired CIs of [-420, +416] around two copies of one sample (H1 Pendulum)."""
+    same = [-1136.0, -150.0, -600.0, -300.0, -364.0]
+    data = runs({"res-ppo": same, "random-res-ppo": same, "ppo": [-1100.0, -1150.0, -1200.0,
+                                                                   -1120.0, -1140.0]})  # fmt: skip
+    comparison = compare_agents(data, "res-ppo", ["ppo", "random-res-ppo"])
+    _, plain = verdict(comparison)
+    assert "inside the noise" in plain
+    word, why = verdict(comparison, reference_selected=True)
+    assert word == "reproduced"
+    assert "0 by construction" in why and "unevolved reference itself" in why
+    assert "res-ppo − random-res-ppo = +0" not in why

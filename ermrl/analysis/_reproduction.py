@@ -80,8 +80,12 @@ def _row(comparison: pd.DataFrame, baseline: str) -> dict[str, Any] | None:
     return None if rows.empty else rows.iloc[0].to_dict()
 
 
-def verdict(comparison: pd.DataFrame) -> tuple[str, str]:
+def verdict(comparison: pd.DataFrame, reference_selected: bool = False) -> tuple[str, str]:
     """The verdict on ``res-ppo > ppo`` and what evolution adds, each as ``(word, reason)``.
+
+    ``reference_selected``: the selection chose the unevolved reference itself, so ``res-ppo``
+    and ``random-res-ppo`` are the same runs and their difference is 0 by construction (its
+    unpaired CIs, which resample the two copies independently, say nothing then).
 
     Returns:
         ``(verdict, reason)`` where verdict is ``reproduced``, ``partly`` or ``not reproduced``.
@@ -101,7 +105,12 @@ def verdict(comparison: pd.DataFrame) -> tuple[str, str]:
     if vs_ppo.get("few_seeds"):
         why += f" (fewer than {FEW_SEEDS} seeds per agent: the CIs are unreliable)"
     vs_random = _row(comparison, "random-res-ppo")
-    if vs_random is not None:
+    if vs_random is not None and reference_selected:
+        why += (
+            "; res-ppo − random-res-ppo = 0 by construction: the selection chose the unevolved "
+            "reference itself (the same runs), so evolution added nothing measurable here"
+        )
+    elif vs_random is not None:
         r_lows = [vs_random["boot_ci_low"], vs_random.get("welch_ci_low", math.nan)]
         r_highs = [vs_random["boot_ci_high"], vs_random.get("welch_ci_high", math.nan)]
         if all(math.isfinite(v) and v > 0 for v in r_lows):
@@ -184,10 +193,14 @@ def task_result(folder: Path, label: str, n_trials: int, snapshot: Path) -> Task
     config = test / "config.yaml"
     if config.exists():
         doc = yaml.safe_load(config.read_text()) or {}
+        agents = doc.get("agents") or {}
         selection = {
             "trial": doc.get("trial"),
             "selection": doc.get("selection"),
-            "reservoirs": (doc.get("agents") or {}).get(EVOLVED),
+            "reservoirs": agents.get(EVOLVED),
+            # The evolved agent's reservoirs are the unevolved one's: the reference won.
+            "reference": bool(agents.get(EVOLVED))
+            and agents.get(EVOLVED) == agents.get("random-res-ppo"),
         }
     return TaskResult(
         label, folder, runs, comparison, _snapshot_evolution(snapshot, n_trials), selection
@@ -226,6 +239,10 @@ def _comparison_table(comparison: pd.DataFrame) -> pd.DataFrame:
     cols["few_seeds"] = f"< {FEW_SEEDS} seeds"
     present = [c for c in cols if c in comparison]
     return comparison[present].rename(columns=cols)
+
+
+def _reference_selected(result: TaskResult) -> bool:
+    return bool(result.selection.get("reference"))
 
 
 def _reservoir_text(selection: dict[str, Any]) -> str:
@@ -332,7 +349,7 @@ def write_reproduction_page(
             results.append(result)
             _task_section(section, result, out.parent, task.evolved_on)
         tested = [r for r in results if r.tested]
-        words = [verdict(r.comparison)[0] for r in tested]
+        words = [verdict(r.comparison, _reference_selected(r))[0] for r in tested]
         if not tested:
             overall = "not run yet"
         elif all(w == "reproduced" for w in words):
@@ -388,7 +405,7 @@ def _task_section(doc: Any, result: TaskResult, docs_dir: Path, evolve_label: st
     if not result.tested:
         doc.p(f"**Verdict: not run yet.** {evolution_text} The test phase has not run.")
         return
-    word, why = verdict(result.comparison)
+    word, why = verdict(result.comparison, _reference_selected(result))
     doc.p(f"**Verdict: {word}.** {why}.")
     doc.p(evolution_text + f" Selected reservoir: {_reservoir_text(result.selection)}.")
     doc.table(_agents_table(result.runs))
