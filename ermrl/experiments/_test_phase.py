@@ -79,7 +79,7 @@ from ermrl.config import (
     unevolved_agent,
 )
 from ermrl.encoders import encoder_families, encoder_of_family
-from ermrl.experiments._results import keep_published_record, write_run
+from ermrl.experiments._results import REPLAY_MODEL_FILE, keep_published_record, write_run
 
 __all__ = [
     "AGENTS",
@@ -812,7 +812,8 @@ def run_comparison(
     return aggregate(out, [a.name for a in agents], title=task.label)
 
 
-_RECORD_FILES = frozenset({RUN_SETTINGS_FILE, "episodes.csv", "result.json"})
+# A run's own records (written for each run), not copied from one twin to the other.
+_RECORD_FILES = frozenset({RUN_SETTINGS_FILE, "episodes.csv", "result.json", REPLAY_MODEL_FILE})
 
 
 def _twin_runs(
@@ -824,9 +825,9 @@ def _twin_runs(
 
     Two agents whose runs differ by their name only (``res-ppo`` when the selection chose the
     unevolved reference: ``random-res-ppo``'s reservoirs) would train the same run twice, and
-    side by side (the same population, or the same sb3 process layout) bit for bit the same. The
-    second, its *twin*, is written from the first one's result instead. Runs logged to TensorBoard or W&B are all trained (each
-    writes its own log).
+    side by side (the same population, or the same sb3 process layout) bit for bit the same.
+    The second, its *twin*, is written from the first one's result instead. Runs logged to
+    TensorBoard or W&B are all trained (each writes its own log).
 
     Returns:
         ``(jobs, twins)``: the jobs to train, and per trained ``(agent, seed)`` its twin agents.
