@@ -1200,6 +1200,8 @@ def restore_finished_runs(exp: Experiment, step: Step) -> tuple[int, list[tuple[
     """
     if exp.publish is None or step.stage != "test" or step.folder is None:
         return 0, []
+    from ermrl.analysis._results import KEPT_RECORD_DIR
+
     source = exp.publish / step.label / step.stage
     if source.resolve() == step.folder.resolve():
         return 0, []
@@ -1214,8 +1216,6 @@ def restore_finished_runs(exp: Experiment, step: Step) -> tuple[int, list[tuple[
         except ValueError:
             continue
         if key in step.replayed:
-            from ermrl.analysis._results import KEPT_RECORD_DIR
-
             # Trained again for its model; its published records are kept aside and put back
             # as that training ends (ermrl.experiments.keep_published_record).
             if _copy_run(run, target / KEPT_RECORD_DIR, PUBLISH_MAX_BYTES):

@@ -243,25 +243,27 @@ def _wait_for_whole_schema(
 
     timeout = SCHEMA_WAIT_S if timeout is None else timeout
     deadline = time.monotonic() + timeout
-    while True:
-        engine = sqlalchemy.create_engine(spec.url, **engine_kwargs)
-        try:
-            with engine.connect() as connection:
-                stamped = connection.execute(
-                    sqlalchemy.text("SELECT COUNT(*) FROM alembic_version")
-                ).scalar()
-        except sqlalchemy.exc.DatabaseError:  # the table is not made yet
-            stamped = 0
-        finally:
-            engine.dispose()
-        if stamped:
-            return
-        if time.monotonic() >= deadline:
-            raise StorageError(
-                f"{spec} holds a half-made schema (Optuna's tables without their Alembic "
-                f"revision) after {timeout:g} s: another process may be creating it; try again"
-            )
-        time.sleep(0.2)
+    engine = sqlalchemy.create_engine(spec.url, **engine_kwargs)
+    try:
+        while True:
+            try:
+                with engine.connect() as connection:
+                    stamped = connection.execute(
+                        sqlalchemy.text("SELECT COUNT(*) FROM alembic_version")
+                    ).scalar()
+            except sqlalchemy.exc.DatabaseError:  # the table is not made yet
+                stamped = 0
+            if stamped:
+                return
+            if time.monotonic() >= deadline:
+                raise StorageError(
+                    f"{spec} holds a half-made schema (Optuna's tables without their Alembic "
+                    f"revision) after {timeout:g} s: another process may be creating it; "
+                    "try again"
+                )
+            time.sleep(0.2)
+    finally:
+        engine.dispose()
 
 
 def _has_optuna_schema(spec: StorageURL, engine_kwargs: dict[str, Any]) -> bool:
