@@ -20,14 +20,21 @@ and of its largest worker (RUSAGE_CHILDREN gives the largest descendant, not a s
 total is estimated as parent + workers x largest worker. The population backend's time breakdown
 (env, reservoir, policy, update, total) is summed over its processes (process-seconds).
 
-Targets (population / sb3 env steps per second): >= 6x HalfCheetah-v5, >= 4x Hopper-v5, >= 5x
-Pendulum-v1.
+A third row per task, ``physics``, is the limit the population backend can approach: the same
+envs (the population's :class:`~ermrl.population.PopulationEnvs`, one per part of the same
+``split_jobs`` layout, in the same ``spawn`` pool) stepped for the same number of env steps with a
+fixed action (the middle of a Box's bounds; action 0 of a Discrete space), with no reservoir, no
+normalization, no policy and no update. ``population / physics`` is the share of that limit the
+whole backend reaches, start-up included on both sides.
+
+Targets (population / sb3 env steps per second): >= 8x HalfCheetah-v5, >= 5x Hopper-v5, >= 7x
+Pendulum-v1, >= 4x CartPole-v1; population / physics >= 50% on HalfCheetah-v5.
 
 Outputs under ``--out`` (default benchmarks/results/backends): ``backends.csv`` (one row per task
 and backend), ``backends.md`` (the table printed at the end) and ``backends.json`` (rows,
 candidates, machine).
 
-    python benchmarks/bench_backends.py            # 4 tasks x 24 runs x 16384 steps, ~15 min on 2 cores
+    python benchmarks/bench_backends.py            # 4 tasks x 24 runs x 16384 steps, ~17 min on 2 cores
     python benchmarks/bench_backends.py --quick    # smoke test: 2 candidates x 1 seed x 2048 steps
 """
 
@@ -54,7 +61,9 @@ DEFAULT_TASKS = (
     "CartPole-v1:positions",
 )
 BACKENDS = ("sb3", "population")
-TARGETS = {"HalfCheetah-v5": 6.0, "Hopper-v5": 4.0, "Pendulum-v1": 5.0}
+MEASURED = (*BACKENDS, "physics")
+TARGETS = {"HalfCheetah-v5": 8.0, "Hopper-v5": 5.0, "Pendulum-v1": 7.0, "CartPole-v1": 4.0}
+PHYSICS_TARGETS = {"HalfCheetah-v5": 0.5}
 TIMING_KEYS = ("env", "reservoir", "policy", "update", "total")
 
 
@@ -92,6 +101,47 @@ def _peak_rss_mb() -> tuple[float, float]:
     return own, children
 
 
+def _physics_part(task: Any, n_agents: int, n_envs: int, iterations: int) -> int:
+    """Step ``n_agents x n_envs`` population envs ``iterations`` times with a fixed action."""
+    import numpy as np
+    from gymnasium import spaces
+
+    from ermrl.population import PopulationEnvs
+
+    envs = PopulationEnvs(task, n_envs, [1000 * p for p in range(n_agents)])
+    space = envs.action_space
+    if isinstance(space, spaces.Box):
+        action = (space.low + space.high) / 2.0
+        actions = np.broadcast_to(action, (n_agents, n_envs, *space.shape)).copy()
+    else:
+        actions = np.zeros((n_agents, n_envs), np.int64)
+    envs.reset()
+    for _ in range(iterations):
+        envs.step(actions)
+    envs.close()
+    return n_agents * n_envs * iterations
+
+
+def measure_physics(
+    task: Any, ppo: Any, budget: Any, n_runs: int, n_procs: int
+) -> tuple[float, int, int]:
+    """(wall s, env steps, processes) of the physics limit: the population's env layout only."""
+    from ermrl.agents._pool import training_pool
+    from ermrl.population import split_jobs, steps_trained
+
+    iterations = steps_trained(ppo, budget.training_steps) // ppo.n_envs
+    parts = split_jobs(n_runs, n_procs)
+    start = time.perf_counter()
+    if len(parts) == 1:
+        steps = _physics_part(task, n_runs, ppo.n_envs, iterations)
+    else:
+        with training_pool(len(parts)) as pool:
+            futures = [pool.submit(_physics_part, task, len(part), ppo.n_envs, iterations)
+                       for part in parts]  # fmt: skip
+            steps = sum(f.result() for f in futures)
+    return time.perf_counter() - start, steps, len(parts)
+
+
 def measure_one(args: argparse.Namespace) -> dict[str, Any]:
     """Train the generation on one task with one backend, in this (fresh) process."""
     from ermrl.agents import resolve_ppo_config
@@ -103,13 +153,17 @@ def measure_one(args: argparse.Namespace) -> dict[str, Any]:
     runs = [(enc, seed) for _, enc in candidates(args.candidates, args.sampler_seed)
             for seed in range(args.seeds)]  # fmt: skip
     timings: dict[str, float] = dict.fromkeys(TIMING_KEYS, 0.0)
-    if args._one == "sb3":
+    results: list[Any] = []
+    steps = 0
+    if args._one == "physics":
+        wall, steps, processes = measure_physics(task, ppo, budget, len(runs), args.n_procs)
+    elif args._one == "sb3":
         from ermrl.search import SeedRunner
 
         start = time.perf_counter()
         runner = SeedRunner(args.n_procs)
         try:
-            results: list[Any] = runner.map([(task, enc, ppo, budget, s) for enc, s in runs])
+            results = runner.map([(task, enc, ppo, budget, s) for enc, s in runs])
         finally:
             runner.close()
         wall = time.perf_counter() - start
@@ -130,7 +184,7 @@ def measure_one(args: argparse.Namespace) -> dict[str, Any]:
             for k, v in zip(TIMING_KEYS, values):
                 timings[k] += v
     ok = [r for r in results if not isinstance(r, BaseException)]
-    steps = sum(r.env_steps for r in ok)
+    steps = steps or sum(r.env_steps for r in ok)
     own, worker = _peak_rss_mb()
     n_workers = processes if processes > 1 else 0
     return {
@@ -142,7 +196,7 @@ def measure_one(args: argparse.Namespace) -> dict[str, Any]:
         "wall_s": wall,
         "env_steps": steps,
         "steps_per_s": steps / wall,
-        "mean_last_return": sum(r.last_return for r in ok) / max(1, len(ok)),
+        "mean_last_return": sum(r.last_return for r in ok) / len(ok) if ok else float("nan"),
         **{f"{k}_s": timings[k] for k in TIMING_KEYS},
         "rss_parent_mb": own,
         "rss_worker_max_mb": worker,
@@ -169,22 +223,30 @@ def summary(rows: list[dict[str, Any]]) -> str:
     by = {(r["task"], r["backend"]): r for r in rows}
     lines = [
         "| task | backend | wall (s) | env steps | steps/s | population / sb3 | target "
+        "| population / physics | target "
         "| env / reservoir / policy / update / total (process-s) | peak RSS parent / worker / tree est. (MB) |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
-        ratio, target = "", ""
+        ratio, target, share, share_target = "", "", "", ""
+        env_id = r["task"].split("[")[0]
         if r["backend"] == "population" and (r["task"], "sb3") in by:
             x = r["steps_per_s"] / by[(r["task"], "sb3")]["steps_per_s"]
             ratio = f"**{x:.2f}x**"
-            goal = TARGETS.get(r["task"].split("[")[0])
+            goal = TARGETS.get(env_id)
             if goal is not None:
                 target = f">= {goal:g}x {'met' if x >= goal else 'NOT met'}"
+        if r["backend"] == "population" and (r["task"], "physics") in by:
+            f = r["steps_per_s"] / by[(r["task"], "physics")]["steps_per_s"]
+            share = f"**{f:.0%}**"
+            goal = PHYSICS_TARGETS.get(env_id)
+            if goal is not None:
+                share_target = f">= {goal:.0%} {'met' if f >= goal else 'NOT met'}"
         breakdown = (" / ".join(f"{r[f'{k}_s']:.1f}" for k in TIMING_KEYS)
                      if r["backend"] == "population" else "")  # fmt: skip
         lines.append(
             f"| {r['task']} | {r['backend']} | {r['wall_s']:.1f} | {r['env_steps']} "
-            f"| {r['steps_per_s']:.0f} | {ratio} | {target} | {breakdown} "
+            f"| {r['steps_per_s']:.0f} | {ratio} | {target} | {share} | {share_target} | {breakdown} "
             f"| {r['rss_parent_mb']:.0f} / {r['rss_worker_max_mb']:.0f} / {r['rss_tree_est_mb']:.0f} |"
         )
     return "\n".join(lines)
@@ -205,7 +267,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--n-procs", type=int, default=2, help="processes per backend (2)")
     parser.add_argument("--sampler-seed", type=int, default=0, help="CMA-ES seed (0)")
     parser.add_argument("--out", default="benchmarks/results/backends", help="results folder")
-    parser.add_argument("--_one", choices=BACKENDS, help=argparse.SUPPRESS)
+    parser.add_argument("--_one", choices=MEASURED, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     args.candidates = args.candidates or (2 if args.quick else 8)
     args.seeds = args.seeds or (1 if args.quick else 3)
@@ -216,9 +278,9 @@ def main(argv: list[str] | None = None) -> int:
 
     rows = []
     for i, task in enumerate(args.tasks):
-        order = BACKENDS if i % 2 == 0 else BACKENDS[::-1]  # alternate who runs first
+        order = MEASURED if i % 2 == 0 else MEASURED[::-1]  # alternate who runs first
         measured = {b: run_child(args, task, b) for b in order}
-        rows += [measured[b] for b in BACKENDS]
+        rows += [measured[b] for b in MEASURED]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     with (out / "backends.csv").open("w", newline="") as fh:

@@ -1,7 +1,8 @@
 """Calibration: do the ``sb3`` and ``population`` backends learn equally well?
 
-For a fixed reservoir (the unevolved reference, reservoirpy's defaults: ``EncoderConfig()``), each
-task is trained on seeds 0..N-1 under both backends (``SeedRunner(n_procs).map`` for ``sb3``,
+For a fixed reservoir (the unevolved reference, reservoirpy's defaults: ``EncoderConfig()``; a
+task written ``ENV_ID:observe@rtu`` uses the unevolved RTU layer instead, the paper's
+initialization ranges: ``RTUSpace().default_reservoirs()``), each task is trained on seeds 0..N-1 under both backends (``SeedRunner(n_procs).map`` for ``sb3``,
 ``train_population_parallel(..., n_procs)`` for ``population``), with the packaged PPO settings
 (``resolve_ppo_config``) and ``BudgetConfig(fitness="eval")``, which gives both measures: ``last``
 (mean of the last 10 training episodes) and ``eval`` (mean of 5 deterministic episodes).
@@ -17,7 +18,7 @@ printed at the end). Resumable: runs already in ``runs.csv`` (same task, backend
 skipped, so an interrupted run continues where it stopped; rows are written after each (task,
 backend) batch. Use a new ``--out`` when changing ``--training-steps`` or ``--reservoir``.
 
-    python benchmarks/calibrate_backends.py           # 3 tasks x 10 seeds x 100k steps, ~30 min on 2 cores
+    python benchmarks/calibrate_backends.py           # 4 tasks x 10 seeds x 100k steps, ~40 min on 2 cores
     python benchmarks/calibrate_backends.py --quick   # smoke test: 2 seeds x 4096 steps
 """
 
@@ -33,24 +34,44 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-DEFAULT_TASKS = ("HalfCheetah-v5:velocities", "Pendulum-v1:positions", "CartPole-v1:positions")
+DEFAULT_TASKS = (
+    "HalfCheetah-v5:velocities",
+    "Pendulum-v1:positions",
+    "CartPole-v1:positions",
+    "Pendulum-v1:positions@rtu",
+)
+ENCODERS = ("esn", "rtu")
 BACKENDS = ("sb3", "population")
 FIELDS = ("task", "backend", "seed", "last_return", "eval_return", "wall_seconds", "error")
 MEASURES = ("last", "eval")
 
 
 def parse_task(spec: str):  # noqa: ANN201
-    """``ENV_ID[:observe]`` -> TaskConfig (observe: all, positions or velocities)."""
+    """``ENV_ID[:observe][@encoder]`` -> (TaskConfig, encoder name, label); observe: all,
+    positions or velocities; encoder: esn (default) or rtu."""
     from ermrl.config import TaskConfig
 
-    env_id, _, observe = spec.partition(":")
-    return TaskConfig(env_id, observe or "all")
+    task_spec, _, encoder = spec.partition("@")
+    if encoder and encoder not in ENCODERS:
+        raise SystemExit(f"calibrate_backends.py: unknown encoder {encoder!r} in {spec!r}; "
+                         f"choose one of {ENCODERS}")  # fmt: skip
+    env_id, _, observe = task_spec.partition(":")
+    task = TaskConfig(env_id, observe or "all")
+    encoder = encoder or "esn"
+    return task, encoder, task.label if encoder == "esn" else f"{task.label} {encoder}"
 
 
-def reservoir(spec: str | None):  # noqa: ANN201
-    """``None``: the reference ``EncoderConfig()``; else ``sr,lr,input_scaling`` (100 units)."""
+def reservoir(spec: str | None, encoder: str = "esn"):  # noqa: ANN201
+    """``None``: the reference ``EncoderConfig()`` (``rtu``: the unevolved RTU layer); else
+    ``sr,lr,input_scaling`` (a 100-unit ESN)."""
     from ermrl.config import EncoderConfig, ReservoirParams
 
+    if encoder == "rtu":
+        if spec is not None:
+            raise SystemExit("calibrate_backends.py: --reservoir sets an ESN, not an @rtu task")
+        from ermrl.encoders import RTUSpace
+
+        return EncoderConfig(reservoirs=RTUSpace().default_reservoirs())
     if spec is None:
         return EncoderConfig()
     sr, lr, scaling = (float(x) for x in spec.split(","))
@@ -60,7 +81,7 @@ def reservoir(spec: str | None):  # noqa: ANN201
 
 
 def train(
-    backend: str, task: Any, encoder: Any, seeds: list[int], steps: int, n_procs: int
+    backend: str, task: Any, label: str, encoder: Any, seeds: list[int], steps: int, n_procs: int
 ) -> list[dict]:
     """Train ``seeds`` with one backend; one CSV row per seed (failures get ``error``)."""
     from ermrl.agents import resolve_ppo_config
@@ -80,7 +101,7 @@ def train(
         results = train_population_parallel(task, ppo, budget, jobs, n_procs=n_procs)
     rows = []
     for seed, r in zip(seeds, results):
-        row = {"task": task.label, "backend": backend, "seed": seed}
+        row = {"task": label, "backend": backend, "seed": seed}
         if isinstance(r, BaseException):
             rows.append({**row, "last_return": math.nan, "eval_return": math.nan,
                          "wall_seconds": math.nan, "error": f"{type(r).__name__}: {r}"})  # fmt: skip
@@ -147,7 +168,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--quick", action="store_true", help="smoke test: 2 seeds x 4096 steps")
     parser.add_argument("--tasks", nargs="+", default=list(DEFAULT_TASKS),
-                        help="ENV_ID[:all|positions|velocities] (default: %(default)s)")  # fmt: skip
+                        help="ENV_ID[:all|positions|velocities][@esn|@rtu] (default: %(default)s)")  # fmt: skip
     parser.add_argument("--seeds", type=int, default=None, help="seeds 0..N-1 per backend (10)")
     parser.add_argument("--training-steps", type=int, default=None,
                         help="training steps per run (100000)")  # fmt: skip
@@ -161,25 +182,26 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     path = out / "runs.csv"
-    encoder = reservoir(args.reservoir)
-
     tasks = [parse_task(t) for t in args.tasks]
-    for task in tasks:
+    encoders = {name: reservoir(args.reservoir, name) for _, name, _ in tasks}
+    for task, name, label in tasks:
         for backend in BACKENDS:
             done = {int(r["seed"]) for r in read_runs(path)
-                    if r["task"] == task.label and r["backend"] == backend}  # fmt: skip
+                    if r["task"] == label and r["backend"] == backend}  # fmt: skip
             todo = [s for s in range(n_seeds) if s not in done]
             if not todo:
                 continue
-            print(f"{task.label} {backend}: {len(todo)} seeds ...", file=sys.stderr, flush=True)
+            print(f"{label} {backend}: {len(todo)} seeds ...", file=sys.stderr, flush=True)
             start = time.perf_counter()
-            append_runs(path, train(backend, task, encoder, todo, steps, args.n_procs))
-            print(f"{task.label} {backend}: {time.perf_counter() - start:.1f} s",
+            rows = train(backend, task, label, encoders[name], todo, steps, args.n_procs)
+            append_runs(path, rows)
+            print(f"{label} {backend}: {time.perf_counter() - start:.1f} s",
                   file=sys.stderr, flush=True)  # fmt: skip
 
     runs = [r for r in read_runs(path) if int(r["seed"]) < n_seeds]
-    md = compare(runs, [t.label for t in tasks])
-    header = (f"Reservoir: {encoder.reservoirs}\nSeeds 0..{n_seeds - 1}, {steps} training steps, "
+    md = compare(runs, [label for _, _, label in tasks])
+    used = "\n".join(f"Reservoir ({name}): {enc.reservoirs}" for name, enc in encoders.items())
+    header = (f"{used}\nSeeds 0..{n_seeds - 1}, {steps} training steps, "
               f"--n-procs {args.n_procs}\n")  # fmt: skip
     (out / "summary.md").write_text(header + "\n" + md + "\n")
     print(header)

@@ -116,24 +116,36 @@ def test_the_backend_benchmarks_run_in_quick_mode(tmp_path: Path) -> None:
     run("bench_backends.py", "--tasks", "Pendulum-v1:positions", "--out", str(tmp_path / "b"))
     with (tmp_path / "b" / "backends.csv").open() as fh:
         rows = {r["backend"]: r for r in csv.DictReader(fh)}
-    assert set(rows) == {"sb3", "population"}
-    assert rows["sb3"]["env_steps"] == rows["population"]["env_steps"]
+    assert set(rows) == {"sb3", "population", "physics"}
+    # The physics limit steps the same envs as often as either backend trains them.
+    assert (
+        rows["sb3"]["env_steps"] == rows["population"]["env_steps"] == rows["physics"]["env_steps"]
+    )
+    assert rows["physics"]["processes"] == rows["population"]["processes"]
     assert all(float(r["steps_per_s"]) > 0 and r["failed"] == "0" for r in rows.values())
     # The population's time breakdown is measured, and its parts add up to at most its total.
     parts = sum(
         float(rows["population"][k]) for k in ("env_s", "reservoir_s", "policy_s", "update_s")
     )
     assert 0 < parts <= float(rows["population"]["total_s"]) * 1.001
-    assert "population / sb3" in (tmp_path / "b" / "backends.md").read_text()
+    md = (tmp_path / "b" / "backends.md").read_text()
+    assert "population / sb3" in md and "population / physics" in md
+    assert ">= 7x" in md  # Pendulum's target
 
-    run("calibrate_backends.py", "--tasks", "CartPole-v1:positions", "--out", str(tmp_path / "c"))
+    run("calibrate_backends.py", "--tasks", "CartPole-v1:positions", "CartPole-v1:positions@rtu",
+        "--out", str(tmp_path / "c"))  # fmt: skip
     with (tmp_path / "c" / "runs.csv").open() as fh:
         runs = list(csv.DictReader(fh))
-    assert sorted((r["backend"], r["seed"]) for r in runs) == [
-        ("population", "0"), ("population", "1"), ("sb3", "0"), ("sb3", "1")
-    ]  # fmt: skip
+    assert sorted((r["task"], r["backend"], r["seed"]) for r in runs) == [
+        (task, backend, seed)
+        for task in ("CartPole-v1[positions]", "CartPole-v1[positions] rtu")
+        for backend in ("population", "sb3")
+        for seed in ("0", "1")
+    ]
     assert all(r["last_return"] and not r["error"] for r in runs)
-    assert "Mann-Whitney" in (tmp_path / "c" / "summary.md").read_text()
+    summary = (tmp_path / "c" / "summary.md").read_text()
+    assert "Mann-Whitney" in summary and "| CartPole-v1[positions] rtu | last |" in summary
+    assert "Reservoir (rtu): (RTUParams(" in summary
 
 
 @pytest.mark.slow
