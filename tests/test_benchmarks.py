@@ -149,6 +149,34 @@ def test_the_backend_benchmarks_run_in_quick_mode(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
+def test_the_startup_benchmark_times_each_phase_of_a_fresh_worker(tmp_path: Path) -> None:
+    """bench_startup starts a real spawn pool and reports each phase before the first step."""
+    out = tmp_path / "startup.json"
+    proc = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "benchmarks" / "bench_startup.py"),
+            "--quick",
+            "--out",
+            str(out),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    data = json.loads(out.read_text())
+    median = data["median"]
+    phases = ("spawn", "import", "model", "first_step")
+    assert all(median[k] > 0 for k in (*phases, "envs_again"))
+    # The phases run one after another inside the time to the first step (one process here).
+    assert sum(median[k] for k in phases) <= median["to_first_step"] * 1.01
+    modules = {r["module"] for r in data["imports"]}
+    assert {"(all)", "torch"} <= modules
+
+
+@pytest.mark.slow
 def test_the_memory_benchmark_runs_in_quick_mode(tmp_path: Path) -> None:
     """bench_memory evolves an ESN, an RTU and an NVAR, tests the seven agents on the same
     seeds, reports every agent's returns with a CI and its wall time, each evolved memory
