@@ -18,7 +18,7 @@ printed at the end). Resumable: runs already in ``runs.csv`` (same task, backend
 skipped, so an interrupted run continues where it stopped; rows are written after each (task,
 backend) batch. Use a new ``--out`` when changing ``--training-steps`` or ``--reservoir``.
 
-    python benchmarks/calibrate_backends.py           # 4 tasks x 10 seeds x 100k steps, ~40 min on 2 cores
+    python benchmarks/calibrate_backends.py           # 4 tasks x 10 seeds x 100k steps, ~35 min on 2 cores
     python benchmarks/calibrate_backends.py --quick   # smoke test: 2 seeds x 4096 steps
 """
 
