@@ -96,7 +96,9 @@ def measure_pool(args: argparse.Namespace) -> dict[str, float]:
 
 def heaviest_imports(n: int = 8) -> list[dict[str, Any]]:
     """The top-level packages with the largest cumulative import time, from ``-X importtime``."""
-    code = "import stable_baselines3, ermrl.envs, ermrl.population"
+    # What a population worker imports: the pool's training stack, the backend, and reservoirpy
+    # (imported when the first reservoir's weights are drawn, inside ``model``).
+    code = "import stable_baselines3, ermrl.envs, ermrl.population, reservoirpy"
     proc = subprocess.run([sys.executable, "-X", "importtime", "-c", code],
                           capture_output=True, text=True, check=True)  # fmt: skip
     rows = []
