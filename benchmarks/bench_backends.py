@@ -126,7 +126,7 @@ def measure_physics(
     task: Any, ppo: Any, budget: Any, n_runs: int, n_procs: int
 ) -> tuple[float, int, int]:
     """(wall s, env steps, processes) of the physics limit: the population's env layout only."""
-    from ermrl.agents._pool import training_pool
+    from ermrl.agents import training_pool
     from ermrl.population import split_jobs, steps_trained
 
     iterations = steps_trained(ppo, budget.training_steps) // ppo.n_envs
