@@ -227,21 +227,25 @@ def summary(rows: list[dict[str, Any]]) -> str:
         "| env / reservoir / policy / update / total (process-s) | peak RSS parent / worker / tree est. (MB) |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
+
+    def against(
+        r: dict[str, Any], other: str, goals: dict[str, float], value: str, goal_fmt: str
+    ) -> tuple[str, str]:
+        """(population's steps/s over ``other``'s, the verdict on its target) as cells;
+        ``value`` and ``goal_fmt`` are ``str.format`` templates."""
+        if r["backend"] != "population" or (r["task"], other) not in by:
+            return "", ""
+        x = r["steps_per_s"] / by[(r["task"], other)]["steps_per_s"]
+        goal = goals.get(r["task"].split("[")[0])
+        if goal is None:
+            return f"**{value.format(x)}**", ""
+        return f"**{value.format(x)}**", f">= {goal_fmt.format(goal)} " + (
+            "met" if x >= goal else "NOT met"
+        )
+
     for r in rows:
-        ratio, target, share, share_target = "", "", "", ""
-        env_id = r["task"].split("[")[0]
-        if r["backend"] == "population" and (r["task"], "sb3") in by:
-            x = r["steps_per_s"] / by[(r["task"], "sb3")]["steps_per_s"]
-            ratio = f"**{x:.2f}x**"
-            goal = TARGETS.get(env_id)
-            if goal is not None:
-                target = f">= {goal:g}x {'met' if x >= goal else 'NOT met'}"
-        if r["backend"] == "population" and (r["task"], "physics") in by:
-            f = r["steps_per_s"] / by[(r["task"], "physics")]["steps_per_s"]
-            share = f"**{f:.0%}**"
-            goal = PHYSICS_TARGETS.get(env_id)
-            if goal is not None:
-                share_target = f">= {goal:.0%} {'met' if f >= goal else 'NOT met'}"
+        ratio, target = against(r, "sb3", TARGETS, "{:.2f}x", "{:g}x")
+        share, share_target = against(r, "physics", PHYSICS_TARGETS, "{:.0%}", "{:.0%}")
         breakdown = (" / ".join(f"{r[f'{k}_s']:.1f}" for k in TIMING_KEYS)
                      if r["backend"] == "population" else "")  # fmt: skip
         lines.append(

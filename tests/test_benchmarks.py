@@ -12,6 +12,19 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def run_quick(script: str, *args: str, timeout: float = 900) -> subprocess.CompletedProcess[str]:
+    """``python benchmarks/SCRIPT --quick ARGS`` from the repository root; it must succeed."""
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / script), "--quick", *args],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    return proc
+
+
 def test_differences_show_welch_and_p_and_flag_few_seeds() -> None:
     """The benchmarks' difference cells: bootstrap CI, Welch's CI and p, and the flag."""
     from benchmarks._harness import difference, format_difference
@@ -30,20 +43,7 @@ def test_differences_show_welch_and_p_and_flag_few_seeds() -> None:
 
 @pytest.mark.slow
 def test_benchmarks_run_in_quick_mode(tmp_path: Path) -> None:
-    proc = subprocess.run(
-        [
-            sys.executable,
-            str(ROOT / "benchmarks" / "run_all.py"),
-            "--quick",
-            "--results",
-            str(tmp_path),
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=1500,
-    )
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    proc = run_quick("run_all.py", "--results", str(tmp_path), timeout=1500)
     for name in ("encoder", "plan", "trial", "pruning", "workers", "science"):
         data = json.loads((tmp_path / f"{name}.json").read_text())
         assert data["machine"]["cpus"] >= 1
@@ -102,18 +102,7 @@ def test_the_backend_benchmarks_run_in_quick_mode(tmp_path: Path) -> None:
     """bench_backends and calibrate_backends run end to end and write what they promise."""
     import csv
 
-    def run(script: str, *args: str) -> subprocess.CompletedProcess[str]:
-        proc = subprocess.run(
-            [sys.executable, str(ROOT / "benchmarks" / script), "--quick", *args],
-            cwd=ROOT,
-            capture_output=True,
-            text=True,
-            timeout=900,
-        )
-        assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-        return proc
-
-    run("bench_backends.py", "--tasks", "Pendulum-v1:positions", "--out", str(tmp_path / "b"))
+    run_quick("bench_backends.py", "--tasks", "Pendulum-v1:positions", "--out", str(tmp_path / "b"))
     with (tmp_path / "b" / "backends.csv").open() as fh:
         rows = {r["backend"]: r for r in csv.DictReader(fh)}
     assert set(rows) == {"sb3", "population", "physics"}
@@ -132,7 +121,7 @@ def test_the_backend_benchmarks_run_in_quick_mode(tmp_path: Path) -> None:
     assert "population / sb3" in md and "population / physics" in md
     assert ">= 7x" in md  # Pendulum's target
 
-    run("calibrate_backends.py", "--tasks", "CartPole-v1:positions", "CartPole-v1:positions@rtu",
+    run_quick("calibrate_backends.py", "--tasks", "CartPole-v1:positions", "CartPole-v1:positions@rtu",
         "--out", str(tmp_path / "c"))  # fmt: skip
     with (tmp_path / "c" / "runs.csv").open() as fh:
         runs = list(csv.DictReader(fh))
@@ -152,20 +141,7 @@ def test_the_backend_benchmarks_run_in_quick_mode(tmp_path: Path) -> None:
 def test_the_startup_benchmark_times_each_phase_of_a_fresh_worker(tmp_path: Path) -> None:
     """bench_startup starts a real spawn pool and reports each phase before the first step."""
     out = tmp_path / "startup.json"
-    proc = subprocess.run(
-        [
-            sys.executable,
-            str(ROOT / "benchmarks" / "bench_startup.py"),
-            "--quick",
-            "--out",
-            str(out),
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    run_quick("bench_startup.py", "--out", str(out), timeout=600)
     data = json.loads(out.read_text())
     median = data["median"]
     phases = ("spawn", "import", "model", "first_step")
