@@ -407,7 +407,12 @@ def test_the_flat_buffer_adam_equals_torch_adam_per_agent(use_sde: bool) -> None
     gen = torch.Generator().manual_seed(0)
     grads = [[torch.randn(p.shape, generator=gen) for p in policy.parameters()] for _ in range(5)]
     for step in grads:
-        optimizer.step(policy.flat_grad(step))
+        buffer = np.zeros((3, policy.row_size), np.float32)
+        views = policy.grad_views(buffer)
+        for name, g in zip(policy.params, step):
+            views[name][...] = g.numpy()
+        assert all(np.shares_memory(view, buffer) for view in views.values())
+        optimizer.step(torch.from_numpy(buffer))
     used = sum(int(np.prod(shape)) for shape in policy.layout.values())
     assert used < flat.shape[1] and not flat[:, used:].any()  # the padding stays zero
     # The numpy views follow the in-place updates.

@@ -1,9 +1,12 @@
 """Stacked actor-critic MLPs: SB3's PPO ``MlpPolicy`` for ``P`` agents at once.
 
 Each layer holds the weights of every agent in one tensor ``[P, in, out]`` (biases ``[P, 1, out]``),
-so a forward pass is one ``bmm`` per layer; these tensors are views into one flat ``[P, N]`` buffer
-(one row per agent), which the gradient clipping and Adam treat as a whole. Rollouts run the same weights through numpy (views of
-the torch tensors), which is several times faster than torch for these small products on a CPU.
+so a forward pass is one stacked product per layer; these tensors are views into one flat ``[P, N]``
+buffer (one row per agent), which the gradient clipping and Adam treat as a whole. Rollouts and
+updates run the weights through numpy (views of the torch tensors), which is several times faster
+than torch for these small products on a CPU: the update's gradient is written out by hand
+(:meth:`StackedPolicy.ppo_gradient`, backpropagation through the tanh MLPs) rather than taken by
+autograd, whose per-op overhead cost more than the products (``benchmarks/bench_update.py``).
 The network is SB3's: separate policy and value MLPs (``net_arch``, default 64-64, tanh), an
 action head (diagonal Gaussian with a state-independent ``log_std``, gSDE, or categorical) and a
 value head, orthogonal initialization with SB3's gains; :meth:`StackedPolicy.sb3_state` and
@@ -98,42 +101,6 @@ def policy_spec(
     )
 
 
-def _baddbmm(bias: torch.Tensor | None, x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-    """``bias + x @ w`` per agent, computed as for any population size.
-
-    torch computes a batch of one matrix product by another kernel than a batch of several, whose
-    results differ in the last bits; a population of one therefore runs with a detached twin, so
-    that an agent's training does not depend on the population's size.
-    """
-    if x.shape[0] == 1:
-        x2 = torch.cat([x, x.detach()])
-        w2 = torch.cat([w, w.detach()])
-        if bias is None:
-            return torch.bmm(x2, w2)[:1]
-        return torch.baddbmm(torch.cat([bias, bias.detach()]), x2, w2)[:1]
-    return torch.bmm(x, w) if bias is None else torch.baddbmm(bias, x, w)
-
-
-class _NumpyTanh(torch.autograd.Function):
-    """``tanh`` computed by numpy (several times faster than torch's CPU kernel at these sizes,
-    and the same for every element wherever it sits in the tensor), torch's backward."""
-
-    @staticmethod
-    def forward(ctx: Any, x: torch.Tensor) -> torch.Tensor:
-        y = torch.from_numpy(np.tanh(x.detach().numpy()))
-        ctx.save_for_backward(y)
-        return y
-
-    @staticmethod
-    def backward(ctx: Any, grad: torch.Tensor) -> torch.Tensor:
-        (y,) = ctx.saved_tensors
-        return torch.ops.aten.tanh_backward(grad, y)
-
-
-def _tanh(x: torch.Tensor) -> torch.Tensor:
-    return _NumpyTanh.apply(x)
-
-
 def _init_linear(
     w: torch.Tensor, b: torch.Tensor, gain: float, ortho: bool, gen: torch.Generator
 ) -> None:
@@ -209,8 +176,8 @@ class StackedPolicy:
     ``p`` holds agent ``p``'s weights and biases one after another (then zeros up to a multiple of
     :data:`ROW_ALIGN`). Each entry of :attr:`params` (``pi0.w`` ``[P, in, out]``, ``pi0.b``
     ``[P, 1, out]``, ..., ``log_std``) is a view into it, so the products read the weights in place
-    while zeroing, per-agent gradient norms and Adam are a few ops on the whole buffer
-    (:meth:`flat_grad`, :class:`StackedAdam`).
+    while per-agent gradient norms and Adam are a few ops on the whole buffer
+    (:meth:`ppo_gradient` writes the gradient in the same layout; :class:`StackedAdam`).
 
     Args:
         spec: The network.
@@ -260,7 +227,7 @@ class StackedPolicy:
             view = flat[:, offset : offset + size].view(P, *shape)
             self.params[name] = torch.nn.Parameter(view)  # shares the buffer's storage
             offset += size
-        self._pad = torch.zeros(P, self.row_size - offset)
+        self._grad = np.zeros((P, self.row_size), np.float32)  # see ppo_gradient
         self.refresh()
 
     @property
@@ -278,17 +245,14 @@ class StackedPolicy:
         """Keep only the agents ``index`` (a new buffer: rebuilt views, numpy views included)."""
         self._bind(self.flat[index].clone())
 
-    def flat_grad(self, grads: Sequence[torch.Tensor | None]) -> torch.Tensor:
-        """The gradients of :meth:`parameters` (``None``: zero) laid out as the buffer, ``[P, N]``.
-
-        One concatenation: each agent's gradient is then one row, so its norm is one reduction.
-        """
-        P = self.n_agents
-        parts = [
-            torch.zeros(P, math.prod(shape)) if g is None else g.reshape(P, -1)
-            for g, shape in zip(grads, self.layout.values())
-        ]
-        return torch.cat([*parts, self._pad], dim=1)
+    def grad_views(self, grad: np.ndarray) -> dict[str, np.ndarray]:
+        """Views of a ``[P, row_size]`` gradient buffer shaped as :attr:`params`."""
+        P, offset, views = grad.shape[0], 0, {}
+        for name, shape in self.layout.items():
+            size = math.prod(shape)
+            views[name] = grad[:, offset : offset + size].reshape(P, *shape)
+            offset += size
+        return views
 
     # -- numpy forward (rollouts) --------------------------------------------------------------
     def _mlp_np(self, x: np.ndarray, prefix: str, n: int, p: Any = slice(None)) -> np.ndarray:
@@ -315,39 +279,136 @@ class StackedPolicy:
         out = np.matmul(x, self.np["value.w"][agents]) + self.np["value.b"][agents]
         return out[:, 0, 0]
 
-    # -- torch forward (updates) ---------------------------------------------------------------
-    def _mlp(self, x: torch.Tensor, prefix: str, n: int) -> torch.Tensor:
-        for i in range(n):
-            x = _tanh(_baddbmm(self.params[f"{prefix}{i}.b"], x, self.params[f"{prefix}{i}.w"]))
-        return x
+    # -- the PPO loss's gradient (updates) -----------------------------------------------------
+    def _backward(
+        self,
+        inputs: list[np.ndarray],
+        d_out: np.ndarray,
+        prefix: str,
+        head: str,
+        grads: Mapping[str, np.ndarray],
+    ) -> None:
+        """Backpropagate ``d_out`` (``[P, B, out]``, the loss's gradient at the head's output)
+        through the head and the tanh MLP ``prefix`` whose layer inputs were ``inputs`` (the
+        observations, then each hidden layer's output); writes into ``grads``."""
+        w = self.np
+        np.matmul(inputs[-1].transpose(0, 2, 1), d_out, out=grads[f"{head}.w"])
+        np.sum(d_out, axis=1, keepdims=True, out=grads[f"{head}.b"])
+        if len(inputs) == 1:
+            return
+        d = np.matmul(d_out, w[f"{head}.w"].transpose(0, 2, 1))
+        for i in range(len(inputs) - 2, -1, -1):
+            h = inputs[i + 1]
+            d *= 1 - h * h  # tanh'
+            np.matmul(inputs[i].transpose(0, 2, 1), d, out=grads[f"{prefix}{i}.w"])
+            np.sum(d, axis=1, keepdims=True, out=grads[f"{prefix}{i}.b"])
+            if i:
+                d = np.matmul(d, w[f"{prefix}{i}.w"].transpose(0, 2, 1))
 
-    def evaluate(
-        self, obs: torch.Tensor, actions: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """``(values, log_prob, entropy)``, each ``[P, B]``, as SB3's ``evaluate_actions``."""
-        s = self.spec
-        latent = self._mlp(obs, "pi", len(s.pi))
-        head = _baddbmm(self.params["action.b"], latent, self.params["action.w"])
-        latent_vf = self._mlp(obs, "vf", len(s.vf))
-        values = _baddbmm(self.params["value.b"], latent_vf, self.params["value.w"])[..., 0]
+    def ppo_gradient(
+        self,
+        obs: np.ndarray,
+        actions: np.ndarray,
+        old_values: np.ndarray,
+        old_log_probs: np.ndarray,
+        advantages: np.ndarray,
+        returns: np.ndarray,
+        *,
+        clip_range: float,
+        clip_range_vf: float | None,
+        ent_coef: float,
+        vf_coef: float,
+        normalize_advantage: bool,
+    ) -> np.ndarray:
+        """The gradient of SB3 PPO's minibatch loss for every agent, laid out as :attr:`flat`.
+
+        The loss is SB3's ``PPO.train``: clipped surrogate on the probability ratio (advantages
+        normalized per minibatch), entropy bonus, value loss on optionally clipped values. Its
+        gradient is written out (backpropagation through the tanh MLPs by stacked products),
+        not taken by autograd: at these sizes torch's per-op and autograd overheads cost more
+        than the products, and numpy's ``matmul`` runs one product per agent, so an agent's
+        gradient does not depend on the population around it. Where ``torch.minimum`` ties
+        (the ratio inside the clip range) the two halves of its gradient add up to the whole,
+        as here.
+
+        Args:
+            obs: Observations ``[P, B, obs_dim]`` (float32).
+            actions: ``[P, B, action_dim]`` (Gaussian) or ``[P, B]`` integers (categorical).
+            old_values, old_log_probs, advantages, returns: ``[P, B]``, from the rollout.
+
+        Returns:
+            ``[P, row_size]`` float32: the gradient (zero in the padding); a buffer the next
+            call overwrites.
+        """
+        s, w = self.spec, self.np
+        P, B = obs.shape[:2]
+        if self._grad.shape[0] != P:
+            self._grad = np.zeros((P, self.row_size), np.float32)
+        grads = self.grad_views(self._grad)
+        pi, vf = [obs], [obs]
+        for inputs, prefix, n in ((pi, "pi", len(s.pi)), (vf, "vf", len(s.vf))):
+            for i in range(n):
+                x = np.matmul(inputs[-1], w[f"{prefix}{i}.w"])
+                x += w[f"{prefix}{i}.b"]
+                inputs.append(np.tanh(x, out=x))
+        head = np.matmul(pi[-1], w["action.w"])
+        head += w["action.b"]
+        values = np.matmul(vf[-1], w["value.w"])[..., 0] + w["value.b"][..., 0]
+        # Gradients of the loss with respect to the log-probabilities and the head.
         if s.discrete:
-            logp = torch.log_softmax(head, dim=-1)
-            log_prob = torch.gather(logp, -1, actions.long().unsqueeze(-1))[..., 0]
-            entropy = -(logp.exp() * logp).sum(-1)
-            return values, log_prob, entropy
-        log_std = self.params["log_std"]
-        if s.use_sde:
-            std = torch.exp(log_std)
-            variance = _baddbmm(None, latent.detach() ** 2, std**2)
-            scale = torch.sqrt(variance + SDE_EPSILON)
-            log_scale = torch.log(scale)
+            logits = head - head.max(-1, keepdims=True)
+            logp_all = logits - np.log(np.exp(logits).sum(-1, keepdims=True))
+            log_prob = np.take_along_axis(logp_all, actions[..., None].astype(np.int64), -1)[..., 0]
         else:
-            log_scale = log_std[:, None, :].expand_as(head)
-            scale = torch.exp(log_scale)
-        z = (actions - head) / scale
-        log_prob = (-0.5 * z**2 - log_scale - LOG_SQRT_2PI).sum(-1)
-        entropy = (0.5 + LOG_SQRT_2PI + log_scale).sum(-1)
-        return values, log_prob, entropy
+            if s.use_sde:
+                std2 = np.exp(2.0 * w["log_std"])  # [P, L, A]
+                latent2 = np.square(pi[-1])
+                variance = np.matmul(latent2, std2) + np.float32(SDE_EPSILON)
+                scale = np.sqrt(variance)
+                log_scale = np.log(scale)
+            else:
+                log_scale = np.broadcast_to(w["log_std"][:, None, :], head.shape)
+                scale = np.exp(log_scale)
+            z = (actions - head) / scale
+            log_prob = (-0.5 * np.square(z) - log_scale - np.float32(LOG_SQRT_2PI)).sum(-1)
+        if normalize_advantage and B > 1:
+            advantages = (advantages - advantages.mean(1, keepdims=True)) / (
+                advantages.std(1, ddof=1, keepdims=True) + np.float32(1e-8)
+            )
+        ratio = np.exp(log_prob - old_log_probs)
+        unclipped = advantages * ratio
+        clipped = advantages * np.clip(ratio, 1 - clip_range, 1 + clip_range)
+        # d(-mean(min(unclipped, clipped)))/d ratio: the unclipped branch's, where it is the
+        # minimum (or ties, the ratio then inside the range); 0 where the clipped one is smaller.
+        d_ratio = np.where(unclipped <= clipped, advantages * np.float32(-1.0 / B), np.float32(0))
+        d_logp = (d_ratio * ratio)[..., None]
+        entropy_grad = np.float32(ent_coef / B)  # of the loss, per unit of entropy gradient
+        if s.discrete:
+            probs = np.exp(logp_all)
+            entropy = -(probs * logp_all).sum(-1, keepdims=True)
+            onehot = np.zeros_like(probs)
+            np.put_along_axis(onehot, actions[..., None].astype(np.int64), 1.0, -1)
+            d_head = d_logp * (onehot - probs) + entropy_grad * probs * (logp_all + entropy)
+        else:
+            d_head = d_logp * z / scale
+            # d log_prob / d log_scale = z^2 - 1; the entropy's is 1 per element.
+            d_log_scale = d_logp * (np.square(z) - 1) - entropy_grad
+            if s.use_sde:
+                d_variance = d_log_scale / (2 * variance)
+                d_std2 = np.matmul(latent2.transpose(0, 2, 1), d_variance)
+                np.multiply(d_std2, 2 * std2, out=grads["log_std"])
+            else:
+                np.sum(d_log_scale, axis=1, out=grads["log_std"])
+        if clip_range_vf is not None:
+            delta = values - old_values
+            values = old_values + np.clip(delta, -clip_range_vf, clip_range_vf)
+            inside = (delta >= -clip_range_vf) & (delta <= clip_range_vf)
+            d_values = np.float32(-2.0 * vf_coef / B) * (returns - values) * inside
+        else:
+            d_values = np.float32(-2.0 * vf_coef / B) * (returns - values)
+        self._backward(pi, d_head.astype(np.float32, copy=False), "pi", "action", grads)
+        self._backward(vf, d_values[..., None].astype(np.float32, copy=False), "vf", "value", grads)
+        return self._grad
 
     # -- SB3 state dicts -----------------------------------------------------------------------
     def _sb3_names(self) -> list[tuple[str, str]]:

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 import threadpoolctl
 import torch
 from gymnasium import spaces
@@ -397,10 +398,10 @@ class PopulationPPO:
         the kept positions when agents were dropped."""
         P = self.n_agents
 
-        def flat(a: np.ndarray) -> torch.Tensor:
+        def flat(a: np.ndarray) -> np.ndarray:
             # SB3's swap_and_flatten: env-major order, index = env * n_steps + step.
             a = np.swapaxes(a, 1, 2)
-            return torch.from_numpy(np.ascontiguousarray(a.reshape(P, -1, *a.shape[3:])))
+            return np.ascontiguousarray(a.reshape(P, -1, *a.shape[3:]))
 
         data = [flat(a) for a in (obs, actions, values, log_probs, advantages, returns)]
         return self.update(progress, *data, permutations=None)
@@ -408,17 +409,18 @@ class PopulationPPO:
     def update(
         self,
         progress: float,
-        obs: torch.Tensor,
-        actions: torch.Tensor,
-        old_values: torch.Tensor,
-        old_log_probs: torch.Tensor,
-        advantages: torch.Tensor,
-        returns: torch.Tensor,
+        obs: npt.ArrayLike,
+        actions: npt.ArrayLike,
+        old_values: npt.ArrayLike,
+        old_log_probs: npt.ArrayLike,
+        advantages: npt.ArrayLike,
+        returns: npt.ArrayLike,
         *,
         permutations: Sequence[np.ndarray] | None = None,
     ) -> np.ndarray | None:
-        """The PPO update on flattened rollouts ``[P, T, ...]``; an agent whose weights became
-        NaN is dropped, and the kept positions are returned (``None``: none dropped).
+        """The PPO update on flattened rollouts ``[P, T, ...]`` (numpy arrays or CPU tensors);
+        an agent whose weights became NaN is dropped, and the kept positions are returned
+        (``None``: none dropped).
 
         Args:
             progress: SB3's ``progress_remaining`` (1 at the start, 0 at the end).
@@ -426,7 +428,8 @@ class PopulationPPO:
                 agent's own stream draws them, as SB3 draws ``np.random.permutation``).
         """
         s = self.s
-        P, T = obs.shape[:2]
+        obs_np = np.asarray(obs, np.float32)
+        P, T = obs_np.shape[:2]
         lr = float(self.lr(progress))
         self.optimizer.lr = lr
         clip = float(self.clip_range(progress))
@@ -434,47 +437,41 @@ class PopulationPPO:
         batch_size, n_epochs = int(s["batch_size"]), int(s["n_epochs"])
         ent_coef, vf_coef = float(s["ent_coef"]), float(s["vf_coef"])
         max_norm = float(s["max_grad_norm"])
-        rows = torch.arange(P)[:, None]
-        params = self.policy.parameters()
+        rows = np.arange(P)[:, None]
         # One [P, T, D] table of everything a minibatch reads, shuffled once per epoch (one
         # gather instead of six per minibatch); minibatches are then slices of it.
-        d_obs = obs.shape[2]
-        act = actions.to(obs.dtype).reshape(P, T, -1)
-        d_act = act.shape[2]
-        table = torch.cat(
-            [obs, act, *(t[..., None] for t in (old_values, old_log_probs, advantages, returns))],
-            dim=2,
+        act = np.asarray(actions).astype(np.float32).reshape(P, T, -1)
+        d_obs, d_act = obs_np.shape[2], act.shape[2]
+        columns = (old_values, old_log_probs, advantages, returns)
+        table = np.concatenate(
+            [obs_np, act, *(np.asarray(t, np.float32)[..., None] for t in columns)], axis=2
         )
         for epoch in range(n_epochs):
             if permutations is None:
                 perm = np.stack([rng.permutation(T) for rng in self.rngs])
             else:
                 perm = np.asarray(permutations[epoch])
-            shuffled = table[rows, torch.from_numpy(perm)]
+            shuffled = table[rows, perm]
             for begin in range(0, T, batch_size):
                 batch = shuffled[:, begin : begin + batch_size]
-                b_obs = batch[..., :d_obs]
                 b_act = batch[..., d_obs : d_obs + d_act]
-                b_oldv, b_oldlp, b_adv, b_ret = batch[..., d_obs + d_act :].unbind(-1)
                 if self.discrete:
-                    b_act = b_act[..., 0].long()
-                values, log_prob, entropy = self.policy.evaluate(b_obs, b_act)
-                if s["normalize_advantage"] and b_adv.shape[1] > 1:
-                    b_adv = (b_adv - b_adv.mean(1, keepdim=True)) / (
-                        b_adv.std(1, keepdim=True) + 1e-8
-                    )
-                ratio = torch.exp(log_prob - b_oldlp)
-                loss_1 = b_adv * ratio
-                loss_2 = b_adv * torch.clamp(ratio, 1 - clip, 1 + clip)
-                policy_loss = -torch.min(loss_1, loss_2).mean(1)
-                if clip_vf is not None:
-                    values = b_oldv + torch.clamp(values - b_oldv, -clip_vf, clip_vf)
-                value_loss = ((b_ret - values) ** 2).mean(1)
-                entropy_loss = -entropy.mean(1)
-                loss = policy_loss + ent_coef * entropy_loss + vf_coef * value_loss
-                grad = self.policy.flat_grad(
-                    torch.autograd.grad(loss.sum(), params, allow_unused=True)
+                    b_act = b_act[..., 0].astype(np.int64)
+                b_oldv, b_oldlp, b_adv, b_ret = np.moveaxis(batch[..., d_obs + d_act :], -1, 0)
+                flat = self.policy.ppo_gradient(
+                    batch[..., :d_obs],
+                    b_act,
+                    b_oldv,
+                    b_oldlp,
+                    b_adv,
+                    b_ret,
+                    clip_range=clip,
+                    clip_range_vf=clip_vf,
+                    ent_coef=ent_coef,
+                    vf_coef=vf_coef,
+                    normalize_advantage=bool(s["normalize_advantage"]),
                 )
+                grad = torch.from_numpy(flat)
                 # Per-agent clip_grad_norm_ (SB3 clips each agent's whole gradient): one norm per
                 # row, reduced along a contiguous row, so in the same order for any P.
                 total = torch.linalg.vector_norm(grad, dim=1, keepdim=True)
