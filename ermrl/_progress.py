@@ -165,6 +165,17 @@ class Progress:
             self._bar.close()
             self._bar = None
 
+    def message(self, text: str) -> None:
+        """Print ``[label] text`` once, as the lines are (above the bar in ``"bar"`` mode;
+        nothing in ``"none"`` mode): an event inside the work, e.g. a resumed training."""
+        line = f"[{self.label}] {text}"
+        if self.shows == "none":
+            return
+        if self._bar is not None:
+            self._bar.write(line, file=self._stream or sys.stdout)
+        else:
+            print(line, file=self._stream or sys.stdout, flush=True)
+
     def _new_bar(self) -> Any:
         from tqdm import tqdm
 

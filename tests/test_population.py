@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import io
 import warnings
 from pathlib import Path
 from typing import Any
@@ -17,6 +18,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecNormalize
 
 import ermrl.population._ppo as ppo_module
+from ermrl._progress import Progress
 from ermrl.agents import (
     derive_seeds,
     frozen_normalize_env,
@@ -41,6 +43,7 @@ from ermrl.config import (
 )
 from ermrl.learners import get_learner
 from ermrl.population import (
+    Checkpoint,
     PopulationEnvs,
     PopulationJob,
     PopulationPPO,
@@ -926,3 +929,106 @@ def test_a_progress_total_is_the_steps_whole_rollouts_make() -> None:
     population.learn(200)
     assert population.num_timesteps == steps_trained(ppo, 200) == 384
     population.close()
+
+
+# -- 6. checkpoints ---------------------------------------------------------------------------
+class StopAfter(Progress):
+    """A progress that raises KeyboardInterrupt (a kill) once the agents pass ``steps``."""
+
+    def __init__(self, steps: int) -> None:
+        super().__init__("stop", 10**9, mode="none")
+        self.stop = steps
+
+    def update(self, done: int) -> None:
+        super().update(done)
+        if done > self.stop:
+            raise KeyboardInterrupt
+
+
+def checkpoint_population() -> tuple[TaskConfig, PPOConfig, list[PopulationJob]]:
+    """Pendulum positions with normalization and gSDE: every kind of state a checkpoint keeps."""
+    task = TaskConfig("Pendulum-v1", "positions")
+    ppo = ppo_for("Pendulum-v1", n_steps=64, batch_size=64, n_epochs=2, normalize=True)
+    assert ppo.normalize is not None and ppo.hyperparams.get("use_sde")
+    return task, ppo, [PopulationJob(encoder(k), 50 + k) for k in range(3)]
+
+
+class KilledAfterSave(Checkpoint):
+    """A checkpoint whose training is killed (KeyboardInterrupt) right after its save at
+    1024 steps: the live population then holds exactly the state the file holds."""
+
+    def save(self, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> None:
+        super().save(meta, arrays)
+        if meta["num_timesteps"] >= 1024:
+            raise KeyboardInterrupt
+
+
+def test_a_checkpoint_restores_every_part_of_the_training_state(tmp_path: Path) -> None:
+    """Killed right after a save, the live population equals the one restored from the file:
+    weights, Adam, normalization, random streams, episodes, steps; resumed, it trains on."""
+    task, ppo, jobs = checkpoint_population()
+    checkpoint = KilledAfterSave(tmp_path / "c.npz", every=256)
+    live = PopulationPPO(task, ppo, jobs)
+    with pytest.raises(KeyboardInterrupt):
+        live.learn(2048, None, checkpoint)
+    saved = checkpoint.load(live.checkpoint_key(2048))
+    assert saved is not None and saved[0]["num_timesteps"] == live.num_timesteps == 1024
+    back = PopulationPPO(task, ppo, jobs)
+    back._restore(*saved)
+    assert back.num_timesteps == back.resumed_at == 1024
+    np.testing.assert_array_equal(back.policy.flat.numpy(), live.policy.flat.numpy())
+    np.testing.assert_array_equal(back.policy.np["pi0.w"], live.policy.np["pi0.w"])  # the views
+    for name in ("exp_avg", "exp_avg_sq"):
+        np.testing.assert_array_equal(getattr(back.optimizer, name), getattr(live.optimizer, name))
+    assert back.optimizer.steps == live.optimizer.steps > 0
+    for rms in ("obs_rms", "ret_rms"):
+        a, b = getattr(back.envs, rms), getattr(live.envs, rms)
+        for part in ("mean", "var", "count"):
+            np.testing.assert_array_equal(getattr(a, part), getattr(b, part))
+    for a, b in zip(back.rngs, live.rngs):  # the streams draw on as the live ones
+        assert a.standard_normal(3).tolist() == b.standard_normal(3).tolist()
+    assert back.episodes == live.episodes and any(live.episodes)
+    # Resumed, it trains the rest of the budget only, and its episodes go on from the saved ones.
+    resumed = PopulationPPO(task, ppo, jobs)
+    resumed.learn(2048, None, Checkpoint(checkpoint.path, every=256))
+    assert resumed.resumed_at == 1024 and resumed.num_timesteps == 2048
+    for before, after in zip(live.episodes, resumed.episodes):
+        assert after[: len(before)] == before and len(after) > len(before)
+        assert all(t > 1024 for _, t in after[len(before) :])
+
+
+def test_a_checkpoint_of_another_training_or_a_damaged_one_is_not_resumed(tmp_path: Path) -> None:
+    """Other seeds, another budget, or a torn file: the training starts from step 0."""
+    task, ppo, jobs = checkpoint_population()
+    checkpoint = Checkpoint(tmp_path / "c.npz", every=256)
+    with pytest.raises(KeyboardInterrupt):
+        PopulationPPO(task, ppo, jobs).learn(1024, StopAfter(256), checkpoint)
+    key = PopulationPPO(task, ppo, jobs).checkpoint_key(1024)
+    assert checkpoint.load(key) is not None
+    assert checkpoint.load(PopulationPPO(task, ppo, jobs).checkpoint_key(2048)) is None
+    others = [PopulationJob(job.encoder, job.seed + 1) for job in jobs]
+    other = PopulationPPO(task, ppo, others)
+    assert checkpoint.load(other.checkpoint_key(1024)) is None
+    other.learn(512, None, checkpoint)
+    assert other.resumed_at == 0
+    checkpoint.path.write_bytes(checkpoint.path.read_bytes()[:100])
+    assert checkpoint.load(key) is None
+
+
+def test_train_population_resumes_and_removes_its_checkpoint(tmp_path: Path) -> None:
+    """A killed train_population leaves one checkpoint; the rerun resumes from it, says so,
+    returns every job's result over the whole budget, and removes the file."""
+    task, ppo, jobs = checkpoint_population()
+    budget = BudgetConfig(training_steps=2048, fitness="last", n_last_episodes=1)
+    with pytest.raises(KeyboardInterrupt):
+        train_population(task, ppo, budget, jobs, progress=StopAfter(1100), checkpoints=tmp_path)
+    (saved,) = tmp_path.iterdir()
+    assert saved.name.startswith("population-") and saved.suffix == ".npz"
+    stream = io.StringIO()
+    progress = Progress("again", 2048, mode="lines", stream=stream)
+    results = train_population(
+        task, ppo, budget, jobs, progress=progress, checkpoints=tmp_path, checkpoint_every=256
+    )
+    assert f"[again] resumed from {saved} at 1,024 steps each" in stream.getvalue()
+    assert all(isinstance(r, RunResult) and r.env_steps == 2048 for r in results)
+    assert not any(tmp_path.iterdir())

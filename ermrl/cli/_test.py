@@ -155,6 +155,16 @@ def add_test_args(
         help="retrain the asked-for runs that already have results (a rerun into an --out "
         "whose runs were made with other settings is refused without it)",
     )
+    parser.add_argument(
+        "--checkpoint-every",
+        type=nonneg_int,
+        default=None,
+        metavar="STEPS",
+        help="runs on the population backend save their training state every STEPS steps per "
+        "run in OUT/checkpoints, and a rerun after a kill or crash resumes them from there "
+        "(weights, optimizer, normalization, random streams; the environments restart from "
+        "fresh episodes). Default: a tenth of --training-steps; 0: no checkpoints",
+    )
 
 
 def build_test_parser(prog: str = "ermrl test") -> ArgumentParser:
@@ -394,6 +404,7 @@ def plan_test_phase(
         tensorboard=Path(tensorboard) if tensorboard else None,
         wandb=getattr(args, "wandb", None),
         progress=progress_mode(args),
+        checkpoint_every=args.checkpoint_every,
     )
     warning = None
     # Only when the ranking would have picked the trial: not with --trial, nor when no agent

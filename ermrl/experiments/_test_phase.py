@@ -292,6 +292,10 @@ class TestSettings:
         progress: ``"lines"``: a progress line of each run every tenth of its steps or 30 s
             (:class:`ermrl._progress.Progress`); ``"bar"``: a live bar of each run instead;
             ``"none"``: a line per finished run only.
+        checkpoint_every: Runs on the population backend save their training state every
+            this many steps per run under ``out/checkpoints`` (see
+            :class:`~ermrl.population.Checkpoint`), and a rerun resumes them from there.
+            ``None``: a tenth of ``training_steps``; 0: no checkpoints.
     """
 
     __test__ = False  # not a pytest test class
@@ -308,10 +312,13 @@ class TestSettings:
     tensorboard: Path | None = None
     wandb: str | None = None
     progress: ProgressMode = "lines"
+    checkpoint_every: int | None = None
 
     def __post_init__(self) -> None:
         if self.training_steps < 1:
             raise ConfigError(f"training steps must be positive, got {self.training_steps}")
+        if self.checkpoint_every is not None and self.checkpoint_every < 0:
+            raise ConfigError(f"checkpoint_every must be >= 0, got {self.checkpoint_every}")
         if not self.seeds:
             raise ConfigError("at least one seed is needed")
         if self.n_procs < 1:
@@ -812,6 +819,9 @@ def run_comparison(
     return aggregate(out, [a.name for a in agents], title=task.label)
 
 
+# The population runs' checkpoints, inside a test phase's output folder.
+CHECKPOINT_DIR = "checkpoints"
+
 # A run's own records (written for each run), not copied from one twin to the other.
 _RECORD_FILES = frozenset({RUN_SETTINGS_FILE, "episodes.csv", "result.json", REPLAY_MODEL_FILE})
 
@@ -877,6 +887,10 @@ def _train_populations(
     for the ETA of the runs' lines."""
     from ermrl.population import PopulationJob, steps_trained, train_population_parallel
 
+    checkpoints = None if settings.checkpoint_every == 0 else Path(settings.out) / CHECKPOINT_DIR
+    if checkpoints is not None and settings.overwrite:
+        shutil.rmtree(checkpoints, ignore_errors=True)  # retrain from the start
+
     groups: dict[str, list[tuple[AgentSpec, int, tuple[Any, ...]]]] = {}
     rest = []
     for job in jobs:
@@ -902,6 +916,8 @@ def _train_populations(
             n_procs=settings.n_procs,
             evaluate=settings.evaluate,
             model_paths=[args[6] for _, _, args in group],
+            checkpoints=checkpoints,
+            checkpoint_every=settings.checkpoint_every,
             progress=Progress(
                 f"population of {plural(len(group), 'run')} ({', '.join(names)})",
                 steps_trained(ppo, budget.training_steps),
@@ -919,6 +935,8 @@ def _train_populations(
                 finished(agent, seed, result)
         if failure is not None:
             raise failure
+    if checkpoints is not None and checkpoints.is_dir() and not any(checkpoints.iterdir()):
+        checkpoints.rmdir()
     return rest
 
 

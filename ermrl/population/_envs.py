@@ -212,6 +212,13 @@ class RunningStats:
             "count": float(self.count[p]),
         }
 
+    def state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(mean, var, count)``, for a checkpoint (:meth:`load_state` restores them)."""
+        return self.mean.copy(), self.var.copy(), self.count.copy()
+
+    def load_state(self, state: Sequence[np.ndarray]) -> None:
+        self.mean, self.var, self.count = (np.array(a, np.float64) for a in state)
+
     @classmethod
     def frozen(cls, stats: Sequence[dict[str, Any]]) -> RunningStats:
         out = cls(len(stats))
@@ -343,12 +350,14 @@ class PopulationEnvs:
         }
 
     # -- stepping ------------------------------------------------------------------------------
-    def reset(self) -> np.ndarray:
-        """First reset of every env (seeded); returns the policy observations ``[P, E, d]``."""
+    def reset(self, seed_offset: int = 0) -> np.ndarray:
+        """First reset of every env, agent ``p``'s env ``i`` seeded with ``env_seeds[p] + i +
+        seed_offset`` (a resumed training restarts its envs with an offset, so as not to replay
+        its first episodes); returns the policy observations ``[P, E, d]``."""
         t0 = time.perf_counter()
         obs = np.stack(
             [
-                np.stack([env.reset(seed=seed + i)[0] for i, env in enumerate(row)])
+                np.stack([env.reset(seed=seed + i + seed_offset)[0] for i, env in enumerate(row)])
                 for row, seed in zip(self.envs, self.env_seeds)
             ]
         )

@@ -47,10 +47,11 @@ def split_jobs(n_jobs: int, n_parts: int) -> list[range]:
 
 
 def _train_part(args: tuple[Any, ...]) -> list[RunResult | BaseException]:
-    task, ppo, budget, jobs, evaluate, model_paths, progress = args
+    task, ppo, budget, jobs, evaluate, model_paths, progress, checkpoints, every = args
     return train_population(
-        task, ppo, budget, jobs, evaluate=evaluate, model_paths=model_paths, progress=progress
-    )
+        task, ppo, budget, jobs, evaluate=evaluate, model_paths=model_paths, progress=progress,
+        checkpoints=checkpoints, checkpoint_every=every,
+    )  # fmt: skip
 
 
 def train_population_parallel(
@@ -64,6 +65,8 @@ def train_population_parallel(
     evaluate: bool | None = None,
     model_paths: Sequence[str | Path | None] | None = None,
     progress: Progress | None = None,
+    checkpoints: str | Path | None = None,
+    checkpoint_every: int | None = None,
 ) -> list[RunResult | BaseException]:
     """:func:`~ermrl.population.train_population` with the jobs split over ``n_procs`` processes.
 
@@ -74,6 +77,10 @@ def train_population_parallel(
         progress: The population's progress; with several parts, each part's process
             prints its own lines, labelled ``part k/n`` (lines even in ``"bar"`` mode: bars of
             several processes would overwrite each other on one terminal).
+        checkpoints: A folder for each part's checkpoint (see
+            :func:`~ermrl.population.train_population`); a rerun with the same jobs, split
+            alike, resumes each part from its own.
+        checkpoint_every: Env steps per agent between saves (default: a tenth of the budget).
 
     Jobs whose encoders differ in structure (:func:`group_jobs`) are trained as one population
     per structure, one after another, each split over ``n_procs`` processes.
@@ -87,7 +94,8 @@ def train_population_parallel(
         for k, group in enumerate(groups):
             part = train_population_parallel(
                 task, ppo, budget, [jobs[i] for i in group],
-                n_procs=n_procs, pool=pool, evaluate=evaluate,
+                n_procs=n_procs, pool=pool, evaluate=evaluate, checkpoints=checkpoints,
+                checkpoint_every=checkpoint_every,
                 model_paths=None if model_paths is None else [model_paths[i] for i in group],
                 progress=None if progress is None
                 else progress.renamed(f"{progress.label}, structure {k + 1}/{len(groups)}"),
@@ -109,6 +117,8 @@ def train_population_parallel(
             else progress
             if len(parts) == 1
             else progress.renamed(f"{progress.label}, part {k + 1}/{len(parts)}"),
+            checkpoints,
+            checkpoint_every,
         )
         for k, part in enumerate(parts)
     ]

@@ -17,9 +17,13 @@ weights, optimizer state, envs and reservoir rows sliced away); the others go on
 
 from __future__ import annotations
 
+import hashlib
+import io
+import json
 import math
 import time
 import warnings
+import zipfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,13 +35,15 @@ import threadpoolctl
 import torch
 from gymnasium import spaces
 
+from ermrl._io import write_atomic
 from ermrl._progress import Progress
 from ermrl.agents._train import NoEpisodeFinished, RunResult, TrainingDiverged, derive_seeds
-from ermrl.config import BudgetConfig, ConfigError, EncoderConfig, PPOConfig, TaskConfig
+from ermrl.config import BudgetConfig, ConfigError, EncoderConfig, PPOConfig, TaskConfig, to_dict
 from ermrl.population._envs import PopulationEnvs
 from ermrl.population._policy import StackedAdam, StackedPolicy, policy_spec
 
 __all__ = [
+    "Checkpoint",
     "PopulationJob",
     "PopulationPPO",
     "check_population_config",
@@ -162,6 +168,54 @@ def compute_gae(
     return adv, adv + values
 
 
+CHECKPOINT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    """Where a population saves its training state, and how often (:meth:`PopulationPPO.learn`).
+
+    The file is an ``.npz`` (no pickle): the weights, Adam's moments and the normalization
+    statistics as arrays, the rest (steps, episodes so far, random streams, dropped agents) as
+    JSON in its ``meta`` entry. It is written atomically at the end of an update, so a killed
+    training leaves the last complete one. A training resumed from it goes on with the saved
+    weights, optimizer, normalization and random streams, while its environments restart from
+    fresh episodes (seeded anew): the episodes in progress at the save are not counted, so a
+    resumed run is not bit for bit the uninterrupted one.
+
+    Attributes:
+        path: The file.
+        every: Env steps per agent between saves (at least one rollout).
+    """
+
+    path: Path
+    every: int
+
+    def load(self, key: str) -> tuple[dict[str, Any], dict[str, np.ndarray]] | None:
+        """``(meta, arrays)`` saved by the training ``key`` names, or ``None`` (no file, a file
+        of another training, or an unreadable one: the training then starts over)."""
+        try:
+            with np.load(io.BytesIO(self.path.read_bytes()), allow_pickle=False) as data:
+                meta = json.loads(str(data["meta"]))
+                arrays = {name: data[name] for name in data.files if name != "meta"}
+        except FileNotFoundError:
+            return None
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+            return None  # torn or foreign (JSONDecodeError is a ValueError)
+        if meta.get("version") != CHECKPOINT_VERSION or meta.get("key") != key:
+            return None
+        return meta, arrays
+
+    def save(self, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> None:
+        buffer = io.BytesIO()
+        payload: dict[str, Any] = {"meta": np.asarray(json.dumps(meta)), **arrays}
+        np.savez(buffer, **payload)
+        write_atomic(self.path, buffer.getvalue())
+
+    def remove(self) -> None:
+        self.path.unlink(missing_ok=True)
+
+
 def _schedule(value: Any) -> Any:
     return value if callable(value) else (lambda _progress, v=float(value): v)
 
@@ -228,6 +282,8 @@ class PopulationPPO:
         self.episodes: list[list[tuple[float, int]]] = [[] for _ in jobs]
         self.num_timesteps = 0
         self.timings = {"env": 0.0, "reservoir": 0.0, "policy": 0.0, "update": 0.0, "total": 0.0}
+        self.resumed_at = 0  # env steps per agent restored from a checkpoint
+        self.wall_before = 0.0  # wall seconds of the training before its checkpoint
         self._sde: np.ndarray | None = None
 
     @property
@@ -251,6 +307,75 @@ class PopulationPPO:
         self.policy.keep(index)
         self.optimizer = self.optimizer.keep(index, self.policy.flat)
         return keep
+
+    # -- checkpoints ---------------------------------------------------------------------------
+    def checkpoint_key(self, total_timesteps: int) -> str:
+        """A digest of what this training is: task, settings, budget, and each agent's seed and
+        encoder (a checkpoint is resumed only by the same training)."""
+        doc = {
+            "task": to_dict(self.task),
+            "ppo": to_dict(self.ppo),
+            "total_timesteps": int(total_timesteps),
+            "jobs": [[job.seed, to_dict(job.encoder)] for job in self.jobs],
+        }
+        text = json.dumps(doc, sort_keys=True, default=repr)
+        return hashlib.sha256(text.encode()).hexdigest()
+
+    def _state(self, key: str, elapsed: float) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        """The checkpoint of this moment, ``elapsed`` seconds into the current :meth:`learn`."""
+        timings = {
+            **self.timings,
+            "env": self.envs.env_seconds,
+            "reservoir": self.envs.reservoir_seconds,
+            "total": self.timings["total"] + elapsed,
+        }
+        meta = {
+            "version": CHECKPOINT_VERSION,
+            "key": key,
+            "num_timesteps": self.num_timesteps,
+            "alive": self.alive,
+            "failed": {str(j): str(err) for j, err in self.failed.items()},
+            "episodes": self.episodes,
+            "rngs": [rng.bit_generator.state for rng in self.rngs],
+            "adam_steps": self.optimizer.steps,
+            "timings": timings,
+            "wall_seconds": self.wall_before + elapsed,
+        }
+        arrays = {
+            "flat": self.policy.flat.numpy(),
+            "exp_avg": self.optimizer.exp_avg.numpy(),
+            "exp_avg_sq": self.optimizer.exp_avg_sq.numpy(),
+        }
+        for name in ("obs_rms", "ret_rms"):
+            rms = getattr(self.envs, name)
+            if rms is not None:
+                for part, value in zip(("mean", "var", "count"), rms.state()):
+                    arrays[f"{name}.{part}"] = value
+        return meta, arrays
+
+    def _restore(self, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> None:
+        alive = set(meta["alive"])
+        dropped = [pos for pos, job in enumerate(self.alive) if job not in alive]
+        if dropped:
+            self._drop(dropped, "dropped before the checkpoint")
+        self.failed = {int(j): TrainingDiverged(text) for j, text in meta["failed"].items()}
+        with torch.no_grad():
+            self.policy.flat.copy_(torch.from_numpy(arrays["flat"]))
+            self.optimizer.exp_avg.copy_(torch.from_numpy(arrays["exp_avg"]))
+            self.optimizer.exp_avg_sq.copy_(torch.from_numpy(arrays["exp_avg_sq"]))
+        self.optimizer.steps = int(meta["adam_steps"])
+        for rng, state in zip(self.rngs, meta["rngs"]):
+            rng.bit_generator.state = state
+        self.episodes = [[(float(r), int(t)) for r, t in runs] for runs in meta["episodes"]]
+        self.num_timesteps = self.resumed_at = int(meta["num_timesteps"])
+        for name in ("obs_rms", "ret_rms"):
+            rms = getattr(self.envs, name)
+            if rms is not None:
+                rms.load_state([arrays[f"{name}.{part}"] for part in ("mean", "var", "count")])
+        self.timings = {k: float(v) for k, v in meta["timings"].items()}
+        self.envs.env_seconds = self.timings["env"]
+        self.envs.reservoir_seconds = self.timings["reservoir"]
+        self.wall_before = float(meta["wall_seconds"])
 
     # -- rollouts ------------------------------------------------------------------------------
     def _reset_noise(self) -> None:
@@ -303,15 +428,36 @@ class PopulationPPO:
         return actions if self.discrete else np.clip(actions, self.low, self.high)
 
     # -- training ------------------------------------------------------------------------------
-    def learn(self, total_timesteps: int, progress: Progress | None = None) -> None:
+    def learn(
+        self,
+        total_timesteps: int,
+        progress: Progress | None = None,
+        checkpoint: Checkpoint | None = None,
+    ) -> None:
         """Train every agent for ``total_timesteps`` env steps (whole rollouts, as SB3);
-        ``progress`` is told each agent's env steps as they go, and closed at the end."""
+        ``progress`` is told each agent's env steps as they go, and closed at the end.
+
+        With ``checkpoint``, the training first resumes from the checkpoint's file if that holds
+        this training's state (:meth:`checkpoint_key`; see :class:`Checkpoint` for what resuming
+        keeps), then saves its state there every ``checkpoint.every`` env steps per agent. The
+        file is left in place at the end (the caller removes it once the results are safe).
+        """
         start = time.perf_counter()
+        key = self.checkpoint_key(total_timesteps)
+        saved = None if checkpoint is None else checkpoint.load(key)
+        if saved is not None:
+            assert checkpoint is not None
+            self._restore(*saved)
+            if progress is not None:
+                progress.message(
+                    f"resumed from {checkpoint.path} at {self.num_timesteps:,} steps each"
+                )
         s, E = self.s, self.envs.n_envs
         n_steps, gamma, lam = int(s["n_steps"]), float(s["gamma"]), float(s["gae_lambda"])
         use_sde, freq = self.spec.use_sde, int(s["sde_sample_freq"])
-        obs = self.envs.reset()
+        obs = self.envs.reset(seed_offset=self.num_timesteps)
         starts = np.ones((self.n_agents, E), np.float32)
+        last_saved = self.num_timesteps
         while self.num_timesteps < total_timesteps and self.n_agents:
             P = self.n_agents
             buf_obs = np.zeros((P, n_steps, E, self.envs.policy_dim), np.float32)
@@ -378,6 +524,14 @@ class PopulationPPO:
             self.timings["update"] += time.perf_counter() - t0
             if kept is not None:  # agents whose weights became NaN were dropped
                 obs, starts = obs[kept], starts[kept]
+            if (
+                checkpoint is not None
+                and self.n_agents
+                and self.num_timesteps < total_timesteps
+                and self.num_timesteps - last_saved >= checkpoint.every
+            ):
+                checkpoint.save(*self._state(key, time.perf_counter() - start))
+                last_saved = self.num_timesteps
         self.timings["env"] = self.envs.env_seconds
         self.timings["reservoir"] = self.envs.reservoir_seconds
         self.timings["total"] += time.perf_counter() - start
@@ -558,6 +712,8 @@ def train_population(
     evaluate: bool | None = None,
     model_paths: Sequence[str | Path | None] | None = None,
     progress: Progress | None = None,
+    checkpoints: str | Path | None = None,
+    checkpoint_every: int | None = None,
 ) -> list[RunResult | BaseException]:
     """Train ``jobs`` as one population in this process; one result per job, in order.
 
@@ -575,13 +731,23 @@ def train_population(
         evaluate: Run deterministic evaluation episodes (default: with the ``eval`` measure).
         model_paths: Per job, where to save the trained agent (``None``: not saved).
         progress: Told the env steps each agent has made (see :class:`ermrl._progress.Progress`).
+        checkpoints: A folder where the training saves its state (:class:`Checkpoint`, a file
+            named by :meth:`PopulationPPO.checkpoint_key`) and from which a rerun of the same
+            training resumes; the file is removed once the results are returned. ``None``: no
+            checkpoints.
+        checkpoint_every: Env steps per agent between saves (default: a tenth of the budget).
     """
     torch.set_num_threads(ppo.torch_threads)
     threadpoolctl.threadpool_limits(ppo.torch_threads)
     start = time.perf_counter()
     population = PopulationPPO(task, ppo, jobs)
+    checkpoint = None
+    if checkpoints is not None:
+        key = population.checkpoint_key(budget.training_steps)
+        every = checkpoint_every or max(budget.training_steps // 10, 1)
+        checkpoint = Checkpoint(Path(checkpoints) / f"population-{key[:16]}.npz", every)
     try:
-        population.learn(budget.training_steps, progress)
+        population.learn(budget.training_steps, progress, checkpoint)
         eval_returns: dict[int, list[float]] = {}
         if (evaluate if evaluate is not None else budget.fitness == "eval") and population.n_agents:
             eval_returns = population.evaluate(budget.n_eval_episodes)
@@ -592,7 +758,7 @@ def train_population(
                     population.export(pos, path)
     finally:
         population.close()
-    wall = time.perf_counter() - start
+    wall = time.perf_counter() - start + population.wall_before
     results: list[RunResult | BaseException] = []
     for j, job in enumerate(jobs):
         if j in population.failed:
@@ -625,4 +791,6 @@ def train_population(
             result.eval_returns = [float(r) for r in eval_returns[j]]
             result.eval_return = float(np.mean(result.eval_returns))
         results.append(result)
+    if checkpoint is not None:
+        checkpoint.remove()
     return results
