@@ -160,43 +160,51 @@ def test_the_test_phase_trains_under_both_backends(tmp_path: Path) -> None:
         assert (summary["n_seeds"] == 2).all()
 
 
-def test_a_killed_test_phase_resumes_its_populations_from_their_checkpoints(
-    tmp_path: Path,
+@pytest.mark.parametrize("backend", ["population", "sb3"])
+def test_a_killed_test_phase_resumes_its_runs_from_their_checkpoints(
+    backend: str, tmp_path: Path
 ) -> None:
-    """kill -9 during a population's training: the rerun resumes it from its checkpoint (not
-    from step 0), finishes every run, and removes the checkpoints."""
+    """kill -9 during training: the rerun resumes from the checkpoints (not from step 0), says
+    so, finishes every run, and removes the checkpoints."""
     url = f"sqlite:///{tmp_path}/s.db"
     done = evolve(tmp_path, *TINY, "--storage", url, "--study-name", "c", "--n-trials", "1")
     assert done.returncode == 0, done.stdout + done.stderr
     out = tmp_path / "test"
+    # A population trains its runs in lockstep; sb3 trains one run after another.
+    steps, seeds, agents = (
+        ("40000", ["10", "11"], ["res-ppo", "ppo"])
+        if backend == "population"
+        else ("8000", ["10"], ["ppo"])
+    )
     command = [
         sys.executable, str(ROOT / "test.py"), "--study-name", "c", "--storage", url,
-        "--training-steps", "40000", "--seeds", "10", "11", "--agents", "res-ppo", "ppo",
-        "--ppo", "n_steps=128", "batch_size=64", "n_epochs=2", "--backend", "population",
-        "--n-procs", "1", "--checkpoint-every", "1024", "--out", str(out), "--progress", "lines",
+        "--training-steps", steps, "--seeds", *seeds, "--agents", *agents,
+        "--ppo", "n_steps=128", "batch_size=64", "n_epochs=2", "--backend", backend,
+        "--n-procs", "1", "--checkpoint-every", "512", "--out", str(out), "--progress", "lines",
     ]  # fmt: skip
     log = open(tmp_path / "victim.log", "w")  # noqa: SIM115 (closed below)
     victim = subprocess.Popen(
         command, stdout=log, stderr=subprocess.STDOUT, start_new_session=True, cwd=tmp_path
     )
+    saved = "checkpoints/*.npz" if backend == "population" else "agents/*/*/checkpoints/state.json"
     deadline = time.monotonic() + 300
-    while time.monotonic() < deadline and not list(out.glob("checkpoints/*.npz")):
+    while time.monotonic() < deadline and not list(out.glob(saved)):
         assert victim.poll() is None, (tmp_path / "victim.log").read_text()
         time.sleep(0.2)
-    time.sleep(1.0)  # a few more saves
+    time.sleep(0.5)  # a few more saves
     os.killpg(victim.pid, signal.SIGKILL)
     victim.wait(10)
     log.close()
-    assert list(out.glob("checkpoints/*.npz")), (tmp_path / "victim.log").read_text()
+    assert list(out.glob(saved)), (tmp_path / "victim.log").read_text()
     rerun = subprocess.run(command, capture_output=True, text=True, cwd=tmp_path, timeout=600)
     assert rerun.returncode == 0, rerun.stdout + rerun.stderr
     resumed = [line for line in rerun.stdout.splitlines() if "resumed from" in line]
     assert resumed, rerun.stdout
     step = int(resumed[0].rsplit(" at ", 1)[1].split()[0].replace(",", ""))
-    assert 0 < step < 40000
+    assert 0 < step < int(steps)
     summary = pd.read_csv(out / "summary.csv").set_index("agent")
-    assert set(summary.index) == {"res-ppo", "ppo"} and (summary["n_seeds"] == 2).all()
-    assert not (out / "checkpoints").exists()
+    assert set(summary.index) == set(agents) and (summary["n_seeds"] == len(seeds)).all()
+    assert not list(out.rglob("checkpoints"))
 
 
 def test_a_generalization_evolution_trains_each_task_as_a_population(tmp_path: Path) -> None:

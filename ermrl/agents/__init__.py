@@ -1,5 +1,6 @@
 """The inner loop: Stable-Baselines3 PPO on raw or reservoir-encoded observations."""
 
+from ermrl.agents._checkpoint import RunCheckpoint
 from ermrl.agents._hyperparams import (
     ACTIVATIONS,
     activation_fn,
@@ -37,6 +38,7 @@ __all__ = [
     "ACTIVATIONS",
     "POLICY_FILE",
     "NoEpisodeFinished",
+    "RunCheckpoint",
     "RunResult",
     "SeedSet",
     "TrainingDiverged",

@@ -19,6 +19,12 @@ import numpy as np
 import threadpoolctl
 
 from ermrl._progress import Progress
+from ermrl.agents._checkpoint import (
+    RunCheckpoint,
+    can_checkpoint,
+    restore_normalization,
+    saver_callback,
+)
 from ermrl.agents._wandb import WandbRun
 from ermrl.config import BudgetConfig, EncoderConfig, PPOConfig, TaskConfig
 
@@ -337,6 +343,7 @@ def train_agent(
     wandb: WandbRun | None = None,
     callbacks: Sequence[Any] = (),
     progress: Progress | None = None,
+    checkpoint: RunCheckpoint | None = None,
 ) -> RunResult:
     """Train the learner of ``ppo.learner`` (PPO by default) on a task for one seed and measure
     its returns.
@@ -370,6 +377,9 @@ def train_agent(
         callbacks: More SB3 callbacks, called after ermrl's own.
         progress: Told the learner's env steps as training goes (a line every tenth of the
             budget or 30 s, with the rate from the first step on), and closed at the end.
+        checkpoint: Resume from this checkpoint when it holds this run's state, and save the
+            run there as it trains (:mod:`ermrl.agents._checkpoint`: on-policy SB3 learners
+            only; others ignore it); removed when the run ends.
 
     Returns:
         The run's returns and timings.
@@ -394,7 +404,7 @@ def train_agent(
             result = train_agent(
                 task, encoder, ppo, budget, seed, evaluate=evaluate, model_path=model_path,
                 report=report, tensorboard_log=log_dir, eval_at=eval_at,
-                callbacks=(*callbacks, wandb_callback), progress=progress,
+                callbacks=(*callbacks, wandb_callback), progress=progress, checkpoint=checkpoint,
             )  # fmt: skip
             run.summary.update(
                 {
@@ -412,6 +422,7 @@ def train_agent(
     threadpoolctl.threadpool_limits(ppo.torch_threads)
     seeds = derive_seeds(seed)
     result = RunResult(seed=seed)
+    resumed, wall_before = 0, 0.0  # steps and wall seconds restored from a checkpoint
     start = time.perf_counter()
     # VecNormalize (ppo.normalize) sees the reservoir states; the learner's own wrappers (a
     # frame stack) come last, as in rl-baselines3-zoo.
@@ -423,13 +434,41 @@ def train_agent(
         model = learner.build(env, ppo, seed=seeds.agent, tensorboard_log=tensorboard_log)
         # PPO(seed=...) reseeds the env with the agent seed; give the envs their own seed.
         env.seed(seeds.env)
+        if checkpoint is not None and not can_checkpoint(model):
+            checkpoint = None
+        saved = None if checkpoint is None else checkpoint.load()
+        if saved is not None:
+            assert checkpoint is not None
+            model.set_parameters(str(saved["model"]), exact_match=True)
+            model.num_timesteps = resumed = int(saved["num_timesteps"])
+            if saved["normalize"] is not None:
+                restore_normalization(normalized, saved["normalize"])
+            result.episode_returns = [float(r) for r in saved["episode_returns"]]
+            result.episode_steps = [int(t) for t in saved["episode_steps"]]
+            result.checkpoint_returns = [(int(t), float(r)) for t, r in saved["checkpoint_returns"]]
+            wall_before = float(saved["wall_seconds"])
+            eval_at = [t for t in eval_at if t > resumed]
+            env.seed(seeds.env + resumed)  # fresh episodes, not the first ones again
+            if progress is not None:
+                progress.message(f"resumed from {checkpoint.folder} at {resumed:,} steps")
         recorder = _episode_callback(result, budget, report)
         if progress is not None:
             callbacks = (*callbacks, _progress_callback(progress))
+        if checkpoint is not None:
+
+            def records() -> dict[str, Any]:
+                return {
+                    "episode_returns": result.episode_returns,
+                    "episode_steps": result.episode_steps,
+                    "checkpoint_returns": result.checkpoint_returns,
+                    "wall_seconds": wall_before + time.perf_counter() - start,
+                }
+
+            callbacks = (*callbacks, saver_callback(checkpoint, normalized, records))
         callback: Any = [recorder, *callbacks] if callbacks else recorder
         if eval_at:
 
-            def checkpoint() -> float:
+            def evaluate_now() -> float:
                 returns = _evaluate(
                     model, task, encoder, ppo, seeds, normalized, budget.n_eval_episodes
                 )
@@ -437,11 +476,17 @@ def train_agent(
 
             callback = [
                 *(callback if isinstance(callback, list) else [callback]),
-                _checkpoint_callback(result, eval_at, budget.training_steps, checkpoint),
+                _checkpoint_callback(result, eval_at, budget.training_steps, evaluate_now),
             ]
+        # A resumed run trains the steps left; with reset_num_timesteps=False SB3 counts on
+        # from num_timesteps, so its schedules end at the budget as the uninterrupted run's.
+        resume_kwargs = {"reset_num_timesteps": False} if resumed else {}
         try:
             model.learn(
-                total_timesteps=budget.training_steps, callback=callback, progress_bar=False
+                total_timesteps=budget.training_steps - resumed,
+                callback=callback,
+                progress_bar=False,
+                **resume_kwargs,
             )
         except ValueError as err:
             # torch.distributions raises ValueError when the policy outputs NaN.
@@ -484,5 +529,7 @@ def train_agent(
                 save_normalize_stats(normalized, stats_path(model_path))
     finally:
         env.close()
-    result.wall_seconds = time.perf_counter() - start
+    result.wall_seconds = wall_before + time.perf_counter() - start
+    if checkpoint is not None:
+        checkpoint.remove()
     return result

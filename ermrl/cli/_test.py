@@ -160,10 +160,12 @@ def add_test_args(
         type=nonneg_int,
         default=None,
         metavar="STEPS",
-        help="runs on the population backend save their training state every STEPS steps per "
-        "run in OUT/checkpoints, and a rerun after a kill or crash resumes them from there "
-        "(weights, optimizer, normalization, random streams; the environments restart from "
-        "fresh episodes). Default: a tenth of --training-steps; 0: no checkpoints",
+        help="runs save their training state every STEPS steps per run, and a rerun after a "
+        "kill or crash resumes them from there (weights, optimizer, normalization, episodes so "
+        "far; the environments restart from fresh episodes): population runs in "
+        "OUT/checkpoints, runs of on-policy sb3 learners (ppo, lstm-ppo, framestack-ppo, "
+        "rtu-ppo) in their run folder; other learners restart. Default: a tenth of "
+        "--training-steps; 0: no checkpoints",
     )
 
 

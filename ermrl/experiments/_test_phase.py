@@ -43,7 +43,14 @@ import yaml
 from ermrl._io import write_atomic
 from ermrl._progress import Progress, ProgressMode, duration
 from ermrl._text import plural
-from ermrl.agents import RunResult, WandbRun, pool_size, train_agent, training_pool
+from ermrl.agents import (
+    RunCheckpoint,
+    RunResult,
+    WandbRun,
+    pool_size,
+    train_agent,
+    training_pool,
+)
 from ermrl.analysis import (
     curves_on_grid,
     load_curves,
@@ -292,10 +299,11 @@ class TestSettings:
         progress: ``"lines"``: a progress line of each run every tenth of its steps or 30 s
             (:class:`ermrl._progress.Progress`); ``"bar"``: a live bar of each run instead;
             ``"none"``: a line per finished run only.
-        checkpoint_every: Runs on the population backend save their training state every
-            this many steps per run under ``out/checkpoints`` (see
-            :class:`~ermrl.population.Checkpoint`), and a rerun resumes them from there.
-            ``None``: a tenth of ``training_steps``; 0: no checkpoints.
+        checkpoint_every: Runs save their training state every this many steps per run, and
+            a rerun resumes them from there: population runs under ``out/checkpoints`` (see
+            :class:`~ermrl.population.Checkpoint`), on-policy sb3 runs in their run folder's
+            ``checkpoints`` (:class:`~ermrl.agents.RunCheckpoint`). ``None``: a tenth of
+            ``training_steps``; 0: no checkpoints.
     """
 
     __test__ = False  # not a pytest test class
@@ -375,7 +383,10 @@ def study_reservoirs(
 
 
 def _train_job(args: tuple[Any, ...]) -> RunResult:
-    task, encoder, ppo, budget, seed, evaluate, model_path, tensorboard_log, wandb, progress = args
+    (
+        task, encoder, ppo, budget, seed, evaluate, model_path, tensorboard_log, wandb, progress,
+        checkpoint,
+    ) = args  # fmt: skip
     return train_agent(
         task,
         encoder,
@@ -387,6 +398,7 @@ def _train_job(args: tuple[Any, ...]) -> RunResult:
         tensorboard_log=tensorboard_log,
         wandb=wandb,
         progress=progress,
+        checkpoint=checkpoint,
     )
 
 
@@ -723,9 +735,18 @@ def run_comparison(
                 mode="none" if quiet else settings.progress,
                 stream=stream if settings.n_procs == 1 else None,  # a worker prints to stdout
             )
+            checkpoint = None
+            if settings.checkpoint_every != 0:
+                if settings.overwrite:
+                    shutil.rmtree(folder / CHECKPOINT_DIR, ignore_errors=True)
+                checkpoint = RunCheckpoint(
+                    folder / CHECKPOINT_DIR,
+                    settings.checkpoint_every or max(budget.training_steps // 10, 1),
+                    json.dumps({**expected[agent.name], "seed": seed}, sort_keys=True),
+                )
             job = (
                 agent.task(task), enc, ppo_of(agent), budget, seed, settings.evaluate,
-                model_path, tb_log, wandb, progress,
+                model_path, tb_log, wandb, progress, checkpoint,
             )  # fmt: skip
             jobs.append((agent, seed, job))
 
