@@ -6,7 +6,8 @@ task's shapes (``n_steps x n_envs`` steps per agent, standard normal observation
 values and advantages). No environment is stepped, so the measurement is the update's own cost:
 forward and backward passes, losses, per-agent gradient clipping and Adam. Each repeat runs
 ``--epochs`` epochs of minibatches (``batch_size`` from the settings) and is timed in CPU time of
-this process (steadier than wall time on a shared machine; the update runs on one thread).
+this process (steadier than wall time on a shared machine; the update runs on one thread, torch's
+and BLAS's, as in training).
 
 Reported per repeat, then the median: ``us_per_minibatch`` and ``update_us_per_agent_step``, the
 cost of the settings' full update (``n_epochs`` epochs) divided by the agents' env steps, the unit
@@ -62,6 +63,7 @@ def synthetic_rollout(population: Any, n_steps: int, seed: int = 0) -> list[Any]
 
 def measure(task_spec: str, n_agents: int, epochs: int, repeats: int) -> dict[str, Any]:
     """Time ``repeats`` updates of ``epochs`` epochs each; one result row."""
+    import threadpoolctl
     import torch
 
     from ermrl.agents import resolve_ppo_config, with_overrides
@@ -72,7 +74,10 @@ def measure(task_spec: str, n_agents: int, epochs: int, repeats: int) -> dict[st
     task = TaskConfig(env_id, observe or "all")
     packaged = resolve_ppo_config(env_id)
     ppo = with_overrides(packaged, {"n_epochs": epochs})
+    # One thread for torch and for BLAS (numpy's products in the update), as a training
+    # process runs (train_population sets both from torch_threads, 1 by default).
     torch.set_num_threads(1)
+    threadpoolctl.threadpool_limits(1)
     jobs = [PopulationJob(EncoderConfig(), seed) for seed in range(n_agents)]
     population = PopulationPPO(task, ppo, jobs)
     try:
