@@ -334,7 +334,15 @@ class StackedPolicy:
         Args:
             obs: Observations ``[P, B, obs_dim]`` (float32).
             actions: ``[P, B, action_dim]`` (Gaussian) or ``[P, B]`` integers (categorical).
-            old_values, old_log_probs, advantages, returns: ``[P, B]``, from the rollout.
+            old_values: ``[P, B]``, the rollout's values.
+            old_log_probs: ``[P, B]``, the rollout's log-probabilities of ``actions``.
+            advantages: ``[P, B]``, GAE advantages (normalized here per minibatch).
+            returns: ``[P, B]``, the value targets.
+            clip_range: PPO's clip range of the ratio.
+            clip_range_vf: The values' clip range around ``old_values`` (``None``: unclipped).
+            ent_coef: Weight of the entropy bonus.
+            vf_coef: Weight of the value loss.
+            normalize_advantage: Normalize the advantages per minibatch (as SB3).
 
         Returns:
             ``[P, row_size]`` float32: the gradient (zero in the padding); a buffer the next
