@@ -103,15 +103,11 @@ class RunCheckpoint:
 
 def restore_normalization(normalized: Any, stats: dict[str, Any]) -> None:
     """Set a training ``VecNormalize``'s running statistics to saved ones (it keeps updating)."""
-    import numpy as np
+    from ermrl.agents._normalize import set_running_stats
 
     if stats.get("obs_rms") is not None:
-        normalized.obs_rms.mean = np.asarray(stats["obs_rms"]["mean"], np.float64)
-        normalized.obs_rms.var = np.asarray(stats["obs_rms"]["var"], np.float64)
-        normalized.obs_rms.count = float(stats["obs_rms"]["count"])
-    normalized.ret_rms.mean = np.asarray(stats["ret_rms"]["mean"], np.float64)
-    normalized.ret_rms.var = np.asarray(stats["ret_rms"]["var"], np.float64)
-    normalized.ret_rms.count = float(stats["ret_rms"]["count"])
+        set_running_stats(normalized.obs_rms, stats["obs_rms"])
+    set_running_stats(normalized.ret_rms, stats["ret_rms"])
 
 
 def saver_callback(checkpoint: RunCheckpoint, normalized: Any, records: Any) -> Any:

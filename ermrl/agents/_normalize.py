@@ -127,26 +127,27 @@ def frozen_normalize_env(venv: Any, stats: dict[str, Any]) -> Any:
         epsilon=float(stats["epsilon"]),
     )
     if stats["norm_obs"]:
-        obs = stats["obs_rms"]
         shape = tuple(venv.observation_space.shape)
         rms = RunningMeanStd(shape=shape)
-        rms.mean = np.asarray(obs["mean"], np.float64)
-        rms.var = np.asarray(obs["var"], np.float64)
+        set_running_stats(rms, stats["obs_rms"])
         if rms.mean.shape != shape or rms.var.shape != shape:
             raise ValueError(
                 f"normalization statistics of shape {rms.mean.shape} do not fit the "
                 f"observation shape {shape}"
             )
-        rms.count = float(obs["count"])
         # SB3 infers ``obs_rms`` from its Dict-space branch (a dict of RunningMeanStd); for a Box
         # observation space it holds one RunningMeanStd, as here.
         wrapped.obs_rms = cast("dict[str, RunningMeanStd]", rms)
-    ret = stats["ret_rms"]
-    # 0-d float64 arrays, as ``RunningMeanStd(shape=())`` holds them.
-    wrapped.ret_rms.mean = np.asarray(ret["mean"], np.float64)
-    wrapped.ret_rms.var = np.asarray(ret["var"], np.float64)
-    wrapped.ret_rms.count = float(ret["count"])
+    set_running_stats(wrapped.ret_rms, stats["ret_rms"])
     return wrapped
+
+
+def set_running_stats(rms: Any, stats: dict[str, Any]) -> None:
+    """Set an SB3 ``RunningMeanStd`` to saved ``{mean, var, count}`` (float64 arrays, 0-d for the
+    return's, as ``RunningMeanStd`` holds them)."""
+    rms.mean = np.asarray(stats["mean"], np.float64)
+    rms.var = np.asarray(stats["var"], np.float64)
+    rms.count = float(stats["count"])
 
 
 def stats_path(model_path: str | Path) -> Path:

@@ -227,7 +227,9 @@ class StackedPolicy:
             view = flat[:, offset : offset + size].view(P, *shape)
             self.params[name] = torch.nn.Parameter(view)  # shares the buffer's storage
             offset += size
-        self._grad = np.zeros((P, self.row_size), np.float32)  # see ppo_gradient
+        # ppo_gradient's output buffer and its per-parameter views (rebuilt with the buffer).
+        self._grad = np.zeros((P, self.row_size), np.float32)
+        self._grads = self.grad_views(self._grad)
         self.refresh()
 
     @property
@@ -350,9 +352,7 @@ class StackedPolicy:
         """
         s, w = self.spec, self.np
         P, B = obs.shape[:2]
-        if self._grad.shape[0] != P:
-            self._grad = np.zeros((P, self.row_size), np.float32)
-        grads = self.grad_views(self._grad)
+        grads = self._grads
         pi, vf = [obs], [obs]
         for inputs, prefix, n in ((pi, "pi", len(s.pi)), (vf, "vf", len(s.vf))):
             for i in range(n):
