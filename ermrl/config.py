@@ -4,8 +4,9 @@ A run's whole configuration is one :class:`EvolveConfig`. It is saved as a study
 (``ermrl_config``) and as ``config.yaml`` next to results, so the test phase and the analysis need
 only the study name and the storage URL.
 
-Only what is generic lives here: tasks, learner settings, budgets, the search, the problem and
-the agent table. Each encoder's settings, search space, flags and agents live in its module of
+Only what is generic lives here: tasks, learner settings, budgets, the search and the problem.
+The test-phase agents are declared by the learners and encoders that own them and listed by
+:data:`ermrl.learners.AGENT_KINDS`. Each encoder's settings, search space, flags and agents live in its module of
 :mod:`ermrl.encoders` (this module sits above it and reads its registry); the names every layer
 needs (:class:`ConfigError`, :class:`Range`, the limits, ...) come from :mod:`ermrl._config_base`.
 Both are re-exported, so ``from ermrl.config import ReservoirParams`` keeps working.
@@ -18,7 +19,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import typing
-from collections.abc import Iterator, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, TypeVar
 
@@ -59,7 +60,6 @@ from ermrl.encoders import (
     ReservoirSpace,
     RTUParams,
     RTUSpace,
-    encoder_agents,
     encoder_families,
     encoder_of_family,
     reference_encoder,
@@ -69,11 +69,8 @@ from ermrl.encoders._reservoir import BiasInit
 _PerReservoirSpace = PerReservoirSpace  # its name before encoders owned it
 
 __all__ = [
-    "AGENTS",
-    "AGENT_KINDS",
     "BACKENDS",
     "BIAS_INITS",
-    "EVOLVED_AGENT",
     "FAMILIES",
     "FITNESS_MODES",
     "MAX_EPISODES",
@@ -85,7 +82,6 @@ __all__ = [
     "PRUNERS",
     "RESET_MODES",
     "STARTS",
-    "UNEVOLVED_AGENT",
     "AgentKind",
     "BiasInit",
     "BudgetConfig",
@@ -114,135 +110,17 @@ __all__ = [
     "SearchSpaceConfig",
     "StartName",
     "TaskConfig",
-    "default_agents",
-    "evolved_agent",
     "from_dict",
     "to_dict",
-    "unevolved_agent",
 ]
 
 # The encoders' families when this module was imported (:func:`ermrl.encoders.encoder_families`
 # reads the registry as it is now).
 FAMILIES: tuple[str, ...] = encoder_families()
 
-# The agents that belong to no encoder: a learner on the raw observation, or a learner's own
-# evolved genes. Each registered encoder adds its own (:attr:`ermrl.encoders.Encoder.agents`).
-_OWN_AGENTS: dict[str, AgentKind] = {
-    "ppo": AgentKind(
-        "none", None, "PPO on the raw (masked) observation", "ppo",
-        "PPO (raw observation)", "PPO", "tab:blue",
-    ),
-    "ppo-full": AgentKind(
-        "none", "all", "PPO on the full, unmasked observation: the ceiling memory should approach",
-        "ppo", "PPO (full observation)", "PPO\n(full obs.)", "tab:gray",
-    ),
-    "lstm-ppo": AgentKind(
-        "none", None, "RecurrentPPO (LSTM policy) on the raw (masked) observation: memory baseline",
-        "lstm-ppo", "LSTM-PPO (raw observation)", "LSTM-PPO", "tab:purple", default=False,
-    ),
-    "framestack-ppo": AgentKind(
-        "none", None, "PPO on the last k raw (masked) observations (frame_stack, default 4)",
-        "framestack-ppo", "PPO (4 stacked frames)", "PPO\n(stacked)", "tab:brown", default=False,
-    ),
-    "rtu-ppo": AgentKind(
-        "none", None,
-        "PPO with recurrent trace units learned online by RTRL (real-time PPO): learned memory",
-        "rtu-ppo", "RTU-PPO (learned RTU)", "RTU-PPO", "tab:olive", default=False,
-    ),
-    "hebbian": AgentKind(
-        "evolved", None,
-        "the Hebbian learner with the selected evolved genes (evolve --learner hebbian studies)",
-        None, "Hebbian (evolved genes)", "Hebbian\n(evolved)", "tab:cyan", family="hebbian",
-    ),
-    "random-hebbian": AgentKind(
-        "unevolved", None,
-        "the Hebbian learner with its default genes (the original's values; --learner hebbian "
-        "studies)",
-        None, "Hebbian (default genes)", "Hebbian\n(default)", "darkgoldenrod", family="hebbian",
-    ),
-    "sac": AgentKind(
-        "none", None, "SAC (off-policy) on the raw (masked) observation", "sac",
-        "SAC (raw observation)", "SAC", "black", default=False,
-    ),
-    "dagger": AgentKind(
-        "none", None,
-        "DAgger on the raw (masked) observation; its expert sees the full state "
-        "(--for-learner dagger expert=DIR)",
-        "dagger", "DAgger (raw observation)", "DAgger", "navy", default=False,
-    ),
-    "imitation-sac": AgentKind(
-        "none", None,
-        "SAC seeded by DAgger from an expert that sees the full state, on the raw (masked) "
-        "observation (--for-learner imitation-sac expert=DIR)",
-        "imitation-sac", "Imitation-SAC (raw observation)", "Imit.-SAC", "chocolate",
-        default=False,
-    ),
-}  # fmt: skip
-_RAW_FIRST = ("ppo", "ppo-full")  # listed before the encoders' agents, the others after
-
-
-class _AgentTable(Mapping[str, AgentKind]):
-    """The registry of test-phase agents, read afresh on each use: the two raw-observation PPO
-    agents, every registered encoder's agents in registry order, then the other agents."""
-
-    def _table(self) -> dict[str, AgentKind]:
-        table = {name: _OWN_AGENTS[name] for name in _RAW_FIRST}
-        table.update(encoder_agents())  # type: ignore[arg-type]
-        table.update({n: k for n, k in _OWN_AGENTS.items() if n not in _RAW_FIRST})
-        return table
-
-    def __getitem__(self, name: str) -> AgentKind:
-        return self._table()[name]
-
-    def __iter__(self) -> Iterator[str]:
-        return iter(self._table())
-
-    def __len__(self) -> int:
-        return len(self._table())
-
-
-# The registry of test-phase agents (ermrl.experiments builds them): CLI choices, defaults, the
-# analysis' agent order, labels and colours are read from it. A learner's agent is one line of
-# the table above; an encoder's agents come with the encoder.
-AGENT_KINDS: Mapping[str, AgentKind] = _AgentTable()
-AGENTS: tuple[str, ...] = tuple(AGENT_KINDS)  # the table when this module was imported
-
 
 def _reference_family() -> str:
     return reference_encoder().family
-
-
-def evolved_agent(family: str | None = None) -> str:
-    """The agent on the selected evolved encoder of a study of ``family`` (``None``: the
-    reference encoder's): what the report compares and replays."""
-    family = family or _reference_family()
-    return next(
-        n for n, k in AGENT_KINDS.items() if k.reservoirs == "evolved" and k.family == family
-    )
-
-
-def unevolved_agent(family: str | None = None) -> str:
-    """The agent on the unevolved reference encoder of a study of ``family``."""
-    family = family or _reference_family()
-    return next(
-        n for n, k in AGENT_KINDS.items() if k.reservoirs == "unevolved" and k.family == family
-    )
-
-
-EVOLVED_AGENT = evolved_agent()
-UNEVOLVED_AGENT = unevolved_agent()
-
-
-def default_agents(observe: str, family: str | None = None) -> tuple[str, ...]:
-    """The default agents of a study of encoder ``family`` (``None``: the reference encoder's),
-    less those whose own mask is the task's: ``ppo-full`` on an unmasked task would repeat
-    ``ppo`` run for run."""
-    family = family or _reference_family()
-    return tuple(
-        a
-        for a, kind in AGENT_KINDS.items()
-        if kind.default and kind.observe != observe and kind.family in (None, family)
-    )
 
 
 @dataclass(frozen=True)

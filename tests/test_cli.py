@@ -117,8 +117,9 @@ def test_test_phase_writes_all_outputs(evolved: tuple[Path, str]) -> None:
 def test_agent_registry_drives_choices_defaults_and_labels() -> None:
     from ermrl.analysis._style import AGENT_COLORS, AGENT_LABELS, AGENT_SHORT_LABELS
     from ermrl.cli._test import build_test_parser
-    from ermrl.config import AGENTS, ConfigError, default_agents
+    from ermrl.config import ConfigError
     from ermrl.experiments import agent_specs
+    from ermrl.learners import AGENTS, default_agents
 
     # The raw-observation PPO agents, each registered encoder's agents, then the learners'.
     assert AGENTS == (

@@ -152,7 +152,7 @@ TINY_PPO = ["--ppo", "n_steps=128", "batch_size=64", "n_epochs=1", "--n-envs", "
 
 def test_a_toy_encoder_is_a_choice_with_its_flags_agents_and_space(toy: ToyEncoder) -> None:
     from ermrl.cli._evolve import build_evolve_parser, space_from_args
-    from ermrl.config import AGENT_KINDS, default_agents, evolved_agent, unevolved_agent
+    from ermrl.learners import AGENT_KINDS, default_agents, evolved_agent, unevolved_agent
 
     parser = build_evolve_parser()
     args = parser.parse_args(

@@ -26,8 +26,8 @@ from ermrl.cli._generalization import (
 from ermrl.cli._generalization import test_generalization_main as run_test_generalization
 from ermrl.cli._test import agent_learners, build_test_parser
 from ermrl.cli._test import test_main as run_test
-from ermrl.config import AGENT_KINDS, ConfigError, default_agents
-from ermrl.learners import learner_names
+from ermrl.config import ConfigError
+from ermrl.learners import AGENT_KINDS, default_agents, learner_names
 
 PENDULUM = "Pendulum-v1"
 

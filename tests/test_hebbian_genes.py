@@ -26,13 +26,10 @@ from ermrl.config import (
     Range,
     SearchConfig,
     TaskConfig,
-    default_agents,
-    evolved_agent,
     from_dict,
     to_dict,
-    unevolved_agent,
 )
-from ermrl.learners import get_learner
+from ermrl.learners import default_agents, evolved_agent, get_learner, unevolved_agent
 from ermrl.learners._hebbian import GENES
 
 HEBBIAN = get_learner("hebbian")

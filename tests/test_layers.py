@@ -32,7 +32,8 @@ Four rules:
    encoders, so that it reads a stored study's encoder settings as the registered encoder's
    classes and lists the registered encoders' agents; it re-exports what it builds on), the
    inner-loop learners (each algorithm, its agent's files and
-   the reading of the expert folders that imitation learners query), the agents (the training
+   the reading of the expert folders that imitation learners query; the test-phase agent table,
+   which lists the learners' agents and the encoders'), the agents (the training
    loop and the settings it resolves), the experts (trained and evaluated by the agents' loop),
    the population backend (which
    trains many agents at once with the agents' seeds and files), storage, the outer-loop search,

@@ -21,15 +21,14 @@ from ermrl.agents import (
     with_overrides,
 )
 from ermrl.config import (
-    AGENT_KINDS,
+    AgentKind,
     BudgetConfig,
     ConfigError,
     EncoderConfig,
     ReservoirParams,
     TaskConfig,
-    default_agents,
 )
-from ermrl.learners import LEARNERS, get_learner, learner_names
+from ermrl.learners import AGENT_KINDS, LEARNERS, default_agents, get_learner, learner_names
 from ermrl.learners._ppo import PPOLearner
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -175,6 +174,9 @@ class _SmallNetPPO(PPOLearner):
     name = "small-ppo"
     description = "PPO with an 8-unit network"
     own_keys: ClassVar[dict[str, object]] = {}
+    agents: ClassVar[dict[str, AgentKind]] = {
+        "small-ppo": AgentKind("none", None, "PPO with an 8-unit network", "small-ppo")
+    }
 
     def kwargs(self, config: object) -> dict[str, object]:
         return {**super().kwargs(config), "policy_kwargs": {"net_arch": [8]}}  # type: ignore[arg-type]
@@ -193,6 +195,28 @@ def test_a_learner_added_in_one_place_is_trained(monkeypatch: pytest.MonkeyPatch
 
     model = get_learner("small-ppo").build(make_vec_env(TASK, 1, 0), ppo)
     assert model.policy.mlp_extractor.policy_net[0].out_features == 8
+    # Its agent came with it: the test phase builds it with the learner's own settings, after
+    # the agents registered before it; the PPO agents it would inherit are not declared again.
+    from ermrl.experiments import agent_specs, learner_settings_for
+
+    assert list(AGENT_KINDS)[-1] == "small-ppo" and list(AGENT_KINDS).count("ppo") == 1
+    base = resolve_ppo_config("Pendulum-v1", learner="ppo")
+    (spec,) = agent_specs(
+        ["small-ppo"], None, (), learner_settings=learner_settings_for(base, "Pendulum-v1")
+    )
+    assert spec.ppo is not None and spec.ppo.learner == "small-ppo"
+
+
+def test_an_agent_declared_twice_is_refused(monkeypatch: pytest.MonkeyPatch) -> None:
+    class _Twin(PPOLearner):
+        name = "twin"
+        agents: ClassVar[dict[str, AgentKind]] = {"ppo": AgentKind("none", None, "again", "twin")}
+
+    monkeypatch.setitem(LEARNERS, "twin", _Twin())  # type: ignore[index]
+    with pytest.raises(
+        ConfigError, match=r"agent 'ppo' is declared twice \(again by learner 'twin'\)"
+    ):
+        list(AGENT_KINDS)
 
 
 def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:

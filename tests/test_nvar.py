@@ -495,8 +495,8 @@ def test_the_agents_and_flags_are_ready_to_register() -> None:
 
 # -- registered: the CLI, the test phase and the report --------------------------------------------
 def test_nvar_is_registered_with_its_agents_and_flags() -> None:
-    from ermrl.config import AGENT_KINDS, default_agents, evolved_agent, unevolved_agent
     from ermrl.encoders import ENCODERS, encoder_for
+    from ermrl.learners import AGENT_KINDS, default_agents, evolved_agent, unevolved_agent
 
     assert isinstance(ENCODERS["nvar"], NVAREncoder)
     assert encoder_for(nvar_encoder(NVARParams())) is ENCODERS["nvar"]

@@ -18,13 +18,11 @@ from ermrl.config import (
     ReservoirSpace,
     RTUParams,
     RTUSpace,
-    default_agents,
-    evolved_agent,
     from_dict,
     to_dict,
-    unevolved_agent,
 )
 from ermrl.encoders import ReservoirBank, encoder_for, rtu_weights
+from ermrl.learners import default_agents, evolved_agent, unevolved_agent
 
 
 def _rtu_reference(params: RTUParams, weights_seed: int, inputs: np.ndarray) -> np.ndarray:

@@ -18,7 +18,6 @@ import numpy as np
 import pytest
 
 from ermrl.config import (
-    AGENT_KINDS,
     BudgetConfig,
     ConfigError,
     EncoderConfig,
@@ -26,6 +25,7 @@ from ermrl.config import (
     ReservoirParams,
     TaskConfig,
 )
+from ermrl.learners import AGENT_KINDS
 
 PENDULUM = TaskConfig("Pendulum-v1", "positions")
 ENCODER = EncoderConfig(reservoirs=(ReservoirParams(units=20),))

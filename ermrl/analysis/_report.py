@@ -34,7 +34,8 @@ import pandas as pd
 from ermrl._io import staged_folder
 from ermrl._progress import duration
 from ermrl.analysis._style import save_figure, task_title
-from ermrl.config import AGENT_KINDS, LearnerSpace, evolved_agent, unevolved_agent
+from ermrl.config import LearnerSpace
+from ermrl.learners import AGENT_KINDS, evolved_agent, unevolved_agent
 
 __all__ = ["ReportResult", "notebook_parameters", "write_report"]
 

@@ -183,7 +183,7 @@ def task_result(folder: Path, label: str, n_trials: int, snapshot: Path) -> Task
     if not runs.empty:
         # The paper's baselines first, then every other agent the test phase trained (learned
         # memory, the full observation), in the agent table's order.
-        from ermrl.config import AGENT_KINDS
+        from ermrl.learners import AGENT_KINDS
 
         tested = set(runs["agent"])
         others = [a for a in AGENT_KINDS if a in tested and a != EVOLVED and a not in BASELINES]

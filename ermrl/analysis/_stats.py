@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 
 from ermrl.analysis._results import t_quantile
-from ermrl.config import AGENT_KINDS, EVOLVED_AGENT
+from ermrl.learners import AGENT_KINDS, EVOLVED_AGENT
 
 __all__ = [
     "FEW_SEEDS",
@@ -270,7 +270,7 @@ def compare_agents(
         results: Output of :func:`~ermrl.analysis.load_run_results`.
         candidate: The agent tested (default the evolved reservoir, ``res-ppo``).
         baselines: Agents it is compared with (missing ones are skipped; default: every other
-            agent of :data:`~ermrl.config.AGENT_KINDS`).
+            agent of :data:`~ermrl.learners.AGENT_KINDS`).
         metric: ``final_return`` or ``eval_return``.
         confidence: Coverage of the bootstrap interval.
         n_resamples: Bootstrap resamples.

@@ -18,7 +18,7 @@ import matplotlib as mpl
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
-from ermrl.config import AGENT_KINDS
+from ermrl.learners import AGENT_KINDS
 
 __all__ = [
     "AGENT_COLORS",
@@ -34,7 +34,7 @@ __all__ = [
     "task_title",
 ]
 
-# Read from the agent table (ermrl.config.AGENT_KINDS): adding an agent there labels it here.
+# Read from the agent table (ermrl.learners.AGENT_KINDS): an agent declared by a learner or an encoder is labelled here.
 AGENT_LABELS = {name: kind.label or name for name, kind in AGENT_KINDS.items()}
 AGENT_SHORT_LABELS = {name: kind.short_label or name for name, kind in AGENT_KINDS.items()}
 AGENT_COLORS = {name: kind.color for name, kind in AGENT_KINDS.items() if kind.color}

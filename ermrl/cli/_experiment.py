@@ -640,7 +640,7 @@ def _test_step(
     folder: Path,
     env_id: str | None,
 ) -> Step:
-    from ermrl.config import AGENT_KINDS
+    from ermrl.learners import AGENT_KINDS
 
     label = env_id or (task.env_id if task else "")
     where = f"{exp.path}: {label}: test"
@@ -675,7 +675,7 @@ def _test_step(
     total = len(agents) * len(seeds) * per_run
     replayed: tuple[tuple[str, int], ...] = ()
     if _stage(exp, "report", task).get("dynamics") and not env_id and seeds:
-        from ermrl.config import evolved_agent, unevolved_agent
+        from ermrl.learners import evolved_agent, unevolved_agent
 
         family = config.space.family
         wanted = (evolved_agent(family), unevolved_agent(family))

@@ -27,7 +27,8 @@ from ermrl.cli._common import (
     progress_mode,
     quiet_libraries,
 )
-from ermrl.config import AGENT_KINDS, ConfigError, default_agents
+from ermrl.config import ConfigError
+from ermrl.learners import AGENT_KINDS, default_agents
 
 T = TypeVar("T")
 

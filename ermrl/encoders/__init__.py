@@ -10,7 +10,7 @@ agents, the stored configurations and the report read this table.
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
-from ermrl._config_base import ConfigError
+from ermrl._config_base import AgentKind, ConfigError
 from ermrl.encoders._base import Encoder, flag_dest
 from ermrl.encoders._nvar import NVAREncoder
 from ermrl.encoders._reservoir import (
@@ -95,7 +95,7 @@ def encoder_families() -> tuple[str, ...]:
     return tuple(e.family for e in ENCODERS.values())
 
 
-def encoder_agents() -> Mapping[str, object]:
+def encoder_agents() -> Mapping[str, AgentKind]:
     """Every registered encoder's test-phase agents (name -> ``AgentKind``), in registry order."""
     return {name: kind for e in ENCODERS.values() for name, kind in e.agents.items()}
 

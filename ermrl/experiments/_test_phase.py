@@ -10,7 +10,7 @@ Agents:
 - ``sac``, ``res-sac``, ``dagger``, ``res-dagger``: other learners on the raw observation and on
   the selected evolved reservoir(s) (DAgger's expert sees the full state).
 
-The agents are the table :data:`~ermrl.config.AGENT_KINDS` (learner, encoder, evolved or not).
+The agents are the table :data:`~ermrl.learners.AGENT_KINDS` (learner, encoder, evolved or not).
 
 Every (agent, seed) run is saved in its own folder as soon as it finishes, so a test phase that
 is interrupted, or split across SLURM array tasks, resumes and merges: the aggregated
@@ -67,8 +67,6 @@ from ermrl.analysis._results import (
     read_run_settings,
 )
 from ermrl.config import (
-    AGENT_KINDS,
-    AGENTS,
     BACKENDS,
     AgentKind,
     BudgetConfig,
@@ -80,13 +78,11 @@ from ermrl.config import (
     ObserveMode,
     PPOConfig,
     TaskConfig,
-    default_agents,
-    evolved_agent,
     to_dict,
-    unevolved_agent,
 )
 from ermrl.encoders import encoder_families, encoder_of_family
 from ermrl.experiments._results import REPLAY_MODEL_FILE, keep_published_record, write_run
+from ermrl.learners import AGENT_KINDS, AGENTS, default_agents, evolved_agent, unevolved_agent
 
 __all__ = [
     "AGENTS",

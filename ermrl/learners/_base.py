@@ -17,7 +17,7 @@ import dataclasses
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
-from ermrl.config import ConfigError, LearnerSpace, PPOConfig, Range
+from ermrl.config import AgentKind, ConfigError, LearnerSpace, PPOConfig, Range
 
 __all__ = ["Learner"]
 
@@ -41,6 +41,12 @@ class Learner:
         genes: The settings evolution may shape (``evolve --learner NAME``), gene name ->
             default search range; empty: the learner has no genes and a study evolves an
             encoder for it. :meth:`decode_genes` turns genes into settings.
+        agents: The test-phase agents this learner brings (name -> :class:`~ermrl.config.AgentKind`):
+            the learner on the raw observation (``sac``), or its own evolved and default genes
+            (``hebbian``, ``random-hebbian``). Declared on the class that brings them; a subclass
+            declares its own (it never inherits them). The agents on an encoder come with the
+            encoder (:attr:`ermrl.encoders.Encoder.agents`); :data:`ermrl.learners.AGENT_KINDS`
+            lists both.
     """
 
     name: ClassVar[str]
@@ -52,6 +58,7 @@ class Learner:
     genes: ClassVar[Mapping[str, Range]] = {}
     shared_keys: ClassVar[Mapping[str, Any]] = {}
     checks_itself: ClassVar[frozenset[str]] = frozenset()
+    agents: ClassVar[Mapping[str, AgentKind]] = {}
 
     def algorithm(self) -> type:
         """The algorithm class (imported lazily: torch is slow to import)."""

@@ -16,7 +16,10 @@ expert's own training steps are in its ``expert.json``. The pieces are in
 
 from __future__ import annotations
 
-from ermrl.config import ConfigError, PPOConfig
+from collections.abc import Mapping
+from typing import ClassVar
+
+from ermrl.config import AgentKind, ConfigError, PPOConfig
 from ermrl.learners._bc import ImitationLearner, _whole
 
 __all__ = ["DAggerLearner"]
@@ -28,6 +31,14 @@ class DAggerLearner(ImitationLearner):
     ``hidden_sizes``, ``epochs`` (passes over the aggregated data after each iteration)."""
 
     name = "dagger"
+    agents: ClassVar[Mapping[str, AgentKind]] = {
+        "dagger": AgentKind(
+            "none", None,
+            "DAgger on the raw (masked) observation; its expert sees the full state "
+            "(--for-learner dagger expert=DIR)",
+            "dagger", "DAgger (raw observation)", "DAgger", "navy", default=False,
+        ),
+    }  # fmt: skip
     description = "DAgger: an MLP trained on expert labels of its own rollouts (--ppo expert=DIR)"
     table = "dagger.yml"
     own_keys = {

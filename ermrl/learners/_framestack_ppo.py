@@ -9,9 +9,10 @@ would otherwise see (normalized observations, reservoir states). The other setti
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Mapping
+from typing import Any, ClassVar
 
-from ermrl.config import ConfigError, PPOConfig
+from ermrl.config import AgentKind, ConfigError, PPOConfig
 from ermrl.learners._base import Learner
 
 __all__ = ["FrameStackPPOLearner"]
@@ -19,6 +20,13 @@ __all__ = ["FrameStackPPOLearner"]
 
 class FrameStackPPOLearner(Learner):
     name = "framestack-ppo"
+    agents: ClassVar[Mapping[str, AgentKind]] = {
+        "framestack-ppo": AgentKind(
+            "none", None, "PPO on the last k raw (masked) observations (frame_stack, default 4)",
+            "framestack-ppo", "PPO (4 stacked frames)", "PPO\n(stacked)", "tab:brown",
+            default=False,
+        ),
+    }  # fmt: skip
     description = "PPO on the last k observations stacked (frame_stack=k, default 4)"
     table = "ppo.yml"
     own_keys = {"frame_stack": 4}

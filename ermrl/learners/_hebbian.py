@@ -69,9 +69,9 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, ClassVar
 
-from ermrl.config import ConfigError, PPOConfig, Range
+from ermrl.config import AgentKind, ConfigError, PPOConfig, Range
 from ermrl.learners._base import Learner
 
 __all__ = ["HebbianLearner", "BASELINES", "GENES", "REWARDS", "SHARED_KEYS"]
@@ -136,6 +136,20 @@ class HebbianLearner(Learner):
     """
 
     name = "hebbian"
+    agents: ClassVar[Mapping[str, AgentKind]] = {
+        "hebbian": AgentKind(
+            "evolved", None,
+            "the Hebbian learner with the selected evolved genes (evolve --learner hebbian studies)",
+            None, "Hebbian (evolved genes)", "Hebbian\n(evolved)", "tab:cyan", family="hebbian",
+        ),
+        "random-hebbian": AgentKind(
+            "unevolved", None,
+            "the Hebbian learner with its default genes (the original's values; --learner hebbian "
+            "studies)",
+            None, "Hebbian (default genes)", "Hebbian\n(default)", "darkgoldenrod",
+            family="hebbian",
+        ),
+    }  # fmt: skip
     description = "leaky-integrator network, readout learned by a reward-modulated Hebbian rule"
     table = "hebbian.yml"
     policy = "HebbianPolicy"

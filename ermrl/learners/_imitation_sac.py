@@ -10,9 +10,10 @@ refused, ``pretrain_steps`` takes its place.
 from __future__ import annotations
 
 import math
-from typing import Any
+from collections.abc import Mapping
+from typing import Any, ClassVar
 
-from ermrl.config import ConfigError, PPOConfig
+from ermrl.config import AgentKind, ConfigError, PPOConfig
 from ermrl.learners._bc import _whole, check_expert
 from ermrl.learners._sac import SACLearner
 
@@ -31,6 +32,15 @@ class ImitationSACLearner(SACLearner):
     ``bc_weight`` (re-anchoring during SAC)."""
 
     name = "imitation-sac"
+    agents: ClassVar[Mapping[str, AgentKind]] = {
+        "imitation-sac": AgentKind(
+            "none", None,
+            "SAC seeded by DAgger from an expert that sees the full state, on the raw (masked) "
+            "observation (--for-learner imitation-sac expert=DIR)",
+            "imitation-sac", "Imitation-SAC (raw observation)", "Imit.-SAC", "chocolate",
+            default=False,
+        ),
+    }  # fmt: skip
     description = (
         "SAC seeded by DAgger from an expert, critic warm-started, re-anchored by DAgger "
         "(--ppo expert=DIR)"

@@ -8,7 +8,10 @@ same version (checked when the learner is first used).
 
 from __future__ import annotations
 
-from ermrl.config import ConfigError
+from collections.abc import Mapping
+from typing import ClassVar
+
+from ermrl.config import AgentKind, ConfigError
 from ermrl.learners._base import Learner
 
 __all__ = ["LstmPPOLearner"]
@@ -16,6 +19,13 @@ __all__ = ["LstmPPOLearner"]
 
 class LstmPPOLearner(Learner):
     name = "lstm-ppo"
+    agents: ClassVar[Mapping[str, AgentKind]] = {
+        "lstm-ppo": AgentKind(
+            "none", None,
+            "RecurrentPPO (LSTM policy) on the raw (masked) observation: memory baseline",
+            "lstm-ppo", "LSTM-PPO (raw observation)", "LSTM-PPO", "tab:purple", default=False,
+        ),
+    }  # fmt: skip
     description = "sb3-contrib RecurrentPPO, LSTM policy (memory baseline)"
     table = "ppo_lstm.yml"
     policy = "MlpLstmPolicy"

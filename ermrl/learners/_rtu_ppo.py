@@ -40,9 +40,10 @@ and this learner's own keys ``d_rec`` (RTU units, default 192) and ``stale_gradi
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Mapping
+from typing import Any, ClassVar
 
-from ermrl.config import ConfigError, PPOConfig
+from ermrl.config import AgentKind, ConfigError, PPOConfig
 from ermrl.learners._base import Learner
 
 __all__ = ["RTUPPOLearner"]
@@ -52,6 +53,13 @@ MAX_D_REC = 4096
 
 class RTUPPOLearner(Learner):
     name = "rtu-ppo"
+    agents: ClassVar[Mapping[str, AgentKind]] = {
+        "rtu-ppo": AgentKind(
+            "none", None,
+            "PPO with recurrent trace units learned online by RTRL (real-time PPO): learned memory",
+            "rtu-ppo", "RTU-PPO (learned RTU)", "RTU-PPO", "tab:olive", default=False,
+        ),
+    }  # fmt: skip
     description = "real-time PPO, linear recurrent trace units trained by exact RTRL (d_rec=n)"
     table = "rtu_ppo.yml"
     recurrent = True

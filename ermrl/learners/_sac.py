@@ -12,9 +12,10 @@ reservoir as it ran, which is exact for a frozen reservoir.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from typing import Any, ClassVar
 
-from ermrl.config import ConfigError, PPOConfig
+from ermrl.config import AgentKind, ConfigError, PPOConfig
 from ermrl.learners._base import Learner
 
 __all__ = ["SACLearner"]
@@ -33,6 +34,12 @@ def _is_number(value: Any) -> bool:
 
 class SACLearner(Learner):
     name = "sac"
+    agents: ClassVar[Mapping[str, AgentKind]] = {
+        "sac": AgentKind(
+            "none", None, "SAC (off-policy) on the raw (masked) observation", "sac",
+            "SAC (raw observation)", "SAC", "black", default=False,
+        ),
+    }  # fmt: skip
     description = "Stable-Baselines3 SAC, MLP policy (off-policy, replays encoded observations)"
     table = "sac.yml"
     # Settings whose values this learner checks itself (``ent_coef`` may be "auto" or
