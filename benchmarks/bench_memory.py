@@ -30,13 +30,20 @@ excludes 0). It writes JSON and Markdown; it never fails on a result.
     python benchmarks/bench_memory.py --tasks CartPole-v1:positions --test-steps 50000
 
 Tasks are ``ENV_ID:OBSERVE``; every budget is an argument (the test budget defaults to the
-science benchmark's, 100k steps x 5 seeds). A resumed run skips finished trials and test runs
-(the studies and run folders are kept in the work folder).
+science benchmark's, 100k steps x 5 seeds). The full run takes longer than one sitting, so it
+resumes at two grains:
+
+- each finished task is written as a plain file, ``tasks/ENV_ID__OBSERVE.json`` next to
+  ``--out`` (the published result, committed with the repository); a rerun with the same budgets
+  reuses it instead of training again (``--remeasure`` trains it anew), even on another machine;
+- within a task, the studies and run folders kept in the work folder (not committed) let a
+  killed run skip its finished trials and test runs.
 """
 
 from __future__ import annotations
 
 import argparse
+import datetime
 import json
 import sys
 from pathlib import Path
@@ -67,6 +74,8 @@ TASKS = (
 EVOLVED = {"res-ppo": "reservoir", "rtu-res-ppo": "rtu", "nvar-res-ppo": "nvar"}
 # What each evolved memory is compared with.
 BASELINES = ("framestack-ppo", "lstm-ppo", "ppo")
+# The settings a published task result must share with a rerun to be reused.
+BUDGETS = ("n_trials", "n_seeds", "training_steps", "test_steps", "test_seeds", "sampler_seed")
 
 
 def _agent_rows(outs: list[Path], agents: tuple[str, ...]) -> dict[str, Any]:
@@ -95,6 +104,32 @@ def _agent_rows(outs: list[Path], agents: tuple[str, ...]) -> dict[str, Any]:
             "env_steps": int(sub["env_steps"].sum()) if len(sub) else 0,
         }
     return rows
+
+
+def reusable(path: Path, budgets: dict[str, Any], agents: list[str]) -> dict[str, Any] | None:
+    """A finished task's published result, narrowed to ``agents``, or None when there is none,
+    its budgets differ, or it lacks one of the agents (then the task is trained again)."""
+    if not path.exists():
+        return None
+    saved = json.loads(path.read_text())
+    task = saved["task"]
+    if saved.get("budgets") != budgets or not set(agents) <= set(task["agents"]):
+        print(
+            f"{path}: other budgets or agents than asked for; training the task again",
+            file=sys.stderr,
+            flush=True,
+        )
+        return None
+    rows = {a: task["agents"][a] for a in AGENTS if a in agents}
+    return {
+        **task,
+        "studies": {a: s for a, s in task["studies"].items() if a in rows},
+        "agents": rows,
+        "comparisons": comparisons(rows),
+        "winner": winner(rows),
+        "evolution_seconds": {a: v for a, v in task["evolution_seconds"].items() if a in rows},
+        "selected": {a: v for a, v in task["selected"].items() if a in rows},
+    }
 
 
 def comparisons(agents: dict[str, Any]) -> list[dict[str, Any]]:
@@ -151,8 +186,11 @@ def format_table(report: dict[str, Any]) -> str:
 
     lines = []
     for task in report["tasks"]:
+        measured = f"measured {task['measured']}; " if task.get("measured") else ""
         lines += [
             f"### {task['label']}",
+            "",
+            f"{measured}final return = mean of the last 10 training episodes",
             "",
             "| agent | seeds | final return mean ± std | 95% CI | test wall (all seeds) | "
             "evolution wall | flag |",
@@ -206,8 +244,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--test-seeds", type=int, default=5)
     p.add_argument("--sampler-seed", type=int, default=0)
     p.add_argument("--n-procs", type=int, default=2)
-    p.add_argument("--out", default="benchmarks/results/memory.json")
-    p.add_argument("--workdir", default=None, help="studies and runs (default: next to --out)")
+    p.add_argument(
+        "--out",
+        default="benchmarks/results/memory/memory.json",
+        help="the report (JSON, and Markdown beside it); finished tasks go to tasks/ next to it",
+    )
+    p.add_argument(
+        "--workdir", default=None, help="studies and runs (default: work/ next to --out)"
+    )
+    p.add_argument(
+        "--remeasure",
+        action="store_true",
+        help="train every task again, even one whose result file has the same budgets",
+    )
     p.add_argument("--quick", action="store_true", help="tiny budgets: a smoke test")
     return p
 
@@ -217,8 +266,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.quick:
         args.n_trials, args.n_seeds, args.training_steps = 2, 1, 1024
         args.test_steps, args.test_seeds = 1024, 2
-    work = Path(args.workdir) if args.workdir else Path(args.out).with_suffix("")
-    work.mkdir(parents=True, exist_ok=True)
+    work = Path(args.workdir) if args.workdir else Path(args.out).parent / "work"
+    published = Path(args.out).parent / "tasks"
+    budgets = {k: getattr(args, k) for k in BUDGETS}
     storage = f"sqlite:///{(work / 'memory.db').resolve()}"
     log = work / "log.txt"
     py = [sys.executable, "-m", "ermrl"]
@@ -228,6 +278,18 @@ def main(argv: list[str] | None = None) -> int:
         env_id, _, observe = spec.partition(":")
         observe = observe or "all"
         label = f"{env_id}[{observe}]"
+        task_file = published / f"{env_id}__{observe}.json"
+        done = None if args.remeasure else reusable(task_file, budgets, args.agents)
+        if done is not None:
+            print(
+                f"{label}: reusing {task_file} (measured {done.get('measured', '?')} with the same "
+                "budgets; --remeasure trains it again)",
+                file=sys.stderr,
+                flush=True,
+            )
+            report["tasks"].append(done)
+            continue
+        work.mkdir(parents=True, exist_ok=True)  # only a task that trains needs it
         studies: dict[str, str] = {}
         for agent, encoder in EVOLVED.items():
             if agent not in args.agents:
@@ -273,19 +335,24 @@ def main(argv: list[str] | None = None) -> int:
                 log,
             )  # fmt: skip
         facts = {agent: _evolution_facts(storage, study) for agent, study in studies.items()}
-        report["tasks"].append(
-            {
-                "env_id": env_id,
-                "observe": observe,
-                "label": label,
-                "studies": studies,
-                "agents": (rows := _agent_rows(outs, tuple(args.agents))),
-                "comparisons": comparisons(rows),
-                "winner": winner(rows),
-                "evolution_seconds": {a: f["seconds"] for a, f in facts.items()},
-                "selected": {a: f["selected"] for a, f in facts.items()},
-            }
+        task = {
+            "env_id": env_id,
+            "observe": observe,
+            "label": label,
+            "studies": studies,
+            "agents": (rows := _agent_rows(outs, tuple(args.agents))),
+            "comparisons": comparisons(rows),
+            "winner": winner(rows),
+            "evolution_seconds": {a: f["seconds"] for a, f in facts.items()},
+            "selected": {a: f["selected"] for a, f in facts.items()},
+            "measured": datetime.date.today().isoformat(),
+            "machine": report["machine"],
+        }
+        published.mkdir(parents=True, exist_ok=True)
+        task_file.write_text(
+            json.dumps({"budgets": budgets, "task": task}, indent=2, default=str) + "\n"
         )
+        report["tasks"].append(task)
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.out).write_text(json.dumps(report, indent=2, default=str))
     table = format_table(report)

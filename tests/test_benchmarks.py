@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -187,6 +188,52 @@ def test_the_memory_benchmark_runs_in_quick_mode(tmp_path: Path) -> None:
     text = (tmp_path / "memory.md").read_text()
     assert "| rtu-ppo | 2 |" in text and "| nvar-res-ppo | framestack-ppo |" in text
     assert f"best mean: {best}" in text
+    # The finished task is published as a plain file; a rerun with the same budgets (here on
+    # fewer agents, and without the work folder: another machine) reuses it and trains nothing.
+    published = tmp_path / "tasks" / "popgym-RepeatFirstEasy-v0__all.json"
+    assert json.loads(published.read_text())["task"]["agents"] == agents
+    shutil.rmtree(tmp_path / "work")
+    again = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "bench_memory.py"), "--quick",
+         "--tasks", "popgym-RepeatFirstEasy-v0:all", "--agents", "ppo", "nvar-res-ppo",
+         "--out", str(tmp_path / "again.json")],
+        cwd=ROOT, capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert again.returncode == 0, again.stdout[-3000:] + again.stderr[-3000:]
+    assert "reusing" in again.stderr and "$ " not in again.stderr  # no ermrl command ran
+    (reused,) = json.loads((tmp_path / "again.json").read_text())["tasks"]
+    assert reused["agents"] == {a: agents[a] for a in ("ppo", "nvar-res-ppo")}
+    assert [(c["agent"], c["baseline"]) for c in reused["comparisons"]] == [("nvar-res-ppo", "ppo")]
+    assert set(reused["selected"]) == {"nvar-res-ppo"}
+    assert not (tmp_path / "work").exists()
+
+
+def test_the_memory_benchmark_reuses_a_task_only_with_the_same_budgets(tmp_path: Path) -> None:
+    """A published task is reused only when its budgets match and it holds every agent asked
+    for; otherwise the task is trained again."""
+    from benchmarks.bench_memory import BUDGETS, reusable
+
+    budgets = dict.fromkeys(BUDGETS, 1)
+    row = {"final_returns": [1.0, 2.0, 3.0], "mean": 2.0}
+    task = {
+        "label": "T[all]",
+        "studies": {"res-ppo": "s"},
+        "agents": {"ppo": dict(row), "res-ppo": {"final_returns": [4.0, 5.0, 6.0], "mean": 5.0}},
+        "evolution_seconds": {"res-ppo": 9.0},
+        "selected": {"res-ppo": {"trial": 3}},
+        "measured": "2026-11-27",
+    }
+    path = tmp_path / "T__all.json"
+    assert reusable(path, budgets, ["ppo"]) is None  # nothing published yet
+    path.write_text(json.dumps({"budgets": budgets, "task": task}))
+    both = reusable(path, budgets, ["res-ppo", "ppo"])
+    assert both is not None and list(both["agents"]) == ["ppo", "res-ppo"]
+    assert both["winner"]["agent"] == "res-ppo"
+    assert [c["baseline"] for c in both["comparisons"]] == ["ppo"]
+    only = reusable(path, budgets, ["ppo"])
+    assert only is not None and only["selected"] == {} and only["comparisons"] == []
+    assert reusable(path, {**budgets, "test_steps": 2}, ["ppo"]) is None
+    assert reusable(path, budgets, ["ppo", "lstm-ppo"]) is None
 
 
 @pytest.mark.slow
