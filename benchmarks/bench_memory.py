@@ -16,7 +16,9 @@ own settings table:
   --encoder nvar``).
 
 For each task the benchmark runs, through the ``ermrl`` CLI as a user would: the three
-evolutions (same trials, seeds and steps), the test phase of the ESN study (every agent but the
+evolutions (same trials, seeds and steps: by default the science benchmark's 30 CMA-ES trials x 2
+seeds x 50k steps, then the 3 best trials and the reference re-trained on 3 fresh seeds at the
+test budget, whose ranking picks the evolved agent), the test phase of the ESN study (every agent but the
 evolved RTU and NVAR) and those of the RTU and NVAR studies (their evolved agent), on the same
 test seeds and budget. It prints a table per task: final return (mean of the last 10 training
 episodes) mean, std and Student-t 95% CI over the seeds, and wall-clock per agent (its test
@@ -75,7 +77,17 @@ EVOLVED = {"res-ppo": "reservoir", "rtu-res-ppo": "rtu", "nvar-res-ppo": "nvar"}
 # What each evolved memory is compared with.
 BASELINES = ("framestack-ppo", "lstm-ppo", "ppo")
 # The settings a published task result must share with a rerun to be reused.
-BUDGETS = ("n_trials", "n_seeds", "training_steps", "test_steps", "test_seeds", "sampler_seed")
+BUDGETS = (
+    "n_trials",
+    "n_seeds",
+    "training_steps",
+    "reevaluate_top",
+    "reevaluate_seeds",
+    "reevaluate_steps",
+    "test_steps",
+    "test_seeds",
+    "sampler_seed",
+)
 
 
 def _agent_rows(outs: list[Path], agents: tuple[str, ...]) -> dict[str, Any]:
@@ -237,9 +249,18 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--tasks", nargs="+", default=list(TASKS), metavar="ENV_ID:OBSERVE")
     p.add_argument("--agents", nargs="+", default=list(AGENTS), choices=AGENTS)
-    p.add_argument("--n-trials", type=int, default=20, help="evolution trials per encoder")
-    p.add_argument("--n-seeds", type=int, default=1, help="seeds per evolution trial")
-    p.add_argument("--training-steps", type=int, default=20_000, help="steps per evolution run")
+    p.add_argument("--n-trials", type=int, default=30, help="evolution trials per encoder")
+    p.add_argument("--n-seeds", type=int, default=2, help="seeds per evolution trial")
+    p.add_argument("--training-steps", type=int, default=50_000, help="steps per evolution run")
+    p.add_argument(
+        "--reevaluate-top",
+        type=int,
+        default=3,
+        help="the K best trials of each evolution and its reference re-trained on fresh seeds; "
+        "the evolved agent is the best of that ranking (0: the best evolution trial)",
+    )
+    p.add_argument("--reevaluate-seeds", type=int, default=3)
+    p.add_argument("--reevaluate-steps", type=int, default=None, help="default: the test budget")
     p.add_argument("--test-steps", type=int, default=100_000, help="steps per test run")
     p.add_argument("--test-seeds", type=int, default=5)
     p.add_argument("--sampler-seed", type=int, default=0)
@@ -266,6 +287,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.quick:
         args.n_trials, args.n_seeds, args.training_steps = 2, 1, 1024
         args.test_steps, args.test_seeds = 1024, 2
+        args.reevaluate_top, args.reevaluate_seeds = 1, 1
+    args.reevaluate_steps = args.reevaluate_steps or args.test_steps
     work = Path(args.workdir) if args.workdir else Path(args.out).parent / "work"
     published = Path(args.out).parent / "tasks"
     budgets = {k: getattr(args, k) for k in BUDGETS}
@@ -295,14 +318,18 @@ def main(argv: list[str] | None = None) -> int:
             if agent not in args.agents:
                 continue
             study = (
-                f"memory__{env_id}__{observe}__{encoder}__{args.training_steps}__{args.n_trials}"
+                f"memory__{env_id}__{observe}__{encoder}__{args.training_steps}__"
+                f"{args.n_trials}x{args.n_seeds}"
             )
             studies[agent] = study
             _run(
                 [*py, "evolve", "--env-id", env_id, "--observe", observe, "--encoder", encoder,
                  "--n-trials", str(args.n_trials), "--n-seeds", str(args.n_seeds),
                  "--training-steps", str(args.training_steps), "--n-procs", str(args.n_procs),
-                 "--sampler-seed", str(args.sampler_seed), "--storage", storage,
+                 "--sampler-seed", str(args.sampler_seed),
+                 "--reevaluate-top", str(args.reevaluate_top),
+                 "--reevaluate-seeds", str(args.reevaluate_seeds),
+                 "--reevaluate-steps", str(args.reevaluate_steps), "--storage", storage,
                  "--study-name", study, "--quiet"],
                 log,
             )  # fmt: skip
