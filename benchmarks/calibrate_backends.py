@@ -2,7 +2,9 @@
 
 For a fixed reservoir (the unevolved reference, reservoirpy's defaults: ``EncoderConfig()``; a
 task written ``ENV_ID:observe@rtu`` uses the unevolved RTU layer instead, the paper's
-initialization ranges: ``RTUSpace().default_reservoirs()``), each task is trained on seeds 0..N-1 under both backends (``SeedRunner(n_procs).map`` for ``sb3``,
+initialization ranges: ``RTUSpace().default_reservoirs()``; ``@nvar`` the unevolved NVAR,
+reservoirpy's example: ``NVARSpace().default_reservoirs()``), each task is trained on seeds
+0..N-1 under both backends (``SeedRunner(n_procs).map`` for ``sb3``,
 ``train_population_parallel(..., n_procs)`` for ``population``), with the packaged PPO settings
 (``resolve_ppo_config``) and ``BudgetConfig(fitness="eval")``, which gives both measures: ``last``
 (mean of the last 10 training episodes) and ``eval`` (mean of 5 deterministic episodes).
@@ -18,7 +20,7 @@ printed at the end). Resumable: runs already in ``runs.csv`` (same task, backend
 skipped, so an interrupted run continues where it stopped; rows are written after each (task,
 backend) batch. Use a new ``--out`` when changing ``--training-steps`` or ``--reservoir``.
 
-    python benchmarks/calibrate_backends.py           # 4 tasks x 10 seeds x 100k steps, ~35 min on 2 cores
+    python benchmarks/calibrate_backends.py           # 5 tasks x 10 seeds x 100k steps, ~40 min on 2 cores
     python benchmarks/calibrate_backends.py --quick   # smoke test: 2 seeds x 4096 steps
 """
 
@@ -39,8 +41,9 @@ DEFAULT_TASKS = (
     "Pendulum-v1:positions",
     "CartPole-v1:positions",
     "Pendulum-v1:positions@rtu",
+    "Pendulum-v1:positions@nvar",
 )
-ENCODERS = ("esn", "rtu")
+ENCODERS = ("esn", "rtu", "nvar")
 BACKENDS = ("sb3", "population")
 FIELDS = ("task", "backend", "seed", "last_return", "eval_return", "wall_seconds", "error")
 MEASURES = ("last", "eval")
@@ -48,7 +51,7 @@ MEASURES = ("last", "eval")
 
 def parse_task(spec: str):  # noqa: ANN201
     """``ENV_ID[:observe][@encoder]`` -> (TaskConfig, encoder name, label); observe: all,
-    positions or velocities; encoder: esn (default) or rtu."""
+    positions or velocities; encoder: esn (default), rtu or nvar."""
     from ermrl.config import TaskConfig
 
     task_spec, _, encoder = spec.partition("@")
@@ -62,16 +65,21 @@ def parse_task(spec: str):  # noqa: ANN201
 
 
 def reservoir(spec: str | None, encoder: str = "esn"):  # noqa: ANN201
-    """``None``: the reference ``EncoderConfig()`` (``rtu``: the unevolved RTU layer); else
+    """``None``: the reference ``EncoderConfig()`` (``rtu``, ``nvar``: that encoder's unevolved
+    reference); else
     ``sr,lr,input_scaling`` (a 100-unit ESN)."""
     from ermrl.config import EncoderConfig, ReservoirParams
 
-    if encoder == "rtu":
+    if encoder != "esn":
         if spec is not None:
-            raise SystemExit("calibrate_backends.py: --reservoir sets an ESN, not an @rtu task")
-        from ermrl.encoders import RTUSpace
+            raise SystemExit(
+                f"calibrate_backends.py: --reservoir sets an ESN, not an @{encoder} task"
+            )
+        from ermrl.encoders import get_encoder
 
-        return EncoderConfig(reservoirs=RTUSpace().default_reservoirs())
+        # The registered encoder's unevolved reference (its search space's default reservoirs).
+        space = get_encoder(encoder).space_cls()
+        return EncoderConfig(reservoirs=space.default_reservoirs())
     if spec is None:
         return EncoderConfig()
     sr, lr, scaling = (float(x) for x in spec.split(","))
@@ -168,7 +176,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--quick", action="store_true", help="smoke test: 2 seeds x 4096 steps")
     parser.add_argument("--tasks", nargs="+", default=list(DEFAULT_TASKS),
-                        help="ENV_ID[:all|positions|velocities][@esn|@rtu] (default: %(default)s)")  # fmt: skip
+                        help="ENV_ID[:all|positions|velocities][@esn|@rtu|@nvar] (default: %(default)s)")  # fmt: skip
     parser.add_argument("--seeds", type=int, default=None, help="seeds 0..N-1 per backend (10)")
     parser.add_argument("--training-steps", type=int, default=None,
                         help="training steps per run (100000)")  # fmt: skip

@@ -123,12 +123,16 @@ def test_the_backend_benchmarks_run_in_quick_mode(tmp_path: Path) -> None:
     assert ">= 7x" in md  # Pendulum's target
 
     run_quick("calibrate_backends.py", "--tasks", "CartPole-v1:positions", "CartPole-v1:positions@rtu",
-        "--out", str(tmp_path / "c"))  # fmt: skip
+        "CartPole-v1:positions@nvar", "--out", str(tmp_path / "c"))  # fmt: skip
     with (tmp_path / "c" / "runs.csv").open() as fh:
         runs = list(csv.DictReader(fh))
     assert sorted((r["task"], r["backend"], r["seed"]) for r in runs) == [
         (task, backend, seed)
-        for task in ("CartPole-v1[positions]", "CartPole-v1[positions] rtu")
+        for task in (
+            "CartPole-v1[positions]",
+            "CartPole-v1[positions] rtu",
+            "CartPole-v1[positions] nvar",
+        )
         for backend in ("population", "sb3")
         for seed in ("0", "1")
     ]
@@ -136,6 +140,8 @@ def test_the_backend_benchmarks_run_in_quick_mode(tmp_path: Path) -> None:
     summary = (tmp_path / "c" / "summary.md").read_text()
     assert "Mann-Whitney" in summary and "| CartPole-v1[positions] rtu | last |" in summary
     assert "Reservoir (rtu): (RTUParams(" in summary
+    assert "| CartPole-v1[positions] nvar | eval |" in summary
+    assert "Reservoir (nvar): (NVARParams(" in summary
 
 
 @pytest.mark.slow
