@@ -126,7 +126,7 @@ def test_the_backend_benchmarks_run_in_quick_mode(tmp_path: Path) -> None:
         "CartPole-v1:positions@nvar", "--out", str(tmp_path / "c"))  # fmt: skip
     with (tmp_path / "c" / "runs.csv").open() as fh:
         runs = list(csv.DictReader(fh))
-    assert sorted((r["task"], r["backend"], r["seed"]) for r in runs) == [
+    assert sorted((r["task"], r["backend"], r["seed"]) for r in runs) == sorted(
         (task, backend, seed)
         for task in (
             "CartPole-v1[positions]",
@@ -135,7 +135,7 @@ def test_the_backend_benchmarks_run_in_quick_mode(tmp_path: Path) -> None:
         )
         for backend in ("population", "sb3")
         for seed in ("0", "1")
-    ]
+    )
     assert all(r["last_return"] and not r["error"] for r in runs)
     summary = (tmp_path / "c" / "summary.md").read_text()
     assert "Mann-Whitney" in summary and "| CartPole-v1[positions] rtu | last |" in summary
