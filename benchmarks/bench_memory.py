@@ -15,17 +15,17 @@ own settings table:
   monomials) whose delay, order, strides and input scaling CMA-ES evolved (``ermrl evolve
   --encoder nvar``).
 
-For each task the benchmark runs, through the ``ermrl`` CLI as a user would: the three
-evolutions (same trials, seeds and steps: by default the science benchmark's 30 CMA-ES trials x 2
-seeds x 50k steps, then the 3 best trials and the reference re-trained on 3 fresh seeds at the
-test budget, whose ranking picks the evolved agent), the test phase of the ESN study (every agent but the
-evolved RTU and NVAR) and those of the RTU and NVAR studies (their evolved agent), on the same
-test seeds and budget. It prints a table per task: final return (mean of the last 10 training
-episodes) mean, std and Student-t 95% CI over the seeds, and wall-clock per agent (its test
-runs; evolved agents also show their evolution's wall time); then each evolved memory against
-``framestack-ppo``, ``lstm-ppo`` and ``ppo`` (Welch's t: difference, its 95% CI, p), and which
-memory wins the task (the best mean; "clearly" only when Welch's CI against the runner-up
-excludes 0). It writes JSON and Markdown; it never fails on a result.
+For each task the benchmark runs, through the ``ermrl`` CLI as a user would: the three evolutions
+(same trials, seeds and steps: by default the science benchmark's 30 CMA-ES trials x 2 seeds x 50k
+steps, then the 3 best trials and the reference re-trained on 3 fresh seeds at the test budget,
+whose ranking picks the evolved agent), the test phase of the ESN study (every agent but the
+evolved RTU and NVAR) and those of the RTU and NVAR studies (their evolved agent), on the same test
+seeds and budget. It prints a table per task: final return (mean of the last 10 training episodes)
+mean, std and Student-t 95% CI over the seeds, and wall-clock per agent (its test runs; evolved
+agents also show their evolution's wall time); then each evolved memory against ``framestack-ppo``,
+``lstm-ppo`` and ``ppo`` (Welch's t: difference, its 95% CI, p), and which memory wins the task
+(the best mean; "clearly" only when Welch's CI against the runner-up excludes 0). It writes JSON
+and Markdown; it never fails on a result.
 
     python benchmarks/bench_memory.py                  # default budgets (hours on 2 cores)
     python benchmarks/bench_memory.py --quick          # smoke test, a few minutes
