@@ -54,7 +54,7 @@ from typing import Any
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks._harness import machine  # noqa: E402
-from benchmarks.bench_science import _evolution_facts, _run  # noqa: E402
+from benchmarks.bench_science import _evolution_facts, _run, add_budget_arguments  # noqa: E402
 
 AGENTS = (
     "ppo",
@@ -249,22 +249,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--tasks", nargs="+", default=list(TASKS), metavar="ENV_ID:OBSERVE")
     p.add_argument("--agents", nargs="+", default=list(AGENTS), choices=AGENTS)
-    p.add_argument("--n-trials", type=int, default=30, help="evolution trials per encoder")
-    p.add_argument("--n-seeds", type=int, default=2, help="seeds per evolution trial")
-    p.add_argument("--training-steps", type=int, default=50_000, help="steps per evolution run")
-    p.add_argument(
-        "--reevaluate-top",
-        type=int,
-        default=3,
-        help="the K best trials of each evolution and its reference re-trained on fresh seeds; "
-        "the evolved agent is the best of that ranking (0: the best evolution trial)",
-    )
-    p.add_argument("--reevaluate-seeds", type=int, default=3)
-    p.add_argument("--reevaluate-steps", type=int, default=None, help="default: the test budget")
-    p.add_argument("--test-steps", type=int, default=100_000, help="steps per test run")
-    p.add_argument("--test-seeds", type=int, default=5)
-    p.add_argument("--sampler-seed", type=int, default=0)
-    p.add_argument("--n-procs", type=int, default=2)
+    add_budget_arguments(p, "encoder")
     p.add_argument(
         "--out",
         default="benchmarks/results/memory/memory.json",

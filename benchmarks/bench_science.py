@@ -233,23 +233,35 @@ def format_table(report: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    p.add_argument("--env-ids", nargs="+", default=["Pendulum-v1", "CartPole-v1"])
-    p.add_argument("--observe", default="positions", choices=("all", "positions", "velocities"))
-    p.add_argument("--n-trials", type=int, default=30, help="evolution trials per task")
+def add_budget_arguments(p: argparse.ArgumentParser, per: str) -> None:
+    """The evolution, re-evaluation and test budgets, shared with ``bench_memory.py``; ``per``
+    names what one evolution is for (a task, an encoder)."""
+    p.add_argument("--n-trials", type=int, default=30, help=f"evolution trials per {per}")
     p.add_argument("--n-seeds", type=int, default=2, help="seeds per evolution trial")
     p.add_argument("--training-steps", type=int, default=50_000, help="steps per evolution run")
-    p.add_argument("--cma-start", default="center", choices=("reference", "center"))
-    p.add_argument("--reevaluate-top", type=int, default=3)
+    p.add_argument(
+        "--reevaluate-top",
+        type=int,
+        default=3,
+        help="the K best trials of each evolution and its reference re-trained on fresh seeds; "
+        "the evolved agent is the best of that ranking (0: the best evolution trial)",
+    )
     p.add_argument("--reevaluate-seeds", type=int, default=3)
     p.add_argument("--reevaluate-steps", type=int, default=None, help="default: the test budget")
     p.add_argument("--test-steps", type=int, default=100_000, help="steps per test run")
     p.add_argument("--test-seeds", type=int, default=5)
     p.add_argument("--sampler-seed", type=int, default=0)
     p.add_argument("--n-procs", type=int, default=2)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    p.add_argument("--env-ids", nargs="+", default=["Pendulum-v1", "CartPole-v1"])
+    p.add_argument("--observe", default="positions", choices=("all", "positions", "velocities"))
+    add_budget_arguments(p, "task")
+    p.add_argument("--cma-start", default="center", choices=("reference", "center"))
     p.add_argument(
         "--backend",
         default="sb3",
