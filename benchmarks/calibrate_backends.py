@@ -43,25 +43,27 @@ DEFAULT_TASKS = (
     "Pendulum-v1:positions@rtu",
     "Pendulum-v1:positions@nvar",
 )
-ENCODERS = ("esn", "rtu", "nvar")
 BACKENDS = ("sb3", "population")
 FIELDS = ("task", "backend", "seed", "last_return", "eval_return", "wall_seconds", "error")
 MEASURES = ("last", "eval")
 
 
 def parse_task(spec: str):  # noqa: ANN201
-    """``ENV_ID[:observe][@encoder]`` -> (TaskConfig, encoder name, label); observe: all,
-    positions or velocities; encoder: esn (default), rtu or nvar."""
+    """``ENV_ID[:observe][@encoder]`` -> (TaskConfig, encoder family, label); observe: all,
+    positions or velocities; encoder: a registered encoder's family (esn, the default, rtu,
+    nvar, ...)."""
     from ermrl.config import TaskConfig
+    from ermrl.encoders import encoder_families
 
+    families = encoder_families()
     task_spec, _, encoder = spec.partition("@")
-    if encoder and encoder not in ENCODERS:
+    if encoder and encoder not in families:
         raise SystemExit(f"calibrate_backends.py: unknown encoder {encoder!r} in {spec!r}; "
-                         f"choose one of {ENCODERS}")  # fmt: skip
+                         f"choose one of {', '.join(families)}")  # fmt: skip
     env_id, _, observe = task_spec.partition(":")
     task = TaskConfig(env_id, observe or "all")
-    encoder = encoder or "esn"
-    return task, encoder, task.label if encoder == "esn" else f"{task.label} {encoder}"
+    encoder = encoder or families[0]
+    return task, encoder, task.label if encoder == families[0] else f"{task.label} {encoder}"
 
 
 def reservoir(spec: str | None, encoder: str = "esn"):  # noqa: ANN201
@@ -75,10 +77,10 @@ def reservoir(spec: str | None, encoder: str = "esn"):  # noqa: ANN201
             raise SystemExit(
                 f"calibrate_backends.py: --reservoir sets an ESN, not an @{encoder} task"
             )
-        from ermrl.encoders import get_encoder
+        from ermrl.encoders import encoder_of_family
 
         # The registered encoder's unevolved reference (its search space's default reservoirs).
-        space = get_encoder(encoder).space_cls()
+        space = encoder_of_family(encoder).space_cls()  # type: ignore[union-attr]
         return EncoderConfig(reservoirs=space.default_reservoirs())
     if spec is None:
         return EncoderConfig()
