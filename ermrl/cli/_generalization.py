@@ -554,7 +554,7 @@ def test_generalization_main(
             f"generalization test of {args.study_name!r} (evolved on {', '.join(evolution_ids)}) "
             f"on {task.label}: agents {' '.join(args.agents)}, "
             f"seeds {' '.join(map(str, plan.seeds))}, {args.training_steps} steps each; "
-            f"reservoirs: {best}; out: {plan.out}",
+            f"selected: {best}; out: {plan.out}",
             flush=True,
         )
     metadata = {

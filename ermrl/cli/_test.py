@@ -617,7 +617,7 @@ def test_main(argv: Sequence[str] | None = None, prog: str = "ermrl test") -> in
         print(
             f"test phase of {args.study_name!r}: {problem.task.label}, agents {' '.join(args.agents)}, "
             f"seeds {' '.join(map(str, plan.seeds))}, {args.training_steps} steps each; "
-            f"reservoir: {best}; out: {plan.out}",
+            f"selected: {best}; out: {plan.out}",
             flush=True,
         )
     metadata = {
