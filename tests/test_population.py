@@ -492,13 +492,30 @@ class EpisodeEnds(BaseCallback):
         return True
 
 
+BUFFER_FIELDS = ("observations", "actions", "values", "log_probs", "advantages", "returns")
+
+
 def collect_one_rollout(model: Any, callback: BaseCallback | None = None) -> None:
     """SB3's ``learn`` up to the end of its first ``collect_rollouts`` (no training)."""
+    collect_rollouts(model, 1, callback)
+
+
+def collect_rollouts(
+    model: Any, n: int, callback: BaseCallback | None = None
+) -> list[dict[str, np.ndarray]]:
+    """SB3's ``learn`` for ``n`` rollouts with ``train`` skipped between them; a copy of the
+    rollout buffer after each."""
     total = 4 * model.n_steps * model.n_envs  # progress remaining 0.75 after one rollout
     total, callback = model._setup_learn(total, callback)
     callback.on_training_start(locals(), globals())
-    assert model.collect_rollouts(model.env, callback, model.rollout_buffer, model.n_steps)
-    model._update_current_progress_remaining(model.num_timesteps, total)
+    buffers = []
+    for _ in range(n):
+        assert model.collect_rollouts(model.env, callback, model.rollout_buffer, model.n_steps)
+        model._update_current_progress_remaining(model.num_timesteps, total)
+        buf = model.rollout_buffer
+        fields = (*BUFFER_FIELDS, "rewards", "episode_starts")
+        buffers.append({k: getattr(buf, k).copy() for k in fields})
+    return buffers
 
 
 ROLLOUT_CASES = {
@@ -530,7 +547,16 @@ ROLLOUT_CASES = {
         {"n_steps": 96, "batch_size": 64},
         rtu_encoder,
     ),
+    # Two rollouts (the update skipped between them): what carries over from one to the next.
+    # gSDE draws new matrices at each rollout's start and then every 4 of its steps, counted
+    # from that start (30 is not a multiple of 4: a period carried over would draw elsewhere).
+    "pendulum-gsde-two-rollouts": ("Pendulum-v1", {"n_steps": 30, "sde_sample_freq": 4}),
+    # Episodes of 20 steps cross the rollout boundary: the last observation and episode start
+    # carry over; an episode truncated at the boundary is bootstrapped.
+    "cartpole-two-rollouts": (SHORT_CARTPOLE, {"n_steps": 30, "batch_size": 30}),
 }
+# Cases trained for more than one rollout.
+ROLLOUTS = {"pendulum-gsde-two-rollouts": 2, "cartpole-two-rollouts": 2}
 
 
 @pytest.fixture
@@ -552,8 +578,9 @@ def test_a_population_rollout_equals_sb3_collect_rollouts(
     """Same env seeds, weights and noise: agent 0's rollout (observations, actions, log-probs,
     values, rewards with the truncation bootstrap, episode starts) and its advantages and returns
     equal SB3's RolloutBuffer after collect_rollouts (with an encoder: on the SB3 path's
-    ReservoirVecEnv with the agent's reservoir seed)."""
+    ReservoirVecEnv with the agent's reservoir seed); with several rollouts, each of them."""
     env_id, overrides, *make_encoder = ROLLOUT_CASES[case]
+    n_rollouts = ROLLOUTS.get(case, 1)
     torch.set_num_threads(1)
     table_id = "CartPole-v1" if env_id == SHORT_CARTPOLE else env_id
     ppo = ppo_for(table_id, n_envs=2, **overrides)
@@ -591,7 +618,7 @@ def test_a_population_rollout_equals_sb3_collect_rollouts(
     with monkeypatch.context() as m:
         m.setattr(torch.distributions.normal, "_standard_normal", recorded_normal)
         m.setattr(torch.distributions.Categorical, "sample", recorded_choice)
-        collect_one_rollout(model, ends)
+        buffers = collect_rollouts(model, n_rollouts, ends)
     if model.n_steps > 200:
         assert ends.truncated > 0, "no truncation: the bootstrap is not exercised"
     if env_id == SHORT_CARTPOLE:
@@ -602,36 +629,41 @@ def test_a_population_rollout_equals_sb3_collect_rollouts(
     skip = tuple(model.policy.log_std.shape) if population.spec.use_sde else None
     replay = ReplayedNoise(normals, choices, skip)
     population.rngs[0] = replay  # type: ignore[call-overload]
-    seen: dict[str, np.ndarray] = {}
+    seen: list[dict[str, np.ndarray]] = []  # one per rollout
     gae = ppo_module.compute_gae
 
     def spy_gae(*args: Any) -> tuple[np.ndarray, np.ndarray]:
-        seen["rewards"], seen["starts"] = args[0], args[2]
+        seen.append({"rewards": args[0], "episode_starts": args[2]})
         return gae(*args)
 
     def spy_train(progress: float, *arrays: np.ndarray) -> None:
-        keys = ("observations", "actions", "values", "log_probs", "advantages", "returns")
-        seen.update(zip(keys, arrays))
+        seen[-1].update(zip(BUFFER_FIELDS, arrays))
 
     monkeypatch.setattr(ppo_module, "compute_gae", spy_gae)
     monkeypatch.setattr(population, "_train", spy_train)
-    population.learn(model.n_steps * model.n_envs)
+    population.learn(n_rollouts * model.n_steps * model.n_envs)
     assert replay.unused == 0
+    assert len(seen) == len(buffers) == n_rollouts
 
-    buf = model.rollout_buffer
-    diffs = {}
-    for key, ours in seen.items():
-        theirs = getattr(buf, "episode_starts" if key == "starts" else key)
-        ours = ours[0].reshape(theirs.shape)
-        diffs[key] = float(np.abs(ours - theirs).max())
-    print(f"{case}: max |population - SB3| " + ", ".join(f"{k} {v:.2g}" for k, v in diffs.items()))
-    assert diffs["starts"] == 0.0
-    if population.discrete:
-        assert diffs["actions"] == 0.0
-    # Not bitwise: SB3 runs torch, the rollout numpy (last-bit differences in the MLP and the
-    # Gaussian log-probability); a semantic difference (a missing bootstrap, a wrong start) is
-    # > 1e-2.
-    assert max(diffs.values()) < 1e-4
+    for i, (ours_all, buf) in enumerate(zip(seen, buffers)):
+        diffs = {}
+        for key, ours in ours_all.items():
+            theirs = buf[key]
+            diffs[key] = float(np.abs(ours[0].reshape(theirs.shape) - theirs).max())
+        print(
+            f"{case} rollout {i}: max |population - SB3| "
+            + ", ".join(f"{k} {v:.2g}" for k, v in diffs.items())
+        )
+        assert diffs["episode_starts"] == 0.0
+        if population.discrete:
+            assert diffs["actions"] == 0.0
+        # Not bitwise: SB3 runs torch, the rollout numpy (last-bit differences in the MLP and the
+        # Gaussian log-probability); a semantic difference (a missing bootstrap, a wrong start)
+        # is > 1e-2.
+        assert max(diffs.values()) < 1e-4
+    if n_rollouts > 1:
+        # The boundary is crossed mid-episode (a carry-over is exercised, not a fresh start).
+        assert not buffers[1]["episode_starts"][0].all()
     population.close()
 
 
