@@ -80,7 +80,10 @@ def reservoir(spec: str | None, encoder: str = "esn"):  # noqa: ANN201
         from ermrl.encoders import encoder_of_family
 
         # The registered encoder's unevolved reference (its search space's default reservoirs).
-        space = encoder_of_family(encoder).space_cls()  # type: ignore[union-attr]
+        registered = encoder_of_family(encoder)
+        if registered is None:  # parse_task accepts registered families only
+            raise SystemExit(f"calibrate_backends.py: no registered encoder of family {encoder!r}")
+        space = registered.space_cls()
         return EncoderConfig(reservoirs=space.default_reservoirs())
     if spec is None:
         return EncoderConfig()

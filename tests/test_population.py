@@ -508,13 +508,12 @@ def collect_rollouts(
     total = 4 * model.n_steps * model.n_envs  # progress remaining 0.75 after one rollout
     total, callback = model._setup_learn(total, callback)
     callback.on_training_start(locals(), globals())
+    fields = (*BUFFER_FIELDS, "rewards", "episode_starts")
     buffers = []
     for _ in range(n):
         assert model.collect_rollouts(model.env, callback, model.rollout_buffer, model.n_steps)
         model._update_current_progress_remaining(model.num_timesteps, total)
-        buf = model.rollout_buffer
-        fields = (*BUFFER_FIELDS, "rewards", "episode_starts")
-        buffers.append({k: getattr(buf, k).copy() for k in fields})
+        buffers.append({k: getattr(model.rollout_buffer, k).copy() for k in fields})
     return buffers
 
 
