@@ -201,6 +201,22 @@ def test_rerun_with_other_settings_is_refused(evolved: tuple[Path, str]) -> None
     assert "not ppo seed 11" in lines[0]  # seed 11 is not retrained by this call
     longer = run(str(ROOT / "test.py"), *base, "--seeds", "11", "--training-steps", "400", cwd=tmp)
     assert longer.returncode == 2 and "budget.training_steps" in longer.stderr
+    # --eval measures after training, it does not change it: a new seed with evaluation
+    # episodes joins runs made without them, and records what it measured and with which code.
+    evaluated = run(
+        str(ROOT / "test.py"), *base, "--seeds", "10", "12", "--eval", "--n-eval-episodes", "3",
+        cwd=tmp,
+    )  # fmt: skip
+    assert evaluated.returncode == 0, evaluated.stderr
+    assert "[skip] ppo seed 10" in evaluated.stdout
+    result = json.loads((out / "agents/ppo/seed_12/result.json").read_text())
+    assert result["n_eval_episodes"] == 3 and len(result["eval_returns"]) == 3
+    episodes = pd.read_csv(out / "agents/ppo/seed_12/episodes.csv")["episode_return"]
+    assert result["last100_return"] == pytest.approx(episodes.tail(100).mean())
+    from ermrl._code import code_identity
+
+    assert result["code"] == code_identity()
+    (out / "agents/ppo/seed_12").rename(tmp / "evaluated-seed-12")  # the seeds below: 10, 11
 
     # --overwrite retrains the asked-for runs with the new settings.
     both = ["--seeds", "10", "11", "--ppo", "learning_rate=1e-4", "--overwrite"]

@@ -59,8 +59,9 @@ DESCRIPTION = textwrap.dedent(
     SLURM_ARRAY_TASK_ID is set, it selects one seed of the list (task i -> i-th seed). Finished
     runs are kept: re-running with the same settings resumes, and array tasks sharing --out
     merge their results. Each run records its settings (settings.json); a rerun into the same
-    --out with other settings (--ppo, --trial, --training-steps, --eval, ...) is refused: use
-    another --out, or --overwrite to retrain.
+    --out with other settings (--ppo, --trial, --training-steps, ...) is refused: use
+    another --out, or --overwrite to retrain. --eval is not a training setting: it adds
+    deterministic evaluation episodes to the runs it trains, beside runs made without them.
 
     The settings of each agent are its learner's table (ermrl/data/<learner>.yml), then --ppo
     (every agent), then the flags of its learner only (--for-learner, --stale-gradient). A

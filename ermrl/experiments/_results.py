@@ -13,11 +13,28 @@ import pandas as pd
 from ermrl._io import write_atomic
 from ermrl.analysis._results import KEPT_RECORD_DIR
 
-__all__ = ["KEPT_RECORD_DIR", "REPLAY_MODEL_FILE", "keep_published_record", "write_run"]
+__all__ = [
+    "KEPT_RECORD_DIR",
+    "PAPER_LAST_EPISODES",
+    "REPLAY_MODEL_FILE",
+    "keep_published_record",
+    "last_episodes_mean",
+    "write_run",
+]
 
 #: What the training for the replay's model gave, written beside the kept records.
 REPLAY_MODEL_FILE = "replay-model.json"
 _RECORDS = ("settings.json", "episodes.csv", "result.json")  # result.json last: marks it finished
+#: Training episodes averaged into ``last100_return``: SB3's ``rollout/ep_rew_mean`` window,
+#: the metric the ER-MRL paper plots (``stats_window_size`` 100).
+PAPER_LAST_EPISODES = 100
+
+
+def last_episodes_mean(returns: Any, n: int = PAPER_LAST_EPISODES) -> float | None:
+    """The mean of the last ``n`` episode returns (all of them when fewer), ``None`` for none."""
+    values = np.asarray(returns, dtype=float)[-n:]
+    values = values[np.isfinite(values)]
+    return float(values.mean()) if values.size else None
 
 
 def write_run(
@@ -31,9 +48,14 @@ def write_run(
         result: A :class:`~ermrl.agents.RunResult`.
         extra: More fields for ``result.json`` (reservoir parameters, ...).
 
-    ``result.json`` also holds ``phase_steps`` when the learner splits its env steps into
-    phases (``imitation-sac``).
+    ``result.json`` also holds ``last100_return``, the mean of the last
+    :data:`PAPER_LAST_EPISODES` training episodes (the paper's metric, beside ``final_return``
+    over the run's own ``n_last_episodes``), ``n_eval_episodes``, the code that trained it
+    (:func:`ermrl._code.code_identity`), and ``phase_steps`` when the learner splits its env
+    steps into phases (``imitation-sac``).
     """
+    from ermrl._code import code_identity
+
     folder = Path(folder)
     episodes = pd.DataFrame(
         {"env_step": result.episode_steps, "episode_return": result.episode_returns}
@@ -48,7 +70,10 @@ def write_run(
         "final_return": None if not np.isfinite(result.last_return) else result.last_return,
         "eval_return": result.eval_return,
         "eval_returns": result.eval_returns,
+        "n_eval_episodes": len(result.eval_returns),
+        "last100_return": last_episodes_mean(result.episode_returns),
         "n_episodes": len(result.episode_returns),
+        "code": code_identity(),
         **(extra or {}),
     }
     if getattr(result, "phase_steps", None):  # a learner's own split of its env steps

@@ -464,10 +464,22 @@ def _flat(value: Any, prefix: str = "") -> dict[str, Any]:
 _MISSING = object()
 
 
+#: Keys of a run's record that say what was measured after training, not how it trained:
+#: whether deterministic evaluation episodes ran (``fitness`` ``eval``) and how many. A run
+#: trained with them and one without are the same training, so a test phase can add the
+#: evaluation metric on new seeds beside runs made without it (each run's ``result.json`` says
+#: how many evaluation episodes it holds).
+MEASUREMENT_KEYS = frozenset({"budget.fitness", "budget.n_eval_episodes"})
+
+
 def settings_diff(stored: Mapping[str, Any], expected: Mapping[str, Any]) -> list[str]:
-    """Dotted keys whose values differ between two :func:`run_settings` records, sorted."""
+    """Dotted keys whose values differ between two :func:`run_settings` records, sorted.
+
+    :data:`MEASUREMENT_KEYS` are left out: they do not change the training.
+    """
     a, b = _flat(dict(stored)), _flat(dict(expected))
-    return sorted(k for k in set(a) | set(b) if a.get(k, _MISSING) != b.get(k, _MISSING))
+    keys = (set(a) | set(b)) - MEASUREMENT_KEYS
+    return sorted(k for k in keys if a.get(k, _MISSING) != b.get(k, _MISSING))
 
 
 def _learner_of(ppo_doc: Mapping[str, Any]) -> str:
