@@ -88,7 +88,11 @@ def test_study_repair_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     assert len(_values(path)) == 2
     with pytest.raises(SystemExit) as err:
         study_main(["repair", "--storage", f"sqlite:///{tmp_path}/s.db"])
-    assert err.value.code == 2 and "only journal" in capsys.readouterr().err
+    assert err.value.code == 2 and "no SQLite database" in capsys.readouterr().err
+    assert not (tmp_path / "s.db").exists()
+    with pytest.raises(SystemExit) as err:
+        study_main(["repair", "--storage", "postgresql://nobody@127.0.0.1:1/none"])
+    assert err.value.code == 2 and "only journals and SQLite" in capsys.readouterr().err
 
 
 @pytest.fixture
@@ -206,6 +210,69 @@ def test_a_damaged_sqlite_database_is_one_line_and_exit_2(
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and "Traceback" not in done.stderr
     assert "is damaged" in lines[0] and '".recover"' in lines[0] and "backup" in lines[0]
+
+
+# A writer that spills its cache mid-transaction (2 pages) and is killed there leaves a hot
+# rollback journal: the database file holds half a transaction that only the journal undoes.
+_DYING_WRITER = """
+import sqlite3, sys, time
+con = sqlite3.connect(sys.argv[1], isolation_level=None)
+con.execute("PRAGMA cache_size=2")
+con.execute("BEGIN")
+for i in range(2000):
+    con.execute(
+        "INSERT INTO study_user_attributes (study_id, key, value_json) VALUES (1, ?, ?)",
+        (f"half-written {i}", '"' + "x" * 200 + '"'),
+    )
+print("mid-transaction", flush=True)
+time.sleep(60)
+"""
+
+
+@pytest.fixture
+def hot_journal_db(tmp_path: Path) -> Path:
+    """A 2-trial SQLite study whose writer was killed (SIGKILL) mid-transaction."""
+    path = tmp_path / "s.db"
+    study = optuna.create_study(study_name="s", storage=f"sqlite:///{path}")
+    study.optimize(lambda t: t.suggest_float("x", 0, 1), n_trials=2)
+    del study
+    writer = subprocess.Popen(
+        [sys.executable, "-c", _DYING_WRITER, str(path)], stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert writer.stdout is not None and writer.stdout.readline() == "mid-transaction\n"
+    finally:
+        writer.kill()  # SIGKILL: no rollback, no cleanup
+        writer.wait()
+    journal = Path(f"{path}-journal")
+    assert journal.stat().st_size > 0
+    return path
+
+
+def test_a_hot_journal_is_rolled_back_not_called_damaged(
+    hot_journal_db: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    url = f"sqlite:///{hot_journal_db}"
+    assert study_main(["show", "--storage", url, "--study-name", "s"]) == 0
+    assert "damaged" not in capsys.readouterr().err
+    assert not Path(f"{hot_journal_db}-journal").exists()
+    assert not Path(f"{hot_journal_db}.lock").exists()  # a reader creates nothing
+    study = optuna.load_study(study_name="s", storage=url)
+    assert len(study.get_trials(states=(TrialState.COMPLETE,))) == 2
+    assert study.user_attrs == {}  # the half-written transaction is undone
+
+
+def test_study_repair_rolls_back_a_hot_journal(
+    hot_journal_db: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    url = f"sqlite:///{hot_journal_db}"
+    assert study_main(["repair", "--storage", url]) == 0
+    assert "rolled back the transaction a writer left unfinished" in capsys.readouterr().out
+    assert not Path(f"{hot_journal_db}-journal").exists()
+    assert study_main(["repair", "--storage", url]) == 0
+    assert "intact" in capsys.readouterr().out
+    study = optuna.load_study(study_name="s", storage=open_storage(url, mode="write"))
+    assert len(study.get_trials(states=(TrialState.COMPLETE,))) == 2
 
 
 NOT_JOURNALS = {

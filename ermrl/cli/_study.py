@@ -182,7 +182,8 @@ def build_study_parser(prog: str = "ermrl study") -> ArgumentParser:
 
     repair = sub.add_parser(
         "repair",
-        help="set aside the unreadable records of a journal (file or Redis) and renumber it",
+        help="set aside the unreadable records of a journal (file or Redis) and renumber it, "
+        "or roll back a SQLite database's unfinished transaction",
         description="A journal holds records no command can read when a write was cut short "
         "(full disk, dead node), when another process appended a partial record, or when a "
         "record is garbage: every command then stops with one line that asks for this repair.\n"
@@ -192,6 +193,9 @@ def build_study_parser(prog: str = "ermrl study") -> ArgumentParser:
         "Redis journal: unreadable records are moved to the hash PREFIX:torn-<UTC time>, the "
         "others are renumbered without gaps and PREFIX:log_number is set to the last of them "
         "(a log_number ahead of the stored records made every command wait forever).\n"
+        "SQLite: a transaction a writer left unfinished (killed mid-write: a hot DB-journal file) "
+        "is rolled back, as every command does when it opens the database, then the database is "
+        "checked (PRAGMA quick_check).\n"
         "One line says how many records were set aside, and where.",
         formatter_class=HelpFormatter,
     )
@@ -199,7 +203,8 @@ def build_study_parser(prog: str = "ermrl study") -> ArgumentParser:
         "--storage",
         type=storage_arg,
         required=True,
-        help="journal:///file.log, file.log or redis://host:port[/db][?prefix=NAME]",
+        help="journal:///file.log, file.log, redis://host:port[/db][?prefix=NAME] or "
+        "sqlite:///file.db",
     )
     return parser
 
@@ -575,17 +580,29 @@ def _repair(args: argparse.Namespace, prog: str) -> int:
         parse_storage_url,
         repair_journal,
         repair_redis_journal,
+        repair_sqlite,
     )
 
     try:
         spec = parse_storage_url(args.storage)
     except StorageError as err:
         fail(prog, str(err))
+    if spec.kind == "sqlite":
+        try:
+            rolled_back = repair_sqlite(spec)
+        except StorageError as err:
+            fail(prog, str(err))
+        print(
+            f"{spec.path}: rolled back the transaction a writer left unfinished"
+            if rolled_back
+            else f"{spec.path}: intact, nothing to repair"
+        )
+        return 0
     if spec.kind not in ("journal", "redis"):
         fail(
             prog,
-            f"only journal storages (journal files, redis://) can be repaired, not {spec.kind} "
-            f"storages ({args.storage})",
+            f"{spec.kind} storages repair themselves (the server rolls back unfinished "
+            f"transactions); only journals and SQLite files can be repaired ({args.storage})",
         )
     repair: JournalRepair | None
     if spec.kind == "redis":

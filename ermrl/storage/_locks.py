@@ -38,7 +38,15 @@ from ermrl.storage._url import (
     sqlite_file,
 )
 
-__all__ = ["LockTimeout", "storage_lock", "sqlite_path", "journal_path", "redis_parts", "lock_key"]
+__all__ = [
+    "LockTimeout",
+    "storage_lock",
+    "sqlite_file_lock",
+    "sqlite_path",
+    "journal_path",
+    "redis_parts",
+    "lock_key",
+]
 
 LOCK_TIMEOUT_S = 600.0
 # Seconds a journal lock link may stay unchanged before it is taken for a dead owner's and broken.
@@ -102,6 +110,23 @@ def _flock(path: Path, timeout: float) -> Iterator[None]:
             fcntl.flock(fd, fcntl.LOCK_UN)
     finally:
         os.close(fd)
+
+
+@contextlib.contextmanager
+def sqlite_file_lock(
+    path: os.PathLike[str] | str, timeout: float = LOCK_TIMEOUT_S
+) -> Iterator[None]:
+    """Hold ermrl's lock of a SQLite database: ``fcntl.flock`` on ``path`` (``<db>.lock``).
+
+    Args:
+        path: The lock file (created if missing).
+        timeout: Seconds to wait for it.
+
+    Raises:
+        LockTimeout: it was not obtained in time.
+    """
+    with _flock(Path(path), timeout):
+        yield
 
 
 def _link_identity(path: Path) -> tuple[int, int] | None:

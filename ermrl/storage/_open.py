@@ -37,7 +37,7 @@ from optuna.storages import BaseStorage
 
 from ermrl.storage._backends import LineJournalFileBackend, PlainRedisBackend
 from ermrl.storage._heartbeat import HeartbeatJournalStorage, RetryStaleTrial, base_storage
-from ermrl.storage._locks import LOCK_TIMEOUT_S, storage_lock
+from ermrl.storage._locks import LOCK_TIMEOUT_S, sqlite_file_lock, storage_lock
 from ermrl.storage._repair import check_journal, repair_journal
 from ermrl.storage._url import StorageError, StorageKind, StorageURL, parse_storage_url
 
@@ -51,6 +51,7 @@ __all__ = [
     "storage_kind",
     "normalize_url",
     "open_storage",
+    "repair_sqlite",
     "storage_url",
     "study_lock",
     "load_study",
@@ -208,7 +209,7 @@ def _open(spec: StorageURL, heartbeat: dict[str, Any], mode: str) -> BaseStorage
             )
         if mode != "create" and not path.is_file():
             raise StorageError(f"no SQLite database {path} (check --storage)")
-        _check_sqlite(path)
+        _check_sqlite(path, lock=mode != "read")
         # Python's sqlite3 waits this long for a lock before "database is locked".
         engine_kwargs["connect_args"] = {"timeout": SQLITE_BUSY_TIMEOUT_S}
     else:
@@ -293,18 +294,67 @@ def damaged_sqlite_message(path: os.PathLike[str] | str, detail: str) -> str:
     )
 
 
-def _check_sqlite(path: os.PathLike[str] | str) -> None:
+def _check_sqlite(path: os.PathLike[str] | str, *, lock: bool = True) -> bool:
     """Fail with :func:`damaged_sqlite_message` unless SQLite's ``quick_check`` passes.
 
     A damaged page otherwise surfaces only when a query reads it, as a long traceback that ends
-    in Optuna's misleading "invalid data in the commit". Opened read-only: nothing is created.
+    in Optuna's misleading "invalid data in the commit". Opened read-only, so nothing is
+    created, unless a rollback journal (``<db>-journal``) is there: a writer that died
+    mid-transaction leaves it *hot*, and only a read-write connection can roll it back, as
+    SQLite does on its next open (a read-only one fails on "attempt to write a readonly
+    database"). The check then opens the file read-write (never creating it), under ermrl's
+    lock on the database (``<db>.lock``, when ``lock`` or when it exists already), so the
+    interrupted transaction is rolled back before anything reads.
+
+    Args:
+        path: The database file (missing or empty: nothing to check).
+        lock: Take ermrl's lock, creating ``<db>.lock`` if needed (``False``: only an existing
+            one, for commands that create nothing).
+
+    Returns:
+        Whether an interrupted transaction was rolled back (its journal is gone).
+
+    Raises:
+        StorageError: the database is damaged, or a hot journal cannot be rolled back (the file
+            is read-only here); one line.
     """
+    if not os.path.isfile(path) or os.path.getsize(path) == 0:
+        return False
+    journal = f"{path}-journal"
+    if not _nonempty(journal):
+        _quick_check(path, "ro")
+        return False
+    lock_file = f"{path}.lock"
+    with sqlite_file_lock(lock_file) if lock or os.path.exists(lock_file) else _no_lock():
+        _quick_check(path, "rw")
+    rolled_back = not _nonempty(journal)
+    if rolled_back:
+        _log.warning(
+            "SQLite database %s: rolled back the transaction a writer left unfinished (%s)",
+            path,
+            journal,
+        )
+    return rolled_back
+
+
+def _nonempty(path: str) -> bool:
+    try:
+        return os.path.getsize(path) > 0
+    except OSError:
+        return False
+
+
+@contextlib.contextmanager
+def _no_lock() -> Iterator[None]:
+    yield
+
+
+def _quick_check(path: os.PathLike[str] | str, mode: Literal["ro", "rw"]) -> None:
+    """Run ``PRAGMA quick_check`` on a connection opened in ``mode`` (``rw`` never creates)."""
     import sqlite3
     from urllib.parse import quote
 
-    if not os.path.isfile(path) or os.path.getsize(path) == 0:
-        return
-    uri = f"file:{quote(os.path.abspath(path))}?mode=ro"
+    uri = f"file:{quote(os.path.abspath(path))}?mode={mode}"
     try:
         conn = sqlite3.connect(uri, uri=True, timeout=SQLITE_BUSY_TIMEOUT_S)
         try:
@@ -314,6 +364,12 @@ def _check_sqlite(path: os.PathLike[str] | str) -> None:
     except sqlite3.OperationalError as err:
         if "locked" in str(err) or "busy" in str(err):
             return  # a writer holds it for longer than the timeout: let Optuna wait and report
+        if mode == "rw" and "readonly" in str(err):
+            raise StorageError(
+                f"SQLite database {path} holds a transaction a writer left unfinished "
+                f"({path}-journal) and is read-only here, so it cannot be rolled back; run any "
+                "ermrl command on it as a user who can write the file and its folder"
+            ) from err
         raise StorageError(damaged_sqlite_message(path, _short(err))) from err
     except sqlite3.DatabaseError as err:  # "file is not a database", "disk image is malformed"
         raise StorageError(damaged_sqlite_message(path, _short(err))) from err
@@ -321,6 +377,28 @@ def _check_sqlite(path: os.PathLike[str] | str) -> None:
         lines = [line for row in rows for line in str(row[0]).splitlines()]
         lines = [line for line in lines if not line.startswith("***")] or ["quick_check failed"]
         raise StorageError(damaged_sqlite_message(path, lines[0]))
+
+
+def repair_sqlite(url: str | StorageURL) -> bool:
+    """Roll back the transaction a dead writer left in a SQLite database, then check it.
+
+    What every command does when it opens the database (see :func:`_check_sqlite`), by hand.
+
+    Args:
+        url: A ``sqlite:///`` storage URL (string or parsed).
+
+    Returns:
+        Whether an unfinished transaction was rolled back (``False``: the database was intact).
+
+    Raises:
+        StorageError: not a SQLite file, or a damaged database (one line).
+    """
+    spec = url if isinstance(url, StorageURL) else parse_storage_url(url)
+    if spec.kind != "sqlite" or spec.path is None:
+        raise StorageError(f"{spec} is not a SQLite database")
+    if not spec.path.is_file():
+        raise StorageError(f"no SQLite database {spec.path} (check --storage)")
+    return _check_sqlite(spec.path)
 
 
 def _registered(storage: BaseStorage) -> StorageURL | None:
