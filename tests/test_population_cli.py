@@ -134,6 +134,48 @@ def test_kill_9_during_a_generation_fails_and_retries_its_trials(tmp_path: Path)
             assert t.params == by_number[t.user_attrs["retry_of"]].params
 
 
+@pytest.mark.slow
+def test_ctrl_c_in_the_first_generation_queues_it_again_reference_first(tmp_path: Path) -> None:
+    """Ctrl-C (to the whole process group, as a terminal sends it) while generation 0 trains:
+    every trial of it is closed and queued again, the reference first, and the rerun trains the
+    unevolved reference (sr = lr = input_scaling = 1) to COMPLETE."""
+    url = f"sqlite:///{tmp_path}/s.db"
+    args = [*TINY, "--storage", url, "--study-name", "c", "--popsize", "3", "--n-trials", "3"]
+    args += ["--training-steps", "4096", "--n-seeds", "1"]
+    log = open(tmp_path / "victim.log", "w")  # noqa: SIM115 (closed below)
+    victim = subprocess.Popen(
+        [sys.executable, str(ROOT / "evolve_res.py"), *args],
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+        cwd=tmp_path,
+    )
+    deadline = time.monotonic() + 120
+    running: list[optuna.trial.FrozenTrial] = []
+    while time.monotonic() < deadline and len(running) < 3 and victim.poll() is None:
+        time.sleep(0.1)
+        try:
+            running = load(url, "c").get_trials(states=[TrialState.RUNNING])
+        except Exception:  # the study does not exist yet
+            continue
+    assert len(running) == 3, (tmp_path / "victim.log").read_text()
+    os.killpg(victim.pid, signal.SIGINT)
+    victim.wait(60)
+    log.close()
+    text = (tmp_path / "victim.log").read_text()
+    assert victim.returncode == 130 and "Traceback" not in text, text
+    trials = load(url, "c").get_trials()
+    assert [t.state for t in trials] == [TrialState.FAIL] * 3 + [TrialState.WAITING] * 3, text
+    assert trials[3].user_attrs.get("reference") and trials[3].user_attrs["retry_of"] == 0
+    rerun = evolve(tmp_path, *args)
+    assert rerun.returncode == 0, rerun.stdout + rerun.stderr
+    trials = load(url, "c").get_trials()
+    assert [t.state for t in trials] == [TrialState.FAIL] * 3 + [TrialState.COMPLETE] * 3
+    reference = [t for t in trials if t.params == {"sr": 1.0, "lr": 1.0, "input_scaling": 1.0}]
+    assert [t.state for t in reference] == [TrialState.FAIL, TrialState.COMPLETE]
+    assert sorted(t.user_attrs["retry_of"] for t in trials[3:]) == [0, 1, 2]
+
+
 def test_the_test_phase_trains_under_both_backends(tmp_path: Path) -> None:
     """test.py runs a population-evolved study's agents under population and sb3."""
     url = f"sqlite:///{tmp_path}/s.db"

@@ -239,9 +239,11 @@ def test_ctrl_c_closes_the_running_trial_and_keeps_the_rest(tmp_path) -> None:  
 
     with pytest.raises(KeyboardInterrupt):
         run_evolution(config, study, quiet=True, evaluate=evaluate)
-    states = [t.state for t in study.get_trials()]
-    assert states == [TrialState.COMPLETE, TrialState.COMPLETE, TrialState.FAIL]
-    assert study.get_trials()[2].user_attrs["fail_reason"] == "interrupted"
+    trials = study.get_trials()
+    states = [t.state for t in trials]
+    assert states == [TrialState.COMPLETE, TrialState.COMPLETE, TrialState.FAIL, TrialState.WAITING]
+    assert trials[2].user_attrs["fail_reason"] == "interrupted"
+    assert trials[3].params == trials[2].params and trials[3].user_attrs["retry_of"] == 2
 
 
 def test_cmaes_restart_option_reaches_the_study(tmp_path) -> None:  # noqa: ANN001

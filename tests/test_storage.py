@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import os
@@ -451,6 +452,54 @@ def test_sigterm_closes_the_trial_queues_it_again_and_exits(tmp_path: Path) -> N
     states = [t.state for t in study.get_trials()]
     assert states.count(TrialState.COMPLETE) == 3 and states.count(TrialState.FAIL) == 1
     assert study.get_trials()[2].params == trials[1].params
+
+
+@pytest.mark.parametrize("cause", ["SIGINT", "SIGTERM", "crash"])
+def test_any_interruption_of_the_reference_trial_queues_it_again(
+    tmp_path: Path, cause: str
+) -> None:
+    """Ctrl-C, SIGTERM or an error of the program in the reference trial (trial 0, the
+    unevolved reservoir): it is closed as FAIL and queued again, and the rerun trains it."""
+    url = f"sqlite:///{tmp_path}/s.db"
+    config = tiny_config(n_trials=2, sampler="random", sampler_seed=0)
+    study = create_or_resume_study(config, url, "s")
+
+    def cut_short() -> None:
+        if cause == "crash":
+            raise RuntimeError("a bug")
+        os.kill(os.getpid(), getattr(signal, cause))
+
+    expected = RuntimeError if cause == "crash" else KeyboardInterrupt
+    with pytest.raises(expected):
+        run_evolution(config, study, quiet=True, evaluate=stub_fitness(0.5, cut_short))
+    trials = study.get_trials()
+    assert [t.state for t in trials] == [TrialState.FAIL, TrialState.WAITING]
+    assert trials[1].user_attrs["reference"] and trials[1].user_attrs["retry_of"] == 0
+    run_evolution(config, study, quiet=True, evaluate=stub_fitness())
+    (reference,) = study.get_trials(states=[TrialState.COMPLETE])[:1]
+    assert reference.number == 1 and reference.params == trials[0].params
+    assert reference.params == config.space.reference_params()
+
+
+def test_a_reference_trial_every_run_cut_short_is_queued_again(tmp_path: Path) -> None:
+    """A study whose reference trial was closed without a retry (an older ermrl closed Ctrl-C's
+    trials so) gets it queued again by the next worker, and only while no run of it finished."""
+    url = f"sqlite:///{tmp_path}/s.db"
+    config = tiny_config(n_trials=2, sampler="random", sampler_seed=0)
+    study = create_or_resume_study(config, url, "s")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        trial = study.ask()
+    trial.set_user_attr("fail_reason", "interrupted")
+    study.tell(trial, state=TrialState.FAIL)
+    out = io.StringIO()
+    run_evolution(config, study, stream=out, evaluate=stub_fitness())
+    assert "the reference trial #0 was cut short by every run; queued again" in out.getvalue()
+    complete = study.get_trials(states=[TrialState.COMPLETE])
+    assert complete[0].params == config.space.reference_params()
+    assert complete[0].user_attrs["retry_of"] == 0 and len(complete) == 2
+    run_evolution(config, study, stream=out, evaluate=stub_fitness())  # nothing queued twice
+    assert len(study.get_trials()) == 3
 
 
 def test_popsize_smaller_than_workers_warns(tmp_path: Path) -> None:

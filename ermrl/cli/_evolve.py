@@ -900,10 +900,15 @@ def run_and_report(
         return EXIT_TERMINATED
     except KeyboardInterrupt as err:
         number = getattr(err, "trial_number", None)
+        requeued = (
+            " and queued again"
+            if getattr(err, "requeued", False)
+            else " (its retries are spent; not queued again)"
+        )
         closed = (
             "between trials; no trial of this worker was running"
             if number is None
-            else f"; the running trial #{number} was closed as FAIL"
+            else f"; the running trial #{number} was closed as FAIL{requeued}"
         )
         print(f"{prog}: interrupted{' ' if number is None else ''}{closed}", file=sys.stderr)
         return EXIT_INTERRUPTED

@@ -1,5 +1,5 @@
 """A worker's trials against the storage: claiming one under the study lock, recording its
-result, and closing one cut short (SIGTERM: with a retry queued).
+result, and closing one cut short (by any signal or error: with a retry queued).
 
 ``n_trials`` is the study's total of COMPLETE, PRUNED, RUNNING and WAITING trials. A worker
 *claims* a trial (counts, then ``study.ask()``) under the storage's inter-process lock
@@ -35,9 +35,11 @@ __all__ = [
     "Claim",
     "claim_trial",
     "close_interrupted",
+    "cut_short",
     "n_counted",
     "record",
     "requeue",
+    "requeue_lost_reference",
     "retry_policy",
 ]
 
@@ -51,6 +53,35 @@ COUNTED = (TrialState.COMPLETE, TrialState.PRUNED, TrialState.RUNNING, TrialStat
 
 def n_counted(study: optuna.Study) -> int:
     return len(study.get_trials(deepcopy=False, states=COUNTED))
+
+
+def cut_short(trial: FrozenTrial) -> bool:
+    """Whether a FAIL trial was cut short by a signal (Ctrl-C, SIGTERM) or by an error of the
+    program (:data:`CRASHED_ATTR`) rather than failing in training: it measured nothing."""
+    reason = str(trial.user_attrs.get("fail_reason", ""))
+    crashed = bool(trial.user_attrs.get(CRASHED_ATTR))
+    return crashed or reason == "interrupted" or reason.startswith("interrupted by ")
+
+
+def requeue_lost_reference(study: optuna.Study, space: SearchSpace) -> int | None:
+    """Queue the reference trial again when every run of it was cut short and none is queued.
+
+    A study from before every interruption queued its trials again (Ctrl-C did not), or one
+    whose reference spent its retries on interruptions, would otherwise never train the
+    unevolved reference, and the study's best could then be worse than it.
+
+    Returns:
+        The number of the reference trial queued again, or ``None`` (nothing to do).
+    """
+    with study_lock(study):
+        runs = [t for t in study.get_trials(deepcopy=False) if t.user_attrs.get(REFERENCE_ATTR)]
+        if not runs or not all(t.state == TrialState.FAIL and cut_short(t) for t in runs):
+            return None
+        first = runs[0]
+        origin = first.user_attrs.get("retry_of", first.number)
+        params = space.reference_params()
+        study.enqueue_trial(params, user_attrs={REFERENCE_ATTR: True, "retry_of": origin})
+        return int(origin)
 
 
 def retry_policy(study: optuna.Study) -> RetryStaleTrial | None:
@@ -160,7 +191,11 @@ def close_interrupted(
     say: Callable[[str], None],
     retry: RetryStaleTrial | None,
 ) -> None:
-    """Close a trial cut short by a signal or an error as FAIL (SIGTERM: and queue its retry).
+    """Close a trial cut short by a signal or an error as FAIL and queue its retry.
+
+    Whatever cut it short (Ctrl-C, SIGTERM, a crash), the trial measured nothing, so a WAITING
+    copy with its parameters is queued (within the retry policy's ``max_retry``) before it is
+    closed: the next worker trains it, and the reference trial is never lost.
 
     When SLURM signals a whole job, the seed processes may die before this process receives its
     own SIGTERM; a broken process pool therefore waits a moment for that signal.
@@ -181,8 +216,7 @@ def close_interrupted(
             reason = f"interrupted by {signal.Signals(signum).name}"
         retry_of = None
         try:
-            if signum is not None and signum != signal.SIGINT:
-                retry_of = requeue(study, trial._trial_id, retry)
+            retry_of = requeue(study, trial._trial_id, retry)
             trial.set_user_attr("fail_reason", reason)
             if signum is None:  # an error of the program, not an outcome of training
                 trial.set_user_attr(CRASHED_ATTR, True)
@@ -195,6 +229,5 @@ def close_interrupted(
         err.trial_number, err.requeued = trial.number, retry_of is not None  # type: ignore[attr-defined]
     if signum is not None and not isinstance(err, KeyboardInterrupt):
         error = guard.error() or Interrupted(signum)
-        if isinstance(error, Interrupted):
-            error.trial_number, error.requeued = trial.number, retry_of is not None
+        error.trial_number, error.requeued = trial.number, retry_of is not None  # type: ignore[attr-defined]
         raise error from err

@@ -11,10 +11,11 @@ SLURM array tasks) may share a study:
   (:class:`ermrl.storage.RetryStaleTrial`), which the next claim picks up. When the budget is
   reached while other workers' trials still run, a worker waits for them, so that a trial whose
   worker died is still retried.
-- **SIGTERM** (SLURM time limit, preemption) closes the running trial as FAIL, queues its retry
-  and raises :class:`Interrupted`; Ctrl-C closes it as FAIL and raises ``KeyboardInterrupt``.
-  Signals that arrive while a worker talks to the storage are handled right after, so a claim or
-  a ``tell`` is never cut in half.
+- **Interruptions.** SIGTERM (SLURM time limit, preemption), Ctrl-C or an error of the program
+  closes the running trials as FAIL, queues a retry of each (the reference trial first) and
+  raises (:class:`Interrupted` on SIGTERM, ``KeyboardInterrupt`` on Ctrl-C). Signals that
+  arrive while a worker talks to the storage are handled right after, so a claim or a ``tell``
+  is never cut in half.
 
 Re-running the same command resumes the study.
 """
@@ -45,6 +46,7 @@ from ermrl.search._claim import (
     close_interrupted,
     n_counted,
     record,
+    requeue_lost_reference,
     retry_policy,
 )
 from ermrl.search._generalization import generalization_generation
@@ -60,6 +62,7 @@ from ermrl.search._objective import (
 from ermrl.search._progress import CANDIDATE_ATTR, best_trial, trial_line
 from ermrl.search._pruning import pruning_reporter
 from ermrl.search._signals import SignalGuard
+from ermrl.search._study import REFERENCE_ATTR
 from ermrl.storage import RetryStaleTrial
 
 __all__ = [
@@ -153,9 +156,11 @@ def run_evolution(
     under the storage's lock, so several workers sharing a study stop together at exactly the
     budget. A trial whose training diverges (NaN) or finishes no episode is marked FAIL and the
     worker goes on (a FAIL trial does not count: another one replaces it), unless its last
-    ``n_trials`` trials all failed (a broken problem must not loop forever). Ctrl-C marks the
-    running trial FAIL and re-raises; SIGTERM does the same, queues a retry of the trial with the
-    same parameters and raises :class:`Interrupted`. Nothing else is lost either way.
+    ``n_trials`` trials all failed (a broken problem must not loop forever). Ctrl-C, SIGTERM or
+    an error of the program marks the running trials FAIL, queues a retry of each with the same
+    parameters (the reference trial first) and re-raises (SIGTERM as :class:`Interrupted`).
+    Nothing is lost either way. A reference trial whose every run was cut short (by an older
+    ermrl, or with its retries spent) is queued again when a worker starts.
 
     Args:
         config: The run's configuration.
@@ -169,8 +174,8 @@ def run_evolution(
         wait_for_running: When the budget is reached but trials of other workers still run, wait
             for them (with heartbeats on): a trial whose worker died is then failed and retried
             here, and the study ends with ``n_trials`` finished trials.
-        requeue_interrupted: On SIGTERM, queue a WAITING copy of the interrupted trial (within
-            the storage's ``max_retry``).
+        requeue_interrupted: Queue a WAITING copy of a trial cut short by a signal or an error
+            (within the storage's ``max_retry``).
         n_workers: Workers expected to share the study, for the population-size warning
             (default: ``SLURM_ARRAY_TASK_COUNT`` when set).
         queued_only: Run only queued (WAITING) trials, never ask the sampler for a new point
@@ -226,6 +231,11 @@ def run_evolution(
     n_trials = config.search.n_trials
     done_before = n_counted(study)
     queued = len(study.get_trials(deepcopy=False, states=(TrialState.WAITING,)))
+    if config.search.reference_trial and not queued_only:
+        lost = requeue_lost_reference(study, config.space)
+        if lost is not None:
+            say(f"the reference trial #{lost} was cut short by every run; queued again")
+            queued += 1
     if done_before >= n_trials and not queued:
         say(
             f"study {study.study_name!r} already has {done_before}/{n_trials} trials: nothing to do"
@@ -469,7 +479,9 @@ class _Worker:
                 raise unexpected
         except BaseException as err:
             raised: BaseException | None = None
-            for claim, beat in zip(claims, beats):
+            # The reference's retry first: the next worker trains it before the others.
+            order = sorted(zip(claims, beats), key=lambda cb: not _is_reference(cb[0]))
+            for claim, beat in order:
                 assert claim.trial is not None
                 try:
                     close_interrupted(
@@ -549,7 +561,13 @@ class _Worker:
     def run_trial(self) -> bool:
         """Claim, train, record and finish one trial, or wait; ``False`` when the worker must
         stop."""
-        claim = self.claim()
+        # A signal between the claim and the training is raised inside train(), which closes
+        # the trial and queues it again (raised here, it would leave the trial RUNNING).
+        with self.guard.deferred():
+            claim = self.claim()
+            if claim.trial is not None:
+                heartbeat = get_heartbeat_thread(claim.trial._trial_id, self.study._storage)
+                heartbeat.start()
         if claim.trial is None:
             return self.wait(claim)
         self.pause = _FIRST_POLL
@@ -560,8 +578,6 @@ class _Worker:
                 stacklevel=3,  # run_evolution's caller
             )
             self.popsize = None  # warned once
-        heartbeat = get_heartbeat_thread(claim.trial._trial_id, self.study._storage)
-        heartbeat.start()
         self.summary.trials_run += 1
         started = time.perf_counter()
         self.runner.label = f"trial {claim.trial.number}"
@@ -578,20 +594,21 @@ class _Worker:
         backend), or wait; ``False`` when the worker must stop."""
         claims: list[Claim] = []
         last: Claim | None = None
-        for _ in range(size):
-            last = self.claim()
-            if last.trial is None:
-                break
-            claims.append(last)
+        beats = []
+        # A signal during the claims is raised inside train_generation(), which closes every
+        # claimed trial and queues it again (raised here, it would leave them RUNNING).
+        with self.guard.deferred():
+            for _ in range(size):
+                last = self.claim()
+                if last.trial is None:
+                    break
+                claims.append(last)
+                beats.append(get_heartbeat_thread(last.trial._trial_id, self.study._storage))
+                beats[-1].start()
         if not claims:
             assert last is not None
             return self.wait(last)
         self.pause = _FIRST_POLL
-        beats = []
-        for claim in claims:
-            assert claim.trial is not None
-            beats.append(get_heartbeat_thread(claim.trial._trial_id, self.study._storage))
-            beats[-1].start()
         self.summary.trials_run += len(claims)
         started = time.perf_counter()
         numbers = [c.trial.number for c in claims if c.trial is not None]
@@ -615,3 +632,7 @@ class _Worker:
                 outcomes.append((claim, closed, state, result, note))
         go_on = [self.finish(*outcome, elapsed) for outcome in outcomes]  # report every trial
         return all(go_on)
+
+
+def _is_reference(claim: Claim) -> bool:
+    return claim.trial is not None and bool(claim.trial.user_attrs.get(REFERENCE_ATTR))

@@ -34,7 +34,7 @@ from optuna.trial import FrozenTrial, TrialState
 from ermrl._progress import ProgressMode
 from ermrl._text import plural
 from ermrl.config import ConfigError, EvolveConfig, Problem
-from ermrl.search._claim import CRASHED_ATTR
+from ermrl.search._claim import cut_short
 from ermrl.search._progress import CANDIDATE_ATTR
 from ermrl.storage import study_lock
 
@@ -138,14 +138,6 @@ def _seed_values(trial: FrozenTrial) -> list[float]:
     return [float(v) for v in attrs.get(key) or [] if v is not None]
 
 
-def _interrupted(trial: FrozenTrial) -> bool:
-    """Whether a FAIL run was cut short by a signal (Ctrl-C, SIGTERM) or by an error of the
-    program (:data:`~ermrl.search._claim.CRASHED_ATTR`) rather than failing in training."""
-    reason = str(trial.user_attrs.get("fail_reason", ""))
-    crashed = bool(trial.user_attrs.get(CRASHED_ATTR))
-    return crashed or reason == "interrupted" or reason.startswith("interrupted by ")
-
-
 def _candidate_runs(rstudy: optuna.Study) -> dict[int, list[FrozenTrial]]:
     """The re-evaluation runs of each candidate (evolution trial number), in trial order."""
     runs: dict[int, list[FrozenTrial]] = {}
@@ -163,7 +155,7 @@ def _needs_run(runs: list[FrozenTrial]) -> bool:
         return True
     if any(t.state in (TrialState.COMPLETE, TrialState.RUNNING, TrialState.WAITING) for t in runs):
         return False
-    return _interrupted(runs[-1])
+    return cut_short(runs[-1])
 
 
 def _n_complete(study: optuna.Study) -> int:
