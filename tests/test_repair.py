@@ -429,6 +429,54 @@ def test_a_worker_that_resumes_sets_aside_unreadable_records_first(
     assert len(_asides(path)) == 1
 
 
+def _glue_after_trial_creation(lines: list[bytes]) -> list[bytes]:
+    """``sed -i '/"op_code":4/{N;s/\\n//}'``: each trial's creation record and the record after
+    it on one line (a newline lost)."""
+    glued: list[bytes] = []
+    rest = iter(lines)
+    for line in rest:
+        glued.append(line[:-1] + next(rest, b"") if b'"op_code":4' in line else line)
+    return glued
+
+
+@pytest.mark.parametrize("how", ["study repair", "a worker opens it"])
+def test_records_glued_together_are_split_and_every_trial_is_kept(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], how: str
+) -> None:
+    path = tmp_path / "s.log"
+    values = _journal_study(path, n_trials=2)
+    lines = path.read_bytes().splitlines(keepends=True)
+    glued = _glue_after_trial_creation(lines)
+    assert len(glued) == len(lines) - 2
+    path.write_bytes(b"".join(glued))
+    if how == "study repair":
+        assert study_main(["repair", "--storage", str(path)]) == 0
+        out = capsys.readouterr().out.strip().splitlines()
+        assert len(out) == 1 and "split 2 lines of glued records" in out[0], out
+        assert "set aside" not in out[0]
+    else:
+        open_storage(str(path), mode="write")
+    assert path.read_bytes().splitlines(keepends=True) == lines
+    assert not _asides(path)  # nothing was unreadable
+    assert _values(path) == values and len(values) == 2
+
+
+def test_only_what_cannot_be_read_is_set_aside_from_a_glued_line(tmp_path: Path) -> None:
+    path = tmp_path / "s.log"
+    values = _journal_study(path, n_trials=2)
+    lines = path.read_bytes().splitlines(keepends=True)
+    i = next(i for i, line in enumerate(lines) if b'"op_code":4' in line)
+    garbage = b'{"op_code":5,"worker_id":"x","tri'
+    damaged = [*lines[:i], lines[i][:-1] + garbage + b"  " + lines[i + 1], *lines[i + 2 :]]
+    path.write_bytes(b"".join(damaged))
+    repair = repair_journal(path)
+    assert repair is not None and (repair.n_records, repair.n_split) == (1, 1)
+    (aside,) = _asides(path)
+    assert aside.read_bytes() == garbage + b"  \n"  # the bytes up to the next record
+    assert path.read_bytes().splitlines(keepends=True) == lines
+    assert _values(path) == values
+
+
 def test_a_journal_with_an_unreadable_middle_record_is_one_line_and_exit_2(
     tmp_path: Path,
 ) -> None:

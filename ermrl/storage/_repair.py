@@ -7,10 +7,12 @@ it, which glued the two into one undecodable line. A line can also be garbage fo
 (written by hand, a bad disk). Optuna reads a journal up to its first unreadable record and then
 fails, so every command fails.
 
-:func:`repair_journal` finds every unreadable record of a journal file (anywhere, not only at
-its end), moves it to ``<file>.torn-<UTC time>`` and keeps every other record, in order, under
-the journal's own write lock, so no worker writes while it does. A record glued onto a partial
-one is kept and only the partial one is set aside. Workers call it before they use a journal
+:func:`repair_journal` finds every unreadable line of a journal file (anywhere, not only at
+its end) and, under the journal's own write lock (so no worker writes while it does), keeps
+every record in it and moves only what cannot be read to ``<file>.torn-<UTC time>``: records
+glued together (a newline lost) are split onto lines of their own, a record glued onto a
+partial one is kept and only the partial one is set aside. A readable record is never removed;
+every other line stays, in order. Workers call it before they use a journal
 (:func:`~ermrl.storage.open_storage`); ``ermrl study repair`` calls it by hand.
 
 A Redis journal numbers its records ``<prefix>:log:0``, ``:log:1``, ... up to the counter
@@ -53,6 +55,7 @@ _COPY_CHUNK = 1 << 20
 _RECORD_START = b'{"op_code":'
 _FIRST_LINE_MAX = 1 << 20
 _REDIS_BATCH = 1000
+_DECODER = json.JSONDecoder()
 
 
 def _op_codes() -> frozenset[int]:
@@ -98,6 +101,8 @@ class JournalRepair:
         partial: Whether the last of them was a partial last line (a write cut short).
         n_missing: Redis: record numbers below ``log_number`` that held no record; the records
             after them were renumbered.
+        n_split: File: lines that held several records glued together (a newline lost), split
+            so that each record is a line of its own.
         log_number: Redis: ``log_number`` before and after, when it did not name the last
             stored record (``None`` before: the key was missing or not a number).
     """
@@ -109,6 +114,7 @@ class JournalRepair:
     partial: bool = False
     n_missing: int = 0
     log_number: tuple[int | None, int] | None = None
+    n_split: int = 0
 
     def describe(self) -> str:
         """One line: what was set aside, renumbered and fixed."""
@@ -119,6 +125,12 @@ class JournalRepair:
             parts.append(
                 f"set aside {self.n_records} unreadable record{s} ({self.n_bytes} bytes{last}) "
                 f"in {self.aside}"
+            )
+        if self.n_split:
+            s = "" if self.n_split == 1 else "s"
+            parts.append(
+                f"split {self.n_split} line{s} of glued records, each record kept on a line of "
+                "its own"
             )
         if self.n_missing:
             s = "" if self.n_missing == 1 else "s"
@@ -206,30 +218,97 @@ def torn_tail(path: Path) -> int:
     return size
 
 
-def _damage(path: Path) -> list[tuple[int, int, int]]:
-    """Byte spans of a journal file's unreadable records, in order.
+@dataclass(frozen=True)
+class _Damage:
+    """An unreadable line of a journal file and what a repair makes of it.
 
-    Each span is ``(start, cut, end)``: the line ``[start, end)`` is unreadable, its bytes
-    ``[start, cut)`` are set aside and ``[cut, end)`` (a valid record glued onto a partial one;
-    empty otherwise) are kept. A last line without its newline is always set aside whole.
+    Attributes:
+        start: Offset of the line in the file.
+        end: Offset just past it (past its newline, when it has one).
+        kept: Byte spans (absolute) of the readable records found in it, in order: each is
+            written back as a line of its own.
+        aside: Byte spans (absolute) of what cannot be read, in order: each is set aside.
+        whole: Whether the whole line, newline included, is one span set aside.
     """
-    spans = []
+
+    start: int
+    end: int
+    kept: tuple[tuple[int, int], ...]
+    aside: tuple[tuple[int, int], ...]
+
+    @property
+    def whole(self) -> bool:
+        return not self.kept and self.aside == ((self.start, self.end),)
+
+
+def _record_end(line: bytes, position: int) -> int | None:
+    """Where the journal record that starts at ``line[position]`` ends (``None``: none does)."""
+    text = line[position:].decode("utf-8", errors="surrogateescape")
+    try:
+        _, end = _DECODER.raw_decode(text)
+    except (ValueError, RecursionError):
+        return None
+    stop = position + len(text[:end].encode("utf-8", errors="surrogateescape"))
+    return stop if journal_record(line[position:stop]) is not None else None
+
+
+def _split(line: bytes) -> tuple[list[tuple[int, int]], list[tuple[int, int]]]:
+    """Split an unreadable line (without its newline) into records and unreadable pieces.
+
+    Records glued together (a newline lost, an edit by hand, an older ermrl that appended after
+    a partial record) are each kept; the bytes between them that are no record are set aside,
+    except whitespace alone. A record starts where Optuna's records do (``{"op_code":``).
+
+    Returns:
+        ``(kept, aside)``: byte spans relative to the line.
+    """
+    kept: list[tuple[int, int]] = []
+    aside: list[tuple[int, int]] = []
+    position = 0
+    while position < len(line):
+        end = _record_end(line, position) if line.startswith(_RECORD_START, position) else None
+        if end is not None:
+            kept.append((position, end))
+            position = end
+            continue
+        following = line.find(_RECORD_START, position + 1)
+        stop = len(line) if following < 0 else following
+        if line[position:stop].strip():
+            aside.append((position, stop))
+        position = stop
+    return kept, aside
+
+
+def _damage(path: Path) -> list[_Damage]:
+    """The unreadable lines of a journal file, in order, each split (see :class:`_Damage`).
+
+    A line is split into the records glued in it, which are kept, and what cannot be read,
+    which is set aside; a line without any record is set aside whole. The records of a last
+    line without its newline (a write cut short) are kept, its last piece is set aside.
+    """
+    damage = []
     offset = 0
     with open(path, "rb") as f:
         for line in f:
             start, offset = offset, offset + len(line)
-            if line.endswith(b"\n") and journal_record(line) is not None:
+            complete = line.endswith(b"\n")
+            if complete and journal_record(line) is not None:
                 continue
-            cut = offset
-            if line.endswith(b"\n"):
-                glued = line.find(_RECORD_START, 1)
-                while glued > 0:
-                    if journal_record(line[glued:]) is not None:
-                        cut = start + glued
-                        break
-                    glued = line.find(_RECORD_START, glued + 1)
-            spans.append((start, cut, offset))
-    return spans
+            body = line[:-1] if complete else line
+            kept, aside = _split(body)
+            if not complete and kept and kept[-1][1] == len(body):
+                aside.append(kept.pop())  # a cut write: its last record may be incomplete
+            if not kept:
+                aside = [(0, len(line))]
+            damage.append(
+                _Damage(
+                    start=start,
+                    end=offset,
+                    kept=tuple((start + a, start + b) for a, b in kept),
+                    aside=tuple((start + a, start + b) for a, b in aside),
+                )
+            )
+    return damage
 
 
 def repair_journal(path: Path | str) -> JournalRepair | None:
@@ -237,97 +316,106 @@ def repair_journal(path: Path | str) -> JournalRepair | None:
 
     The file is read again under the journal's write lock (the one Optuna's
     ``JournalFileBackend`` takes to append), so a record another worker is writing right now is
-    never mistaken for a torn one. The unreadable records are written to
-    ``<file>.torn-<UTC time>`` (and synced) before the journal changes, so a failure (e.g. the
-    disk is still full) leaves the journal as it was. A partial last record alone is cut off in
-    place; otherwise the kept records are written to a new file that replaces the journal in
-    one step. Workers that have the journal open stay consistent: none could read past an
-    unreadable record, and the records after it keep their numbers.
+    never mistaken for a torn one. A line that holds several records glued together is split,
+    each record on a line of its own; only what cannot be read is set aside: a readable record
+    is never removed. The unreadable bytes are written to ``<file>.torn-<UTC time>`` (and synced)
+    before the journal changes, so a failure (e.g. the disk is still full) leaves the journal as
+    it was. A partial last record alone is cut off in place; otherwise the kept records are
+    written to a new file that replaces the journal in one step. Workers that have the journal
+    open stay consistent: none could read past an unreadable record, and the records before it
+    keep their numbers.
 
     Args:
         path: The journal file.
 
     Returns:
-        What was set aside, or ``None`` when every record was readable.
+        What was set aside or split, or ``None`` when every record was readable.
 
     Raises:
         StorageError: the path is not a journal file (:func:`check_journal`; left untouched).
         OSError: the records could not be set aside (the journal is unchanged).
     """
     from optuna.storages.journal import JournalFileSymlinkLock
+    from optuna.storages.journal._file import get_lock_file
 
     path = Path(path)
     check_journal(path)
     if not path.is_file() or not _damage(path):
         return None
-    lock = JournalFileSymlinkLock(str(path))
-    lock.acquire()
-    try:
-        spans = _damage(path)  # a write that was in progress has ended now
-        if not spans:
+    with get_lock_file(JournalFileSymlinkLock(str(path))):
+        damage = _damage(path)  # a write that was in progress has ended now
+        if not damage:
             return None
         size = os.path.getsize(path)
-        partial = spans[-1][2] == size and spans[-1][1] == size and torn_tail(path) > 0
-        aside = path.with_name(f"{path.name}.torn-{_stamp()}")
-        n_bytes = 0
-        try:
-            with open(path, "rb") as src, open(aside, "xb") as out:
-                for start, cut, end in spans:
-                    src.seek(start)
-                    piece = src.read(cut - start)
-                    n_bytes += len(piece)
-                    out.write(piece if cut == end else piece + b"\n")
-                out.flush()
-                os.fsync(out.fileno())
-        except OSError:
-            aside.unlink(missing_ok=True)
-            raise
-        if len(spans) == 1 and partial:
+        last = damage[-1]
+        partial = bool(last.aside) and last.aside[-1][1] == size and torn_tail(path) > 0
+        aside = path.with_name(f"{path.name}.torn-{_stamp()}") if _n_aside(damage) else None
+        n_bytes = _set_aside(path, damage, aside) if aside is not None else 0
+        if len(damage) == 1 and last.whole and partial:
             with open(path, "r+b") as f:
-                f.truncate(spans[0][0])
+                f.truncate(last.start)
                 f.flush()
                 os.fsync(f.fileno())
         else:
-            _rewrite_without(path, spans)
-    finally:
-        lock.release()
-    s = "" if len(spans) == 1 else "s"
-    _log.warning(
-        "journal %s had %d unreadable record%s (%d bytes%s: a write cut short, or garbage); "
-        "moved them to %s",
-        path,
-        len(spans),
-        s,
-        n_bytes,
-        ", the last one partial" if partial else "",
-        aside,
-    )
-    return JournalRepair(
+            _rewrite(path, damage)
+    repair = JournalRepair(
         journal=str(path),
-        aside=str(aside),
-        n_records=len(spans),
+        aside=None if aside is None else str(aside),
+        n_records=_n_aside(damage),
         n_bytes=n_bytes,
         partial=partial,
+        n_split=sum(1 for d in damage if d.kept),
     )
+    _log.warning(
+        "repaired journal (unreadable records come from a write cut short, or garbage): %s",
+        repair.describe(),
+    )
+    return repair
 
 
-def _rewrite_without(path: Path, spans: list[tuple[int, int, int]]) -> None:
-    """Replace ``path`` by a copy without the bytes ``[start, cut)`` of each span."""
+def _n_aside(damage: list[_Damage]) -> int:
+    return sum(len(d.aside) for d in damage)
+
+
+def _set_aside(path: Path, damage: list[_Damage], aside: Path) -> int:
+    """Write the unreadable pieces of ``damage`` to ``aside``, one a line; their byte count.
+
+    A line set aside whole keeps its own newline (a partial last line has none); a piece cut
+    out of a line gets one.
+    """
+    n_bytes = 0
+    try:
+        with open(path, "rb") as src, open(aside, "xb") as out:
+            for line in damage:
+                for start, end in line.aside:
+                    src.seek(start)
+                    piece = src.read(end - start)
+                    n_bytes += len(piece)
+                    out.write(piece if line.whole else piece + b"\n")
+            out.flush()
+            os.fsync(out.fileno())
+    except OSError:
+        aside.unlink(missing_ok=True)
+        raise
+    return n_bytes
+
+
+def _rewrite(path: Path, damage: list[_Damage]) -> None:
+    """Replace ``path`` by a copy where each damaged line is its kept records, one a line."""
     new = path.with_name(f".{path.name}.repair-{_stamp()}")
     try:
         with open(path, "rb") as src, open(new, "xb") as out:
             os.chmod(new, stat.S_IMODE(os.fstat(src.fileno()).st_mode))
             position = 0
-            for start, cut, _ in [*spans, (os.fstat(src.fileno()).st_size, 0, 0)]:
-                src.seek(position)
-                left = start - position
-                while left > 0:
-                    chunk = src.read(min(left, _COPY_CHUNK))
-                    if not chunk:
-                        break
-                    out.write(chunk)
-                    left -= len(chunk)
-                position = cut
+            for line in [*damage, None]:
+                stop = os.fstat(src.fileno()).st_size if line is None else line.start
+                _copy(src, out, position, stop)
+                if line is None:
+                    break
+                for start, end in line.kept:
+                    src.seek(start)
+                    out.write(src.read(end - start) + b"\n")
+                position = line.end
             out.flush()
             os.fsync(out.fileno())
         os.replace(new, path)
@@ -344,6 +432,18 @@ def _rewrite_without(path: Path, spans: list[tuple[int, int, int]]) -> None:
         pass
     finally:
         os.close(fd)
+
+
+def _copy(src: Any, out: Any, start: int, stop: int) -> None:
+    """Copy the bytes ``[start, stop)`` of ``src`` to ``out``, in chunks."""
+    src.seek(start)
+    left = stop - start
+    while left > 0:
+        chunk = src.read(min(left, _COPY_CHUNK))
+        if not chunk:
+            break
+        out.write(chunk)
+        left -= len(chunk)
 
 
 def repair_redis_journal(url: str | StorageURL) -> JournalRepair | None:
