@@ -191,3 +191,101 @@ def test_check_registered_env_id() -> None:
     for bad in (EVIL_ID, "NoSuchEnv-v0", "", 3):
         with pytest.raises(UnknownEnvError, match="config.yaml"):
             check_registered_env_id(bad, "config.yaml")
+
+
+def _evil_config() -> dict:
+    """An ermrl study configuration (as stored in ``ermrl_config``) naming ``evilmod:Evil-v0``."""
+    from ermrl.config import (
+        BudgetConfig,
+        EncoderConfig,
+        EvolveConfig,
+        PPOConfig,
+        Problem,
+        ReservoirSpace,
+        SearchConfig,
+        TaskConfig,
+        to_dict,
+    )
+
+    space = ReservoirSpace(units=10)
+    problem = Problem(
+        task=TaskConfig("Pendulum-v1", "all"),
+        encoder=EncoderConfig(reservoirs=space.default_reservoirs()),
+        ppo=PPOConfig(hyperparams={"n_steps": 64, "batch_size": 32}),
+        budget=BudgetConfig(training_steps=64),
+        seeds=(0,),
+    )
+    data = to_dict(EvolveConfig(problem=problem, space=space, search=SearchConfig(n_trials=1)))
+    data["problem"]["task"]["env_id"] = EVIL_ID
+    return data
+
+
+def _evil_study(where: Path) -> str:
+    """A study whose stored configuration names ``evilmod:Evil-v0`` (an edited database)."""
+    import optuna
+
+    url = f"sqlite:///{where / 'evil.db'}"
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    study = optuna.create_study(study_name="s", storage=url, direction="maximize")
+    study.set_user_attr("ermrl_config", _evil_config())
+    study.set_user_attr("ermrl_kind", "evolve")
+    distribution = optuna.distributions.FloatDistribution(0.1, 2.0)
+    study.add_trial(
+        optuna.trial.create_trial(
+            params={"sr": 1.0, "lr": 1.0, "input_scaling": 1.0},
+            distributions={"sr": distribution, "lr": distribution, "input_scaling": distribution},
+            value=1.0,
+        )
+    )
+    return url
+
+
+@pytest.mark.parametrize("agents", [[], ["--agents", "ppo-full"]])
+def test_test_refuses_a_module_env_id_in_the_studys_stored_configuration(
+    tmp_path: Path, agents: list[str]
+) -> None:
+    where = _evil_folder(tmp_path)
+    url = _evil_study(where)
+    out = where / "runs"
+    result = _ermrl(
+        where, "test", "--study-name", "s", "--storage", url, "--out", str(out), *agents
+    )
+    assert result.returncode == 2, result.stderr
+    err = result.stderr.strip()
+    assert len(err.splitlines()) == 1, err
+    assert "study 's'" in err and "stored configuration" in err and EVIL_ID in err
+    assert not (where / "imported").exists()
+    assert not out.exists()
+
+
+def test_study_import_refuses_a_module_env_id_in_a_snapshots_configuration(
+    tmp_path: Path,
+) -> None:
+    where = _evil_folder(tmp_path)
+    url = _evil_study(where)
+    snapshot = where / "study.json"
+    exported = _ermrl(where, "study", "export", "--storage", url, "--study-name", "s", "--out",
+                      str(snapshot))  # fmt: skip
+    assert exported.returncode == 0, exported.stderr
+    target = where / "target.db"
+    result = _ermrl(where, "study", "import", "--storage", f"sqlite:///{target}", "--snapshot",
+                    str(snapshot))  # fmt: skip
+    assert result.returncode == 2, result.stderr
+    err = result.stderr.strip()
+    assert len(err.splitlines()) == 1, err
+    assert str(snapshot) in err and EVIL_ID in err
+    assert not (where / "imported").exists()
+    assert not target.exists()
+
+
+def test_check_stored_env_ids_walks_the_whole_configuration() -> None:
+    from ermrl.config import ConfigError
+    from ermrl.search import check_stored_env_ids
+
+    check_stored_env_ids({"problem": {"task": {"env_id": "Pendulum-v1"}}}, "study 's'")
+    nested = {"generalization": {"tasks": [{"task": {"env_id": "Pendulum-v1"}},
+                                           {"task": {"env_id": EVIL_ID}}]}}  # fmt: skip
+    with pytest.raises(ConfigError, match="study 's'.*evilmod"):
+        check_stored_env_ids(nested, "study 's'")
+    with pytest.raises(ConfigError, match="non-empty string"):
+        check_stored_env_ids({"problem": {"task": {"env_id": 3}}}, "study 's'")

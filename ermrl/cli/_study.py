@@ -514,6 +514,8 @@ def _write_error(out: Path, err: OSError) -> str:
 
 
 def _import(args: argparse.Namespace, prog: str) -> int:
+    from ermrl.config import ConfigError
+    from ermrl.search import STUDY_CONFIG_ATTR, check_stored_env_ids
     from ermrl.storage import (
         LockTimeout,
         SnapshotError,
@@ -527,8 +529,12 @@ def _import(args: argparse.Namespace, prog: str) -> int:
         fail(prog, "--study-name is empty")
     try:
         snapshot = read_snapshot(args.snapshot)
+        for part in (snapshot.study, *snapshot.related.values()):
+            if STUDY_CONFIG_ATTR in part.user_attrs:  # never import a module it names
+                where = f"{args.snapshot}: study {part.study_name!r} (its stored configuration)"
+                check_stored_env_ids(part.user_attrs[STUDY_CONFIG_ATTR], where)
         result = import_snapshot(snapshot, args.storage, args.study_name, max_retry=args.max_retry)
-    except (SnapshotError, StudyExists, StorageError, LockTimeout) as err:
+    except (SnapshotError, StudyExists, StorageError, LockTimeout, ConfigError) as err:
         fail(prog, str(err))
     for name in result.created:
         print(

@@ -59,6 +59,7 @@ from ermrl.search._signals import Interrupted
 from ermrl.search._study import (
     STUDY_COMMAND_ATTR,
     STUDY_CONFIG_ATTR,
+    check_stored_env_ids,
     create_or_resume_study,
     resume_conflicts,
     sample_params,
@@ -66,6 +67,7 @@ from ermrl.search._study import (
 )
 
 __all__ = [
+    "check_stored_env_ids",
     "REEVALUATION_ATTR",
     "RESTART_STRATEGIES",
     "SAMPLERS",

@@ -25,6 +25,7 @@ __all__ = [
     "STUDY_COMMAND_ATTR",
     "STUDY_CONFIG_ATTR",
     "STUDY_KIND_ATTR",
+    "check_stored_env_ids",
     "cma_start",
     "config_diffs",
     "create_or_resume_study",
@@ -120,13 +121,54 @@ def sample_params(trial: optuna.Trial, space: SearchSpace) -> dict[str, float]:
 def study_config(study: optuna.Study) -> EvolveConfig:
     """The configuration an ermrl study was created with.
 
+    Its env ids must be registered ones (:func:`check_stored_env_ids`): the stored
+    configuration is data that an edited database or an imported snapshot may carry, and a
+    ``module:Env`` id in it would make gymnasium import that module.
+
     Raises:
-        ConfigError: the study was not created by ``ermrl evolve``.
+        ConfigError: the study was not created by ``ermrl evolve``, or its configuration names
+            an env id that is not registered.
     """
     data = study.user_attrs.get(STUDY_CONFIG_ATTR)
     if data is None:
         raise ConfigError(f"study {study.study_name!r} has no ermrl configuration")
+    check_stored_env_ids(data, f"study {study.study_name!r} (its stored configuration)")
     return EvolveConfig.from_dict(data)
+
+
+def check_stored_env_ids(data: Any, source: str) -> None:
+    """Check every ``env_id`` in a stored configuration against gymnasium's registry.
+
+    Nothing is imported: a ``module:Env`` id is refused unless that module is imported already
+    (see :func:`ermrl.envs.check_registered_env_id`). The whole document is walked, so an env id
+    in any part of it (a task, a generalization task set) is checked.
+
+    Args:
+        data: The decoded configuration (JSON-like).
+        source: What it was read from, named in the error.
+
+    Raises:
+        ConfigError: one line naming ``source`` and the id.
+    """
+    from ermrl.envs import UnknownEnvError, check_registered_env_id
+
+    pending, seen = [data], 0
+    while pending:
+        node = pending.pop()
+        seen += 1
+        if seen > 100_000:
+            raise ConfigError(f"{source}: the configuration is too large to be ermrl's")
+        if isinstance(node, dict):
+            for key, value in node.items():
+                if key == "env_id":
+                    try:
+                        check_registered_env_id(value, source)
+                    except UnknownEnvError as err:
+                        raise ConfigError(str(err)) from None
+                else:
+                    pending.append(value)
+        elif isinstance(node, list):
+            pending.extend(node)
 
 
 def config_diffs(new: Any, stored: Any, path: str) -> list[str]:
