@@ -20,8 +20,8 @@ from collections.abc import Generator, Iterator
 from typing import Any
 
 from optuna.storages.journal import JournalFileBackend, JournalRedisBackend
-from optuna.storages.journal._file import get_lock_file
 
+from ermrl.storage._locks import JournalSymlinkLock
 from ermrl.storage._repair import is_journal_record, journal_record
 from ermrl.storage._url import StorageError
 
@@ -45,7 +45,9 @@ class LineJournalFileBackend(JournalFileBackend):
     """
 
     def __init__(self, file_path: str, storage: str) -> None:
-        super().__init__(file_path)
+        # Optuna's lock on <file>.lock, with a stale check that also breaks a dangling link
+        # (Optuna's own acquire spins on one forever, at full CPU).
+        super().__init__(file_path, lock_obj=JournalSymlinkLock(file_path))
         self._storage = storage
 
     def append_logs(self, logs: list[dict[str, Any]]) -> None:
@@ -59,7 +61,7 @@ class LineJournalFileBackend(JournalFileBackend):
         if not logs:
             return
         data = "".join(json.dumps(log, separators=(",", ":")) + "\n" for log in logs).encode()
-        with get_lock_file(self._lock):
+        with self._lock_held():
             with open(self._file_path, "a+b") as f:
                 end = f.seek(0, os.SEEK_END)
                 if end > 0:
@@ -69,6 +71,10 @@ class LineJournalFileBackend(JournalFileBackend):
                 f.write(data)  # "a" mode: at the end of the file, whatever the position
                 f.flush()
                 os.fsync(f.fileno())
+
+    def _lock_held(self) -> JournalSymlinkLock:
+        assert isinstance(self._lock, JournalSymlinkLock)
+        return self._lock
 
     def read_logs(self, log_number_from: int) -> Generator[dict[str, Any], None, None]:
         """Optuna's reader, with a one-line :class:`StorageError` for an unreadable record."""

@@ -11,7 +11,9 @@ others for long:
 - SQLite: ``fcntl.flock`` on ``<db>.lock`` next to the database (released by the kernel when the
   process dies; needs a local file system, as SQLite itself does);
 - journal file: a symlink lock ``<log>.ermrl.lock`` (Optuna's NFS-safe scheme; a lock left by a
-  dead process, i.e. a link unchanged for 30 s, is broken, whatever it points at);
+  dead process, i.e. a link unchanged for 30 s, is broken, whatever it points at). Appends and
+  repairs take Optuna's own ``<log>.lock`` through :class:`JournalSymlinkLock`, which breaks a
+  stale or dangling one the same way;
 - PostgreSQL: a session advisory lock (``pg_advisory_lock``) on its own connection;
 - MySQL / MariaDB: ``GET_LOCK`` on its own connection;
 - Redis: a ``redis-py`` lock with a 120 s expiry.
@@ -30,6 +32,8 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from optuna.storages.journal._file import BaseJournalFileLock
+
 from ermrl.storage._url import (
     StorageURL,
     journal_file,
@@ -39,7 +43,9 @@ from ermrl.storage._url import (
 )
 
 __all__ = [
+    "JournalSymlinkLock",
     "LockTimeout",
+    "journal_file_lock",
     "storage_lock",
     "sqlite_file_lock",
     "sqlite_path",
@@ -49,8 +55,9 @@ __all__ = [
 ]
 
 LOCK_TIMEOUT_S = 600.0
-# Seconds a journal lock link may stay unchanged before it is taken for a dead owner's and broken.
-_JOURNAL_LOCK_GRACE_S = 30
+# Seconds a journal lock link (``<log>.lock``, ``<log>.ermrl.lock``) may stay unchanged before
+# it is taken for a dead owner's and broken; Optuna's default grace period for the same lock.
+_JOURNAL_LOCK_GRACE_S = 30.0
 
 _log = logging.getLogger("ermrl.storage")
 
@@ -162,50 +169,102 @@ def _remove_link(path: Path, expected: tuple[int, int]) -> bool:
     return False
 
 
-@contextlib.contextmanager
-def _symlink_lock(path: Path, target: Path, timeout: float) -> Iterator[None]:
+class JournalSymlinkLock(BaseJournalFileLock):
     """Optuna's NFS-safe symlink lock on ``<path>.lock``, with a stale check that works.
 
-    Optuna's ``JournalFileSymlinkLock`` judges a lock stale by the ``stat`` of the file the link
-    points at; when that file does not exist (older ermrl pointed at ``<log>.ermrl``, which
-    never does), it retries at once forever, at full CPU. Here the link itself is checked
-    (``lstat``): a link unchanged for :data:`_JOURNAL_LOCK_GRACE_S` seconds of this process's
-    clock (immune to clock skew between NFS clients) is broken, whatever it points at.
+    The same lock as Optuna's ``JournalFileSymlinkLock`` (a symlink ``<path>.lock`` created
+    with ``symlink(2)``, which is atomic on NFS too), so ermrl and plain Optuna processes
+    sharing a journal exclude each other. Optuna's own ``acquire`` judges a lock stale by the
+    ``stat`` of the file the link points at; when that file does not exist (a dangling link:
+    left by a process that ran elsewhere, pointing at a relative path, or made by hand) it
+    retries at once, forever, at full CPU. Here the link itself is checked (``lstat``): a link
+    unchanged for :data:`_JOURNAL_LOCK_GRACE_S` seconds of this process's clock (immune to clock
+    skew between NFS clients) is broken, with a warning, whatever it points at. A live holder
+    keeps a lock for milliseconds (one append), and every acquisition makes a new link.
+
+    Args:
+        path: The file the lock protects (the journal); the link is ``<path>.lock``.
+        timeout: Seconds to wait for the lock before :class:`LockTimeout`.
+        target: What the link points at, made absolute (default: ``path``): a file that
+            exists, so that Optuna's own stale check in plain Optuna processes can ``stat`` it.
     """
-    link = Path(f"{path}.lock")
-    deadline = time.monotonic() + timeout
-    delay = 0.001
-    seen: tuple[int, int] | None = None
-    seen_since = time.monotonic()
-    while True:
-        try:
-            os.symlink(target, link)
-            mine = _link_identity(link)
-            break
-        except FileExistsError:
-            pass
-        now = time.monotonic()
-        current = _link_identity(link)
-        if current != seen:
-            seen, seen_since = current, now
-        elif current is not None and now - seen_since > _JOURNAL_LOCK_GRACE_S:
-            if _remove_link(link, current):
-                _log.warning(
-                    "broke the lock %s: unchanged for %g s, its owner is gone",
-                    link,
-                    _JOURNAL_LOCK_GRACE_S,
-                )
-            seen, delay = None, 0.001
-            continue
-        if now > deadline:
-            raise LockTimeout(f"could not lock {link} within {timeout:.0f} s")
-        time.sleep(delay)
-        delay = min(delay * 2, 0.05)
-    try:
-        yield
-    finally:
+
+    def __init__(
+        self,
+        path: os.PathLike[str] | str,
+        timeout: float = LOCK_TIMEOUT_S,
+        target: os.PathLike[str] | str | None = None,
+    ) -> None:
+        self._link = Path(f"{path}.lock")
+        self._target = Path(path if target is None else target).absolute()
+        self._timeout = timeout
+        self._mine: tuple[int, int] | None = None
+
+    def acquire(self) -> bool:
+        """Take the lock, breaking a stale one; ``True`` once held.
+
+        Raises:
+            LockTimeout: it was not obtained within the timeout.
+        """
+        deadline = time.monotonic() + self._timeout
+        delay = 0.001
+        seen: tuple[int, int] | None = None
+        seen_since = time.monotonic()
+        while True:
+            try:
+                os.symlink(self._target, self._link)
+                self._mine = _link_identity(self._link)
+                return True
+            except FileExistsError:
+                pass
+            now = time.monotonic()
+            current = _link_identity(self._link)
+            if current != seen:
+                seen, seen_since = current, now
+            elif current is not None and now - seen_since > _JOURNAL_LOCK_GRACE_S:
+                if _remove_link(self._link, current):
+                    _log.warning(
+                        "broke the lock %s: unchanged for %g s, its owner is gone",
+                        self._link,
+                        _JOURNAL_LOCK_GRACE_S,
+                    )
+                seen, delay = None, 0.001
+                continue
+            if now > deadline:
+                raise LockTimeout(f"could not lock {self._link} within {self._timeout:.0f} s")
+            time.sleep(delay)
+            delay = min(delay * 2, 0.05)
+
+    def release(self) -> None:
+        """Remove the lock link if it is still the one this lock made."""
+        mine, self._mine = self._mine, None
         if mine is not None:  # else broken by another process at once (held past the grace)
-            _remove_link(link, mine)
+            _remove_link(self._link, mine)
+
+    def __enter__(self) -> JournalSymlinkLock:
+        self.acquire()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+
+@contextlib.contextmanager
+def journal_file_lock(
+    path: os.PathLike[str] | str, timeout: float = LOCK_TIMEOUT_S
+) -> Iterator[None]:
+    """Hold the write lock of a journal file: Optuna's ``<path>.lock``, taken by
+    :class:`JournalSymlinkLock` (a stale or dangling link is broken after the grace period).
+
+    Args:
+        path: The journal file.
+        timeout: Seconds to wait for the lock.
+
+    Raises:
+        LockTimeout: it was not obtained in time.
+    """
+    with JournalSymlinkLock(path, timeout):
+        yield
 
 
 _ENGINES: dict[str, Any] = {}
@@ -307,7 +366,8 @@ def storage_lock(
             with _flock(Path(f"{spec.path}.lock"), timeout):
                 yield
         else:
-            # The link points at the journal itself: a file that exists, so Optuna's own stale
-            # check (in older ermrl workers sharing the journal) can stat it.
-            with _symlink_lock(Path(f"{spec.path}.ermrl"), spec.path, timeout):
+            # A lock of its own, <log>.ermrl.lock, held for a claim; it points at the journal
+            # itself: a file that exists, so Optuna's own stale check (in older ermrl workers
+            # sharing the journal) can stat it.
+            with JournalSymlinkLock(f"{spec.path}.ermrl", timeout, target=spec.path):
                 yield

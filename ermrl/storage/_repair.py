@@ -335,14 +335,13 @@ def repair_journal(path: Path | str) -> JournalRepair | None:
         StorageError: the path is not a journal file (:func:`check_journal`; left untouched).
         OSError: the records could not be set aside (the journal is unchanged).
     """
-    from optuna.storages.journal import JournalFileSymlinkLock
-    from optuna.storages.journal._file import get_lock_file
+    from ermrl.storage._locks import journal_file_lock
 
     path = Path(path)
     check_journal(path)
     if not path.is_file() or not _damage(path):
         return None
-    with get_lock_file(JournalFileSymlinkLock(str(path))):
+    with journal_file_lock(path):
         damage = _damage(path)  # a write that was in progress has ended now
         if not damage:
             return None
