@@ -5,16 +5,22 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import shutil
 import sqlite3
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import optuna
 import pytest
 from optuna.trial import TrialState
+
+from ermrl.search._samplers import _encode, _join_chunks
 
 STUDY = "cma-bad-state"
 EVOLVE = [
@@ -128,3 +134,80 @@ def test_sampler_starts_a_new_run_after_a_malformed_state(
     new = study.get_trials()[3:]
     assert [t.system_attrs["cma:n_restarts"] for t in new] == [3, 3, 3]
     assert all(t.state == TrialState.COMPLETE for t in new)
+
+
+def _edit_attrs(**attrs: object) -> Callable[[dict[str, Any]], str]:
+    """A state edit: replace some attributes of the stored optimizer (already encoded)."""
+
+    def edit(state: dict[str, Any]) -> str:
+        state["attrs"].update(attrs)
+        return json.dumps(state)
+
+    return edit
+
+
+def _array(values: object) -> dict[str, Any]:
+    """An array in the stored state's plain form."""
+    encoded = _encode(np.asarray(values, dtype=float))
+    assert isinstance(encoded, dict)
+    return encoded
+
+
+_DEEP = 50_000
+BAD_STATES: dict[str, Callable[[dict[str, Any]], str]] = {
+    "popsize 0": _edit_attrs(_popsize=0),
+    "NaN mean": _edit_attrs(_mean=_array([math.nan, 0.5])),
+    "mean of the wrong length": _edit_attrs(_mean=_array([0.5, 0.5, 0.5])),
+    "covariance of the wrong shape": _edit_attrs(_C=_array(np.eye(3))),
+    "string sigma": _edit_attrs(_sigma="big"),
+    "negative sigma": _edit_attrs(_sigma=-0.1),
+    "weights of the wrong length": _edit_attrs(_weights=_array([0.5])),
+    "nested 50k deep": lambda state: (
+        '{"__cmaes__": "CMA", "attrs": {"_x": ' + '{"__list__": [' * _DEEP + "]}" * _DEEP + "}}"
+    ),
+}
+
+
+@pytest.mark.parametrize("edit", BAD_STATES.values(), ids=BAD_STATES)
+def test_a_resume_restarts_cma_es_on_an_invalid_state(
+    edit: Callable[[dict[str, Any]], str], caplog: pytest.LogCaptureFixture
+) -> None:
+    """A state that decodes but cannot go on (wrong shapes, not finite, not positive, nested
+    too deep) is checked as a whole: one warning, a new CMA-ES run from the stored trials, and
+    no trial left RUNNING, where each of them raised on every resume."""
+    from optuna.distributions import FloatDistribution
+
+    from ermrl.search import RestartCmaEsSampler
+
+    space = {
+        "sr": FloatDistribution(1e-4, 1e2, log=True),
+        "lr": FloatDistribution(1e-2, 1.0, log=True),
+    }
+    first = optuna.create_study(sampler=RestartCmaEsSampler(seed=0, popsize=2, search_space=space))
+    for value in (1.0, 2.0, 3.0):
+        first.tell(first.ask(space), value)
+    (holder,) = [t for t in first.trials if "cma:state:0" in t.system_attrs]
+    chunks = {k: v for k, v in holder.system_attrs.items() if k.startswith("cma:state:")}
+    text = edit(json.loads(_join_chunks(chunks, "cma:state:")))
+    attrs = {k: v for k, v in holder.system_attrs.items() if k not in chunks}
+    attrs.update(
+        {f"cma:state:{i}": text[j : j + 2045] for i, j in enumerate(range(0, len(text), 2045))}
+    )
+
+    study = optuna.create_study(sampler=RestartCmaEsSampler(seed=0, popsize=2, search_space=space))
+    for t in first.trials:
+        study.add_trial(
+            optuna.trial.create_trial(
+                params=t.params,
+                distributions=t.distributions,
+                value=t.value,
+                system_attrs=attrs if t.number == holder.number else t.system_attrs,
+            )
+        )
+    with caplog.at_level("WARNING", logger="ermrl.search._samplers"):
+        for value in (4.0, 5.0, 6.0):
+            study.tell(study.ask(space), value)
+    assert caplog.text.count("malformed CMA-ES state") == 1, caplog.text
+    new = study.get_trials()[3:]
+    assert [t.state for t in new] == [TrialState.COMPLETE] * 3
+    assert [t.system_attrs["cma:n_restarts"] for t in new] == [1, 1, 1]

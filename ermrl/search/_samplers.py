@@ -105,6 +105,7 @@ __all__ = [
     "RestartStrategy",
     "SamplerName",
     "cma_generation_info",
+    "check_optimizer",
     "has_discrete_genes",
     "make_sampler",
     "optimizer_state",
@@ -171,8 +172,12 @@ class _RestartState:
 
         Returns:
             The restart state.
+
+        Raises:
+            ValueError: A field is not an integer, a count is negative, a population size is
+                below 2 or the regime is neither ``"large"`` nor ``"small"``.
         """
-        return cls(
+        state = cls(
             n_restarts=int(raw["n_restarts"]),
             regime=str(raw["regime"]),
             popsize=int(raw["popsize"]),
@@ -181,6 +186,13 @@ class _RestartState:
             n_evals_large=int(raw.get("n_evals_large", 0)),
             n_evals_small=int(raw.get("n_evals_small", 0)),
         )
+        if state.regime not in ("large", "small"):
+            raise ValueError(f"unknown regime {state.regime!r}")
+        if min(state.n_restarts, state.n_evals_large, state.n_evals_small) < 0:
+            raise ValueError("a negative restart or evaluation count")
+        if min(state.popsize, state.popsize0, state.large_popsize) < _MIN_POPSIZE:
+            raise ValueError(f"a population size below {_MIN_POPSIZE}")
+        return state
 
 
 class RestartCmaEsSampler(CmaEsSampler):
@@ -538,7 +550,7 @@ class RestartCmaEsSampler(CmaEsSampler):
                         state = _RestartState.from_dict(raw)
                     else:
                         raise TypeError(f"{self._attr_key_restart_state} is not a mapping")
-                except (ValueError, TypeError, KeyError, AttributeError) as err:
+                except (ValueError, TypeError, KeyError, AttributeError, RecursionError) as err:
                     return None, self._malformed_restart(t, raw, err)
                 return optimizer, state
             if any(k.startswith(pickle_prefix) for k in t.system_attrs):
@@ -862,12 +874,125 @@ def restore_optimizer(state: Mapping[str, Any]) -> CmaClass:
         The optimizer.
 
     Raises:
-        ValueError: For a state that is not of that form.
+        ValueError: For a state that is not of that form, or an optimizer that is not whole and
+            usable (:func:`check_optimizer`).
     """
-    optimizer = _decode(dict(state))
+    try:
+        optimizer = _decode(dict(state))
+    except RecursionError:  # nested deeper than any state ermrl writes
+        raise ValueError("the stored CMA-ES state is nested too deep") from None
     if not isinstance(optimizer, tuple(_OPTIMIZER_CLASSES.values())):
         raise ValueError("the stored CMA-ES state does not describe a cmaes optimizer")
+    check_optimizer(cast("CmaClass", optimizer))
     return cast("CmaClass", optimizer)
+
+
+def check_optimizer(optimizer: CmaClass) -> None:
+    """Check that a restored optimizer is whole and can go on: shapes, finiteness, positivity.
+
+    A state edited by hand or written by a bad disk can decode to an optimizer whose ``ask`` or
+    ``tell`` fails (an ``IndexError`` on a wrong-length mean, a ``ValueError`` on a NaN, a
+    division by a zero popsize) on every resume. With ``n`` the dimension and ``λ`` the
+    population size: ``_n_dim`` ``n >= 1``, ``_popsize`` ``λ >= 2``, ``1 <= _mu <= λ``; the
+    mean and both evolution paths have shape ``(n,)``, the covariance ``(n, n)`` (``(n,)`` for
+    ``SepCMA``), the weights ``(λ,)`` (``(μ,)`` for ``SepCMA``), the bounds ``(n, 2)``; all of
+    them finite; the step size and the learning rates are finite numbers, the step size and
+    ``μ_eff``, ``c_σ``, ``d_σ``, ``χ_n`` positive. ``CMAwM`` is checked with its inner
+    ``CMA``. Last, a copy of the optimizer must ``ask`` a finite point of shape ``(n,)``.
+
+    Args:
+        optimizer: The restored optimizer (left unchanged).
+
+    Raises:
+        ValueError: The first thing found wrong.
+    """
+    import copy
+
+    cma: Any = optimizer
+    if isinstance(optimizer, cmaes.CMAwM):
+        cma = getattr(optimizer, "_cma", None)
+        if type(cma) is not cmaes.CMA:
+            raise ValueError("a CMAwM state without its inner CMA")
+    n = _int_attr(cma, "_n_dim", 1)
+    popsize = _int_attr(cma, "_popsize", _MIN_POPSIZE)
+    mu = _int_attr(cma, "_mu", 1, popsize)
+    _int_attr(cma, "_g", 0)
+    _int_attr(cma, "_n_max_resampling", 0)
+    separable = isinstance(cma, cmaes.SepCMA)
+    for name in ("_mean", "_p_sigma", "_pc"):
+        _array_attr(cma, name, (n,))
+    _array_attr(cma, "_C", (n,) if separable else (n, n))
+    _array_attr(cma, "_weights", (mu,) if separable else (popsize,))
+    _array_attr(cma, "_D", (n,), optional=True)
+    if not separable:
+        _array_attr(cma, "_B", (n, n), optional=True)
+    _array_attr(cma, "_bounds", (n, 2), optional=True)
+    for name in ("_sigma", "_mu_eff", "_c_sigma", "_d_sigma", "_chi_n"):
+        _real_attr(cma, name, positive=True)
+    for name in ("_cc", "_c1", "_cmu", "_cm"):
+        _real_attr(cma, name)
+    if not isinstance(getattr(cma, "_rng", None), np.random.RandomState):
+        raise ValueError("the stored CMA-ES state has no random generator")
+    if isinstance(optimizer, cmaes.CMAwM):
+        _array_attr(optimizer, "_A", (n,))
+        _real_attr(optimizer, "margin", positive=True)
+        n_discrete = _int_attr(optimizer, "_n_zdim", 0, n)
+        for name in ("_discrete_space_low", "_discrete_space_size", "_discrete_space_step"):
+            _array_attr(optimizer, name, (n_discrete,))
+        for name in ("m_z_lim_low", "m_z_lim_up"):
+            _array_attr(optimizer, name, (n_discrete,))
+        discrete = _array_attr(optimizer, "_discrete_idx", (n_discrete,))
+        continuous = _array_attr(optimizer, "_continuous_idx", (n - n_discrete,))
+        indices = np.concatenate([discrete, continuous])
+        if sorted(indices.tolist()) != list(range(n)):
+            raise ValueError("the discrete and continuous dimensions of CMAwM do not match")
+        _array_attr(optimizer, "_continuous_space", (n - n_discrete, 2))
+    try:
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            point = copy.deepcopy(optimizer).ask()
+    except (ArithmeticError, ValueError, IndexError, TypeError, np.linalg.LinAlgError) as err:
+        raise ValueError(f"it cannot ask a point ({type(err).__name__}: {err})") from err
+    x = point[0] if isinstance(point, tuple) else point
+    if np.shape(x) != (n,) or not np.all(np.isfinite(x)):
+        raise ValueError("it asks a point that is not finite")
+
+
+def _int_attr(owner: object, name: str, low: int, high: int | None = None) -> int:
+    """An integer attribute within ``[low, high]`` (``ValueError`` otherwise)."""
+    value = getattr(owner, name, None)
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise ValueError(f"{name} is not an integer ({type(value).__name__})")
+    if value < low or (high is not None and value > high):
+        bound = f">= {low}" if high is None else f"in [{low}, {high}]"
+        raise ValueError(f"{name} is {value}, not {bound}")
+    return int(value)
+
+
+def _real_attr(owner: object, name: str, *, positive: bool = False) -> float:
+    """A finite real attribute, positive if asked (``ValueError`` otherwise)."""
+    value = getattr(owner, name, None)
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.number)):
+        raise ValueError(f"{name} is not a number ({type(value).__name__})")
+    if not math.isfinite(float(value)) or (positive and value <= 0):
+        raise ValueError(f"{name} is {value}, not a finite{' positive' if positive else ''} number")
+    return float(value)
+
+
+def _array_attr(
+    owner: object, name: str, shape: tuple[int, ...], *, optional: bool = False
+) -> np.ndarray:
+    """A finite numeric array attribute of ``shape`` (``ValueError`` otherwise)."""
+    value = getattr(owner, name, None)
+    if value is None and optional:
+        return np.empty(0)
+    if not isinstance(value, np.ndarray) or value.dtype.kind not in "iuf":
+        raise ValueError(f"{name} is not a numeric array ({type(value).__name__})")
+    if value.shape != shape:
+        raise ValueError(f"{name} has shape {value.shape}, not {shape}")
+    if not np.all(np.isfinite(value)):
+        raise ValueError(f"{name} holds a value that is not finite")
+    return value
 
 
 def _encode(value: Any) -> Any:
