@@ -646,3 +646,90 @@ def test_publishing_leaves_out_files_over_the_size_limit(tmp_path: Path) -> None
     assert left_out == [folder / "report.html"] and not (dest / "report.html").exists()
     written, left_out = publish_step(exp, step)  # the default limit (1 MiB) takes all three
     assert (dest / "report.html").exists() and left_out == []
+
+
+# -- files that are not plain short YAML, and settings that are not folders ------------------
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        (b"name: tiny\ndescription: caf\xe9\n", "not UTF-8 text (byte 0xe9"),
+        (b"name: tiny\nname: other\n", "key 'name' appears twice in one mapping"),
+        (b"name: tiny\nevolve: {units: 10, units: 20}\n", "key 'units' appears twice"),
+        (b"name: tiny\nout: {a: 1}\ntasks: [Pendulum-v1]\n", "out: a folder path (a string)"),
+        (b"name: tiny\npublish: 5\ntasks: [Pendulum-v1]\n", "publish: a folder path (a string)"),
+        (b"name: tiny\nstorage: [x]\ntasks: [Pendulum-v1]\n", "storage: a storage URL"),
+        (b"name: tiny\n" + b"#" * (1 << 20) + b"\n", "larger than 1 MiB"),
+    ],
+    ids=["latin-1", "duplicate", "nested-duplicate", "out", "publish", "storage", "huge"],
+)
+def test_a_file_that_is_not_short_plain_yaml_is_one_line(
+    tmp_path: Path, content: bytes, message: str
+) -> None:
+    path = tmp_path / "exp.yaml"
+    path.write_bytes(content)
+    with pytest.raises(ExperimentError) as info:
+        load_experiment(path)
+    assert message in str(info.value) and "\n" not in str(info.value)
+    assert str(path) in str(info.value)
+
+
+def test_a_device_is_not_read_to_its_end() -> None:
+    with pytest.raises(ExperimentError, match="/dev/zero: larger than 1 MiB"):
+        load_experiment("/dev/zero")
+
+
+def test_keys_a_merge_brings_in_may_be_overridden(tmp_path: Path) -> None:
+    text = "name: tiny\ntasks: [Pendulum-v1]\nevolve: &e {units: 10}\ntest: {<<: *e, units: 20}\n"
+    path = tmp_path / "exp.yaml"
+    path.write_text(text)
+    assert load_experiment(path).stages["test"] == {"units": 20}
+
+
+def _tiny_study(tmp_path: Path, ranking: dict | None = None) -> Path:
+    """TINY's study in its storage, as its evolve step creates it (nothing trained), with a
+    re-evaluation ranking recorded when given."""
+    from ermrl.cli._evolve import build_evolve_parser, config_from_args
+    from ermrl.search import create_or_resume_study
+
+    path = write(tmp_path, TINY)
+    (step,) = [s for s in experiment_plan(load_experiment(path), build_agents=False)
+               if s.stage == "evolve"]  # fmt: skip
+    args = build_evolve_parser().parse_args(step.argv)
+    config = config_from_args(args, build_agent=False)
+    (tmp_path / "runs" / "tiny").mkdir(parents=True)
+    study = create_or_resume_study(config, args.storage, args.study_name)
+    if ranking is not None:
+        study.set_user_attr("ermrl_reevaluation", ranking)
+    return path
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"evolve": {**TINY["evolve"], "popsize": 4}}, "evolve.popsize: 7 in the study, 4 now"),
+        ({"evolve": {**TINY["evolve"], "sampler_seed": 3}}, "evolve.sampler_seed: None in the"),
+        ({"reevaluate": {"top": 2, "seeds": 1}}, "reevaluate.top: 1 in the study, 2 now"),
+        ({"reevaluate": {"top": 1, "seeds": 1, "steps": 512}}, "reevaluate.steps: 256 in the"),
+        ({"reevaluate": {"top": 1, "seeds": 2}}, "reevaluate.seeds: 1 in the study, 2 now"),
+        ({"evolve": {**TINY["evolve"], "popsize": 7}}, None),  # the default, spelled out
+        ({"evolve": {**TINY["evolve"], "n_trials": 5}}, None),  # a larger budget resumes
+    ],
+    ids=["popsize", "sampler-seed", "top", "steps", "seeds", "same-popsize", "n-trials"],
+)
+def test_changing_the_search_or_a_finished_reevaluation_mid_study_is_refused(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, change: dict, message: str | None
+) -> None:
+    monkeypatch.chdir(tmp_path)  # the file's storage is runs/tiny/ermrl.db
+    ranking = {"complete": True, "top_k": 1, "training_steps": 256, "seeds": [1000],
+               "candidates": [], "best_trial": 0}  # fmt: skip
+    _tiny_study(tmp_path, ranking)
+    path = write(tmp_path, {**TINY, **change})
+    if message is None:
+        experiment_plan(load_experiment(path), build_agents=False)
+        return
+    with pytest.raises(ExperimentError) as info:
+        experiment_plan(load_experiment(path), build_agents=False)
+    text = str(info.value)
+    assert message in text and "\n" not in text and "change the file back" in text

@@ -88,6 +88,68 @@ class ExperimentError(ConfigError):
     """An experiment file that cannot run: one line, naming the file and the key."""
 
 
+#: The most bytes of an experiment file read (a device or a huge file is refused, not read).
+MAX_FILE_BYTES = 1 << 20
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, refusing a key written twice in one mapping (PyYAML keeps the
+    last silently). Keys brought in by a merge (``<<: *base``) may still be overridden."""
+
+
+def _construct_unique_mapping(loader: _UniqueKeyLoader, node: yaml.MappingNode) -> Any:
+    seen: set[Any] = set()
+    for key_node, _ in node.value:
+        if key_node.tag == "tag:yaml.org,2002:merge":
+            continue
+        key = loader.construct_object(key_node, deep=True)
+        try:
+            duplicate = key in seen
+        except TypeError:  # an unhashable key: PyYAML refuses it below
+            continue
+        if duplicate:
+            raise yaml.constructor.ConstructorError(
+                None, None, f"key {key!r} appears twice in one mapping", key_node.start_mark
+            )
+        seen.add(key)
+    return loader.construct_mapping(node)
+
+
+_UniqueKeyLoader.add_constructor(
+    yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG,
+    _construct_unique_mapping,
+)
+
+
+def _read_text(path: Path) -> str:
+    """The file's text, read as UTF-8 and at most :data:`MAX_FILE_BYTES` (one-line errors)."""
+    try:
+        with path.open("rb") as file:
+            data = file.read(MAX_FILE_BYTES + 1)
+    except OSError as err:
+        raise ExperimentError(f"{path}: cannot read ({err.strerror or err})") from None
+    if len(data) > MAX_FILE_BYTES:
+        raise ExperimentError(
+            f"{path}: larger than {MAX_FILE_BYTES // (1 << 20)} MiB; an experiment file is a "
+            "short YAML file"
+        )
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise ExperimentError(
+            f"{path}: not UTF-8 text (byte {err.object[err.start]:#04x} at offset {err.start})"
+        ) from None
+
+
+def _path_value(value: Any, key: str, path: Path) -> Path | None:
+    """A folder named by the file (``out``, ``publish``): a non-empty string, or ``None``."""
+    if value is None:
+        return None
+    if not isinstance(value, str) or not value.strip():
+        raise ExperimentError(f"{path}: {key}: a folder path (a string) is expected, got {value!r}")
+    return Path(value)
+
+
 # ---------------------------------------------------------------------------------------------
 # Loading
 
@@ -178,12 +240,9 @@ def load_experiment(path: str | Path, variant: str | None = None) -> Experiment:
             unknown variant.
     """
     path = Path(path)
+    text = _read_text(path)
     try:
-        text = path.read_text()
-    except OSError as err:
-        raise ExperimentError(f"{path}: cannot read ({err.strerror or err})") from None
-    try:
-        doc = yaml.safe_load(text)
+        doc = yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 (a safe loader)
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None)
         where = f" line {mark.line + 1}" if mark is not None else ""
@@ -213,10 +272,15 @@ def load_experiment(path: str | Path, variant: str | None = None) -> Experiment:
     name = base.get("name")
     if not isinstance(name, str) or not name.strip() or "/" in name:
         raise ExperimentError(f"{path}: name: a word is required (it names the results folder)")
-    out = Path(str(base.get("out") or Path("runs") / name))
+    out = _path_value(base.get("out"), "out", path) or Path("runs") / name
     if variant is not None and "out" not in _mapping(variants[variant], "variants"):
         out = out / variant
-    storage = str(base.get("storage") or f"sqlite:///{out / 'ermrl.db'}")
+    storage = base.get("storage")
+    if storage is not None and (not isinstance(storage, str) or not storage.strip()):
+        raise ExperimentError(
+            f"{path}: storage: a storage URL (a string) is expected, got {storage!r}"
+        )
+    storage = storage or f"sqlite:///{out / 'ermrl.db'}"
     # A variant (a CI-sized run, say) publishes only where it says so itself.
     publish = (
         base.get("publish")
@@ -249,7 +313,7 @@ def load_experiment(path: str | Path, variant: str | None = None) -> Experiment:
         variant=variant,
         out=out,
         storage=storage,
-        publish=None if publish is None else Path(str(publish)),
+        publish=_path_value(publish, "publish", path),
         tasks=tasks,
         stages=stages,
         document=base,
@@ -851,8 +915,10 @@ def _keep_study_backend(
 
 
 def _check_study(exp: Experiment, config: Any, study_name: str, where: str) -> None:
-    """Refuse a file whose evolution contradicts the study already in the storage."""
-    from ermrl.search import STUDY_CONFIG_ATTR, resume_conflicts
+    """Refuse a file whose evolution contradicts the study already in the storage: its problem
+    and search space, how the search proposes candidates (:data:`_SEARCH_MUST_MATCH`), and the
+    settings of a re-evaluation already recorded."""
+    from ermrl.search import REEVALUATION_ATTR, STUDY_CONFIG_ATTR, resume_conflicts
 
     with _study(exp.storage, study_name) as study:
         if study is None:
@@ -860,14 +926,66 @@ def _check_study(exp: Experiment, config: Any, study_name: str, where: str) -> N
         stored = study.user_attrs.get(STUDY_CONFIG_ATTR)
         if stored is None:
             return
-        diffs = resume_conflicts(config, stored)
-        if diffs:
-            raise ExperimentError(
-                f"{where}: study {study_name!r} in {exp.storage} was evolved with other settings ("
-                + "; ".join(diffs[:3])
-                + (" ..." if len(diffs) > 3 else "")
-                + "); change the file back, or set another out/storage"
-            )
+        diffs = resume_conflicts(config, stored) or _search_conflicts(config, stored)
+        what = "evolved"
+        ranking = study.user_attrs.get(REEVALUATION_ATTR)
+        if not diffs and isinstance(ranking, Mapping):
+            diffs, what = _reevaluation_conflicts(config, ranking), "re-evaluated"
+    if diffs:
+        raise ExperimentError(
+            f"{where}: study {study_name!r} in {exp.storage} was {what} with other settings ("
+            + "; ".join(diffs[:3])
+            + (" ..." if len(diffs) > 3 else "")
+            + "); change the file back, or set another out/storage"
+        )
+
+
+# How the search proposes candidates: changed mid-study, a CMA-ES generation would mix two
+# population sizes, or the sampler would continue another sequence than the study's.
+_SEARCH_MUST_MATCH = ("sampler", "sampler_seed", "restart", "popsize", "start")
+
+
+def _search_conflicts(config: Any, stored: Mapping[str, Any]) -> list[str]:
+    """Differences in :data:`_SEARCH_MUST_MATCH` between the file and the stored study (an
+    unset popsize is the default one, which is the same for both: the spaces match)."""
+    from ermrl.config import to_dict
+    from ermrl.search._evolve import default_popsize
+
+    now = to_dict(config)["search"]
+    old = stored.get("search")
+    if not isinstance(old, Mapping):
+        return []
+    default = default_popsize(config)
+    diffs = []
+    for key in _SEARCH_MUST_MATCH:
+        if key not in old:  # a study from before ermrl stored it
+            continue
+        new_value, old_value = now.get(key), old.get(key)
+        if key == "popsize":
+            new_value = default if new_value is None else new_value
+            old_value = default if old_value is None else old_value
+        if new_value != old_value:
+            diffs.append(f"evolve.{key}: {old_value!r} in the study, {new_value!r} now")
+    return diffs
+
+
+def _reevaluation_conflicts(config: Any, ranking: Mapping[str, Any]) -> list[str]:
+    """Differences between the file's ``reevaluate`` settings and the recorded re-evaluation
+    (its ranking would be reported done while the resolved file claims other settings)."""
+    search = config.search
+    steps = search.reevaluate_steps or config.problem.budget.training_steps
+    recorded = {
+        "top": (ranking.get("top_k"), search.reevaluate_top),
+        "steps": (ranking.get("training_steps"), steps),
+        "seeds": (len(ranking.get("seeds") or []) or None, search.reevaluate_seeds),
+    }
+    if search.reevaluate_top == 0:  # no re-evaluation in the file: only its top differs
+        recorded = {"top": recorded["top"]}
+    return [
+        f"reevaluate.{key}: {old!r} in the study, {new!r} now"
+        for key, (old, new) in recorded.items()
+        if old is not None and old != new
+    ]
 
 
 def _evolve_status(

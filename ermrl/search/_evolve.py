@@ -71,6 +71,7 @@ __all__ = [
     "EvolutionSummary",
     "PopulationWarning",
     "cma_popsize",
+    "default_popsize",
     "generation_size",
     "run_evolution",
 ]
@@ -110,10 +111,10 @@ def cma_popsize(config: EvolveConfig) -> int | None:
         return None
     if config.search.popsize is not None:
         return config.search.popsize
-    return _default_popsize(config)
+    return default_popsize(config)
 
 
-def _default_popsize(config: EvolveConfig) -> int:
+def default_popsize(config: EvolveConfig) -> int:
     """CMA-ES's default population size, 4 + 3 ln(dimension)."""
     return 4 + math.floor(3 * math.log(len(config.space.param_names)))
 
@@ -123,7 +124,7 @@ def generation_size(config: EvolveConfig) -> int:
     same default formula, or ``--popsize``, for the other samplers)."""
     if config.search.popsize is not None:
         return config.search.popsize
-    return _default_popsize(config)
+    return default_popsize(config)
 
 
 def _popsize_message(popsize: int, workers: int, what: str) -> str:
