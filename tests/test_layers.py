@@ -67,6 +67,7 @@ PACKAGE_DIR = Path(__file__).resolve().parents[1] / PACKAGE
 LAYERS: tuple[tuple[str, ...], ...] = (
     (
         "ermrl",
+        "ermrl._code",
         "ermrl._config_base",
         "ermrl._interrupt",
         "ermrl._io",

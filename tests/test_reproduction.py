@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -15,10 +16,10 @@ import yaml
 from ermrl.analysis import (
     Hypothesis,
     TaskFiles,
+    VerdictRule,
     bootstrap_mean_diff_ci,
     compare_agents,
     paired_bootstrap_mean_diff_ci,
-    verdict,
     write_reproduction_page,
 )
 
@@ -34,64 +35,6 @@ def runs(values: dict[str, list[float]]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-@pytest.mark.parametrize(
-    ("res", "word"),
-    [
-        ([120.0, 125.0, 130.0, 128.0, 122.0], "reproduced"),
-        ([90.0, 140.0, 60.0, 150.0, 85.0], "partly"),
-        ([80.0, 85.0, 90.0, 95.0, 70.0], "not reproduced"),
-    ],
-)
-def test_the_verdict_follows_the_ci_of_res_ppo_minus_ppo(res: list[float], word: str) -> None:
-    data = runs({"res-ppo": res, "ppo": [100.0, 101.0, 99.0, 102.0, 98.0], "random-res-ppo": res})
-    got, why = verdict(compare_agents(data, "res-ppo", ["ppo", "random-res-ppo"]))
-    assert got == word, why
-    assert "res-ppo − random-res-ppo = +0" in why and "inside the noise" in why
-
-
-def test_reproduced_needs_welchs_interval_above_zero_too() -> None:
-    """Two seeds whose percentile bootstrap lies above 0 are not enough to call it reproduced."""
-    data = runs({"res-ppo": [110.0, 104.0], "ppo": [100.0, 101.0]})
-    comparison = compare_agents(data, "res-ppo", ["ppo"])
-    row = comparison.iloc[0]
-    assert row["boot_ci_low"] > 0 > row["welch_ci_low"]
-    word, why = verdict(comparison)
-    assert word == "partly", why
-    assert "Welch CI" in why and "unreliable" in why
-
-
-def test_the_other_agents_tested_are_compared_too(tmp_path: Path) -> None:
-    """H1 also asks about learned memory: res-ppo against every agent the test phase trained,
-    the paper's baselines first; the verdict still rests on res-ppo − ppo alone."""
-    from ermrl.analysis import task_result
-
-    values = {
-        "ppo": [100.0, 95.0, 105.0, 98.0, 102.0],
-        "random-res-ppo": [110.0, 100.0, 120.0, 105.0, 115.0],
-        "res-ppo": [125.0, 122.0, 130.0, 121.0, 127.0],
-        "framestack-ppo": [150.0, 151.0, 149.0, 152.0, 148.0],
-        "lstm-ppo": [90.0, 160.0, 100.0, 150.0, 120.0],
-        "ppo-full": [200.0, 201.0, 199.0, 202.0, 198.0],
-    }
-    _publish(tmp_path / "CartPole-v1", values)
-    result = task_result(tmp_path / "CartPole-v1", "CartPole-v1", 100, tmp_path / "none")
-    assert list(result.comparison["baseline"]) == [
-        "ppo", "random-res-ppo", "ppo-full", "lstm-ppo", "framestack-ppo",
-    ]  # fmt: skip
-    word, why = verdict(result.comparison)
-    assert word == "reproduced", why
-    assert "res-ppo − framestack-ppo = -25, " in why
-    assert "framestack-ppo = -25, 95% bootstrap CI" in why
-    clauses = dict(c.split(" = ", 1) for c in why.split("; ")[1:])
-    assert clauses["res-ppo − framestack-ppo"].endswith("behind (both CIs below 0)")
-    assert clauses["res-ppo − lstm-ppo"].endswith("inside the noise (a CI spans 0)")
-    assert clauses["res-ppo − ppo-full"].endswith("behind (both CIs below 0)")
-
-
-def test_no_runs_is_not_a_verdict() -> None:
-    assert verdict(pd.DataFrame())[0] == "not run"
-
-
 def test_paired_ci_resamples_seed_differences() -> None:
     a = np.array([10.0, 20.0, 30.0, 40.0])
     b = a - 1.0  # every seed exactly 1 better: the paired CI is a point, the independent one wide
@@ -105,46 +48,263 @@ def test_paired_ci_resamples_seed_differences() -> None:
     assert row["n_paired"] == 4 and row["paired_ci_low"] == row["paired_ci_high"] == 1.0
 
 
-def _publish(folder: Path, values: dict[str, list[float]]) -> None:
+def _publish(
+    folder: Path,
+    values: dict[str, list[float]],
+    *,
+    trial: int = 7,
+    selection: str = "re-evaluated best of 4 candidates",
+    reevaluated: int | None = 7,
+    finished: str | None = None,
+    reference: bool = False,
+    last100: bool = True,
+) -> Path:
+    """Publish a task's test phase as per-seed files, and its study snapshot; return it."""
     for agent, vs in values.items():
         for i, v in enumerate(vs):
             run = folder / "test" / "agents" / agent / f"seed_{10 + i}"
             run.mkdir(parents=True)
             record = {"agent": agent, "seed": 10 + i, "final_return": v, "env_steps": 1_000_000,
-                      "wall_seconds": 1800.0}  # fmt: skip
+                      "wall_seconds": 1800.0, "eval_return": v + 1.0}  # fmt: skip
+            if last100:
+                record["last100_return"] = v - 1.0
+            if finished:
+                record["finished"] = finished
             (run / "result.json").write_text(json.dumps(record))
-    config = {"trial": 7, "selection": "re-evaluated best of 4 candidates",
-              "agents": {"res-ppo": [{"units": 100, "sr": 0.5, "lr": 0.2, "input_scaling": 1.0}]}}  # fmt: skip
+            (run / "episodes.csv").write_text(
+                "env_step,episode_return\n" + "".join(f"{k},{v}\n" for k in range(1, 4))
+            )
+    evolved = [{"units": 100, "sr": 0.5, "lr": 0.2, "input_scaling": 1.0}]
+    unevolved = [{"units": 100, "sr": 1.0, "lr": 1.0, "input_scaling": 1.0}]
+    config = {"trial": trial, "selection": selection,
+              "agents": {"res-ppo": unevolved if reference else evolved,
+                         "random-res-ppo": unevolved}}  # fmt: skip
     (folder / "test" / "config.yaml").write_text(yaml.safe_dump(config))
+    attrs = {}
+    if reevaluated is not None:
+        attrs["ermrl_reevaluation"] = {
+            "complete": True, "best_trial": reevaluated, "seeds": [1000, 1001],
+            "candidates": [{"trial": reevaluated, "fitness": 1.5}],
+        }  # fmt: skip
+    snapshot = folder / "study.json"
+    trials = [{"number": trial, "state": "COMPLETE", "value": 1.0,
+               "user_attrs": {"env_steps": 900_000, "wall_seconds": 60.0}}]  # fmt: skip
+    snapshot.write_text(json.dumps({"trials": trials, "user_attrs": attrs, "related": {}}))
+    return snapshot
 
 
-def test_the_page_is_recomputed_from_the_published_per_seed_files(tmp_path: Path) -> None:
-    values = {
-        "ppo": [100.0, 95.0, 105.0, 98.0, 102.0],
-        "random-res-ppo": [110.0, 100.0, 120.0, 105.0, 115.0],
-        "res-ppo": [125.0, 122.0, 130.0, 121.0, 127.0],
-    }
-    _publish(tmp_path / "pub" / "Swimmer-v5", values)
-    snapshot = tmp_path / "pub" / "Swimmer-v5" / "study.json"
-    trials = [{"state": "COMPLETE", "user_attrs": {"env_steps": 900_000, "wall_seconds": 60.0}}]
-    snapshot.write_text(json.dumps({"trials": trials * 40 + [{"state": "WAITING"}], "related": {}}))
-    pending = TaskFiles("Ant-v5", "Ant-v5", tmp_path / "pub" / "Ant-v5", tmp_path / "none", 60)
-    hyp = Hypothesis(
-        "h2", "h2.yaml", '"a claim"', "what it asks",
-        (TaskFiles("Swimmer-v5", "Swimmer-v5", tmp_path / "pub" / "Swimmer-v5", snapshot, 100),
-         pending),
+RULE = {
+    "adopted": "2026-11-28",
+    "alpha": 0.05,
+    "correction": "holm",
+    "primary": "last10",
+    "resamples": 2000,
+    "questions": {
+        "reservoir-vs-ppo": {"text": "does res-ppo beat ppo?", "compare": ["res-ppo - ppo"]},
+        "evolved-vs-unevolved": {"text": "does evolution help?",
+                                 "compare": ["res-ppo - random-res-ppo"]},
+    },
+}  # fmt: skip
+
+PPO = [100.0, 95.0, 105.0, 98.0, 102.0, 101.0, 99.0, 97.0]
+CLEARLY_ABOVE = [150.0, 147.0, 153.0, 149.0, 151.0, 152.0, 148.0, 150.0]
+CLEARLY_BELOW = [50.0, 47.0, 53.0, 49.0, 51.0, 52.0, 48.0, 50.0]
+OVERLAPPING = [90.0, 115.0, 85.0, 120.0, 95.0, 110.0, 100.0, 108.0]
+
+
+def _hypothesis(tmp_path: Path, tasks: dict[str, dict[str, list[float]]], rule: dict | None = RULE,
+                **publish: object) -> Hypothesis:  # fmt: skip
+    files = []
+    for label, values in tasks.items():
+        snapshot = _publish(tmp_path / "pub" / label, values, **publish)  # type: ignore[arg-type]
+        files.append(TaskFiles(label, label, tmp_path / "pub" / label, snapshot, 100))
+    return Hypothesis(
+        "h", "h.yaml", '"a claim"', "what it asks", tuple(files),
+        None if rule is None else VerdictRule.from_doc(rule),
     )  # fmt: skip
+
+
+def _tests_of(md: Path) -> dict[tuple[str, str, str], list[str]]:
+    """The page's test rows: (task, comparison, metric) -> cells."""
+    rows: dict[tuple[str, str, str], list[str]] = {}
+    task = ""
+    for line in md.read_text().splitlines():
+        if line.startswith("### "):
+            task = line[4:].split(" ")[0]
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        if len(cells) == 15 and cells[1].startswith("res-ppo −"):
+            rows[(task, cells[1], cells[2])] = cells
+    return rows
+
+
+def test_each_label_follows_the_rule_on_crafted_per_seed_files(tmp_path: Path) -> None:
+    """Supported, contradicted and inconclusive, recomputed here: Holm over the 3 tasks of the
+    family, Welch's p from scipy, both intervals at the adjusted level."""
+    from scipy import stats
+
+    tasks = {
+        "Up-v0": {"ppo": PPO, "res-ppo": CLEARLY_ABOVE, "random-res-ppo": PPO},
+        "Down-v0": {"ppo": PPO, "res-ppo": CLEARLY_BELOW, "random-res-ppo": PPO},
+        "Noise-v0": {"ppo": PPO, "res-ppo": OVERLAPPING, "random-res-ppo": PPO},
+    }
+    hyp = _hypothesis(tmp_path, tasks)
     md, html = write_reproduction_page([hyp], tmp_path / "docs" / "reproduction.md")
+    rows = _tests_of(md)
+    outcome = {task: rows[(task, "res-ppo − ppo", "last10")][12] for task in tasks}
+    assert outcome == {"Up-v0": "**supported**", "Down-v0": "**contradicted**",
+                       "Noise-v0": "**inconclusive**"}  # fmt: skip
+    raw = {
+        t: stats.ttest_ind(v["res-ppo"], v["ppo"], equal_var=False).pvalue for t, v in tasks.items()
+    }
+    order = sorted(raw, key=raw.__getitem__)
+    adjusted, running = {}, 0.0
+    for rank, task in enumerate(order):
+        running = max(running, min(1.0, (3 - rank) * raw[task]))
+        adjusted[task] = running
+    for task in tasks:
+        cells = rows[(task, "res-ppo − ppo", "last10")]
+        assert cells[7] == f"{raw[task]:.4g}" or float(cells[7]) == pytest.approx(
+            raw[task], rel=1e-3
+        )
+        assert cells[8].endswith("(3)")
+        assert float(cells[8].split(" ")[0]) == pytest.approx(adjusted[task], rel=1e-3)
+    noise = rows[("Noise-v0", "res-ppo − ppo", "last10")]
+    assert noise[13].startswith("effects above +") and "are excluded at 95%" in noise[13]
+    assert noise[14].isdigit() and int(noise[14]) > 8  # more seeds than it has would be needed
+    # The other metrics are judged too: last100 (here final_return - 1) keeps the labels.
+    assert rows[("Up-v0", "res-ppo − ppo", "last100")][12] == "**supported**"
     text = md.read_text()
-    low, high = bootstrap_mean_diff_ci(values["res-ppo"], values["ppo"])
-    diff = np.mean(values["res-ppo"]) - np.mean(values["ppo"])
-    assert f"res-ppo − ppo = {diff:+.4g}, 95% bootstrap CI [{low:+.4g}, {high:+.4g}]" in text
-    assert "**Verdict: reproduced.**" in text and "**Verdict: not run yet.**" in text
-    assert "reproduced (on 1 of 2 tasks; pending: Ant-v5)" in text
-    assert "40/100 trials finished" in text and "36M env steps" in text
-    assert "trial #7 (re-evaluated best of 4 candidates)" in text and "sr 0.5" in text
-    assert '"a claim"' in text
+    assert "Up-v0: **supported**; Down-v0: **contradicted**; Noise-v0: **inconclusive**" in text
+    assert "1 supported, 1 contradicted, 1 inconclusive" in text
     assert html is not None and "<table>" in html.read_text()
+
+
+def test_holm_adjusts_and_stops_where_a_test_is_kept() -> None:
+    from ermrl.analysis import holm
+
+    adjusted, levels = holm([0.001, 0.2, 0.01, 0.03], 0.05)
+    assert adjusted == pytest.approx([0.004, 0.2, 0.03, 0.06])
+    # Ranks 1-2 rejected at 0.05/4, 0.05/3; rank 3 (p 0.03 > 0.05/2) stops: it and rank 4 are
+    # judged at 0.025.
+    assert levels == pytest.approx([0.0125, 0.025, 0.05 / 3, 0.025])
+
+
+@pytest.mark.parametrize(("d", "seeds"), [(1.0, 17), (0.5, 64), (0.8, 26)])
+def test_seeds_for_power_match_the_t_test_tables(d: float, seeds: int) -> None:
+    from ermrl.analysis import seeds_for_power
+
+    assert seeds_for_power(d * 10.0, 10.0, 10.0, 0.05, 0.8) == seeds
+    assert seeds_for_power(0.0, 1.0, 1.0, 0.05) is None
+
+
+def test_probability_of_improvement_is_rliables() -> None:
+    from ermrl.analysis import probability_of_improvement
+
+    poi, low, high = probability_of_improvement(
+        {"a": ([1.0, 2.0, 3.0], [0.0, 0.0, 0.0]), "b": ([1.0, 1.0], [1.0, 2.0])},
+        n_resamples=2000,
+    )
+    # Task a: every pair won (1); task b: ties count one half, losses 0 -> (0.5 + 0 + 0.5 + 0) / 4.
+    assert poi == pytest.approx((1.0 + 0.25) / 2)
+    assert low <= poi <= high and 0.5 <= low and high <= 0.75
+
+
+def test_an_untraceable_selection_is_refused_naming_what_is_missing(tmp_path: Path) -> None:
+    from ermrl.analysis import untraceable_tasks
+
+    good = _hypothesis(tmp_path / "a", {"Up-v0": {"ppo": PPO, "res-ppo": CLEARLY_ABOVE}})
+    lost = _hypothesis(tmp_path / "b", {"Lost-v0": {"ppo": PPO, "res-ppo": CLEARLY_ABOVE}},
+                       reevaluated=None)  # fmt: skip
+    other = _hypothesis(tmp_path / "c", {"Other-v0": {"ppo": PPO, "res-ppo": CLEARLY_ABOVE}},
+                        reevaluated=3)  # fmt: skip
+    md, _ = write_reproduction_page(
+        [good, Hypothesis("h2", "h2.yaml", None, None, lost.tasks + other.tasks, lost.rule)],
+        tmp_path / "r.md",
+    )
+    text = md.read_text()
+    assert "### Lost-v0" in text and "**Not rendered: the tested trial cannot be traced" in text
+    assert "holds no re-evaluation record" in text
+    assert "ranks trial #3 best" in text
+    rows = _tests_of(md)
+    assert ("Up-v0", "res-ppo − ppo", "last10") in rows
+    assert not any(key[0] in ("Lost-v0", "Other-v0") for key in rows)
+    refused = untraceable_tasks([good, lost])
+    assert len(refused) == 1 and refused[0].startswith("h Lost-v0: tested trial #7")
+    # A trial named by hand is traced to that choice; the best evolution fitness to the study.
+    hand = _hypothesis(tmp_path / "d", {"Hand-v0": {"ppo": PPO, "res-ppo": CLEARLY_ABOVE}},
+                       selection="trial 7 (--trial)", reevaluated=None)  # fmt: skip
+    best = _hypothesis(tmp_path / "e", {"Best-v0": {"ppo": PPO, "res-ppo": CLEARLY_ABOVE}},
+                       selection="best evolution fitness (no re-evaluation)", reevaluated=None)  # fmt: skip
+    assert untraceable_tasks([hand, best]) == []
+
+
+def test_a_selected_reference_is_not_tested_against_itself(tmp_path: Path) -> None:
+    """When the selection chose the unevolved reference, res-ppo and random-res-ppo are the same
+    runs: no test, outside the family (m counts only the tests made)."""
+    same = OVERLAPPING
+    hyp = _hypothesis(tmp_path, {"Ref-v0": {"ppo": PPO, "res-ppo": same, "random-res-ppo": same}},
+                      reference=True)  # fmt: skip
+    md, _ = write_reproduction_page([hyp], tmp_path / "r.md")
+    row = _tests_of(md)[("Ref-v0", "res-ppo − random-res-ppo", "last10")]
+    assert row[12] == "**inconclusive**" and row[4] == "–"
+    assert "selection chose the unevolved reference itself" in row[13]
+    assert _tests_of(md)[("Ref-v0", "res-ppo − ppo", "last10")][8].endswith("(1)")
+
+
+def test_families_pool_across_files_and_must_agree(tmp_path: Path) -> None:
+    from ermrl.analysis import VerdictError
+
+    one = _hypothesis(tmp_path / "a", {"A-v0": {"ppo": PPO, "res-ppo": CLEARLY_ABOVE}})
+    two = _hypothesis(tmp_path / "b", {"B-v0": {"ppo": PPO, "res-ppo": OVERLAPPING}})
+    two = Hypothesis("h2", "h2.yaml", None, None, two.tasks, two.rule)
+    md, _ = write_reproduction_page([one, two], tmp_path / "r.md")
+    assert _tests_of(md)[("A-v0", "res-ppo − ppo", "last10")][8].endswith("(2)")
+    strict = VerdictRule.from_doc({**RULE, "alpha": 0.01})
+    with pytest.raises(VerdictError, match="differ in alpha or correction"):
+        write_reproduction_page(
+            [one, Hypothesis("h2", "h2.yaml", None, None, two.tasks, strict)], tmp_path / "x.md"
+        )
+
+
+def test_a_rule_written_after_the_first_result_is_flagged(tmp_path: Path) -> None:
+    tasks = {"Up-v0": {"ppo": PPO, "res-ppo": CLEARLY_ABOVE}}
+    early = _hypothesis(tmp_path / "a", tasks, finished="2026-11-20T10:00:00+00:00")
+    text = write_reproduction_page([early], tmp_path / "a.md")[0].read_text()
+    assert "**Flag: the rule was written after results existed.**" in text
+    assert "Rule adopted 2026-11-28; first test result 2026-11-20" in text
+    later = _hypothesis(tmp_path / "b", tasks, finished="2026-12-01T10:00:00+00:00")
+    text = write_reproduction_page([later], tmp_path / "b.md")[0].read_text()
+    assert "Flag" not in text and "first test result 2026-12-01" in text
+
+
+def test_last100_is_read_from_the_episodes_of_runs_that_predate_it(tmp_path: Path) -> None:
+    from ermrl.analysis import load_test_runs
+
+    folder = tmp_path / "T-v0"
+    _publish(folder, {"ppo": [1.0, 2.0]}, last100=False)
+    episodes = "env_step,episode_return\n" + "".join(f"{k},{k}\n" for k in range(1, 151))
+    (folder / "test/agents/ppo/seed_10/episodes.csv").write_text(episodes)
+    runs = load_test_runs(folder / "test").set_index("seed")
+    assert runs.loc[10, "last100_return"] == pytest.approx(np.mean(np.arange(51, 151)))
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"alpha": 1.5}, "alpha: a number in (0, 1)"),
+        ({"correction": "bonferroni"}, "correction: one of holm, none"),
+        ({"primary": "median"}, "primary: one of last10, last100, eval"),
+        ({"adopted": "yesterday"}, "adopted: a date"),
+        ({"questions": {}}, "questions: name at least one question"),
+        ({"questions": {"q": {"compare": ["res-ppo vs ppo"]}}}, "is not 'CANDIDATE - BASELINE'"),
+        ({"alpah": 0.05}, "unknown key 'alpah'"),
+    ],
+)
+def test_a_bad_verdict_block_is_one_line(change: dict, message: str) -> None:
+    from ermrl.analysis import VerdictError
+
+    with pytest.raises(VerdictError, match=re.escape(message)):
+        VerdictRule.from_doc({**RULE, **change})
 
 
 def test_the_command_reads_the_paper_files(tmp_path: Path) -> None:
@@ -158,20 +318,5 @@ def test_the_command_reads_the_paper_files(tmp_path: Path) -> None:
     text = (tmp_path / "r.md").read_text()
     for name in ("paper-h1", "paper-h2", "paper-h3"):
         assert name in text
+    assert "**Rule** (`verdict:` block of" in text
     assert (tmp_path / "r.html").exists()
-
-
-def test_a_selected_reference_makes_the_evolution_clause_say_so() -> None:
-    """When the selection chose the unevolved reference, res-ppo and random-res-ppo are the
-    same runs: the page says the difference is 0 by construction, not 'inside the noise' with
-    unpaired CIs of [-420, +416] around two copies of one sample (H1 Pendulum)."""
-    same = [-1136.0, -150.0, -600.0, -300.0, -364.0]
-    data = runs({"res-ppo": same, "random-res-ppo": same, "ppo": [-1100.0, -1150.0, -1200.0,
-                                                                   -1120.0, -1140.0]})  # fmt: skip
-    comparison = compare_agents(data, "res-ppo", ["ppo", "random-res-ppo"])
-    _, plain = verdict(comparison)
-    assert "inside the noise" in plain
-    word, why = verdict(comparison, reference_selected=True)
-    assert word == "reproduced"
-    assert "0 by construction" in why and "unevolved reference itself" in why
-    assert "res-ppo − random-res-ppo = +0" not in why

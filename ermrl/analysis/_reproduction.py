@@ -1,23 +1,21 @@
-"""The reproduction page: each hypothesis of an experiment file, its published results, a verdict.
+"""The reproduction page: each hypothesis of an experiment file, its published results, verdicts.
 
 It reads only plain files: the experiment files (``experiments/paper/*.yaml``) and what
-``ermrl run`` published for them (per-seed ``result.json`` files, the report's figures, the
-study snapshot). Every number on the page can be recomputed from those files.
+``ermrl run`` published for them (per-seed ``result.json`` and ``episodes.csv`` files, the
+report's figures, the study snapshot). Every number on the page can be recomputed from those
+files.
 
-Verdicts, per task, on the paper's claim that the evolved reservoir (``res-ppo``) helps PPO:
+The verdicts follow the rule each experiment file states in its ``verdict:`` block
+(:class:`~ermrl.analysis.VerdictRule`; the rule is printed on the page): per task and
+sub-question, *supported*, *contradicted* or *inconclusive* after Holm's correction over every
+test of that question on the page, under each metric (the mean of the last 10 training
+episodes, of the last 100 as the paper plots, and of deterministic evaluation episodes), with
+the effect, both intervals, raw and adjusted p, the effects an inconclusive test still excludes,
+and the seeds that would detect the observed effect. See :mod:`ermrl.analysis._verdicts`.
 
-- *reproduced*: the 95% CIs of ``res-ppo − ppo`` both lie above 0, the percentile bootstrap
-  and Welch's t interval (the bootstrap alone is too narrow on a handful of seeds);
-- *partly*: ``res-ppo`` is ahead of ``ppo`` but a CI spans 0;
-- *not reproduced*: ``res-ppo`` is not ahead of ``ppo``.
-
-The rule was fixed before the paper-scale test phases ran, and it is not tuned per task.
-
-What evolution itself adds (``res-ppo − random-res-ppo``) is reported beside it in words of its
-own, and so is where ``res-ppo`` stands against every other agent the test phase trained
-(learned memory such as ``lstm-ppo`` and ``framestack-ppo``, or ``ppo-full``, the ceiling): ahead
-or behind when both CIs agree, inside the noise otherwise. A hypothesis is *reproduced* when all its tasks are, *not reproduced* when none is, and
-*partly* otherwise; tasks not yet run are named as such and left out of the verdict.
+A task is rendered only when the trial its test phase tested can be traced to a recorded
+selection in the study snapshot (the re-evaluation record, the evolution's best trial, or a
+trial named by hand): an untraceable one is refused, naming what is missing.
 """
 
 from __future__ import annotations
@@ -33,18 +31,31 @@ import pandas as pd
 import yaml
 
 from ermrl.analysis._stats import FEW_SEEDS
+from ermrl.analysis._verdicts import (
+    METRICS,
+    Question,
+    TaskRuns,
+    VerdictRule,
+    aggregate_question,
+    combine_outcomes,
+    excluded_effects,
+    first_result_date,
+    judge,
+)
 
 __all__ = [
     "Hypothesis",
     "TaskFiles",
     "TaskResult",
+    "load_test_runs",
     "task_result",
-    "verdict",
+    "trace_selection",
+    "untraceable_tasks",
     "write_reproduction_page",
 ]
 
 EVOLVED = "res-ppo"
-BASELINES = ("ppo", "random-res-ppo")
+UNEVOLVED = "random-res-ppo"
 
 
 @dataclass
@@ -54,113 +65,67 @@ class TaskResult:
     Attributes:
         label: The task (test task for a generalization experiment).
         folder: Its published folder.
-        runs: One row per finished test run (``result.json``).
-        comparison: :func:`~ermrl.analysis.compare_agents` of ``res-ppo`` against the baselines
-            (``ppo``, ``random-res-ppo``), then every other agent tested.
+        runs: One row per finished test run (``result.json``, with ``last100_return`` read
+            from ``episodes.csv`` for runs that predate it).
         evolution: ``finished``, ``n_trials``, ``env_steps``, ``wall_seconds`` of the study.
         selection: The selected reservoir(s) and how they were chosen.
+        traced: Whether the tested trial is traced to a recorded selection.
+        trace: What the trace found, in words (what is missing when it failed).
     """
 
     label: str
     folder: Path
     runs: pd.DataFrame
-    comparison: pd.DataFrame
     evolution: dict[str, Any] = field(default_factory=dict)
     selection: dict[str, Any] = field(default_factory=dict)
+    traced: bool = True
+    trace: str = ""
 
     @property
     def tested(self) -> bool:
         return not self.runs.empty and EVOLVED in set(self.runs["agent"])
 
-
-def _row(comparison: pd.DataFrame, baseline: str) -> dict[str, Any] | None:
-    if comparison.empty:
-        return None
-    rows = comparison[comparison["baseline"] == baseline]
-    return None if rows.empty else rows.iloc[0].to_dict()
+    @property
+    def reference_selected(self) -> bool:
+        return bool(self.selection.get("reference"))
 
 
-def verdict(comparison: pd.DataFrame, reference_selected: bool = False) -> tuple[str, str]:
-    """The verdict on ``res-ppo > ppo`` and what evolution adds, each as ``(word, reason)``.
+def load_test_runs(test_folder: str | Path) -> pd.DataFrame:
+    """A test phase's finished runs with every verdict metric (:data:`METRICS`).
 
-    ``reference_selected``: the selection chose the unevolved reference itself, so ``res-ppo``
-    and ``random-res-ppo`` are the same runs and their difference is 0 by construction (its
-    unpaired CIs, which resample the two copies independently, say nothing then).
-
-    Returns:
-        ``(verdict, reason)`` where verdict is ``reproduced``, ``partly`` or ``not reproduced``.
+    ``last100_return`` is read from each run's ``result.json``, or computed from its
+    ``episodes.csv`` for runs written before it was recorded (the same definition: the mean of
+    the last 100 training episodes).
     """
-    vs_ppo = _row(comparison, "ppo")
-    if vs_ppo is None:
-        return "not run", "no finished res-ppo and ppo runs"
-    diff = vs_ppo["mean_diff"]
-    lows = [vs_ppo["boot_ci_low"], vs_ppo.get("welch_ci_low", math.nan)]
-    ci = f"res-ppo − ppo = {diff:+.4g}, {_intervals(vs_ppo)}"
-    if all(math.isfinite(low) and low > 0 for low in lows):
-        word, why = "reproduced", f"{ci}: both lie above 0"
-    elif diff > 0:
-        word, why = "partly", f"{ci}: ahead, but not both CIs lie above 0"
-    else:
-        word, why = "not reproduced", f"{ci}: res-ppo is not ahead of PPO"
-    if vs_ppo.get("few_seeds"):
-        why += f" (fewer than {FEW_SEEDS} seeds per agent: the CIs are unreliable)"
-    vs_random = _row(comparison, "random-res-ppo")
-    if vs_random is not None and reference_selected:
-        why += (
-            "; res-ppo − random-res-ppo = 0 by construction: the selection chose the unevolved "
-            "reference itself (the same runs), so evolution added nothing measurable here"
+    from ermrl.analysis._results import (
+        EPISODES_FILE,
+        RUNS_DIR,
+        load_run_results,
+        read_episodes,
+    )
+
+    runs = load_run_results(test_folder)
+    if runs.empty:
+        return runs
+    for column in ("last100_return", "eval_return"):
+        if column not in runs:
+            runs[column] = math.nan
+    missing = runs["last100_return"].isna()
+    for i in runs.index[missing]:
+        agent, seed = runs.at[i, "agent"], int(runs.at[i, "seed"])
+        episodes = read_episodes(
+            Path(test_folder) / RUNS_DIR / agent / f"seed_{seed}" / EPISODES_FILE
         )
-    elif vs_random is not None:
-        r_lows = [vs_random["boot_ci_low"], vs_random.get("welch_ci_low", math.nan)]
-        r_highs = [vs_random["boot_ci_high"], vs_random.get("welch_ci_high", math.nan)]
-        if all(math.isfinite(v) and v > 0 for v in r_lows):
-            add = "evolution beats the unevolved reservoir (both CIs above 0)"
-        elif all(math.isfinite(v) and v < 0 for v in r_highs):
-            add = "the unevolved reservoir beats the evolved one (both CIs below 0)"
-        else:
-            add = "evolved against unevolved is inside the noise (a CI spans 0)"
-        why += (
-            f"; res-ppo − random-res-ppo = {vs_random['mean_diff']:+.4g}, "
-            f"{_intervals(vs_random)}: {add}"
-        )
-    others = [] if comparison.empty else [
-        b for b in comparison["baseline"] if b not in BASELINES
-    ]  # fmt: skip
-    for baseline in others:
-        row = _row(comparison, baseline)
-        assert row is not None
-        why += (
-            f"; res-ppo − {baseline} = {row['mean_diff']:+.4g}, {_intervals(row)}: {_standing(row)}"
-        )
-    return word, why
+        values = pd.to_numeric(episodes["episode_return"], errors="coerce").dropna()
+        runs.at[i, "last100_return"] = float(values.tail(100).mean()) if len(values) else math.nan
+    runs["last100_return"] = runs["last100_return"].astype(float)
+    runs["eval_return"] = pd.to_numeric(runs["eval_return"], errors="coerce")
+    return runs
 
 
-def _standing(row: dict[str, Any]) -> str:
-    """Where the candidate stands against one baseline: both CIs above 0, below 0, or neither."""
-    lows = [row["boot_ci_low"], row.get("welch_ci_low", math.nan)]
-    highs = [row["boot_ci_high"], row.get("welch_ci_high", math.nan)]
-    if all(math.isfinite(v) and v > 0 for v in lows):
-        return "ahead (both CIs above 0)"
-    if all(math.isfinite(v) and v < 0 for v in highs):
-        return "behind (both CIs below 0)"
-    return "inside the noise (a CI spans 0)"
-
-
-def _intervals(row: dict[str, Any]) -> str:
-    """The bootstrap and Welch 95% intervals of a comparison row, in words."""
-    text = f"95% bootstrap CI [{row['boot_ci_low']:+.4g}, {row['boot_ci_high']:+.4g}]"
-    if math.isfinite(row.get("welch_ci_low", math.nan)):
-        text += (
-            f", Welch CI [{row['welch_ci_low']:+.4g}, {row['welch_ci_high']:+.4g}]"
-            f" (p = {row['p_value']:.2g})"
-        )
-    return text
-
-
-def _snapshot_evolution(path: Path, n_trials: int) -> dict[str, Any]:
-    if not path.exists():
+def _snapshot_evolution(doc: dict[str, Any] | None, n_trials: int) -> dict[str, Any]:
+    if doc is None:
         return {"finished": 0, "n_trials": n_trials, "env_steps": 0, "wall_seconds": 0.0}
-    doc = json.loads(path.read_text())
     trials = doc.get("trials", [])
     done = [t for t in trials if t.get("state") in ("COMPLETE", "PRUNED")]
     steps = sum(int(t.get("user_attrs", {}).get("env_steps") or 0) for t in trials)
@@ -172,91 +137,112 @@ def _snapshot_evolution(path: Path, n_trials: int) -> dict[str, Any]:
     return {"finished": len(done), "n_trials": n_trials, "env_steps": steps, "wall_seconds": wall}
 
 
+def trace_selection(selection: dict[str, Any], snapshot: dict[str, Any] | None) -> tuple[bool, str]:
+    """Whether the tested trial follows from a selection the study snapshot records.
+
+    Args:
+        selection: ``trial`` and ``selection`` (how it was chosen) of the test's ``config.yaml``.
+        snapshot: The study snapshot (``study.json``), ``None`` when there is none.
+
+    Returns:
+        ``(traced, what was found or what is missing)``. A re-evaluated selection needs the
+        study's complete re-evaluation record naming that trial best; a best-fitness selection
+        needs that trial to be the study's best COMPLETE trial; a trial named by hand
+        (``--trial``) is recorded as such in ``config.yaml`` and traced to it.
+    """
+    trial = selection.get("trial")
+    how = str(selection.get("selection") or "")
+    if trial is None:
+        return True, "no evolved trial tested"
+    if how.endswith("(--trial)"):
+        return True, f"trial #{trial} named by hand (--trial), as config.yaml records"
+    if snapshot is None:
+        return (
+            False,
+            f"tested trial #{trial} ({how or 'no selection recorded'}), but no study snapshot (study.json) is published",
+        )
+    if how.startswith("re-evaluated"):
+        record = (snapshot.get("user_attrs") or {}).get("ermrl_reevaluation")
+        if not isinstance(record, dict):
+            return False, (
+                f"tested trial #{trial} as '{how}', but the published study.json holds no "
+                "re-evaluation record (user attribute ermrl_reevaluation) and no related "
+                "re-evaluation study"
+            )
+        if not record.get("complete"):
+            return (
+                False,
+                f"tested trial #{trial} as '{how}', but the published re-evaluation is not complete",
+            )
+        if record.get("best_trial") != trial:
+            return False, (
+                f"tested trial #{trial} as '{how}', but the published re-evaluation record "
+                f"ranks trial #{record.get('best_trial')} best"
+            )
+        rows = record.get("candidates") or []
+        best: dict[str, Any] = next((r for r in rows if r.get("trial") == trial), {})
+        fitness = best.get("fitness")
+        value = f", re-evaluated fitness {fitness:.4g}" if isinstance(fitness, (int, float)) else ""
+        return True, (
+            f"trial #{trial} is the best of the {len(rows)} candidates of the published "
+            f"re-evaluation record (seeds {', '.join(map(str, record.get('seeds') or []))}{value})"
+        )
+    if how.startswith("best evolution fitness"):
+        done = [
+            t for t in snapshot.get("trials", [])
+            if t.get("state") == "COMPLETE" and isinstance(t.get("value"), (int, float))
+        ]  # fmt: skip
+        if not done:
+            return (
+                False,
+                f"tested trial #{trial} as the best evolution fitness, but the snapshot has no COMPLETE trial with a value",
+            )
+        best = max(done, key=lambda t: float(t["value"]))
+        if best.get("number") != trial:
+            return False, (
+                f"tested trial #{trial} as the best evolution fitness, but the snapshot's best "
+                f"is trial #{best.get('number')}"
+            )
+        return (
+            True,
+            f"trial #{trial} is the study's best COMPLETE trial (fitness {float(best['value']):.4g})",
+        )
+    return (
+        False,
+        f"tested trial #{trial}, but config.yaml does not say how it was selected ({how!r})",
+    )
+
+
+def _selection(test: Path) -> dict[str, Any]:
+    """The tested trial and how it was chosen, from a test phase's ``config.yaml``."""
+    config = test / "config.yaml"
+    if not config.exists():
+        return {}
+    doc = yaml.safe_load(config.read_text()) or {}
+    agents = doc.get("agents") or {}
+    return {
+        "trial": doc.get("trial"),
+        "selection": doc.get("selection"),
+        "reservoirs": agents.get(EVOLVED),
+        # The evolved agent's reservoirs are the unevolved one's: the reference won.
+        "reference": bool(agents.get(EVOLVED)) and agents.get(EVOLVED) == agents.get(UNEVOLVED),
+    }
+
+
+def _read_snapshot(snapshot: Path) -> dict[str, Any] | None:
+    return json.loads(snapshot.read_text()) if snapshot.is_file() else None
+
+
 def task_result(folder: Path, label: str, n_trials: int, snapshot: Path) -> TaskResult:
     """Read one task's published files (see :class:`TaskResult`)."""
-    from ermrl.analysis._results import load_run_results
-    from ermrl.analysis._stats import compare_agents
-
     test = folder / "test"
-    runs = load_run_results(test) if test.exists() else pd.DataFrame()
-    comparison = pd.DataFrame()
-    if not runs.empty:
-        # The paper's baselines first, then every other agent the test phase trained (learned
-        # memory, the full observation), in the agent table's order.
-        from ermrl.learners import AGENT_KINDS
-
-        tested = set(runs["agent"])
-        others = [a for a in AGENT_KINDS if a in tested and a != EVOLVED and a not in BASELINES]
-        others += sorted(tested - set(AGENT_KINDS) - {EVOLVED} - set(BASELINES))
-        comparison = compare_agents(runs, EVOLVED, [*BASELINES, *others])
-    selection: dict[str, Any] = {}
-    config = test / "config.yaml"
-    if config.exists():
-        doc = yaml.safe_load(config.read_text()) or {}
-        agents = doc.get("agents") or {}
-        selection = {
-            "trial": doc.get("trial"),
-            "selection": doc.get("selection"),
-            "reservoirs": agents.get(EVOLVED),
-            # The evolved agent's reservoirs are the unevolved one's: the reference won.
-            "reference": bool(agents.get(EVOLVED))
-            and agents.get(EVOLVED) == agents.get("random-res-ppo"),
-        }
+    runs = load_test_runs(test) if test.exists() else pd.DataFrame()
+    snapshot_doc = _read_snapshot(snapshot)
+    selection = _selection(test)
+    traced, trace = (True, "") if not selection else trace_selection(selection, snapshot_doc)
     return TaskResult(
-        label, folder, runs, comparison, _snapshot_evolution(snapshot, n_trials), selection
+        label, folder, runs, _snapshot_evolution(snapshot_doc, n_trials), selection, traced, trace
     )
-
-
-def _agents_table(runs: pd.DataFrame) -> pd.DataFrame:
-    from ermrl.analysis._stats import final_returns_table
-
-    table = final_returns_table(runs)
-    if table.empty:
-        return table
-    out = table[["agent", "n_seeds", "mean", "std", "ci95_low", "ci95_high"]].copy()
-    env_steps = runs.groupby("agent")["env_steps"].sum()
-    wall = runs.groupby("agent")["wall_seconds"].sum()
-    out["env steps"] = [int(env_steps.get(a, 0)) for a in out["agent"]]
-    out["wall (h)"] = [float(wall.get(a, 0.0)) / 3600 for a in out["agent"]]
-    return out.rename(
-        columns={"n_seeds": "seeds", "ci95_low": "95% CI low", "ci95_high": "95% CI high"}
-    )
-
-
-def _comparison_table(comparison: pd.DataFrame) -> pd.DataFrame:
-    cols = {
-        "baseline": "res-ppo against",
-        "mean_diff": "mean difference",
-        "boot_ci_low": "bootstrap CI low",
-        "boot_ci_high": "bootstrap CI high",
-        "welch_ci_low": "Welch CI low",
-        "welch_ci_high": "Welch CI high",
-        "paired_ci_low": "paired CI low",
-        "paired_ci_high": "paired CI high",
-        "n_paired": "paired seeds",
-        "p_value": "Welch p",
-    }
-    cols["few_seeds"] = f"< {FEW_SEEDS} seeds"
-    present = [c for c in cols if c in comparison]
-    return comparison[present].rename(columns=cols)
-
-
-def _reference_selected(result: TaskResult) -> bool:
-    return bool(result.selection.get("reference"))
-
-
-def _reservoir_text(selection: dict[str, Any]) -> str:
-    reservoirs = selection.get("reservoirs") or []
-    parts = []
-    for i, r in enumerate(reservoirs):
-        genes = ", ".join(
-            f"{k} {r[k]:.4g}" for k in ("sr", "lr", "input_scaling") if isinstance(r.get(k), float)
-        )
-        parts.append(f"reservoir {i}: {genes} ({r.get('units')} units)")
-    trial = selection.get("trial")
-    how = selection.get("selection") or ""
-    head = f"trial #{trial}" if trial is not None else "the selected trial"
-    return f"{head}{f' ({how})' if how else ''}: " + "; ".join(parts) if parts else head
 
 
 @dataclass(frozen=True)
@@ -280,13 +266,72 @@ class TaskFiles:
 
 @dataclass(frozen=True)
 class Hypothesis:
-    """One experiment file on the page: its claim and its tasks' files."""
+    """One experiment file on the page: its claim, its tasks' files and its verdict rule."""
 
     name: str
     file: str
     claim: str | None
     description: str | None
     tasks: tuple[TaskFiles, ...]
+    rule: VerdictRule | None = None
+
+
+def untraceable_tasks(hypotheses: Sequence[Hypothesis]) -> list[str]:
+    """``"<hypothesis> <task>: what is missing"`` for each tested task the page refuses."""
+    from ermrl.analysis._results import RUNS_DIR
+
+    out = []
+    for hyp in hypotheses:
+        for task in hyp.tasks:
+            test = task.folder / "test"
+            selection = _selection(test)
+            if not selection or not any((test / RUNS_DIR / EVOLVED).glob("seed_*/result.json")):
+                continue
+            traced, trace = trace_selection(selection, _read_snapshot(task.snapshot))
+            if not traced:
+                out.append(f"{hyp.name} {task.label}: {trace}")
+    return out
+
+
+def _normalizer() -> Any:
+    """``(env_id, values) -> normalized values`` from the packaged reference table
+    (``ermrl/data/scores.csv``, the one ``ermrl scores`` writes), ``None`` for an env without
+    a random and a target return. Read with pandas here: ``ermrl.search`` imports the
+    learners (torch, SB3) just to parse this table."""
+    table = pd.read_csv(Path(__file__).resolve().parents[1] / "data" / "scores.csv")
+    refs = {
+        str(r.env_id): (float(r.random_mean), float(r.target))
+        for r in table.itertuples(index=False)
+        if math.isfinite(float(r.random_mean)) and math.isfinite(float(r.target))
+    }
+
+    def normalize(env_id: str, values: Any) -> Any:
+        if env_id not in refs:
+            return None
+        random, target = refs[env_id]
+        return (pd.Series(values, dtype=float) - random) / (target - random)
+
+    return normalize
+
+
+def _num(value: Any) -> str:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return str(value)
+    if math.isnan(v):
+        return "–"
+    if v != 0 and (abs(v) < 1e-3 or abs(v) >= 1e5):
+        return f"{v:.2e}"
+    return f"{v:.4g}"
+
+
+def _ci(low: Any, high: Any) -> str:
+    return f"[{_num(low)}, {_num(high)}]"
+
+
+def _signed(value: float) -> str:
+    return f"{value:+.4g}"
 
 
 def write_reproduction_page(
@@ -305,11 +350,29 @@ def write_reproduction_page(
 
     Returns:
         ``(markdown, html or None)``.
+
+    Raises:
+        VerdictError: experiment files that pool a question into one family disagree on its
+            alpha or correction.
     """
     from ermrl._io import write_atomic
     from ermrl.analysis._report import _Doc
 
     out = Path(out)
+    results = {
+        hyp.name: [task_result(t.folder, t.label, t.n_trials, t.snapshot) for t in hyp.tasks]
+        for hyp in hypotheses
+    }
+    rules = {h.name: h.rule for h in hypotheses if h.rule is not None}
+    judged = [
+        TaskRuns(hyp.name, r.label, r.runs, r.reference_selected, r.label)
+        for hyp in hypotheses
+        for r in results[hyp.name]
+        if r.tested and r.traced
+    ]
+    tests = judge(judged, rules)
+    normalize = _normalizer()
+
     doc = _Doc()
     doc.h(1, "Reproducing *Evolving Reservoirs for Meta Reinforcement Learning*")
     doc.p(
@@ -317,60 +380,55 @@ def write_reproduction_page(
         "([arXiv:2312.06695](https://arxiv.org/abs/2312.06695)). Each hypothesis below is one "
         "experiment file that `ermrl run FILE` runs and resumes; its header states its scale "
         "and how it differs from the paper. Every number is computed from the per-seed files "
-        "published under `benchmarks/results/paper/` (a `result.json` per run) by "
-        "`ermrl reproduction`."
+        "published under `benchmarks/results/paper/` (a `result.json` and an `episodes.csv` "
+        "per run) by `ermrl reproduction`."
     )
     doc.p(
-        "**Verdicts.** Per task, on the paper's claim that the evolved reservoir helps PPO: "
-        "*reproduced* when the 95% CIs of `res-ppo − ppo` (final return: mean of the last 10 "
-        "training episodes) both lie above 0, the percentile bootstrap and Welch's t interval "
-        "(the bootstrap alone is too narrow on a handful of seeds); *partly* when `res-ppo` is "
-        "ahead but a CI spans 0; *not reproduced* otherwise. The rule was fixed before the "
-        "paper-scale test phases ran. What evolution itself adds, `res-ppo − "
-        "random-res-ppo`, is reported beside it, and so is `res-ppo` against every other "
-        "agent a test phase trained (learned memory, the full observation): ahead or behind "
-        "when both CIs agree, inside the noise otherwise. The paired CI resamples per-seed "
-        "differences "
-        "(the agents of one seed share its env and initialization streams). A result that "
-        "contradicts the paper is reported as such."
+        "**How verdicts are decided.** Each experiment file states its rule in a `verdict:` "
+        "block, printed in its section. A hypothesis is split into sub-questions, each answered "
+        "per task by comparisons `candidate − baseline` of per-seed returns. A comparison is "
+        "**supported** when Welch's t interval and the percentile bootstrap interval of the "
+        "difference of means both lie above 0 after Holm's correction, **contradicted** when "
+        "both lie below 0, and **inconclusive** otherwise. The correction's family is every "
+        "test of one sub-question under one metric on this page (all tasks of all files), and a "
+        "test of Holm rank i of m is judged at confidence 1 − α/(m − i + 1) (the stopping "
+        "step's level after the first test Holm keeps), so its intervals exclude 0 exactly when "
+        "Holm rejects it. A sub-question is supported on a task when all its comparisons are, "
+        "contradicted when any is. Over a hypothesis's tasks the page counts those outcomes; it "
+        "does not turn them into one word. The aggregates (rliable's interquartile mean of "
+        "normalized scores and probability of improvement, stratified bootstrap 95% intervals, "
+        "not adjusted) describe the tasks together. Every verdict is given under three "
+        "metrics: the mean return of the last 10 training episodes (`last10`), of the last 100 "
+        "(`last100`, SB3's `rollout/ep_rew_mean`, the metric the paper plots) and of 10 "
+        "deterministic evaluation episodes after training (`eval`; recorded from seed 15 on). "
+        f"A group of fewer than {FEW_SEEDS} seeds is flagged."
     )
-    summary_rows = []
+    glance: list[dict[str, Any]] = []
     sections = []
     for hyp in hypotheses:
         section = _Doc()
-        section.h(2, f"{hyp.name}: `{hyp.file}`")
-        if hyp.claim:
-            section.p(f"**The paper's claim** (quoted as a claim, not as a finding): {hyp.claim}")
-        if hyp.description:
-            section.p(hyp.description.strip())
-        results = []
-        for task in hyp.tasks:
-            result = task_result(task.folder, task.label, task.n_trials, task.snapshot)
-            results.append(result)
-            _task_section(section, result, out.parent, task.evolved_on)
-        tested = [r for r in results if r.tested]
-        words = [verdict(r.comparison, _reference_selected(r))[0] for r in tested]
-        if not tested:
-            overall = "not run yet"
-        elif all(w == "reproduced" for w in words):
-            overall = "reproduced"
-        elif not any(w in ("reproduced", "partly") for w in words):
-            overall = "not reproduced"
-        else:
-            overall = "partly"
-        pending = [r.label for r in results if not r.tested]
-        if pending and tested:
-            overall += f" (on {len(tested)} of {len(results)} tasks; pending: {', '.join(pending)})"
-        progress = "; ".join(
-            f"{r.label}: {r.evolution['finished']}/{r.evolution['n_trials']} trials"
-            for r in results
-        )
-        summary_rows.append(
-            {"hypothesis": hyp.name, "verdict": overall, "evolution progress": progress}
-        )
+        _hypothesis_section(section, hyp, results[hyp.name], tests, normalize, out.parent, glance)
         sections.append(section)
+    refused = [
+        f"{hyp.name} {r.label}: {r.trace}"
+        for hyp in hypotheses
+        for r in results[hyp.name]
+        if r.tested and not r.traced
+    ]
     doc.h(2, "Verdicts at a glance")
-    doc.table(pd.DataFrame(summary_rows))
+    doc.p(
+        "Per sub-question: the outcome on each task under each hypothesis's primary metric, "
+        "then the counts under the other metrics. The sections below give every effect, "
+        "interval and p-value."
+    )
+    if glance:
+        doc.table(pd.DataFrame(glance))
+    if refused:
+        doc.p(
+            "**Not rendered** (the tested trial cannot be traced to a recorded selection): "
+            + "; ".join(refused)
+            + "."
+        )
     for section in sections:
         doc.blocks += section.blocks
     write_atomic(out, doc.markdown())
@@ -381,13 +439,252 @@ def write_reproduction_page(
     return out, html_path
 
 
+def _counts(outcomes: Sequence[str]) -> str:
+    parts = [
+        f"{outcomes.count(o)} {o}"
+        for o in ("supported", "contradicted", "inconclusive")
+        if outcomes.count(o)
+    ]
+    return ", ".join(parts) if parts else "–"
+
+
+def _question_outcomes(
+    tests: pd.DataFrame, hyp: str, question: Question, metric: str
+) -> dict[str, str]:
+    rows = tests[
+        (tests["hypothesis"] == hyp)
+        & (tests["question"] == question.name)
+        & (tests["metric"] == metric)
+    ]
+    return {
+        str(task): combine_outcomes(list(group["outcome"]))
+        for task, group in rows.groupby("task", sort=False)
+    }
+
+
+def _hypothesis_section(
+    doc: Any,
+    hyp: Hypothesis,
+    results: list[TaskResult],
+    tests: pd.DataFrame,
+    normalize: Any,
+    docs_dir: Path,
+    glance: list[dict[str, Any]],
+) -> None:
+    doc.h(2, f"{hyp.name}: `{hyp.file}`")
+    if hyp.claim:
+        doc.p(f"**The paper's claim** (quoted as a claim, not as a finding): {hyp.claim}")
+    if hyp.description:
+        doc.p(hyp.description.strip())
+    rule = hyp.rule
+    judged = [r for r in results if r.tested and r.traced]
+    if rule is None:
+        doc.p("**No verdict rule**: the file has no `verdict:` block, so no verdict is given.")
+    else:
+        doc.p(f"**Rule** (`verdict:` block of `{hyp.file}`): {rule.describe()}.")
+        first, source = (None, "unknown")
+        for r in judged:
+            date, where = first_result_date(r.folder / "test")
+            if date is not None and (first is None or date < first):
+                first, source = date, where
+        if rule.adopted and first and rule.adopted > first:
+            doc.p(
+                f"**Flag: the rule was written after results existed.** Rule adopted "
+                f"{rule.adopted}; first test result {first} (dated by {source}). Read its "
+                "verdicts as a re-analysis, not as a test fixed in advance."
+            )
+        else:
+            doc.p(
+                f"Rule adopted {rule.adopted or 'on an unrecorded date'}; first test result "
+                f"{first or 'not yet'}" + (f" (dated by {source})" if first else "") + "."
+            )
+        _questions_block(doc, hyp, rule, judged, tests, normalize, glance)
+    for result, files in zip(results, hyp.tasks, strict=True):
+        _task_section(doc, hyp, result, tests, docs_dir, files.evolved_on)
+
+
+def _questions_block(
+    doc: Any,
+    hyp: Hypothesis,
+    rule: VerdictRule,
+    judged: list[TaskResult],
+    tests: pd.DataFrame,
+    normalize: Any,
+    glance: list[dict[str, Any]],
+) -> None:
+    runs = [TaskRuns(hyp.name, r.label, r.runs, r.reference_selected, r.label) for r in judged]
+    items = []
+    aggregate_rows = []
+    for question in rule.questions:
+        primary = _question_outcomes(tests, hyp.name, question, rule.primary)
+        per_task = "; ".join(f"{t}: **{o}**" for t, o in primary.items()) or "no task tested yet"
+        others = "; ".join(
+            f"{m}: {_counts(list(_question_outcomes(tests, hyp.name, question, m).values()))}"
+            for m in rule.metrics[1:]
+        )
+        items.append(
+            f"**{question.text}** (`{question.name}`: "
+            + ", ".join(f"`{c.label}`" for c in question.comparisons)
+            + f") — {rule.primary}: {per_task}; {_counts(list(primary.values()))} of "
+            f"{len(primary)} task(s). Other metrics: {others}."
+        )
+        glance.append(
+            {
+                "hypothesis": hyp.name,
+                "sub-question": question.text,
+                f"per task ({rule.primary})": per_task.replace("**", ""),
+                **{
+                    m: _counts(list(_question_outcomes(tests, hyp.name, question, m).values()))
+                    for m in rule.metrics[1:]
+                },
+            }
+        )
+        for metric in rule.metrics:
+            for row in aggregate_question(
+                runs, question, metric, normalize, n_resamples=rule.n_resamples
+            ):
+                aggregate_rows.append(
+                    {
+                        "sub-question": question.name,
+                        "comparison": row["comparison"],
+                        "metric": metric,
+                        "tasks": row["n_tasks"],
+                        "P(candidate > baseline)": _num(row["poi"]),
+                        "95% CI": _ci(row["poi_low"], row["poi_high"]),
+                        "aggregate": row["poi_outcome"] if row["n_tasks"] else "–",
+                        "IQM candidate [95% CI]": (
+                            f"{_num(row['iqm_candidate'])} {_ci(row['iqm_candidate_low'], row['iqm_candidate_high'])}"
+                            if math.isfinite(row["iqm_candidate"])
+                            else "–"
+                        ),
+                        "IQM baseline [95% CI]": (
+                            f"{_num(row['iqm_baseline'])} {_ci(row['iqm_baseline_low'], row['iqm_baseline_high'])}"
+                            if math.isfinite(row["iqm_baseline"])
+                            else "–"
+                        ),
+                        "note": row["note"],
+                    }
+                )
+    doc.h(3, f"{hyp.name}: sub-questions")
+    doc.bullets(items)
+    if aggregate_rows:
+        doc.p(
+            "Aggregates over the tasks (rliable's definitions; scores normalized as "
+            "(R − R_random) / (R_target − R_random) with ermrl's reference table, "
+            "`ermrl/data/scores.csv`; the probability of improvement is supported when its "
+            "95% interval lies above 1/2, contradicted below):"
+        )
+        doc.table(pd.DataFrame(aggregate_rows))
+
+
+def _reservoir_text(selection: dict[str, Any]) -> str:
+    reservoirs = selection.get("reservoirs") or []
+    parts = []
+    for i, r in enumerate(reservoirs):
+        genes = ", ".join(
+            f"{k} {r[k]:.4g}" for k in ("sr", "lr", "input_scaling") if isinstance(r.get(k), float)
+        )
+        parts.append(f"reservoir {i}: {genes} ({r.get('units')} units)")
+    trial = selection.get("trial")
+    how = selection.get("selection") or ""
+    head = f"trial #{trial}" if trial is not None else "the selected trial"
+    return f"{head}{f' ({how})' if how else ''}: " + "; ".join(parts) if parts else head
+
+
+def _agents_table(runs: pd.DataFrame) -> pd.DataFrame:
+    from ermrl.analysis._stats import final_returns_table
+
+    rows = []
+    for metric, (column, _) in METRICS.items():
+        table = final_returns_table(runs, metric=column)
+        for row in table.itertuples(index=False):
+            rows.append(
+                {
+                    "agent": row.agent,
+                    "metric": metric,
+                    "seeds": row.n_seeds,
+                    "mean": row.mean,
+                    "std": row.std,
+                    "95% CI": _ci(row.ci95_low, row.ci95_high),
+                    f"< {FEW_SEEDS} seeds": "yes" if row.n_seeds < FEW_SEEDS else "no",
+                }
+            )
+    frame = pd.DataFrame(rows)
+    if frame.empty:
+        return frame
+    env_steps = runs.groupby("agent")["env_steps"].sum()
+    wall = runs.groupby("agent")["wall_seconds"].sum()
+    frame["env steps"] = [
+        int(env_steps.get(a, 0)) if m == "last10" else ""
+        for a, m in zip(frame["agent"], frame["metric"], strict=True)
+    ]
+    frame["wall (h)"] = [
+        float(wall.get(a, 0.0)) / 3600 if m == "last10" else ""
+        for a, m in zip(frame["agent"], frame["metric"], strict=True)
+    ]
+    return frame.sort_values(
+        ["metric", "agent"],
+        key=lambda s: s.map({m: i for i, m in enumerate(METRICS)}) if s.name == "metric" else s,
+        kind="stable",
+    )
+
+
+def _tests_table(rows: pd.DataFrame) -> pd.DataFrame:
+    out = []
+    for row in rows.to_dict("records"):
+        tested = not row["note"]
+        out.append(
+            {
+                "sub-question": row["question"],
+                "comparison": row["comparison"],
+                "metric": row["metric"],
+                "seeds": f"{row['n_candidate']} / {row['n_baseline']}",
+                "effect": _signed(row["mean_diff"]) if tested else "–",
+                "Welch 95% CI": _ci(row["welch_low"], row["welch_high"]) if tested else "–",
+                "bootstrap 95% CI": _ci(row["boot_low"], row["boot_high"]) if tested else "–",
+                "p": _num(row["p_value"]) if tested else "–",
+                "Holm p (m)": f"{_num(row['p_adjusted'])} ({row['family_size']})"
+                if tested
+                else "–",
+                "adjusted level": f"{100 * (1 - row['level']):.4g}%" if tested else "–",
+                "Welch CI, adjusted": _ci(row["adj_welch_low"], row["adj_welch_high"])
+                if tested
+                else "–",
+                "bootstrap CI, adjusted": _ci(row["adj_boot_low"], row["adj_boot_high"])
+                if tested
+                else "–",
+                "outcome": f"**{row['outcome']}**",
+                "what it rules out": excluded_effects(row)
+                if tested and row["outcome"] == "inconclusive"
+                else row["note"],
+                "seeds for 80% power": (
+                    "–"
+                    if not tested
+                    else (
+                        str(int(row["seeds_needed"]))
+                        if row["seeds_needed"] is not None and not pd.isna(row["seeds_needed"])
+                        else "> 10000 or no effect"
+                    )
+                ),
+            }
+        )
+    return pd.DataFrame(out)
+
+
 def _rel(path: Path, start: Path) -> str:
     import os
 
     return os.path.relpath(path, start)
 
 
-def _task_section(doc: Any, result: TaskResult, docs_dir: Path, evolve_label: str) -> None:
+def _task_section(
+    doc: Any,
+    hyp: Hypothesis,
+    result: TaskResult,
+    tests: pd.DataFrame,
+    docs_dir: Path,
+    evolve_label: str,
+) -> None:
     evo = result.evolution
     doc.h(
         3, result.label + (f" (evolved on {evolve_label})" if evolve_label != result.label else "")
@@ -403,14 +700,33 @@ def _task_section(doc: Any, result: TaskResult, docs_dir: Path, evolve_label: st
         + "."
     )
     if not result.tested:
-        doc.p(f"**Verdict: not run yet.** {evolution_text} The test phase has not run.")
+        doc.p(f"**Not run yet.** {evolution_text} The test phase has not run.")
         return
-    word, why = verdict(result.comparison, _reference_selected(result))
-    doc.p(f"**Verdict: {word}.** {why}.")
-    doc.p(evolution_text + f" Selected reservoir: {_reservoir_text(result.selection)}.")
+    if not result.traced:
+        doc.p(
+            f"**Not rendered: the tested trial cannot be traced to a recorded selection.** "
+            f"{result.trace}. Publish the study's re-evaluation record (rerun `ermrl run "
+            f"{hyp.file} --task {result.label} --stage reevaluate`) or test the recorded "
+            "selection."
+        )
+        return
+    rows = tests[(tests["hypothesis"] == hyp.name) & (tests["task"] == result.label)]
+    if hyp.rule is not None and not rows.empty:
+        primary = rows[rows["metric"] == hyp.rule.primary]
+        words = []
+        for question in hyp.rule.questions:
+            q = primary[primary["question"] == question.name]
+            if not q.empty:
+                words.append(f"{question.name}: **{combine_outcomes(list(q['outcome']))}**")
+        doc.p(f"**Verdicts ({hyp.rule.primary}).** " + "; ".join(words) + ".")
+    doc.p(
+        evolution_text
+        + f" Selected reservoir: {_reservoir_text(result.selection)}. Selection record: "
+        f"{result.trace}."
+    )
     doc.table(_agents_table(result.runs))
-    if not result.comparison.empty:
-        doc.table(_comparison_table(result.comparison))
+    if not rows.empty:
+        doc.table(_tests_table(rows))
     curves = result.folder / "report" / "test" / "learning_curves.png"
     if curves.exists():
         doc.img(_rel(curves, docs_dir), f"{result.label}: learning curves (mean and 95% CI)")
@@ -422,9 +738,8 @@ def _task_section(doc: Any, result: TaskResult, docs_dir: Path, evolve_label: st
         )
     per_seed = result.folder / "test" / "summary.csv"
     if per_seed.exists():
-        doc.p(
-            f"Per-seed files: [{_rel(result.folder / 'test', docs_dir)}]({_rel(result.folder / 'test', docs_dir)})."
-        )
+        link = _rel(result.folder / "test", docs_dir)
+        doc.p(f"Per-seed files: [{link}]({link}).")
     if math.isfinite(float(result.runs["env_steps"].sum())):
         doc.p(
             f"Test phase: {int(result.runs['env_steps'].sum()) / 1e6:.4g}M env steps, "

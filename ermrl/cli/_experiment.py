@@ -69,6 +69,8 @@ TOP_LEVEL_KEYS: dict[str, str] = {
     "test": "ermrl test (or test-generalization) options",
     "report": "ermrl report options",
     "variants": "named overrides of the stages, e.g. quick (selected with --variant)",
+    "verdict": "the rule of the reproduction page's verdicts: questions, alpha, correction, "
+    "primary metric, the date it was adopted (see docs/experiments.md, Verdicts)",
 }
 STAGES = ("evolve", "reevaluate", "test", "report")
 REEVALUATE_KEYS = {
@@ -1443,4 +1445,22 @@ def hypothesis_of(exp: Experiment, file: str | None = None) -> Any:
         None if claim is None else str(claim).strip(),
         None if description is None else str(description),
         tuple(tasks),
+        verdict_rule(exp),
     )
+
+
+def verdict_rule(exp: Experiment) -> Any:
+    """The file's ``verdict:`` block as a :class:`~ermrl.analysis.VerdictRule` (``None``: none).
+
+    Raises:
+        ExperimentError: a block that cannot be used (one line, naming the key).
+    """
+    from ermrl.analysis import VerdictError, VerdictRule
+
+    doc = exp.document.get("verdict")
+    if doc is None:
+        return None
+    try:
+        return VerdictRule.from_doc(doc, f"{exp.path}: verdict")
+    except VerdictError as err:
+        raise ExperimentError(str(err)) from None

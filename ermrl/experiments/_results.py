@@ -3,6 +3,7 @@ reads them."""
 
 from __future__ import annotations
 
+import datetime as dt
 import json
 from pathlib import Path
 from typing import Any
@@ -51,7 +52,7 @@ def write_run(
     ``result.json`` also holds ``last100_return``, the mean of the last
     :data:`PAPER_LAST_EPISODES` training episodes (the paper's metric, beside ``final_return``
     over the run's own ``n_last_episodes``), ``n_eval_episodes``, the code that trained it
-    (:func:`ermrl._code.code_identity`), and ``phase_steps`` when the learner splits its env
+    (:func:`ermrl._code.code_identity`), when it finished (``finished``, UTC), and ``phase_steps`` when the learner splits its env
     steps into phases (``imitation-sac``).
     """
     from ermrl._code import code_identity
@@ -74,6 +75,7 @@ def write_run(
         "last100_return": last_episodes_mean(result.episode_returns),
         "n_episodes": len(result.episode_returns),
         "code": code_identity(),
+        "finished": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
         **(extra or {}),
     }
     if getattr(result, "phase_steps", None):  # a learner's own split of its env steps

@@ -1,0 +1,676 @@
+"""Verdicts that say no more than the data: a written rule, Holm's correction, three outcomes.
+
+A *question* of an experiment (does the evolved reservoir beat PPO? does evolution beat the
+unevolved reservoir?) is answered on each task by one or more *comparisons* ``candidate −
+baseline`` of per-seed returns. Each comparison gets one of three outcomes:
+
+- **supported**: both 95% intervals of the difference of means, Welch's t interval and the
+  percentile bootstrap, lie above 0 *after the family's multiple-comparison adjustment*;
+- **contradicted**: both lie below 0 after it;
+- **inconclusive**: otherwise. The page then says which effects the data still excludes
+  (the adjusted intervals' bounds), so that "no evidence" reads as "small" or as "unknown".
+
+The *family* of a comparison is every test of the same question under the same metric on the
+page (all tasks of all experiment files that name that question): Holm's step-down procedure
+(Holm 1979) controls the family-wise error rate over it. The adjusted interval of the test of
+Holm rank ``i`` (1-based, by raw Welch p) of ``m`` is taken at confidence ``1 − α/(m − i + 1)``,
+and every test ranked after the first one Holm does not reject at the level of that step, so a
+test's intervals exclude 0 exactly when Holm rejects it (Welch's interval and Welch's p agree;
+the bootstrap must agree too).
+
+A question's outcome on a task combines its comparisons: *supported* when all are,
+*contradicted* when any is, *inconclusive* otherwise. Over a hypothesis's tasks, the page counts
+the outcomes and gives two aggregates with stratified bootstrap intervals (Agarwal et al. 2021,
+rliable's definitions): the interquartile mean of normalized scores of each agent, and the
+probability of improvement ``P(candidate > baseline)``.
+
+The rule itself is data: the ``verdict:`` block of an experiment file (:class:`VerdictRule`).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import math
+import subprocess
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from ermrl.analysis._stats import (
+    aggregate_iqm,
+    bootstrap_mean_diff_ci,
+    welch_t_test,
+)
+
+__all__ = [
+    "METRICS",
+    "OUTCOMES",
+    "Comparison",
+    "Question",
+    "TaskRuns",
+    "VerdictRule",
+    "VerdictError",
+    "aggregate_question",
+    "combine_outcomes",
+    "holm",
+    "judge",
+    "probability_of_improvement",
+    "seeds_for_power",
+]
+
+#: The metrics a verdict can rest on: name -> (result.json column, what it is).
+METRICS: dict[str, tuple[str, str]] = {
+    "last10": ("final_return", "mean return of the last 10 training episodes"),
+    "last100": (
+        "last100_return",
+        "mean return of the last 100 training episodes (SB3's rollout/ep_rew_mean, the metric "
+        "the paper plots)",
+    ),
+    "eval": ("eval_return", "mean return of 10 deterministic evaluation episodes after training"),
+}
+OUTCOMES = ("supported", "contradicted", "inconclusive")
+CORRECTIONS = ("holm", "none")
+#: Seeds searched by :func:`seeds_for_power` before it gives up.
+MAX_POWER_SEEDS = 10_000
+
+
+class VerdictError(ValueError):
+    """A ``verdict:`` block that cannot be used: one line naming the key."""
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """``candidate − baseline``, on the per-seed values of one metric."""
+
+    candidate: str
+    baseline: str
+
+    @property
+    def label(self) -> str:
+        return f"{self.candidate} − {self.baseline}"
+
+    @classmethod
+    def parse(cls, text: Any, where: str) -> Comparison:
+        """``"res-ppo - ppo"`` (an ASCII or a typographic minus)."""
+        parts = str(text).replace("−", " - ").split(" - ") if isinstance(text, str) else []
+        parts = [p.strip() for p in parts]
+        if len(parts) != 2 or not all(parts):
+            raise VerdictError(f"{where}: {text!r} is not 'CANDIDATE - BASELINE'")
+        return cls(parts[0], parts[1])
+
+
+@dataclass(frozen=True)
+class Question:
+    """One sub-question of a hypothesis.
+
+    Attributes:
+        name: Its family: every test of a question of this name on a page is adjusted
+            together.
+        text: The question in words.
+        comparisons: What answers it on a task (all must be supported for a supported answer).
+    """
+
+    name: str
+    text: str
+    comparisons: tuple[Comparison, ...]
+
+
+@dataclass(frozen=True)
+class VerdictRule:
+    """How an experiment's verdicts are decided, as its file's ``verdict:`` block states it.
+
+    Attributes:
+        questions: The sub-questions, in order.
+        alpha: Family-wise error rate (two-sided).
+        correction: ``holm`` or ``none``.
+        primary: The metric the headline verdicts use (a key of :data:`METRICS`).
+        adopted: When the rule was written (ISO date), compared on the page with the date of the
+            first test result it judges.
+        n_resamples: Bootstrap resamples.
+        power: The power the seeds-needed line targets.
+    """
+
+    questions: tuple[Question, ...]
+    alpha: float = 0.05
+    correction: str = "holm"
+    primary: str = "last10"
+    adopted: str | None = None
+    n_resamples: int = 10_000
+    power: float = 0.8
+
+    @classmethod
+    def from_doc(cls, doc: Any, where: str = "verdict") -> VerdictRule:
+        """Read a ``verdict:`` block (see ``experiments/paper/*.yaml``).
+
+        Raises:
+            VerdictError: an unknown key, a value out of range, an empty question list.
+        """
+        if not isinstance(doc, Mapping):
+            raise VerdictError(f"{where}: a mapping is needed (alpha, correction, questions)")
+        known = {"adopted", "alpha", "correction", "primary", "questions", "power", "resamples"}
+        for key in doc:
+            if key not in known:
+                raise VerdictError(
+                    f"{where}: unknown key {key!r} (known: {', '.join(sorted(known))})"
+                )
+        alpha = doc.get("alpha", 0.05)
+        if not isinstance(alpha, (int, float)) or isinstance(alpha, bool) or not 0 < alpha < 1:
+            raise VerdictError(f"{where}.alpha: a number in (0, 1) is needed, got {alpha!r}")
+        correction = doc.get("correction", "holm")
+        if correction not in CORRECTIONS:
+            raise VerdictError(
+                f"{where}.correction: one of {', '.join(CORRECTIONS)}, got {correction!r}"
+            )
+        primary = doc.get("primary", "last10")
+        if primary not in METRICS:
+            raise VerdictError(f"{where}.primary: one of {', '.join(METRICS)}, got {primary!r}")
+        power = doc.get("power", 0.8)
+        if not isinstance(power, (int, float)) or isinstance(power, bool) or not 0 < power < 1:
+            raise VerdictError(f"{where}.power: a number in (0, 1) is needed, got {power!r}")
+        resamples = doc.get("resamples", 10_000)
+        if not isinstance(resamples, int) or isinstance(resamples, bool) or resamples < 100:
+            raise VerdictError(f"{where}.resamples: an integer >= 100 is needed, got {resamples!r}")
+        adopted = doc.get("adopted")
+        if adopted is not None:
+            try:
+                adopted = dt.date.fromisoformat(str(adopted)).isoformat()
+            except ValueError:
+                raise VerdictError(
+                    f"{where}.adopted: a date (YYYY-MM-DD), got {adopted!r}"
+                ) from None
+        questions_doc = doc.get("questions")
+        if not isinstance(questions_doc, Mapping) or not questions_doc:
+            raise VerdictError(f"{where}.questions: name at least one question")
+        questions = []
+        for name, q in questions_doc.items():
+            here = f"{where}.questions.{name}"
+            if not isinstance(q, Mapping):
+                raise VerdictError(f"{here}: a mapping with text and compare is needed")
+            for key in q:
+                if key not in ("text", "compare"):
+                    raise VerdictError(f"{here}: unknown key {key!r} (known: compare, text)")
+            compare = q.get("compare")
+            if isinstance(compare, str):
+                compare = [compare]
+            if not isinstance(compare, list) or not compare:
+                raise VerdictError(f"{here}.compare: list 'CANDIDATE - BASELINE' comparisons")
+            comparisons = tuple(Comparison.parse(c, f"{here}.compare") for c in compare)
+            questions.append(Question(str(name), str(q.get("text") or name), comparisons))
+        return cls(
+            tuple(questions),
+            float(alpha),
+            str(correction),
+            str(primary),
+            adopted,
+            int(resamples),
+            float(power),
+        )
+
+    @property
+    def metrics(self) -> tuple[str, ...]:
+        """Every metric, the primary first."""
+        return (self.primary, *(m for m in METRICS if m != self.primary))
+
+    def describe(self) -> str:
+        """The rule in words, as the page prints it."""
+        correction = (
+            f"Holm's step-down correction over each family (all tests of one question under one "
+            f"metric on this page), family-wise α = {self.alpha:g}"
+            if self.correction == "holm"
+            else f"no multiple-comparison correction, α = {self.alpha:g} per test"
+        )
+        return (
+            f"primary metric: {self.primary} ({METRICS[self.primary][1]}); {correction}; a "
+            "comparison is supported when Welch's t interval and the percentile bootstrap "
+            f"interval ({self.n_resamples} resamples) of the difference of means both lie above 0 "
+            "at the adjusted level, contradicted when both lie below 0, inconclusive otherwise; "
+            "a question is supported on a task when all its comparisons are, contradicted when "
+            f"any is; seeds needed: per agent, for {self.power:.0%} power of Welch's test at the "
+            "adjusted level, if the observed difference and spread were the truth"
+        )
+
+
+@dataclass
+class TaskRuns:
+    """One task's per-seed results, as a verdict reads them.
+
+    Attributes:
+        hypothesis: The experiment's name.
+        task: The task's label.
+        runs: One row per run: ``agent``, ``seed`` and the metric columns of :data:`METRICS`.
+        reference_selected: The selection tested the unevolved reference itself (``res-ppo``
+            and ``random-res-ppo`` are then the same runs: their difference is not tested).
+        env_id: The env (for normalized scores; default: the label).
+    """
+
+    hypothesis: str
+    task: str
+    runs: pd.DataFrame
+    reference_selected: bool = False
+    env_id: str | None = None
+    notes: dict[str, str] = field(default_factory=dict)
+
+
+def _values(runs: pd.DataFrame, agent: str, column: str) -> pd.Series:
+    if runs.empty or column not in runs:
+        return pd.Series(dtype=float)
+    rows = runs[runs["agent"] == agent]
+    values = pd.to_numeric(rows[column], errors="coerce")
+    values.index = rows["seed"].to_numpy() if "seed" in rows else values.index
+    return values[np.isfinite(values.to_numpy(dtype=float))]
+
+
+def holm(p_values: Sequence[float], alpha: float) -> tuple[list[float], list[float]]:
+    """Holm's step-down procedure: adjusted p-values, and the level each test is judged at.
+
+    Args:
+        p_values: Raw two-sided p-values of one family.
+        alpha: The family-wise error rate.
+
+    Returns:
+        ``(adjusted, levels)`` in the input order: ``adjusted[i] = max_{j <= rank(i)} min(1,
+        (m - j + 1) p_(j))``; ``levels[i] = α / (m - rank(i) + 1)`` up to the first rank Holm does
+        not reject, and that step's level from there on (so a test is rejected exactly when its
+        p is at most its level, and its interval at ``1 - level`` excludes 0).
+
+    Examples:
+        >>> holm([0.01, 0.04, 0.03], 0.05)[0]
+        [0.03, 0.06, 0.06]
+    """
+    p = np.asarray(p_values, dtype=float)
+    m = len(p)
+    order = np.argsort(p, kind="stable")
+    adjusted = np.empty(m)
+    levels = np.empty(m)
+    running = 0.0
+    stop_level = None
+    for rank, i in enumerate(order):
+        step = alpha / (m - rank)
+        running = max(running, min(1.0, (m - rank) * p[i]))
+        adjusted[i] = running
+        if stop_level is None and not p[i] <= step:
+            stop_level = step
+        levels[i] = step if stop_level is None else stop_level
+    return [round(float(a), 15) for a in adjusted], [float(v) for v in levels]
+
+
+def seeds_for_power(
+    diff: float,
+    std_a: float,
+    std_b: float,
+    alpha: float,
+    power: float = 0.8,
+    max_seeds: int = MAX_POWER_SEEDS,
+) -> int | None:
+    """Seeds per agent at which a two-sided t test of two equal groups reaches ``power``.
+
+    The effect is the observed one, ``|diff| / sqrt((std_a² + std_b²) / 2)`` (Cohen's d with
+    the two spreads pooled), and the power is the noncentral t's (scipy).
+
+    Returns:
+        The smallest such number of seeds (at least 2); ``None`` when the difference is 0 or not
+        finite, or more than ``max_seeds`` would be needed.
+    """
+    from scipy import stats
+
+    if not all(math.isfinite(v) for v in (diff, std_a, std_b)) or diff == 0:
+        return None
+    spread = math.sqrt((std_a**2 + std_b**2) / 2)
+    if spread == 0:
+        return 2
+    d = abs(diff) / spread
+
+    def achieved(n: int) -> float:
+        dof = 2 * n - 2
+        crit = stats.t.ppf(1 - alpha / 2, dof)
+        shift = d * math.sqrt(n / 2)
+        value = float(stats.nct.sf(crit, dof, shift) + stats.nct.cdf(-crit, dof, shift))
+        if not math.isfinite(value):  # scipy's noncentral t far in its tail
+            value = float(stats.norm.sf(crit - shift))
+        return value
+
+    high = 2
+    while achieved(high) < power:  # doubling, then bisection: power grows with the seeds
+        if high >= max_seeds:
+            return None
+        high = min(2 * high, max_seeds)
+    low = max(2, high // 2)
+    while low < high:
+        mid = (low + high) // 2
+        if achieved(mid) >= power:
+            high = mid
+        else:
+            low = mid + 1
+    return low
+
+
+def probability_of_improvement(
+    pairs: Mapping[str, tuple[Sequence[float], Sequence[float]]],
+    *,
+    confidence: float = 0.95,
+    n_resamples: int = 10_000,
+    seed: int = 0,
+) -> tuple[float, float, float]:
+    """``P(X > Y)`` averaged over tasks, with a stratified percentile bootstrap interval.
+
+    rliable's ``probability_of_improvement``: per task, the Mann-Whitney statistic of the runs
+    of ``X`` against those of ``Y`` divided by ``n_x n_y`` (a tie counts one half), averaged over
+    tasks; each bootstrap resample redraws each agent's runs within each task.
+
+    Args:
+        pairs: ``{task: (x values, y values)}``; a task missing either side is left out.
+
+    Returns:
+        ``(estimate, low, high)``; NaNs with no task.
+    """
+    rng = np.random.default_rng(seed)
+    per_task, resampled = [], []
+    for x_raw, y_raw in pairs.values():
+        x = np.asarray([v for v in x_raw if math.isfinite(v)], dtype=float)
+        y = np.asarray([v for v in y_raw if math.isfinite(v)], dtype=float)
+        if not len(x) or not len(y):
+            continue
+        per_task.append(_poi(x[None, :], y[None, :])[0])
+        xs = x[rng.integers(0, len(x), size=(n_resamples, len(x)))]
+        ys = y[rng.integers(0, len(y), size=(n_resamples, len(y)))]
+        resampled.append(_poi(xs, ys))
+    if not per_task:
+        return math.nan, math.nan, math.nan
+    estimates = np.mean(resampled, axis=0)
+    tail = (1 - confidence) / 2
+    low, high = np.quantile(estimates, [tail, 1 - tail])
+    return float(np.mean(per_task)), float(low), float(high)
+
+
+def _poi(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Per row: the share of (x, y) pairs with x > y, ties counted one half; shape (rows,)."""
+    greater = (x[:, :, None] > y[:, None, :]).mean(axis=(1, 2))
+    ties = (x[:, :, None] == y[:, None, :]).mean(axis=(1, 2))
+    return np.asarray(greater + 0.5 * ties)
+
+
+def _outcome(lows: Sequence[float], highs: Sequence[float]) -> str:
+    if all(math.isfinite(v) and v > 0 for v in lows):
+        return "supported"
+    if all(math.isfinite(v) and v < 0 for v in highs):
+        return "contradicted"
+    return "inconclusive"
+
+
+def combine_outcomes(outcomes: Sequence[str]) -> str:
+    """A question's outcome on a task from its comparisons' (see the module's docstring)."""
+    if not outcomes:
+        return "inconclusive"
+    if all(o == "supported" for o in outcomes):
+        return "supported"
+    if any(o == "contradicted" for o in outcomes):
+        return "contradicted"
+    return "inconclusive"
+
+
+TEST_COLUMNS = [
+    "hypothesis", "task", "question", "comparison", "candidate", "baseline", "metric",
+    "n_candidate", "n_baseline", "mean_diff", "welch_low", "welch_high", "boot_low",
+    "boot_high", "p_value", "family_size", "p_adjusted", "level", "adj_welch_low",
+    "adj_welch_high", "adj_boot_low", "adj_boot_high", "outcome", "seeds_needed", "note",
+]  # fmt: skip
+
+
+def judge(
+    tasks: Sequence[TaskRuns], rules: Mapping[str, VerdictRule], seed: int = 0
+) -> pd.DataFrame:
+    """Every comparison of every question on every task, under every metric, judged.
+
+    Args:
+        tasks: The tasks of the page, each naming its hypothesis.
+        rules: Each hypothesis's rule (a hypothesis without one is left out). Questions of one
+            name form one family across hypotheses; their rules must then agree on alpha and
+            correction.
+        seed: Seed of the bootstraps.
+
+    Returns:
+        One row per test (:data:`TEST_COLUMNS`). ``note`` explains a comparison that was not
+        tested (an agent without runs under that metric, or the reference selected), whose
+        outcome is then ``inconclusive`` and which does not count in its family.
+
+    Raises:
+        VerdictError: two rules that pool a family disagree on its alpha or correction.
+    """
+    rows: list[dict[str, Any]] = []
+    for task in tasks:
+        rule = rules.get(task.hypothesis)
+        if rule is None:
+            continue
+        for metric in rule.metrics:
+            column = METRICS[metric][0]
+            for question in rule.questions:
+                for comp in question.comparisons:
+                    rows.append(_raw_test(task, rule, question, comp, metric, column, seed))
+    table = pd.DataFrame(rows, columns=TEST_COLUMNS)
+    if table.empty:
+        return table
+    families: dict[tuple[str, str], list[int]] = {}
+    tested = table[table["note"] == ""]
+    for key, group in tested.groupby(["question", "metric"], sort=False):
+        families[(str(key[0]), str(key[1]))] = [int(i) for i in group.index]
+    for (family, _metric), index in families.items():
+        family_rules = {
+            (rules[h].alpha, rules[h].correction) for h in table.loc[index, "hypothesis"]
+        }
+        if len(family_rules) > 1:
+            raise VerdictError(
+                f"question {family!r} is one family across experiment files, but their "
+                f"verdict rules differ in alpha or correction: {sorted(family_rules)}"
+            )
+        alpha, correction = family_rules.pop()
+        p = table.loc[index, "p_value"].to_numpy(dtype=float)
+        if correction == "holm":
+            adjusted, levels = holm(p, alpha)
+        else:
+            adjusted, levels = list(p), [alpha] * len(p)
+        for i, adj, level in zip(index, adjusted, levels, strict=True):
+            _adjust(table, i, tasks, rules, adj, level, len(index), seed)
+    return table
+
+
+def _raw_test(
+    task: TaskRuns,
+    rule: VerdictRule,
+    question: Question,
+    comp: Comparison,
+    metric: str,
+    column: str,
+    seed: int,
+) -> dict[str, Any]:
+    a = _values(task.runs, comp.candidate, column)
+    b = _values(task.runs, comp.baseline, column)
+    row: dict[str, Any] = {c: math.nan for c in TEST_COLUMNS}
+    row.update(
+        hypothesis=task.hypothesis, task=task.task, question=question.name,
+        comparison=comp.label, candidate=comp.candidate, baseline=comp.baseline, metric=metric,
+        n_candidate=len(a), n_baseline=len(b), outcome="inconclusive", seeds_needed=None,
+        note="", family_size=0,
+    )  # fmt: skip
+    same_runs = {comp.candidate, comp.baseline} == {"res-ppo", "random-res-ppo"}
+    if task.reference_selected and same_runs:
+        row["note"] = (
+            "not tested: the selection chose the unevolved reference itself, so both agents are "
+            "the same runs (evolution added nothing measurable)"
+        )
+        return row
+    if len(a) < 2 or len(b) < 2:
+        missing = comp.candidate if len(a) < 2 else comp.baseline
+        row["note"] = f"not tested: {missing} has fewer than 2 runs with this metric"
+        return row
+    welch = welch_t_test(a.to_numpy(), b.to_numpy())
+    low, high = bootstrap_mean_diff_ci(a, b, n_resamples=rule.n_resamples, seed=seed)
+    row.update(
+        mean_diff=float(a.mean() - b.mean()), welch_low=welch.ci_low, welch_high=welch.ci_high,
+        boot_low=low, boot_high=high, p_value=welch.p_value,
+    )  # fmt: skip
+    return row
+
+
+def _adjust(
+    table: pd.DataFrame,
+    i: int,
+    tasks: Sequence[TaskRuns],
+    rules: Mapping[str, VerdictRule],
+    adjusted: float,
+    level: float,
+    family_size: int,
+    seed: int,
+) -> None:
+    row = table.loc[i]
+    rule = rules[row["hypothesis"]]
+    task = next(t for t in tasks if t.hypothesis == row["hypothesis"] and t.task == row["task"])
+    column = METRICS[row["metric"]][0]
+    a = _values(task.runs, row["candidate"], column).to_numpy()
+    b = _values(task.runs, row["baseline"], column).to_numpy()
+    confidence = 1 - level
+    welch = welch_t_test(a, b, confidence=confidence)
+    low, high = bootstrap_mean_diff_ci(
+        a, b, confidence=confidence, n_resamples=rule.n_resamples, seed=seed
+    )
+    outcome = _outcome([welch.ci_low, low], [welch.ci_high, high])
+    seeds = seeds_for_power(
+        float(row["mean_diff"]), float(np.std(a, ddof=1)), float(np.std(b, ddof=1)), level,
+        rule.power,
+    )  # fmt: skip
+    table.loc[i, ["p_adjusted", "level", "family_size"]] = [adjusted, level, family_size]
+    table.loc[i, ["adj_welch_low", "adj_welch_high", "adj_boot_low", "adj_boot_high"]] = [
+        welch.ci_low, welch.ci_high, low, high,
+    ]  # fmt: skip
+    table.loc[i, "outcome"] = outcome
+    table.at[i, "seeds_needed"] = seeds
+
+
+def excluded_effects(row: Mapping[str, Any]) -> str:
+    """What an inconclusive comparison still rules out, in words (its adjusted intervals' ends)."""
+    highs = [row.get("adj_welch_high", math.nan), row.get("adj_boot_high", math.nan)]
+    lows = [row.get("adj_welch_low", math.nan), row.get("adj_boot_low", math.nan)]
+    if not all(math.isfinite(float(v)) for v in (*highs, *lows)):
+        return ""
+    level = 1 - float(row["level"])
+    return (
+        f"effects above {max(highs):+.4g} or below {min(lows):+.4g} are excluded at "
+        f"{_percent(level)}"
+    )
+
+
+def _percent(level: float) -> str:
+    text = f"{100 * level:.2f}".rstrip("0").rstrip(".")
+    return f"{text}%"
+
+
+def aggregate_question(
+    tasks: Sequence[TaskRuns],
+    question: Question,
+    metric: str,
+    normalizer: Any = None,
+    *,
+    n_resamples: int = 10_000,
+    seed: int = 0,
+) -> list[dict[str, Any]]:
+    """A question's aggregates over tasks: the probability of improvement of each comparison
+    and the IQM of each agent's normalized scores, with stratified bootstrap 95% intervals.
+
+    Args:
+        tasks: The hypothesis's tasks.
+        question: The question.
+        metric: A key of :data:`METRICS`.
+        normalizer: ``(env_id, values) -> normalized values`` or ``None`` when a task has no
+            reference scores (the IQMs are then left out, naming it).
+
+    Returns:
+        One row per comparison: ``comparison, n_tasks, poi, poi_low, poi_high, poi_outcome``
+        (supported when the interval lies above 1/2, contradicted below), and
+        ``iqm_candidate, iqm_candidate_low, iqm_candidate_high`` and the same for the baseline
+        (NaN without normalized scores), and ``note``.
+    """
+    column = METRICS[metric][0]
+    rows = []
+    for comp in question.comparisons:
+        pairs: dict[str, tuple[Any, Any]] = {}
+        skipped = []
+        for task in tasks:
+            same = {comp.candidate, comp.baseline} == {"res-ppo", "random-res-ppo"}
+            if task.reference_selected and same:
+                skipped.append(f"{task.task} (reference selected)")
+                continue
+            a = _values(task.runs, comp.candidate, column)
+            b = _values(task.runs, comp.baseline, column)
+            if len(a) and len(b):
+                pairs[task.task] = (a.to_numpy(), b.to_numpy())
+            else:
+                skipped.append(f"{task.task} (no runs)")
+        poi, low, high = probability_of_improvement(pairs, n_resamples=n_resamples, seed=seed)
+        row: dict[str, Any] = {
+            "comparison": comp.label,
+            "n_tasks": len(pairs),
+            "poi": poi,
+            "poi_low": low,
+            "poi_high": high,
+            "poi_outcome": _outcome([low - 0.5], [high - 0.5]) if pairs else "inconclusive",
+            "note": ("left out: " + ", ".join(skipped)) if skipped else "",
+        }
+        for side in ("candidate", "baseline"):
+            row[f"iqm_{side}"] = row[f"iqm_{side}_low"] = row[f"iqm_{side}_high"] = math.nan
+        envs = {task.task: task.env_id or task.task for task in tasks if task.task in pairs}
+        unscored = [
+            env for env in envs.values() if normalizer is None or normalizer(env, [0.0]) is None
+        ]
+        if unscored and pairs:
+            row["note"] = (row["note"] + "; " if row["note"] else "") + (
+                f"no reference scores for {', '.join(unscored)}: no IQM"
+            )
+        elif pairs:
+            for k, side in enumerate(("candidate", "baseline")):
+                scores = {t: normalizer(envs[t], pair[k]) for t, pair in pairs.items()}
+                result = aggregate_iqm(scores, n_resamples=n_resamples, seed=seed)
+                row[f"iqm_{side}"] = result.iqm
+                row[f"iqm_{side}_low"] = result.ci_low
+                row[f"iqm_{side}_high"] = result.ci_high
+        rows.append(row)
+    return rows
+
+
+def first_result_date(test_folder: Path) -> tuple[str | None, str]:
+    """When a test phase's first result existed: ``(ISO date or None, where it comes from)``.
+
+    A run's ``result.json`` says when it finished (``finished``); runs written before ermrl
+    recorded that are dated by the git commit that first added a result of the folder.
+    """
+    import json
+
+    dates = []
+    for path in sorted(Path(test_folder).glob("agents/*/seed_*/result.json")):
+        try:
+            finished = json.loads(path.read_text()).get("finished")
+        except (OSError, ValueError, AttributeError):
+            continue
+        if isinstance(finished, str):
+            dates.append(finished[:10])
+    try:
+        done = subprocess.run(
+            ["git", "log", "--diff-filter=A", "--format=%cs", "--", "agents"],
+            cwd=test_folder,
+            capture_output=True,
+            text=True,
+            timeout=30,
+            check=False,
+        )
+        committed = done.stdout.split() if done.returncode == 0 else []
+    except (OSError, subprocess.SubprocessError):
+        committed = []
+    if committed:
+        dates.append(min(committed))
+    if not dates:
+        return None, "unknown"
+    first = min(dates)
+    source = "the commit that published it" if first in committed else "its result.json"
+    return first, source
