@@ -36,6 +36,8 @@ from optuna.storages.journal._file import BaseJournalFileLock
 
 from ermrl.storage._url import (
     StorageURL,
+    bound_handshake,
+    connect_args,
     journal_file,
     parse_storage_url,
     redis_split,
@@ -270,25 +272,30 @@ def journal_file_lock(
 _ENGINES: dict[str, Any] = {}
 
 
-def _lock_engine(url: str) -> Any:
-    """A pool-less engine: every lock gets a fresh connection, closed (and so released) after."""
-    engine = _ENGINES.get(url)
+def _lock_engine(spec: StorageURL) -> Any:
+    """A pool-less engine: every lock gets a fresh connection, closed (and so released) after.
+
+    Connecting is bounded as for the storage (:func:`~ermrl.storage._url.connect_args`); a lock
+    wait is not.
+    """
+    engine = _ENGINES.get(spec.url)
     if engine is None:
         import sqlalchemy
         from sqlalchemy.pool import NullPool
 
-        connect_args: dict[str, Any] = {"connect_timeout": 10}
-        engine = sqlalchemy.create_engine(url, poolclass=NullPool, connect_args=connect_args)
-        _ENGINES[url] = engine
+        engine = sqlalchemy.create_engine(
+            spec.url, poolclass=NullPool, connect_args=connect_args(spec)
+        )
+        _ENGINES[spec.url] = bound_handshake(engine)
     return engine
 
 
 @contextlib.contextmanager
-def _pg_lock(url: str, name: str, timeout: float) -> Iterator[None]:
+def _pg_lock(spec: StorageURL, name: str, timeout: float) -> Iterator[None]:
     import sqlalchemy
 
     key = _pg_key(name)
-    with _lock_engine(url).connect() as conn:
+    with _lock_engine(spec).connect() as conn:
         conn.execute(sqlalchemy.text(f"SET lock_timeout = {int(timeout * 1000)}"))
         try:
             conn.execute(sqlalchemy.text("SELECT pg_advisory_lock(:k)"), {"k": key})
@@ -303,11 +310,11 @@ def _pg_lock(url: str, name: str, timeout: float) -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def _mysql_lock(url: str, name: str, timeout: float) -> Iterator[None]:
+def _mysql_lock(spec: StorageURL, name: str, timeout: float) -> Iterator[None]:
     import sqlalchemy
 
     key = lock_key(name)
-    with _lock_engine(url).connect() as conn:
+    with _lock_engine(spec).connect() as conn:
         got = conn.execute(
             sqlalchemy.text("SELECT GET_LOCK(:n, :t)"), {"n": key, "t": int(timeout)}
         ).scalar()
@@ -355,10 +362,10 @@ def storage_lock(
         with _redis_lock(spec, name, timeout):
             yield
     elif spec.kind == "postgresql":
-        with _pg_lock(spec.url, name, timeout):
+        with _pg_lock(spec, name, timeout):
             yield
     elif spec.kind == "mysql":
-        with _mysql_lock(spec.url, name, timeout):
+        with _mysql_lock(spec, name, timeout):
             yield
     else:  # a file next to the SQLite database or the journal
         assert spec.path is not None, spec

@@ -39,7 +39,14 @@ from ermrl.storage._backends import LineJournalFileBackend, PlainRedisBackend
 from ermrl.storage._heartbeat import HeartbeatJournalStorage, RetryStaleTrial, base_storage
 from ermrl.storage._locks import LOCK_TIMEOUT_S, sqlite_file_lock, storage_lock
 from ermrl.storage._repair import check_journal, repair_journal
-from ermrl.storage._url import StorageError, StorageKind, StorageURL, parse_storage_url
+from ermrl.storage._url import (
+    StorageError,
+    StorageKind,
+    StorageURL,
+    bound_handshake,
+    connect_args,
+    parse_storage_url,
+)
 
 __all__ = [
     "StorageError",
@@ -214,7 +221,7 @@ def _open(spec: StorageURL, heartbeat: dict[str, Any], mode: str) -> BaseStorage
         engine_kwargs["connect_args"] = {"timeout": SQLITE_BUSY_TIMEOUT_S}
     else:
         engine_kwargs["pool_pre_ping"] = True
-        engine_kwargs["connect_args"] = {"connect_timeout": 10}
+        engine_kwargs["connect_args"] = connect_args(spec)
     if mode != "create" and not _has_optuna_schema(spec, engine_kwargs):
         # RDBStorage would create the tables: a reader must leave an empty database as it is.
         raise StorageError(
@@ -223,10 +230,19 @@ def _open(spec: StorageURL, heartbeat: dict[str, Any], mode: str) -> BaseStorage
         )
     if mode == "read":  # the schema exists: no lock (and no lock file) needed
         _wait_for_whole_schema(spec, engine_kwargs)
-        return optuna.storages.RDBStorage(spec.url, engine_kwargs=engine_kwargs, **heartbeat)
+        return _rdb_storage(spec, engine_kwargs, heartbeat)
     # Many workers starting at once on a fresh database race on CREATE TABLE: one at a time.
     with storage_lock(spec, "schema"):
-        return optuna.storages.RDBStorage(spec.url, engine_kwargs=engine_kwargs, **heartbeat)
+        return _rdb_storage(spec, engine_kwargs, heartbeat)
+
+
+def _rdb_storage(
+    spec: StorageURL, engine_kwargs: dict[str, Any], heartbeat: dict[str, Any]
+) -> optuna.storages.RDBStorage:
+    """Optuna's RDB storage; only connecting is time-bounded on its connections."""
+    storage = optuna.storages.RDBStorage(spec.url, engine_kwargs=engine_kwargs, **heartbeat)
+    bound_handshake(storage.engine)
+    return storage
 
 
 def _wait_for_whole_schema(

@@ -20,13 +20,16 @@ from __future__ import annotations
 import functools
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 from urllib.parse import parse_qsl, urlencode, urlsplit, urlunsplit
 
 __all__ = [
+    "CONNECT_TIMEOUT_S",
     "StorageError",
     "StorageKind",
     "StorageURL",
+    "bound_handshake",
+    "connect_args",
     "dashboard_command",
     "journal_file",
     "parse_storage_url",
@@ -36,6 +39,9 @@ __all__ = [
 
 StorageKind = Literal["sqlite", "journal", "postgresql", "mysql", "redis"]
 _RDB_KINDS = ("sqlite", "postgresql", "mysql")
+# Seconds a database server has to accept a connection and finish its handshake (PostgreSQL's
+# connect_timeout; for MySQL the greeting and login too, which PyMySQL reads without a limit).
+CONNECT_TIMEOUT_S = 10.0
 
 
 class StorageError(RuntimeError):
@@ -201,3 +207,52 @@ def _installed(module: str) -> bool:
     except ImportError:
         return False
     return True
+
+
+def connect_args(spec: StorageURL) -> dict[str, Any]:
+    """Driver arguments that bound how long connecting to a server storage may take.
+
+    PostgreSQL (libpq) and mysqlclient apply ``connect_timeout`` (:data:`CONNECT_TIMEOUT_S`) to
+    the whole connection, handshake included. PyMySQL applies it to the TCP connection only and
+    then waits for the server's greeting without a limit: against a server that never sends one
+    (another service's port, a silent listener) ``mysql://`` hung for a minute or forever. Its
+    read and write timeouts bound the handshake to the same time; :func:`bound_handshake` lifts
+    them once a connection is made, so a long query or lock wait is not cut short.
+
+    Args:
+        spec: A parsed ``postgresql`` or ``mysql`` storage URL.
+
+    Returns:
+        The ``connect_args`` of ``sqlalchemy.create_engine`` (empty for other kinds).
+    """
+    if spec.kind not in ("postgresql", "mysql"):
+        return {}
+    timeout = CONNECT_TIMEOUT_S
+    args: dict[str, Any] = {"connect_timeout": max(1, round(timeout))}
+    if spec.kind == "mysql" and "+pymysql" in spec.url.split("://", 1)[0]:
+        args.update(read_timeout=timeout, write_timeout=timeout)
+    return args
+
+
+def bound_handshake(engine: Any) -> Any:
+    """Lift PyMySQL's handshake-time read and write timeouts (:func:`connect_args`) from the
+    connections of ``engine`` when they are checked out, so only connecting is bounded.
+
+    PyMySQL has no public setter: it keeps the timeouts in ``_read_timeout`` and
+    ``_write_timeout`` and applies them to its socket before each read and write.
+
+    Args:
+        engine: A SQLAlchemy engine (other drivers' connections are left alone).
+
+    Returns:
+        ``engine``.
+    """
+    import sqlalchemy
+
+    def lift(dbapi_connection: Any, *_: Any) -> None:
+        if type(dbapi_connection).__module__.startswith("pymysql"):
+            dbapi_connection._read_timeout = None
+            dbapi_connection._write_timeout = None
+
+    sqlalchemy.event.listen(engine, "checkout", lift)
+    return engine
