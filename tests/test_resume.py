@@ -130,3 +130,126 @@ def test_an_off_policy_learner_is_not_checkpointed(tmp_path: Path) -> None:
     checkpoint = RunCheckpoint(tmp_path / "c", every=100, key="sac")
     result = train_agent(TASK, None, sac, budget, 3, checkpoint=checkpoint)
     assert result.env_steps == 600 and not (tmp_path / "c").exists()
+
+
+# -- checkpoints that cannot be read back ---------------------------------------------------------
+
+
+class Planted:
+    """A class a pickle names: torch's ``weights_only`` loader refuses to build it."""
+
+
+def _sb3_model(net_arch: list[int]) -> Any:
+    from stable_baselines3 import PPO
+
+    return PPO("MlpPolicy", "Pendulum-v1", n_steps=64, batch_size=64, seed=0,
+               policy_kwargs={"net_arch": net_arch})  # fmt: skip
+
+
+def _state(**fields: Any) -> dict[str, Any]:
+    state = {
+        "version": 1, "key": "k", "num_timesteps": 64, "model": "model-64.zip",
+        "normalize": None, "episode_returns": [-1.0], "episode_steps": [64],
+        "checkpoint_returns": [], "wall_seconds": 1.0,
+    }  # fmt: skip
+    return {**state, **fields}
+
+
+def _damaged(folder: Path, case: str) -> None:
+    """A checkpoint folder of run ``k`` damaged as ``case`` says."""
+    import json
+    import pickle
+    import zipfile
+
+    folder.mkdir(parents=True)
+    state = _state()
+    zip_path = folder / "model-64.zip"
+    _sb3_model([8]).save(zip_path)
+    if case == "truncated":
+        data = zip_path.read_bytes()
+        zip_path.write_bytes(data[: len(data) // 2])
+    elif case == "garbage":
+        zip_path.write_bytes(b"\x00garbage" * 100)
+    elif case in ("pickle", "torch-pickle"):
+        payload = (pickle.dumps(Planted()) if case == "pickle"
+                   else _torch_bytes({"weight": Planted()}))  # fmt: skip
+        with zipfile.ZipFile(zip_path, "w") as archive:
+            archive.writestr("policy.pth", payload)
+    elif case == "state-garbage":
+        (folder / "state.json").write_bytes(b"\xff{not json")
+        return
+    elif case == "state-types":
+        state = _state(num_timesteps="64", episode_returns="many")
+    elif case == "state-path":
+        state = _state(model="../../elsewhere.zip")
+    (folder / "state.json").write_text(json.dumps(state))
+
+
+def _torch_bytes(obj: Any) -> bytes:
+    buffer = io.BytesIO()
+    torch.save(obj, buffer)
+    return buffer.getvalue()
+
+
+CASES = ["truncated", "garbage", "pickle", "torch-pickle", "state-garbage", "state-types",
+         "state-path"]  # fmt: skip
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_an_unreadable_checkpoint_is_set_aside_in_one_line(
+    tmp_path: Path, case: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    folder = tmp_path / "checkpoints"
+    _damaged(folder, case)
+    assert RunCheckpoint(folder, every=64, key="k").load() is None
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1, err
+    assert f"checkpoint {folder} is unreadable" in err and "trains from the start" in err
+    (aside,) = tmp_path.glob("checkpoints.unreadable-*")
+    assert (aside / "state.json").exists() and not folder.exists()
+    assert RunCheckpoint(folder, every=64, key="k").load() is None  # nothing left to set aside
+    assert capsys.readouterr().err == ""
+
+
+def test_a_rerun_with_an_unreadable_checkpoint_trains_from_the_start(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A truncated model zip: the run trains from step 0 (it raised on every rerun)."""
+    folder = tmp_path / "checkpoints"
+    _damaged(folder, "truncated")
+    budget = BudgetConfig(training_steps=256, fitness="eval", n_eval_episodes=1)
+    checkpoint = RunCheckpoint(folder, every=64, key="k")
+    result = train_agent(TASK, None, settings(), budget, 3, checkpoint=checkpoint,
+                         callbacks=[AtStart()])  # fmt: skip
+    assert AtStart.seen["steps"] == 0 and result.env_steps == 256
+    assert "is unreadable" in capsys.readouterr().err
+
+
+def test_weights_of_the_wrong_shapes_are_set_aside_and_the_model_left_as_it_was(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import json
+
+    folder = tmp_path / "checkpoints"
+    folder.mkdir()
+    _sb3_model([8]).save(folder / "model-64.zip")
+    (folder / "state.json").write_text(json.dumps(_state()))
+    checkpoint = RunCheckpoint(folder, every=64, key="k")
+    assert checkpoint.load() is not None  # readable: only the model can tell
+    model = _sb3_model([16])
+    before = copy.deepcopy(model.get_parameters())
+    assert checkpoint.restore(model, None) is None
+    for name, state in before["policy"].items():
+        assert torch.equal(model.get_parameters()["policy"][name], state), name
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "model-64.zip does not fit this model" in err
+    assert not folder.exists() and list(tmp_path.glob("checkpoints.unreadable-*"))
+    # A checkpoint of this model restores.
+    good = tmp_path / "good"
+    good.mkdir()
+    saved_model = _sb3_model([16])
+    saved_model.save(good / "model-64.zip")
+    (good / "state.json").write_text(json.dumps(_state()))
+    assert RunCheckpoint(good, every=64, key="k").restore(model, None) is not None
+    for name, state in saved_model.get_parameters()["policy"].items():
+        assert torch.equal(model.get_parameters()["policy"][name], state), name

@@ -11,13 +11,27 @@ The environments restart from fresh episodes (seeded anew), and the learner's ot
 recurrent learner's hidden state, its random streams) starts afresh: a resumed run is not bit for
 bit the uninterrupted one. Off-policy learners (SAC, whose replay buffer is not saved) and
 learners that are no SB3 algorithm are not checkpointed: they restart from step 0.
+
+A checkpoint is data someone else may have written: its model is read with ``weights_only``
+tensors and no pickled class data, and a checkpoint that cannot be read back whole (a truncated
+or foreign zip, a pickle, a state file of the wrong types, weights of the wrong shapes) is set
+aside as ``<folder>.unreadable-<UTC time>`` with one line on stderr, and the run trains from the
+start.
 """
 
 from __future__ import annotations
 
+import copy
 import json
+import math
 import os
+import re
 import shutil
+import sys
+import time
+import warnings
+import zipfile
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -28,6 +42,8 @@ __all__ = ["RunCheckpoint", "can_checkpoint"]
 
 CHECKPOINT_VERSION = 1
 STATE_FILE = "state.json"
+MAX_STATE_BYTES = 256 << 20  # a state file larger than this is not ermrl's (episode lists)
+_MODEL_NAME = re.compile(r"model-\d+\.zip")
 
 
 def can_checkpoint(model: Any) -> bool:
@@ -53,19 +69,85 @@ class RunCheckpoint:
 
     def load(self) -> dict[str, Any] | None:
         """The saved state (with ``model``, the path of its model file), or ``None``: no
-        checkpoint, one of another run, or an unreadable one (the run then starts over)."""
+        checkpoint, one of another run (the run starts over and its saves replace it), or an
+        unreadable one, which is set aside first (:meth:`set_aside`).
+
+        Everything is checked that can be without the model: the state file's fields and
+        types, and that the model file is a zip whose tensors load with ``weights_only``."""
+        path = self.folder / STATE_FILE
         try:
-            state = json.loads((self.folder / STATE_FILE).read_text())
-        except (OSError, ValueError):
+            with path.open("rb") as handle:
+                raw = handle.read(MAX_STATE_BYTES + 1)
+        except FileNotFoundError:
             return None
-        if (
-            not isinstance(state, dict)
-            or state.get("version") != CHECKPOINT_VERSION
-            or state.get("key") != self.key
-            or not (self.folder / str(state.get("model"))).is_file()
+        except OSError as err:
+            self.set_aside(f"{STATE_FILE}: {err.strerror or err}")
+            return None
+        if len(raw) > MAX_STATE_BYTES:
+            self.set_aside(f"{STATE_FILE} is over {MAX_STATE_BYTES >> 20} MiB")
+            return None
+        try:
+            state = json.loads(raw.decode("utf-8"))
+        except (ValueError, RecursionError) as err:  # JSONDecodeError, UnicodeDecodeError
+            self.set_aside(f"{STATE_FILE} is not JSON ({str(err).splitlines()[0]})")
+            return None
+        if isinstance(state, dict) and (
+            state.get("version") != CHECKPOINT_VERSION or state.get("key") != self.key
         ):
+            return None  # another version's or another run's: not resumed, replaced
+        problem = _state_problem(state)
+        if problem is None:
+            problem = _model_problem(self.folder / state["model"])
+        if problem is not None:
+            self.set_aside(problem)
             return None
         return {**state, "model": self.folder / state["model"]}
+
+    def restore(self, model: Any, normalized: Any) -> dict[str, Any] | None:
+        """Load the saved state into ``model`` (weights, optimizer) and ``normalized`` (its
+        running statistics, when it is a ``VecNormalize``): the state as :meth:`load` gives
+        it, or ``None`` with both left as they were (no checkpoint, or one set aside, e.g.
+        weights of the wrong shapes for this model)."""
+        saved = self.load()
+        if saved is None:
+            return None
+        before = copy.deepcopy(model.get_parameters())
+        stats = [copy.deepcopy(getattr(normalized, a, None)) for a in ("obs_rms", "ret_rms")]
+        try:
+            model.set_parameters(str(saved["model"]), exact_match=True)
+            if saved["normalize"] is not None:
+                restore_normalization(normalized, saved["normalize"])
+        except Exception as err:  # noqa: BLE001 (whatever a foreign file makes torch raise)
+            model.set_parameters(before, exact_match=True)
+            for attr, value in zip(("obs_rms", "ret_rms"), stats):
+                if value is not None:
+                    setattr(normalized, attr, value)
+            detail = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+            self.set_aside(f"{saved['model'].name} does not fit this model ({detail})")
+            return None
+        return saved
+
+    def set_aside(self, reason: str) -> None:
+        """Move the checkpoint folder aside (``<folder>.unreadable-<UTC time>``) and say so in
+        one line on stderr (the run then trains from the start)."""
+        stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+        aside = self.folder.with_name(f"{self.folder.name}.unreadable-{stamp}")
+        n = 1
+        while aside.exists():
+            n += 1
+            aside = self.folder.with_name(f"{self.folder.name}.unreadable-{stamp}-{n}")
+        try:
+            os.replace(self.folder, aside)
+            where = f"set aside as {aside}"
+        except OSError:
+            shutil.rmtree(self.folder, ignore_errors=True)
+            where = "removed"
+        print(
+            f"checkpoint {self.folder} is unreadable ({reason}); {where}, and the run trains "
+            "from the start",
+            file=sys.stderr,
+            flush=True,
+        )
 
     def save(self, model: Any, normalized: Any, records: dict[str, Any]) -> None:
         """Save ``model`` (at its ``num_timesteps``), the statistics of ``normalized`` (when it
@@ -99,6 +181,86 @@ class RunCheckpoint:
 
     def remove(self) -> None:
         shutil.rmtree(self.folder, ignore_errors=True)
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _numbers(value: Any, integers: bool = False) -> bool:
+    kind = int if integers else (int, float)
+    return isinstance(value, list) and all(_is_number(v) and isinstance(v, kind) for v in value)
+
+
+def _rms_problem(stats: Any, where: str) -> str | None:
+    if not isinstance(stats, Mapping):
+        return f"{where} is not a mapping"
+    for key in ("mean", "var"):
+        value = stats.get(key)
+        if not (_is_number(value) or _numbers(value)):
+            return f"{where}.{key} is not a number or a list of numbers"
+    if not _is_number(stats.get("count")):
+        return f"{where}.count is not a number"
+    return None
+
+
+def _state_problem(state: Any) -> str | None:
+    """What makes a state file (of this version and run) unusable, or ``None``."""
+    if not isinstance(state, dict):
+        return f"{STATE_FILE} is not a JSON object"
+    model = state.get("model")
+    if not isinstance(model, str) or not _MODEL_NAME.fullmatch(model):
+        return f"{STATE_FILE}: model {model!r} is not a model-<step>.zip file name"
+    steps = state.get("num_timesteps")
+    if not isinstance(steps, int) or isinstance(steps, bool) or steps < 0:
+        return f"{STATE_FILE}: num_timesteps {steps!r} is not a step count"
+    checks = {
+        "episode_returns": _numbers(state.get("episode_returns")),
+        "episode_steps": _numbers(state.get("episode_steps"), integers=True),
+        "checkpoint_returns": isinstance(state.get("checkpoint_returns"), list)
+        and all(
+            isinstance(p, list) and len(p) == 2 and _numbers(p) for p in state["checkpoint_returns"]
+        ),  # fmt: skip
+        "wall_seconds": _is_number(state.get("wall_seconds")),
+    }
+    bad = [key for key, ok in checks.items() if not ok]
+    if bad:
+        return f"{STATE_FILE}: {bad[0]} is missing or of the wrong type"
+    normalize = state.get("normalize")
+    if normalize is not None:
+        if not isinstance(normalize, Mapping):
+            return f"{STATE_FILE}: normalize is not a mapping"
+        if normalize.get("obs_rms") is not None:
+            problem = _rms_problem(normalize["obs_rms"], "normalize.obs_rms")
+            if problem is not None:
+                return f"{STATE_FILE}: {problem}"
+        problem = _rms_problem(normalize.get("ret_rms"), "normalize.ret_rms")
+        if problem is not None:
+            return f"{STATE_FILE}: {problem}"
+    return None
+
+
+def _model_problem(path: Path) -> str | None:
+    """What keeps the model file from loading (a truncated or foreign zip, a pickle where
+    tensors belong), or ``None``. Tensors load with ``weights_only``; class data (SB3's
+    ``data`` entry, which may hold pickles) is not read, as ``set_parameters`` does not."""
+    from stable_baselines3.common.save_util import load_from_zip_file
+
+    if not path.is_file():
+        return f"its model file {path.name} is missing"
+    if not zipfile.is_zipfile(path):
+        return f"{path.name} is not a whole zip file"
+    try:
+        with warnings.catch_warnings():  # torch's on a foreign pickle protocol: it refuses it
+            warnings.simplefilter("ignore")
+            _, params, _ = load_from_zip_file(path, device="cpu", load_data=False)
+    except Exception as err:  # noqa: BLE001 (whatever a damaged file makes zipfile/torch raise)
+        detail = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        return f"{path.name} cannot be read ({detail})"
+    policy = params.get("policy") if isinstance(params, dict) else None
+    if not isinstance(policy, Mapping) or not policy:
+        return f"{path.name} holds no policy weights"
+    return None
 
 
 def restore_normalization(normalized: Any, stats: dict[str, Any]) -> None:
