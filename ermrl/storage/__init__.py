@@ -30,6 +30,7 @@ from ermrl.storage._open import (
     worker_info,
 )
 from ermrl.storage._repair import JournalRepair, repair_journal, repair_redis_journal, torn_tail
+from ermrl.storage._retry import DEFAULT_RETRY_WINDOW_S, RETRY_WINDOW_ENV
 from ermrl.storage._snapshot import (
     RELATED_SUFFIXES,
     SNAPSHOT_FORMAT,
@@ -53,12 +54,14 @@ __all__ = [
     "DEFAULT_GRACE_PERIOD",
     "DEFAULT_HEARTBEAT_INTERVAL",
     "DEFAULT_MAX_RETRY",
+    "DEFAULT_RETRY_WINDOW_S",
     "DEFAULT_STORAGE",
     "HEARTBEAT_ATTR",
     "HeartbeatJournalStorage",
     "JournalRepair",
     "LockTimeout",
     "RELATED_SUFFIXES",
+    "RETRY_WINDOW_ENV",
     "RetryStaleTrial",
     "SNAPSHOT_FORMAT",
     "SNAPSHOT_VERSION",

@@ -16,19 +16,21 @@ from __future__ import annotations
 import json
 import logging
 import os
-from collections.abc import Generator, Iterator
-from typing import Any
+from collections.abc import Callable, Generator, Iterator
+from typing import Any, TypeVar
 
 from optuna.storages.journal import JournalFileBackend, JournalRedisBackend
 
 from ermrl.storage._locks import JournalSymlinkLock
 from ermrl.storage._repair import is_journal_record, journal_record
+from ermrl.storage._retry import DEFAULT_RETRY_WINDOW_S, Outage, redis_client, redis_transient
 from ermrl.storage._url import StorageError
 
 __all__ = ["LineJournalFileBackend", "PlainRedisBackend"]
 
 _log = logging.getLogger("ermrl.storage")
 _REDIS_BATCH = 1000  # records fetched per MGET
+T = TypeVar("T")
 
 
 def _short(err: BaseException) -> str:
@@ -117,12 +119,42 @@ class PlainRedisBackend(JournalRedisBackend):
             (default: ``url``).
     """
 
-    def __init__(self, url: str, prefix: str = "", storage: str | None = None) -> None:
+    def __init__(
+        self,
+        url: str,
+        prefix: str = "",
+        storage: str | None = None,
+        retry_window: float = DEFAULT_RETRY_WINDOW_S,
+    ) -> None:
         super().__init__(url, prefix=prefix)
         self._storage = storage or url
+        self._outage = Outage(self._storage, retry_window)
+        self._redis = redis_client(url, retry_window)
+
+    def __setstate__(self, state: dict[Any, Any]) -> None:
+        self.__dict__.update(state)
+        self._redis = redis_client(self._url, self._outage.window)
+
+    def _call(self, fn: Callable[..., T], *args: Any) -> T:
+        """A Redis command, retried through an outage (:mod:`ermrl.storage._retry`)."""
+        return self._outage.call(redis_transient, fn, *args)
+
+    def append_logs(self, logs: list[dict[str, Any]]) -> None:
+        """Optuna's append (one atomic script per record), each command retried on its own, so
+        a record that was stored is never sent again by a retry of the whole batch."""
+        self._call(self._redis.setnx, f"{self._prefix}:log_number", -1)
+        for log in logs:
+            self._call(
+                self._redis.eval,
+                "local i = redis.call('incr', string.format('%s:log_number', ARGV[1])) "
+                "redis.call('set', string.format('%s:log:%d', ARGV[1], i), ARGV[2])",
+                0,
+                self._prefix,
+                json.dumps(log),
+            )
 
     def read_logs(self, log_number_from: int) -> Generator[dict[str, Any], None, None]:
-        raw = self._redis.get(f"{self._prefix}:log_number")
+        raw = self._call(self._redis.get, f"{self._prefix}:log_number")
         if raw is None:
             return
         try:
@@ -131,7 +163,7 @@ class PlainRedisBackend(JournalRedisBackend):
             raise self._damaged(f"its log_number is not a number ({raw!r})") from None
         for start in range(log_number_from, last + 1, _REDIS_BATCH):
             numbers = range(start, min(start + _REDIS_BATCH, last + 1))
-            values = self._redis.mget([self._key_log_id(n) for n in numbers])
+            values = self._call(self._redis.mget, [self._key_log_id(n) for n in numbers])
             for number, value in zip(numbers, values):
                 if value is None:
                     raise self._damaged(f"record {number} of {last + 1} is missing")
@@ -148,7 +180,7 @@ class PlainRedisBackend(JournalRedisBackend):
 
     def load_snapshot(self) -> bytes | None:
         key = f"{self._prefix}:snapshot"
-        if (self._url, key) not in _SNAPSHOTS_WARNED and self._redis.exists(key):
+        if (self._url, key) not in _SNAPSHOTS_WARNED and self._call(self._redis.exists, key):
             _SNAPSHOTS_WARNED.add((self._url, key))
             _log.warning(
                 "ignoring Redis key %s (a pickled snapshot, never loaded: the journal log is "

@@ -17,6 +17,7 @@ which the next ``study.ask()`` of any worker picks up.
 from __future__ import annotations
 
 import copy
+import logging
 import time
 import warnings
 from collections.abc import Callable
@@ -29,6 +30,10 @@ from optuna.storages import BaseStorage, JournalStorage, RetryHeartbeatStaleTria
 from optuna.storages._heartbeat import BaseHeartbeat
 from optuna.storages.journal import BaseJournalBackend
 from optuna.trial import FrozenTrial, TrialState
+
+from ermrl.storage._url import StorageError
+
+_log = logging.getLogger("ermrl.storage")
 
 __all__ = [
     "HEARTBEAT_ATTR",
@@ -89,6 +94,8 @@ class HeartbeatJournalStorage(JournalStorage, BaseHeartbeat):
             self.set_trial_system_attr(trial_id, HEARTBEAT_ATTR, time.time())
         except UpdateFinishedTrialError:
             pass  # finished (or failed as stale by another worker) meanwhile
+        except StorageError as err:  # unreachable past the retry window: the next one counts
+            _log.warning("missed a heartbeat of trial id %d: %s", trial_id, err)
 
     def _get_stale_trial_ids(self, study_id: int) -> list[int]:
         assert self.heartbeat_interval is not None

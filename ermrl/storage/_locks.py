@@ -330,15 +330,19 @@ def _mysql_lock(spec: StorageURL, name: str, timeout: float) -> Iterator[None]:
 def _redis_lock(spec: StorageURL, name: str, timeout: float) -> Iterator[None]:
     import redis
 
-    client = redis.Redis.from_url(spec.url)
+    from ermrl.storage._retry import Outage, redis_client, redis_transient, retry_window
+
+    window = retry_window()
+    outage = Outage(spec.raw, window)
+    client = redis_client(spec.url, window)
     lock = client.lock(lock_key(f"{spec.prefix}:{name}"), timeout=120, blocking_timeout=timeout)
-    if not lock.acquire():
+    if not outage.call(redis_transient, lock.acquire):
         raise LockTimeout(f"could not take Redis lock {name!r} within {timeout:.0f} s")
     try:
         yield
     finally:
         with contextlib.suppress(redis.exceptions.LockError):  # expired meanwhile
-            lock.release()
+            outage.call(redis_transient, lock.release)
 
 
 @contextlib.contextmanager

@@ -39,6 +39,8 @@ from ermrl.storage._backends import LineJournalFileBackend, PlainRedisBackend
 from ermrl.storage._heartbeat import HeartbeatJournalStorage, RetryStaleTrial, base_storage
 from ermrl.storage._locks import LOCK_TIMEOUT_S, sqlite_file_lock, storage_lock
 from ermrl.storage._repair import check_journal, repair_journal
+from ermrl.storage._retry import RetryingRDBStorage
+from ermrl.storage._retry import retry_window as retry_window_s
 from ermrl.storage._url import (
     StorageError,
     StorageKind,
@@ -121,6 +123,7 @@ def open_storage(
     grace_period: int | None = None,
     max_retry: int | None = DEFAULT_MAX_RETRY,
     mode: Literal["create", "write", "read"] = "create",
+    retry_window: float | None = None,
 ) -> BaseStorage:
     """Open a storage, creating its schema under an inter-process lock.
 
@@ -138,6 +141,10 @@ def open_storage(
             lock file, no schema, no journal repair: Optuna reads a journal's complete
             records). In both, a database without Optuna's tables (a 0-byte SQLite file, an
             empty server database) is a :class:`StorageError`, and is left without them.
+        retry_window: Seconds a call to a server storage (PostgreSQL, MySQL, Redis) is retried
+            while the server is unreachable, before it fails with a :class:`StorageError`
+            (``None``: ``ERMRL_STORAGE_RETRY_S`` or 120; 0: no retries; see
+            :mod:`ermrl.storage._retry`). Opening is not retried.
 
     Returns:
         An Optuna storage.
@@ -159,6 +166,7 @@ def open_storage(
             f"grace period ({grace_period} s) must be longer than the heartbeat interval "
             f"({heartbeat_interval} s)"
         )
+    window = retry_window_s(retry_window)
     retry = RetryStaleTrial(max_retry) if max_retry is None or max_retry > 0 else None
     heartbeat: dict[str, Any] = {
         "heartbeat_interval": heartbeat_interval,
@@ -169,7 +177,7 @@ def open_storage(
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ExperimentalWarning)
-            storage = _open(spec, heartbeat, mode)
+            storage = _open(spec, heartbeat, mode, window)
     except StorageError:
         raise
     except Exception as err:  # sqlalchemy / driver / redis errors: keep the message short
@@ -178,7 +186,7 @@ def open_storage(
     return storage
 
 
-def _open(spec: StorageURL, heartbeat: dict[str, Any], mode: str) -> BaseStorage:
+def _open(spec: StorageURL, heartbeat: dict[str, Any], mode: str, window: float) -> BaseStorage:
     if spec.kind == "journal":
         path = spec.path
         assert path is not None, spec
@@ -199,7 +207,9 @@ def _open(spec: StorageURL, heartbeat: dict[str, Any], mode: str) -> BaseStorage
                 ) from err
         return HeartbeatJournalStorage(LineJournalFileBackend(str(path), spec.raw), **heartbeat)
     if spec.kind == "redis":
-        backend = PlainRedisBackend(spec.url, prefix=spec.prefix, storage=spec.raw)
+        backend = PlainRedisBackend(
+            spec.url, prefix=spec.prefix, storage=spec.raw, retry_window=window
+        )
         storage = HeartbeatJournalStorage(backend, **heartbeat)
         storage.get_all_studies()  # fail now if the server is unreachable
         return storage
@@ -230,17 +240,22 @@ def _open(spec: StorageURL, heartbeat: dict[str, Any], mode: str) -> BaseStorage
         )
     if mode == "read":  # the schema exists: no lock (and no lock file) needed
         _wait_for_whole_schema(spec, engine_kwargs)
-        return _rdb_storage(spec, engine_kwargs, heartbeat)
+        return _rdb_storage(spec, engine_kwargs, heartbeat, window)
     # Many workers starting at once on a fresh database race on CREATE TABLE: one at a time.
     with storage_lock(spec, "schema"):
-        return _rdb_storage(spec, engine_kwargs, heartbeat)
+        return _rdb_storage(spec, engine_kwargs, heartbeat, window)
 
 
 def _rdb_storage(
-    spec: StorageURL, engine_kwargs: dict[str, Any], heartbeat: dict[str, Any]
+    spec: StorageURL, engine_kwargs: dict[str, Any], heartbeat: dict[str, Any], window: float
 ) -> optuna.storages.RDBStorage:
-    """Optuna's RDB storage; only connecting is time-bounded on its connections."""
-    storage = optuna.storages.RDBStorage(spec.url, engine_kwargs=engine_kwargs, **heartbeat)
+    """Optuna's RDB storage; on a server, calls are retried through an outage
+    (:class:`RetryingRDBStorage`) and only connecting is time-bounded."""
+    if spec.kind == "sqlite":
+        return optuna.storages.RDBStorage(spec.url, engine_kwargs=engine_kwargs, **heartbeat)
+    storage = RetryingRDBStorage(
+        spec.url, retry_window=window, engine_kwargs=engine_kwargs, **heartbeat
+    )
     bound_handshake(storage.engine)
     return storage
 
