@@ -666,3 +666,28 @@ def test_the_report_and_study_export_write_the_same_trials_table(tmp_path: Path)
     assert [r["state"] for r in records] == list(report["state"])
     assert records[0]["user_attrs_task_normalized"] == report.loc[0, "user_attrs_task_normalized"]
     assert records[0]["datetime_start"].startswith(str(loaded.trials[0].datetime_start.date()))
+
+
+@pytest.mark.parametrize("name", ["result.json", "episodes.csv"])
+@pytest.mark.parametrize("how", ["device", "huge", "folder"])
+def test_a_run_file_that_is_a_device_or_huge_is_refused_unread(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, name: str, how: str
+) -> None:
+    """A record that is a device (``/dev/zero``: reading it to its end never stops) or larger
+    than any record ermrl writes is a RunFolderError naming it, not a MemoryError."""
+    from ermrl.analysis import RunFolderError, _results
+    from ermrl.analysis._results import read_episodes, read_run_result
+
+    path = tmp_path / name
+    if how == "device":
+        path.symlink_to("/dev/zero")
+    elif how == "folder":
+        path.mkdir()
+    else:  # the cap made small here, so that the test reads kilobytes, not half a gigabyte
+        monkeypatch.setattr(_results, "MAX_RUN_FILE_BYTES", 1024)
+        path.write_text("env_step,episode_return\n" + "1,0.5\n" * 400)
+    read = read_run_result if name == "result.json" else read_episodes
+    expected = {"device": "not a regular file", "huge": "over .* MiB: not a record", "folder": "a folder"}
+    with pytest.raises(RunFolderError, match=expected[how]) as info:
+        read(path)
+    assert str(info.value).startswith(f"{path}: ") and "\n" not in str(info.value)

@@ -173,6 +173,66 @@ def test_report_leaves_out_the_dynamics_of_a_run_with_only_model_zip(
     assert not marker.exists()
 
 
+def _craft_policy(path: Path, kind: str, marker: Path) -> None:
+    """A ``policy.pt`` that is not one ermrl wrote (``kind`` says how)."""
+    import io
+
+    import torch
+
+    if kind == "garbage":
+        path.write_bytes(b"\x00not a torch file" * 8)
+    elif kind == "empty":
+        path.write_bytes(b"")
+    elif kind == "pickle":
+        path.write_bytes(pickle.dumps({"weight": _Marker(marker)}))
+    elif kind == "torch-pickle":
+        buffer = io.BytesIO()
+        torch.save({"weight": _Marker(marker)}, buffer)
+        path.write_bytes(buffer.getvalue())
+    elif kind == "not-a-state-dict":
+        torch.save([torch.zeros(2)], path)
+    elif kind == "wrong-shapes":
+        state = torch.load(path, weights_only=True)
+        torch.save({name: torch.zeros(3, 3) for name in state}, path)
+
+
+CRAFTED_POLICIES = [
+    "garbage",
+    "empty",
+    "pickle",
+    "torch-pickle",
+    "not-a-state-dict",
+    "wrong-shapes",
+]
+
+
+@pytest.mark.parametrize("kind", CRAFTED_POLICIES)
+def test_a_crafted_policy_file_is_one_line_in_dynamics_and_report(
+    run_folder: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], kind: str
+) -> None:
+    from ermrl.analysis import RunFolderError
+    from ermrl.analysis._report import _dynamics_section, _State
+    from ermrl.cli._dynamics import dynamics_main
+
+    marker = tmp_path / "executed"
+    runs = tmp_path / "runs"
+    shutil.copytree(run_folder, runs)
+    policy = runs / "agents/res-ppo/seed_3/policy.pt"
+    _craft_policy(policy, kind, marker)
+    with pytest.raises(SystemExit) as info:
+        dynamics_main(["--run", str(runs), "--seed", "3", "--out", str(tmp_path / "out")])
+    assert info.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and f"{policy}: " in err, err
+    assert not (tmp_path / "out").exists()
+    # The report's dynamics section raises what ermrl report turns into one line.
+    state = _State(out=tmp_path / "report", study=None, storage="")
+    with pytest.raises(RunFolderError) as refused:
+        _dynamics_section(state, runs)
+    assert "\n" not in str(refused.value) and str(policy) in str(refused.value)
+    assert not marker.exists()
+
+
 @pytest.mark.parametrize(("umask", "mode"), [(0o022, 0o644), (0o027, 0o640)])
 def test_policy_file_gets_the_usual_permissions(tmp_path: Path, umask: int, mode: int) -> None:
     """policy.pt is readable as the umask allows, like every other file of a run folder

@@ -297,7 +297,12 @@ def rollout(
         if trained.normalize_path is not None:
             policy_env = frozen_normalize_env(venv, load_normalize_stats(trained.normalize_path))
         policy_env = get_learner(ppo.learner).wrap_env(policy_env, ppo)  # a frame stack
-        model = load_policy(trained.policy_path, ppo, policy_env)
+        try:
+            model = load_policy(trained.policy_path, ppo, policy_env)
+        except ValueError as err:  # a damaged or foreign policy.pt, or settings that do not build
+            where = str(trained.policy_path)
+            text = str(err).removeprefix(where).lstrip(": ")
+            raise RunFolderError(where, text) from None
         obs_dim = int(np.prod(venv.observation_space.shape))
         base = venv.venv if encoder is not None else venv
         unwrapped = base.envs[0].unwrapped

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import io
 import json
+import os
+import stat
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
@@ -59,15 +62,31 @@ class RunFolderError(ValueError):
         super().__init__(f"{path}: {problem}")
 
 
+#: The most bytes read from one file of a run folder: a record of ``ermrl test`` is far smaller
+#: (an ``episodes.csv`` of 10^7 one-step episodes is about 300 MB); a device (``/dev/zero``) or
+#: a huge file is refused rather than read into memory.
+MAX_RUN_FILE_BYTES = 512 << 20
+
+
 def _read_text(path: Path) -> str:
+    limit = MAX_RUN_FILE_BYTES
     try:
-        return path.read_text(encoding="utf-8")
+        with path.open("rb") as handle:
+            if not stat.S_ISREG(os.fstat(handle.fileno()).st_mode):
+                raise RunFolderError(path, "not a regular file (a device, a pipe, ...)")
+            data = handle.read(limit + 1)
     except FileNotFoundError:
         raise RunFolderError(path, "missing (the run folder is incomplete)") from None
-    except UnicodeDecodeError:
-        raise RunFolderError(path, "not UTF-8 text") from None
+    except IsADirectoryError:
+        raise RunFolderError(path, "a folder, not a file") from None
     except OSError as err:
         raise RunFolderError(path, f"cannot be read: {err.strerror or err}") from None
+    if len(data) > limit:
+        raise RunFolderError(path, f"over {limit >> 20} MiB: not a record ermrl test writes")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError:
+        raise RunFolderError(path, "not UTF-8 text") from None
 
 
 def _read_json_object(path: Path) -> dict[str, Any]:
@@ -126,9 +145,9 @@ def read_episodes(path: str | Path) -> pd.DataFrame:
             that is not a number.
     """
     path = Path(path)
-    _read_text(path)  # missing, unreadable, not text
+    text = _read_text(path)  # missing, unreadable, not text, a device, huge
     try:
-        episodes = pd.read_csv(path)
+        episodes = pd.read_csv(io.StringIO(text))
     except pd.errors.EmptyDataError:
         raise RunFolderError(path, "empty (no header line)") from None
     except (pd.errors.ParserError, ValueError) as err:

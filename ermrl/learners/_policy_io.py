@@ -74,16 +74,31 @@ def load_policy(path: str | Path, ppo: PPOConfig, env: Any) -> PPO:
         The agent, ready for ``predict``; it is not meant to be trained further.
 
     Raises:
-        ValueError: The file does not hold a state dict of this network.
+        ValueError: The file cannot be read (truncated, not a torch file, a pickle of objects
+            other than tensors) or does not hold a state dict of this network.
         ConfigError: ``ppo`` does not build an agent (``policy_kwargs={net_arch: foo}``, a
             string where a number belongs, ...).
     """
+    import pickle
+
     import torch
 
     from ermrl.config import ConfigError
     from ermrl.learners import get_learner
 
-    state = torch.load(str(path), map_location="cpu", weights_only=True)
+    try:
+        with warnings.catch_warnings():  # torch's on a foreign pickle protocol: it refuses it
+            warnings.simplefilter("ignore")
+            state = torch.load(str(path), map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError:  # not torch's format, or objects other than tensors
+        raise ValueError(
+            f"{path} is not plain tensors (a damaged file, or a pickle of other objects, which "
+            "is never loaded)"
+        ) from None
+    except Exception as err:  # noqa: BLE001 - whatever torch raises on a file it cannot read
+        text = str(err).strip()
+        first = text.splitlines()[0][:200] if text else type(err).__name__
+        raise ValueError(f"{path} cannot be read as plain tensors ({first})") from None
     if not isinstance(state, dict) or not all(
         isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in state.items()
     ):
@@ -100,8 +115,9 @@ def load_policy(path: str | Path, ppo: PPOConfig, env: Any) -> PPO:
         ) from None
     try:
         model.policy.load_state_dict(state)
-    except RuntimeError as err:
-        first = str(err).strip().splitlines()[0]
+    except RuntimeError as err:  # torch's first line ends with ':', its second says what
+        lines = [line.strip() for line in str(err).strip().splitlines() if line.strip()]
+        first = " ".join(lines[:2])[:300]
         raise ValueError(
             f"{path} does not match the run's PPO settings and spaces: {first}"
         ) from None
