@@ -1,4 +1,4 @@
-"""Ctrl-C during a command's start-up, remembered.
+"""Ctrl-C during a command's start-up, remembered; SIGTERM raised like Ctrl-C.
 
 :func:`ermrl.cli.run_command` installs :func:`catch_sigint` before it imports the command (torch,
 MuJoCo, the envs: seconds). The handler raises ``KeyboardInterrupt`` as Python's default one
@@ -7,6 +7,12 @@ start-up (a broad ``except`` around an optional import, a C extension that turns
 another error that is then handled) would otherwise lose the user's Ctrl-C and let the command
 run on; :class:`ermrl.search.SignalGuard` raises it again once it takes over (see
 :func:`sigint_received`).
+
+:func:`catch_sigterm` makes SIGTERM (``kill``, a SLURM time limit) raise :class:`Terminated`,
+a ``KeyboardInterrupt``, so that a command stopped by it cleans up as on Ctrl-C (temporary
+folders removed, finished runs kept) and says so in one line (:func:`interruption`), instead of
+dying silently. Commands that handle SIGTERM themselves (an evolution's worker) install their
+own handler while they run.
 """
 
 from __future__ import annotations
@@ -15,7 +21,7 @@ import signal
 import threading
 from typing import Any
 
-__all__ = ["catch_sigint", "sigint_received"]
+__all__ = ["Terminated", "catch_sigint", "catch_sigterm", "interruption", "sigint_received"]
 
 _received = False
 
@@ -37,3 +43,29 @@ def catch_sigint() -> None:
 def sigint_received() -> bool:
     """Whether a SIGINT reached the handler of :func:`catch_sigint` since it was installed."""
     return _received
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM during a command (see :func:`catch_sigterm`)."""
+
+    signum = signal.SIGTERM
+
+
+def _sigterm(signum: int, frame: Any) -> None:
+    raise Terminated
+
+
+def catch_sigterm() -> None:
+    """Make SIGTERM raise :class:`Terminated` in the main thread (no-op in another thread)."""
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _sigterm)
+
+
+def interruption(err: BaseException) -> tuple[str, int]:
+    """What stopped a command, in words, and its exit code: ``("stopped by SIGTERM", 143)``
+    for SIGTERM (:class:`Terminated`, or an exception with ``signum`` SIGTERM), else
+    ``("interrupted", 130)`` (Ctrl-C)."""
+    signum = getattr(err, "signum", None)
+    if signum is not None and signum != signal.SIGINT:
+        return f"stopped by {signal.Signals(signum).name}", 128 + int(signum)
+    return "interrupted", 130

@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import shutil
+import socket
 import tempfile
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -49,7 +52,9 @@ def staged_folder(path: str | Path) -> Iterator[Path]:
     a rename on one file system). On success each file is renamed into ``path``, replacing a
     file of the same name; files of ``path`` the block did not write are kept. On an error (a
     full disk, a read-only folder, an interruption) the temporary folder is removed, and so are
-    the folders this created: ``path`` is left as it was, with no partial output.
+    the folders this created: ``path`` is left as it was, with no partial output. A temporary
+    folder left by a process killed outright (``kill -9``) is removed by the next call for the
+    same ``path`` on that machine.
 
     Args:
         path: The output folder.
@@ -65,8 +70,9 @@ def staged_folder(path: str | Path) -> Iterator[Path]:
     created = [p for p in (path, *path.parents) if not p.exists()]
     home = path if path.is_dir() else path.parent
     home.mkdir(parents=True, exist_ok=True)
+    _remove_dead_stages(home, path.name)
     try:
-        stage = Path(tempfile.mkdtemp(dir=home, prefix=f".{path.name}."))
+        stage = Path(tempfile.mkdtemp(dir=home, prefix=_stage_prefix(path.name)))
     except BaseException:
         _remove_empty(created)
         raise
@@ -82,6 +88,51 @@ def staged_folder(path: str | Path) -> Iterator[Path]:
         _remove_empty(created)
         raise
     shutil.rmtree(stage, ignore_errors=True)
+
+
+def _host() -> str:
+    return re.sub(r"[^A-Za-z0-9-]", "-", socket.gethostname()) or "host"
+
+
+def _stage_prefix(name: str) -> str:
+    """``.<name>.<host>.<pid>.``: whose a staging folder is, so a dead one can be told."""
+    return f".{name}.{_host()}.{os.getpid()}."
+
+
+def _remove_dead_stages(home: Path, name: str) -> None:
+    """Remove the staging folders of ``name`` in ``home`` that a killed process left behind
+    (``kill -9``, a machine that went down): those of a process of this machine that is gone,
+    and those from before ermrl named them by process that no one touched for a day. A stage
+    of a live process, or of another machine, is left alone."""
+    pattern = re.compile(
+        rf"\.{re.escape(name)}\.(?:(?P<host>[A-Za-z0-9-]+)\.(?P<pid>\d+)\.)?[A-Za-z0-9_]{{8}}"
+    )
+    host = _host()
+    try:
+        entries = list(home.iterdir())
+    except OSError:
+        return
+    for entry in entries:
+        match = pattern.fullmatch(entry.name)
+        if match is None or not entry.is_dir() or entry.is_symlink():
+            continue
+        if match["pid"] is None:
+            with contextlib.suppress(OSError):
+                if time.time() - entry.stat().st_mtime > 86_400:
+                    shutil.rmtree(entry, ignore_errors=True)
+            continue
+        if match["host"] == host and not _alive(int(match["pid"])):
+            shutil.rmtree(entry, ignore_errors=True)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
 
 
 def _merge(source: Path, target: Path) -> None:

@@ -537,3 +537,135 @@ def test_staged_folder_keeps_other_files_and_leaves_nothing_on_error(tmp_path): 
     with pytest.raises(OSError), staged_folder(fresh) as stage:
         raise OSError(errno.ENOSPC, "No space left on device")
     assert not (tmp_path / "new").exists()
+
+
+def test_a_staging_folder_left_by_a_killed_process_is_removed_by_the_next_run(tmp_path):  # noqa: ANN001
+    """kill -9 during a report leaves its hidden staging folder; the next report of the same
+    folder removes it, and leaves a live process's (or another machine's) alone."""
+    import sys
+    import time
+
+    from ermrl._io import _host, staged_folder
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    out = tmp_path / "report"
+    left = tmp_path / f".report.{_host()}.{dead.pid}.abcd_123"
+    live = tmp_path / f".report.{_host()}.{os.getpid()}.live0000"
+    other = tmp_path / f".report.elsewhere.{dead.pid}.other000"
+    legacy = tmp_path / ".report.old_1234"  # named before the process was in the name
+    for folder in (left, live, other, legacy):
+        (folder / "figures").mkdir(parents=True)
+    day_ago = time.time() - 2 * 86_400
+    os.utime(legacy, (day_ago, day_ago))
+    with staged_folder(out) as stage:
+        (stage / "report.md").write_text("# report\n")
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([live.name, other.name, "report"])
+
+
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["study", "show", "--study-name", "s"],
+        ["study", "export", "--study-name", "s", "--out", "-"],
+    ],
+    ids=["show", "export"],
+)
+def test_a_reader_that_closes_the_pipe_ends_the_command_quietly(tmp_path, command):  # noqa: ANN001
+    """``ermrl study show | grep -q x`` or ``study export --out - | head``: no traceback."""
+    import sys
+
+    import optuna
+
+    url = f"sqlite:///{tmp_path / 's.db'}"
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    study = optuna.create_study(study_name="s", storage=url)
+    for i in range(3):
+        study.tell(study.ask({"x": optuna.distributions.FloatDistribution(0, 1)}), float(i))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "ermrl", *command, "--storage", url],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        cwd=tmp_path,
+    )
+    assert proc.stdout is not None and proc.stderr is not None
+    proc.stdout.close()  # the reader is gone before the first line
+    err = proc.stderr.read().decode()
+    assert proc.wait(120) == 141, err
+    assert err == ""
+
+
+def _study_with_config(tmp_path):  # noqa: ANN001, ANN202
+    """A study of a tiny Pendulum configuration with one COMPLETE trial (nothing trained)."""
+    import optuna
+
+    from ermrl.config import (
+        BudgetConfig,
+        EncoderConfig,
+        EvolveConfig,
+        PPOConfig,
+        Problem,
+        ReservoirSpace,
+        SearchConfig,
+        TaskConfig,
+    )
+    from ermrl.search import create_or_resume_study, sample_params
+
+    space = ReservoirSpace(units=10)
+    problem = Problem(
+        task=TaskConfig("Pendulum-v1", "positions"),
+        encoder=EncoderConfig(reservoirs=space.default_reservoirs()),
+        ppo=PPOConfig(hyperparams={"n_steps": 128, "batch_size": 64}),
+        budget=BudgetConfig(training_steps=256),
+        seeds=(0,),
+    )
+    config = EvolveConfig(problem=problem, space=space, search=SearchConfig(n_trials=4))
+    url = f"sqlite:///{tmp_path / 's.db'}"
+    study = create_or_resume_study(config, url, "s", heartbeat_interval=None)
+    for value in (-900.0, -800.0, -1000.0, -700.0):
+        trial = study.ask()
+        sample_params(trial, space)
+        study.tell(trial, value)
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    return url
+
+
+@pytest.mark.slow  # two command start-ups (torch, gymnasium), about 10 s each
+@pytest.mark.parametrize("command", ["report", "test"])
+def test_sigterm_during_report_or_test_is_one_line_and_leaves_no_partial_folder(tmp_path, command):  # noqa: ANN001
+    """SIGTERM (kill, a SLURM time limit) while the command writes: one line, exit 143, and
+    no staging folder or partial report left behind (they died silently before)."""
+    import signal
+    import sys
+    import time
+
+    url = _study_with_config(tmp_path)
+    out = tmp_path / "out"
+    args = {
+        "report": ["report", "--no-interactive", "--no-html", "--no-dynamics"],
+        "test": ["test", "--agents", "ppo", "--seeds", "1", "--training-steps", "200000"],
+    }[command]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "ermrl", *args, "--study-name", "s", "--storage", url,
+         "--out", str(out)],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
+    )  # fmt: skip
+    # The report is stage-written into a hidden folder; the test trains in out/.
+    started = (
+        (lambda: any(p.name.startswith(".out.") for p in tmp_path.iterdir()))
+        if command == "report"
+        else (lambda: (out / "config.yaml").exists())
+    )
+    deadline = time.monotonic() + 120
+    while proc.poll() is None and not started() and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert proc.poll() is None, proc.communicate()[1]
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 143, err
+    assert len(err.strip().splitlines()) == 1 and "stopped by SIGTERM" in err, err
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+    if command == "report":
+        assert not out.exists()
+    else:
+        assert f"finished runs are kept in {out}" in err

@@ -6,6 +6,7 @@ Subcommands are imported only when run, so ``ermrl --help`` is instant.
 from __future__ import annotations
 
 import importlib
+import os
 import sys
 from collections.abc import Sequence
 from typing import Any
@@ -63,17 +64,27 @@ def run_command(name: str, argv: Sequence[str] | None = None, prog: str | None =
 
     Ctrl-C during its start-up (imports, env construction: several seconds), before the
     command's own handling takes over, is one line on stderr and exit code 130, not a
-    traceback.
+    traceback; SIGTERM is one line and exit code 143 (:func:`ermrl._interrupt.catch_sigterm`).
+    A reader that closes the pipe early (``ermrl study show | head``) ends the command quietly
+    with exit code 141, as SIGPIPE ends other Unix tools.
     """
-    from ermrl._interrupt import catch_sigint
+    from ermrl._interrupt import catch_sigint, catch_sigterm, interruption
 
     prog = prog or f"ermrl {name}"
     catch_sigint()  # a Ctrl-C that a library swallows during start-up is raised again later
+    catch_sigterm()
     try:
         return int(_load(COMMANDS[name][0])(argv, prog=prog))
-    except KeyboardInterrupt:
-        print(f"{prog}: interrupted", file=sys.stderr)
-        return 130  # ermrl.cli._common.EXIT_INTERRUPTED, without importing it first
+    except KeyboardInterrupt as err:
+        what, code = interruption(err)
+        print(f"{prog}: {what}", file=sys.stderr)
+        return code
+    except BrokenPipeError:
+        # Nothing more can be written to stdout; point it at /dev/null so that the flush at
+        # exit does not complain about the closed pipe either.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 141
 
 
 def evolve_main(argv: Sequence[str] | None = None, prog: str = "ermrl evolve") -> int:

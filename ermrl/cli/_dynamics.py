@@ -8,8 +8,8 @@ import textwrap
 from collections.abc import Sequence
 from pathlib import Path
 
+from ermrl._interrupt import interruption
 from ermrl.cli._common import (
-    EXIT_INTERRUPTED,
     ArgumentParser,
     HelpFormatter,
     add_run_folder_args,
@@ -66,9 +66,10 @@ def dynamics_main(argv: Sequence[str] | None = None, prog: str = "ermrl dynamics
         recording = record_dynamics(**run_folder_kwargs(args))
     except (FileNotFoundError, UnknownEnvError, RunFolderError) as err:
         fail(prog, str(err))
-    except KeyboardInterrupt:
-        print(f"{prog}: interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
+    except KeyboardInterrupt as err:
+        what, code = interruption(err)
+        print(f"{prog}: {what}", file=sys.stderr)
+        return code
     out = Path(args.out) if args.out else Path(args.run) / "dynamics"
     try:  # staged, then moved into out: a full disk or read-only folder leaves no partial file
         with staged_folder(out) as stage:

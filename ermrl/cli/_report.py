@@ -8,8 +8,8 @@ import textwrap
 from collections.abc import Sequence
 from pathlib import Path
 
+from ermrl._interrupt import interruption
 from ermrl.cli._common import (
-    EXIT_INTERRUPTED,
     ArgumentParser,
     HelpFormatter,
     add_storage_args,
@@ -114,9 +114,10 @@ def report_main(argv: Sequence[str] | None = None, prog: str = "ermrl report") -
             f"cannot write the report {args.out or Path('reports') / args.study_name}: "
             f"{err.strerror or err}; nothing was written (free space, or choose a writable --out)",
         )
-    except KeyboardInterrupt:
-        print(f"{prog}: interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
+    except KeyboardInterrupt as err:
+        what, code = interruption(err)
+        print(f"{prog}: {what}; no report written", file=sys.stderr)
+        return code
     if not args.quiet:
         for note in result.notes:
             print(f"left out: {note}")

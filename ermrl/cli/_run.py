@@ -14,9 +14,10 @@ import textwrap
 from collections.abc import Sequence
 from pathlib import Path
 
+from ermrl._interrupt import interruption
 from ermrl._progress import PROGRESS_MODES
 from ermrl._text import plural
-from ermrl.cli._common import EXIT_INTERRUPTED, ArgumentParser, HelpFormatter, fail
+from ermrl.cli._common import ArgumentParser, HelpFormatter, fail
 from ermrl.cli._experiment import (
     PUBLISH_MAX_BYTES,
     Experiment,
@@ -205,10 +206,11 @@ def _run_steps(exp: Experiment, chosen: Sequence[Step], args: argparse.Namespace
             code = int(run(argv, prog=f"ermrl {step.command}") or 0)
         except SystemExit as err:
             code = err.code if isinstance(err.code, int) else 1
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as err:
             publish_finished_runs(exp, step)
-            print(f"{prog}: interrupted; rerun the same command to resume", file=sys.stderr)
-            return EXIT_INTERRUPTED
+            what, code = interruption(err)
+            print(f"{prog}: {what}; rerun the same command to resume", file=sys.stderr)
+            return code
         if code != 0:
             publish_finished_runs(exp, step)
             print(

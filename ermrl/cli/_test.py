@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
+from ermrl._interrupt import interruption
 from ermrl.cli._common import (
     EXIT_INTERRUPTED,
     ArgumentParser,
@@ -254,8 +255,11 @@ def run_or_exit(prog: str, out: Path, run: Callable[[], T]) -> T | None:
         if err.errno not in WRITE_ERRNOS:
             raise
         fail(prog, write_error_message(err, out))
-    except KeyboardInterrupt:
-        print(f"{prog}: interrupted; finished runs are kept in {out}", file=sys.stderr)
+    except KeyboardInterrupt as err:
+        what, code = interruption(err)
+        print(f"{prog}: {what}; finished runs are kept in {out}", file=sys.stderr)
+        if code != EXIT_INTERRUPTED:
+            raise SystemExit(code) from None
         return None
 
 

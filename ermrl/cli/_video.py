@@ -8,8 +8,8 @@ import textwrap
 from collections.abc import Sequence
 from pathlib import Path
 
+from ermrl._interrupt import interruption
 from ermrl.cli._common import (
-    EXIT_INTERRUPTED,
     ArgumentParser,
     HelpFormatter,
     add_run_folder_args,
@@ -90,9 +90,10 @@ def video_main(argv: Sequence[str] | None = None, prog: str = "ermrl video") -> 
             f"{err.strerror or err}; "
             "nothing was written (free space, or choose a writable --out)",
         )
-    except KeyboardInterrupt:
-        print(f"{prog}: interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
+    except KeyboardInterrupt as err:
+        what, code = interruption(err)
+        print(f"{prog}: {what}", file=sys.stderr)
+        return code
     if not args.quiet:
         height, width = result.size
         print(
