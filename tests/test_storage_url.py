@@ -151,6 +151,35 @@ def test_an_in_memory_sqlite_database_is_refused_in_one_line(url: str) -> None:
 
 
 @pytest.mark.parametrize(
+    ("url", "message"),
+    [
+        # In memory behind two layers of percent-escapes (SQLAlchemy decodes one, SQLite the
+        # other): they were accepted, and the trials went to a file of another name.
+        ("sqlite:///%253Amemory%253A", "is an in-memory SQLite database"),
+        ("sqlite:///file:x.db?uri=true&mode=memor%2579", "is an in-memory SQLite database"),
+        ("sqlite:///file:x.db?uri=true&vfs=%256Demdb", "is an in-memory SQLite database"),
+        ("sqlite:///file:x.db?mode%253Dmemory&uri=true", "is an in-memory SQLite database"),
+        # A file SQLite would name otherwise than the path ermrl reads from the URL.
+        ("sqlite:///file:%3A?uri=true", "percent-escapes"),
+        ("sqlite:///my%20study.db", "percent-escapes"),
+        ("sqlite:///file:x.db?uri=true", "SQLite URI filename"),
+    ],
+)
+def test_a_sqlite_url_whose_file_sqlite_would_name_otherwise_is_refused(
+    url: str, message: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from ermrl.storage import open_storage
+
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(StorageError, match=message) as caught:
+        parse_storage_url(url)
+    assert "\n" not in str(caught.value) and str(caught.value).startswith(url)
+    with pytest.raises(StorageError):
+        open_storage(url)
+    assert list(tmp_path.iterdir()) == []  # no database, no lock file
+
+
+@pytest.mark.parametrize(
     "raw",
     [
         "sqlite:///x.db",

@@ -7,8 +7,10 @@ imports nothing else from :mod:`ermrl.storage`, so any of them can import it.
 Accepted URLs:
 
 - ``sqlite:///path.db`` (in-memory databases are refused, however spelled: ``sqlite://``,
-  ``sqlite:///:memory:``, ``sqlite:///file::memory:?uri=true``, ``...?mode=memory``; no later
-  command could read their trials);
+  ``sqlite:///:memory:``, ``sqlite:///file::memory:?uri=true``, ``...?mode=memory``, with
+  percent-escapes; no later command could read their trials). A file is named by its plain
+  path: percent-escapes and SQLite URI filenames (``file:...``) are refused, since SQLite would
+  decode them into another file than the one ermrl checks;
 - ``postgresql://...`` (or ``postgres://...``) and ``mysql://...``, with or without a driver
   (``postgresql+psycopg2://``, ``mysql+pymysql://``);
 - ``journal:///path.log`` or any path ending in ``.log`` (no scheme);
@@ -21,7 +23,7 @@ import functools
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
-from urllib.parse import parse_qsl, urlencode, urlsplit, urlunsplit
+from urllib.parse import parse_qsl, unquote, urlencode, urlsplit, urlunsplit
 
 __all__ = [
     "CONNECT_TIMEOUT_S",
@@ -99,11 +101,19 @@ def parse_storage_url(url: str) -> StorageURL:
     dialect, _, driver = scheme.lower().partition("+")
     if dialect == "sqlite":
         path = sqlite_file(url)
-        if path is None:
+        # Percent-escapes are decoded by SQLAlchemy and again by SQLite (in a URI filename):
+        # an in-memory database may hide behind one or two layers of them.
+        if path is None or any(_sqlite_in_memory(u) for u in _unquoted(url)):
             raise StorageError(
                 f"{url} is an in-memory SQLite database: its trials would vanish when this "
                 "command exits and no other command could read them; use a file, e.g. "
                 "sqlite:///ermrl.db"
+            )
+        problem = _sqlite_spelling_problem(url)
+        if problem is not None:
+            raise StorageError(
+                f"{url}: {problem}, so SQLite could write another file than the one named; "
+                "write the database file's path as it is, e.g. sqlite:///ermrl.db"
             )
         return StorageURL(raw=url, kind="sqlite", url=url, path=path)
     if dialect in ("postgresql", "postgres"):
@@ -151,6 +161,25 @@ def sqlite_file(url: str) -> Path | None:
     if not rest:
         return None
     return Path(rest).expanduser()
+
+
+def _unquoted(url: str) -> list[str]:
+    """``url`` percent-decoded once and twice (the decodings SQLAlchemy and SQLite apply)."""
+    once = unquote(url)
+    return [once, unquote(once)]
+
+
+def _sqlite_spelling_problem(url: str) -> str | None:
+    """Why a SQLite URL of a file is refused: percent-escapes or a SQLite URI filename
+    (``file:...``), whose file SQLite names otherwise than the path ermrl reads from the URL
+    (for its locks, existence and read-only checks); ``None`` for a plain path."""
+    rest = url.split("://", 1)[1] if "://" in url else url
+    if "%" in rest:
+        return "percent-escapes (%XX) are decoded differently by SQLAlchemy and SQLite"
+    database = rest[1:] if rest.startswith("/") else rest
+    if database.lower().startswith("file:"):
+        return "a SQLite URI filename (file:...) names its file otherwise than a path"
+    return None
 
 
 def _sqlite_in_memory(url: str) -> bool:
