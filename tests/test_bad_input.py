@@ -669,3 +669,18 @@ def test_sigterm_during_report_or_test_is_one_line_and_leaves_no_partial_folder(
         assert not out.exists()
     else:
         assert f"finished runs are kept in {out}" in err
+
+
+def test_a_failed_test_phase_leaves_no_skeleton_folder(tmp_path, monkeypatch, capsys):  # noqa: ANN001
+    """A test phase that fails before any run finishes (here no episode ends within the
+    budget) removes the folders it created; only its one-line error remains."""
+    from ermrl.cli import test_main
+
+    url = _study_with_config(tmp_path)
+    monkeypatch.chdir(tmp_path)
+    argv = ["--study-name", "s", "--storage", url, "--agents", "ppo", "--seeds", "1"]
+    with pytest.raises(SystemExit) as info:
+        test_main([*argv, "--training-steps", "64", "--progress", "none"])
+    assert info.value.code == 2
+    assert "no episode of Pendulum-v1 ended" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.db", "s.db.lock"]

@@ -733,3 +733,17 @@ def test_changing_the_search_or_a_finished_reevaluation_mid_study_is_refused(
         experiment_plan(load_experiment(path), build_agents=False)
     text = str(info.value)
     assert message in text and "\n" not in text and "change the file back" in text
+
+
+def test_a_failed_run_leaves_no_resolved_file_behind(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``ermrl run FILE --stage test`` before any evolution: the test stage fails (no study),
+    and the run removes the resolved file and the folder it created for it."""
+    from ermrl.cli._run import run_main
+
+    path = write(tmp_path, TINY)
+    monkeypatch.chdir(tmp_path)
+    code = run_main([str(path), "--stage", "test", "--quiet"])
+    assert code != 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["exp.yaml"]

@@ -234,18 +234,12 @@ def _run_steps(exp: Experiment, chosen: Sequence[Step], args: argparse.Namespace
 
 def run_main(argv: Sequence[str] | None = None, prog: str = "ermrl run") -> int:
     """Entry point of ``ermrl run``."""
-    import yaml
-
-    from ermrl._io import write_atomic
     from ermrl.cli._common import quiet_libraries
     from ermrl.cli._experiment import (
         ExperimentError,
         experiment_plan,
-        import_snapshots,
         load_experiment,
         publish_finished_runs,
-        resolved_document,
-        restore_finished_runs,
         write_snapshots,
     )
     from ermrl.storage import StorageError
@@ -290,6 +284,55 @@ def run_main(argv: Sequence[str] | None = None, prog: str = "ermrl run") -> int:
             print(line, flush=True)
     if args.dry_run:
         return 0
+    resolved_file = exp.out / "experiment.resolved.yaml"
+    # What this run creates, removed again when it fails before any stage wrote a thing.
+    created = [p for p in (resolved_file, exp.out, *exp.out.parents) if not p.exists()]
+    try:
+        code = _write_and_run(exp, steps, chosen, args, prog)
+    except BaseException:
+        _remove_if_untouched(created)
+        raise
+    if code != 0:
+        _remove_if_untouched(created)
+    return code
+
+
+def _remove_if_untouched(created: Sequence[Path]) -> None:
+    """Remove what a failed run created (the resolved file, then its folders) if no stage
+    wrote anything beside it: a folder is removed only when empty."""
+    import contextlib
+
+    if not created or created[0].name != "experiment.resolved.yaml":
+        return  # the file was there before this run: an earlier run's, kept
+    resolved, *folders = created
+    if not resolved.parent.is_dir():
+        return
+    if any(p != resolved for p in resolved.parent.iterdir()):
+        return  # a stage wrote something: the resolved file says how it was run
+    resolved.unlink(missing_ok=True)
+    for folder in folders:
+        with contextlib.suppress(OSError):
+            folder.rmdir()
+
+
+def _write_and_run(
+    exp: Experiment,
+    steps: Sequence[Step],
+    chosen: Sequence[tuple[Step, object]],
+    args: argparse.Namespace,
+    prog: str,
+) -> int:
+    """Write the resolved configuration, bring back published state, and run the steps."""
+    import yaml
+
+    from ermrl._io import write_atomic
+    from ermrl.cli._experiment import (
+        ExperimentError,
+        import_snapshots,
+        resolved_document,
+        restore_finished_runs,
+    )
+
     try:
         resolved = resolved_document(exp, steps)
         write_atomic(

@@ -215,7 +215,45 @@ def select_seeds(seeds: Sequence[int], task_id: str | None) -> tuple[int, ...]:
     return (seeds[index],)
 
 
+# Files a test phase writes before its first run finishes: a folder holding only these (and
+# empty folders) is a skeleton, removed when the command that created it fails.
+_SKELETON_FILES = ("config.yaml", "command.txt")
+
+
 def run_or_exit(prog: str, out: Path, run: Callable[[], T]) -> T | None:
+    """:func:`_run_or_exit`, removing ``out`` again when this command created it and fails
+    (an error, a crash, a signal) before it holds anything but its skeleton: no finished run,
+    no checkpoint."""
+    created = [p for p in (Path(out), *Path(out).parents) if not p.exists()]
+    try:
+        result = _run_or_exit(prog, out, run)
+    except BaseException:
+        _remove_skeleton(created)
+        raise
+    if result is None:  # interrupted
+        _remove_skeleton(created)
+    return result
+
+
+def _remove_skeleton(created: Sequence[Path]) -> None:
+    """Remove the folders of ``created`` (``out`` first, then the parents this created) when
+    ``out`` holds no file other than :data:`_SKELETON_FILES`."""
+    import contextlib
+    import shutil
+
+    if not created or not created[0].is_dir():
+        return
+    out = created[0]
+    files = [p for p in out.rglob("*") if not p.is_dir()]
+    if any(p.parent != out or p.name not in _SKELETON_FILES for p in files):
+        return
+    shutil.rmtree(out, ignore_errors=True)
+    for folder in created[1:]:
+        with contextlib.suppress(OSError):
+            folder.rmdir()
+
+
+def _run_or_exit(prog: str, out: Path, run: Callable[[], T]) -> T | None:
     """Run a test phase; its expected failures become one line on stderr.
 
     Shared by ``ermrl test`` and ``ermrl test-generalization``.
