@@ -115,3 +115,32 @@ def test_video_into_a_folder_that_cannot_take_it(
         reason = "Read-only file system" if where == "read-only" else "No space left on device"
         assert reason in lines[0]
         assert sorted(p.name for p in folder.iterdir()) == before
+
+
+@pytest.mark.parametrize(
+    ("size", "extra"),
+    [("64k", []), ("160k", ["--gif"])],
+    ids=["mp4", "gif"],
+)
+def test_video_on_a_disk_that_fills_up_while_writing(
+    tiny: TinyStudy, tmp_path: Path, size: str, extra: list[str]
+) -> None:
+    """The disk fills up inside the MP4 (ffmpeg then exits without an error reaching ermrl, and
+    the MP4 had no index: it printed "wrote" with exit 0) or inside the GIF (a PluginV3.__del__
+    traceback): one line, exit 2, nothing left. A real tmpfs smaller than the 100-frame video
+    (about 75 kB of MP4, 150 kB of GIF) and with room for the MP4 alone."""
+    from tests.test_bad_input import _tmpfs
+
+    require_gl()
+    env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "PYOPENGL_PLATFORM")}
+    with _tmpfs(tmp_path / "mnt", f"size={size}") as folder:
+        out = folder / "cheetah.mp4"
+        proc = subprocess.run(
+            [sys.executable, "-m", "ermrl", "video", "--run", str(tiny.runs), "--agent",
+             "res-ppo", "--seed", "10", "--max-steps", "100", "--out", str(out), *extra],
+            cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300,
+        )  # fmt: skip
+        assert proc.returncode == 2, proc.stdout + proc.stderr
+        lines = proc.stderr.strip().splitlines()
+        assert len(lines) == 1 and "No space left on device" in lines[0], proc.stderr
+        assert list(folder.iterdir()) == []

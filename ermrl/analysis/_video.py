@@ -16,6 +16,7 @@ the ``imageio-ffmpeg`` wheel ships) and, optionally or when MP4 fails, as GIF.
 
 from __future__ import annotations
 
+import errno
 import os
 import subprocess
 import sys
@@ -238,7 +239,22 @@ def write_mp4(frames: Sequence[np.ndarray], path: str | Path, fps: float) -> Pat
             writer.close()
     except OSError as err:
         raise _write_failure(err, path) from None
+    # ffmpeg that runs out of space may exit without an error reaching us, leaving a file cut
+    # short: an MP4 whose index (the moov box, written last) is missing plays nowhere.
+    if not _complete_mp4(path):
+        raise _write_failure(OSError(errno.EIO, os.strerror(errno.EIO), str(path)), path)
     return path
+
+
+def _complete_mp4(path: Path) -> bool:
+    """Whether ``path`` is an MP4 with its header (``ftyp``) and its index (``moov``)."""
+    try:
+        if not path.is_file():  # a device (/dev/full) is never read to its end
+            return False
+        data = path.read_bytes()
+    except OSError:
+        return False
+    return data[4:8] == b"ftyp" and b"moov" in data
 
 
 def _write_failure(err: OSError, path: Path) -> OSError:
@@ -278,7 +294,17 @@ def write_gif(
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     picked = [np.asarray(f, dtype=np.uint8)[::scale, ::scale] for f in frames[::stride]]
-    iio.imwrite(path, np.stack(picked), extension=".gif", duration=1000.0 * stride / fps, loop=0)
+    # Encoded in memory, then written in one go: a full disk is then one OSError here, not an
+    # error inside the image plugin (raised again by its __del__ as a stray traceback).
+    data = iio.imwrite(
+        "<bytes>", np.stack(picked), extension=".gif", duration=1000.0 * stride / fps, loop=0
+    )
+    try:
+        path.write_bytes(data)
+    except OSError as err:
+        if path.is_file() and not path.is_symlink():  # what was written of it (never a device)
+            path.unlink(missing_ok=True)
+        raise _write_failure(err, path) from None
     return path
 
 
