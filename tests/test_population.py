@@ -1046,6 +1046,29 @@ def test_a_checkpoint_of_another_training_or_a_damaged_one_is_not_resumed(tmp_pa
     assert checkpoint.load(key) is None
 
 
+def test_a_checkpoint_saved_by_other_code_is_not_resumed_and_says_so(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The same training saved by other code (another source hash): one line, from step 0."""
+    task, ppo, jobs = checkpoint_population()
+    checkpoint = Checkpoint(tmp_path / "c.npz", every=256)
+    with pytest.raises(KeyboardInterrupt):
+        PopulationPPO(task, ppo, jobs).learn(1024, StopAfter(256), checkpoint)
+    key = PopulationPPO(task, ppo, jobs).checkpoint_key(1024)
+    meta, arrays = checkpoint.load(key)  # type: ignore[misc]
+    from ermrl._code import code_identity
+
+    assert meta["code"] == code_identity()
+    meta["code"] = {**meta["code"], "source": "0" * 64, "commit": "abcdef1234"}
+    checkpoint.save(meta, arrays)
+    other = PopulationPPO(task, ppo, jobs)
+    other.learn(1024, None, checkpoint)
+    assert other.resumed_at == 0 and other.num_timesteps == 1024
+    err = capsys.readouterr().err
+    assert f"not resumed: {checkpoint.path} was saved by other code" in err
+    assert "at abcdef1234" in err and "training from the start" in err
+
+
 def test_train_population_resumes_and_removes_its_checkpoint(tmp_path: Path) -> None:
     """A killed train_population leaves one checkpoint; the rerun resumes from it, says so,
     returns every job's result over the whole budget, and removes the file."""

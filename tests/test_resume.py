@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import copy
 import io
+import json
 from pathlib import Path
 from typing import Any
 
@@ -120,6 +121,26 @@ def test_a_checkpoint_of_other_settings_is_not_resumed(tmp_path: Path) -> None:
     assert AtStart.seen["steps"] == 0 and "resumed" not in stream.getvalue()
 
 
+def test_a_checkpoint_saved_by_other_code_is_not_resumed_and_says_so(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The same run (same key) saved by other code: one line, and the run starts from step 0."""
+    from ermrl._code import code_identity
+
+    killed = KilledAfterSave(tmp_path / "c", every=256, key="a")
+    with pytest.raises(KeyboardInterrupt):
+        train_agent(TASK, ENCODER, settings(), BUDGET, 3, checkpoint=killed)
+    state_file = next((tmp_path / "c").glob("*.json"))
+    state = json.loads(state_file.read_text())
+    assert state["code"] == code_identity()
+    state["code"] = {**state["code"], "source": "0" * 64, "commit": "abcdef1234"}
+    state_file.write_text(json.dumps(state))
+    assert RunCheckpoint(tmp_path / "c", every=256, key="a").load() is None
+    err = capsys.readouterr().err
+    assert f"not resumed: {tmp_path / 'c'} was saved by other code (ermrl" in err
+    assert "at abcdef1234" in err and "training from the start" in err
+
+
 def test_an_off_policy_learner_is_not_checkpointed(tmp_path: Path) -> None:
     """SAC (its replay buffer is not saved) trains without writing a checkpoint."""
     sac = with_overrides(
@@ -147,8 +168,11 @@ def _sb3_model(net_arch: list[int]) -> Any:
 
 
 def _state(**fields: Any) -> dict[str, Any]:
+    from ermrl._code import code_identity
+
     state = {
-        "version": 1, "key": "k", "num_timesteps": 64, "model": "model-64.zip",
+        "version": 1, "key": "k", "code": code_identity(), "num_timesteps": 64,
+        "model": "model-64.zip",
         "normalize": None, "episode_returns": [-1.0], "episode_steps": [64],
         "checkpoint_returns": [], "wall_seconds": 1.0,
     }  # fmt: skip

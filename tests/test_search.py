@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import io
+import warnings
 import subprocess
 import sys
 import time
@@ -186,6 +187,9 @@ def test_evolution_records_trials_and_resumes(tmp_path) -> None:  # noqa: ANN001
     assert attrs["env_steps"] == 512 and attrs["steps_per_second"] > 0
     assert {"ermrl", "gymnasium", "stable_baselines3"} <= set(attrs["versions"])
     assert attrs["worker_pid"] > 0 and attrs["worker_hostname"]
+    from ermrl._code import code_identity
+
+    assert attrs["ermrl_code"] == code_identity() == study.user_attrs["ermrl_code"]
     assert trials[0].value == pytest.approx(sum(attrs["returns_last"]) / 2)
     # The training curve is stored as intermediate values (no pruner): optuna-dashboard draws
     # it; its last point is the fitness, and the objective has a name.
@@ -203,7 +207,14 @@ def test_evolution_records_trials_and_resumes(tmp_path) -> None:  # noqa: ANN001
 
     # the same command with a larger budget resumes; quiet prints nothing
     bigger = dataclasses.replace(config, search=dataclasses.replace(config.search, n_trials=3))
-    study2 = create_or_resume_study(bigger, url, "s")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the same code: no warning
+        study2 = create_or_resume_study(bigger, url, "s")
+    # A study created by other code: resumed, with one line saying so.
+    study2.set_user_attr("ermrl_code", {"version": "0.0.1", "commit": "0123456789ab",
+                                        "dirty": False, "source": "f" * 64})  # fmt: skip
+    with pytest.warns(UserWarning, match="created by ermrl 0.0.1 at 0123456789, source ffff"):
+        create_or_resume_study(bigger, url, "s")
     out2 = io.StringIO()
     assert run_evolution(bigger, study2, stream=out2, quiet=True).completed == 1
     assert out2.getvalue() == ""

@@ -36,6 +36,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from ermrl._code import code_identity, describe_code, same_code
 from ermrl._io import write_atomic
 
 __all__ = ["RunCheckpoint", "can_checkpoint"]
@@ -100,6 +101,16 @@ class RunCheckpoint:
             problem = _model_problem(self.folder / state["model"])
         if problem is not None:
             self.set_aside(problem)
+            return None
+        if not same_code(state.get("code")):
+            # The same run saved by other code: its state may not mean what this code reads.
+            print(
+                f"not resumed: {self.folder} was saved by other code "
+                f"({describe_code(state.get('code'))}; this is {describe_code(code_identity())}): "
+                "training from the start",
+                file=sys.stderr,
+                flush=True,
+            )
             return None
         return {**state, "model": self.folder / state["model"]}
 
@@ -167,6 +178,7 @@ class RunCheckpoint:
         state = {
             "version": CHECKPOINT_VERSION,
             "key": self.key,
+            "code": code_identity(),
             "num_timesteps": step,
             "model": name,
             "normalize": normalize_stats(normalized)

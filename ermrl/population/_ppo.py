@@ -21,6 +21,7 @@ import hashlib
 import io
 import json
 import math
+import sys
 import time
 import warnings
 import zipfile
@@ -35,6 +36,7 @@ import threadpoolctl
 import torch
 from gymnasium import spaces
 
+from ermrl._code import code_identity, describe_code, same_code
 from ermrl._io import write_atomic
 from ermrl._progress import Progress
 from ermrl.agents._train import NoEpisodeFinished, RunResult, TrainingDiverged, derive_seeds
@@ -193,7 +195,9 @@ class Checkpoint:
 
     def load(self, key: str) -> tuple[dict[str, Any], dict[str, np.ndarray]] | None:
         """``(meta, arrays)`` saved by the training ``key`` names, or ``None`` (no file, a file
-        of another training, or an unreadable one: the training then starts over)."""
+        of another training, or an unreadable one: the training then starts over). ``meta``'s
+        ``code`` names the code that saved it (:func:`ermrl._code.code_identity`):
+        :meth:`PopulationPPO.learn` resumes only a checkpoint of its own code."""
         try:
             with np.load(io.BytesIO(self.path.read_bytes()), allow_pickle=False) as data:
                 meta = json.loads(str(data["meta"]))
@@ -332,6 +336,7 @@ class PopulationPPO:
         meta = {
             "version": CHECKPOINT_VERSION,
             "key": key,
+            "code": code_identity(),
             "num_timesteps": self.num_timesteps,
             "alive": self.alive,
             "failed": {str(j): str(err) for j, err in self.failed.items()},
@@ -445,6 +450,19 @@ class PopulationPPO:
         start = time.perf_counter()
         key = self.checkpoint_key(total_timesteps)
         saved = None if checkpoint is None else checkpoint.load(key)
+        if saved is not None and not same_code(saved[0].get("code")):
+            # The same training by other code: its state may not mean what this code reads.
+            assert checkpoint is not None
+            line = (
+                f"not resumed: {checkpoint.path} was saved by other code "
+                f"({describe_code(saved[0].get('code'))}; this is "
+                f"{describe_code(code_identity())}): training from the start"
+            )
+            if progress is not None:
+                progress.message(line)
+            else:
+                print(line, file=sys.stderr, flush=True)
+            saved = None
         if saved is not None:
             assert checkpoint is not None
             self._restore(*saved)

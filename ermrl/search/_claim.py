@@ -21,6 +21,7 @@ import optuna
 from optuna.exceptions import ExperimentalWarning, UpdateFinishedTrialError
 from optuna.trial import FrozenTrial, TrialState
 
+from ermrl._code import code_identity
 from ermrl.config import SearchSpace
 from ermrl.search._objective import FitnessResult, SeedRunner
 from ermrl.search._samplers import RestartCmaEsSampler
@@ -160,6 +161,7 @@ def record(
 ) -> FrozenTrial | None:
     """Store a finished trial's attributes and state (``None``: another worker closed it)."""
     try:
+        trial.set_user_attr("ermrl_code", code_identity())  # the code that trained it
         if state == TrialState.FAIL:
             trial.set_user_attr("fail_reason", note)
         if result is not None:

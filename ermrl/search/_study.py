@@ -10,6 +10,7 @@ from typing import Any
 import optuna
 from optuna.distributions import BaseDistribution, FloatDistribution, IntDistribution
 
+from ermrl._code import code_identity, describe_code, same_code
 from ermrl.config import ConfigError, EvolveConfig, SearchConfig, SearchSpace, to_dict
 from ermrl.search._pruning import make_pruner
 from ermrl.storage import (
@@ -41,6 +42,9 @@ __all__ = [
 STUDY_CONFIG_ATTR = "ermrl_config"
 STUDY_COMMAND_ATTR = "ermrl_command"
 STUDY_KIND_ATTR = "ermrl_kind"
+#: The code that created the study (:func:`ermrl._code.code_identity`); each trial records the
+#: code that trained it under the same name.
+CODE_ATTR = "ermrl_code"
 # Parts of the configuration that define the fitness landscape: a resumed study must match them.
 _MUST_MATCH = ("problem", "space")
 
@@ -326,6 +330,7 @@ def create_or_resume_study(
             from ermrl import __version__
 
             study.set_user_attr("ermrl_version", __version__)
+            study.set_user_attr(CODE_ATTR, code_identity())
             if config.search.reference_trial and not enqueue_reference(study, config.space):
                 warnings.warn(
                     "the reference reservoir (sr = lr = input_scaling = 1) lies outside the "
@@ -334,4 +339,22 @@ def create_or_resume_study(
                 )
             return study
     refuse_other_config(study_name, resume_conflicts(config, stored))
+    warn_other_code(study)
     return study
+
+
+def warn_other_code(study: optuna.Study) -> None:
+    """Say in one line when this worker's code is not the code that created the study.
+
+    The study goes on (its trials record each its own code, ``ermrl_code``), but a reader of
+    its results should know that they mix code versions.
+    """
+    stored = study.user_attrs.get(CODE_ATTR)
+    if same_code(stored) is not False and stored is not None:
+        return
+    warnings.warn(
+        f"study {study.study_name!r} was created by {describe_code(stored)}; this worker runs "
+        f"{describe_code(code_identity())}: its trials will mix code versions (each trial "
+        "records its own, user attribute ermrl_code)",
+        stacklevel=2,
+    )
