@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import dataclasses
 import io
-import warnings
 import subprocess
 import sys
 import time
+import warnings
 
 import optuna
 import pytest
