@@ -684,3 +684,19 @@ def test_a_failed_test_phase_leaves_no_skeleton_folder(tmp_path, monkeypatch, ca
     assert info.value.code == 2
     assert "no episode of Pendulum-v1 ended" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["s.db", "s.db.lock"]
+
+
+def test_a_sqlite_study_on_a_full_disk_during_evolve_is_one_line(tmp_path, monkeypatch, capsys):  # noqa: ANN001
+    """The disk under a SQLite study fills up while a worker runs (a real tmpfs): one line
+    with SQLite's own reason, not Optuna's traceback blaming "exceeding max length"."""
+    import ermrl.cli._evolve
+
+    with _tmpfs(tmp_path / "mnt", "size=600k") as folder:
+        url = f"sqlite:///{folder / 's.db'}"
+        argv = ["--env-id", "Pendulum-v1", *FAST, "--storage", url, "--study-name", "s"]
+        assert evolve_main(argv) == 0  # creates the study (training stubbed)
+        monkeypatch.undo()  # the real run from here on
+        _fill(folder)
+        err = _refused(ermrl.cli._evolve.evolve_main, argv, capsys)
+        assert "database or disk is full" in err and "exceeding max length" not in err, err
+        assert f"cannot write to {url}" in err

@@ -785,6 +785,23 @@ def command_line(prog: str, argv: Sequence[str] | None) -> str:
     )
 
 
+def database_cause(err: BaseException) -> str:
+    """What the database said under Optuna's ``StorageInternalError`` (whose own message
+    blames "invalid data ... e.g. exceeding max length" whatever happened): the driver's
+    error, e.g. SQLite's ``database or disk is full``, in one line."""
+    seen: set[int] = set()
+    cause: BaseException | None = err
+    found = None
+    while cause is not None and id(cause) not in seen:
+        seen.add(id(cause))
+        orig = getattr(cause, "orig", None)  # SQLAlchemy's DBAPIError: the driver's error
+        if isinstance(orig, BaseException):
+            found = orig
+        cause = cause.__cause__ or cause.__context__
+    text = str(found if found is not None else err).strip()
+    return text.splitlines()[0] if text else type(err).__name__
+
+
 def interrupted_message(err: Interrupted) -> str:
     """What a signal did to this worker's trial, in words (after ``prog: ``)."""
     signame = err.args[0]
@@ -876,6 +893,8 @@ def run_and_report(
         0 when the worker finished, ``EXIT_TERMINATED`` (143) when stopped by a signal,
         ``EXIT_INTERRUPTED`` (130) on Ctrl-C.
     """
+    from optuna.exceptions import StorageInternalError
+
     from ermrl.experiments._test_phase import WRITE_ERRNOS
     from ermrl.search import Interrupted, format_params, reevaluate_study, run_evolution
     from ermrl.storage import StorageError
@@ -914,6 +933,13 @@ def run_and_report(
         return EXIT_INTERRUPTED
     except StorageError as err:  # e.g. another process damaged a journal while this one ran
         fail(prog, str(err))
+    except StorageInternalError as err:  # a database's write failed: a full disk, say
+        fail(
+            prog,
+            f"cannot write to {where}: {database_cause(err)}; its finished trials are kept, "
+            "a trial cut short is retried once its heartbeat is stale (or run ermrl study "
+            "fail-stale): free space (or fix the database) and rerun",
+        )
     except OSError as err:  # a full disk, a quota or a read-only folder under a journal file
         if err.errno not in WRITE_ERRNOS:
             raise
