@@ -28,8 +28,13 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
+from xml.etree import ElementTree
 
+import markdown
+import numpy as np
 import pandas as pd
+from markdown.extensions import Extension
+from markdown.treeprocessors import Treeprocessor
 
 from ermrl._io import staged_folder
 from ermrl._progress import duration
@@ -128,7 +133,10 @@ class _Doc:
         return "\n\n".join(out) + "\n"
 
     def html(self, title: str, embed: Path | None = None) -> str:
-        """The page as HTML.
+        """The page as HTML, rendered from the Markdown by Python-Markdown.
+
+        Raw HTML in the text is escaped, not passed through: the text comes from study names,
+        file names and parameters, never from someone writing HTML.
 
         Args:
             title: The page title.
@@ -137,40 +145,39 @@ class _Doc:
                 that the page is one self-contained file (it still opens when moved on its
                 own). Without it, figures and links refer to the files.
         """
-        local = embed is None
+        converter = _markdown_converter(local_links=embed is None)
         body: list[str] = []
+        pending = _Doc()  # consecutive text blocks, converted together
+
+        def flush() -> None:
+            if pending.blocks:
+                body.append(converter.reset().convert(pending.markdown()))
+                pending.blocks.clear()
+
         for kind, value in self.blocks:
-            if kind == "h":
-                body.append(f"<h{value[0]}>{_inline(value[1], local)}</h{value[0]}>")
-            elif kind == "p":
-                body.append(f"<p>{_inline(value, local)}</p>")
-            elif kind == "img":
-                src, alt = (html.escape(v) for v in value)
-                if embed is None:
-                    body.append(
-                        f'<figure><a href="{src}"><img src="{src}" alt="{alt}"></a>'
-                        f"<figcaption>{alt}</figcaption></figure>"
-                    )
-                else:
-                    body.append(
-                        f'<figure><img src="{_data_uri(embed / value[0])}" alt="{alt}">'
-                        f"<figcaption>{alt} (<code>{src}</code>)</figcaption></figure>"
-                    )
-            elif kind == "table":
-                body.append(_html_table(value, local))
-            elif kind == "code":
-                body.append(f"<pre><code>{html.escape(value[1].rstrip())}</code></pre>")
-            elif kind == "ul":
+            if kind != "img":
+                pending.blocks.append((kind, value))
+                continue
+            flush()
+            src, alt = (html.escape(v) for v in value)
+            if embed is None:
                 body.append(
-                    "<ul>" + "".join(f"<li>{_inline(i, local)}</li>" for i in value) + "</ul>"
+                    f'<figure><a href="{src}"><img src="{src}" alt="{alt}"></a>'
+                    f"<figcaption>{alt}</figcaption></figure>"
                 )
+            else:
+                body.append(
+                    f'<figure><img src="{_data_uri(embed / value[0])}" alt="{alt}">'
+                    f"<figcaption>{alt} (<code>{src}</code>)</figcaption></figure>"
+                )
+        flush()
         style = (
             "body{font-family:system-ui,sans-serif;max-width:60rem;margin:2rem auto;padding:0 1rem;"
             "line-height:1.45;color:#222}img{max-width:100%;border:1px solid #ddd}"
             "figure{margin:1rem 0}figcaption{color:#555;font-size:.9rem}"
-            "table{border-collapse:collapse;margin:.5rem 0}td,th{border:1px solid #ccc;"
-            "padding:.25rem .5rem;text-align:right}th{background:#f3f3f3}"
-            "td:first-child,th:first-child{text-align:left}"
+            "table{border-collapse:collapse;margin:.5rem 0;display:block;overflow-x:auto}"
+            "td,th{border:1px solid #ccc;padding:.25rem .5rem;text-align:right}"
+            "th{background:#f3f3f3}td:first-child,th:first-child{text-align:left}"
             "pre{background:#f6f6f6;padding:.75rem;overflow-x:auto;font-size:.85rem}"
             "code{font-size:.9em}"
         )
@@ -185,6 +192,8 @@ class _Doc:
 def _fmt(value: Any) -> str:
     if value is None:
         return ""
+    if isinstance(value, (bool, np.bool_)):
+        return "yes" if value else "no"
     if isinstance(value, float):
         if math.isnan(value):
             return "–"
@@ -204,29 +213,52 @@ def _md_table(frame: pd.DataFrame) -> str:
     return "\n".join([header, rule, *rows])
 
 
-def _html_table(frame: pd.DataFrame, local_links: bool = True) -> str:
-    head = "".join(f"<th>{html.escape(str(c))}</th>" for c in frame.columns)
-    rows = "".join(
-        "<tr>" + "".join(f"<td>{_inline(_fmt(v), local_links)}</td>" for v in row) + "</tr>"
-        for row in frame.itertuples(index=False)
+def _is_local(target: str) -> bool:
+    """Whether a link target names a local file (no URL scheme, not an anchor of the page)."""
+    return not re.match(r"^[a-zA-Z][a-zA-Z0-9+.-]*:|^#", target)
+
+
+class _LocalLinksAsText(Treeprocessor):
+    """Writes a link to a local file as its text and path, for a self-contained page."""
+
+    def run(self, root: ElementTree.Element) -> None:
+        for link in root.iter("a"):
+            target = link.get("href", "")
+            if not _is_local(target):
+                continue
+            link.tag = "span"
+            link.attrib.clear()
+            path = ElementTree.SubElement(link, "code")
+            path.text = target
+            path.tail = ")"
+            if len(link) > 1:  # the label has elements of its own: " (" follows the last
+                label = link[-2]
+                label.tail = (label.tail or "") + " ("
+            else:
+                link.text = (link.text or "") + " ("
+
+
+class _ReportMarkdown(Extension):
+    """The report's Markdown dialect: tables, fenced code, raw HTML escaped; local links as
+    text when the page must stand alone."""
+
+    def __init__(self, local_links: bool) -> None:
+        super().__init__()
+        self.local_links = local_links
+
+    def extendMarkdown(self, md: markdown.Markdown) -> None:  # noqa: N802 (the library's name)
+        # Python-Markdown's documented way to escape raw HTML instead of passing it through.
+        md.preprocessors.deregister("html_block")
+        md.inlinePatterns.deregister("html")
+        if not self.local_links:
+            md.treeprocessors.register(_LocalLinksAsText(md), "ermrl_local_links", 0)
+
+
+def _markdown_converter(local_links: bool) -> markdown.Markdown:
+    return markdown.Markdown(
+        extensions=["tables", "fenced_code", "sane_lists", _ReportMarkdown(local_links)],
+        output_format="html",
     )
-    return f"<table><thead><tr>{head}</tr></thead><tbody>{rows}</tbody></table>"
-
-
-def _inline(text: str, local_links: bool = True) -> str:
-    """Inline Markdown (code, bold, links) as HTML; ``local_links=False`` writes a link to a
-    local file (no URL scheme) as its text and path instead, for a self-contained page."""
-    escaped = html.escape(text)
-    escaped = re.sub(r"`([^`]+)`", r"<code>\1</code>", escaped)
-    escaped = re.sub(r"\*\*([^*]+)\*\*", r"<strong>\1</strong>", escaped)
-
-    def link(match: re.Match[str]) -> str:
-        label, target = match.group(1), match.group(2)
-        if local_links or re.match(r"^[a-z][a-z0-9+.-]*:|^#", target):
-            return f'<a href="{target}">{label}</a>'
-        return f"{label} (<code>{target}</code>)"
-
-    return re.sub(r"\[([^\]]+)\]\(([^)]+)\)", link, escaped)
 
 
 def _data_uri(path: Path) -> str:
