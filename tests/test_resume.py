@@ -277,3 +277,24 @@ def test_weights_of_the_wrong_shapes_are_set_aside_and_the_model_left_as_it_was(
     assert RunCheckpoint(good, every=64, key="k").restore(model, None) is not None
     for name, state in saved_model.get_parameters()["policy"].items():
         assert torch.equal(model.get_parameters()["policy"][name], state), name
+
+
+def test_a_run_whose_checkpoint_does_not_fit_its_model_trains_from_the_start(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """train_agent restores through RunCheckpoint.restore: weights of another network (a readable
+    checkpoint of the same key) are set aside in one line and the run trains from step 0."""
+    import json
+
+    folder = tmp_path / "checkpoints"
+    folder.mkdir()
+    _sb3_model([8]).save(folder / "model-64.zip")
+    (folder / "state.json").write_text(json.dumps(_state(key="a")))
+    checkpoint = RunCheckpoint(folder, every=4096, key="a")
+    assert checkpoint.load() is not None
+    result = train_agent(TASK, ENCODER, settings(), BUDGET, 3, checkpoint=checkpoint,
+                         callbacks=[AtStart()])  # fmt: skip
+    assert AtStart.seen["steps"] == 0 and result.env_steps >= BUDGET.training_steps
+    err = capsys.readouterr().err
+    assert "model-64.zip does not fit this model" in err
+    assert list(tmp_path.glob("checkpoints.unreadable-*"))

@@ -22,7 +22,6 @@ from ermrl._progress import Progress
 from ermrl.agents._checkpoint import (
     RunCheckpoint,
     can_checkpoint,
-    restore_normalization,
     saver_callback,
 )
 from ermrl.agents._wandb import WandbRun
@@ -436,13 +435,12 @@ def train_agent(
         env.seed(seeds.env)
         if checkpoint is not None and not can_checkpoint(model):
             checkpoint = None
-        saved = None if checkpoint is None else checkpoint.load()
+        # restore() loads the weights and statistics, or sets a checkpoint that does not fit
+        # this model aside (one line) and leaves the model as built.
+        saved = None if checkpoint is None else checkpoint.restore(model, normalized)
         if saved is not None:
             assert checkpoint is not None
-            model.set_parameters(str(saved["model"]), exact_match=True)
             model.num_timesteps = resumed = int(saved["num_timesteps"])
-            if saved["normalize"] is not None:
-                restore_normalization(normalized, saved["normalize"])
             result.episode_returns = [float(r) for r in saved["episode_returns"]]
             result.episode_steps = [int(t) for t in saved["episode_steps"]]
             result.checkpoint_returns = [(int(t), float(r)) for t, r in saved["checkpoint_returns"]]

@@ -89,6 +89,16 @@ def _read_text(path: Path) -> str:
         raise RunFolderError(path, "not UTF-8 text") from None
 
 
+def read_run_text(path: str | Path) -> str:
+    """A run folder's text file, read as the records are: a regular file of at most
+    :data:`MAX_RUN_FILE_BYTES`, UTF-8.
+
+    Raises:
+        RunFolderError: missing, not a regular file, too large or not UTF-8.
+    """
+    return _read_text(Path(path))
+
+
 def _read_json_object(path: Path) -> dict[str, Any]:
     try:
         data = json.loads(_read_text(path))

@@ -62,9 +62,11 @@ from ermrl.analysis import (
 from ermrl.analysis._results import (
     EPISODES_FILE,
     RUNS_DIR,
+    RunFolderError,
     read_episodes,
     read_run_result,
     read_run_settings,
+    read_run_text,
 )
 from ermrl.config import (
     BACKENDS,
@@ -496,8 +498,8 @@ def finished_backend(out: str | Path, learner: str) -> str | None:
         if not (path.parent / "result.json").is_file():
             continue
         try:
-            ppo_doc = json.loads(path.read_text()).get("ppo")
-        except (OSError, ValueError, AttributeError):
+            ppo_doc = json.loads(read_run_text(path)).get("ppo")
+        except (RunFolderError, ValueError, AttributeError):
             continue
         if not isinstance(ppo_doc, dict) or _learner_of(ppo_doc) != learner:
             continue
