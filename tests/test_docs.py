@@ -91,22 +91,165 @@ def test_the_readme_links_into_the_docs_and_uses_ermrl_commands() -> None:
     assert not re.search(scripts, readme, flags=re.M)
 
 
+def test_the_readme_and_getting_started_agree_on_where_evolution_wins() -> None:
+    def claim(path: Path) -> str:
+        text = " ".join(path.read_text(encoding="utf-8").split())
+        found = re.search(r"Evolution beats the unevolved reservoir outside the noise[^[]*", text)
+        assert found, f"{path.name} does not say where evolution wins"
+        return found.group(0)
+
+    assert claim(ROOT / "README.md") == claim(ROOT / "docs" / "getting-started.md")
+
+
 def test_every_docs_page_is_in_the_nav() -> None:
     config = (ROOT / "mkdocs.yml").read_text(encoding="utf-8")
     for page in (ROOT / "docs").glob("*.md"):
         assert f": {page.name}" in config, f"{page.name} is not in mkdocs.yml's nav"
 
 
-@pytest.mark.slow
-@pytest.mark.skipif(importlib.util.find_spec("mkdocs") is None, reason="the dev extra's mkdocs")
-def test_the_site_builds_strictly(tmp_path: Path) -> None:
+# `--encoder {reservoir,rtu,nvar}` written in a page's prose or tables.
+_CHOICE_LIST = re.compile(r"`(--[a-z][a-z0-9-]*) \{([^}]*)\}`")
+
+
+def _choices_by_option() -> dict[str, list[tuple[str, ...]]]:
+    """Every option with choices, in any command or subcommand: ``{option: [choices, ...]}``."""
+    found: dict[str, list[tuple[str, ...]]] = {}
+    pending = [parser for _, parser in cli_parsers()]
+    while pending:
+        parser = pending.pop()
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                pending.extend(action.choices.values())
+            elif action.choices is not None:
+                for option in action.option_strings:
+                    found.setdefault(option, []).append(tuple(str(c) for c in action.choices))
+    return found
+
+
+def test_choice_lists_written_in_the_pages_are_the_parsers() -> None:
+    """A list of choices written out in a page (`--encoder {reservoir,rtu,nvar}`) is the one the
+    parsers read from their registry, so that a new encoder or learner cannot be left out."""
+    choices = _choices_by_option()
+    pages = [p for p in sorted((ROOT / "docs").glob("*.md")) if p != CLI_PAGE]
+    checked = 0
+    for page in [*pages, ROOT / "README.md"]:
+        for option, written in _CHOICE_LIST.findall(page.read_text(encoding="utf-8")):
+            assert option in choices, f"{page.name}: {option} has no choices in any parser"
+            listed = {c.strip() for c in written.split(",")}
+            assert listed in [set(c) for c in choices[option]], (
+                f"{page.name} lists `{option} {{{written}}}`; the parsers have "
+                + " or ".join("{" + ",".join(c) + "}" for c in set(choices[option]))
+            )
+            checked += 1
+    assert checked >= 10  # the option table of docs/experiments.md
+
+
+def test_the_learner_and_encoder_lists_of_the_experiments_page_are_the_registries() -> None:
+    from ermrl.encoders import ENCODERS
+    from ermrl.learners import LEARNERS
+
+    page = (ROOT / "docs" / "experiments.md").read_text(encoding="utf-8")
+    row = re.search(r"^\| `--learner` \|.*\): (`.*`) \|$", page, re.M)
+    assert row, "docs/experiments.md has no --learner row"
+    assert re.findall(r"`([^`]+)`", row.group(1)) == list(LEARNERS)
+    assert f"`--encoder {{{','.join(ENCODERS)}}}`" in page
+
+
+@pytest.fixture(scope="module")
+def site(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The site, built once with ``mkdocs build --strict``."""
+    if importlib.util.find_spec("mkdocs") is None:
+        pytest.skip("the dev extra's mkdocs")
+    out = tmp_path_factory.mktemp("site") / "site"
     done = subprocess.run(
-        [sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(tmp_path / "site")],
+        [sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(out)],
         cwd=ROOT,
         capture_output=True,
         text=True,
         timeout=600,
     )
     assert done.returncode == 0, done.stderr[-4000:]
-    assert (tmp_path / "site" / "cli" / "index.html").is_file()
-    assert (tmp_path / "site" / "api" / "index.html").is_file()
+    return out
+
+
+@pytest.mark.slow
+def test_the_site_builds_strictly(site: Path) -> None:
+    assert (site / "cli.html").is_file()
+    assert (site / "api.html").is_file()
+
+
+@pytest.mark.slow
+def test_the_site_links_work_from_disk_and_load_nothing_from_the_network(site: Path) -> None:
+    """Opened from a folder (file://), a link to a directory shows a listing, not its page, and
+    nothing can be fetched from a CDN: every page link names an .html file that exists, and
+    every script and stylesheet is local. The search index is inlined (the offline plugin)."""
+    assert (site / "search" / "search_index.js").read_text(encoding="utf-8").startswith("var ")
+    for page in sorted(site.glob("*.html")):
+        if page.name == "404.html":  # served by a web server only, with absolute links
+            continue
+        text = page.read_text(encoding="utf-8")
+        for tag, url in re.findall(r"<(script|link)\b[^>]*?(?:src|href)=\"([^\"]+)\"", text):
+            if tag == "script" or url.endswith(".css"):
+                assert not re.match(r"^(https?:)?//", url), f"{page.name} loads {url}"
+        for target in re.findall(r'<a [^>]*href="([^"#?]+)[^"]*"', text):
+            if re.match(r"^[a-z][a-z0-9+.-]*:", target):
+                continue
+            assert not target.endswith("/"), f"{page.name} links to the folder {target}"
+            assert (page.parent / target).resolve().exists(), f"{page.name}: {target} is missing"
+
+
+# Run in the page after it loaded: types a query into the search box, then records the results,
+# and the overflow of code blocks and tables, as an attribute of <html> (--dump-dom prints it).
+_SITE_PROBE = """<script>
+window.addEventListener('load', function () { setTimeout(function () {
+  var input = document.querySelector('.md-search__input');
+  input.focus(); input.value = 'spectral radius';
+  input.dispatchEvent(new Event('input', {bubbles: true}));
+  setTimeout(function () {
+    var right = document.querySelector('.md-content__inner').getBoundingClientRect().right;
+    var boxes = [];
+    document.querySelectorAll('.md-typeset pre > code, .md-typeset__scrollwrap').forEach(function (b) {
+      if (b.scrollWidth > b.clientWidth) {
+        var s = getComputedStyle(b);
+        boxes.push({overflow: s.overflowX, bar: s.scrollbarWidth, right: b.getBoundingClientRect().right});
+      }
+    });
+    document.documentElement.setAttribute('data-probe', JSON.stringify({
+      results: document.querySelectorAll('.md-search-result__item').length,
+      right: right, boxes: boxes}));
+  }, 3000);
+}, 1000); });
+</script>"""
+
+
+@pytest.mark.slow
+def test_the_site_opened_from_disk_searches_and_scrolls_wide_blocks(
+    site: Path, tmp_path: Path
+) -> None:
+    """In headless Chromium from file://: the search box finds pages (the offline plugin's index
+    and a local Web Worker shim), and a code block or table wider than the page scrolls, with a
+    scroll bar, instead of being cut at the page's edge."""
+    import html as html_module
+    import json
+
+    from tests.test_report_browser import _chromium_run, chromium
+
+    binary = chromium()
+    page = site / "experiments.html"
+    probed = site / "experiments.probed.html"
+    probed.write_text(
+        page.read_text(encoding="utf-8").replace("</body>", _SITE_PROBE + "</body>"),
+        encoding="utf-8",
+    )
+    proc = _chromium_run(
+        binary, "--window-size=900,1200", "--dump-dom", probed.as_uri(), home=tmp_path / "dom"
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    found = re.search(r'<html[^>]*data-probe="([^"]*)"', proc.stdout)
+    assert found, "the probe did not run"
+    probe = json.loads(html_module.unescape(found.group(1)))
+    assert probe["results"] > 0, "search finds nothing opened from disk"
+    assert probe["boxes"], "no code block or table wider than the page at 900 px"
+    for box in probe["boxes"]:
+        assert box["overflow"] == "auto" and box["bar"] == "auto", box
+        assert box["right"] <= probe["right"] + 1, box
