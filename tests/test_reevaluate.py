@@ -144,6 +144,12 @@ def test_reevaluation_ranks_on_fresh_seeds_and_the_test_phase_uses_it(tmp_path: 
     assert study.user_attrs[REEVALUATION_ATTR]["best_trial"] == doc["best_trial"]
     chosen, how = select_trial(study)
     assert chosen.number == doc["best_trial"] and how.startswith("re-evaluated best of 2")
+    # The report's best_params.csv names the trial the test phase tests, not the noisy maximum.
+    from ermrl.analysis import best_params_table
+
+    table = best_params_table(study, config)
+    assert set(table["trial"]) == {doc["best_trial"]} and set(table["selection"]) == {how}
+    assert dict(zip(table["parameter"], table["value"], strict=True)) == chosen.params
     assert "re-evaluated ranking" in out.getvalue()
     # Each run's line names the evolution trial it re-trains, not its number in the sibling
     # study (which would read as evolution trials 0 and 1), and so does the best so far.

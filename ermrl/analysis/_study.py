@@ -262,15 +262,24 @@ def param_ranges(
 
 
 def best_params_table(study: optuna.Study, config: EvolveConfig | None = None) -> pd.DataFrame:
-    """The best trial's parameters with their search ranges.
+    """The parameters of the trial a test phase selects, with their search ranges.
+
+    The selected trial is :func:`~ermrl.search.select_trial`'s: the re-evaluated best when the
+    study records a complete, current re-evaluation, else the best evolution fitness (the noisy
+    maximum a test phase would otherwise take), so that the report names the trial the test
+    phase tests.
 
     Returns:
-        Columns ``parameter, value, low, high, scale`` (empty without a COMPLETE trial).
+        Columns ``trial, selection, parameter, value, low, high, scale`` (empty without a
+        COMPLETE trial).
     """
-    columns = ["parameter", "value", "low", "high", "scale"]
+    from ermrl.config import ConfigError
+    from ermrl.search import select_trial
+
+    columns = ["trial", "selection", "parameter", "value", "low", "high", "scale"]
     try:
-        best = study.best_trial
-    except ValueError:
+        best, how = select_trial(study)
+    except (ConfigError, ValueError):
         return pd.DataFrame(columns=columns)
     ranges = param_ranges(study, config)
     rows = []
@@ -278,6 +287,8 @@ def best_params_table(study: optuna.Study, config: EvolveConfig | None = None) -
         low, high, log = ranges.get(name, (math.nan, math.nan, False))
         rows.append(
             {
+                "trial": best.number,
+                "selection": how,
                 "parameter": name,
                 "value": value,
                 "low": low,
