@@ -97,3 +97,33 @@ def test_evolution_prints_the_dashboard_command(tmp_path: Path) -> None:
     assert (
         len(lines) == 1 and lines[0].split("  (")[0] == "live view: optuna-dashboard sqlite:///e.db"
     )
+
+
+@pytest.mark.skipif(
+    importlib.util.find_spec("optuna_dashboard") is None,
+    reason="optuna-dashboard is not installed (pip install 'ermrl[viz]'; the dev extra has it)",
+)
+def test_the_dashboard_shows_what_the_objective_measures(tmp_path: Path) -> None:
+    """The objective is named ``fitness``; what it measures is the study's ``ermrl_metric``
+    user attribute, which optuna-dashboard's study page lists (its API, served in-process)."""
+    import io
+
+    import optuna_dashboard
+
+    from ermrl.search import create_or_resume_study
+    from tests.test_search import make_config
+
+    study = create_or_resume_study(make_config(n_trials=1), f"sqlite:///{tmp_path}/s.db", "s")
+    app = optuna_dashboard.wsgi(study._storage)
+    status: list[str] = []
+    environ = {
+        "REQUEST_METHOD": "GET", "PATH_INFO": f"/api/studies/{study._study_id}",
+        "QUERY_STRING": "", "SERVER_NAME": "localhost", "SERVER_PORT": "80",
+        "wsgi.url_scheme": "http", "wsgi.input": io.BytesIO(), "wsgi.errors": sys.stderr,
+    }  # fmt: skip
+    body = b"".join(app(environ, lambda s, headers, exc_info=None: status.append(s)))
+    assert status == ["200 OK"], body[:500]
+    shown = {a["key"]: a["value"] for a in json.loads(body)["user_attrs"]}
+    assert shown["ermrl_metric"] == (
+        "fitness: mean return of the last 2 training episodes, mean over seeds"
+    )

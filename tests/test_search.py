@@ -35,6 +35,7 @@ from ermrl.search import (
     run_evolution,
     study_config,
 )
+from ermrl.search._study import metric_description
 
 TINY_PPO = PPOConfig(n_envs=1, hyperparams={"n_steps": 128, "batch_size": 64, "n_epochs": 2})
 
@@ -196,9 +197,10 @@ def test_evolution_records_trials_and_resumes(tmp_path) -> None:  # noqa: ANN001
     curve = trials[0].intermediate_values
     assert len(curve) >= 2 and max(curve) == 256, curve  # each seed's 256 steps
     assert curve[256] == pytest.approx(trials[0].value)
-    assert study.metric_names == [
-        "fitness (mean return of the last 2 training episodes, mean over seeds)"
-    ]
+    assert study.metric_names == ["fitness"]
+    assert study.user_attrs["ermrl_metric"] == (
+        "fitness: mean return of the last 2 training episodes, mean over seeds"
+    )
 
     # the study stores its config and command: the test phase needs nothing else
     reloaded = optuna.load_study(study_name="s", storage=url)
@@ -219,6 +221,46 @@ def test_evolution_records_trials_and_resumes(tmp_path) -> None:  # noqa: ANN001
     assert run_evolution(bigger, study2, stream=out2, quiet=True).completed == 1
     assert out2.getvalue() == ""
     assert len(study2.get_trials(states=[TrialState.COMPLETE])) == 3
+
+
+def test_the_objective_has_a_short_name_and_its_description_is_an_attribute(
+    tmp_path,  # noqa: ANN001
+) -> None:
+    study = create_or_resume_study(make_config(n_trials=1), f"sqlite:///{tmp_path}/s.db", "s")
+    assert study.metric_names == ["fitness"]
+    assert "value_fitness" in study.trials_dataframe(multi_index=False).columns
+    assert study.user_attrs["ermrl_metric"] == (
+        "fitness: mean return of the last 2 training episodes, mean over seeds"
+    )
+    evaluated = dataclasses.replace(
+        make_config(),
+        problem=dataclasses.replace(
+            make_config().problem,
+            budget=dataclasses.replace(
+                make_config().problem.budget, fitness="eval", n_eval_episodes=3
+            ),
+        ),
+    )
+    assert metric_description(evaluated) == (
+        "fitness: mean return of 3 deterministic episodes after training, mean over seeds"
+    )
+
+
+def test_a_study_named_with_the_former_long_metric_name_still_loads(tmp_path) -> None:  # noqa: ANN001
+    """Studies made before the short name keep theirs; they load and export as before."""
+    from ermrl.analysis import trials_table
+
+    url = f"sqlite:///{tmp_path}/old.db"
+    old = optuna.create_study(study_name="old", storage=url, direction="maximize")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+        old.set_metric_names(
+            ["fitness (mean return of the last 10 training episodes, mean over seeds)"]
+        )
+    old.add_trial(optuna.trial.create_trial(params={}, distributions={}, value=-1.5))
+    loaded = create_or_resume_study(None, url, "old")
+    assert loaded.metric_names == old.metric_names
+    assert list(trials_table(loaded)["value"]) == [-1.5]
 
 
 def test_resuming_with_another_problem_is_refused(tmp_path) -> None:  # noqa: ANN001

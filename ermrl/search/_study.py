@@ -246,23 +246,41 @@ def refuse_other_config(study_name: str, diffs: list[str]) -> None:
         )
 
 
-def metric_name(config: EvolveConfig) -> str:
-    """What a study's objective value is, in words (optuna-dashboard labels its axes with it)."""
+METRIC_NAME = "fitness"
+"""The objective's name (``study.metric_names``): ``study.trials_dataframe()`` calls its column
+``value_fitness``. What it measures is :func:`metric_description`, in :data:`STUDY_METRIC_ATTR`."""
+STUDY_METRIC_ATTR = "ermrl_metric"
+
+
+def metric_description(config: EvolveConfig) -> str:
+    """What a study's objective value is, in words.
+
+    Stored as the study's ``ermrl_metric`` user attribute, which optuna-dashboard shows among
+    the study's user attributes (the objective itself is named :data:`METRIC_NAME`, short, as
+    it names a column of ``study.trials_dataframe()``).
+
+    Returns:
+        e.g. ``"fitness: mean return of the last 10 training episodes, mean over seeds"``.
+    """
     budget = config.problem.budget
     measure = (
         f"mean return of the last {budget.n_last_episodes} training episodes"
         if budget.fitness == "last"
         else f"mean return of {budget.n_eval_episodes} deterministic episodes after training"
     )
-    what = "normalized fitness" if config.generalization is not None else "fitness"
-    return f"{what} ({measure}, mean over seeds)"
+    what = f"{METRIC_NAME}: {measure}, mean over seeds"
+    if config.generalization is not None:
+        what += "; normalized per task ((R - random) / (target - random)), mean over tasks"
+    return what
 
 
 def name_metric(study: optuna.Study, config: EvolveConfig) -> None:
-    """Name the study's objective (:func:`metric_name`), shown by optuna-dashboard."""
+    """Name the study's objective :data:`METRIC_NAME` and store :func:`metric_description` as
+    the ``ermrl_metric`` user attribute; optuna-dashboard shows both."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
-        study.set_metric_names([metric_name(config)])
+        study.set_metric_names([METRIC_NAME])
+    study.set_user_attr(STUDY_METRIC_ATTR, metric_description(config))
 
 
 def create_or_resume_study(
