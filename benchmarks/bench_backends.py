@@ -30,9 +30,10 @@ whole backend reaches, start-up included on both sides.
 Targets (population / sb3 env steps per second): >= 8x HalfCheetah-v5, >= 5x Hopper-v5, >= 7x
 Pendulum-v1, >= 4x CartPole-v1; population / physics >= 50% on HalfCheetah-v5.
 
-Outputs under ``--out`` (default benchmarks/results/backends): ``backends.csv`` (one row per task
-and backend), ``backends.md`` (the table printed at the end) and ``backends.json`` (rows,
-candidates, machine).
+Outputs under ``--out``: ``backends.csv`` (one row per task and backend), ``backends.md`` (the
+table printed at the end) and ``backends.json`` (rows, candidates, machine). The default is
+benchmarks/results/backends, where the last full run is published; with ``--quick`` it is
+runs/benchmarks/backends-quick, so that a smoke test never replaces the published table.
 
     python benchmarks/bench_backends.py            # 4 tasks x 24 runs x 16384 steps, ~17 min on 2 cores
     python benchmarks/bench_backends.py --quick    # smoke test: 2 candidates x 1 seed x 2048 steps
@@ -256,7 +257,12 @@ def summary(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> int:
+RESULTS = "benchmarks/results/backends"  # the published full run (committed)
+QUICK_RESULTS = "runs/benchmarks/backends-quick"  # --quick (runs/ is not committed)
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The options, with the defaults that depend on ``--quick`` filled in."""
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -270,12 +276,19 @@ def main(argv: list[str] | None = None) -> int:
                         help="training steps per run (16384: whole rollouts for every task)")  # fmt: skip
     parser.add_argument("--n-procs", type=int, default=2, help="processes per backend (2)")
     parser.add_argument("--sampler-seed", type=int, default=0, help="CMA-ES seed (0)")
-    parser.add_argument("--out", default="benchmarks/results/backends", help="results folder")
+    parser.add_argument("--out", default=None,
+                        help=f"results folder (default: {RESULTS}; with --quick, {QUICK_RESULTS})")  # fmt: skip
     parser.add_argument("--_one", choices=MEASURED, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     args.candidates = args.candidates or (2 if args.quick else 8)
     args.seeds = args.seeds or (1 if args.quick else 3)
     args.training_steps = args.training_steps or (2048 if args.quick else 16384)
+    args.out = args.out or (QUICK_RESULTS if args.quick else RESULTS)
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
     if args._one:
         print(json.dumps(measure_one(args)), flush=True)
         return 0

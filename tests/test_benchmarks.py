@@ -144,6 +144,21 @@ def test_the_backend_benchmarks_run_in_quick_mode(tmp_path: Path) -> None:
     assert "Reservoir (nvar): (NVARParams(" in summary
 
 
+def test_a_quick_backend_run_does_not_replace_the_published_table() -> None:
+    """Without --out, --quick writes under runs/ (not committed); a full run writes the
+    published benchmarks/results/backends, and --out always wins."""
+    from benchmarks.bench_backends import parse_args
+
+    assert parse_args([]).out == "benchmarks/results/backends"
+    quick = parse_args(["--quick"]).out
+    assert quick.startswith("runs/") and "results" not in quick
+    assert parse_args(["--quick", "--out", "elsewhere"]).out == "elsewhere"
+    ignored = subprocess.run(
+        ["git", "check-ignore", "-q", f"{quick}/backends.md"], cwd=ROOT, check=False
+    )
+    assert ignored.returncode == 0, f"{quick} is not ignored by git"
+
+
 @pytest.mark.slow
 def test_the_startup_benchmark_times_each_phase_of_a_fresh_worker(tmp_path: Path) -> None:
     """bench_startup starts a real spawn pool and reports each phase before the first step."""
