@@ -611,6 +611,50 @@ def test_the_gait_is_the_joint_angles_frequency_and_is_marked_on_the_spectra() -
     assert joint_angles(blind) is None and math.isnan(gait_frequency(blind))
 
 
+@pytest.mark.parametrize(
+    ("env_id", "joints"),
+    [("Swimmer-v5", True), ("Hopper-v5", True), ("HalfCheetah-v5", True),
+     ("CartPole-v1", False), ("Pendulum-v1", False), ("InvertedPendulum-v5", False),
+     ("NoSuchEnv-v0", False)],
+)  # fmt: skip
+def test_only_mujoco_locomotion_has_joints(env_id: str, joints: bool) -> None:
+    from ermrl.analysis import has_joints
+
+    assert has_joints(env_id) is joints
+
+
+@pytest.mark.parametrize("observe", ["all", "positions"])
+def test_a_cartpole_spectrum_is_not_labelled_a_gait(observe: str) -> None:
+    """CartPole's positions (the cart's position, the pole's angle) oscillate, but they are no
+    gait: neither the spectra nor their summary call them joint angles."""
+    from ermrl.analysis import gait_frequency, joint_angles, spectrum_comparison_figure
+
+    n, dt = 400, 0.02
+    t = np.arange(n) * dt
+    positions = np.stack([np.sin(2 * np.pi * 1.5 * t + k) for k in range(2)], axis=1)
+    observations = positions if observe == "positions" else np.repeat(positions, 2, axis=1)
+    rec = DynamicsRecording(
+        observations=observations,
+        actions=np.zeros((n, 1)),
+        rewards=np.ones(n),
+        states=np.tanh(np.stack([np.sin(2 * np.pi * 2.5 * t + k) for k in range(10)], axis=1)),
+        dt=dt,
+        env_id="CartPole-v1",
+        observe=observe,
+        agent="res-ppo",
+        seed=10,
+        obs_indices=np.arange(observations.shape[1]),
+    )
+    assert joint_angles(rec) is None and math.isnan(gait_frequency(rec))
+    assert not any("gait" in name for name in spectrum_summary(rec)["signals"])
+    for fig in (spectrum_comparison_figure({"res-ppo": rec}), analysis.spectrum_figure(rec)):
+        labels = [str(line.get_label()) for ax in fig.axes for line in ax.get_lines()]
+        legend = [
+            t.get_text() for ax in fig.axes if ax.get_legend() for t in ax.get_legend().get_texts()
+        ]
+        assert not any("gait" in x or "joint" in x for x in labels + legend), labels + legend
+
+
 def test_a_short_episode_without_a_peak_has_no_dominant_frequency() -> None:
     """A 21-step episode's largest bin is the spectral resolution, not an oscillation."""
     steps = np.arange(21, dtype=float)[:, None]
@@ -687,7 +731,11 @@ def test_a_run_file_that_is_a_device_or_huge_is_refused_unread(
         monkeypatch.setattr(_results, "MAX_RUN_FILE_BYTES", 1024)
         path.write_text("env_step,episode_return\n" + "1,0.5\n" * 400)
     read = read_run_result if name == "result.json" else read_episodes
-    expected = {"device": "not a regular file", "huge": "over .* MiB: not a record", "folder": "a folder"}
+    expected = {
+        "device": "not a regular file",
+        "huge": "over .* MiB: not a record",
+        "folder": "a folder",
+    }
     with pytest.raises(RunFolderError, match=expected[how]) as info:
         read(path)
     assert str(info.value).startswith(f"{path}: ") and "\n" not in str(info.value)

@@ -40,6 +40,7 @@ __all__ = [
     "dominant_frequency",
     "dynamics_figure",
     "gait_frequency",
+    "has_joints",
     "joint_angles",
     "power_spectrum",
     "record_dynamics",
@@ -551,15 +552,40 @@ def write_dynamics(
     return paths
 
 
+# MuJoCo tasks whose bodies walk, hop or swim on joints: the only ones with a gait.
+_LOCOMOTION = ("Ant", "HalfCheetah", "Hopper", "Humanoid", "Swimmer", "Walker2d")
+
+
+def has_joints(env_id: str) -> bool:
+    """Whether the task is MuJoCo locomotion, whose observed positions are joint angles.
+
+    Elsewhere (CartPole's cart position and pole angle, Pendulum's angle) the positions are no
+    gait, and the spectra do not call them one.
+    """
+    import gymnasium
+
+    from ermrl.envs._masks import _is_mujoco_entry_point
+
+    try:
+        spec = gymnasium.spec(env_id)
+    except Exception:  # an id that is not registered: no claim about its joints
+        return False
+    return _is_mujoco_entry_point(spec) and spec.name in _LOCOMOTION
+
+
 def joint_angles(recording: DynamicsRecording) -> np.ndarray | None:
-    """The position part of the recorded observations (joint angles and body orientation).
+    """The position part of the recorded observations of a locomotion task (joint angles and
+    body orientation).
 
     Its spectrum is the gait: the frequency at which a locomotion policy moves its joints.
 
     Returns:
-        Shape ``(T, k)``; ``None`` when the episode's observation holds no positions
-        (``observe="velocities"``) or the task has no known position/velocity split.
+        Shape ``(T, k)``; ``None`` when the task is not MuJoCo locomotion (:func:`has_joints`),
+        the episode's observation holds no positions (``observe="velocities"``) or the task
+        has no known position/velocity split.
     """
+    if not has_joints(recording.env_id):
+        return None
     obs = recording.observations
     if recording.observe == "positions":
         return obs
