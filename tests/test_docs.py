@@ -101,6 +101,19 @@ def test_the_readme_and_getting_started_agree_on_where_evolution_wins() -> None:
     assert claim(ROOT / "README.md") == claim(ROOT / "docs" / "getting-started.md")
 
 
+def test_the_demo_time_is_said_once_the_same_everywhere() -> None:
+    """The README, Getting started, the Makefile and the demo's file give one duration, and the
+    pages say that results differ across CPUs but repeat on one machine."""
+    said = {}
+    for name in ("README.md", "docs/getting-started.md", "Makefile", "experiments/demo.yaml"):
+        text = " ".join((ROOT / name).read_text(encoding="utf-8").replace("#", " ").split())
+        said[name] = re.findall(r"[Aa]bout (\d+) minutes on 2 cores", text)
+        assert len(said[name]) == 1, f"{name}: {said[name]}"
+        if name.endswith(".md") or name.endswith(".yaml"):
+            assert "differ across CPUs but repeat bit for bit on one machine" in text, name
+    assert len({tuple(v) for v in said.values()}) == 1, said
+
+
 def test_every_docs_page_is_in_the_nav() -> None:
     config = (ROOT / "mkdocs.yml").read_text(encoding="utf-8")
     for page in (ROOT / "docs").glob("*.md"):
