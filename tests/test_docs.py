@@ -114,6 +114,18 @@ def test_the_demo_time_is_said_once_the_same_everywhere() -> None:
     assert len({tuple(v) for v in said.values()}) == 1, said
 
 
+def test_installing_without_make_puts_the_cpu_torch_first() -> None:
+    """Without make, the pages install torch from PyTorch's CPU index before ermrl, so that pip
+    does not pull a CUDA torch and its nvidia packages."""
+    cpu = "pip install torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu"
+    makefile = (ROOT / "Makefile").read_text(encoding="utf-8")
+    assert "TORCH_SPEC ?= torch==2.13.0" in makefile  # the same version as make installs
+    for name in ("README.md", "docs/getting-started.md"):
+        text = " ".join((ROOT / name).read_text(encoding="utf-8").split())
+        assert cpu in text, name
+        assert text.index(cpu) < text.index('pip install -e ".[dev]"', text.index(cpu)), name
+
+
 def test_every_docs_page_is_in_the_nav() -> None:
     config = (ROOT / "mkdocs.yml").read_text(encoding="utf-8")
     for page in (ROOT / "docs").glob("*.md"):
