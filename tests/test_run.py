@@ -119,7 +119,7 @@ def test_the_plan_counts_env_steps_from_the_file(tmp_path: Path) -> None:
     by_stage = {s.stage: s for s in steps}
     assert by_stage["evolve"].env_steps == 100 * 3 * 300_000
     assert by_stage["reevaluate"].env_steps == (3 + 1) * 3 * 300_000
-    assert by_stage["test"].env_steps == 3 * 5 * 1_000_000
+    assert by_stage["test"].env_steps == 3 * 20 * 1_000_000  # 3 agents x seeds 10-29
     assert by_stage["evolve"].seconds > 0
     # Per-task overrides change the scale of that task only.
     ant = experiment_plan(exp, tasks=["Ant-v5"], build_agents=False)[0]
