@@ -10,6 +10,7 @@ from __future__ import annotations
 import ast
 import importlib.util
 import os
+import re
 from pathlib import Path
 from types import ModuleType
 
@@ -60,6 +61,48 @@ def test_notebook_is_stripped_and_imports_only_ermrl_analysis(path: Path) -> Non
                 )
             if isinstance(node, ast.ImportFrom):
                 assert node.module == "ermrl.analysis", f"{path.name} imports from {node.module}"
+
+
+def test_the_notebooks_extra_brings_jupyter_lab_and_nbconvert() -> None:
+    tomllib = pytest.importorskip("tomllib")  # Python 3.11 and later
+    pyproject = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))
+    extra = pyproject["project"]["optional-dependencies"]["notebooks"]
+    names = {re.split(r"[<>=\[ ]", spec, maxsplit=1)[0] for spec in extra}
+    assert {"jupyter", "jupyterlab", "nbconvert", "ipykernel"} <= names
+
+
+def _first_cell_defaults(path: Path) -> dict[str, str]:
+    """The keyword arguments of the first cell's ``notebook_parameters(...)`` call."""
+    nbformat = _nbformat()
+    tree = ast.parse(nbformat.read(path, as_version=4).cells[0].source)
+    (call,) = [
+        n
+        for n in ast.walk(tree)
+        if isinstance(n, ast.Call) and getattr(n.func, "id", "") == "notebook_parameters"
+    ]
+    return {k.arg: ast.literal_eval(k.value) for k in call.keywords if k.arg}
+
+
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)
+def test_the_first_cell_defaults_to_the_demo_study(path: Path) -> None:
+    """Run after `make demo`, a notebook opens the demo's study and test phase, as
+    experiments/demo.yaml names them (paths relative to notebooks/)."""
+    from ermrl.cli._experiment import experiment_plan, load_experiment
+
+    evolve, _, test, _ = experiment_plan(
+        load_experiment(ROOT / "experiments" / "demo.yaml"), build_agents=False
+    )
+
+    def option(argv: list[str], name: str) -> str:
+        return argv[argv.index(name) + 1]
+
+    storage = option(evolve.argv, "--storage")
+    assert storage.startswith("sqlite:///") and not storage.startswith("sqlite:////")
+    assert _first_cell_defaults(path) == {
+        "study_name": option(evolve.argv, "--study-name"),
+        "storage": "sqlite:///../" + storage.removeprefix("sqlite:///"),
+        "runs": "../" + option(test.argv, "--out"),
+    }
 
 
 @pytest.fixture(scope="module")
