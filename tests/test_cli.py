@@ -510,3 +510,17 @@ sys.exit(ermrl.cli.main(sys.argv[1:]))
                               storage=f"sqlite:///{tmp_path}/s.db")  # fmt: skip
     # stopped before it claimed a trial: only the queued reference point is there
     assert [t.state for t in study.trials] == [optuna.trial.TrialState.WAITING]
+
+
+@pytest.mark.parametrize("flag", ["--help", "--version"])
+def test_top_level_help_to_a_closed_pipe_ends_quietly(flag: str) -> None:
+    """``ermrl --help | head -3``: a reader gone before the text is written is exit code 141
+    (as SIGPIPE ends other Unix tools), with no BrokenPipeError traceback."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "ermrl", flag], stdout=subprocess.PIPE, stderr=subprocess.PIPE
+    )
+    assert proc.stdout is not None and proc.stderr is not None
+    proc.stdout.close()  # the reader is gone before the first line
+    err = proc.stderr.read().decode()
+    assert proc.wait(60) == 141, err
+    assert err == ""

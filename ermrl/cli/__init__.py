@@ -80,11 +80,18 @@ def run_command(name: str, argv: Sequence[str] | None = None, prog: str | None =
         print(f"{prog}: {what}", file=sys.stderr)
         return code
     except BrokenPipeError:
-        # Nothing more can be written to stdout; point it at /dev/null so that the flush at
-        # exit does not complain about the closed pipe either.
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
-        return 141
+        return _closed_pipe()
+
+
+def _closed_pipe() -> int:
+    """The exit code 141 of a reader that closed the pipe (as SIGPIPE ends other Unix tools).
+
+    Nothing more can be written to stdout; it is pointed at /dev/null so that the flush at exit
+    does not complain about the closed pipe either.
+    """
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    return 141
 
 
 def evolve_main(argv: Sequence[str] | None = None, prog: str = "ermrl evolve") -> int:
@@ -110,14 +117,15 @@ def _usage() -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     """Dispatch ``ermrl COMMAND ...``."""
     args = list(sys.argv[1:] if argv is None else argv)
-    if not args or args[0] in ("-h", "--help"):
-        print(_usage())
-        return 0 if args else 2
-    if args[0] == "--version":
+    if not args or args[0] in ("-h", "--help", "--version"):
         from ermrl import __version__
 
-        print(f"ermrl {__version__}")
-        return 0
+        text = f"ermrl {__version__}" if args and args[0] == "--version" else _usage()
+        try:  # `ermrl --help | head -3`: a closed pipe ends quietly, as in run_command
+            print(text, flush=True)
+        except BrokenPipeError:
+            return _closed_pipe()
+        return 0 if args else 2
     name, rest = args[0], args[1:]
     if name not in COMMANDS:
         print(
