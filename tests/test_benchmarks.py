@@ -364,3 +364,36 @@ def test_the_learners_benchmark_runs_in_quick_mode(tmp_path: Path) -> None:
     assert meta["expert"]["trained_here_seconds"] > 0
     assert meta["checkpoints"] == [250, 500, 750, 1000]
     assert "| imitation-sac |" in proc.stdout or "imitation-sac" not in learners
+
+
+def test_the_fault_pass_lists_its_cases_and_counts_each_problem(tmp_path: Path) -> None:
+    """Every case the reliability round named is in the fault pass, and a case's problems are
+    counted in the summary and written to the CSV (no command run here)."""
+    from benchmarks import fault_pass
+
+    names = {f"{c.family}/{c.name}" for c in fault_pass.cases()}
+    families = {name.split("/")[0] for name in names}
+    assert {f.split("-")[0] for f in families} == {str(i) for i in range(1, 13)}
+    assert set(fault_pass.QUICK) <= names
+    # Glued records, as sed '/"op_code":4/{N;s/\n//}' makes them.
+    assert (
+        fault_pass._glue('{"op_code": 4}\n{"a": 1}\n{"b": 2}\n')
+        == '{"op_code": 4}{"a": 1}\n{"b": 2}\n'
+    )
+    ok = {"family": "f", "case": "a", "rc": "0", "seconds": 1.0, "outcome": "ok",
+          **dict.fromkeys((*fault_pass.COUNTS, "hang", "other"), 0)}  # fmt: skip
+    bad = {**ok, "case": "b", "traceback": 2, "outcome": "traceback in evolve: ValueError"}
+    skipped = {**ok, "case": "c", "outcome": "skipped (needs redis)", "traceback": ""}
+    assert fault_pass.report([ok, bad, skipped], tmp_path, 1.0) == 1
+    assert fault_pass.report([ok, skipped], tmp_path, 1.0) == 0
+    rows = (tmp_path / "fault_pass.csv").read_text().splitlines()
+    assert rows[0].startswith("family,case,rc,traceback,bricked,code-run,files-left,trials-lost")
+    assert len(rows) == 3
+
+
+@pytest.mark.slow  # three command start-ups (a few seconds each on a loaded machine)
+def test_the_fault_pass_runs_in_quick_mode(tmp_path: Path) -> None:
+    proc = run_quick("fault_pass.py", "--out", str(tmp_path), timeout=300)
+    assert "| traceback | 0 |" in proc.stdout and "| files-left | 0 |" in proc.stdout
+    rows = (tmp_path / "fault_pass.csv").read_text().splitlines()
+    assert len(rows) == 4 and all(row.endswith(",ok") for row in rows[1:]), rows
