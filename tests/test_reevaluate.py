@@ -478,3 +478,24 @@ def test_a_test_phase_trains_once_the_runs_two_agents_share(
         assert json.loads((b / "settings.json").read_text())["agent"] == "res-ppo"
     summary = pd.read_csv(out / "summary.csv").set_index("agent")
     assert summary.loc["res-ppo", "n_seeds"] == 2
+
+
+def test_a_study_without_a_finished_trial_says_what_to_run(tmp_path: Path) -> None:
+    """``ermrl test`` on a study whose evolution has not finished a trial: the trials by state
+    and the command that evolves it, not only "no COMPLETE trial"."""
+    from ermrl.search import create_or_resume_study
+
+    url = f"sqlite:///{tmp_path}/s.db"
+    command = "ermrl evolve --env-id Pendulum-v1 --study-name s"
+    study = create_or_resume_study(make_config(n_trials=1), url, "s", command=command)
+    with pytest.raises(ConfigError, match=r"no COMPLETE trial yet \(1 waiting\)"):
+        select_trial(study)  # the reference trial, queued
+    study.tell(study.ask(), state=TrialState.FAIL)
+    with pytest.raises(ConfigError) as err:
+        select_trial(study)
+    message = str(err.value)
+    assert "no COMPLETE trial yet (1 failed)" in message, message
+    assert f"`{command}`" in message and "resumes" in message and "ermrl study show" in message
+    bare = optuna.create_study(study_name="bare", storage=url)
+    with pytest.raises(ConfigError, match=r"\(no trial at all\): run the evolution .*ermrl evolve"):
+        select_trial(bare)

@@ -434,6 +434,24 @@ def used_reevaluation_seeds(study: optuna.Study) -> tuple[int, ...]:
     return tuple(sorted(seeds))
 
 
+def _no_complete_trial(study: optuna.Study, trials: list[FrozenTrial]) -> str:
+    """Why a study has nothing to test, and what to run: its trials by state, then the command
+    that evolves it (the one it stored, else ``ermrl evolve``)."""
+    counts = {state: sum(t.state == state for t in trials) for state in TrialState}
+    words = {TrialState.FAIL: "failed"}
+    seen = ", ".join(
+        f"{n} {words.get(state, state.name.lower())}" for state, n in counts.items() if n
+    )
+    command = study.user_attrs.get("ermrl_command")
+    evolving = isinstance(command, str) and "evolve" in command  # not a script's `-c`
+    again = f"`{command}`" if evolving else "ermrl evolve"
+    return (
+        f"study {study.study_name!r} has no COMPLETE trial yet "
+        f"({seen or 'no trial at all'}): run the evolution until a trial finishes ({again}; "
+        "rerunning it resumes the study), then test; `ermrl study show` lists its trials"
+    )
+
+
 def select_trial(study: optuna.Study, trial_number: int | None = None) -> tuple[FrozenTrial, str]:
     """The trial the test phase should use, and how it was chosen.
 
@@ -486,7 +504,7 @@ def select_trial(study: optuna.Study, trial_number: int | None = None) -> tuple[
         and t.number not in failed
     ]
     if not complete:
-        raise ConfigError(f"study {study.study_name!r} has no COMPLETE trial yet")
+        raise ConfigError(_no_complete_trial(study, list(trials.values())))
     best = min(complete, key=lambda t: (-float(t.value), t.number))  # type: ignore[arg-type]
     if not isinstance(doc, dict):
         why = "no re-evaluation; evolve with --reevaluate-top K for an unbiased pick"
