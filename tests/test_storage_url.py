@@ -213,6 +213,29 @@ def test_storage_opened_from_a_parsed_value_remembers_it(tmp_path: Path) -> None
         load_study("s", parse_storage_url(f"sqlite:///{tmp_path}/other.db"))
 
 
+def test_a_missing_relative_sqlite_file_is_named_with_its_full_path(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Run from another folder, ``sqlite:///ermrl.db`` is looked up there: the line names the
+    file it looked for and the folder it was relative to."""
+    from ermrl.storage import repair_sqlite
+
+    monkeypatch.chdir(tmp_path)
+    expected = (
+        f"no SQLite database {tmp_path / 'ermrl.db'} (ermrl.db is relative to the current "
+        f"folder {tmp_path}; check --storage)"
+    )
+    with pytest.raises(StorageError) as err:
+        load_study("s", "sqlite:///ermrl.db")
+    assert str(err.value) == expected
+    with pytest.raises(StorageError) as err:
+        repair_sqlite("sqlite:///ermrl.db")
+    assert str(err.value) == expected
+    with pytest.raises(StorageError) as err:
+        load_study("s", f"sqlite:///{tmp_path}/other.db")
+    assert str(err.value) == f"no SQLite database {tmp_path / 'other.db'} (check --storage)"
+
+
 @pytest.mark.parametrize(
     "fresh_storage",
     [

@@ -29,6 +29,7 @@ import time
 import warnings
 import weakref
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any, Literal
 
 import optuna
@@ -225,7 +226,7 @@ def _open(spec: StorageURL, heartbeat: dict[str, Any], mode: str, window: float)
                 f"SQLite database {path} is a directory, not a file (check --storage)"
             )
         if mode != "create" and not path.is_file():
-            raise StorageError(f"no SQLite database {path} (check --storage)")
+            raise StorageError(_no_sqlite_database(path))
         _check_sqlite(path, lock=mode != "read")
         # Python's sqlite3 waits this long for a lock before "database is locked".
         engine_kwargs["connect_args"] = {"timeout": SQLITE_BUSY_TIMEOUT_S}
@@ -428,8 +429,20 @@ def repair_sqlite(url: str | StorageURL) -> bool:
     if spec.kind != "sqlite" or spec.path is None:
         raise StorageError(f"{spec} is not a SQLite database")
     if not spec.path.is_file():
-        raise StorageError(f"no SQLite database {spec.path} (check --storage)")
+        raise StorageError(_no_sqlite_database(spec.path))
     return _check_sqlite(spec.path)
+
+
+def _no_sqlite_database(path: Path) -> str:
+    """The one line for a SQLite file that does not exist, with its full path: a relative
+    ``sqlite:///ermrl.db`` is read from the current folder, which a command run from another
+    folder does not show."""
+    if path.is_absolute():
+        return f"no SQLite database {path} (check --storage)"
+    return (
+        f"no SQLite database {path.absolute()} ({path} is relative to the current folder "
+        f"{Path.cwd()}; check --storage)"
+    )
 
 
 def _registered(storage: BaseStorage) -> StorageURL | None:
