@@ -32,12 +32,13 @@ def silent_port() -> Iterator[int]:
 
 
 @pytest.mark.timeout(20)  # it hung for good before
-@pytest.mark.parametrize("scheme", ["mysql", "mysql+pymysql", "postgresql"])
+@pytest.mark.parametrize("scheme", ["mysql", "mysql+pymysql", "postgresql", "redis"])
 def test_a_server_that_never_greets_fails_in_one_line(
     silent_port: int, scheme: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """PyMySQL waited for the greeting without a limit (over 100 s against a silent listener,
-    61 s against PostgreSQL's port); now the connect timeout covers it (10 s, 1 s here)."""
+    61 s against PostgreSQL's port) and Redis for 252 s (its client waits the retry window for
+    each answer); now the connect timeout covers it (10 s, 1 s here)."""
     monkeypatch.setattr(url_module, "CONNECT_TIMEOUT_S", 1.0)
     start = time.monotonic()
     with pytest.raises(StorageError) as caught:

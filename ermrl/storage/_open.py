@@ -87,6 +87,36 @@ class StudyNotFound(LookupError):
     """No study of that name exists in the storage."""
 
 
+def greet_redis(url: str, shown: str) -> None:
+    """Fail now, in one line, when the Redis server does not answer a PING within the connect
+    bound (:data:`~ermrl.storage._url.CONNECT_TIMEOUT_S`).
+
+    The storage's own client waits up to the retry window for each answer (a paused server is
+    an outage to ride out), so without this a listener that never answers held a command for
+    minutes. Opening a storage is not retried: a wrong URL fails fast.
+    """
+    import redis
+    from redis.backoff import NoBackoff
+    from redis.retry import Retry
+
+    from ermrl.storage import _url
+
+    bound = _url.CONNECT_TIMEOUT_S
+    client = redis.Redis.from_url(
+        url, socket_timeout=bound, socket_connect_timeout=bound, retry=Retry(NoBackoff(), 0)
+    )
+    try:
+        client.ping()
+    except redis.exceptions.RedisError as err:
+        detail = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise StorageError(
+            f"cannot open storage {shown}: the Redis server did not answer within {bound:g} s "
+            f"({detail})"
+        ) from None
+    finally:
+        client.close()
+
+
 def storage_kind(url: str) -> StorageKind:
     """Classify a storage URL: ``sqlite``, ``postgresql``, ``mysql``, ``journal`` or ``redis``.
 
@@ -208,6 +238,7 @@ def _open(spec: StorageURL, heartbeat: dict[str, Any], mode: str, window: float)
                 ) from err
         return HeartbeatJournalStorage(LineJournalFileBackend(str(path), spec.raw), **heartbeat)
     if spec.kind == "redis":
+        greet_redis(spec.url, spec.raw)
         backend = PlainRedisBackend(
             spec.url, prefix=spec.prefix, storage=spec.raw, retry_window=window
         )
