@@ -504,7 +504,8 @@ def hot_journal(action: str) -> Callable[[Ctx], None]:
 
 def interrupt(sig: signal.Signals) -> Callable[[Ctx], None]:
     """A signal while the first generation trains; the rerun must train every trial, the
-    unevolved reference (trial with sr = lr = input_scaling = 1) included."""
+    unevolved reference (trial with sr = lr = input_scaling = 1) included. After kill -9 the
+    rerun follows ``study fail-stale --older-than 1s``, as a user would after a crash."""
 
     def run(ctx: Ctx) -> None:
         url = "sqlite:///s.db"
@@ -517,6 +518,13 @@ def interrupt(sig: signal.Signals) -> Callable[[Ctx], None]:
         time.sleep(1.0)
         proc.send_signal(sig)
         ctx.finish(proc, args, start)
+        if sig == signal.SIGKILL:
+            # kill -9 leaves the trials RUNNING: the rerun would wait the heartbeat grace period
+            # (300 s) for them. A user fails them at once (the shortest age is 1 s), which
+            # queues them again.
+            time.sleep(1.5)
+            fail = ["study", "fail-stale", "--storage", url, "--study-name", "s"]
+            ctx.expect(ctx.cli(*fail, "--older-than", "1s", storage=url), 0)
         ctx.expect(ctx.cli(*args, storage=url), 0)
         trials = ctx.trials(url)
         if trials is None:
@@ -572,7 +580,7 @@ def code_from_data(command: str) -> Callable[[Ctx], None]:
             snapshot.write_text(snapshot.read_text().replace("CartPole-v1", EVIL_ID))
             proc = ctx.cli("study", "import", "--storage", "sqlite:///t.db", "--snapshot",
                            "study.json", env=env)  # fmt: skip
-        elif command == "settings":  # a run folder's settings.json (refused since earlier)
+        elif command == "settings":  # a run folder's settings.json: its env_id is never read
             ctx.seeds.copy("runs", ctx.folder)
             settings = ctx.folder / "runs/s/agents/res-ppo/seed_10/settings.json"
             settings.write_text(settings.read_text().replace("CartPole-v1", EVIL_ID))
@@ -594,7 +602,9 @@ def code_from_data(command: str) -> Callable[[Ctx], None]:
                 name = command.split("-")[0]
                 proc = ctx.cli(name, *base, "--out", "out", *extra, env=env, storage=url)
         ctx.code_run = (ctx.folder / "CODE_RAN").exists()
-        if command != "report":  # a report only shows the id; it runs nothing from it
+        if command == "settings":  # the replay takes the task from config.yaml (checked)
+            ctx.expect(proc, {0, 2})
+        elif command != "report":  # a report only shows the id; it runs nothing from it
             ctx.expect(proc, 2)
 
     return run
