@@ -296,6 +296,25 @@ def test_a_trial_whose_worker_died_before_its_first_heartbeat_is_failed_and_retr
     assert trials[1].params == trials[0].params
 
 
+def test_a_journal_heartbeat_on_a_full_disk_is_logged_not_raised(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The heartbeat thread of a journal study on a full disk wrote a thread traceback
+    (``OSError: No space left on device``) over the worker's one-line error."""
+    log = tmp_path / "s.log"
+    storage = open_storage(str(log), heartbeat_interval=60)
+    study = optuna.create_study(study_name="s", storage=storage)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        trial = study.ask()
+    log.unlink()
+    log.symlink_to("/dev/full")  # every write: ENOSPC, as on a full disk
+    with caplog.at_level("WARNING", logger="ermrl.storage"):
+        storage.record_heartbeat(trial._trial_id)
+    assert f"missed a heartbeat of trial id {trial._trial_id}" in caplog.text
+    assert "No space left on device" in caplog.text
+
+
 def test_fail_stale_uses_heartbeats_else_start_time(tmp_path: Path) -> None:
     url = f"sqlite:///{tmp_path}/s.db"
     study = optuna.create_study(study_name="s", storage=open_storage(url, heartbeat_interval=60))

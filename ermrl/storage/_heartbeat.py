@@ -94,7 +94,8 @@ class HeartbeatJournalStorage(JournalStorage, BaseHeartbeat):
             self.set_trial_system_attr(trial_id, HEARTBEAT_ATTR, time.time())
         except UpdateFinishedTrialError:
             pass  # finished (or failed as stale by another worker) meanwhile
-        except StorageError as err:  # unreachable past the retry window: the next one counts
+        except (StorageError, OSError) as err:  # unreachable past the retry window, or a
+            # journal file that cannot be written (a full disk): the next one counts
             _log.warning("missed a heartbeat of trial id %d: %s", trial_id, err)
 
     def _get_stale_trial_ids(self, study_id: int) -> list[int]:
