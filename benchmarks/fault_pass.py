@@ -182,6 +182,8 @@ class Ctx:
         changed = [
             p for p, stat in after.items()
             if before.get(p) != stat and not any(p == k or p.startswith(k + ".") for k in keep)
+            # a folder that was there: only its mtime moved (its new entries count themselves)
+            and not (p in before and (self.folder / p).is_dir())
             and not p.startswith(("s.db", "s.log"))  # the case's storage and its lock files
         ]  # fmt: skip
         self.left += [f"{what}: {p}" for p in sorted(changed)]
@@ -242,7 +244,7 @@ def _storage_names(storage: str | None) -> list[str]:
     if not storage:
         return []
     path = re.sub(r"^(sqlite|journal):///", "", storage)
-    return [Path(path).name] if "://" not in path else []
+    return [str(Path(path))] if "://" not in path else []  # relative to the case's folder
 
 
 def listing(folder: Path) -> dict[str, tuple[int, int]]:
@@ -799,6 +801,27 @@ def server_database(kind: str) -> Iterator[str]:
         admin.close()
 
 
+def _n_running_server(kind: str, url: str) -> int:
+    """RUNNING trials in a PostgreSQL or MySQL storage (0 while its tables do not exist)."""
+    sql = "SELECT COUNT(*) FROM trials WHERE state = 'RUNNING'"
+    try:
+        if kind == "postgresql":
+            import psycopg2
+
+            con: Any = psycopg2.connect(url, connect_timeout=5)
+        else:
+            import pymysql
+
+            name = url.rsplit("/", 1)[1]
+            con = pymysql.connect(host=MYSQL[0], port=MYSQL[1], user="root", password="",
+                                  database=name, connect_timeout=5)  # fmt: skip
+        with contextlib.closing(con), con.cursor() as cur:
+            cur.execute(sql)
+            return int(cur.fetchone()[0])
+    except Exception:  # not created yet
+        return 0
+
+
 def outage(kind: str, seconds: float, workers: int = 2) -> Callable[[Ctx], None]:
     """``workers`` evolve workers on one study while the server is unreachable for
     ``seconds`` (a proxy stopped; Redis paused): every worker finishes, every trial completes."""
@@ -817,7 +840,12 @@ def outage(kind: str, seconds: float, workers: int = 2) -> Callable[[Ctx], None]
                 ctx.procs.pop()
             start = time.monotonic()
             procs = [ctx.popen(*args) for _ in range(workers)]
-            time.sleep(8)  # workers started and training
+            # Opening a storage is not retried (a wrong URL fails at once), so the outage starts
+            # once the workers train: each holds a RUNNING trial (a loaded machine takes more
+            # than 8 s to start them).
+            if proxy is not None:
+                wait_for(lambda: _n_running_server(kind, direct) >= workers, procs[0], 120)
+            time.sleep(8 if proxy is None else 1)
             if proxy is not None:
                 proxy.stop()
                 time.sleep(seconds)
@@ -906,8 +934,9 @@ def storage_full_disk(kind: str) -> Callable[[Ctx], None]:
                 ctx.other.append("evolve succeeded on a full disk (the disk was not full enough)")
             for filler in disk.glob(".filler*"):
                 filler.unlink()
+            time.sleep(1.5)  # the shortest age fail-stale takes is 1 s
             ctx.cli("study", "fail-stale", "--storage", url, "--study-name", "s",
-                    "--older-than", "0s", storage=url)  # fmt: skip
+                    "--older-than", "1s", storage=url)  # fmt: skip
             ctx.evolve_again(url, n_trials=10)
             ctx.check_kept(url, before)
 
