@@ -177,6 +177,11 @@ def test_each_label_follows_the_rule_on_crafted_per_seed_files(tmp_path: Path) -
     assert "Up-v0: **supported**; Down-v0: **contradicted**; Noise-v0: **inconclusive**" in text
     assert "1 supported, 1 contradicted, 1 inconclusive" in text
     assert html is not None and "<table>" in html.read_text()
+    table = pd.read_csv(md.with_suffix(".csv"))  # every test, for other tools
+    primary = table[(table["metric"] == "last10") & (table["question"] == "reservoir-vs-ppo")]
+    assert dict(zip(primary["task"], primary["outcome"], strict=True)) == {
+        "Up-v0": "supported", "Down-v0": "contradicted", "Noise-v0": "inconclusive"}  # fmt: skip
+    assert primary["p_adjusted"].tolist() == pytest.approx([adjusted[t] for t in primary["task"]])
 
 
 def test_holm_adjusts_and_stops_where_a_test_is_kept() -> None:

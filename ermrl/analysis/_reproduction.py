@@ -349,7 +349,8 @@ def write_reproduction_page(
         html_page: Also write the HTML form.
 
     Returns:
-        ``(markdown, html or None)``.
+        ``(markdown, html or None)``; every judged test is also written as CSV beside the page
+        (``.csv`` suffix; the columns of :func:`~ermrl.analysis.judge`).
 
     Raises:
         VerdictError: experiment files that pool a question into one family disagree on its
@@ -432,6 +433,8 @@ def write_reproduction_page(
     for section in sections:
         doc.blocks += section.blocks
     write_atomic(out, doc.markdown())
+    # Every test, one row each, for other tools (and for recomputing the page's labels).
+    write_atomic(out.with_suffix(".csv"), tests.to_csv(index=False))
     html_path = None
     if html_page:
         html_path = out.with_suffix(".html")

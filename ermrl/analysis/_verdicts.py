@@ -33,7 +33,7 @@ import datetime as dt
 import math
 import subprocess
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -252,7 +252,6 @@ class TaskRuns:
     runs: pd.DataFrame
     reference_selected: bool = False
     env_id: str | None = None
-    notes: dict[str, str] = field(default_factory=dict)
 
 
 def _values(runs: pd.DataFrame, agent: str, column: str) -> pd.Series:
