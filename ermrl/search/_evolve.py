@@ -583,7 +583,11 @@ class _Worker:
         started = time.perf_counter()
         self.runner.label = f"trial {claim.trial.number}"
         self.runner.trial = claim.trial.number
-        state, result, note = self.train(claim, heartbeat)
+        try:
+            state, result, note = self.train(claim, heartbeat)
+        except BaseException:
+            heartbeat.join()  # a running heartbeat thread would keep the process from exiting
+            raise
         with self.guard.deferred():
             heartbeat.join()
             elapsed = time.perf_counter() - started
@@ -599,13 +603,17 @@ class _Worker:
         # A signal during the claims is raised inside train_generation(), which closes every
         # claimed trial and queues it again (raised here, it would leave them RUNNING).
         with self.guard.deferred():
-            for _ in range(size):
-                last = self.claim()
-                if last.trial is None:
-                    break
-                claims.append(last)
-                beats.append(get_heartbeat_thread(last.trial._trial_id, self.study._storage))
-                beats[-1].start()
+            try:
+                for _ in range(size):
+                    last = self.claim()
+                    if last.trial is None:
+                        break
+                    claims.append(last)
+                    beats.append(get_heartbeat_thread(last.trial._trial_id, self.study._storage))
+                    beats[-1].start()
+            except BaseException:
+                _join(beats)  # a running heartbeat thread would keep the process from exiting
+                raise
         if not claims:
             assert last is not None
             return self.wait(last)
@@ -616,7 +624,11 @@ class _Worker:
         self.runner.label = (
             f"trial {numbers[0]}" if len(numbers) == 1 else f"trials {numbers[0]}-{numbers[-1]}"
         )
-        results = self.train_generation(claims, beats)
+        try:
+            results = self.train_generation(claims, beats)
+        except BaseException:
+            _join(beats)
+            raise
         outcomes = []
         with self.guard.deferred():
             for beat in beats:
@@ -633,6 +645,13 @@ class _Worker:
                 outcomes.append((claim, closed, state, result, note))
         go_on = [self.finish(*outcome, elapsed) for outcome in outcomes]  # report every trial
         return all(go_on)
+
+
+def _join(beats: list[Any]) -> None:
+    """Stop the heartbeat threads of trials a worker leaves on an error (non-daemon threads:
+    the process would wait for them forever at exit)."""
+    for beat in beats:
+        beat.join()
 
 
 def _is_reference(claim: Claim) -> bool:
