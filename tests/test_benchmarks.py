@@ -380,6 +380,10 @@ def test_the_fault_pass_lists_its_cases_and_counts_each_problem(tmp_path: Path) 
         fault_pass._glue('{"op_code": 4}\n{"a": 1}\n{"b": 2}\n')
         == '{"op_code": 4}{"a": 1}\n{"b": 2}\n'
     )
+    # A library's warning (and its source line) is not one more line of a one-line error.
+    err = "lib.py:3: UserWarning: few trials\n  warn(\nermrl report: error: bad\n"
+    assert fault_pass._said(err) == ["ermrl report: error: bad"]
+    assert fault_pass._storage_names("sqlite:///disk/s.db") == ["disk/s.db"]
     ok = {"family": "f", "case": "a", "rc": "0", "seconds": 1.0, "outcome": "ok",
           **dict.fromkeys((*fault_pass.COUNTS, "hang", "other"), 0)}  # fmt: skip
     bad = {**ok, "case": "b", "traceback": 2, "outcome": "traceback in evolve: ValueError"}
