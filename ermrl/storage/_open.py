@@ -99,7 +99,7 @@ def greet_redis(url: str, shown: str) -> None:
     from redis.backoff import NoBackoff
     from redis.retry import Retry
 
-    from ermrl.storage import _url
+    import ermrl.storage._url as _url
 
     bound = _url.CONNECT_TIMEOUT_S
     client = redis.Redis.from_url(
