@@ -148,9 +148,9 @@ def test_bad_task_sets_are_clear_errors(tmp_path: Path) -> None:
         generalization_tasks(["Hoper-v5"])
     with pytest.raises(
         MissingScoreError,
-        match="`ermrl scores --env-ids CartPole-v1 --out scores.csv` to measure it and pass --scores scores.csv",
+        match="`ermrl scores --env-ids Acrobot-v1 --out scores.csv` to measure it and pass --scores scores.csv",
     ):
-        generalization_tasks(["CartPole-v1"])
+        generalization_tasks(["Acrobot-v1"])
     scores = tmp_path / "scores.csv"
     write_scores({"Hopper-v5": ReferenceScore("Hopper-v5", random_mean=5.0, target=5.0)}, scores)
     with pytest.raises(MissingScoreError, match="equals its random return"):
@@ -248,7 +248,7 @@ def test_overlap_warning() -> None:
     [
         (["--suite", "nope"], "unknown suite 'nope'; available:"),
         (["--env-ids", "Hoper-v5"], "unknown env id 'Hoper-v5'"),
-        (["--env-ids", "CartPole-v1"], "run `ermrl scores --env-ids CartPole-v1 --out scores.csv`"),
+        (["--env-ids", "Acrobot-v1"], "run `ermrl scores --env-ids Acrobot-v1 --out scores.csv`"),
         (["--env-ids", "Hopper-v5", "Hopper-v5"], "each task may appear once"),
         (["--env-ids", "Hopper-v5", "--env-version", "v4"], "--env-version applies to --suite"),
         (["--env-ids"], "expected at least one argument"),

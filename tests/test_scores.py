@@ -126,7 +126,7 @@ def test_cli_errors_are_one_line_exit_2(capsys: pytest.CaptureFixture[str]) -> N
 def test_cli_smoke_writes_table(tmp_path: Path) -> None:
     out = tmp_path / "scores.csv"
     proc = subprocess.run(
-        [sys.executable, "-m", "ermrl", "scores", "--env-ids", "CartPole-v1", "Hopper-v5"]
+        [sys.executable, "-m", "ermrl", "scores", "--env-ids", "Acrobot-v1", "Hopper-v5"]
         + ["--episodes", "3", "--out", str(out)],
         capture_output=True,
         text=True,
@@ -135,9 +135,9 @@ def test_cli_smoke_writes_table(tmp_path: Path) -> None:
     assert proc.returncode == 0, proc.stderr
     table = load_scores(out)
     # A new table starts from the packaged rows; the two measured ones are replaced.
-    assert {"CartPole-v1", "Hopper-v5"} <= set(table)
+    assert {"Acrobot-v1", "Hopper-v5"} <= set(table)
     assert table["Hopper-v5"].random_episodes == 3
-    assert "Hopper-v5" in proc.stdout and "no target return for CartPole-v1" in proc.stdout
+    assert "Hopper-v5" in proc.stdout and "no target return for Acrobot-v1" in proc.stdout
 
 
 _HEADER = ",".join(SCORE_COLUMNS)
