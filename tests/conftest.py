@@ -157,3 +157,15 @@ def good_expert(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("experts") / "pendulum-good"
     train_expert("Pendulum-v1", "sac", 5000, out, seed=0, n_eval_episodes=2)
     return out
+
+
+# The per-test limit (pytest-timeout) is `timeout` in pyproject.toml for the default suite; a
+# slow end-to-end test, whose subprocesses have their own limits of up to 25 min, gets this one
+# unless it sets its own.
+SLOW_TEST_TIMEOUT_S = 1800
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        if item.get_closest_marker("slow") and not item.get_closest_marker("timeout"):
+            item.add_marker(pytest.mark.timeout(SLOW_TEST_TIMEOUT_S))
