@@ -106,6 +106,34 @@ def test_overrides_are_validated() -> None:
     }
 
 
+def test_zoo_key_colon_value_overrides_are_read_like_key_equals_value() -> None:
+    """rl-zoo writes `--hyperparams learning_rate:1e-4`; the first separator splits."""
+    assert parse_overrides(["learning_rate:1e-4", "n_steps=512", "policy_kwargs:{net_arch: [8]}"]) == {
+        "learning_rate": pytest.approx(1e-4),
+        "n_steps": 512,
+        "policy_kwargs": {"net_arch": [8]},
+    }
+    assert parse_overrides(["learning_rate=lin_3e-4"]) == {"learning_rate": "lin_3e-4"}
+    with pytest.raises(ConfigError, match=r"is not KEY=VALUE \(or KEY:VALUE\)"):
+        parse_overrides([":1e-4"])
+
+
+def test_an_unknown_key_is_matched_against_the_chosen_learner_only() -> None:
+    """A typo gets a did-you-mean among the learner's own keys, not the ~70 of every learner;
+    another learner's setting is named as such."""
+    with pytest.raises(ConfigError) as typo:
+        parse_overrides(["learning_rat=1e-4"], "ppo")
+    message = str(typo.value)
+    assert "did you mean 'learning_rate'?" in message and "buffer_size" not in message
+    assert "\n" not in message
+    with pytest.raises(ConfigError, match=r"'buffer_size' is a setting of another learner \(sac"):
+        parse_overrides(["buffer_size=100"], "ppo")
+    assert parse_overrides(["buffer_size=100"], "sac") == {"buffer_size": 100}
+    with pytest.raises(ConfigError, match=r"'frame_stack' is a setting of another learner \(framestack-ppo"):
+        parse_overrides(["frame_stack=3"], "ppo")
+    assert parse_overrides(["frame_stack:3"], "framestack-ppo") == {"frame_stack": 3}
+
+
 def test_linear_schedule_strings_become_callables(tmp_path) -> None:  # noqa: ANN001
     cfg = resolve_ppo_config("CartPole-v1")
     kwargs = ppo_kwargs(cfg)

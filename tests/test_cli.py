@@ -269,7 +269,7 @@ def _n_trials(db: Path, state: str | None = None) -> int:
         (["--env-id", "Pendulum-v1", "--training-steps", "0"], "must be positive"),
         (["--env-id", "Pendulum-v1", "--n-trials", "-3"], "must be positive"),
         (["--env-id", "Pendulum-v1", "--observe", "hidden"], "invalid choice"),
-        (["--env-id", "Pendulum-v1", "--ppo", "lerning_rate=3"], "unknown PPO hyperparameter"),
+        (["--env-id", "Pendulum-v1", "--ppo", "lerning_rate=3"], "did you mean 'learning_rate'?"),
         (["--env-id", "Pendulum-v1", "--ppo", "normalize=3"], "normalize must be true, false"),
         (
             ["--env-id", "Pendulum-v1", "--bias-init", "original", "--bias-scaling", "0.5"],

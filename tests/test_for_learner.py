@@ -24,9 +24,10 @@ from ermrl.cli._generalization import (
     evolve_generalization_main,
 )
 from ermrl.cli._generalization import test_generalization_main as run_test_generalization
-from ermrl.cli._test import agent_learners, build_test_parser
+from ermrl.cli._test import build_test_parser
 from ermrl.cli._test import test_main as run_test
 from ermrl.config import ConfigError
+from ermrl.experiments._prepare import agent_learners
 from ermrl.learners import AGENT_KINDS, default_agents, learner_names
 
 PENDULUM = "Pendulum-v1"
@@ -94,7 +95,7 @@ def test_values_are_read_as_ppo_values() -> None:
         (["dagger"], "--for-learner dagger: give at least one KEY=VALUE"),
         (["dagger", "expert"], "--for-learner dagger: 'expert' is not KEY=VALUE"),
         (["dagger", "=1"], "--for-learner dagger: '=1' is not KEY=VALUE"),
-        (["dagger", "foo=1"], "--for-learner dagger: unknown PPO hyperparameter(s) ['foo']"),
+        (["dagger", "foo=1"], "--for-learner dagger: unknown setting 'foo' of learner 'dagger'"),
     ],
 )
 def test_bad_flags_are_refused_in_one_line(words: list[str], match: str) -> None:

@@ -185,8 +185,8 @@ def test_the_tuned_zoo_entries_build() -> None:
         ("ent_coef=autox", "ent_coef must be"),
         ("ent_coef=-0.1", "ent_coef must be"),
         ("buffer_size=0", "buffer_size must be"),
-        ("nope=1", "unknown PPO hyperparameter"),
-        ("n_epochs=3", "settings refused"),  # a PPO setting SAC does not take
+        ("nope=1", "unknown setting 'nope' of learner 'sac'"),
+        ("n_epochs=3", "'n_epochs' is a setting of another learner (ppo"),  # not SAC's
         ("frame_stack=4", "a setting of another learner"),
     ],
 )

@@ -191,23 +191,82 @@ def _check_keys(entry: Mapping[str, Any], where: str) -> None:
         activation_fn(policy_kwargs["activation_fn"], where)
 
 
-def parse_overrides(items: Sequence[str]) -> dict[str, Any]:
-    """Parse ``KEY=VALUE`` strings; values are read as YAML (``1e-4``, ``true``, ``[64, 64]``).
+def learner_keys(learner: str) -> set[str]:
+    """The keys one learner's settings may hold: its algorithm's arguments (PPO's or SAC's),
+    its own and shared settings, and the ones ermrl reads (``n_envs``, ``normalize``)."""
+    from ermrl.learners import get_learner
+
+    spec = get_learner(learner)
+    algorithm = set(inspect.signature(spec.algorithm().__init__).parameters) - _OWNED_KEYS
+    return algorithm | set(spec.own_keys) | set(spec.shared_keys) | _ERMRL_KEYS
+
+
+def _split_override(item: str) -> tuple[str, str] | None:
+    """``KEY=VALUE`` or, as rl-zoo writes them, ``KEY:VALUE``; None when it is neither."""
+    eq, colon = item.find("="), item.find(":")
+    # The first separator wins: `policy_kwargs=dict(a=1)` and `net_arch:[64, 64]` both split
+    # at their first one; a value may hold either character.
+    cut = min(i for i in (eq, colon) if i >= 0) if max(eq, colon) >= 0 else -1
+    if cut <= 0:
+        return None
+    return item[:cut].strip(), item[cut + 1 :]
+
+
+def parse_overrides(items: Sequence[str], learner: str | None = None) -> dict[str, Any]:
+    """Parse ``KEY=VALUE`` (or rl-zoo's ``KEY:VALUE``) strings; values are read as YAML
+    (``1e-4``, ``true``, ``[64, 64]``).
+
+    Args:
+        items: The option's words.
+        learner: The learner they are for: an unknown key is then matched against its keys
+            only (a did-you-mean, or the learner whose setting it is). None: any learner's.
 
     Raises:
         ConfigError: a malformed item or an unknown key.
+
+    Example:
+        >>> parse_overrides(["learning_rate:1e-4", "n_steps=512"])
+        {'learning_rate': 0.0001, 'n_steps': 512}
     """
     out: dict[str, Any] = {}
     for item in items:
-        key, sep, raw = item.partition("=")
-        if not sep or not key:
-            raise ConfigError(f"PPO override {item!r} is not KEY=VALUE")
+        split = _split_override(item)
+        if split is None or not split[0]:
+            raise ConfigError(f"PPO override {item!r} is not KEY=VALUE (or KEY:VALUE)")
+        key, raw = split
         try:
-            out[key.strip()] = _coerce(yaml.safe_load(raw))
+            out[key] = _coerce(yaml.safe_load(raw))
         except yaml.YAMLError as err:
             raise ConfigError(f"PPO override {item!r}: cannot parse value") from err
-    _check_keys(out, "--ppo")
+    if learner is None:
+        _check_keys(out, "--ppo")
+    else:
+        _check_learner_keys(out, learner, "--ppo")
     return out
+
+
+def _check_learner_keys(entry: Mapping[str, Any], learner: str, where: str) -> None:
+    """Refuse keys the learner does not take, with a did-you-mean among its own keys only."""
+    import difflib
+
+    from ermrl.learners import LEARNERS
+
+    valid = learner_keys(learner)
+    for key in sorted(set(entry) - valid):
+        owners = [name for name in LEARNERS if name != learner and key in learner_keys(name)]
+        if owners:
+            raise ConfigError(
+                f"{where}: {key!r} is a setting of another learner ({', '.join(owners[:3])}), "
+                f"not of {learner!r}"
+            )
+        close = difflib.get_close_matches(key, sorted(valid), n=3)
+        hint = (
+            f"did you mean {' or '.join(repr(c) for c in close)}?"
+            if close
+            else f"learner {learner!r} takes: {', '.join(sorted(valid))}"
+        )
+        raise ConfigError(f"{where}: unknown setting {key!r} of learner {learner!r}; {hint}")
+    _check_keys(entry, where)
 
 
 def resolve_ppo_config(

@@ -322,11 +322,11 @@ def parse_for_learner(values: Sequence[str]) -> tuple[str, dict[str, Any]]:
         raise ConfigError(f"{where}: give at least one KEY=VALUE after the learner's name")
     settings: dict[str, Any] = {}
     for item in items:
-        key, sep, _ = item.partition("=")
+        key, sep, _ = item.replace(":", "=", 1).partition("=")
         if not sep or not key.strip():
-            raise ConfigError(f"{where}: {item!r} is not KEY=VALUE")
+            raise ConfigError(f"{where}: {item!r} is not KEY=VALUE (or KEY:VALUE)")
         try:
-            settings.update(parse_overrides([item]))
+            settings.update(parse_overrides([item], name))
         except ConfigError as err:
             raise ConfigError(f"{where}: {str(err).removeprefix('--ppo: ')}") from None
     return name, settings

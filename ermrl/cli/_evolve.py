@@ -176,7 +176,7 @@ def add_problem_args(parser: argparse.ArgumentParser, *, multi_task: bool = Fals
         default=[],
         metavar="KEY=VALUE",
         help="the learner's hyperparameter overrides, e.g. --ppo learning_rate=1e-4 n_steps=1024 "
-        "(framestack-ppo: frame_stack=K)",
+        "(rl-zoo's KEY:VALUE works too; framestack-ppo: frame_stack=K)",
     )
     g.add_argument(
         "--hyperparams",
@@ -626,7 +626,7 @@ def config_from_args(
     learner = getattr(args, "learner", "ppo")
     ppo = resolve_ppo_config(
         args.env_id,
-        {**parse_overrides(args.ppo), **learner_flags(args, learner)},
+        {**parse_overrides(args.ppo, learner), **learner_flags(args, learner)},
         n_envs=args.n_envs,
         table_path=args.hyperparams,
         torch_threads=args.torch_threads,
@@ -886,7 +886,7 @@ def run_and_report(
         study_kwargs: heartbeat and retry options of the re-evaluation study.
         evaluator_factory: builds the fitness of the re-evaluation config (multi-task runs).
         wandb: ``--wandb PROJECT``: each recorded trial is logged there (``None``: not).
-        **run_kwargs: passed on to :func:`ermrl.search.run_evolution` (``evaluate``,
+        **run_kwargs: passed on to :func:`ermrl.search.evolve_and_reevaluate` (``evaluate``,
             ``wait_for_running``, ``progress``, ``tensorboard``).
 
     Returns:
@@ -896,24 +896,22 @@ def run_and_report(
     from optuna.exceptions import StorageInternalError
 
     from ermrl.experiments._test_phase import WRITE_ERRNOS
-    from ermrl.search import Interrupted, format_params, reevaluate_study, run_evolution
+    from ermrl.search import Interrupted, evolve_and_reevaluate, format_params
     from ermrl.storage import StorageError
 
     where = storage_url or "the storage"
     callbacks, finish_wandb = wandb_callbacks(prog, wandb, study.study_name, config)
     try:
-        summary = run_evolution(config, study, quiet=quiet, callbacks=callbacks, **run_kwargs)
-        if storage_url is not None and config.search.reevaluate_top > 0:
-            reevaluate_study(
-                config,
-                study,
-                storage_url,
-                evaluator_factory=evaluator_factory,
-                quiet=quiet,
-                wait_for_running=run_kwargs.get("wait_for_running", True),
-                progress=run_kwargs.get("progress", "lines"),
-                **(study_kwargs or {}),
-            )
+        summary = evolve_and_reevaluate(
+            config,
+            study,
+            storage_url,
+            quiet=quiet,
+            evaluator_factory=evaluator_factory,
+            study_kwargs=study_kwargs,
+            callbacks=callbacks,
+            **run_kwargs,
+        )
     except Interrupted as err:
         print(f"{prog}: {interrupted_message(err)}", file=sys.stderr)
         return EXIT_TERMINATED

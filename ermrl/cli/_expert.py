@@ -133,7 +133,7 @@ def _train(args: argparse.Namespace, prog: str, argv: Sequence[str]) -> int:
     from ermrl.experts import check_expert_out, train_expert
 
     try:
-        overrides = parse_overrides(args.ppo)
+        overrides = parse_overrides(args.ppo, args.algo)
         check_expert_out(args.out, args.overwrite)
     except (ConfigError, FileExistsError) as err:
         fail(prog, str(err))

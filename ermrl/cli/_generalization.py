@@ -44,13 +44,11 @@ from ermrl.cli._evolve import (
 from ermrl.cli._test import (
     add_tensorboard_arg,
     add_test_args,
-    choose_agents,
-    plan_test_phase,
     print_notes,
     require_tensorboard,
     run_test_phase,
     setup_errors,
-    with_backend,
+    test_options,
 )
 from ermrl.config import ConfigError, EvolveConfig, PPOConfig
 
@@ -190,7 +188,7 @@ def generalization_config_from_args(
             f"evolve-generalization evolves encoders; the {args.learner} learner's genes are "
             "evolved on one task with evolve"
         )
-    overrides = {**parse_overrides(args.ppo), **learner_flags(args, args.learner)}
+    overrides = {**parse_overrides(args.ppo, args.learner), **learner_flags(args, args.learner)}
     tasks = generalization_tasks(
         env_ids,
         observe=args.observe,
@@ -444,7 +442,7 @@ def _test_ppo(config: EvolveConfig, env_id: str, args: argparse.Namespace) -> PP
     from ermrl.cli._common import learner_overrides
 
     own = learner_overrides(args).get(config.problem.ppo.learner, {})
-    cli = {**parse_overrides(args.ppo), **own}
+    cli = {**parse_overrides(args.ppo, config.problem.ppo.learner), **own}
     gen = config.generalization
     known: PPOConfig | None = None
     if gen is not None:
@@ -489,6 +487,7 @@ def test_generalization_main(
     from ermrl.agents import check_ppo_config
     from ermrl.envs import check_env_id, observation_indices
     from ermrl.experiments import describe_selection, selection_metadata
+    from ermrl.experiments._prepare import choose_agents, plan_test_phase, with_backend
     from ermrl.search import study_config
     from ermrl.search._scores import load_scores, reference_returns
     from ermrl.storage import load_study
@@ -509,12 +508,13 @@ def test_generalization_main(
         observation_indices(args.env_id, observe)
         evolution_ids = _evolution_env_ids(config)
         warning = overlap_warning(args.env_id, evolution_ids, args.study_name)
-        choose_agents(args, config, observe)
+        options = test_options(args)
+        options = dataclasses.replace(options, agents=choose_agents(options, config, observe))
         task = dataclasses.replace(problem.task, env_id=args.env_id, observe=observe)
         default_out = Path("runs") / f"{args.study_name}__{args.env_id}"
         ppo = with_backend(
             _test_ppo(config, args.env_id, args),
-            args,
+            options,
             task=task,
             out=Path(args.out) if args.out else default_out,
             notes=notes,
@@ -522,7 +522,7 @@ def test_generalization_main(
         # The test env's settings (the study's, a table's, --ppo): refused now, not by a run.
         check_ppo_config(task, problem.encoder, ppo, where=args.env_id)
         plan = plan_test_phase(
-            args,
+            options,
             study,
             config,
             task,
@@ -552,7 +552,7 @@ def test_generalization_main(
         best = describe_selection(plan.chosen)
         print(
             f"generalization test of {args.study_name!r} (evolved on {', '.join(evolution_ids)}) "
-            f"on {task.label}: agents {' '.join(args.agents)}, "
+            f"on {task.label}: agents {' '.join(plan.agent_names)}, "
             f"seeds {' '.join(map(str, plan.seeds))}, {args.training_steps} steps each; "
             f"selected: {best}; out: {plan.out}",
             flush=True,
