@@ -1086,3 +1086,71 @@ def test_train_population_resumes_and_removes_its_checkpoint(tmp_path: Path) -> 
     assert f"[again] resumed from {saved} at 1,024 steps each" in stream.getvalue()
     assert all(isinstance(r, RunResult) and r.env_steps == 2048 for r in results)
     assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("case", ["pendulum-gsde", "pendulum-gauss", "cartpole"])
+def test_the_population_logs_the_train_scalars_sb3_ppo_logs(case: str) -> None:
+    """An update fed SB3's rollout, weights and minibatches logs the train/* values SB3's
+    PPO.train records for it (TensorBoard on the population backend shows SB3's curves)."""
+    env_id, overrides = SB3_CASES[case]
+    torch.set_num_threads(1)
+    model, ppo, task = sb3_rollout(env_id, overrides)
+    buf = model.rollout_buffer
+    T = buf.buffer_size * buf.n_envs
+    data = [flat(buf.observations), flat(buf.actions)]
+    if env_id == "CartPole-v1":
+        data[1] = data[1][..., 0].astype(np.int64)
+    data += [flat(getattr(buf, k)) for k in ("values", "log_probs", "advantages", "returns")]
+    np.random.seed(1234)
+    perms = [np.random.permutation(T)[None] for _ in range(model.n_epochs)]
+    start = {k: v.detach().clone() for k, v in model.policy.state_dict().items()}
+    np.random.seed(1234)
+    model.train()
+    theirs = dict(model.logger.name_to_value)
+    population = PopulationPPO(task, ppo, [PopulationJob(None, 1)])
+    population.policy.load_sb3_state(0, start)
+    population.policy.refresh()
+    population.policy.loss_terms = []
+    progress = model._current_progress_remaining
+    population.update(progress, *(torch.from_numpy(a[None]) for a in data), permutations=perms)
+    ours = population._train_scalars(progress, data[2][None], data[5][None])
+    names = [
+        "policy_gradient_loss", "value_loss", "entropy_loss", "clip_fraction", "approx_kl",
+        "loss", "explained_variance", "learning_rate", "clip_range",
+    ]  # fmt: skip
+    if env_id != "CartPole-v1":
+        names.append("std")
+    for name in names:
+        assert ours[name][0] == pytest.approx(theirs[f"train/{name}"], rel=1e-3, abs=1e-5), name
+
+
+def test_population_runs_write_tensorboard_scalars_without_changing_their_training(
+    tmp_path: Path,
+) -> None:
+    """Each run's folder gets SB3's scalars (read back with TensorBoard's reader); a run
+    without a folder logs nothing, and logging leaves the results bit for bit the same."""
+    pytest.importorskip("tensorboard", reason="TensorBoard logs need the tensorboard package")
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    task = TaskConfig("CartPole-v1", "all")
+    ppo = ppo_for("CartPole-v1", n_envs=1, n_steps=64, batch_size=32, n_epochs=2)
+    budget = BudgetConfig(training_steps=512, fitness="last", n_last_episodes=5)
+    jobs = [PopulationJob(None, 1), PopulationJob(None, 2)]
+    logged = train_population(task, ppo, budget, jobs, tensorboard_logs=[tmp_path / "a", None])
+    plain = train_population(task, ppo, budget, jobs)
+    for a, b in zip(logged, plain):
+        assert isinstance(a, RunResult) and isinstance(b, RunResult)
+        assert a.episode_returns == b.episode_returns
+    (events,) = (tmp_path / "a").rglob("events.out.tfevents.*")
+    assert events.parent.name == "PPO_1"  # SB3's layout of tensorboard_log
+    acc = EventAccumulator(str(events))
+    acc.Reload()
+    tags = set(acc.Tags()["scalars"])
+    assert {"rollout/ep_rew_mean", "rollout/ep_len_mean", "time/fps", "train/loss"} <= tags
+    assert {"train/value_loss", "train/approx_kl", "train/explained_variance"} <= tags
+    rewards = acc.Scalars("rollout/ep_rew_mean")
+    assert [e.step for e in acc.Scalars("time/fps")] == list(range(64, 513, 64))
+    result = logged[0]
+    assert isinstance(result, RunResult)
+    assert rewards[-1].value == pytest.approx(np.mean(result.episode_returns[-100:]), rel=1e-6)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a"]

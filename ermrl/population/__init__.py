@@ -16,6 +16,7 @@ from ermrl.population._envs import (
 )
 from ermrl.population._parallel import group_jobs, split_jobs, train_population_parallel
 from ermrl.population._policy import PolicySpec, StackedPolicy, policy_spec
+from ermrl.population._tensorboard import PopulationLogs
 from ermrl.population._ppo import (
     Checkpoint,
     PopulationJob,
@@ -27,6 +28,7 @@ from ermrl.population._ppo import (
 )
 
 __all__ = [
+    "PopulationLogs",
     "BatchedReservoir",
     "Checkpoint",
     "PolicySpec",

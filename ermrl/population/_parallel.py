@@ -47,10 +47,10 @@ def split_jobs(n_jobs: int, n_parts: int) -> list[range]:
 
 
 def _train_part(args: tuple[Any, ...]) -> list[RunResult | BaseException]:
-    task, ppo, budget, jobs, evaluate, model_paths, progress, checkpoints, every = args
+    task, ppo, budget, jobs, evaluate, model_paths, progress, checkpoints, every, logs = args
     return train_population(
         task, ppo, budget, jobs, evaluate=evaluate, model_paths=model_paths, progress=progress,
-        checkpoints=checkpoints, checkpoint_every=every,
+        checkpoints=checkpoints, checkpoint_every=every, tensorboard_logs=logs,
     )  # fmt: skip
 
 
@@ -67,6 +67,7 @@ def train_population_parallel(
     progress: Progress | None = None,
     checkpoints: str | Path | None = None,
     checkpoint_every: int | None = None,
+    tensorboard_logs: Sequence[str | Path | None] | None = None,
 ) -> list[RunResult | BaseException]:
     """:func:`~ermrl.population.train_population` with the jobs split over ``n_procs`` processes.
 
@@ -81,6 +82,8 @@ def train_population_parallel(
             :func:`~ermrl.population.train_population`); a rerun with the same jobs, split
             alike, resumes each part from its own.
         checkpoint_every: Env steps per agent between saves (default: a tenth of the budget).
+        tensorboard_logs: Per job, its TensorBoard folder or ``None`` (see
+            :func:`~ermrl.population.train_population`).
 
     Jobs whose encoders differ in structure (:func:`group_jobs`) are trained as one population
     per structure, one after another, each split over ``n_procs`` processes.
@@ -97,6 +100,8 @@ def train_population_parallel(
                 n_procs=n_procs, pool=pool, evaluate=evaluate, checkpoints=checkpoints,
                 checkpoint_every=checkpoint_every,
                 model_paths=None if model_paths is None else [model_paths[i] for i in group],
+                tensorboard_logs=None if tensorboard_logs is None
+                else [tensorboard_logs[i] for i in group],
                 progress=None if progress is None
                 else progress.renamed(f"{progress.label}, structure {k + 1}/{len(groups)}"),
             )  # fmt: skip
@@ -119,6 +124,7 @@ def train_population_parallel(
             else progress.renamed(f"{progress.label}, part {k + 1}/{len(parts)}"),
             checkpoints,
             checkpoint_every,
+            None if tensorboard_logs is None else [tensorboard_logs[i] for i in part],
         )
         for k, part in enumerate(parts)
     ]

@@ -216,6 +216,9 @@ class StackedPolicy:
                     w, b = self.params[f"{name}.w"][p], self.params[f"{name}.b"][p, 0]
                     _init_linear(w, b, gain, spec.ortho_init, gen)
 
+        # With a list here, ppo_gradient appends each minibatch's loss terms per agent (SB3's
+        # train/* scalars, for TensorBoard); None: not computed.
+        self.loss_terms: list[dict[str, np.ndarray]] | None = None
     def _bind(self, flat: torch.Tensor) -> None:
         """Make ``flat`` (``[P, row_size]``) the buffer, :attr:`params` views of it, and
         :attr:`np` numpy views of those."""
@@ -407,6 +410,21 @@ class StackedPolicy:
                 np.multiply(d_std2, 2 * std2, out=grads["log_std"])
             else:
                 np.sum(d_log_scale, axis=1, out=grads["log_std"])
+        if self.loss_terms is not None:
+            # SB3 PPO.train's logged terms, per agent over this minibatch.
+            if s.discrete:
+                sample_entropy = entropy[..., 0]
+            else:
+                sample_entropy = (log_scale + np.float32(0.5 + LOG_SQRT_2PI)).sum(-1)
+            log_ratio = log_prob - old_log_probs
+            self.loss_terms.append(
+                {
+                    "policy_gradient_loss": -np.minimum(unclipped, clipped).mean(1),
+                    "entropy_loss": -sample_entropy.mean(1),
+                    "clip_fraction": (np.abs(ratio - 1) > clip_range).mean(1),
+                    "approx_kl": ((ratio - 1) - log_ratio).mean(1),
+                }
+            )
         if clip_range_vf is not None:
             delta = values - old_values
             values = old_values + np.clip(delta, -clip_range_vf, clip_range_vf)
@@ -414,6 +432,8 @@ class StackedPolicy:
             d_values = np.float32(-2.0 * vf_coef / B) * (returns - values) * inside
         else:
             d_values = np.float32(-2.0 * vf_coef / B) * (returns - values)
+        if self.loss_terms is not None:
+            self.loss_terms[-1]["value_loss"] = np.square(returns - values).mean(1)
         self._backward(pi, d_head.astype(np.float32, copy=False), "pi", "action", grads)
         self._backward(vf, d_values[..., None].astype(np.float32, copy=False), "vf", "value", grads)
         return self._grad

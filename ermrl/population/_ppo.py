@@ -43,6 +43,7 @@ from ermrl.agents._train import NoEpisodeFinished, RunResult, TrainingDiverged, 
 from ermrl.config import BudgetConfig, ConfigError, EncoderConfig, PPOConfig, TaskConfig, to_dict
 from ermrl.population._envs import PopulationEnvs
 from ermrl.population._policy import StackedAdam, StackedPolicy, policy_spec
+from ermrl.population._tensorboard import PopulationLogs
 
 __all__ = [
     "Checkpoint",
@@ -284,6 +285,7 @@ class PopulationPPO:
         self.alive = list(range(len(jobs)))  # position in the arrays -> job index
         self.failed: dict[int, BaseException] = {}
         self.episodes: list[list[tuple[float, int]]] = [[] for _ in jobs]
+        self.episode_lengths: list[list[int]] = [[] for _ in jobs]  # read by TensorBoard logs
         self.num_timesteps = 0
         self.timings = {"env": 0.0, "reservoir": 0.0, "policy": 0.0, "update": 0.0, "total": 0.0}
         self.resumed_at = 0  # env steps per agent restored from a checkpoint
@@ -438,9 +440,13 @@ class PopulationPPO:
         total_timesteps: int,
         progress: Progress | None = None,
         checkpoint: Checkpoint | None = None,
+        logs: PopulationLogs | None = None,
     ) -> None:
         """Train every agent for ``total_timesteps`` env steps (whole rollouts, as SB3);
         ``progress`` is told each agent's env steps as they go, and closed at the end.
+
+        With ``logs``, each run's rollout and update scalars are written after each update, as
+        SB3 logs them for one run (:class:`~ermrl.population.PopulationLogs`).
 
         With ``checkpoint``, the training first resumes from the checkpoint's file if that holds
         this training's state (:meth:`checkpoint_key`; see :class:`Checkpoint` for what resuming
@@ -511,8 +517,9 @@ class PopulationPPO:
                 self.num_timesteps += E
                 if progress is not None:
                     progress.update(self.num_timesteps)
-                for p, _, ret, _ in finished:
+                for p, _, ret, length in finished:
                     self.episodes[self.alive[p]].append((ret, self.num_timesteps))
+                    self.episode_lengths[self.alive[p]].append(length)
                 rewards = rewards.astype(np.float32)
                 if terminal:
                     keys = list(terminal)
@@ -538,8 +545,27 @@ class PopulationPPO:
             self.timings["policy"] += time.perf_counter() - t0
             remaining = 1.0 - float(self.num_timesteps) / float(total_timesteps)
             t0 = time.perf_counter()
+            logging = logs is not None and logs.wants_losses()
+            self.policy.loss_terms = [] if logging else None
+            alive_before = list(self.alive)
             kept = self._train(remaining, buf_obs, buf_act, buf_val, buf_logp, adv, returns)
             self.timings["update"] += time.perf_counter() - t0
+            if logging:
+                assert logs is not None
+                elapsed = max(time.perf_counter() - start, 1e-9)
+                scalars = self._train_scalars(remaining, buf_val, returns)
+                if kept is not None:  # the dropped agents log nothing more
+                    alive_before = [alive_before[int(k)] for k in kept]
+                    scalars = {k: np.asarray(v)[kept] for k, v in scalars.items()}
+                logs.write(
+                    self.num_timesteps,
+                    alive_before,
+                    self.episodes,
+                    self.episode_lengths,
+                    (self.num_timesteps - self.resumed_at) / elapsed,
+                    scalars,
+                )
+                self.policy.loss_terms = None
             if kept is not None:  # agents whose weights became NaN were dropped
                 obs, starts = obs[kept], starts[kept]
             if (
@@ -555,6 +581,43 @@ class PopulationPPO:
         self.timings["total"] += time.perf_counter() - start
         if progress is not None:
             progress.close()
+
+    def _train_scalars(
+        self, progress: float, values: np.ndarray, returns: np.ndarray
+    ) -> dict[str, Any]:
+        """The last update's ``train/*`` scalars per position, as SB3's ``PPO.train`` logs
+        them: the loss terms' means over every minibatch (``approx_kl`` over the last epoch's,
+        ``loss`` the last minibatch's), the explained variance of the rollout's values
+        ``[P, ...]``, the learning rate, the clip range and the policy's mean std."""
+        terms = self.policy.loss_terms or []
+        if not terms:
+            return {}
+        per_epoch = max(len(terms) // int(self.s["n_epochs"]), 1)
+        out: dict[str, Any] = {
+            name: np.mean([t[name] for t in terms], axis=0)
+            for name in ("policy_gradient_loss", "entropy_loss", "value_loss", "clip_fraction")
+        }
+        out["approx_kl"] = np.mean([t["approx_kl"] for t in terms[-per_epoch:]], axis=0)
+        last = terms[-1]
+        out["loss"] = (
+            last["policy_gradient_loss"]
+            + float(self.s["ent_coef"]) * last["entropy_loss"]
+            + float(self.s["vf_coef"]) * last["value_loss"]
+        )
+        P = len(out["loss"])
+        flat_v, flat_r = values.reshape(P, -1), returns.reshape(P, -1)
+        var_r = flat_r.var(1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            # SB3's explained_variance: nan where the returns do not vary.
+            out["explained_variance"] = np.where(
+                var_r == 0, np.nan, 1 - (flat_r - flat_v).var(1) / var_r
+            )
+        out["learning_rate"] = np.full(P, float(self.lr(progress)))
+        out["clip_range"] = np.full(P, float(self.clip_range(progress)))
+        if "log_std" in self.policy.params:
+            log_std = self.policy.params["log_std"].detach().numpy().reshape(P, -1)
+            out["std"] = np.exp(log_std).mean(1)
+        return out
 
     def _train(
         self,
@@ -732,6 +795,7 @@ def train_population(
     progress: Progress | None = None,
     checkpoints: str | Path | None = None,
     checkpoint_every: int | None = None,
+    tensorboard_logs: Sequence[str | Path | None] | None = None,
 ) -> list[RunResult | BaseException]:
     """Train ``jobs`` as one population in this process; one result per job, in order.
 
@@ -754,6 +818,9 @@ def train_population(
             training resumes; the file is removed once the results are returned. ``None``: no
             checkpoints.
         checkpoint_every: Env steps per agent between saves (default: a tenth of the budget).
+        tensorboard_logs: Per job, a folder for its TensorBoard logs (SB3's
+            ``tensorboard_log``: the scalars SB3's PPO logs, in ``<folder>/PPO_1``), or
+            ``None``; needs the ``tensorboard`` package.
     """
     torch.set_num_threads(ppo.torch_threads)
     threadpoolctl.threadpool_limits(ppo.torch_threads)
@@ -764,8 +831,11 @@ def train_population(
         key = population.checkpoint_key(budget.training_steps)
         every = checkpoint_every or max(budget.training_steps // 10, 1)
         checkpoint = Checkpoint(Path(checkpoints) / f"population-{key[:16]}.npz", every)
+    logs = None
+    if tensorboard_logs is not None and any(t is not None for t in tensorboard_logs):
+        logs = PopulationLogs(tensorboard_logs)
     try:
-        population.learn(budget.training_steps, progress, checkpoint)
+        population.learn(budget.training_steps, progress, checkpoint, logs)
         eval_returns: dict[int, list[float]] = {}
         if (evaluate if evaluate is not None else budget.fitness == "eval") and population.n_agents:
             eval_returns = population.evaluate(budget.n_eval_episodes)
@@ -776,6 +846,8 @@ def train_population(
                     population.export(pos, path)
     finally:
         population.close()
+        if logs is not None:
+            logs.close()
     wall = time.perf_counter() - start + population.wall_before
     results: list[RunResult | BaseException] = []
     for j, job in enumerate(jobs):
