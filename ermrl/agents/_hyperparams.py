@@ -197,7 +197,8 @@ def learner_keys(learner: str) -> set[str]:
     from ermrl.learners import get_learner
 
     spec = get_learner(learner)
-    algorithm = set(inspect.signature(spec.algorithm().__init__).parameters) - _OWNED_KEYS
+    algorithm_class: type = spec.algorithm()
+    algorithm = set(inspect.signature(algorithm_class).parameters) - _OWNED_KEYS
     return algorithm | set(spec.own_keys) | set(spec.shared_keys) | _ERMRL_KEYS
 
 

@@ -16,7 +16,6 @@ from ermrl.population._envs import (
 )
 from ermrl.population._parallel import group_jobs, split_jobs, train_population_parallel
 from ermrl.population._policy import PolicySpec, StackedPolicy, policy_spec
-from ermrl.population._tensorboard import PopulationLogs
 from ermrl.population._ppo import (
     Checkpoint,
     PopulationJob,
@@ -26,6 +25,7 @@ from ermrl.population._ppo import (
     steps_trained,
     train_population,
 )
+from ermrl.population._tensorboard import PopulationLogs
 
 __all__ = [
     "PopulationLogs",
