@@ -17,21 +17,35 @@ for the same reason (tqdm counts its rate from the bar's creation, and ``smoothi
 the average since then, as the lines show).
 
 A bar draws only in the process that created the :class:`Progress`. Work sent to worker
-processes (a population split in parts, runs in a pool) prints lines there: bars from several
-processes on one terminal would overwrite each other's rows, having no lock in common, while
-each worker's lines are whole and labelled.
+processes prints lines there (bars from several processes on one terminal would overwrite each
+other's rows), unless it reports to the parent: :func:`relayed_bar` gives each part of a split
+work a :class:`Progress` that sends its counts to the parent over a queue, and the parent draws
+one bar for them all (a population split over 2 processes shows one bar, not two streams of
+lines).
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import sys
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any, Literal, TextIO
 
-__all__ = ["PROGRESS_MODES", "Progress", "ProgressMode", "default_mode", "duration"]
+__all__ = [
+    "PROGRESS_MODES",
+    "Progress",
+    "ProgressMode",
+    "default_mode",
+    "duration",
+    "relayed_bar",
+]
+
+# A relayed part sends its count to the parent at most this often (seconds), and at its end.
+RELAY_EVERY_S = 0.5
 
 ProgressMode = Literal["bar", "lines", "none"]
 PROGRESS_MODES: tuple[ProgressMode, ...] = ("bar", "lines", "none")
@@ -108,6 +122,9 @@ class Progress:
         self._pid = os.getpid()  # a bar draws in this process only
         self._bar: Any = None
         self.note: str | None = None  # appended to the lines (the bar's postfix): "return -150.2"
+        # (queue, part): this part's counts and messages go to the parent (relayed_bar).
+        self.relay: tuple[Any, int] | None = None
+        self._relayed_at = -math.inf
 
     def __getstate__(self) -> dict[str, Any]:
         state = dict(self.__dict__)
@@ -142,6 +159,11 @@ class Progress:
         """Record that ``done`` units are done (a running total); print a line when due."""
         now = self._clock()
         self.done = int(done)
+        if self.relay is not None:
+            if now - self._relayed_at >= RELAY_EVERY_S:
+                self._relayed_at = now
+                self.relay[0].put(("done", self.relay[1], self.done))
+            return
         if self._t0 is None:  # the first update marks the end of start-up
             self._t0, self._done0, self._last_time = now, self.done, now
             self._next_mark = (self.done // self.step + 1) * self.step
@@ -158,6 +180,9 @@ class Progress:
     def close(self) -> None:
         """Print the last line (once), unless the last update already printed it; in bar mode,
         draw the bar at its last count and leave it on screen."""
+        if self.relay is not None:
+            self.relay[0].put(("done", self.relay[1], self.done))
+            return
         if self._t0 is not None and (not self.lines or self._last_done != self.done):
             self._emit(self._clock())
         if self._bar is not None:
@@ -169,6 +194,9 @@ class Progress:
         """Print ``[label] text`` once, as the lines are (above the bar in ``"bar"`` mode;
         nothing in ``"none"`` mode): an event inside the work, e.g. a resumed training."""
         line = f"[{self.label}] {text}"
+        if self.relay is not None:
+            self.relay[0].put(("message", self.relay[1], line))
+            return
         if self.shows == "none":
             return
         if self._bar is not None:
@@ -212,3 +240,56 @@ class Progress:
             print(text, file=self._stream or sys.stdout, flush=True)
 
     _last_done = -1
+
+
+@contextlib.contextmanager
+def relayed_bar(progress: Progress | None, n_parts: int) -> Iterator[list[Progress] | None]:
+    """One bar for work split over ``n_parts`` worker processes.
+
+    When ``progress`` draws a bar in this process (``"bar"`` mode, on a terminal), yields one
+    :class:`Progress` per part to send to the workers: each reports its count and messages to
+    this process over a queue, and ``progress`` shows the count of the slowest part (the parts
+    train in lockstep: the work ends with the last of them). The bar is closed on exit. In
+    any other case yields ``None``: the caller labels a part per worker, which prints lines.
+
+    Args:
+        progress: The whole work's progress (its ``total`` is each part's).
+        n_parts: The number of parts.
+    """
+    if progress is None or n_parts < 2 or progress.shows != "bar":
+        yield None
+        return
+    import multiprocessing
+
+    manager = multiprocessing.get_context("spawn").Manager()
+    try:
+        queue = manager.Queue()
+        counts = [progress.done] * n_parts
+        parts = []
+        for k in range(n_parts):
+            part = Progress(progress.label, progress.total, mode="none", unit=progress.unit)
+            part.relay = (queue, k)
+            parts.append(part)
+
+        def pump() -> None:
+            while True:
+                item = queue.get()
+                if item is None:
+                    return
+                kind, k, value = item
+                if kind == "done":
+                    counts[k] = value
+                    progress.update(min(counts))
+                else:
+                    progress.message(str(value).split("] ", 1)[-1] + f" (part {k + 1}/{n_parts})")
+
+        thread = threading.Thread(target=pump, name="ermrl-progress-relay", daemon=True)
+        thread.start()
+        try:
+            yield parts
+        finally:
+            queue.put(None)
+            thread.join(timeout=10)
+            progress.close()
+    finally:
+        manager.shutdown()

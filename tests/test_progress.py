@@ -292,3 +292,60 @@ def test_evolution_prints_progress_inside_each_trial(tmp_path: Path, backend: st
     assert not [
         x for x in quiet.stdout.splitlines() if " steps/s | ETA " in x and "fitness" not in x
     ]
+
+
+def _run_in_a_terminal(argv: list[str], cwd: Path, timeout: float = 600) -> tuple[int, str]:
+    """Run ``argv`` with its stdout and stderr on a pseudo-terminal; its exit code and output."""
+    import fcntl
+    import pty
+    import select
+    import struct
+    import termios
+
+    main, child = pty.openpty()
+    # A terminal 120 columns wide (a new pseudo-terminal has 0, where tqdm draws nothing).
+    fcntl.ioctl(child, termios.TIOCSWINSZ, struct.pack("HHHH", 40, 120, 0, 0))
+    proc = subprocess.Popen(
+        argv, cwd=cwd, stdin=subprocess.DEVNULL, stdout=child, stderr=child,
+        env={**os.environ, "PYTHONUNBUFFERED": "1", "COLUMNS": "120", "TERM": "xterm"},
+    )  # fmt: skip
+    os.close(child)
+    chunks: list[bytes] = []
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        ready, _, _ = select.select([main], [], [], 1.0)
+        if ready:
+            try:
+                data = os.read(main, 65536)
+            except OSError:  # the child closed the terminal
+                break
+            if not data:
+                break
+            chunks.append(data)
+        elif proc.poll() is not None:
+            break
+    os.close(main)
+    return proc.wait(timeout=60), b"".join(chunks).decode(errors="replace")
+
+
+def test_a_population_on_two_processes_draws_one_bar_on_a_terminal(tmp_path: Path) -> None:
+    """On a terminal, the parts of a population trained in 2 processes report to the parent,
+    which draws one bar (tqdm) to 100%; no per-part lines from the workers."""
+    names = ["--storage", f"sqlite:///{tmp_path}/s.db", "--study-name", "p"]
+    proc = ermrl(
+        "evolve", "--env-id", "CartPole-v1", "--n-trials", "1", "--n-seeds", "1",
+        "--training-steps", "128", "--n-envs", "1", "--units", "10", "--backend", "population",
+        "--ppo", "n_steps=64", "batch_size=64", "n_epochs=1", *names, "--quiet", cwd=tmp_path,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    code, out = _run_in_a_terminal(
+        [sys.executable, "-m", "ermrl", "test", *names, "--agents", "res-ppo", "--seeds",
+         "20", "21", "22", "23", "--training-steps", "1280", "--backend", "population",
+         "--n-procs", "2", "--out", "t"],
+        cwd=tmp_path,
+    )  # fmt: skip
+    assert code == 0, out
+    frames = [f for f in re.split(r"[\r\n]", out) if f.strip()]
+    bars = [f for f in frames if f.startswith("population of 4 runs (res-ppo):")]
+    assert bars and "100%" in bars[-1] and "1280/1280" in bars[-1], out
+    assert "part 1/2" not in out and "part 2/2" not in out, out

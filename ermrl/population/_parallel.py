@@ -17,7 +17,7 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from ermrl._progress import Progress
+from ermrl._progress import Progress, relayed_bar
 from ermrl.agents._train import RunResult
 from ermrl.config import BudgetConfig, PPOConfig, TaskConfig
 from ermrl.population._envs import encoder_structure
@@ -109,6 +109,30 @@ def train_population_parallel(
                 results[i] = result
         return [r for r in results if r is not None]
     parts = split_jobs(len(jobs), n_procs)
+    with relayed_bar(progress, len(parts)) as relayed:
+        return _train_parts(
+            task, ppo, budget, jobs, parts, pool, evaluate, model_paths, progress, relayed,
+            checkpoints, checkpoint_every, tensorboard_logs,
+        )  # fmt: skip
+
+
+def _train_parts(
+    task: TaskConfig,
+    ppo: PPOConfig,
+    budget: BudgetConfig,
+    jobs: Sequence[PopulationJob],
+    parts: Sequence[range],
+    pool: ProcessPoolExecutor | None,
+    evaluate: bool | None,
+    model_paths: Sequence[str | Path | None] | None,
+    progress: Progress | None,
+    relayed: Sequence[Progress] | None,
+    checkpoints: str | Path | None,
+    checkpoint_every: int | None,
+    tensorboard_logs: Sequence[str | Path | None] | None,
+) -> list[RunResult | BaseException]:
+    """Train the parts of one population, each in a process of ``pool`` (or one of its own);
+    ``relayed``: the parts' progress reporting to one bar here, else each part prints lines."""
     args = [
         (
             task,
@@ -121,6 +145,8 @@ def train_population_parallel(
             if progress is None
             else progress
             if len(parts) == 1
+            else relayed[k]
+            if relayed is not None
             else progress.renamed(f"{progress.label}, part {k + 1}/{len(parts)}"),
             checkpoints,
             checkpoint_every,
