@@ -396,17 +396,17 @@ def test_the_test_phase_defaults_to_population_where_it_applies(tmp_path: Path) 
     import json
 
     from ermrl.agents import resolve_ppo_config
-    from ermrl.cli._test import with_backend
     from ermrl.config import TaskConfig
+    from ermrl.experiments import TestOptions
+    from ermrl.experiments._prepare import with_backend
 
     task = TaskConfig("Pendulum-v1", "positions")
     ppo = resolve_ppo_config("Pendulum-v1", backend="population")  # a study evolved so
 
     def choose(base: object = ppo, out: Path | None = None, **flags: object) -> tuple[str, list]:
-        args = argparse.Namespace(**{"backend": None, "tensorboard": None, "overwrite": False})
-        vars(args).update(flags)
+        options = TestOptions(**flags)  # type: ignore[arg-type]
         notes: list[str] = []
-        return with_backend(base, args, task=task, out=out, notes=notes).backend, notes
+        return with_backend(base, options, task=task, out=out, notes=notes).backend, notes
 
     assert choose() == ("population", [])
     assert choose(backend="sb3") == ("sb3", [])

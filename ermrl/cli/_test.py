@@ -3,13 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import textwrap
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from ermrl._interrupt import interruption
 from ermrl.cli._common import (
@@ -21,32 +19,29 @@ from ermrl.cli._common import (
     add_stale_gradient_arg,
     add_storage_args,
     fail,
-    for_learner_names,
-    learner_overrides,
     nonneg_int,
     positive_int,
     progress_mode,
     quiet_libraries,
 )
 from ermrl.config import ConfigError
-from ermrl.learners import AGENT_KINDS, default_agents
+from ermrl.learners import AGENT_KINDS
+
+if TYPE_CHECKING:
+    from ermrl.experiments import TestOptions, TestPlan
 
 T = TypeVar("T")
 
 __all__ = [
-    "TestPlan",
     "add_tensorboard_arg",
     "add_test_args",
-    "agent_learners",
     "build_test_parser",
-    "choose_agents",
-    "plan_test_phase",
     "require_tensorboard",
     "run_or_exit",
     "run_test_phase",
-    "select_seeds",
     "setup_errors",
     "test_main",
+    "test_options",
 ]
 
 DESCRIPTION = textwrap.dedent(
@@ -195,62 +190,13 @@ def build_test_parser(prog: str = "ermrl test") -> ArgumentParser:
     return parser
 
 
-def select_seeds(seeds: Sequence[int], task_id: str | None) -> tuple[int, ...]:
-    """The seeds this process runs: all, or the ``task_id``-th under a SLURM array.
-
-    Raises:
-        ConfigError: the task id is not an index of ``seeds``.
-    """
-    if task_id is None or task_id == "":
-        return tuple(seeds)
-    try:
-        index = int(task_id)
-    except ValueError as err:
-        raise ConfigError(f"SLURM_ARRAY_TASK_ID={task_id!r} is not an integer") from err
-    if not 0 <= index < len(seeds):
-        raise ConfigError(
-            f"SLURM_ARRAY_TASK_ID={index} has no seed: {len(seeds)} seeds given "
-            f"({' '.join(map(str, seeds))}); submit --array=0-{len(seeds) - 1}"
-        )
-    return (seeds[index],)
-
-
-# Files a test phase writes before its first run finishes: a folder holding only these (and
-# empty folders) is a skeleton, removed when the command that created it fails.
-_SKELETON_FILES = ("config.yaml", "command.txt")
-
-
 def run_or_exit(prog: str, out: Path, run: Callable[[], T]) -> T | None:
     """:func:`_run_or_exit`, removing ``out`` again when this command created it and fails
     (an error, a crash, a signal) before it holds anything but its skeleton: no finished run,
-    no checkpoint."""
-    created = [p for p in (Path(out), *Path(out).parents) if not p.exists()]
-    try:
-        result = _run_or_exit(prog, out, run)
-    except BaseException:
-        _remove_skeleton(created)
-        raise
-    if result is None:  # interrupted
-        _remove_skeleton(created)
-    return result
+    no checkpoint (:func:`ermrl.experiments.run_in_folder`)."""
+    from ermrl.experiments import run_in_folder
 
-
-def _remove_skeleton(created: Sequence[Path]) -> None:
-    """Remove the folders of ``created`` (``out`` first, then the parents this created) when
-    ``out`` holds no file other than :data:`_SKELETON_FILES`."""
-    import contextlib
-    import shutil
-
-    if not created or not created[0].is_dir():
-        return
-    out = created[0]
-    files = [p for p in out.rglob("*") if not p.is_dir()]
-    if any(p.parent != out or p.name not in _SKELETON_FILES for p in files):
-        return
-    shutil.rmtree(out, ignore_errors=True)
-    for folder in created[1:]:
-        with contextlib.suppress(OSError):
-            folder.rmdir()
+    return _run_or_exit(prog, out, lambda: run_in_folder(out, run))
 
 
 def _run_or_exit(prog: str, out: Path, run: Callable[[], T]) -> T | None:
@@ -301,232 +247,36 @@ def _run_or_exit(prog: str, out: Path, run: Callable[[], T]) -> T | None:
         return None
 
 
-def agent_learners(names: Sequence[str], study_learner: str) -> tuple[str, ...]:
-    """The learners that train the agents ``names`` (``AGENT_KINDS``), each once.
+def test_options(args: argparse.Namespace) -> TestOptions:
+    """The parsed options of ``ermrl test`` or ``ermrl test-generalization`` as the library's
+    :class:`~ermrl.experiments.TestOptions` (``--ppo`` words kept: they are read, and refused,
+    where the command always read them)."""
+    from ermrl.experiments import TestOptions
 
-    Args:
-        names: Agent names.
-        study_learner: The study's learner, which trains the agents of no learner of their own.
-    """
-    kinds = [AGENT_KINDS[n] for n in names if n in AGENT_KINDS]
-    return tuple(dict.fromkeys(kind.learner or study_learner for kind in kinds))
-
-
-def choose_agents(args: argparse.Namespace, config: Any, observe: str) -> list[str]:
-    """``--agents`` (default: the study's default agents), checked against ``--for-learner``.
-
-    Sets ``args.agents`` and returns it.
-
-    Raises:
-        ConfigError: a ``--for-learner`` names a learner that none of the agents trains with.
-    """
-    args.agents = args.agents or list(default_agents(observe, config.space.family))
-    used = agent_learners(args.agents, config.problem.ppo.learner)
-    for name in for_learner_names(args):
-        if name not in used:
-            raise ConfigError(
-                f"--for-learner {name}: no agent of this run uses learner {name} (agents "
-                f"{' '.join(args.agents)} use {', '.join(used)})"
-            )
-    return list(args.agents)
-
-
-@dataclass
-class TestPlan:
-    """What a test phase trains: its agents, the selected trial, seeds and settings."""
-
-    agents: list[Any]
-    chosen: Any
-    seeds: tuple[int, ...]
-    settings: Any
-    out: Path
-    warning: str | None = None
-    """A line for stderr before anything runs: the stored ranking is stale."""
-
-
-def check_test_seeds(
-    seeds: Sequence[int],
-    evolution_seeds: Sequence[int],
-    reevaluation_seeds: Sequence[int],
-    study_name: str,
-) -> None:
-    """Refuse test seeds that evolution or the re-evaluation trained on: the selection saw
-    them, so results on them are not independent of it.
-
-    Args:
-        seeds: The test seeds.
-        evolution_seeds: The study's seeds.
-        reevaluation_seeds: The seeds its re-evaluation used
-            (:func:`~ermrl.search.used_reevaluation_seeds`).
-        study_name: Named in the message.
-
-    Raises:
-        ConfigError: with the seeds that overlap, in one line.
-    """
-    used = [
-        (what, sorted(set(seeds) & set(other)))
-        for what, other in (
-            ("evolution", evolution_seeds),
-            (f"the re-evaluation ({study_name}.reeval)", reevaluation_seeds),
-        )
-    ]
-    overlaps = [f"{found} by {what}" for what, found in used if found]
-    if overlaps:
-        raise ConfigError(
-            f"test seeds already used to select the trial: {'; '.join(overlaps)}; results on them "
-            "are not independent of the selection (omit --seeds for 5 unused ones)"
-        )
-
-
-def plan_test_phase(
-    args: argparse.Namespace,
-    study: Any,
-    config: Any,
-    task: Any,
-    ppo: Any,
-    default_out: Path,
-    *,
-    observe: str,
-) -> TestPlan:
-    """The part of ``ermrl test`` and ``ermrl test-generalization`` that is the same: seeds,
-    agents (each with its learner's settings), checks of the settings and of ``--out``.
-
-    Args:
-        args: The parsed command line (``add_test_args``).
-        study: The evolution study.
-        config: Its configuration.
-        task: The task the agents train on.
-        ppo: The settings of the study's learner on that task (``--ppo`` applied).
-        default_out: ``--out`` when not given.
-        observe: The mask that decides the default agents.
-
-    Raises:
-        ConfigError: bad settings, test seeds evolution or the re-evaluation used, a bad
-            ``--out``, or an agent that cannot be built.
-    """
-    from ermrl.agents import check_ppo_config, parse_overrides
-    from ermrl.experiments import (
-        TestSettings,
-        default_test_seeds,
-        learner_settings_for,
-        study_agents,
-    )
-    from ermrl.experiments._test_phase import check_out_folder
-    from ermrl.search import stale_ranking, used_reevaluation_seeds
-
-    problem = config.problem
-    seeds = tuple(args.seeds) if args.seeds else default_test_seeds(problem.seeds)
-    check_test_seeds(seeds, problem.seeds, used_reevaluation_seeds(study), study.study_name)
-    seeds = select_seeds(seeds, os.environ.get("SLURM_ARRAY_TASK_ID"))
-    choose_agents(args, config, observe)
-    overrides = parse_overrides(args.ppo)
-    own = learner_overrides(args)
-    agents, chosen = study_agents(
-        study,
-        config,
-        args.agents,
-        args.trial,
-        learner_settings_for(ppo, task.env_id, overrides, own),
-        ppo,
-    )
-    # An agent of another learner than the study's has settings no study checked (its table,
-    # --ppo, --for-learner; dagger's expert): refused now rather than by its first run.
-    for agent in agents:
-        if agent.ppo is not None:
-            check_ppo_config(agent.task(task), None, agent.ppo, where=agent.name)
-    out = Path(args.out) if args.out else default_out
-    check_out_folder(out)
+    for_learner: dict[str, dict[str, Any]] = {}
+    for name, settings in getattr(args, "for_learner", None) or []:
+        for_learner[name] = {**for_learner.get(name, {}), **settings}
     tensorboard = getattr(args, "tensorboard", None)
-    settings = TestSettings(
+    return TestOptions(
         training_steps=args.training_steps,
-        seeds=seeds,
-        out=out,
+        seeds=args.seeds,
+        agents=args.agents,
+        out=args.out,
+        trial=args.trial,
         n_procs=args.n_procs,
         evaluate=args.eval,
         n_eval_episodes=args.n_eval_episodes,
-        n_last_episodes=problem.budget.n_last_episodes,
+        ppo=tuple(args.ppo),
+        stale_gradient=getattr(args, "stale_gradient", None),
+        for_learner=for_learner,
+        backend=args.backend,
         save_models=args.save_models,
         overwrite=args.overwrite,
-        tensorboard=Path(tensorboard) if tensorboard else None,
+        checkpoint_every=args.checkpoint_every,
+        tensorboard=tensorboard,
         wandb=getattr(args, "wandb", None),
         progress=progress_mode(args),
-        checkpoint_every=args.checkpoint_every,
     )
-    warning = None
-    # Only when the ranking would have picked the trial: not with --trial, nor when no agent
-    # uses the evolved trial (chosen is None).
-    stale = None if chosen is None or args.trial is not None else stale_ranking(study)
-    if chosen is not None and stale is not None:
-        warning = (
-            f"the re-evaluated ranking is stale and not used ({stale}); testing trial "
-            f"{chosen.number}, the best evolution fitness (run the evolve command again to "
-            "re-rank, or pass --trial N)"
-        )
-    return TestPlan(agents, chosen, seeds, settings, out, warning)
-
-
-# What a test command reports as one line before anything runs.
-def with_backend(
-    ppo: Any,
-    args: argparse.Namespace,
-    *,
-    task: Any = None,
-    out: Path | None = None,
-    notes: list[str] | None = None,
-) -> Any:
-    """The study's learner settings with the backend that trains its agents.
-
-    ``--backend`` when given (checked for it). Left out: the study's own backend when it was
-    evolved with sb3 (an existing study keeps the backend it was created with, so a study of
-    an older ermrl tests to the same returns); otherwise population where it applies, unless
-    ``out`` holds finished runs of this learner made with sb3 (a test folder never mixes
-    backends; not with ``--overwrite``), else sb3.
-
-    Args:
-        ppo: The settings of the study's learner on the test task.
-        args: The parsed command line (``--backend``, ``--tensorboard``, ``--overwrite``).
-        task: The test task (its env's spaces are checked; ``None``: not checked).
-        out: The test folder.
-        notes: Receives the one-line reason a left-out ``--backend`` is not population.
-    """
-    import dataclasses
-
-    from ermrl.population import choose_backend
-
-    if getattr(args, "backend", None) is None:
-        from ermrl.experiments._test_phase import finished_backend
-
-        if ppo.backend == "sb3" and ppo.learner == "ppo":
-            return ppo  # the study's own backend: kept silently, as an evolution resumes it
-        backend, why = choose_backend(
-            None,
-            ppo,
-            () if task is None else (task,),
-            tensorboard=bool(getattr(args, "tensorboard", None)),
-            wandb=bool(getattr(args, "wandb", None)),
-        )
-        if (
-            backend == "population"
-            and out is not None
-            and not getattr(args, "overwrite", False)
-            and finished_backend(out, ppo.learner) == "sb3"
-        ):
-            backend = "sb3"
-            why = (
-                f"the finished runs in {out} were made with it (a test folder never mixes backends)"
-            )
-        if why is not None and notes is not None:
-            notes.append(why)
-        return dataclasses.replace(ppo, backend=backend)
-    ppo = dataclasses.replace(ppo, backend=args.backend)
-    if ppo.backend == "population":
-        from ermrl.population import check_population_config
-
-        check_population_config(ppo)
-        for flag in ("tensorboard", "wandb"):
-            if getattr(args, flag, None):
-                raise ConfigError(f"--{flag} logs come from the sb3 backend; use --backend sb3")
-    return ppo
 
 
 def print_notes(prog: str, ppo: Any, notes: Sequence[str]) -> None:
@@ -603,10 +353,7 @@ def require_tensorboard(args: argparse.Namespace, prog: str) -> None:
 
 def test_main(argv: Sequence[str] | None = None, prog: str = "ermrl test") -> int:
     """Entry point of ``ermrl test`` and ``test.py``."""
-    from ermrl.agents import check_ppo_config, parse_overrides, with_overrides
-    from ermrl.experiments import describe_selection, selection_metadata
-    from ermrl.search import study_config
-    from ermrl.storage import load_study
+    from ermrl.experiments import describe_selection, prepare_test
 
     parser = build_test_parser(prog)
     quiet_libraries()
@@ -617,58 +364,23 @@ def test_main(argv: Sequence[str] | None = None, prog: str = "ermrl test") -> in
 
         if not wandb_installed():
             fail(prog, WANDB_MISSING)
-    notes: list[str] = []
     try:
-        study = load_study(args.study_name, args.storage)
-        config = study_config(study)
-        if getattr(config, "generalization", None) is not None:
-            raise ConfigError(
-                f"study {args.study_name!r} evolved on several tasks; test it on an unseen task "
-                "with ermrl test-generalization --env-id ENV"
-            )
-        problem = config.problem
-        choose_agents(args, config, problem.task.observe)
-        overrides = parse_overrides(args.ppo)
-        own = learner_overrides(args).get(problem.ppo.learner, {})
-        default_out = Path("runs") / args.study_name
-        ppo = with_backend(
-            with_overrides(problem.ppo, {**overrides, **own}),
-            args,
-            task=problem.task,
-            out=Path(args.out) if args.out else default_out,
-            notes=notes,
-        )
-        if overrides or own:  # refused now rather than by the first run
-            where = "--ppo" if overrides else f"--for-learner {problem.ppo.learner}"
-            check_ppo_config(problem.task, problem.encoder, ppo, where=where)
-        plan = plan_test_phase(
-            args,
-            study,
-            config,
-            problem.task,
-            ppo,
-            default_out,
-            observe=problem.task.observe,
-        )
+        phase = prepare_test(args.study_name, args.storage, test_options(args))
     except setup_errors() as err:
         fail(prog, str(err))
-    print_notes(prog, ppo, notes)
+    plan = phase.plan
+    print_notes(prog, phase.ppo, phase.notes)
     if plan.warning:  # also with --quiet: the selection is not the one a ranking would give
         print(f"{prog}: warning: {plan.warning}", file=sys.stderr, flush=True)
     if not args.quiet:
         best = describe_selection(plan.chosen)
         print(
-            f"test phase of {args.study_name!r}: {problem.task.label}, agents {' '.join(args.agents)}, "
-            f"seeds {' '.join(map(str, plan.seeds))}, {args.training_steps} steps each; "
-            f"selected: {best}; out: {plan.out}",
+            f"test phase of {args.study_name!r}: {phase.task.label}, agents "
+            f"{' '.join(plan.agent_names)}, seeds {' '.join(map(str, plan.seeds))}, "
+            f"{args.training_steps} steps each; selected: {best}; out: {plan.out}",
             flush=True,
         )
-    metadata = {
-        "study_name": args.study_name,
-        "storage": args.storage,
-        **selection_metadata(plan.chosen),
-    }
-    summary = run_test_phase(prog, args, plan, problem.task, problem.encoder, ppo, metadata)
+    summary = run_test_phase(prog, args, plan, phase.task, phase.encoder, phase.ppo, phase.metadata)
     if summary is None:
         return EXIT_INTERRUPTED
     if not args.quiet:

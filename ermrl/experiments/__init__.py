@@ -1,5 +1,12 @@
 """Experiments built on evolved reservoirs: the test phase against baselines."""
 
+from ermrl.experiments._prepare import (
+    TestOptions,
+    TestPhase,
+    TestPlan,
+    prepare_test,
+    run_in_folder,
+)
 from ermrl.experiments._test_phase import (
     AGENT_KINDS,
     AGENTS,
@@ -28,7 +35,12 @@ __all__ = [
     "AGENT_KINDS",
     "AgentKind",
     "AgentSpec",
+    "TestOptions",
+    "TestPhase",
+    "TestPlan",
     "TestSettings",
+    "prepare_test",
+    "run_in_folder",
     "agent_specs",
     "learner_settings_for",
     "aggregate",

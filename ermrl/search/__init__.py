@@ -30,6 +30,7 @@ from ermrl.search._progress import format_params
 from ermrl.search._pruning import make_pruner
 from ermrl.search._reevaluate import (
     REEVALUATION_ATTR,
+    evolve_and_reevaluate,
     reevaluate_study,
     reevaluation_seeds,
     reevaluation_study_name,
@@ -103,6 +104,7 @@ __all__ = [
     "make_pruner",
     "make_sampler",
     "measure_random_returns",
+    "evolve_and_reevaluate",
     "reevaluate_study",
     "reevaluation_seeds",
     "reevaluation_study_name",

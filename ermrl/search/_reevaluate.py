@@ -25,7 +25,7 @@ import dataclasses
 import math
 import sys
 from collections.abc import Callable
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
 import optuna
@@ -38,8 +38,12 @@ from ermrl.search._claim import cut_short
 from ermrl.search._progress import CANDIDATE_ATTR
 from ermrl.storage import study_lock
 
+if TYPE_CHECKING:
+    from ermrl.search._evolve import EvolutionSummary
+
 __all__ = [
     "CANDIDATE_ATTR",
+    "evolve_and_reevaluate",
     "REEVALUATION_ATTR",
     "reevaluation_config",
     "reevaluation_seeds",
@@ -244,6 +248,72 @@ def record_reevaluation(
     }
     study.set_user_attr(REEVALUATION_ATTR, doc)
     return doc
+
+
+def evolve_and_reevaluate(
+    config: EvolveConfig,
+    study: optuna.Study,
+    storage_url: str | None,
+    *,
+    quiet: bool = False,
+    stream: TextIO | None = None,
+    evaluator_factory: Callable[[EvolveConfig], Any] | None = None,
+    study_kwargs: dict[str, Any] | None = None,
+    wait_for_running: bool = True,
+    progress: ProgressMode = "none",
+    **run_kwargs: Any,
+) -> EvolutionSummary:
+    """Run this worker's trials of ``study``, then its re-evaluation once the budget is spent.
+
+    What ``ermrl evolve`` (and ``ermrl evolve-generalization``) run: :func:`run_evolution`,
+    then :func:`reevaluate_study` when ``config.search.reevaluate_top`` is above 0.
+
+    Args:
+        config: The study's configuration.
+        study: The created or resumed study (:func:`~ermrl.search.create_or_resume_study`).
+        storage_url: Its storage, where the re-evaluation study lives (``None``: no
+            re-evaluation).
+        quiet: No progress lines.
+        stream: Where progress lines go (default ``sys.stdout``).
+        evaluator_factory: Builds the fitness of the re-evaluation config (multi-task runs).
+        study_kwargs: ``heartbeat_interval``, ``grace_period`` and ``max_retry`` of the
+            re-evaluation study.
+        wait_for_running: Wait for other workers' trials (and re-evaluation runs) at the end.
+        progress: ``"bar"``, ``"lines"`` or ``"none"`` inside each trial or run.
+        **run_kwargs: Passed on to :func:`run_evolution` (``evaluate``, ``callbacks``,
+            ``tensorboard``, ...).
+
+    Returns:
+        What this worker did in the evolution.
+
+    Raises:
+        Interrupted: SIGTERM arrived (the running trial was closed).
+        KeyboardInterrupt: Ctrl-C (the running trial was closed).
+    """
+    from ermrl.search._evolve import run_evolution
+
+    summary = run_evolution(
+        config,
+        study,
+        quiet=quiet,
+        stream=stream,
+        wait_for_running=wait_for_running,
+        progress=progress,
+        **run_kwargs,
+    )
+    if storage_url is not None and config.search.reevaluate_top > 0:
+        reevaluate_study(
+            config,
+            study,
+            storage_url,
+            evaluator_factory=evaluator_factory,
+            quiet=quiet,
+            stream=stream,
+            wait_for_running=wait_for_running,
+            progress=progress,
+            **(study_kwargs or {}),
+        )
+    return summary
 
 
 def reevaluate_study(

@@ -1,0 +1,523 @@
+"""What a test phase trains, decided before anything trains: options, agents, seeds, backend.
+
+``ermrl test``, ``ermrl test-generalization`` and :func:`ermrl.test` share this code. The options
+are a :class:`TestOptions` (the command-line options of the test commands, as plain data);
+:func:`prepare_test` turns them and a study into a :class:`TestPhase`, every check done, which
+:func:`~ermrl.experiments.run_comparison` then trains.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import json
+import os
+import shutil
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal, TypeVar
+
+from ermrl._progress import PROGRESS_MODES, ProgressMode
+from ermrl.config import ConfigError
+from ermrl.learners import AGENT_KINDS, default_agents
+
+if TYPE_CHECKING:
+    import optuna
+
+    from ermrl.config import EncoderConfig, EvolveConfig, PPOConfig, TaskConfig
+    from ermrl.experiments._test_phase import AgentSpec, Selection, TestSettings
+
+T = TypeVar("T")
+
+__all__ = [
+    "TestOptions",
+    "TestPhase",
+    "TestPlan",
+    "agent_learners",
+    "check_test_seeds",
+    "choose_agents",
+    "plan_test_phase",
+    "prepare_test",
+    "run_in_folder",
+    "select_seeds",
+    "with_backend",
+]
+
+
+@dataclass(frozen=True)
+class TestOptions:
+    """The options of a test phase: those of ``ermrl test``, as plain data.
+
+    Attributes:
+        training_steps: Env steps per run (paper: 1,000,000).
+        seeds: Test seeds (``None``: 5 seeds after the largest seed evolution trained on).
+        agents: Agents to train (``None``: the study's default agents; see
+            :data:`ermrl.learners.AGENT_KINDS`).
+        out: Output folder (``None``: ``runs/<study name>``).
+        trial: Test this trial's reservoir instead of the selected one (``None``: the
+            re-evaluated best, else the best evolution fitness).
+        n_procs: Cores for the runs, trained in parallel single-threaded processes.
+        evaluate: Also run deterministic evaluation episodes after training (``--eval``).
+        n_eval_episodes: Their number.
+        ppo: Learner overrides on top of the study's, every agent (``--ppo``): a mapping
+            (``{"learning_rate": 1e-4}``) or ``KEY=VALUE`` words.
+        stale_gradient: The rtu-ppo learner's ``stale_gradient`` (``None``: its table's).
+        for_learner: Settings of one learner only, ``{learner: {key: value}}``
+            (``--for-learner``), e.g. the dagger learner's expert.
+        backend: ``"population"`` or ``"sb3"`` for the agents of the study's learner
+            (``None``: population where it applies, else sb3).
+        save_models: Save each trained model as ``model.zip``.
+        overwrite: Retrain the asked-for runs that already have results.
+        checkpoint_every: Save each run's training state every this many steps (``None``: a
+            tenth of ``training_steps``; 0: never).
+        tensorboard: Also log training curves for TensorBoard under this folder.
+        wandb: Also log each run to this Weights & Biases project.
+        progress: ``"bar"``, ``"lines"`` or ``"none"`` inside each run.
+    """
+
+    __test__ = False  # not a pytest test class
+
+    training_steps: int = 1_000_000
+    seeds: Sequence[int] | None = None
+    agents: Sequence[str] | None = None
+    out: str | Path | None = None
+    trial: int | None = None
+    n_procs: int = 1
+    evaluate: bool = False
+    n_eval_episodes: int = 10
+    ppo: Mapping[str, Any] | Sequence[str] = ()
+    stale_gradient: bool | None = None
+    for_learner: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    backend: Literal["population", "sb3"] | None = None
+    save_models: bool = True
+    overwrite: bool = False
+    checkpoint_every: int | None = None
+    tensorboard: str | Path | None = None
+    wandb: str | None = None
+    progress: ProgressMode = "none"
+
+    def __post_init__(self) -> None:
+        for name in ("training_steps", "n_procs", "n_eval_episodes"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ConfigError(f"{name} must be a positive integer, got {value!r}")
+        unknown = [a for a in self.agents or () if a not in AGENT_KINDS]
+        if unknown:
+            raise ConfigError(f"unknown agent {unknown[0]!r}; choose from {', '.join(AGENT_KINDS)}")
+        if self.backend not in (None, "population", "sb3"):
+            raise ConfigError(f"backend must be population or sb3, got {self.backend!r}")
+        if self.progress not in PROGRESS_MODES:
+            raise ConfigError(
+                f"progress must be one of {', '.join(PROGRESS_MODES)}, got {self.progress!r}"
+            )
+
+    def ppo_overrides(self) -> dict[str, Any]:
+        """``ppo`` as a checked mapping (values read as ``--ppo`` reads them).
+
+        Raises:
+            ConfigError: A malformed item or an unknown key.
+        """
+        from ermrl.agents import parse_overrides
+
+        if isinstance(self.ppo, Mapping):
+            words = [f"{k}={json.dumps(v, default=str)}" for k, v in self.ppo.items()]
+            return parse_overrides(words)
+        return parse_overrides(list(self.ppo))
+
+    def learner_settings(self) -> dict[str, dict[str, Any]]:
+        """Settings of one learner only, keyed by learner: ``stale_gradient`` (rtu-ppo's)
+        first, then ``for_learner``, a later one winning per key."""
+        out: dict[str, dict[str, Any]] = {}
+        if self.stale_gradient is not None:
+            out["rtu-ppo"] = {"stale_gradient": self.stale_gradient}
+        for name, settings in self.for_learner.items():
+            out[name] = {**out.get(name, {}), **settings}
+        return out
+
+
+def select_seeds(seeds: Sequence[int], task_id: str | None) -> tuple[int, ...]:
+    """The seeds this process runs: all, or the ``task_id``-th under a SLURM array.
+
+    Raises:
+        ConfigError: the task id is not an index of ``seeds``.
+    """
+    if task_id is None or task_id == "":
+        return tuple(seeds)
+    try:
+        index = int(task_id)
+    except ValueError as err:
+        raise ConfigError(f"SLURM_ARRAY_TASK_ID={task_id!r} is not an integer") from err
+    if not 0 <= index < len(seeds):
+        raise ConfigError(
+            f"SLURM_ARRAY_TASK_ID={index} has no seed: {len(seeds)} seeds given "
+            f"({' '.join(map(str, seeds))}); submit --array=0-{len(seeds) - 1}"
+        )
+    return (seeds[index],)
+
+
+def agent_learners(names: Sequence[str], study_learner: str) -> tuple[str, ...]:
+    """The learners that train the agents ``names`` (``AGENT_KINDS``), each once.
+
+    Args:
+        names: Agent names.
+        study_learner: The study's learner, which trains the agents of no learner of their own.
+    """
+    kinds = [AGENT_KINDS[n] for n in names if n in AGENT_KINDS]
+    return tuple(dict.fromkeys(kind.learner or study_learner for kind in kinds))
+
+
+def choose_agents(options: TestOptions, config: EvolveConfig, observe: str) -> list[str]:
+    """The agents of ``options`` (default: the study's default agents), checked against
+    ``options.for_learner``.
+
+    Raises:
+        ConfigError: a ``for_learner`` entry names a learner that none of the agents trains
+            with.
+    """
+    agents = list(options.agents or default_agents(observe, config.space.family))
+    used = agent_learners(agents, config.problem.ppo.learner)
+    for name in options.for_learner:
+        if name not in used:
+            raise ConfigError(
+                f"--for-learner {name}: no agent of this run uses learner {name} (agents "
+                f"{' '.join(agents)} use {', '.join(used)})"
+            )
+    return agents
+
+
+@dataclass
+class TestPlan:
+    """What a test phase trains: its agents, the selected trial, seeds and settings."""
+
+    __test__ = False  # not a pytest test class
+
+    agents: list[AgentSpec]
+    chosen: Selection | None
+    seeds: tuple[int, ...]
+    settings: TestSettings
+    out: Path
+    warning: str | None = None
+    """A line for stderr before anything runs: the stored ranking is stale."""
+    agent_names: tuple[str, ...] = ()
+    """The agents asked for, in the order given (``options.agents`` or the defaults)."""
+
+
+def check_test_seeds(
+    seeds: Sequence[int],
+    evolution_seeds: Sequence[int],
+    reevaluation_seeds: Sequence[int],
+    study_name: str,
+) -> None:
+    """Refuse test seeds that evolution or the re-evaluation trained on: the selection saw
+    them, so results on them are not independent of it.
+
+    Args:
+        seeds: The test seeds.
+        evolution_seeds: The study's seeds.
+        reevaluation_seeds: The seeds its re-evaluation used
+            (:func:`~ermrl.search.used_reevaluation_seeds`).
+        study_name: Named in the message.
+
+    Raises:
+        ConfigError: with the seeds that overlap, in one line.
+    """
+    used = [
+        (what, sorted(set(seeds) & set(other)))
+        for what, other in (
+            ("evolution", evolution_seeds),
+            (f"the re-evaluation ({study_name}.reeval)", reevaluation_seeds),
+        )
+    ]
+    overlaps = [f"{found} by {what}" for what, found in used if found]
+    if overlaps:
+        raise ConfigError(
+            f"test seeds already used to select the trial: {'; '.join(overlaps)}; results on them "
+            "are not independent of the selection (omit --seeds for 5 unused ones)"
+        )
+
+
+def plan_test_phase(
+    options: TestOptions,
+    study: optuna.Study,
+    config: EvolveConfig,
+    task: TaskConfig,
+    ppo: PPOConfig,
+    default_out: Path,
+    *,
+    observe: str,
+) -> TestPlan:
+    """The part of ``ermrl test`` and ``ermrl test-generalization`` that is the same: seeds,
+    agents (each with its learner's settings), checks of the settings and of the folder.
+
+    Args:
+        options: The test phase's options.
+        study: The evolution study.
+        config: Its configuration.
+        task: The task the agents train on.
+        ppo: The settings of the study's learner on that task (``options.ppo`` applied).
+        default_out: The folder when ``options.out`` is not given.
+        observe: The mask that decides the default agents.
+
+    Raises:
+        ConfigError: bad settings, test seeds evolution or the re-evaluation used, a bad
+            folder, or an agent that cannot be built.
+    """
+    from ermrl.agents import check_ppo_config
+    from ermrl.experiments._test_phase import (
+        TestSettings,
+        check_out_folder,
+        default_test_seeds,
+        learner_settings_for,
+        study_agents,
+    )
+    from ermrl.search import stale_ranking, used_reevaluation_seeds
+
+    problem = config.problem
+    seeds = tuple(options.seeds) if options.seeds else default_test_seeds(problem.seeds)
+    check_test_seeds(seeds, problem.seeds, used_reevaluation_seeds(study), study.study_name)
+    seeds = select_seeds(seeds, os.environ.get("SLURM_ARRAY_TASK_ID"))
+    names = choose_agents(options, config, observe)
+    overrides = options.ppo_overrides()
+    own = options.learner_settings()
+    agents, chosen = study_agents(
+        study,
+        config,
+        names,
+        options.trial,
+        learner_settings_for(ppo, task.env_id, overrides, own),
+        ppo,
+    )
+    # An agent of another learner than the study's has settings no study checked (its table,
+    # --ppo, --for-learner; dagger's expert): refused now rather than by its first run.
+    for agent in agents:
+        if agent.ppo is not None:
+            check_ppo_config(agent.task(task), None, agent.ppo, where=agent.name)
+    out = Path(options.out) if options.out else default_out
+    check_out_folder(out)
+    settings = TestSettings(
+        training_steps=options.training_steps,
+        seeds=seeds,
+        out=out,
+        n_procs=options.n_procs,
+        evaluate=options.evaluate,
+        n_eval_episodes=options.n_eval_episodes,
+        n_last_episodes=problem.budget.n_last_episodes,
+        save_models=options.save_models,
+        overwrite=options.overwrite,
+        tensorboard=Path(options.tensorboard) if options.tensorboard else None,
+        wandb=options.wandb,
+        progress=options.progress,
+        checkpoint_every=options.checkpoint_every,
+    )
+    warning = None
+    # Only when the ranking would have picked the trial: not with a trial given, nor when no
+    # agent uses the evolved trial (chosen is None).
+    stale = None if chosen is None or options.trial is not None else stale_ranking(study)
+    if chosen is not None and stale is not None:
+        warning = (
+            f"the re-evaluated ranking is stale and not used ({stale}); testing trial "
+            f"{chosen.number}, the best evolution fitness (run the evolve command again to "
+            "re-rank, or pass --trial N)"
+        )
+    return TestPlan(agents, chosen, seeds, settings, out, warning, tuple(names))
+
+
+def with_backend(
+    ppo: PPOConfig,
+    options: TestOptions,
+    *,
+    task: TaskConfig | None = None,
+    out: Path | None = None,
+    notes: list[str] | None = None,
+) -> PPOConfig:
+    """The study's learner settings with the backend that trains its agents.
+
+    ``options.backend`` when given (checked for it). Left out: the study's own backend when it
+    was evolved with sb3 (an existing study keeps the backend it was created with, so a study
+    of an older ermrl tests to the same returns); otherwise population where it applies,
+    unless ``out`` holds finished runs of this learner made with sb3 (a test folder never
+    mixes backends; not with ``overwrite``), else sb3.
+
+    Args:
+        ppo: The settings of the study's learner on the test task.
+        options: The test phase's options (``backend``, ``tensorboard``, ``wandb``,
+            ``overwrite``).
+        task: The test task (its env's spaces are checked; ``None``: not checked).
+        out: The test folder.
+        notes: Receives the one-line reason a left-out backend is not population.
+
+    Raises:
+        ConfigError: The population backend asked for where it does not apply.
+    """
+    from ermrl.population import choose_backend
+
+    if options.backend is None:
+        from ermrl.experiments._test_phase import finished_backend
+
+        if ppo.backend == "sb3" and ppo.learner == "ppo":
+            return ppo  # the study's own backend: kept silently, as an evolution resumes it
+        backend, why = choose_backend(
+            None,
+            ppo,
+            () if task is None else (task,),
+            tensorboard=bool(options.tensorboard),
+            wandb=bool(options.wandb),
+        )
+        if (
+            backend == "population"
+            and out is not None
+            and not options.overwrite
+            and finished_backend(out, ppo.learner) == "sb3"
+        ):
+            backend = "sb3"
+            why = (
+                f"the finished runs in {out} were made with it (a test folder never mixes backends)"
+            )
+        if why is not None and notes is not None:
+            notes.append(why)
+        return dataclasses.replace(ppo, backend=backend)
+    ppo = dataclasses.replace(ppo, backend=options.backend)
+    if ppo.backend == "population":
+        from ermrl.population import check_population_config
+
+        check_population_config(ppo)
+        for flag in ("tensorboard", "wandb"):
+            if getattr(options, flag):
+                raise ConfigError(f"--{flag} logs come from the sb3 backend; use --backend sb3")
+    return ppo
+
+
+@dataclass(frozen=True)
+class TestPhase:
+    """A test phase of one study, every check done: what :func:`prepare_test` returns.
+
+    Attributes:
+        study_name: The evolution study.
+        storage: Its storage URL.
+        task: The task the agents train on.
+        encoder: The study's encoding options (``None``: a learner with genes, no encoder).
+        ppo: The settings of the study's learner, with the backend that trains its agents.
+        plan: Agents, selected trial, seeds, settings and folder.
+        notes: One line per reason the backend is not population, when none was asked for.
+    """
+
+    __test__ = False  # not a pytest test class
+
+    study_name: str
+    storage: str
+    task: TaskConfig
+    encoder: EncoderConfig | None
+    ppo: PPOConfig
+    plan: TestPlan
+    notes: tuple[str, ...] = ()
+
+    @property
+    def metadata(self) -> dict[str, Any]:
+        """What ``config.yaml`` records besides the settings: the study and the selection."""
+        from ermrl.experiments._test_phase import selection_metadata
+
+        return {
+            "study_name": self.study_name,
+            "storage": self.storage,
+            **selection_metadata(self.plan.chosen),
+        }
+
+
+def prepare_test(study_name: str, storage: str, options: TestOptions) -> TestPhase:
+    """Everything ``ermrl test`` decides and checks before the first run trains.
+
+    Args:
+        study_name: The evolution study (a single-task one).
+        storage: Its storage URL.
+        options: The test phase's options.
+
+    Returns:
+        The test phase, ready for :func:`~ermrl.experiments.run_comparison`.
+
+    Raises:
+        ConfigError: Bad options, a study evolved on several tasks (its test is
+            ``ermrl test-generalization``), seeds the selection used, or a folder holding
+            runs made with other settings.
+        ermrl.storage.StudyNotFound: No such study.
+        ermrl.storage.StorageError: The storage cannot be opened.
+    """
+    from ermrl.agents import check_ppo_config, with_overrides
+    from ermrl.search import study_config
+    from ermrl.storage import load_study
+
+    study = load_study(study_name, storage)
+    config = study_config(study)
+    if getattr(config, "generalization", None) is not None:
+        raise ConfigError(
+            f"study {study_name!r} evolved on several tasks; test it on an unseen task "
+            "with ermrl test-generalization --env-id ENV"
+        )
+    problem = config.problem
+    options = dataclasses.replace(
+        options, agents=choose_agents(options, config, problem.task.observe)
+    )
+    overrides = options.ppo_overrides()
+    own = options.learner_settings().get(problem.ppo.learner, {})
+    default_out = Path("runs") / study_name
+    notes: list[str] = []
+    ppo = with_backend(
+        with_overrides(problem.ppo, {**overrides, **own}),
+        options,
+        task=problem.task,
+        out=Path(options.out) if options.out else default_out,
+        notes=notes,
+    )
+    if overrides or own:  # refused now rather than by the first run
+        where = "--ppo" if overrides else f"--for-learner {problem.ppo.learner}"
+        check_ppo_config(problem.task, problem.encoder, ppo, where=where)
+    plan = plan_test_phase(
+        options, study, config, problem.task, ppo, default_out, observe=problem.task.observe
+    )
+    return TestPhase(study_name, storage, problem.task, problem.encoder, ppo, plan, tuple(notes))
+
+
+# Files a test phase writes before its first run finishes: a folder holding only these (and
+# empty folders) is a skeleton, removed when the call that created it fails.
+_SKELETON_FILES = ("config.yaml", "command.txt")
+
+
+def run_in_folder(out: Path, run: Callable[[], T]) -> T:
+    """Run a test phase writing to ``out``; when ``run`` fails (an error, a crash, Ctrl-C)
+    before ``out`` holds anything but its skeleton (no finished run, no checkpoint), remove
+    ``out`` again, and the parents this call created for it.
+
+    Args:
+        out: The test phase's folder.
+        run: The test phase.
+
+    Returns:
+        What ``run`` returned.
+    """
+    with _removed_when_failed(out):
+        return run()
+
+
+@contextlib.contextmanager
+def _removed_when_failed(out: Path) -> Iterator[None]:
+    created = [p for p in (Path(out), *Path(out).parents) if not p.exists()]
+    try:
+        yield
+    except BaseException:
+        _remove_skeleton(created)
+        raise
+
+
+def _remove_skeleton(created: Sequence[Path]) -> None:
+    """Remove the folders of ``created`` (``out`` first, then the parents this created) when
+    ``out`` holds no file other than :data:`_SKELETON_FILES`."""
+    if not created or not created[0].is_dir():
+        return
+    out = created[0]
+    files = [p for p in out.rglob("*") if not p.is_dir()]
+    if any(p.parent != out or p.name not in _SKELETON_FILES for p in files):
+        return
+    shutil.rmtree(out, ignore_errors=True)
+    for folder in created[1:]:
+        with contextlib.suppress(OSError):
+            folder.rmdir()
