@@ -19,6 +19,7 @@ from ermrl.agents import (
     parse_overrides,
     ppo_kwargs,
     resolve_ppo_config,
+    steps_trained,
     stats_path,
     train_agent,
     with_overrides,
@@ -132,6 +133,18 @@ def test_an_unknown_key_is_matched_against_the_chosen_learner_only() -> None:
     with pytest.raises(ConfigError, match=r"'frame_stack' is a setting of another learner \(framestack-ppo"):
         parse_overrides(["frame_stack=3"], "ppo")
     assert parse_overrides(["frame_stack:3"], "framestack-ppo") == {"frame_stack": 3}
+
+
+def test_steps_trained_rounds_on_policy_budgets_up_to_whole_rollouts() -> None:
+    """What a progress bar's total must be: SB3's on-policy learn() stops after the rollout
+    that reaches the budget; SAC trains the budget itself."""
+    ppo = resolve_ppo_config("CartPole-v1", {"n_steps": 64}, n_envs=2)
+    assert steps_trained(ppo, 600) == 640 and steps_trained(ppo, 640) == 640
+    assert steps_trained(dataclasses.replace(ppo, hyperparams={}), 1) == 2048 * 2  # PPO's default
+    lstm = resolve_ppo_config("CartPole-v1", {}, n_envs=1, learner="lstm-ppo")
+    assert steps_trained(lstm, 100) == 128  # RecurrentPPO's own default n_steps
+    sac = resolve_ppo_config("Pendulum-v1", {}, n_envs=1, learner="sac")
+    assert steps_trained(sac, 1001) == 1001
 
 
 def test_linear_schedule_strings_become_callables(tmp_path) -> None:  # noqa: ANN001

@@ -29,6 +29,7 @@ from ermrl.agents._train import (
     TrainingDiverged,
     derive_seeds,
     make_vec_env,
+    steps_trained,
     train_agent,
 )
 from ermrl.agents._wandb import WANDB_MISSING, WandbRun, study_wandb_callback, wandb_installed
@@ -65,6 +66,7 @@ __all__ = [
     "save_policy",
     "stats_path",
     "study_wandb_callback",
+    "steps_trained",
     "train_agent",
     "training_pool",
     "wandb_installed",

@@ -35,6 +35,7 @@ __all__ = [
     "TrainingDiverged",
     "NoEpisodeFinished",
     "train_agent",
+    "steps_trained",
 ]
 
 ReportFn = Callable[[int, float], None]
@@ -63,6 +64,34 @@ class SeedSet:
     env: int
     agent: int
     eval_env: int
+
+
+def steps_trained(ppo: PPOConfig, steps: int) -> int:
+    """The env steps a run of ``ppo``'s learner makes for a budget of ``steps``.
+
+    SB3's on-policy algorithms (PPO, RecurrentPPO and ermrl's PPO variants) collect whole
+    rollouts of ``n_steps * n_envs`` steps and stop after the one that reaches the budget, so
+    the budget rounds up to a whole number of rollouts; other learners train ``steps``.
+
+    Example:
+        >>> from ermrl.config import PPOConfig
+        >>> steps_trained(PPOConfig(n_envs=1, hyperparams={"n_steps": 2048}), 3000)
+        4096
+    """
+    import inspect
+
+    from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
+
+    from ermrl.learners import get_learner
+
+    algorithm = get_learner(ppo.learner).algorithm()
+    if not (isinstance(algorithm, type) and issubclass(algorithm, OnPolicyAlgorithm)):
+        return int(steps)
+    n_steps = ppo.hyperparams.get("n_steps")
+    if n_steps is None:
+        n_steps = inspect.signature(algorithm).parameters["n_steps"].default
+    rollout = max(int(n_steps) * max(ppo.n_envs, 1), 1)
+    return -(-int(steps) // rollout) * rollout
 
 
 def derive_seeds(seed: int) -> SeedSet:

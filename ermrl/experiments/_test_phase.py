@@ -48,6 +48,7 @@ from ermrl.agents import (
     RunResult,
     WandbRun,
     pool_size,
+    steps_trained,
     train_agent,
     training_pool,
 )
@@ -741,7 +742,7 @@ def run_comparison(
             )  # fmt: skip
             progress = Progress(
                 f"{agent.name} seed {seed}",
-                budget.training_steps,
+                steps_trained(ppo_of(agent), budget.training_steps),  # whole rollouts
                 mode="none" if quiet else settings.progress,
                 stream=stream if settings.n_procs == 1 else None,  # a worker prints to stdout
             )

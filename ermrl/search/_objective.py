@@ -18,7 +18,7 @@ import numpy as np
 
 from ermrl._progress import Progress, ProgressMode
 from ermrl._text import plural
-from ermrl.agents import RunResult, pool_size, train_agent, training_pool
+from ermrl.agents import RunResult, pool_size, steps_trained, train_agent, training_pool
 from ermrl.config import (
     BudgetConfig,
     EncoderConfig,
@@ -315,7 +315,9 @@ class SeedRunner:
                 *a,
                 self.tensorboard_log(a[4], a[0].env_id if by_task else None),
                 self.run_progress(
-                    f"seed {a[4]} on {a[0].label}", a[3].training_steps, in_process=in_process
+                    f"seed {a[4]} on {a[0].label}",
+                    steps_trained(a[2], a[3].training_steps),
+                    in_process=in_process,
                 ),
             )
             for a in args
@@ -391,7 +393,9 @@ def train_runs(
                     report(offset + step, value if normalize is None else normalize(value))
 
                 progress = runner.run_progress(
-                    f"seed {seed} on {task.label}", budget.training_steps, in_process=True
+                    f"seed {seed} on {task.label}",
+                    steps_trained(ppo, budget.training_steps),
+                    in_process=True,
                 )
                 log = runner.tensorboard_log(seed, task.env_id if len(tasks) > 1 else None)
                 runs.append(
