@@ -139,7 +139,7 @@ def test_the_encoders_input_size_is_the_one_the_wrapper_builds() -> None:
 # -- the search space -----------------------------------------------------------------------------
 def test_int_ranges_are_linear_integer_intervals() -> None:
     r = IntRange(1, 4)
-    assert not r.log and r.integer and r.center == 2
+    assert not r.log and r.integer and r.center == 2.5 and IntRange(1, 3).center == 2
     assert r.contains(3) and r.contains(3.0) and not r.contains(2.5) and not r.contains(5)
     for bad in ({"low": 1.5, "high": 3}, {"low": 1, "high": 3, "log": True}, {"low": 3, "high": 3}):
         with pytest.raises(ConfigError) as err:
@@ -154,14 +154,20 @@ def test_the_space_decodes_integer_genes_and_its_reference_is_inside() -> None:
     assert ref == {"delay": 2, "order": 2, "strides": 1, "input_scaling": 1.0}
     assert space.contains(ref) and space.reservoirs_from(ref) == space.default_reservoirs()
     centre = space.center_params()
-    assert centre == {"delay": 2, "order": 1, "strides": 2, "input_scaling": pytest.approx(1.0)}
-    assert space.contains(centre)
+    # The exact middles (a start, not a trial's values: half of its samples round each way).
+    assert centre == {
+        "delay": 2.5,
+        "order": 1.5,
+        "strides": 2.5,
+        "input_scaling": pytest.approx(1.0),
+    }
+    assert not space.contains(centre)
     assert not space.contains({**ref, "delay": 2.5}) and not space.contains({**ref, "delay": 9})
     with pytest.raises(ConfigError, match="delay must be an integer"):
         space.reservoirs_from({**ref, "delay": 2.5})  # never rounded outside the search
     two = NVARSpace(n_reservoirs=2, input_scaling=None, fixed_input_scaling=0.5)
     assert two.param_names == ("delay_0", "order_0", "strides_0", "delay_1", "order_1", "strides_1")
-    nvars = two.reservoirs_from({**two.center_params(), "delay_1": 3})
+    nvars = two.reservoirs_from({**two.reference_params(), "delay_1": 3})
     assert nvars[1].delay == 3 and nvars[0].input_scaling == 0.5
     with pytest.raises(ConfigError, match="integer range"):
         NVARSpace(delay=IntRange(1, 3), order=Range_(1.0, 3.0))  # type: ignore[arg-type]
@@ -429,6 +435,48 @@ def test_without_margin_cma_es_collapses_onto_one_integer() -> None:
     collapsed = [seed for seed in range(20) if len(set(_int_study(seed, False)[-8:])) == 1]
     assert collapsed  # seeds 2, 12, 18 and 19 with this cmaes version
     assert all(len(set(_int_study(seed, None)[-8:])) >= 2 for seed in collapsed)
+
+
+def _first_generations(x0: dict[str, float] | None, seed: int) -> list[dict[str, Any]]:
+    """The NVAR genes of CMA-ES's first 5 generations (8 trials each) on a pure-noise fitness,
+    started at ``x0`` (``None``: the study's start, :meth:`NVARSpace.center_params`)."""
+    space = NVARSpace()
+    sampler = make_study_sampler(SearchConfig(sampler_seed=seed), space)
+    if x0 is not None:
+        sampler._x0 = x0  # type: ignore[attr-defined]
+    study = optuna.create_study(sampler=sampler)
+    noise = np.random.default_rng(seed)
+    params = []
+    for _ in range(5 * 8):  # cmaes' default popsize for 4 genes: 4 + floor(3 ln 4) = 8
+        trial = study.ask()
+        params.append(sample_params(trial, space))
+        study.tell(trial, float(noise.normal()))
+    return params
+
+
+def _shares_below_the_middle(x0: dict[str, float] | None) -> dict[str, float]:
+    """Per integer gene, the share of values below its range's middle, over seeds 0-9."""
+    ranges = NVARSpace().ranges()
+    runs = [p for seed in range(10) for p in _first_generations(x0, seed)]
+    return {
+        name: float(np.mean([p[name] < (ranges[name].low + ranges[name].high) / 2 for p in runs]))
+        for name in ("delay", "order", "strides")
+    }
+
+
+def test_integer_genes_start_unbiased_on_a_flat_fitness() -> None:
+    """Started at the exact middle of each integer range, CMA-ES's first 5 generations draw
+    each side of the middle about half the time on a pure-noise fitness: order 1 and 2 each
+    0.5 +- 0.15, and likewise delay and strides in 1-2 against 3-4 (measured over seeds 0-9:
+    order 1 0.445, delay 1-2 0.46, strides 1-2 0.485).
+
+    The old start, the lower of two middle integers (delay 2, order 1, strides 2), fails it by
+    far: order 1 0.90, delay 1-2 0.80, strides 1-2 0.86 (order 2 was drawn 39 times in 400).
+    """
+    shares = _shares_below_the_middle(None)
+    assert shares == pytest.approx({"delay": 0.5, "order": 0.5, "strides": 0.5}, abs=0.15)
+    old = _shares_below_the_middle({"delay": 2, "order": 1, "strides": 2, "input_scaling": 1.0})
+    assert all(share > 0.65 for share in old.values()), old
 
 
 def test_float_genes_next_to_integer_ones_still_converge() -> None:
