@@ -10,9 +10,9 @@ works everywhere.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Literal, Protocol, runtime_checkable
+from typing import Any, Literal, Protocol, runtime_checkable
 
 ObserveMode = Literal["all", "positions", "velocities"]
 FitnessMode = Literal["last", "eval"]
@@ -74,6 +74,9 @@ class AgentKind:
             (:attr:`ermrl.encoders.Encoder.family`: ``"esn"`` for ``--encoder reservoir``, ...;
             the encoder declares its agents), or a learner's name for a study of its genes
             (``"hebbian"``); ``None``: any study.
+        derive: What the agent makes of each of its reservoirs' settings (those
+            ``reservoirs`` names): an ablation of them, as ``leaky-res-ppo`` takes the
+            selected reservoir without its recurrent weights; ``None``: as they are.
     """
 
     reservoirs: Literal["none", "evolved", "unevolved"]
@@ -85,6 +88,7 @@ class AgentKind:
     color: str = ""
     default: bool = True
     family: str | None = None
+    derive: Callable[[Any], Any] | None = None
 
 
 @dataclass(frozen=True)

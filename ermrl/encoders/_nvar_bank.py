@@ -12,7 +12,7 @@ import itertools
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any, ClassVar, Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -187,7 +187,7 @@ class NVARBank(StepBank):
     """
 
     # Features are unbounded (an RTU layer's tanh is not).
-    out_bound: ClassVar[float] = math.inf
+    out_bound: float = math.inf
 
     def __init__(
         self,

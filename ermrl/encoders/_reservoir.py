@@ -31,6 +31,8 @@ if TYPE_CHECKING:
     from reservoirpy.nodes import Reservoir
 
 __all__ = [
+    "ABLATIONS",
+    "Ablation",
     "BIAS_INITS",
     "BiasInit",
     "ReservoirParams",
@@ -47,6 +49,8 @@ __all__ = [
 
 BiasInit = Literal["none", "original"]
 BIAS_INITS: tuple[str, ...] = ("none", "original")
+Ablation = Literal["none", "leaky", "ema"]
+ABLATIONS: tuple[str, ...] = ("none", "leaky", "ema")
 
 
 @dataclass(frozen=True)
@@ -69,6 +73,14 @@ class ReservoirParams:
             which the original ER-MRL code used: Bernoulli +-1 on ``input_connectivity`` of
             the units (10 of 100), zero elsewhere; needs ``bias_scaling`` 0. Left out of
             :func:`to_dict` while ``"none"``, so configs stored before it existed are unchanged.
+        ablation: What is left of the reservoir (the test phase's ablation agents);
+            ``"none"``: the whole echo state network. ``"leaky"``: its recurrent weights
+            removed (``W = 0``), the same ``Win``, bias and leak rate (the same seed draws
+            them): ``x <- (1 - lr) x + lr tanh(Win u + b)``, a leaky integrator of a random
+            projection. ``"ema"``: no reservoir at all, an exponential moving average of the
+            input at the leak rate, ``x <- (1 - lr) x + lr u`` (one value per input, shown
+            as it is: no weights, no tanh; ``units``, ``sr``, ``input_scaling`` and the
+            connectivities are unused). Left out of :func:`to_dict` while ``"none"``.
     """
 
     units: int = 100
@@ -79,15 +91,19 @@ class ReservoirParams:
     input_connectivity: float = 0.1
     bias_scaling: float = 0.0
     bias_init: BiasInit = field(default="none", metadata={"omit_if_default": True})
+    ablation: Ablation = field(default="none", metadata={"omit_if_default": True})
 
     family: ClassVar[str] = "esn"
 
     @property
     def state_dim(self) -> int:
-        """Width of the state the policy can see: one value per unit."""
+        """Width of the state the policy can see: one value per unit (an ``"ema"`` ablation's
+        is its input's width, which only the task gives: ``units`` stands for it here)."""
         return self.units
 
     def __post_init__(self) -> None:
+        if self.ablation not in ABLATIONS:
+            raise ConfigError(f"ablation must be one of {ABLATIONS}, got {self.ablation!r}")
         if self.bias_init not in BIAS_INITS:
             raise ConfigError(f"bias_init must be one of {BIAS_INITS}, got {self.bias_init!r}")
         if self.bias_init == "original" and self.bias_scaling > 0:
@@ -172,6 +188,8 @@ class ReservoirWeights:
         lr: Leak rate.
         linear: The update is ``x <- W x + Win u`` (no tanh, no leak; an RTU layer) and the
             policy sees ``tanh(x)``.
+        raw: With ``linear``, the policy sees the whole state as it is, without tanh (an
+            exponential moving average of the inputs: ``exposed_units`` does not apply).
     """
 
     W: np.ndarray
@@ -179,6 +197,7 @@ class ReservoirWeights:
     bias: np.ndarray
     lr: float
     linear: bool = False
+    raw: bool = False
 
     @property
     def units(self) -> int:
@@ -241,13 +260,28 @@ def reservoir_weights(params: ReservoirParams, input_dim: int, seed: int) -> Res
         seed: Seed of the weights.
 
     Returns:
-        Dense float64 weights.
+        Dense float64 weights. An ablation (:attr:`ReservoirParams.ablation`): ``"leaky"``,
+        the same weights with ``W`` zero; ``"ema"``, the linear update
+        ``x <- (1 - lr) x + lr u`` (``W = (1 - lr) I``, ``Win = lr I``, no bias) shown raw.
     """
     if input_dim < 1:
         raise ValueError(f"input_dim must be >= 1, got {input_dim}")
+    if params.ablation == "ema":
+        eye = np.eye(input_dim)
+        return ReservoirWeights(
+            W=(1.0 - params.lr) * eye,
+            Win=params.lr * eye,
+            bias=np.zeros(input_dim),
+            lr=1.0,  # the leak is in W and Win
+            linear=True,
+            raw=True,
+        )
     node = reservoir_node(params, input_dim, seed)
     bias = np.broadcast_to(_dense(node.bias).ravel(), (params.units,)).copy()
-    return ReservoirWeights(W=_dense(node.W), Win=_dense(node.Win), bias=bias, lr=float(params.lr))
+    W = _dense(node.W)
+    if params.ablation == "leaky":
+        W = np.zeros_like(W)
+    return ReservoirWeights(W=W, Win=_dense(node.Win), bias=bias, lr=float(params.lr))
 
 
 def rtu_weights(params: RTUParams, input_dim: int, seed: int) -> ReservoirWeights:
@@ -306,7 +340,7 @@ class StepBank:
     dtype: np.dtype
     units: tuple[int, ...]  # state values per reservoir
     linear: bool  # x <- [x | u] M (an RTU layer's, an NVAR's step)
-    out_bound: ClassVar[float]  # the bound of what the policy sees
+    out_bound: float  # the bound of what the policy sees
 
     def emitter(
         self, exposed_units: int | None = None
@@ -436,7 +470,7 @@ class ReservoirBank(StepBank):
         dtype: Floating type of the state and weights (float64 matches reservoirpy exactly).
     """
 
-    out_bound: ClassVar[float] = 1.0  # the policy sees values in [-1, 1] (states or their tanh)
+    out_bound: float = 1.0  # the policy sees values in [-1, 1] (states or their tanh)
 
     def __init__(self, weights: Sequence[ReservoirWeights], dtype: type | str = np.float64) -> None:
         if not weights:
@@ -444,9 +478,16 @@ class ReservoirBank(StepBank):
         dims = {w.input_dim for w in weights}
         if len(dims) != 1:
             raise ValueError(f"all reservoirs must share input_dim, got {sorted(dims)}")
-        if len({w.linear for w in weights}) != 1:
-            raise ValueError("a ReservoirBank cannot mix linear (RTU) and tanh reservoirs")
+        if len({(w.linear, w.raw) for w in weights}) != 1:
+            raise ValueError(
+                "a ReservoirBank cannot mix linear (RTU), tanh and moving-average reservoirs"
+            )
         self.linear = weights[0].linear
+        # An EMA's state is shown whole and as it is: its values are the inputs' (unbounded).
+        self.raw = weights[0].linear and weights[0].raw
+        self.squash = self.linear and not self.raw
+        if self.raw:
+            self.out_bound = math.inf
         self.weights = tuple(weights)
         self.dtype = np.dtype(dtype)
         self.units = tuple(w.units for w in weights)
@@ -505,8 +546,9 @@ class ReservoirBank(StepBank):
 
     def emit(self, states: np.ndarray) -> np.ndarray:
         """What the policy sees of ``states``, as a new float32 array: the states themselves
-        (ESN, already in (-1, 1)) or their tanh (linear RTU layers, whose states are unbounded)."""
-        if self.linear:
+        (ESN, already in (-1, 1); an EMA) or their tanh (linear RTU layers, whose states are
+        unbounded)."""
+        if self.squash:
             return np.tanh(states).astype(np.float32)
         return states.astype(np.float32)
 
@@ -517,19 +559,19 @@ class ReservoirBank(StepBank):
 
         ``emit(states)`` maps states of shape ``(..., N)`` to a new float32 array of shape
         ``(..., width)``: :meth:`emit` of the first ``exposed_units`` units of each reservoir
-        (all units when ``None``).
+        (all units when ``None``, or for EMAs, whose values are the inputs').
         """
-        if exposed_units is None:
+        if exposed_units is None or self.raw:
             index = None
             width = self.n_units
         else:
             starts = np.cumsum((0,) + self.units[:-1])
             index = np.concatenate([np.arange(s, s + exposed_units) for s in starts])
             width = len(index)
-        linear = self.linear
+        squash = self.squash
 
         def emit(states: np.ndarray) -> np.ndarray:
             x = states if index is None else states[..., index]
-            return np.tanh(x).astype(np.float32) if linear else x.astype(np.float32)
+            return np.tanh(x).astype(np.float32) if squash else x.astype(np.float32)
 
         return emit, width

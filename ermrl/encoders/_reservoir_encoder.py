@@ -11,7 +11,9 @@ that steps them.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import dataclasses
+import functools
+from collections.abc import Hashable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -19,6 +21,7 @@ from ermrl._config_base import MAX_UNITS, AgentKind, ConfigError, Range, _check_
 from ermrl.encoders._base import Encoder
 from ermrl.encoders._reservoir import (
     BIAS_INITS,
+    Ablation,
     BiasInit,
     ReservoirBank,
     ReservoirParams,
@@ -185,6 +188,13 @@ CLI_FLAGS: tuple[dict[str, Any], ...] = (
     },
 )
 
+
+def _ablated(ablation: Ablation) -> functools.partial[ReservoirParams]:
+    """An agent's :attr:`~ermrl.config.AgentKind.derive`: a reservoir's settings with
+    ``ablation`` (:attr:`ReservoirParams.ablation`), all else kept."""
+    return functools.partial(dataclasses.replace, ablation=ablation)
+
+
 # Test-phase agents of ``--encoder reservoir`` studies.
 AGENTS: dict[str, AgentKind] = {
     "res-ppo": AgentKind(
@@ -196,6 +206,21 @@ AGENTS: dict[str, AgentKind] = {
         "the study's learner on unevolved reservoirs (reservoirpy's defaults): what evolution adds",
         None, "RES-PPO (unevolved reservoir)", "RES-PPO\n(unevolved)", "tab:green",
         family="esn",
+    ),
+    "leaky-res-ppo": AgentKind(
+        "evolved", None,
+        "the study's learner on the selected reservoir(s) without recurrent weights (W = 0; the "
+        "same input weights, bias and leak rate): a leaky integrator of a random projection",
+        None, "RES-PPO (evolved, W = 0)", "RES-PPO\n(W = 0)", "goldenrod", default=False,
+        family="esn", derive=_ablated("leaky"),
+    ),
+    "ema-ppo": AgentKind(
+        "evolved", None,
+        "the study's learner on exponential moving averages of the reservoir's input "
+        "(observation, previous action and reward) at the selected leak rate(s), in the "
+        "reservoir's place: no projection, no tanh",
+        None, "EMA-PPO (selected leak rate)", "EMA-PPO", "dimgray", default=False,
+        family="esn", derive=_ablated("ema"),
     ),
     "res-sac": AgentKind(
         "evolved", None, "SAC on the selected evolved reservoir(s) (its replay holds their states)",
@@ -250,3 +275,10 @@ class ReservoirEncoder(Encoder):
         from ermrl.encoders._vec_env import ReservoirVecEnv
 
         return ReservoirVecEnv(venv, config, seed=seed)
+
+    def layout(self, params: Any) -> Hashable:
+        """Its state width; an EMA's (the ``"ema"`` ablation's) is its input's, whatever its
+        ``units``: EMAs share a population only with EMAs."""
+        if isinstance(params, ReservoirParams) and params.ablation == "ema":
+            return "ema"
+        return int(params.state_dim)

@@ -6,6 +6,8 @@ Agents:
 - ``ppo-full``: PPO on the full, unmasked observation (the ceiling memory should approach);
 - ``res-ppo``: PPO on the states of the best evolved reservoir(s);
 - ``random-res-ppo``: PPO on reservoirs with default, unevolved hyperparameters (what evolution adds);
+- ``leaky-res-ppo``, ``ema-ppo``: ablations of the selected reservoir (``W = 0``; moving averages
+  of its input at its leak rate), derived from it by their :attr:`AgentKind.derive`;
 - ``lstm-ppo``, ``framestack-ppo``: memory baselines (RecurrentPPO; PPO on stacked observations);
 - ``sac``, ``res-sac``, ``dagger``, ``res-dagger``: other learners on the raw observation and on
   the selected evolved reservoir(s) (DAgger's expert sees the full state).
@@ -189,6 +191,8 @@ def agent_specs(
         reservoirs = {"none": None, "evolved": evolved, "unevolved": unevolved}[kind.reservoirs]
         if kind.reservoirs == "evolved" and reservoirs is None:
             raise ConfigError(f"agent {name!r} needs the evolved reservoirs")
+        if reservoirs is not None and kind.derive is not None:  # an ablation
+            reservoirs = tuple(kind.derive(p) for p in reservoirs)
         specs.append(AgentSpec(name, reservoirs, kind.observe, ppo))
     return specs
 
