@@ -361,8 +361,7 @@ def with_backend(
             None,
             ppo,
             () if task is None else (task,),
-            tensorboard=bool(options.tensorboard),
-            wandb=bool(options.wandb),
+            wandb=bool(options.wandb),  # (a population's runs log for TensorBoard themselves)
         )
         if (
             backend == "population"
@@ -382,9 +381,8 @@ def with_backend(
         from ermrl.population import check_population_config
 
         check_population_config(ppo)
-        for flag in ("tensorboard", "wandb"):
-            if getattr(options, flag):
-                raise ConfigError(f"--{flag} logs come from the sb3 backend; use --backend sb3")
+        if options.wandb:
+            raise ConfigError("--wandb logs come from the sb3 backend; use --backend sb3")
     return ppo
 
 

@@ -952,6 +952,7 @@ def _train_populations(
             n_procs=settings.n_procs,
             evaluate=settings.evaluate,
             model_paths=[args[6] for _, _, args in group],
+            tensorboard_logs=[args[7] for _, _, args in group],
             checkpoints=checkpoints,
             checkpoint_every=settings.checkpoint_every,
             progress=Progress(

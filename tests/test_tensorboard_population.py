@@ -1,0 +1,56 @@
+"""``ermrl test --tensorboard DIR`` on the population backend (the default): each run's folder
+gets the scalars SB3's PPO logs for one run, and logging leaves the results unchanged."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("tensorboard", reason="--tensorboard needs the tensorboard package")
+
+
+def ermrl(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "ermrl", *args], cwd=cwd, capture_output=True, text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"}, timeout=600,
+    )  # fmt: skip
+
+
+def test_a_population_test_phase_logs_each_run_for_tensorboard(tmp_path: Path) -> None:
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    names = ["--storage", f"sqlite:///{tmp_path}/s.db", "--study-name", "p"]
+    proc = ermrl(
+        "evolve", "--env-id", "CartPole-v1", "--n-trials", "1", "--n-seeds", "1",
+        "--training-steps", "128", "--n-envs", "1", "--units", "10", "--backend", "population",
+        "--ppo", "n_steps=64", "batch_size=64", "n_epochs=1", *names, "--quiet", cwd=tmp_path,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    common = [
+        "test", *names, "--agents", "ppo", "res-ppo", "--seeds", "20", "21",
+        "--training-steps", "512", "--n-procs", "1", "--quiet",
+    ]  # fmt: skip
+    logged = ermrl(*common, "--out", "a", "--tensorboard", "tb", cwd=tmp_path)
+    assert logged.returncode == 0, logged.stderr
+    assert "sb3" not in logged.stderr  # no fallback to the sb3 backend
+    plain = ermrl(*common, "--out", "b", cwd=tmp_path)
+    assert plain.returncode == 0, plain.stderr
+    for agent in ("ppo", "res-ppo"):
+        for seed in (20, 21):
+            run = f"agents/{agent}/seed_{seed}"
+            settings = json.loads((tmp_path / "a" / run / "settings.json").read_text())
+            assert settings["ppo"]["backend"] == "population"
+            a = json.loads((tmp_path / "a" / run / "result.json").read_text())
+            b = json.loads((tmp_path / "b" / run / "result.json").read_text())
+            assert a["final_return"] == b["final_return"]  # logging changes no training
+            (events,) = (tmp_path / "tb" / agent / f"seed_{seed}").rglob("events.out.tfevents.*")
+            acc = EventAccumulator(str(events))
+            acc.Reload()
+            tags = set(acc.Tags()["scalars"])
+            assert {"rollout/ep_rew_mean", "time/fps", "train/loss", "train/value_loss"} <= tags
+            assert [e.step for e in acc.Scalars("time/fps")] == list(range(64, 513, 64))
