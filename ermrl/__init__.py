@@ -1,10 +1,96 @@
-"""ermrl: evolve reservoirs with CMA-ES in an Optuna study, learn on top of them with PPO."""
+"""ermrl: evolve reservoirs with CMA-ES in an Optuna study, learn on top of them with PPO.
 
+The Python API mirrors the command line (names re-exported from :mod:`ermrl.runner`, imported
+on first use so that ``import ermrl`` stays instant):
+
+- :class:`Experiment`: load, plan and run an experiment file, as ``ermrl run FILE`` does;
+- :func:`evolve`, :func:`test`, :func:`report`: one stage each, as ``ermrl evolve``,
+  ``ermrl test`` and ``ermrl report`` run it.
+
+Example:
+    >>> import ermrl
+    >>> exp = ermrl.Experiment.load("experiments/demo.yaml", variant="quick")
+    >>> result = exp.run()  # doctest: +SKIP
+    >>> result["Pendulum-v1"].summary  # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import importlib
 from importlib.metadata import PackageNotFoundError, version
+from typing import TYPE_CHECKING, Any
 
 try:
     __version__ = version("ermrl")
 except PackageNotFoundError:  # running from a source tree that is not installed
     __version__ = "0.0.0+unknown"
 
-__all__ = ["__version__"]
+if TYPE_CHECKING:
+    from ermrl.analysis import ReportResult
+    from ermrl.config import ConfigError, EvolveConfig
+    from ermrl.experiments import TestOptions
+    from ermrl.runner import (
+        EvolveResult,
+        Experiment,
+        ExperimentError,
+        ExperimentResult,
+        PlanStep,
+        StageFailed,
+        TaskResult,
+        TestResult,
+        evolve,
+        report,
+        test,
+    )
+
+# Public name -> the module that defines it (imported when the name is first used).
+_LAZY = {
+    "ConfigError": "ermrl.config",
+    "EvolveConfig": "ermrl.config",
+    "EvolveResult": "ermrl.runner",
+    "Experiment": "ermrl.runner",
+    "ExperimentError": "ermrl.runner",
+    "ExperimentResult": "ermrl.runner",
+    "PlanStep": "ermrl.runner",
+    "ReportResult": "ermrl.analysis",
+    "StageFailed": "ermrl.runner",
+    "TaskResult": "ermrl.runner",
+    "TestOptions": "ermrl.experiments",
+    "TestResult": "ermrl.runner",
+    "evolve": "ermrl.runner",
+    "report": "ermrl.runner",
+    "test": "ermrl.runner",
+}
+
+__all__ = [
+    "ConfigError",
+    "EvolveConfig",
+    "EvolveResult",
+    "Experiment",
+    "ExperimentError",
+    "ExperimentResult",
+    "PlanStep",
+    "ReportResult",
+    "StageFailed",
+    "TaskResult",
+    "TestOptions",
+    "TestResult",
+    "__version__",
+    "evolve",
+    "report",
+    "test",
+]
+
+
+def __getattr__(name: str) -> Any:
+    """Import a public name's module on first use (PEP 562)."""
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'ermrl' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *_LAZY])

@@ -13,8 +13,8 @@ import optuna
 import pytest
 from optuna.trial import TrialState
 
-from ermrl.cli._experiment import _reevaluate_status
 from ermrl.config import ConfigError, EvolveConfig, ReservoirSpace, SearchConfig
+from ermrl.runner._experiment import _reevaluate_status
 from ermrl.search import (
     REEVALUATION_ATTR,
     FitnessResult,

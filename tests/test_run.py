@@ -21,7 +21,7 @@ import pytest
 import yaml
 from optuna.trial import TrialState
 
-from ermrl.cli._experiment import (
+from ermrl.runner._experiment import (
     ExperimentError,
     experiment_plan,
     load_experiment,
@@ -486,7 +486,7 @@ def test_a_run_with_a_file_too_large_to_publish_is_not_carried(
 ) -> None:
     """A run is carried whole or not at all: a result.json without its episodes would be
     a damaged run on the next machine."""
-    import ermrl.cli._experiment as experiment
+    import ermrl.runner._experiment as experiment
 
     monkeypatch.chdir(tmp_path)  # the file's folders are relative to the working directory
     path = write(tmp_path, {**TINY, "publish": "published"})
@@ -523,7 +523,7 @@ def test_a_run_trained_again_for_its_model_keeps_its_published_result(
     Pendulum), and that second value silently replaced the first."""
     import json
 
-    import ermrl.cli._experiment as experiment
+    import ermrl.runner._experiment as experiment
     from ermrl.experiments._results import keep_published_record
 
     monkeypatch.chdir(tmp_path)
@@ -609,7 +609,7 @@ def test_the_plan_counts_a_snapshots_finished_trials_as_done(
     """A run that continues from a snapshot is estimated for the trials still to train only."""
     import json
 
-    from ermrl.cli._run import _status
+    from ermrl.runner._run import step_status as _status
 
     monkeypatch.chdir(tmp_path)  # the file's paths are relative to where ermrl runs
     path = write(tmp_path, {**TINY, "publish": "published"})
@@ -630,7 +630,7 @@ def test_the_plan_counts_a_snapshots_finished_trials_as_done(
 def test_publishing_leaves_out_files_over_the_size_limit(tmp_path: Path) -> None:
     """The published folder is for version control: a report's self-contained HTML over the
     limit stays in the results folder, said in the return value; the rest is copied."""
-    from ermrl.cli._experiment import Step, publish_step
+    from ermrl.runner._experiment import Step, publish_step
 
     exp = load_experiment(write(tmp_path, {**TINY, "publish": str(tmp_path / "published")}))
     folder = tmp_path / "out" / "report"

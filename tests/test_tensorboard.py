@@ -76,9 +76,10 @@ def test_tensorboard_with_the_population_backend_is_refused_before_anything_is_w
 def test_run_passes_tensorboard_and_progress_to_the_stages_that_take_them(
     tmp_path: Path,
 ) -> None:
-    from ermrl.cli._experiment import experiment_plan, load_experiment
-    from ermrl.cli._run import build_run_parser, stage_argv
+    from ermrl.cli._run import build_run_parser
     from ermrl.cli._test import build_test_parser
+    from ermrl.runner._experiment import experiment_plan, load_experiment
+    from ermrl.runner._run import stage_argv
 
     path = tmp_path / "exp.yaml"
     path.write_text(
@@ -105,7 +106,7 @@ def test_run_plans_tensorboard_stages_as_they_will_run(tmp_path: Path) -> None:
     """With ``ermrl run --tensorboard``, stages that leave the backend out are estimated at
     sb3's throughput (the backend their commands will choose), and a stage whose file sets
     ``backend: population`` is refused in one line before anything is written."""
-    from ermrl.cli._experiment import experiment_plan, load_experiment
+    from ermrl.runner._experiment import experiment_plan, load_experiment
 
     path = tmp_path / "exp.yaml"
     path.write_text(
@@ -154,8 +155,8 @@ def test_every_command_ermrl_run_gives_tensorboard_to_takes_it() -> None:
         build_evolve_generalization_parser,
         build_test_generalization_parser,
     )
-    from ermrl.cli._run import TENSORBOARD_COMMANDS
     from ermrl.cli._test import build_test_parser
+    from ermrl.runner._run import TENSORBOARD_COMMANDS
 
     parsers = {
         "evolve": build_evolve_parser(),

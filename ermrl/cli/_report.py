@@ -74,11 +74,10 @@ def build_report_parser(prog: str = "ermrl report") -> ArgumentParser:
 
 def report_main(argv: Sequence[str] | None = None, prog: str = "ermrl report") -> int:
     """Entry point of ``ermrl report``."""
-    import optuna
-
-    from ermrl.analysis import RunFolderError, write_report
+    from ermrl.analysis import RunFolderError
     from ermrl.envs import UnknownEnvError
-    from ermrl.storage import StorageError, StudyNotFound, load_study
+    from ermrl.runner import NothingToReport, report
+    from ermrl.storage import StorageError, StudyNotFound
 
     parser = build_report_parser(prog)
     quiet_libraries()
@@ -86,16 +85,7 @@ def report_main(argv: Sequence[str] | None = None, prog: str = "ermrl report") -
     if args.runs is not None and not Path(args.runs).is_dir():
         fail(prog, f"--runs {args.runs}: no such folder (the --out of ermrl test)")
     try:
-        study = load_study(args.study_name, args.storage)
-        if not study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,)):
-            states = [t.state.name for t in study.get_trials(deepcopy=False)]
-            found = ", ".join(f"{states.count(s)} {s}" for s in sorted(set(states))) or "none"
-            fail(
-                prog,
-                f"study {args.study_name!r} has no completed trial yet (trials: {found}); "
-                "nothing to report: run ermrl evolve (or wait for its first trial)",
-            )
-        result = write_report(
+        result = report(
             args.study_name,
             args.storage,
             runs=args.runs,
@@ -103,10 +93,17 @@ def report_main(argv: Sequence[str] | None = None, prog: str = "ermrl report") -
             band=args.band,
             dynamics=args.dynamics,
             interactive=args.interactive,
-            html_page=args.html,
+            html=args.html,
             quiet=args.quiet,
         )
-    except (StorageError, StudyNotFound, FileNotFoundError, UnknownEnvError, RunFolderError) as err:
+    except (
+        NothingToReport,
+        StorageError,
+        StudyNotFound,
+        FileNotFoundError,
+        UnknownEnvError,
+        RunFolderError,
+    ) as err:
         fail(prog, str(err))
     except OSError as err:  # a read-only folder, a full disk: the report was staged, not written
         fail(

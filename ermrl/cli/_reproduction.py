@@ -49,7 +49,7 @@ def reproduction_main(argv: Sequence[str] | None = None, prog: str = "ermrl repr
     """Entry point of ``ermrl reproduction``."""
     from ermrl.analysis import VerdictError, untraceable_tasks, write_reproduction_page
     from ermrl.cli._common import quiet_libraries
-    from ermrl.cli._experiment import ExperimentError, hypothesis_of, load_experiment
+    from ermrl.runner._experiment import ExperimentError, hypothesis_of, load_experiment
 
     parser = build_reproduction_parser(prog)
     args = parser.parse_args(argv)

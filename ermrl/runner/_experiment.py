@@ -36,11 +36,15 @@ import sys
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, TextIO
 
 import yaml
 
 from ermrl.config import ConfigError
+
+if TYPE_CHECKING:
+    from ermrl._progress import ProgressMode
+    from ermrl.runner._results import ExperimentResult, PlanStep
 
 __all__ = [
     "Experiment",
@@ -89,6 +93,9 @@ _RESERVED = {
 class ExperimentError(ConfigError):
     """An experiment file that cannot run: one line, naming the file and the key."""
 
+
+#: How often a run with ``publish:`` writes its snapshot by itself (seconds).
+DEFAULT_SNAPSHOT_EVERY = 600.0
 
 #: The most bytes of an experiment file read (a device or a huge file is refused, not read).
 MAX_FILE_BYTES = 1 << 20
@@ -214,6 +221,120 @@ class Experiment:
         """Whether evolution runs on a task set (``suite`` or ``env_ids`` in ``evolve``)."""
         evolve = self.stages.get("evolve", {})
         return "suite" in evolve or "env_ids" in evolve
+
+    @classmethod
+    def load(cls, path: str | Path, variant: str | None = None) -> Experiment:
+        """Read an experiment file and apply a variant (:func:`load_experiment`).
+
+        Args:
+            path: The YAML file. Its folders (``out``, ``storage``, ``publish``) are relative
+                to the working directory, as for ``ermrl run``.
+            variant: A key of its ``variants`` (e.g. ``"quick"``); its results go to
+                ``<out>/<variant>``. ``None``: the file as written.
+
+        Returns:
+            The experiment.
+
+        Raises:
+            ExperimentError: An unreadable file, an unknown key (with the nearest valid one),
+                a wrong type or an unknown variant, in one line naming the file.
+
+        Example:
+            >>> import ermrl
+            >>> exp = ermrl.Experiment.load("experiments/demo.yaml")
+            >>> exp.name, str(exp.out)
+            ('demo', 'runs/demo')
+        """
+        return load_experiment(path, variant)
+
+    def plan(self, tasks: Sequence[str] | None = None) -> list[PlanStep]:
+        """Every step ``run`` would take, checked, with what is done (nothing is written).
+
+        The same plan as ``ermrl run FILE --dry-run``: each stage's options are parsed by its
+        command's own parser, and a study already in the storage must match the file.
+
+        Args:
+            tasks: Only these tasks (for a generalization experiment: these test tasks); a
+                task the file does not list runs with the file's settings.
+
+        Returns:
+            One :class:`~ermrl.runner.PlanStep` per command, in the order they run.
+
+        Raises:
+            ExperimentError: A key or value the commands refuse, or a study that contradicts
+                the file (one line).
+        """
+        from ermrl.runner._results import plan_steps
+
+        return plan_steps(self, tasks)
+
+    def run(
+        self,
+        stages: Sequence[str] | None = None,
+        tasks: Sequence[str] | None = None,
+        progress: ProgressMode = "none",
+        quiet: bool = True,
+        *,
+        tensorboard: str | Path | None = None,
+        snapshot_every: float = DEFAULT_SNAPSHOT_EVERY,
+        stream: TextIO | None = None,
+    ) -> ExperimentResult:
+        """Run the unfinished stages, exactly as ``ermrl run FILE`` does, and return the results.
+
+        Finished stages are skipped and an interrupted one resumes (the study and the run
+        folders are the state). Each stage runs its ``ermrl`` command in this process; with
+        ``quiet=False`` the plan and each stage's equivalent command line are printed.
+
+        Args:
+            stages: Only these stages (``evolve``, ``reevaluate``, ``test``, ``report``;
+                default: all, in order).
+            tasks: Only these tasks (for a generalization experiment: these test tasks).
+            progress: ``"bar"``, ``"lines"`` or ``"none"`` inside the evolve and test stages.
+            quiet: No plan, no stage lines, and ``--quiet`` for every stage's command.
+            tensorboard: Also log training curves for TensorBoard under this folder (the
+                evolve and test stages then train with the sb3 backend).
+            snapshot_every: With ``publish:`` in the file, write the snapshot every this many
+                seconds while it runs (0: never).
+            stream: Where the plan and the stage lines go (default ``sys.stdout``).
+
+        Returns:
+            The results per task: study, selected trial, test summary, report.
+
+        Raises:
+            ExperimentError: The file cannot run (one line), or its folder cannot be written.
+            StageFailed: A stage's command stopped with an error (its own line is on stderr);
+                run again to resume.
+            KeyboardInterrupt: Ctrl-C during a stage (finished trials and runs are kept).
+
+        Example:
+            >>> result = ermrl.Experiment.load("experiments/demo.yaml").run()  # doctest: +SKIP
+            >>> result["Pendulum-v1"].trial, result["Pendulum-v1"].summary  # doctest: +SKIP
+        """
+        from ermrl.runner._results import run_and_collect
+
+        return run_and_collect(
+            self,
+            stages=stages,
+            tasks=tasks,
+            progress=progress,
+            quiet=quiet,
+            tensorboard=tensorboard,
+            snapshot_every=snapshot_every,
+            stream=stream,
+        )
+
+    def result(self, tasks: Sequence[str] | None = None) -> ExperimentResult:
+        """What the experiment's results folder holds now, without running anything.
+
+        Args:
+            tasks: Only these tasks.
+
+        Raises:
+            ExperimentError: The file no longer matches its studies (see :meth:`plan`).
+        """
+        from ermrl.runner._results import experiment_result
+
+        return experiment_result(self, experiment_plan(self, tasks=tasks, build_agents=False))
 
 
 def _mapping(value: Any, where: str) -> dict[str, Any]:

@@ -1,0 +1,65 @@
+"""Run experiments and their stages from Python: what ``ermrl run`` and the commands do.
+
+An experiment file (``experiments/*.yaml``) composes ermrl's commands: evolution, re-evaluation,
+the test phase and the report (see docs/experiments.md). :class:`Experiment` loads one, plans it
+and runs its unfinished stages, exactly as ``ermrl run FILE`` does; :func:`evolve`,
+:func:`test` and :func:`report` run one stage each, as ``ermrl evolve``, ``ermrl test`` and
+``ermrl report`` do. The same names are exported at the package root (``ermrl.Experiment``,
+``ermrl.evolve``, ...).
+
+Example:
+    >>> import ermrl
+    >>> exp = ermrl.Experiment.load("experiments/demo.yaml")
+    >>> exp.plan()[0].stage
+    'evolve'
+"""
+
+from ermrl.runner._experiment import (
+    Experiment,
+    ExperimentError,
+    Step,
+    experiment_plan,
+    load_experiment,
+)
+from ermrl.runner._results import ExperimentResult, PlanStep, TaskResult
+from ermrl.runner._run import (
+    StageFailed,
+    StageInterrupted,
+    plan_lines,
+    run_experiment,
+    run_plan,
+    stage_argv,
+)
+from ermrl.runner._stages import (
+    EvolveResult,
+    NothingToReport,
+    TestResult,
+    evolve,
+    evolve_config,
+    report,
+    test,
+)
+
+__all__ = [
+    "EvolveResult",
+    "Experiment",
+    "ExperimentError",
+    "ExperimentResult",
+    "NothingToReport",
+    "PlanStep",
+    "StageFailed",
+    "StageInterrupted",
+    "Step",
+    "TaskResult",
+    "TestResult",
+    "evolve",
+    "evolve_config",
+    "experiment_plan",
+    "load_experiment",
+    "plan_lines",
+    "report",
+    "run_experiment",
+    "run_plan",
+    "stage_argv",
+    "test",
+]

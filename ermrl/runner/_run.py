@@ -1,0 +1,516 @@
+"""Running an experiment file: its plan, what is done, and the unfinished stages in order.
+
+``ermrl run FILE`` and :meth:`ermrl.Experiment.run` share this code. Each stage runs the
+``ermrl`` command of the same name in this process (its ``main(argv)``, with the options the
+file gives it), so a stage run from Python is the command a shell would run, and each prints
+that command line. The study and the run folders are the state: a stage the storage or the
+folders say is done is skipped, and an interrupted one resumes.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import shlex
+import signal
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TextIO
+
+from ermrl._text import plural
+from ermrl.runner._experiment import (
+    DEFAULT_SNAPSHOT_EVERY,
+    PUBLISH_MAX_BYTES,
+    Experiment,
+    ExperimentError,
+    PeriodicSnapshots,
+    Step,
+    experiment_plan,
+    format_duration,
+    import_snapshots,
+    publish_finished_runs,
+    publish_step,
+    resolved_document,
+    restore_finished_runs,
+    snapshot_status,
+    write_snapshots,
+)
+
+__all__ = [
+    "DEFAULT_SNAPSHOT_EVERY",
+    "PROGRESS_STAGES",
+    "STAGE_CHOICES",
+    "TENSORBOARD_COMMANDS",
+    "StageFailed",
+    "StageInterrupted",
+    "Status",
+    "choose_stages",
+    "plan_experiment",
+    "plan_lines",
+    "remove_if_untouched",
+    "run_experiment",
+    "run_plan",
+    "stage_argv",
+    "step_status",
+    "write_snapshot_files_verbose",
+]
+
+#: The stages of an experiment, in the order they run.
+STAGE_CHOICES = ("evolve", "reevaluate", "test", "report")
+#: The stages whose commands take ``--progress`` (each evolve and test command does).
+PROGRESS_STAGES = ("evolve", "test")
+#: The commands that take ``--tensorboard``.
+TENSORBOARD_COMMANDS = ("evolve", "evolve-generalization", "test", "test-generalization")
+# The file each run writes beside its results: the experiment with every option filled in.
+_RESOLVED_FILE = "experiment.resolved.yaml"
+
+#: A step's status: ``(done, fraction of it left, what the storage or folders say)``.
+Status = tuple[bool, float, str]
+
+
+class StageFailed(ExperimentError):
+    """A stage's command stopped with a non-zero exit code.
+
+    The command printed its own one-line error on stderr first. Running the experiment again
+    resumes: finished trials and runs are kept.
+
+    Attributes:
+        stage: ``evolve``, ``reevaluate``, ``test`` or ``report``.
+        label: The task (or task set) of the stage.
+        code: The command's exit code.
+    """
+
+    def __init__(self, stage: str, label: str, code: int) -> None:
+        super().__init__(f"stage {stage} of {label} stopped (exit code {code})")
+        self.stage, self.label, self.code = stage, label, code
+
+
+class StageInterrupted(KeyboardInterrupt):
+    """Ctrl-C or SIGTERM during a stage; the stage's finished test runs were published first.
+
+    A ``KeyboardInterrupt``, so that it stops a caller as Ctrl-C does.
+
+    Attributes:
+        stage: The stage that was running.
+        label: Its task (or task set).
+        signum: The signal (``SIGINT`` for Ctrl-C, ``SIGTERM``).
+    """
+
+    def __init__(self, stage: str, label: str, signum: int) -> None:
+        super().__init__(f"stage {stage} of {label} interrupted")
+        self.stage, self.label, self.signum = stage, label, signum
+
+
+def stage_argv(
+    step: Step, progress: str | None, tensorboard: str | None, quiet: bool = False
+) -> list[str]:
+    """A step's arguments with ``ermrl run``'s own ``--progress`` and ``--tensorboard`` added
+    (the last of a repeated option wins over the file's).
+
+    ``--tensorboard DIR`` goes to the evolve commands (``DIR/<label>/evolve``) and to ``ermrl
+    test`` (``DIR/<label>/test``); ``test-generalization`` takes none.
+
+    Args:
+        step: The step.
+        progress: ``bar``, ``lines`` or ``none`` for the evolve and test commands (``None``:
+            the file's, else the commands' default).
+        tensorboard: The folder of the TensorBoard logs (``None``: none).
+        quiet: Also pass ``--quiet`` (every stage's command takes it).
+
+    Returns:
+        The command's arguments, without the command's name.
+    """
+    argv = list(step.argv)
+    if progress is not None and step.stage in PROGRESS_STAGES:
+        argv += ["--progress", progress]
+    if tensorboard is not None and step.command in TENSORBOARD_COMMANDS:
+        argv += ["--tensorboard", str(Path(tensorboard) / step.label / step.stage)]
+    if quiet:
+        argv.append("--quiet")
+    return argv
+
+
+def step_status(exp: Experiment, step: Step) -> Status:
+    """A step's status; for an evolution the storage lacks, what its snapshot holds.
+
+    Args:
+        exp: The experiment.
+        step: One of its steps.
+
+    Returns:
+        ``(done, fraction left, text)``.
+    """
+    done, left, text = step.status()
+    if step.stage == "evolve" and text == "not started":
+        from_snapshot = snapshot_status(exp, step)
+        if from_snapshot is not None:
+            left, text = from_snapshot
+    return done, left, text
+
+
+def plan_experiment(
+    exp: Experiment,
+    *,
+    tasks: Sequence[str] | None = None,
+    tensorboard: bool = False,
+    build_agents: bool = True,
+) -> tuple[Experiment, list[Step], list[Status]]:
+    """Every step of an experiment, checked, with its status.
+
+    Args:
+        exp: The experiment (:func:`~ermrl.runner.load_experiment`).
+        tasks: Only these tasks (for a generalization experiment: these test tasks).
+        tensorboard: The evolve and test stages will log for TensorBoard (their backend is
+            then chosen, checked and estimated as sb3 where the file leaves it out).
+        build_agents: Also build each evolution agent once (``False``: a dry run, which
+            checks the options, tables and storage only).
+
+    Returns:
+        ``(experiment, steps, statuses)``, the experiment with ``tensorboard`` set.
+
+    Raises:
+        ExperimentError: A key or value the commands refuse, or a study that contradicts the
+            file (one line).
+        ermrl.storage.StorageError: The storage cannot be read.
+    """
+    import dataclasses
+
+    exp = dataclasses.replace(exp, tensorboard=bool(tensorboard))
+    steps = experiment_plan(exp, tasks=tasks, build_agents=build_agents)
+    return exp, steps, [step_status(exp, step) for step in steps]
+
+
+def choose_stages(
+    steps: Sequence[Step], statuses: Sequence[Status], stages: Sequence[str] | None = None
+) -> list[tuple[Step, Status]]:
+    """The steps of these stages (``None`` or empty: all), each with its status, in order.
+
+    Raises:
+        ExperimentError: A stage that is not one of :data:`STAGE_CHOICES`.
+    """
+    unknown = [s for s in stages or () if s not in STAGE_CHOICES]
+    if unknown:
+        raise ExperimentError(
+            f"unknown stage {unknown[0]!r}; choose from {', '.join(STAGE_CHOICES)}"
+        )
+    keep = set(stages or STAGE_CHOICES)
+    return [(s, st) for s, st in zip(steps, statuses) if s.stage in keep]
+
+
+def plan_lines(exp: Experiment, chosen: Sequence[tuple[Step, Status]]) -> list[str]:
+    """The plan as ``ermrl run`` prints it: each command, its env steps, estimated wall time
+    and status, then the totals.
+
+    Args:
+        exp: The experiment.
+        chosen: The steps to show, each with its status (:func:`choose_stages`).
+    """
+    head = f"experiment {exp.name!r}" + (f" (variant {exp.variant})" if exp.variant else "")
+    lines = [
+        f"{head} from {exp.path}",
+        f"  storage {exp.storage}; results {exp.out}"
+        + (f"; published to {exp.publish}" if exp.publish else ""),
+    ]
+    total_steps = 0
+    total_seconds = 0.0
+    left_seconds = 0.0
+    for index, (step, (done, left, text)) in enumerate(chosen, start=1):
+        mark = "done" if done else "todo"
+        size = f"{step.env_steps / 1e6:.4g}M env steps" if step.env_steps else "no training"
+        lines.append(
+            f"  {index:>2}. [{mark}] {step.stage:<10} {step.label:<16} {size}, "
+            f"~{format_duration(step.seconds)} ({text})"
+        )
+        if step.stage == "reevaluate":
+            lines.append("      (run by the evolve command once the budget is spent)")
+        else:
+            lines.append(f"      {step.command_line}")
+        total_steps += step.env_steps
+        total_seconds += step.seconds
+        left_seconds += 0.0 if done else step.seconds * left
+    lines.append(
+        f"  total {total_steps / 1e6:.4g}M env steps, ~{format_duration(total_seconds)} on 2 cores; "
+        f"left ~{format_duration(left_seconds)} (estimates from ermrl/data/throughput.yml)"
+    )
+    return lines
+
+
+def write_snapshot_files_verbose(
+    exp: Experiment, steps: Sequence[Step], stream: TextIO | None = None
+) -> None:
+    """Write what ``ermrl run --snapshot`` writes, one line per file on ``stream``: each
+    evolution study as ``study.json`` and each test step's finished runs.
+
+    Raises:
+        OSError: A file cannot be written.
+    """
+    out = stream or sys.stdout
+    for step, path, n in write_snapshots(exp, steps):
+        print(
+            f"wrote {path}: study {step.study_name!r}, {plural(n, 'trial')}", file=out, flush=True
+        )
+    for step in steps:
+        n = publish_finished_runs(exp, step)
+        if n:
+            print(
+                f"published {plural(n, 'finished test run')} of {step.label} to "
+                f"{exp.publish}/{step.label}/test",
+                file=out,
+                flush=True,
+            )
+
+
+def run_experiment(
+    exp: Experiment,
+    *,
+    stages: Sequence[str] | None = None,
+    tasks: Sequence[str] | None = None,
+    progress: str | None = None,
+    tensorboard: str | None = None,
+    snapshot_every: float = DEFAULT_SNAPSHOT_EVERY,
+    quiet: bool = False,
+    quiet_stages: bool = False,
+    stream: TextIO | None = None,
+) -> list[Step]:
+    """Plan an experiment and run its unfinished steps, as ``ermrl run FILE`` does.
+
+    Args:
+        exp: The experiment (:func:`~ermrl.runner.load_experiment`).
+        stages: Only these stages (default: all, in order).
+        tasks: Only these tasks (for a generalization experiment: these test tasks).
+        progress: ``bar``, ``lines`` or ``none`` inside the evolve and test stages
+            (``None``: the file's, else the commands' default).
+        tensorboard: Also log training curves for TensorBoard under this folder.
+        snapshot_every: With ``publish:`` in the file, write the snapshot every this many
+            seconds while it runs (0: never).
+        quiet: No plan and no lines of this runner (the commands still print theirs).
+        quiet_stages: Also pass ``--quiet`` to each stage's command.
+        stream: Where the plan and this runner's lines go (default ``sys.stdout``).
+
+    Returns:
+        Every step of the plan (of these tasks), the chosen ones now done.
+
+    Raises:
+        ExperimentError: The file cannot run (one line), or its results folder cannot be
+            written.
+        StageFailed: A stage's command stopped with an error (rerun to resume).
+        StageInterrupted: Ctrl-C or SIGTERM during a stage.
+    """
+    out = stream or sys.stdout
+    exp, steps, statuses = plan_experiment(exp, tasks=tasks, tensorboard=bool(tensorboard))
+    chosen = choose_stages(steps, statuses, stages)
+    if not quiet:
+        for line in plan_lines(exp, chosen):
+            print(line, file=out, flush=True)
+    run_plan(
+        exp,
+        steps,
+        chosen,
+        progress=progress,
+        tensorboard=tensorboard,
+        snapshot_every=snapshot_every,
+        quiet=quiet,
+        quiet_stages=quiet_stages,
+        stream=out,
+    )
+    return steps
+
+
+def run_plan(
+    exp: Experiment,
+    steps: Sequence[Step],
+    chosen: Sequence[tuple[Step, object]],
+    *,
+    progress: str | None = None,
+    tensorboard: str | None = None,
+    snapshot_every: float = DEFAULT_SNAPSHOT_EVERY,
+    quiet: bool = False,
+    quiet_stages: bool = False,
+    stream: TextIO | None = None,
+) -> None:
+    """Write the resolved configuration, bring back published state, and run the chosen steps.
+
+    What this creates (the resolved file and its folders) is removed again when it fails
+    before any stage wrote a thing.
+
+    Args:
+        exp: The experiment, planned by :func:`plan_experiment`.
+        steps: All its steps (the resolved file lists them all).
+        chosen: The steps to run (:func:`choose_stages`).
+        progress: ``--progress`` of the evolve and test commands (``None``: theirs).
+        tensorboard: ``--tensorboard`` folder (``None``: no logs).
+        snapshot_every: Seconds between snapshots of a file with ``publish:`` (0: never).
+        quiet: No lines of this runner.
+        quiet_stages: Also pass ``--quiet`` to each stage's command.
+        stream: Where this runner's lines go (default ``sys.stdout``).
+
+    Raises:
+        ExperimentError: The results folder cannot be written, or a published snapshot or
+            run cannot be brought back.
+        StageFailed: A stage's command stopped with an error.
+        StageInterrupted: Ctrl-C or SIGTERM during a stage.
+    """
+    if not snapshot_every >= 0:
+        raise ExperimentError(
+            f"snapshot_every must be 0 (never) or a number of seconds, not {snapshot_every}"
+        )
+    resolved_file = exp.out / _RESOLVED_FILE
+    # What this run creates, removed again when it fails before any stage wrote a thing.
+    created = [p for p in (resolved_file, exp.out, *exp.out.parents) if not p.exists()]
+    try:
+        _write_and_run(
+            exp,
+            steps,
+            [step for step, _ in chosen],
+            progress=progress,
+            tensorboard=tensorboard,
+            snapshot_every=snapshot_every,
+            quiet=quiet,
+            quiet_stages=quiet_stages,
+            stream=stream or sys.stdout,
+        )
+    except BaseException:
+        remove_if_untouched(created)
+        raise
+
+
+def remove_if_untouched(created: Sequence[Path]) -> None:
+    """Remove what a failed run created (the resolved file, then its folders) if no stage
+    wrote anything beside it: a folder is removed only when empty.
+
+    Args:
+        created: The resolved file first, then the folders created for it (innermost first).
+    """
+    if not created or created[0].name != _RESOLVED_FILE:
+        return  # the file was there before this run: an earlier run's, kept
+    resolved, *folders = created
+    if not resolved.parent.is_dir():
+        return
+    if any(p != resolved for p in resolved.parent.iterdir()):
+        return  # a stage wrote something: the resolved file says how it was run
+    resolved.unlink(missing_ok=True)
+    for folder in folders:
+        with contextlib.suppress(OSError):
+            folder.rmdir()
+
+
+def _write_and_run(
+    exp: Experiment,
+    steps: Sequence[Step],
+    chosen: Sequence[Step],
+    *,
+    progress: str | None,
+    tensorboard: str | None,
+    snapshot_every: float,
+    quiet: bool,
+    quiet_stages: bool,
+    stream: TextIO,
+) -> None:
+    """Write the resolved configuration, bring back published state, and run the steps."""
+    import yaml
+
+    from ermrl._io import write_atomic
+
+    try:
+        resolved = resolved_document(exp, steps)
+        write_atomic(
+            exp.out / _RESOLVED_FILE,
+            "# ermrl run: the experiment as run, every command's options filled in\n"
+            + yaml.safe_dump(resolved, sort_keys=False, width=100),
+        )
+    except OSError as err:
+        raise ExperimentError(f"cannot write {exp.out}: {err.strerror or err}") from None
+    try:
+        _bring_back(exp, steps, stream)
+    except OSError as err:
+        raise ExperimentError(
+            f"cannot restore the published test runs: {err.strerror or err}"
+        ) from None
+    with PeriodicSnapshots(exp, steps, snapshot_every):
+        _run_steps(exp, chosen, progress, tensorboard, quiet, quiet_stages, stream)
+    if not quiet:
+        print(
+            f"done: experiment {exp.name!r}; resolved configuration in {exp.out}/{_RESOLVED_FILE}",
+            file=stream,
+            flush=True,
+        )
+
+
+def _bring_back(exp: Experiment, steps: Sequence[Step], stream: TextIO) -> None:
+    """Import the published study snapshots the storage lacks and restore the published
+    finished test runs the run folders lack, one line each."""
+    for step, path, n in import_snapshots(exp, steps):
+        print(
+            f"imported {path}: study {step.study_name!r}, {plural(n, 'trial')}",
+            file=stream,
+            flush=True,
+        )
+    for step in steps:
+        restored, retrained = restore_finished_runs(exp, step)
+        if restored or retrained:
+            again = ", ".join(f"{a} seed {s}" for a, s in retrained)
+            if again:
+                again = (
+                    f"; trained again for the model the report replays, their published "
+                    f"results kept: {again}"
+                )
+            print(
+                f"restored {plural(restored, 'finished test run')} of {step.label} from "
+                f"{exp.publish}/{step.label}/test{again}",
+                file=stream,
+                flush=True,
+            )
+
+
+def _run_steps(
+    exp: Experiment,
+    chosen: Sequence[Step],
+    progress: str | None,
+    tensorboard: str | None,
+    quiet: bool,
+    quiet_stages: bool,
+    stream: TextIO,
+) -> None:
+    """Run the unfinished steps in order, each through its command's ``main(argv)``.
+
+    Raises:
+        StageFailed: The first step whose command stopped with an error.
+        StageInterrupted: Ctrl-C or SIGTERM during a step.
+    """
+    from ermrl.cli import COMMANDS, _load
+
+    for step in chosen:
+        done, _, text = step.status()
+        if done:
+            if not quiet:
+                print(
+                    f"[{step.stage} {step.label}] done ({text}): skipped", file=stream, flush=True
+                )
+            continue
+        argv = stage_argv(step, progress, tensorboard, quiet=quiet_stages)
+        if not quiet:
+            line = shlex.join(["ermrl", step.command, *argv])
+            print(f"[{step.stage} {step.label}] {line}", file=stream, flush=True)
+        run = _load(COMMANDS[step.command][0])
+        try:
+            code = int(run(argv, prog=f"ermrl {step.command}") or 0)
+        except SystemExit as err:
+            code = err.code if isinstance(err.code, int) else 1
+        except KeyboardInterrupt as err:
+            publish_finished_runs(exp, step)
+            signum = getattr(err, "signum", None) or signal.SIGINT
+            raise StageInterrupted(step.stage, step.label, int(signum)) from err
+        if code != 0:
+            publish_finished_runs(exp, step)
+            raise StageFailed(step.stage, step.label, code)
+        if exp.publish is not None and step.stage in ("test", "report"):
+            _, left_out = publish_step(exp, step)
+            for path in left_out:
+                print(
+                    f"not published: {path} ({path.stat().st_size / 2**20:.1f} MiB, over "
+                    f"{PUBLISH_MAX_BYTES / 2**20:.0f} MiB); it stays in {exp.out}",
+                    file=stream,
+                    flush=True,
+                )
+        if exp.publish is not None and step.stage == "evolve":
+            write_snapshots(exp, [step])
