@@ -1,8 +1,10 @@
-"""notebooks/*.ipynb: committed stripped, import only from ermrl.analysis, and execute.
+"""notebooks/*.ipynb: committed stripped, with their imports limited, and execute.
 
-CI executes every notebook with nbclient against the tiny study and test-phase folder of
-tests/_analysis_data.py, pointing the notebooks' first cell at them through the environment
-variables ERMRL_STUDY_NAME, ERMRL_STORAGE and ERMRL_RUNS. A failing cell fails the test.
+The analysis notebooks (01-04) import only from ermrl.analysis. CI executes each with nbclient
+against the tiny study and test-phase folder of tests/_analysis_data.py, pointing the notebooks'
+first cell at them through the environment variables ERMRL_STUDY_NAME, ERMRL_STORAGE and
+ERMRL_RUNS. The From-Python notebook (05) runs the demo's `quick` variant through the API at the
+package root; CI executes it as it is, in a temporary folder. A failing cell fails the test.
 """
 
 from __future__ import annotations
@@ -11,6 +13,7 @@ import ast
 import importlib.util
 import os
 import re
+import shutil
 from pathlib import Path
 from types import ModuleType
 
@@ -19,13 +22,19 @@ import pytest
 from tests._analysis_data import TinyStudy, build_tiny_study
 
 ROOT = Path(__file__).resolve().parents[1]
-NOTEBOOKS = sorted((ROOT / "notebooks").glob("[0-9][0-9]_*.ipynb"))
+ALL_NOTEBOOKS = sorted((ROOT / "notebooks").glob("[0-9][0-9]_*.ipynb"))
 EXPECTED = [
     "01_evolution.ipynb",
     "02_test_results.ipynb",
     "03_reservoir_dynamics.ipynb",
     "04_generalization.ipynb",
+    "05_from_python.ipynb",
 ]
+# The notebooks that analyse a study and its test phase (05 runs an experiment instead).
+NOTEBOOKS = [p for p in ALL_NOTEBOOKS if p.name != "05_from_python.ipynb"]
+FROM_PYTHON = ROOT / "notebooks" / "05_from_python.ipynb"
+# What the From-Python notebook may import: the API at the package root, the analysis, pyplot.
+FROM_PYTHON_IMPORTS = {"ermrl", "ermrl.analysis", "matplotlib.pyplot"}
 
 
 def _nbformat() -> ModuleType:
@@ -39,8 +48,8 @@ def _nbformat() -> ModuleType:
     return nbformat
 
 
-def test_the_four_notebooks_exist() -> None:
-    assert [p.name for p in NOTEBOOKS] == EXPECTED
+def test_the_five_notebooks_exist() -> None:
+    assert [p.name for p in ALL_NOTEBOOKS] == EXPECTED
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)
@@ -87,7 +96,7 @@ def _first_cell_defaults(path: Path) -> dict[str, str]:
 def test_the_first_cell_defaults_to_the_demo_study(path: Path) -> None:
     """Run after `make demo`, a notebook opens the demo's study and test phase, as
     experiments/demo.yaml names them (paths relative to notebooks/)."""
-    from ermrl.cli._experiment import experiment_plan, load_experiment
+    from ermrl.runner._experiment import experiment_plan, load_experiment
 
     evolve, _, test, _ = experiment_plan(
         load_experiment(ROOT / "experiments" / "demo.yaml"), build_agents=False
@@ -135,3 +144,54 @@ def test_notebook_executes(
     assert images, "the notebook shows no figure"
     first = "".join(o.get("text", "") for o in nb.cells[0].outputs)
     assert tiny.study_name in first
+
+
+def test_the_from_python_notebook_is_stripped_and_imports_the_api() -> None:
+    nbformat = _nbformat()
+    nb = nbformat.read(FROM_PYTHON, as_version=4)
+    imported = set()
+    for cell in (c for c in nb.cells if c.cell_type == "code"):
+        assert cell.outputs == [] and cell.execution_count is None, "commit notebooks stripped"
+        for node in ast.walk(ast.parse(cell.source)):
+            if isinstance(node, ast.Import):
+                imported |= {alias.name for alias in node.names}
+            if isinstance(node, ast.ImportFrom):
+                imported.add(str(node.module))
+    assert imported == FROM_PYTHON_IMPORTS
+
+
+def test_the_from_python_notebook_runs_the_demos_quick_variant() -> None:
+    """Its first cell names the file and the variant; the variant exists and is small."""
+    from ermrl.runner import Experiment
+
+    nbformat = _nbformat()
+    first = nbformat.read(FROM_PYTHON, as_version=4).cells[0].source
+    assert '"../experiments/demo.yaml", "quick"' in first
+    steps = Experiment.load(ROOT / "experiments" / "demo.yaml", variant="quick").plan()
+    assert sum(s.env_steps for s in steps) <= 200_000
+
+
+@pytest.mark.slow
+def test_the_from_python_notebook_executes(tmp_path: Path) -> None:
+    """In a copy of the layout it expects (notebooks/ beside experiments/), in about a minute."""
+    nbformat = _nbformat()
+    from nbclient import NotebookClient
+
+    (tmp_path / "experiments").mkdir()
+    shutil.copy(ROOT / "experiments" / "demo.yaml", tmp_path / "experiments" / "demo.yaml")
+    (tmp_path / "notebooks").mkdir()
+    nb = nbformat.read(FROM_PYTHON, as_version=4)
+    client = NotebookClient(
+        nb,
+        timeout=900,
+        kernel_name="python3",
+        resources={"metadata": {"path": str(tmp_path / "notebooks")}},
+    )
+    client.execute()  # raises CellExecutionError, with the failing cell, if any cell fails
+    outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.outputs]
+    assert not [o for o in outputs if o.output_type == "error"]
+    assert len([o for o in outputs if "image/png" in o.get("data", {})]) >= 2
+    summary = tmp_path / "notebooks" / "runs" / "demo" / "quick" / "Pendulum-v1" / "test"
+    assert (summary / "summary.csv").is_file()
+    first = "".join(o.get("text", "") for o in nb.cells[0].outputs)
+    assert "experiment 'demo' (variant quick)" in first
