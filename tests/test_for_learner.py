@@ -182,7 +182,7 @@ def test_the_dagger_agents_are_registered() -> None:
     ("extra", "match"),
     [
         (["dagger", "epochs=2"], "--for-learner dagger: no agent of this run uses learner dagger"),
-        (["ppo", "expert=x"], "learner 'ppo' does not take expert"),
+        (["ppo", "expert=x"], "'expert' is a setting of another learner (bc, dagger"),
         (["nope", "a=1"], "--for-learner nope: unknown learner 'nope'"),
     ],
 )
@@ -232,11 +232,11 @@ def _test_args(url: str, out: Path, *extra: str) -> list[str]:
             "--for-learner dagger: no agent of this run uses learner dagger (agents ppo res-ppo "
             "use ppo)",
         ),
-        (["--agents", "ppo", "--for-learner", "ppo", "expert=x"], "does not take expert"),
+        (["--agents", "ppo", "--for-learner", "ppo", "expert=x"], "'expert' is a setting of another"),
         (["--agents", "ppo", "--for-learner", "ppo", "n_steps=0"], "n_steps must be >= 1"),
         (
             ["--agents", "dagger", "--for-learner", "dagger", "expert=x", "n_steps=64"],
-            "learner 'dagger' does not take n_steps",
+            "'n_steps' is a setting of another learner (ppo",
         ),
         (["--agents", "dagger", "--for-learner", "dagger", "epochs=2"], "needs an expert"),
         # --ppo reaches every agent: the problem --for-learner solves

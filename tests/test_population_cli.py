@@ -391,8 +391,9 @@ def test_an_rtu_evolution_with_no_backend_trains_with_population(tmp_path: Path)
 
 
 def test_the_test_phase_defaults_to_population_where_it_applies(tmp_path: Path) -> None:
-    """No --backend in a test phase: population; sb3 with a reason for --tensorboard, another
-    learner, or an --out whose finished runs were made with sb3 (not with --overwrite)."""
+    """No --backend in a test phase: population (with --tensorboard too: its runs log for
+    themselves); sb3 with a reason for --wandb, another learner, or an --out whose finished runs
+    were made with sb3 (not with --overwrite)."""
     import json
 
     from ermrl.agents import resolve_ppo_config
@@ -415,8 +416,9 @@ def test_the_test_phase_defaults_to_population_where_it_applies(tmp_path: Path) 
     assert choose(resolve_ppo_config("Pendulum-v1", backend="sb3"), backend="population")[0] == (
         "population"
     )
-    backend, notes = choose(tensorboard="tb")
-    assert backend == "sb3" and len(notes) == 1 and "--tensorboard" in notes[0]
+    assert choose(tensorboard="tb") == ("population", [])
+    backend, notes = choose(wandb="project")
+    assert backend == "sb3" and len(notes) == 1 and "--wandb" in notes[0]
     lstm = resolve_ppo_config("Pendulum-v1", learner="lstm-ppo")
     backend, notes = choose(lstm)
     assert backend == "sb3" and len(notes) == 1 and "ppo learner only" in notes[0]

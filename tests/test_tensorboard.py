@@ -103,9 +103,10 @@ def test_run_passes_tensorboard_and_progress_to_the_stages_that_take_them(
 
 
 def test_run_plans_tensorboard_stages_as_they_will_run(tmp_path: Path) -> None:
-    """With ``ermrl run --tensorboard``, stages that leave the backend out are estimated at
-    sb3's throughput (the backend their commands will choose), and a stage whose file sets
-    ``backend: population`` is refused in one line before anything is written."""
+    """With ``ermrl run --tensorboard``, an evolve stage that leaves the backend out is
+    estimated at sb3's throughput (the backend its command will choose; a test phase logs on
+    the population backend), and an evolve stage whose file sets ``backend: population`` is
+    refused in one line before anything is written."""
     from ermrl.runner._experiment import experiment_plan, load_experiment
 
     path = tmp_path / "exp.yaml"
@@ -120,8 +121,8 @@ def test_run_plans_tensorboard_stages_as_they_will_run(tmp_path: Path) -> None:
         s.stage: s.seconds
         for s in experiment_plan(dataclasses.replace(exp, tensorboard=True), build_agents=False)
     }
-    for stage in ("evolve", "test"):  # the population backend is several times faster
-        assert logged[stage] > 2 * plain[stage], stage
+    assert logged["evolve"] > 2 * plain["evolve"]  # the population backend is several times faster
+    assert logged["test"] == plain["test"]
 
     path.write_text(path.read_text().replace("n_trials: 2", "n_trials: 2, backend: population"))
     proc = ermrl("run", str(path), "--tensorboard", "tb", cwd=tmp_path)

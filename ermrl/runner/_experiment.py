@@ -835,12 +835,7 @@ def _test_step(
     argv = (["--env-id", env_id] if env_id else []) + options_to_argv(parser, options, where)
     argv += ["--storage", exp.storage, "--study-name", study_name, "--out", str(folder)]
     args = parse_checked(parser, argv, where)
-    _with_tensorboard(exp, args)
-    if args.tensorboard and args.backend == "population":
-        raise ExperimentError(
-            f"{where}: --tensorboard logs come from the sb3 backend, and this stage sets "
-            "backend: population; set backend: sb3 in the file, or leave --tensorboard out"
-        )
+    _with_tensorboard(exp, args)  # (a test phase logs for TensorBoard on either backend)
     agents = list(args.agents or [n for n, k in AGENT_KINDS.items() if k.default])
     seeds = list(args.seeds or range(5))
     per_run = args.training_steps
@@ -850,7 +845,7 @@ def _test_step(
         from ermrl.population import population_refusal
 
         refused = population_refusal(
-            config.problem.ppo, tensorboard=bool(getattr(args, "tensorboard", None))
+            config.problem.ppo, wandb=bool(getattr(args, "wandb", None))
         )
         backend = "sb3" if refused else "population"
     parts = []
