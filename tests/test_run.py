@@ -260,11 +260,20 @@ def test_a_run_finishes_every_stage_then_skips_them_all(tmp_path: Path) -> None:
     assert evolve["options"]["reevaluate_top"] == 1 and "grace_period" in evolve["options"]
     assert (out / "Pendulum-v1" / "test" / "summary.csv").exists()
     assert (out / "Pendulum-v1" / "report" / "report.md").exists()
+    # The test folder records the command that made it, not `ermrl run FILE`.
+    command = (out / "Pendulum-v1" / "test" / "command.txt").read_text()
+    assert command.startswith("ermrl test ") and "--study-name" in command, command
     study = _load(f"sqlite:///{out}/ermrl.db", "Pendulum-v1__positions__256steps")
     assert study.user_attrs["ermrl_reevaluation"]["complete"]
     again = ermrl(tmp_path, "run", str(path))
     assert again.returncode == 0, again.stderr
-    assert again.stdout.count("skipped") == 4, again.stdout
+    assert again.stdout.count("skipped, already done: ") == 4, again.stdout
+    # The rerun shows the results again: the summary table and where the report is.
+    assert f"results of Pendulum-v1: {Path('runs/tiny/Pendulum-v1/test/summary.csv')}" in (
+        again.stdout
+    )
+    assert re.search(r"^  +agent +n_seeds +final_return_mean", again.stdout, re.M), again.stdout
+    assert "report of Pendulum-v1: runs/tiny/Pendulum-v1/report/report" in again.stdout
     assert len(_load(f"sqlite:///{out}/ermrl.db", study.study_name).get_trials()) == 3
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import shlex
 import sys
 import textwrap
 from collections.abc import Callable, Sequence
@@ -312,8 +313,9 @@ def run_test_phase(
 
     def run() -> Any:
         summary = run_comparison(
-            task, encoder, ppo, plan.agents, plan.settings, metadata=metadata, quiet=args.quiet
-        )
+            task, encoder, ppo, plan.agents, plan.settings, metadata=metadata, quiet=args.quiet,
+            command=getattr(args, "command_line", None),
+        )  # fmt: skip
         return summary if then is None else then(summary)
 
     summary = run_or_exit(prog, plan.out, run)
@@ -358,6 +360,9 @@ def test_main(argv: Sequence[str] | None = None, prog: str = "ermrl test") -> in
     parser = build_test_parser(prog)
     quiet_libraries()
     args = parser.parse_args(argv)
+    # The command that made the test folder (command.txt): `ermrl test ...` also when `ermrl
+    # run` runs this stage in its own process.
+    args.command_line = shlex.join([*prog.split(), *(sys.argv[1:] if argv is None else argv)])
     require_tensorboard(args, prog)
     if args.wandb:
         from ermrl.agents import WANDB_MISSING, wandb_installed

@@ -645,6 +645,7 @@ def run_comparison(
     metadata: Mapping[str, Any] | None = None,
     quiet: bool = False,
     stream: TextIO | None = None,
+    command: str | None = None,
 ) -> pd.DataFrame:
     """Train every agent on every seed and write the comparison's results.
 
@@ -657,6 +658,8 @@ def run_comparison(
         metadata: Saved in ``config.yaml`` (study name, storage, trial, ...).
         quiet: No progress lines.
         stream: Where progress lines go.
+        command: The command line that runs this test phase, written to ``command.txt``
+            (default: this process's own, ``sys.argv``).
 
     Returns:
         The summary table (also written as ``summary.csv``).
@@ -713,7 +716,7 @@ def run_comparison(
         **dict(metadata or {}),
     }
     write_atomic(out / "config.yaml", yaml.safe_dump(config_doc, sort_keys=False))
-    write_atomic(out / "command.txt", shlex.join(sys.argv) + "\n")
+    write_atomic(out / "command.txt", (command or shlex.join(sys.argv)) + "\n")
 
     jobs = []
     for seed in settings.seeds:

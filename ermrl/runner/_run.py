@@ -48,6 +48,7 @@ __all__ = [
     "plan_experiment",
     "plan_lines",
     "remove_if_untouched",
+    "results_lines",
     "run_experiment",
     "run_plan",
     "stage_argv",
@@ -479,12 +480,16 @@ def _run_steps(
     """
     from ermrl.cli import COMMANDS, _load
 
+    skipped: list[Step] = []
     for step in chosen:
         done, _, text = step.status()
         if done:
+            skipped.append(step)
             if not quiet:
                 print(
-                    f"[{step.stage} {step.label}] done ({text}): skipped", file=stream, flush=True
+                    f"[{step.stage} {step.label}] skipped, already done: {text}",
+                    file=stream,
+                    flush=True,
                 )
             continue
         argv = stage_argv(step, progress, tensorboard, quiet=quiet_stages)
@@ -514,3 +519,30 @@ def _run_steps(
                 )
         if exp.publish is not None and step.stage == "evolve":
             write_snapshots(exp, [step])
+    if not quiet:
+        for line in results_lines(skipped):
+            print(line, file=stream, flush=True)
+
+
+def results_lines(steps: Sequence[Step]) -> list[str]:
+    """What a rerun that skipped finished steps shows again: each skipped test phase's summary
+    table (its ``summary.csv``) and each skipped report's path. Nothing for other steps."""
+    import pandas as pd
+
+    lines: list[str] = []
+    for step in steps:
+        if step.folder is None:
+            continue
+        if step.stage == "test" and (step.folder / "summary.csv").is_file():
+            try:
+                table = pd.read_csv(step.folder / "summary.csv")
+            except (OSError, ValueError, pd.errors.ParserError):
+                continue  # a damaged table: the test stage's own rerun says so
+            lines.append(f"results of {step.label}: {step.folder / 'summary.csv'}")
+            lines += ["  " + row for row in table.to_string(index=False).splitlines()]
+        elif step.stage == "report":
+            for name in ("report.html", "report.md"):
+                if (step.folder / name).is_file():
+                    lines.append(f"report of {step.label}: {step.folder / name}")
+                    break
+    return lines
