@@ -19,8 +19,8 @@ from ermrl.agents import (
     parse_overrides,
     ppo_kwargs,
     resolve_ppo_config,
-    steps_trained,
     stats_path,
+    steps_trained,
     train_agent,
     with_overrides,
 )
