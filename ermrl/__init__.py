@@ -18,32 +18,16 @@ from __future__ import annotations
 
 import importlib
 from importlib.metadata import PackageNotFoundError, version
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 try:
     __version__ = version("ermrl")
 except PackageNotFoundError:  # running from a source tree that is not installed
     __version__ = "0.0.0+unknown"
 
-if TYPE_CHECKING:
-    from ermrl.analysis import ReportResult
-    from ermrl.config import ConfigError, EvolveConfig
-    from ermrl.experiments import TestOptions
-    from ermrl.runner import (
-        EvolveResult,
-        Experiment,
-        ExperimentError,
-        ExperimentResult,
-        PlanStep,
-        StageFailed,
-        TaskResult,
-        TestResult,
-        evolve,
-        report,
-        test,
-    )
-
-# Public name -> the module that defines it (imported when the name is first used).
+# Public name -> the module that defines it (imported when the name is first used). No import of
+# them, not even for type checkers: the package root is the bottom layer every module may import
+# (tests/test_layers.py), and an arrow from it to the runner would close a cycle.
 _LAZY = {
     "ConfigError": "ermrl.config",
     "EvolveConfig": "ermrl.config",

@@ -123,7 +123,8 @@ def test_agent_registry_drives_choices_defaults_and_labels() -> None:
 
     # The raw-observation PPO agents, each registered encoder's agents, then the learners'.
     assert AGENTS == (
-        "ppo", "ppo-full", "res-ppo", "random-res-ppo", "res-sac", "res-dagger",
+        "ppo", "ppo-full", "res-ppo", "random-res-ppo", "leaky-res-ppo", "ema-ppo", "res-sac",
+        "res-dagger",
         "res-imitation-sac", "rtu-res-ppo", "random-rtu-res-ppo", "nvar-res-ppo",
         "random-nvar-res-ppo", "lstm-ppo", "framestack-ppo", "rtu-ppo", "hebbian",
         "random-hebbian", "sac", "dagger", "imitation-sac",

@@ -458,13 +458,16 @@ def test_sigterm_closes_the_trial_queues_it_again_and_exits(tmp_path: Path) -> N
         if len(calls) == 2:
             os.kill(os.getpid(), signal.SIGTERM)
 
+    # What this process had before (a command run in-process earlier in the same pytest
+    # worker may have left its own handler: run_command's).
+    before = signal.getsignal(signal.SIGTERM)
     with pytest.raises(Interrupted):
         run_evolution(config, study, quiet=True, evaluate=stub_fitness(0.5, terminate))
     trials = study.get_trials()
     assert [t.state for t in trials] == [TrialState.COMPLETE, TrialState.FAIL, TrialState.WAITING]
     assert trials[1].user_attrs["fail_reason"] == "interrupted by SIGTERM"
     assert trials[2].params == trials[1].params
-    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # handler restored
+    assert signal.getsignal(signal.SIGTERM) is before  # handler restored
 
     # A restarted worker runs the queued trial first and finishes the budget.
     run_evolution(config, study, quiet=True, evaluate=stub_fitness())

@@ -44,7 +44,10 @@ from ermrl.config import ConfigError
 
 if TYPE_CHECKING:
     from ermrl._progress import ProgressMode
-    from ermrl.runner._results import ExperimentResult, PlanStep
+
+    # Through the package (the rule of tests/test_layers.py: a unit's modules may read its
+    # __init__): _results builds on this module.
+    from ermrl.runner import ExperimentResult, PlanStep
 
 __all__ = [
     "Experiment",
@@ -264,7 +267,7 @@ class Experiment:
             ExperimentError: A key or value the commands refuse, or a study that contradicts
                 the file (one line).
         """
-        from ermrl.runner._results import plan_steps
+        from ermrl.runner import plan_steps
 
         return plan_steps(self, tasks)
 
@@ -310,7 +313,7 @@ class Experiment:
             >>> result = ermrl.Experiment.load("experiments/demo.yaml").run()  # doctest: +SKIP
             >>> result["Pendulum-v1"].trial, result["Pendulum-v1"].summary  # doctest: +SKIP
         """
-        from ermrl.runner._results import run_and_collect
+        from ermrl.runner import run_and_collect
 
         return run_and_collect(
             self,
@@ -332,7 +335,7 @@ class Experiment:
         Raises:
             ExperimentError: The file no longer matches its studies (see :meth:`plan`).
         """
-        from ermrl.runner._results import experiment_result
+        from ermrl.runner import experiment_result
 
         return experiment_result(self, experiment_plan(self, tasks=tasks, build_agents=False))
 
