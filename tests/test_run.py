@@ -117,17 +117,21 @@ def test_the_plan_counts_env_steps_from_the_file(tmp_path: Path) -> None:
     exp = load_experiment(ROOT / "experiments" / "paper" / "h2_locomotion.yaml")
     steps = experiment_plan(exp, tasks=["Swimmer-v5"], build_agents=False)
     by_stage = {s.stage: s for s in steps}
-    assert by_stage["evolve"].env_steps == 100 * 3 * 300_000
-    assert by_stage["reevaluate"].env_steps == (3 + 1) * 3 * 300_000
-    assert by_stage["test"].env_steps == 3 * 20 * 1_000_000  # 3 agents x seeds 10-29
+    # Each run trains whole rollouts of PPO's 2048 steps x 1 env (the paper's settings), as
+    # SB3 does: 300,000 steps are 301,056 and 1,000,000 are 1,001,472, and the plan says so.
+    assert by_stage["evolve"].env_steps == 100 * 3 * 301_056
+    assert "budget of 300,000 steps rounds up to 301,056" in by_stage["evolve"].note
+    assert by_stage["reevaluate"].env_steps == (3 + 1) * 3 * 301_056
+    assert by_stage["test"].env_steps == 3 * 20 * 1_001_472  # 3 agents x seeds 10-29
+    assert "rounds up to 1,001,472" in by_stage["test"].note
     assert by_stage["evolve"].seconds > 0
     # Per-task overrides change the scale of that task only.
     ant = experiment_plan(exp, tasks=["Ant-v5"], build_agents=False)[0]
-    assert ant.env_steps == 60 * 3 * 300_000
+    assert ant.env_steps == 60 * 3 * 301_056
     # A task the file does not list runs with the file's settings.
     hopper = experiment_plan(exp, tasks=["Hopper-v5"], build_agents=False)
     assert [s.label for s in hopper] == ["Hopper-v5"] * 4
-    assert hopper[0].env_steps == 100 * 3 * 300_000 and "--fixed-input-scaling" in hopper[0].argv
+    assert hopper[0].env_steps == 100 * 3 * 301_056 and "--fixed-input-scaling" in hopper[0].argv
     with pytest.raises(ExperimentError, match="NoSuchEnv-v0"):
         experiment_plan(exp, tasks=["NoSuchEnv-v0"], build_agents=False)
     gen = load_experiment(ROOT / "experiments" / "paper" / "h3_generalization.yaml")

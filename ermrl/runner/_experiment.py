@@ -617,6 +617,20 @@ def format_duration(seconds: float) -> str:
     return f"{seconds}s"
 
 
+def _rounded(ppo: Any, steps: int) -> tuple[int, str]:
+    """A run's real env steps for a budget of ``steps`` (whole rollouts of an on-policy
+    learner, :func:`ermrl.agents.steps_trained`), and the plan's note when they differ."""
+    from ermrl.agents import steps_trained
+
+    real = steps_trained(ppo, steps)
+    if real == steps:
+        return real, ""
+    return real, (
+        f"each run's budget of {steps:,} steps rounds up to {real:,}: whole rollouts of "
+        "n_steps x n_envs, as SB3 trains"
+    )
+
+
 def estimate_seconds(parts: Sequence[tuple[int, float]]) -> float:
     """Wall seconds of ``(env steps, steps/s)`` parts run one after the other."""
     return sum(steps / rate for steps, rate in parts if rate > 0)
@@ -642,6 +656,7 @@ class Step:
         folder: The folder it writes (test and report steps).
         replayed: ``(agent, seed)`` runs of a test step whose saved models the report replays
             (its dynamics section); a snapshot carries no models, so these are retrained.
+        note: A line the plan prints under it (a budget rounded up to whole rollouts).
     """
 
     stage: str
@@ -654,6 +669,7 @@ class Step:
     study_name: str
     folder: Path | None = None
     replayed: tuple[tuple[str, int], ...] = ()
+    note: str = ""
 
     @property
     def command_line(self) -> str:
@@ -768,7 +784,8 @@ def _single_task_steps(exp: Experiment, task: TaskLine, build_agents: bool) -> l
     _check_study(exp, config, study_name, where)
     problem = config.problem
     n_seeds = len(problem.seeds)
-    steps_per_trial = n_seeds * problem.budget.training_steps
+    per_run, note = _rounded(problem.ppo, problem.budget.training_steps)
+    steps_per_trial = n_seeds * per_run
     backend = problem.ppo.backend
     learner = problem.ppo.learner
     rate = throughput(task.env_id, backend, config.n_procs, learner)
@@ -776,12 +793,12 @@ def _single_task_steps(exp: Experiment, task: TaskLine, build_agents: bool) -> l
     evolve = Step(
         "evolve", task.env_id, "evolve", argv, n_trials * steps_per_trial,
         n_trials * steps_per_trial / rate,
-        _evolve_status(exp.storage, study_name, n_trials), study_name,
+        _evolve_status(exp.storage, study_name, n_trials), study_name, note=note,
     )  # fmt: skip
     steps = [evolve]
     search = config.search
     if search.reevaluate_top > 0:
-        re_steps = search.reevaluate_steps or problem.budget.training_steps
+        re_steps, _ = _rounded(problem.ppo, search.reevaluate_steps or problem.budget.training_steps)
         total = (search.reevaluate_top + 1) * search.reevaluate_seeds * re_steps
         steps.append(
             Step(
@@ -851,13 +868,17 @@ def _test_step(
             config.problem.ppo, wandb=bool(getattr(args, "wandb", None))
         )
         backend = "sb3" if refused else "population"
+    # The study's learner's runs round up to whole rollouts of its settings (another learner's
+    # agents train with their own tables: counted at the budget).
+    rounded, note = _rounded(config.problem.ppo, per_run)
     parts = []
     for agent in agents:
         learner = AGENT_KINDS[agent].learner or config.problem.ppo.learner
         agent_backend = backend if learner == config.problem.ppo.learner else "sb3"
         rate = throughput(test_env, agent_backend, args.n_procs, learner)
-        parts.append((len(seeds) * per_run, rate))
-    total = len(agents) * len(seeds) * per_run
+        own = rounded if learner == config.problem.ppo.learner else per_run
+        parts.append((len(seeds) * own, rate))
+    total = sum(n for n, _ in parts)
     replayed: tuple[tuple[str, int], ...] = ()
     if _stage(exp, "report", task).get("dynamics") and not env_id and seeds:
         from ermrl.learners import evolved_agent, unevolved_agent
@@ -868,7 +889,7 @@ def _test_step(
     return Step(
         "test", label, "test-generalization" if env_id else "test", argv, total,
         estimate_seconds(parts), _test_status(folder, agents, seeds), study_name, folder,
-        replayed,
+        replayed, note,
     )  # fmt: skip
 
 
@@ -920,7 +941,8 @@ def _generalization_plan(
     label = gen.suite or "+".join(gen.env_ids)
     problem = config.problem
     n_trials = config.search.n_trials
-    per_task = len(problem.seeds) * problem.budget.training_steps
+    per_run, note = _rounded(problem.ppo, problem.budget.training_steps)
+    per_task = len(problem.seeds) * per_run
     parts = [
         (
             n_trials * per_task,
@@ -939,11 +961,12 @@ def _generalization_plan(
             estimate_seconds(parts),
             _evolve_status(exp.storage, study_name, n_trials),
             study_name,
+            note=note,
         )  # fmt: skip
     ]
     search = config.search
     if search.reevaluate_top > 0:
-        re_steps = search.reevaluate_steps or problem.budget.training_steps
+        re_steps, _ = _rounded(problem.ppo, search.reevaluate_steps or problem.budget.training_steps)
         re_total = (search.reevaluate_top + 1) * search.reevaluate_seeds * re_steps
         re_parts = [(re_total, rate) for _, rate in ((0, p[1]) for p in parts)]
         steps.append(

@@ -226,6 +226,8 @@ def plan_lines(exp: Experiment, chosen: Sequence[tuple[Step, Status]]) -> list[s
             lines.append("      (run by the evolve command once the budget is spent)")
         else:
             lines.append(f"      {step.command_line}")
+        if step.note:
+            lines.append(f"      ({step.note})")
         total_steps += step.env_steps
         total_seconds += step.seconds
         left_seconds += 0.0 if done else step.seconds * left
