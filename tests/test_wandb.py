@@ -136,3 +136,41 @@ def test_evolution_without_wandb_packages_is_one_line_and_writes_nothing(
         "not installed (pip install 'ermrl[wandb]')"
     ]
     assert not db.exists()
+
+
+def test_run_passes_wandb_to_the_evolve_and_test_stages_and_plans_the_test_on_sb3(
+    tmp_path: Path,
+) -> None:
+    """``ermrl run FILE --wandb PROJECT`` gives ``--wandb`` to evolve and test (not to the
+    report), plans the test stage at sb3's speed (its command will train with sb3), and refuses
+    a test stage whose file sets ``backend: population`` in one line before anything runs."""
+    from ermrl.cli._run import build_run_parser
+    from ermrl.cli._test import build_test_parser
+    from ermrl.runner._experiment import load_experiment
+    from ermrl.runner._run import plan_experiment, stage_argv
+
+    path = tmp_path / "exp.yaml"
+    path.write_text(
+        "name: wb\ntasks: [HalfCheetah-v5]\nout: out\n"
+        "evolve: {n_trials: 2, n_seeds: 1, training_steps: 100000}\n"
+        "test: {agents: [ppo, res-ppo], seeds: [10], training_steps: 100000}\n"
+        "report: {html: true}\n"
+    )
+    exp = load_experiment(path)
+    _, plain, _ = plan_experiment(exp, build_agents=False)
+    _, logged, _ = plan_experiment(exp, wandb=True, build_agents=False)
+    seconds = {s.stage: s.seconds for s in plain}
+    with_wandb = {s.stage: s.seconds for s in logged}
+    assert with_wandb["test"] > 2 * seconds["test"]  # sb3, several times slower
+    args = build_run_parser().parse_args([str(path), "--wandb", "proj"])
+    by_stage = {s.stage: stage_argv(s, None, None, wandb=args.wandb) for s in logged}
+    assert by_stage["evolve"][-2:] == ["--wandb", "proj"]
+    assert build_test_parser().parse_args(by_stage["test"]).wandb == "proj"
+    assert "--wandb" not in by_stage["report"]
+
+    path.write_text(path.read_text().replace("seeds: [10]", "seeds: [10], backend: population"))
+    proc = ermrl("run", str(path), "--wandb", "proj", cwd=tmp_path)
+    assert proc.returncode == 2
+    assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    assert "--wandb logs come from the sb3 backend" in proc.stderr
+    assert not (tmp_path / "out").exists()

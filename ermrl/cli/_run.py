@@ -98,9 +98,18 @@ def build_run_parser(prog: str = "ermrl run") -> ArgumentParser:
         default=None,
         metavar="DIR",
         help="also log training curves for TensorBoard: each evolution's trials under "
-        "DIR/<task>/evolve (its --tensorboard) and each test phase under DIR/<task>/test; "
-        "those stages then train with the sb3 backend (needs: pip install "
+        "DIR/<task>/evolve (its --tensorboard; an evolution then trains with the sb3 backend) "
+        "and each test phase under DIR/<task>/test (on either backend) (needs: pip install "
         "tensorboard)",
+    )
+    parser.add_argument(
+        "--wandb",
+        default=None,
+        metavar="PROJECT",
+        help="also log to the Weights & Biases project PROJECT: each evolution's trials and each "
+        "single-task test phase's runs (the --wandb of evolve and test; a test phase then "
+        "trains with the sb3 backend; WANDB_MODE=offline logs locally; needs: pip install "
+        "'ermrl[wandb]')",
     )
     parser.add_argument("--quiet", action="store_true", help="no plan and no progress lines")
     return parser
@@ -134,6 +143,7 @@ def run_main(argv: Sequence[str] | None = None, prog: str = "ermrl run") -> int:
             load_experiment(args.file, args.variant),
             tasks=args.task,
             tensorboard=bool(args.tensorboard),
+            wandb=bool(args.wandb),
             build_agents=not args.dry_run,
         )
     except (ExperimentError, StorageError) as err:
@@ -157,6 +167,7 @@ def run_main(argv: Sequence[str] | None = None, prog: str = "ermrl run") -> int:
             chosen,
             progress=args.progress,
             tensorboard=args.tensorboard,
+            wandb=args.wandb,
             snapshot_every=args.snapshot_every,
             quiet=args.quiet,
             stream=sys.stdout,

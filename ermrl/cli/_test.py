@@ -329,13 +329,14 @@ def run_test_phase(
 
 
 def add_tensorboard_arg(parser: argparse.ArgumentParser) -> None:
-    """``--tensorboard DIR`` of the test-phase commands (their runs train with sb3 then)."""
+    """``--tensorboard DIR`` of the test-phase commands (on either backend)."""
     parser.add_argument(
         "--tensorboard",
         default=None,
         metavar="DIR",
-        help="also log training curves for TensorBoard under DIR/<agent>/seed_<s>; the runs "
-        "then train with the sb3 backend (needs: pip install tensorboard)",
+        help="also log training curves for TensorBoard under DIR/<agent>/seed_<s>: the scalars "
+        "SB3's PPO logs (returns, losses, fps), on either backend (needs: pip install "
+        "tensorboard)",
     )
 
 

@@ -206,6 +206,8 @@ class Experiment:
         tensorboard: ``ermrl run --tensorboard`` was given: the evolve and test commands get
             it, so the plan checks and estimates them as they will run (sb3, where the file
             leaves the backend out).
+        wandb: ``ermrl run --wandb`` was given: the evolve and test commands get it, so the
+            plan checks and estimates a test stage as it will run (sb3).
     """
 
     path: Path
@@ -218,6 +220,7 @@ class Experiment:
     stages: Mapping[str, Mapping[str, Any]]
     document: Mapping[str, Any]
     tensorboard: bool = False
+    wandb: bool = False
 
     @property
     def generalization(self) -> bool:
@@ -856,6 +859,13 @@ def _test_step(
     argv += ["--storage", exp.storage, "--study-name", study_name, "--out", str(folder)]
     args = parse_checked(parser, argv, where)
     _with_tensorboard(exp, args)  # (a test phase logs for TensorBoard on either backend)
+    if exp.wandb:  # ermrl run --wandb: W&B logs through SB3's callback
+        if args.backend == "population":
+            raise ExperimentError(
+                f"{where}: --wandb logs come from the sb3 backend, and this stage sets "
+                "backend: population; set backend: sb3 in the file, or leave --wandb out"
+            )
+        args.wandb = "<ermrl run --wandb>"
     agents = list(args.agents or [n for n, k in AGENT_KINDS.items() if k.default])
     seeds = list(args.seeds or range(5))
     per_run = args.training_steps

@@ -41,6 +41,7 @@ __all__ = [
     "PROGRESS_STAGES",
     "STAGE_CHOICES",
     "TENSORBOARD_COMMANDS",
+    "WANDB_COMMANDS",
     "StageFailed",
     "StageInterrupted",
     "Status",
@@ -60,6 +61,8 @@ __all__ = [
 STAGE_CHOICES = ("evolve", "reevaluate", "test", "report")
 #: The stages whose commands take ``--progress`` (each evolve and test command does).
 PROGRESS_STAGES = ("evolve", "test")
+#: The commands ``ermrl run --wandb`` passes ``--wandb`` to.
+WANDB_COMMANDS = ("evolve", "test")
 #: The commands that take ``--tensorboard``.
 TENSORBOARD_COMMANDS = ("evolve", "evolve-generalization", "test", "test-generalization")
 # The file each run writes beside its results: the experiment with every option filled in.
@@ -103,7 +106,11 @@ class StageInterrupted(KeyboardInterrupt):
 
 
 def stage_argv(
-    step: Step, progress: str | None, tensorboard: str | None, quiet: bool = False
+    step: Step,
+    progress: str | None,
+    tensorboard: str | None,
+    quiet: bool = False,
+    wandb: str | None = None,
 ) -> list[str]:
     """A step's arguments with ``ermrl run``'s own ``--progress`` and ``--tensorboard`` added
     (the last of a repeated option wins over the file's).
@@ -117,6 +124,7 @@ def stage_argv(
             the file's, else the commands' default).
         tensorboard: The folder of the TensorBoard logs (``None``: none).
         quiet: Also pass ``--quiet`` (every stage's command takes it).
+        wandb: A Weights & Biases project for the evolve and test commands (``None``: none).
 
     Returns:
         The command's arguments, without the command's name.
@@ -126,6 +134,8 @@ def stage_argv(
         argv += ["--progress", progress]
     if tensorboard is not None and step.command in TENSORBOARD_COMMANDS:
         argv += ["--tensorboard", str(Path(tensorboard) / step.label / step.stage)]
+    if wandb is not None and step.command in WANDB_COMMANDS:
+        argv += ["--wandb", wandb]
     if quiet:
         argv.append("--quiet")
     return argv
@@ -154,6 +164,7 @@ def plan_experiment(
     *,
     tasks: Sequence[str] | None = None,
     tensorboard: bool = False,
+    wandb: bool = False,
     build_agents: bool = True,
 ) -> tuple[Experiment, list[Step], list[Status]]:
     """Every step of an experiment, checked, with its status.
@@ -167,7 +178,8 @@ def plan_experiment(
             checks the options, tables and storage only).
 
     Returns:
-        ``(experiment, steps, statuses)``, the experiment with ``tensorboard`` set.
+        ``(experiment, steps, statuses)``, the experiment with ``tensorboard`` and
+        ``wandb`` set.
 
     Raises:
         ExperimentError: A key or value the commands refuse, or a study that contradicts the
@@ -176,7 +188,7 @@ def plan_experiment(
     """
     import dataclasses
 
-    exp = dataclasses.replace(exp, tensorboard=bool(tensorboard))
+    exp = dataclasses.replace(exp, tensorboard=bool(tensorboard), wandb=bool(wandb))
     steps = experiment_plan(exp, tasks=tasks, build_agents=build_agents)
     return exp, steps, [step_status(exp, step) for step in steps]
 
@@ -274,6 +286,7 @@ def run_experiment(
     quiet: bool = False,
     quiet_stages: bool = False,
     stream: TextIO | None = None,
+    wandb: str | None = None,
 ) -> list[Step]:
     """Plan an experiment and run its unfinished steps, as ``ermrl run FILE`` does.
 
@@ -300,7 +313,9 @@ def run_experiment(
         StageInterrupted: Ctrl-C or SIGTERM during a stage.
     """
     out = stream or sys.stdout
-    exp, steps, statuses = plan_experiment(exp, tasks=tasks, tensorboard=bool(tensorboard))
+    exp, steps, statuses = plan_experiment(
+        exp, tasks=tasks, tensorboard=bool(tensorboard), wandb=bool(wandb)
+    )
     chosen = choose_stages(steps, statuses, stages)
     if not quiet:
         for line in plan_lines(exp, chosen):
@@ -315,6 +330,7 @@ def run_experiment(
         quiet=quiet,
         quiet_stages=quiet_stages,
         stream=out,
+        wandb=wandb,
     )
     return steps
 
@@ -330,6 +346,7 @@ def run_plan(
     quiet: bool = False,
     quiet_stages: bool = False,
     stream: TextIO | None = None,
+    wandb: str | None = None,
 ) -> None:
     """Write the resolved configuration, bring back published state, and run the chosen steps.
 
@@ -346,6 +363,7 @@ def run_plan(
         quiet: No lines of this runner.
         quiet_stages: Also pass ``--quiet`` to each stage's command.
         stream: Where this runner's lines go (default ``sys.stdout``).
+        wandb: Weights & Biases project of the evolve and test commands (``None``: none).
 
     Raises:
         ExperimentError: The results folder cannot be written, or a published snapshot or
@@ -371,6 +389,7 @@ def run_plan(
             quiet=quiet,
             quiet_stages=quiet_stages,
             stream=stream or sys.stdout,
+            wandb=wandb,
         )
     except BaseException:
         remove_if_untouched(created)
@@ -408,6 +427,7 @@ def _write_and_run(
     quiet: bool,
     quiet_stages: bool,
     stream: TextIO,
+    wandb: str | None = None,
 ) -> None:
     """Write the resolved configuration, bring back published state, and run the steps."""
     import yaml
@@ -430,7 +450,7 @@ def _write_and_run(
             f"cannot restore the published test runs: {err.strerror or err}"
         ) from None
     with PeriodicSnapshots(exp, steps, snapshot_every):
-        _run_steps(exp, chosen, progress, tensorboard, quiet, quiet_stages, stream)
+        _run_steps(exp, chosen, progress, tensorboard, quiet, quiet_stages, stream, wandb)
     if not quiet:
         print(
             f"done: experiment {exp.name!r}; resolved configuration in {exp.out}/{_RESOLVED_FILE}",
@@ -473,6 +493,7 @@ def _run_steps(
     quiet: bool,
     quiet_stages: bool,
     stream: TextIO,
+    wandb: str | None = None,
 ) -> None:
     """Run the unfinished steps in order, each through its command's ``main(argv)``.
 
@@ -494,7 +515,7 @@ def _run_steps(
                     flush=True,
                 )
             continue
-        argv = stage_argv(step, progress, tensorboard, quiet=quiet_stages)
+        argv = stage_argv(step, progress, tensorboard, quiet=quiet_stages, wandb=wandb)
         if not quiet:
             line = shlex.join(["ermrl", step.command, *argv])
             print(f"[{step.stage} {step.label}] {line}", file=stream, flush=True)
