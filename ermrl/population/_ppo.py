@@ -102,9 +102,11 @@ def _settings(ppo: PPOConfig) -> dict[str, Any]:
 
 def steps_trained(ppo: PPOConfig, steps: int) -> int:
     """The env steps each agent makes for a budget of ``steps``: whole rollouts of
-    ``n_steps * n_envs``, as SB3's ``learn`` rounds up (a progress line's total)."""
-    rollout = max(int(_settings(ppo)["n_steps"]) * ppo.n_envs, 1)
-    return -(-int(steps) // rollout) * rollout
+    ``n_steps * n_envs``, as SB3's ``learn`` rounds up (a progress line's total); the same
+    count as :func:`ermrl.agents.steps_trained` for the sb3 backend."""
+    from ermrl.agents._train import steps_trained as whole_rollouts
+
+    return whole_rollouts(ppo, steps)
 
 
 def check_population_config(ppo: PPOConfig) -> None:
