@@ -1,5 +1,6 @@
 """The ablation agents of a reservoir study: ``leaky-res-ppo`` (the selected reservoir with
-``W = 0``) and ``ema-ppo`` (moving averages of the reservoir's input at the selected leak rate).
+``W = 0``) and ``ema-ppo`` (the reservoir's input next to its moving average at the selected
+leak rate).
 
 Each computes its equation, on both backends, and trains in a test phase next to ``res-ppo``.
 """
@@ -63,34 +64,36 @@ def test_leaky_res_ppo_is_the_selected_reservoir_without_recurrence() -> None:
     assert not np.allclose(full.run(inputs), expected)  # the recurrence did matter
 
 
-def test_ema_ppo_is_a_moving_average_of_the_input_shown_as_it_is() -> None:
-    """``e <- (1 - lr) e + lr u`` per input, the policy sees ``e`` whole (no tanh; the study's
-    ``exposed_units`` concerns reservoir units, not these), unbounded."""
+def test_ema_ppo_is_the_input_next_to_its_moving_average_shown_as_it_is() -> None:
+    """``e <- (1 - lr) e + lr u`` per input; the policy sees ``[e; u]`` whole (no tanh; the
+    study's ``exposed_units`` concerns reservoir units, not these), unbounded."""
     ema = bank(EMA, 4, seed=5, exposed_units=2)
     inputs = np.random.default_rng(1).normal(scale=3.0, size=(5, 4))
     e, expected = np.zeros(4), []
     for u in inputs:
         e = (1 - EMA.lr) * e + EMA.lr * u
-        expected.append(e)
+        expected.append(np.concatenate([e, u]))
     states = ema.run(inputs)
     np.testing.assert_allclose(states, expected, rtol=1e-12, atol=1e-15)
     emit, width = ema.emitter(2)
-    assert width == 4 and ema.out_bound == np.inf
+    assert width == 8 and ema.out_bound == np.inf
     np.testing.assert_array_equal(emit(states), np.asarray(expected, np.float32))
     assert np.abs(states).max() > 1  # no tanh
 
 
 def test_ema_ppo_averages_observation_action_and_reward_and_resets_with_episodes() -> None:
-    """Through the sb3 wrapper on CartPole: the EMA of ``[observation, one-hot previous action,
-    previous reward]``, zeroed at each episode start (the first input has no action or reward)."""
+    """Through the sb3 wrapper on CartPole: the EMA of ``v = [observation, one-hot previous
+    action, previous reward]`` next to ``v`` itself, the EMA zeroed at each episode start (the
+    first input has no action or reward)."""
     task = TaskConfig("CartPole-v1", "all")
     venv = make_vec_env(task, 1, 3, EncoderConfig(reservoirs=(EMA,), dtype="float64"), 7)
     raw = make_vec_env(task, 1, 3, None, 0)  # the same env, unencoded
     lr = EMA.lr
     rng = np.random.default_rng(0)
     obs, plain = venv.reset(), raw.reset()
-    e = lr * np.concatenate([plain[0], [0.0, 0.0], [0.0]])
-    np.testing.assert_allclose(obs[0], e, rtol=1e-6)
+    v = np.concatenate([plain[0], [0.0, 0.0], [0.0]])
+    e = lr * v
+    np.testing.assert_allclose(obs[0], np.concatenate([e, v]), rtol=1e-6)
     ends = 0
     for _ in range(60):
         action = rng.integers(0, 2, 1)
@@ -99,11 +102,13 @@ def test_ema_ppo_averages_observation_action_and_reward_and_resets_with_episodes
         assert done == raw_done
         if done[0]:
             ends += 1
-            e = lr * np.concatenate([plain[0], [0.0, 0.0], [0.0]])
+            v = np.concatenate([plain[0], [0.0, 0.0], [0.0]])
+            e = lr * v
         else:
             v = np.concatenate([plain[0], np.eye(2)[action[0]], reward])
             e = (1 - lr) * e + lr * v
-        np.testing.assert_allclose(obs[0], e.astype(np.float32), rtol=1e-6, atol=1e-7)
+        expected = np.concatenate([e, v]).astype(np.float32)
+        np.testing.assert_allclose(obs[0], expected, rtol=1e-6, atol=1e-7)
     assert ends > 0
     venv.close()
     raw.close()

@@ -77,10 +77,11 @@ class ReservoirParams:
             ``"none"``: the whole echo state network. ``"leaky"``: its recurrent weights
             removed (``W = 0``), the same ``Win``, bias and leak rate (the same seed draws
             them): ``x <- (1 - lr) x + lr tanh(Win u + b)``, a leaky integrator of a random
-            projection. ``"ema"``: no reservoir at all, an exponential moving average of the
-            input at the leak rate, ``x <- (1 - lr) x + lr u`` (one value per input, shown
-            as it is: no weights, no tanh; ``units``, ``sr``, ``input_scaling`` and the
-            connectivities are unused). Left out of :func:`to_dict` while ``"none"``.
+            projection. ``"ema"``: no reservoir at all, the input next to its exponential
+            moving average at the leak rate, ``e <- (1 - lr) e + lr u`` (the state is
+            ``[e; u]``, two values per input, shown as it is: no weights, no tanh; ``units``,
+            ``sr``, ``input_scaling`` and the connectivities are unused). Left out of
+            :func:`to_dict` while ``"none"``.
     """
 
     units: int = 100
@@ -98,7 +99,7 @@ class ReservoirParams:
     @property
     def state_dim(self) -> int:
         """Width of the state the policy can see: one value per unit (an ``"ema"`` ablation's
-        is its input's width, which only the task gives: ``units`` stands for it here)."""
+        is twice its input's width, which only the task gives: ``units`` stands for it here)."""
         return self.units
 
     def __post_init__(self) -> None:
@@ -261,17 +262,20 @@ def reservoir_weights(params: ReservoirParams, input_dim: int, seed: int) -> Res
 
     Returns:
         Dense float64 weights. An ablation (:attr:`ReservoirParams.ablation`): ``"leaky"``,
-        the same weights with ``W`` zero; ``"ema"``, the linear update
-        ``x <- (1 - lr) x + lr u`` (``W = (1 - lr) I``, ``Win = lr I``, no bias) shown raw.
+        the same weights with ``W`` zero; ``"ema"``, the linear update of ``x = [e; u]``,
+        ``e <- (1 - lr) e + lr u`` next to the current input ``u`` (``W = diag((1 - lr) I, 0)``,
+        ``Win = [lr I; I]``, no bias), shown raw.
     """
     if input_dim < 1:
         raise ValueError(f"input_dim must be >= 1, got {input_dim}")
     if params.ablation == "ema":
-        eye = np.eye(input_dim)
+        # State [e; u]: e <- (1 - lr) e + lr u, then the current input u itself (W's second
+        # block is zero, Win's is the identity), so the policy sees the input and its average.
+        eye, zero = np.eye(input_dim), np.zeros((input_dim, input_dim))
         return ReservoirWeights(
-            W=(1.0 - params.lr) * eye,
-            Win=params.lr * eye,
-            bias=np.zeros(input_dim),
+            W=np.block([[(1.0 - params.lr) * eye, zero], [zero, zero]]),
+            Win=np.vstack([params.lr * eye, eye]),
+            bias=np.zeros(2 * input_dim),
             lr=1.0,  # the leak is in W and Win
             linear=True,
             raw=True,

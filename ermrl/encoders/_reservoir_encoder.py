@@ -216,8 +216,8 @@ AGENTS: dict[str, AgentKind] = {
     ),
     "ema-ppo": AgentKind(
         "evolved", None,
-        "the study's learner on exponential moving averages of the reservoir's input "
-        "(observation, previous action and reward) at the selected leak rate(s), in the "
+        "the study's learner on the reservoir's input (observation, previous action and "
+        "reward) next to its exponential moving averages at the selected leak rate(s), in the "
         "reservoir's place: no projection, no tanh",
         None, "EMA-PPO (selected leak rate)", "EMA-PPO", "dimgray", default=False,
         family="esn", derive=_ablated("ema"),
