@@ -31,7 +31,8 @@ system-deps:
 # The demo is an experiment file (experiments/demo.yaml): a small evolution on a partially
 # observable task (Pendulum, velocity hidden) on the population backend, the re-evaluation of its
 # best candidates, the test phase against PPO, PPO on the full observation and the unevolved
-# reservoir on 5 new seeds, and the report. About 2 minutes on 2 cores; rerunning resumes.
+# reservoir on 5 new seeds, and the report. 2 to 4 minutes on 2 cores, depending on
+# the CPU; rerunning resumes.
 demo: install
 	$(PY) -m ermrl run experiments/demo.yaml
 	@echo "results: runs/demo/Pendulum-v1/test/summary.csv, runs/demo/Pendulum-v1/report/report.html"
