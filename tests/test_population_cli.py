@@ -282,9 +282,14 @@ def evolve_args(*extra: str) -> argparse.Namespace:
     return build_evolve_parser().parse_args([*base, "--storage", "sqlite:///unused.db", *extra])
 
 
-@pytest.mark.parametrize("extra", [[], ["--encoder", "rtu"]], ids=["esn", "rtu"])
+@pytest.mark.parametrize(
+    "extra",
+    [[], ["--encoder", "rtu"], ["--tensorboard", "tb"]],
+    ids=["esn", "rtu", "tensorboard"],
+)
 def test_population_is_the_default_for_ppo_on_reservoir_states(extra: list[str]) -> None:
-    """No --backend: PPO on an ESN's or an RTU layer's states trains with population, silently."""
+    """No --backend: PPO on an ESN's or an RTU layer's states trains with population, silently
+    (with --tensorboard too: a generation's runs log for TensorBoard themselves)."""
     from ermrl.cli._evolve import config_from_args
 
     notes: list[str] = []

@@ -408,9 +408,8 @@ def add_search_args(parser: argparse.ArgumentParser) -> None:
         default=None,
         metavar="DIR",
         help="also log each trial's training curves for TensorBoard under "
-        "DIR/trial_<n>/seed_<s> (a trial on several tasks: DIR/trial_<n>/<env_id>/seed_<s>); "
-        "the runs then train with the sb3 backend, the population backend writing no "
-        "TensorBoard logs (needs: pip install tensorboard)",
+        "DIR/trial_<n>/seed_<s> (a trial on several tasks: DIR/trial_<n>/<env_id>/seed_<s>), "
+        "the scalars SB3's PPO logs, on either backend (needs: pip install tensorboard)",
     )
     parser.add_argument(
         "--wandb",
@@ -639,7 +638,6 @@ def config_from_args(
         ppo,
         (TaskConfig(env_id=args.env_id, observe=args.observe),),
         pruner=getattr(args, "pruner", "none"),
-        tensorboard=bool(getattr(args, "tensorboard", None)),
         encoder=encoder_name,
     )
     if why is not None and notes is not None:
@@ -679,25 +677,18 @@ def config_from_args(
                 f"the population backend does not step --encoder {encoder_name}'s reservoirs; "
                 "use --backend sb3"
             )
-    check_tensorboard(args, ppo.backend)
+    check_tensorboard(args)
     return config
 
 
-def check_tensorboard(args: argparse.Namespace, backend: str) -> None:
-    """``--tensorboard`` needs the sb3 backend and the tensorboard package.
+def check_tensorboard(args: argparse.Namespace) -> None:
+    """``--tensorboard`` needs the tensorboard package (on either backend).
 
     Raises:
-        ConfigError: ``--tensorboard`` with the population backend (``--backend population``,
-            or a resumed study created with it), or without the tensorboard package.
+        ConfigError: ``--tensorboard`` without the tensorboard package.
     """
     if not getattr(args, "tensorboard", None):
         return
-    if backend == "population":
-        raise ConfigError(
-            "--tensorboard logs come from the sb3 backend, and this run trains with the "
-            "population backend (--backend population, or a study created with it; a study "
-            "never mixes backends)"
-        )
     import importlib.util
 
     if importlib.util.find_spec("tensorboard") is None:

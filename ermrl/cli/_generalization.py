@@ -211,7 +211,6 @@ def generalization_config_from_args(
                 t.ppo,
                 (t.task,),
                 pruner=args.pruner,
-                tensorboard=bool(args.tensorboard),
                 encoder=args.encoder,
             )
             if why is not None:
@@ -247,7 +246,7 @@ def generalization_config_from_args(
         from ermrl.population import check_population_config
 
         check_population_config(config.problem.ppo)
-    check_tensorboard(args, config.problem.ppo.backend)
+    check_tensorboard(args)
     return config
 
 

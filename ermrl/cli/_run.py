@@ -98,9 +98,8 @@ def build_run_parser(prog: str = "ermrl run") -> ArgumentParser:
         default=None,
         metavar="DIR",
         help="also log training curves for TensorBoard: each evolution's trials under "
-        "DIR/<task>/evolve (its --tensorboard; an evolution then trains with the sb3 backend) "
-        "and each test phase under DIR/<task>/test (on either backend) (needs: pip install "
-        "tensorboard)",
+        "DIR/<task>/evolve (its --tensorboard) and each test phase under DIR/<task>/test, on "
+        "either backend (needs: pip install tensorboard)",
     )
     parser.add_argument(
         "--wandb",

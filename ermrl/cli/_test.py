@@ -138,7 +138,7 @@ def add_test_args(
         help="what trains the agents of the study's learner: population (all seeds of an agent "
         "trained in lockstep, PPO only) or sb3 (the reference implementation: one "
         "Stable-Baselines3 process per run). Default: the study's backend when it was evolved "
-        "with sb3, else population where it applies (not with --tensorboard, nor into an --out "
+        "with sb3, else population where it applies (not with --wandb, nor into an --out "
         "whose finished runs were made with sb3), else sb3, with one line saying why. Agents "
         "with another learner always train with sb3",
     )

@@ -4,7 +4,7 @@
 states of any registered encoder, or on the raw observation) and the SB3 path, the reference
 implementation, trains whatever it does not implement: another learner, PPO settings it lacks
 (``target_kl``, some ``policy_kwargs``), a pruner (it reports no intermediate returns),
-TensorBoard logs, and envs whose spaces it does not step (observations other than a flat
+Weights & Biases logs, and envs whose spaces it does not step (observations other than a flat
 ``Box``, actions other than ``Box`` and ``Discrete``). :func:`population_refusal` says why in one
 line, which the commands print when they fall back.
 """
@@ -45,7 +45,6 @@ def population_refusal(
     tasks: tuple[TaskConfig, ...] = (),
     *,
     pruner: str = "none",
-    tensorboard: bool = False,
     wandb: bool = False,
     encoder: str | None = None,
 ) -> str | None:
@@ -55,7 +54,6 @@ def population_refusal(
         ppo: The learner's settings (its ``backend`` is ignored).
         tasks: The envs the runs train on (their spaces are checked; none: not checked).
         pruner: The study's pruner (``"none"``: no pruning).
-        tensorboard: The runs write TensorBoard logs (an SB3 logger).
         wandb: The runs log to Weights & Biases (wandb's SB3 callback).
         encoder: The registered encoder the runs evolve (``None``: none, or not checked); one
             whose reservoirs the batched reservoir does not step
@@ -71,8 +69,6 @@ def population_refusal(
             f"the population backend reports no intermediate returns to --pruner {pruner} "
             "(it trains a whole generation at once)"
         )
-    if tensorboard:
-        return "--tensorboard logs come from the sb3 backend"
     if wandb:
         return "--wandb logs through wandb's callback for the sb3 backend"
     if encoder is not None:
@@ -97,7 +93,6 @@ def choose_backend(
     tasks: tuple[TaskConfig, ...] = (),
     *,
     pruner: str = "none",
-    tensorboard: bool = False,
     wandb: bool = False,
     encoder: str | None = None,
 ) -> tuple[str, str | None]:
@@ -111,7 +106,6 @@ def choose_backend(
         ppo: The learner's settings (its ``backend`` is ignored).
         tasks: The envs the runs train on.
         pruner: The study's pruner.
-        tensorboard: The runs write TensorBoard logs.
         wandb: The runs log to Weights & Biases.
         encoder: The registered encoder the runs evolve (see :func:`population_refusal`).
 
@@ -121,7 +115,5 @@ def choose_backend(
     """
     if requested is not None:
         return requested, None
-    why = population_refusal(
-        ppo, tasks, pruner=pruner, tensorboard=tensorboard, wandb=wandb, encoder=encoder
-    )
+    why = population_refusal(ppo, tasks, pruner=pruner, wandb=wandb, encoder=encoder)
     return ("sb3", why) if why is not None else ("population", None)

@@ -204,8 +204,7 @@ class Experiment:
         stages: ``{"evolve" | "reevaluate" | "test" | "report": options}``.
         document: The file's mapping with the variant merged in.
         tensorboard: ``ermrl run --tensorboard`` was given: the evolve and test commands get
-            it, so the plan checks and estimates them as they will run (sb3, where the file
-            leaves the backend out).
+            it, so the plan checks them as they will run (on either backend).
         wandb: ``ermrl run --wandb`` was given: the evolve and test commands get it, so the
             plan checks and estimates a test stage as it will run (sb3).
     """

@@ -172,8 +172,8 @@ def plan_experiment(
     Args:
         exp: The experiment (:func:`~ermrl.runner.load_experiment`).
         tasks: Only these tasks (for a generalization experiment: these test tasks).
-        tensorboard: The evolve and test stages will log for TensorBoard (their backend is
-            then chosen, checked and estimated as sb3 where the file leaves it out).
+        tensorboard: The evolve and test stages will log for TensorBoard (on either
+            backend).
         build_agents: Also build each evolution agent once (``False``: a dry run, which
             checks the options, tables and storage only).
 

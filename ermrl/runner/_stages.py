@@ -255,9 +255,7 @@ def evolve(
 
         from ermrl.cli._evolve import check_tensorboard
 
-        check_tensorboard(
-            argparse.Namespace(tensorboard=str(tensorboard)), config.problem.ppo.backend
-        )
+        check_tensorboard(argparse.Namespace(tensorboard=str(tensorboard)))
     if config.generalization is not None:
         raise ConfigError(
             "a configuration evolved on several tasks runs from an experiment file "

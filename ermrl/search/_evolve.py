@@ -624,6 +624,7 @@ class _Worker:
         self.runner.label = (
             f"trial {numbers[0]}" if len(numbers) == 1 else f"trials {numbers[0]}-{numbers[-1]}"
         )
+        self.runner.trials = tuple(numbers)  # each candidate's runs' TensorBoard folders
         try:
             results = self.train_generation(claims, beats)
         except BaseException:

@@ -207,8 +207,14 @@ class SeedRunner:
             in this process, lines from worker processes; ``"none"``: silent.
         stream: Where the lines of runs in this process go (workers print to their stdout).
         tensorboard: Each run also logs training curves for TensorBoard (SB3's
-            ``tensorboard_log``) under :meth:`tensorboard_log` (``None``: no logs; the
-            population backend writes none).
+            ``tensorboard_log``, or the same scalars from the population backend) under
+            :meth:`tensorboard_log` (``None``: no logs).
+
+    Attributes:
+        label: What is training now, for the progress lines (``"trial 12"``).
+        trial: The trial training now (its runs' TensorBoard folder; sb3 backend).
+        trials: The trials of the generation training now, one per candidate in order (their
+            runs' TensorBoard folders; population backend).
     """
 
     def __init__(
@@ -228,15 +234,25 @@ class SeedRunner:
         self.stream = stream
         self.label = ""
         self.tensorboard = None if tensorboard is None else Path(tensorboard)
-        self.trial: int | None = None  # the trial training now (its runs' TensorBoard folder)
+        self.trial: int | None = None
+        self.trials: tuple[int, ...] = ()
 
-    def tensorboard_log(self, seed: int, env_id: str | None = None) -> str | None:
+    def tensorboard_log(
+        self, seed: int, env_id: str | None = None, *, trial: int | None = None
+    ) -> str | None:
         """The TensorBoard folder of a run: ``<tensorboard>/trial_<n>/seed_<s>``, with an
         ``<env_id>`` folder before the seed's when a trial trains on several tasks (``None``:
-        no TensorBoard logs)."""
+        no TensorBoard logs).
+
+        Args:
+            seed: The run's seed.
+            env_id: The run's task, when the trial trains on several (``None``: one task).
+            trial: The run's trial (``None``: :attr:`trial`).
+        """
         if self.tensorboard is None:
             return None
-        folder = self.tensorboard / ("trial" if self.trial is None else f"trial_{self.trial}")
+        trial = self.trial if trial is None else trial
+        folder = self.tensorboard / ("trial" if trial is None else f"trial_{trial}")
         if env_id is not None:
             folder /= env_id
         return str(folder / f"seed_{seed}")
@@ -283,9 +299,11 @@ class SeedRunner:
         ppo: PPOConfig,
         budget: BudgetConfig,
         jobs: Sequence[Any],
+        tensorboard_logs: Sequence[str | None] | None = None,
     ) -> list[RunResult | BaseException]:
         """Train ``jobs`` (:class:`~ermrl.population.PopulationJob`) as one population split
-        over ``n_procs`` processes of this runner's pool (the population backend)."""
+        over ``n_procs`` processes of this runner's pool (the population backend); each job
+        logs for TensorBoard in its folder of ``tensorboard_logs`` (``None``: no logs)."""
         from ermrl.population import split_jobs, steps_trained, train_population_parallel
 
         parts = len(split_jobs(len(jobs), self.n_procs))
@@ -301,7 +319,7 @@ class SeedRunner:
         )
         return train_population_parallel(
             task, ppo, budget, jobs, n_procs=parts, pool=self._pool if parts > 1 else None,
-            progress=progress,
+            progress=progress, tensorboard_logs=tensorboard_logs,
         )  # fmt: skip
 
     def map(self, args: Sequence[tuple[Any, ...]], *, by_task: bool = False) -> list[RunResult]:
@@ -428,9 +446,16 @@ def train_generation(
     """Train a whole generation with the population backend: every (candidate, seed) of a task
     in one population (split over the runner's processes), one task after another.
 
+    With the runner's ``tensorboard`` folder, each run logs SB3's scalars where the sb3 backend
+    would log it (:meth:`SeedRunner.tensorboard_log`), under its candidate's trial number
+    (:attr:`SeedRunner.trials`).
+
     Returns:
         ``[candidate][task][seed]``: a run, or the exception that ended it (a diverged run fails
         alone; the other agents go on).
+
+    Raises:
+        ValueError: TensorBoard logs asked for without one trial number per candidate.
     """
     from ermrl.population import PopulationJob
 
@@ -438,10 +463,31 @@ def train_generation(
     out: list[list[list[RunResult | BaseException]]] = [[] for _ in encoders]
     for task, ppo in tasks:
         jobs = [PopulationJob(enc, seed) for enc in encoders for seed in seeds]
-        flat = runner.population(task, ppo, budget, jobs)
+        logs = _generation_logs(
+            runner, len(encoders), seeds, task.env_id if len(tasks) > 1 else None
+        )
+        flat = runner.population(task, ppo, budget, jobs, tensorboard_logs=logs)
         for c in range(len(encoders)):
             out[c].append(flat[c * n_seeds : (c + 1) * n_seeds])
     return out
+
+
+def _generation_logs(
+    runner: SeedRunner, n_candidates: int, seeds: Sequence[int], env_id: str | None
+) -> list[str | None] | None:
+    """The TensorBoard folder of each (candidate, seed) job of a generation (``None``: no logs)."""
+    if runner.tensorboard is None:
+        return None
+    if len(runner.trials) != n_candidates:
+        raise ValueError(
+            f"TensorBoard logs of a generation need one trial number per candidate "
+            f"(runner.trials): {n_candidates} candidates, {len(runner.trials)} trials"
+        )
+    return [
+        runner.tensorboard_log(seed, env_id, trial=trial)
+        for trial in runner.trials
+        for seed in seeds
+    ]
 
 
 def first_failure(runs: Sequence[RunResult | BaseException]) -> BaseException | None:
