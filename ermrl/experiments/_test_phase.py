@@ -635,6 +635,12 @@ def write_error_message(err: OSError, out: str | Path) -> str:
     )
 
 
+# One run to train: its agent, its seed and the arguments of _train_job.
+_Job = tuple[AgentSpec, int, tuple[Any, ...]]
+# What a comparison does with each finished run (see _run_recorder).
+_Finished = Callable[[AgentSpec, int, RunResult], None]
+
+
 def run_comparison(
     task: TaskConfig,
     encoder: EncoderConfig,
@@ -669,7 +675,48 @@ def run_comparison(
             :func:`check_finished_runs`); nothing is written then.
     """
     out = Path(settings.out)
-    budget = BudgetConfig(
+    budget = _comparison_budget(settings)
+    expected = {
+        a.name: run_settings(
+            a.task(task), _agent_encoder(a, encoder), a.ppo or ppo, budget, a.name, 0
+        )
+        for a in agents
+    }
+    check_finished_runs(out, expected, settings.seeds, settings.overwrite)
+    out.mkdir(parents=True, exist_ok=True)
+    _write_config(out, task, encoder, ppo, agents, settings, metadata, command)
+    jobs = _plan_runs(
+        out, task, encoder, ppo, agents, settings, budget, expected, metadata, stream, quiet
+    )
+    total = len(jobs)
+    # The ETA counts the units of the current phase only: populations (whose runs all finish
+    # at once, so counting their runs read 23 min after the first of 5 runs of a 3-min phase),
+    # then the other runs. _train_populations counts its populations itself.
+    phase: dict[str, Any] = {
+        "started": time.perf_counter(),
+        "done": 0,
+        "units": 1,
+        "per_run": False,
+    }
+    jobs, twins = _twin_runs(jobs, expected, settings)
+    if twins:
+        names = sorted({f"{t.name} = {a}" for (a, _), ts in twins.items() for t in ts})
+        _say(
+            stream,
+            quiet,
+            f"trained once for both agents of each pair (the same reservoirs and settings): "
+            f"{', '.join(names)}",
+        )
+    finished = _run_recorder(out, task, expected, twins, total, phase, stream, quiet)
+    jobs = _train_populations(jobs, budget, settings, finished, stream, quiet, phase)
+    phase.update(started=time.perf_counter(), done=0, units=len(jobs), per_run=True)
+    _train_runs(jobs, settings.n_procs, finished)
+    return aggregate(out, [a.name for a in agents], title=task.label)
+
+
+def _comparison_budget(settings: TestSettings) -> BudgetConfig:
+    """The budget of every run of a comparison: its steps, and its returns measured."""
+    return BudgetConfig(
         training_steps=settings.training_steps,
         n_last_episodes=settings.n_last_episodes,
         n_eval_episodes=settings.n_eval_episodes,
@@ -677,18 +724,23 @@ def run_comparison(
         n_reports=0,
     )
 
-    def encoder_of(agent: AgentSpec) -> EncoderConfig | None:
-        return None if agent.reservoirs is None else encoder.with_reservoirs(agent.reservoirs)
 
-    def ppo_of(agent: AgentSpec) -> PPOConfig:
-        return agent.ppo or ppo
+def _agent_encoder(agent: AgentSpec, encoder: EncoderConfig) -> EncoderConfig | None:
+    """The comparison's encoding with the agent's own reservoirs (``None``: plain PPO)."""
+    return None if agent.reservoirs is None else encoder.with_reservoirs(agent.reservoirs)
 
-    expected = {
-        a.name: run_settings(a.task(task), encoder_of(a), ppo_of(a), budget, a.name, 0)
-        for a in agents
-    }
-    check_finished_runs(out, expected, settings.seeds, settings.overwrite)
-    out.mkdir(parents=True, exist_ok=True)
+
+def _write_config(
+    out: Path,
+    task: TaskConfig,
+    encoder: EncoderConfig,
+    ppo: PPOConfig,
+    agents: Sequence[AgentSpec],
+    settings: TestSettings,
+    metadata: Mapping[str, Any] | None,
+    command: str | None,
+) -> None:
+    """Write the comparison's ``config.yaml`` and ``command.txt`` (see :func:`run_comparison`)."""
     # The encoding options every reservoir agent shares; each agent's own reservoirs are under
     # `agents` (a top-level `reservoirs` read as the evolved one's, while it was the reference).
     shared_encoder = (
@@ -718,6 +770,26 @@ def run_comparison(
     write_atomic(out / "config.yaml", yaml.safe_dump(config_doc, sort_keys=False))
     write_atomic(out / "command.txt", (command or shlex.join(sys.argv)) + "\n")
 
+
+def _plan_runs(
+    out: Path,
+    task: TaskConfig,
+    encoder: EncoderConfig,
+    ppo: PPOConfig,
+    agents: Sequence[AgentSpec],
+    settings: TestSettings,
+    budget: BudgetConfig,
+    expected: Mapping[str, Mapping[str, Any]],
+    metadata: Mapping[str, Any] | None,
+    stream: TextIO | None,
+    quiet: bool,
+) -> list[_Job]:
+    """The runs left to train, seed by seed, each with its folder made.
+
+    A run that already finished is skipped (one line), unless ``settings.overwrite``. Each run
+    gets its model path, TensorBoard folder, W&B run, progress and checkpoint as ``settings``
+    ask.
+    """
     jobs = []
     for seed in settings.seeds:
         for agent in agents:
@@ -726,76 +798,98 @@ def run_comparison(
                 _say(stream, quiet, f"[skip] {agent.name} seed {seed}: already done in {folder}")
                 continue
             folder.mkdir(parents=True, exist_ok=True)
-            enc = encoder_of(agent)
+            enc = _agent_encoder(agent, encoder)
             model_path = str(folder / "model.zip") if settings.save_models else None
             tb_log = (
                 None
                 if settings.tensorboard is None
                 else str(Path(settings.tensorboard) / agent.name / f"seed_{seed}")
             )
-            wandb = (
-                None
-                if settings.wandb is None
-                else WandbRun(
-                    project=settings.wandb,
-                    name=f"{agent.name}-seed{seed}",
-                    group=out.resolve().name,
-                    config={
-                        "agent": agent.name, "seed": seed, "env_id": agent.task(task).env_id,
-                        "observe": agent.task(task).observe, "training_steps": budget.training_steps,
-                        **{k: v for k, v in (metadata or {}).items() if isinstance(v, (int, float, str))},
-                    },
-                )
-            )  # fmt: skip
+            wandb = _wandb_of(out, task, agent, seed, settings, budget, metadata)
             progress = Progress(
                 f"{agent.name} seed {seed}",
-                steps_trained(ppo_of(agent), budget.training_steps),  # whole rollouts
+                steps_trained(agent.ppo or ppo, budget.training_steps),  # whole rollouts
                 mode="none" if quiet else settings.progress,
                 stream=stream if settings.n_procs == 1 else None,  # a worker prints to stdout
             )
-            checkpoint = None
-            if settings.checkpoint_every != 0:
-                if settings.overwrite:
-                    shutil.rmtree(folder / CHECKPOINT_DIR, ignore_errors=True)
-                checkpoint = RunCheckpoint(
-                    folder / CHECKPOINT_DIR,
-                    settings.checkpoint_every or max(budget.training_steps // 10, 1),
-                    json.dumps({**expected[agent.name], "seed": seed}, sort_keys=True),
-                )
+            record = {**expected[agent.name], "seed": seed}
+            checkpoint = _run_checkpoint(folder, settings, budget, record)
             job = (
-                agent.task(task), enc, ppo_of(agent), budget, seed, settings.evaluate,
+                agent.task(task), enc, agent.ppo or ppo, budget, seed, settings.evaluate,
                 model_path, tb_log, wandb, progress, checkpoint,
             )  # fmt: skip
             jobs.append((agent, seed, job))
+    return jobs
 
-    total = len(jobs)
+
+def _wandb_of(
+    out: Path,
+    task: TaskConfig,
+    agent: AgentSpec,
+    seed: int,
+    settings: TestSettings,
+    budget: BudgetConfig,
+    metadata: Mapping[str, Any] | None,
+) -> WandbRun | None:
+    """The run's W&B run (``<agent>-seed<s>`` in the group named after ``out``), if asked for."""
+    if settings.wandb is None:
+        return None
+    return WandbRun(
+        project=settings.wandb,
+        name=f"{agent.name}-seed{seed}",
+        group=out.resolve().name,
+        config={
+            "agent": agent.name, "seed": seed, "env_id": agent.task(task).env_id,
+            "observe": agent.task(task).observe, "training_steps": budget.training_steps,
+            **{k: v for k, v in (metadata or {}).items() if isinstance(v, (int, float, str))},
+        },
+    )  # fmt: skip
+
+
+def _run_checkpoint(
+    folder: Path, settings: TestSettings, budget: BudgetConfig, record: Mapping[str, Any]
+) -> RunCheckpoint | None:
+    """The run's own checkpoint in ``folder``, for an on-policy sb3 run (``None``: none asked).
+
+    ``record`` is the run's :func:`run_settings` with its seed: a checkpoint made with others is
+    not resumed. With ``settings.overwrite`` an existing checkpoint is removed first.
+    """
+    if settings.checkpoint_every == 0:
+        return None
+    if settings.overwrite:
+        shutil.rmtree(folder / CHECKPOINT_DIR, ignore_errors=True)
+    return RunCheckpoint(
+        folder / CHECKPOINT_DIR,
+        settings.checkpoint_every or max(budget.training_steps // 10, 1),
+        json.dumps(record, sort_keys=True),
+    )
+
+
+def _run_recorder(
+    out: Path,
+    task: TaskConfig,
+    expected: Mapping[str, Mapping[str, Any]],
+    twins: Mapping[tuple[str, int], Sequence[AgentSpec]],
+    total: int,
+    phase: dict[str, Any],
+    stream: TextIO | None,
+    quiet: bool,
+) -> _Finished:
+    """What a comparison does with each finished run: write its records, copy its model to its
+    twins and write theirs (see :func:`_twin_runs`), and print one line per run.
+
+    The lines count the runs out of ``total`` and give an ETA from ``phase`` (the current
+    phase's start and its units done and in all; with ``phase["per_run"]``, each run counts
+    one unit done).
+    """
     done = 0
-    # The ETA counts the units of the current phase only: populations (whose runs all finish
-    # at once, so counting their runs read 23 min after the first of 5 runs of a 3-min phase),
-    # then the other runs. _train_populations counts its populations itself.
-    phase: dict[str, Any] = {
-        "started": time.perf_counter(),
-        "done": 0,
-        "units": 1,
-        "per_run": False,
-    }
 
     def record(agent: AgentSpec, seed: int, result: RunResult) -> None:
         nonlocal done
         done += 1
         if phase["per_run"]:
             phase["done"] += 1
-        extra = {
-            "env_id": task.env_id,
-            "observe": agent.task(task).observe,  # what this agent saw
-            "reservoirs": None if agent.reservoirs is None else to_dict(agent.reservoirs),
-        }
-        folder = run_dir(out, agent.name, seed)
-        # The settings record first: result.json, written last, marks the run as finished.
-        stored = {**expected[agent.name], "seed": seed}
-        write_atomic(folder / RUN_SETTINGS_FILE, json.dumps(stored, indent=1) + "\n")
-        write_run(folder, agent.name, result, extra)
-        published = keep_published_record(folder)
+        published = _write_records(out, task, agent, seed, expected[agent.name], result)
         kept = (
             ""
             if published is None
@@ -812,16 +906,6 @@ def run_comparison(
             f"{result.wall_seconds:.0f}s | ETA {duration(eta)}",
         )
 
-    jobs, twins = _twin_runs(jobs, expected, settings)
-    if twins:
-        names = sorted({f"{t.name} = {a}" for (a, _), ts in twins.items() for t in ts})
-        _say(
-            stream,
-            quiet,
-            f"trained once for both agents of each pair (the same reservoirs and settings): "
-            f"{', '.join(names)}",
-        )
-
     def finished(agent: AgentSpec, seed: int, result: RunResult) -> None:
         record(agent, seed, result)
         for twin in twins.get((agent.name, seed), ()):
@@ -832,30 +916,71 @@ def run_comparison(
                     shutil.copyfile(f, run_dir(out, twin.name, seed) / f.name)
             record(twin, seed, result)
 
-    jobs = _train_populations(jobs, budget, settings, finished, stream, quiet, phase)
-    phase.update(started=time.perf_counter(), done=0, units=len(jobs), per_run=True)
-    if settings.n_procs == 1 or len(jobs) <= 1:
+    return finished
+
+
+def _write_records(
+    out: Path,
+    task: TaskConfig,
+    agent: AgentSpec,
+    seed: int,
+    expected: Mapping[str, Any],
+    result: RunResult,
+) -> float | None:
+    """Write a finished run's records in its folder: its settings, then its result.
+
+    Args:
+        out: The test-phase folder.
+        task: The comparison's task.
+        agent: The run's agent.
+        seed: Its seed.
+        expected: The agent's :func:`run_settings` (its seed is replaced by ``seed``).
+        result: What the run produced.
+
+    Returns:
+        The published run's final return, kept in place of this run's (see
+        :func:`~ermrl.experiments._results.keep_published_record`), or ``None``.
+    """
+    extra = {
+        "env_id": task.env_id,
+        "observe": agent.task(task).observe,  # what this agent saw
+        "reservoirs": None if agent.reservoirs is None else to_dict(agent.reservoirs),
+    }
+    folder = run_dir(out, agent.name, seed)
+    # The settings record first: result.json, written last, marks the run as finished.
+    stored = {**expected, "seed": seed}
+    write_atomic(folder / RUN_SETTINGS_FILE, json.dumps(stored, indent=1) + "\n")
+    write_run(folder, agent.name, result, extra)
+    return keep_published_record(folder)
+
+
+def _train_runs(jobs: list[_Job], n_procs: int, finished: _Finished) -> None:
+    """Train ``jobs`` one after the other, or in a pool of ``n_procs`` processes, and hand each
+    run to ``finished`` as it ends.
+
+    On an error or an interrupt, the pool's runs not started are cancelled and its processes
+    terminated before the error is raised.
+    """
+    if n_procs == 1 or len(jobs) <= 1:
         for agent, seed, args in jobs:
             finished(agent, seed, _train_job(args))
-    else:
-        with training_pool(pool_size(len(jobs), settings.n_procs)) as pool:
-            pending: dict[Future[RunResult], tuple[AgentSpec, int]] = {
-                pool.submit(_train_job, args): (agent, seed) for agent, seed, args in jobs
-            }
-            try:
-                while pending:
-                    ready, _ = wait(pending, return_when=FIRST_COMPLETED)
-                    for future in ready:
-                        agent, seed = pending.pop(future)
-                        finished(agent, seed, future.result())
-            except BaseException:
-                for future in pending:
-                    future.cancel()
-                for proc in list(getattr(pool, "_processes", {}).values()):
-                    proc.terminate()
-                raise
-
-    return aggregate(out, [a.name for a in agents], title=task.label)
+        return
+    with training_pool(pool_size(len(jobs), n_procs)) as pool:
+        pending: dict[Future[RunResult], tuple[AgentSpec, int]] = {
+            pool.submit(_train_job, args): (agent, seed) for agent, seed, args in jobs
+        }
+        try:
+            while pending:
+                ready, _ = wait(pending, return_when=FIRST_COMPLETED)
+                for future in ready:
+                    agent, seed = pending.pop(future)
+                    finished(agent, seed, future.result())
+        except BaseException:
+            for future in pending:
+                future.cancel()
+            for proc in list(getattr(pool, "_processes", {}).values()):
+                proc.terminate()
+            raise
 
 
 # The population runs' checkpoints, inside a test phase's output folder.
@@ -866,10 +991,10 @@ _RECORD_FILES = frozenset({RUN_SETTINGS_FILE, "episodes.csv", "result.json", REP
 
 
 def _twin_runs(
-    jobs: list[tuple[AgentSpec, int, tuple[Any, ...]]],
+    jobs: list[_Job],
     expected: Mapping[str, Mapping[str, Any]],
     settings: TestSettings,
-) -> tuple[list[tuple[AgentSpec, int, tuple[Any, ...]]], dict[tuple[str, int], list[AgentSpec]]]:
+) -> tuple[list[_Job], dict[tuple[str, int], list[AgentSpec]]]:
     """The runs to train, and the runs that would repeat one of them exactly.
 
     Two agents whose runs differ by their name only (``res-ppo`` when the selection chose the
@@ -889,7 +1014,7 @@ def _twin_runs(
         return json.dumps({**doc, "seed": seed}, sort_keys=True)
 
     first: dict[str, tuple[str, int]] = {}
-    kept: list[tuple[AgentSpec, int, tuple[Any, ...]]] = []
+    kept: list[_Job] = []
     twins: dict[tuple[str, int], list[AgentSpec]] = {}
     for agent, seed, args in jobs:
         k = key(agent, seed)
@@ -911,14 +1036,14 @@ def _population_key(args: tuple[Any, ...]) -> str:
 
 
 def _train_populations(
-    jobs: list[tuple[AgentSpec, int, tuple[Any, ...]]],
+    jobs: list[_Job],
     budget: BudgetConfig,
     settings: TestSettings,
-    finished: Any,
+    finished: _Finished,
     stream: TextIO | None,
     quiet: bool,
     phase: dict[str, Any],
-) -> list[tuple[AgentSpec, int, tuple[Any, ...]]]:
+) -> list[_Job]:
     """Train the runs whose settings ask for the population backend, one population per group
     of runs that can share one (an agent's seeds, and agents alike: res-ppo and random-res-ppo
     train together); returns the other runs. A run that diverged is raised once the others of
@@ -930,7 +1055,7 @@ def _train_populations(
     if checkpoints is not None and settings.overwrite:
         shutil.rmtree(checkpoints, ignore_errors=True)  # retrain from the start
 
-    groups: dict[str, list[tuple[AgentSpec, int, tuple[Any, ...]]]] = {}
+    groups: dict[str, list[_Job]] = {}
     rest = []
     for job in jobs:
         if job[2][2].backend == "population":
