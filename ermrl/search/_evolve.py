@@ -204,31 +204,82 @@ def run_evolution(
         KeyboardInterrupt: Ctrl-C (the running trial was closed).
     """
     out = stream or sys.stdout
-    problem = config.problem
-    storage = study._storage
-    heartbeats = is_heartbeat_enabled(storage)
-    # Waiting for other workers' trials at the end: a claim is cheap, so poll at 0.5 s first (a
-    # trial about to end is seen at once) and back off to at most `poll` for long waits.
-    interval = 1.0
-    if heartbeats and isinstance(storage, BaseHeartbeat):  # always one when heartbeats is True
-        interval = float(storage.get_heartbeat_interval() or 1)
-    retry = retry_policy(study)
-    popsize = cma_popsize(config)
-    warned_popsize = False
+    say = _printer(quiet, out)
+    heartbeats, poll = _heartbeat_poll(study)
+    retry = retry_policy(study) if requeue_interrupted else None
+    popsize = _warn_expected_workers(config, n_workers)  # None once warned
+    todo = _queue_pending(config, study, queued_only, say)
+    guard = SignalGuard()
+    generation, evaluate_generation = _generation_fitness(config, evaluate_generation, quiet, out)
+    runner = SeedRunner(
+        config.n_procs, progress="none" if quiet else progress, stream=out, tensorboard=tensorboard
+    )
+    with runner, guard.installed():
+        worker = _Worker(
+            config, study, runner, guard, say, heartbeats=heartbeats, poll=poll, retry=retry,
+            popsize=popsize, evaluate=evaluate, evaluate_generation=evaluate_generation,
+            wait_for_running=wait_for_running, queued_only=queued_only, callbacks=callbacks,
+        )  # fmt: skip
+        worker.run(generation, announce=todo)
+    worker.summary.best_value, _, worker.summary.best_params = best_trial(study)
+    return worker.summary
+
+
+def _printer(quiet: bool, out: TextIO) -> Callable[[str], None]:
+    """A progress line printer: ``say(line)`` prints to ``out`` (nothing when ``quiet``)."""
 
     def say(line: str) -> None:
         if not quiet:
             print(line, file=out, flush=True)
 
+    return say
+
+
+def _heartbeat_poll(study: optuna.Study) -> tuple[bool, float]:
+    """Whether the study's storage takes heartbeats, and the longest pause between claims.
+
+    Waiting for other workers' trials at the end: a claim is cheap, so a worker polls at 0.5 s
+    first (a trial about to end is seen at once) and backs off to at most half the heartbeat
+    interval (0.5 to 5 s) for long waits.
+    """
+    storage = study._storage
+    heartbeats = is_heartbeat_enabled(storage)
+    interval = 1.0
+    if heartbeats and isinstance(storage, BaseHeartbeat):  # always one when heartbeats is True
+        interval = float(storage.get_heartbeat_interval() or 1)
+    return heartbeats, min(max(interval / 2, 0.5), 5.0)
+
+
+def _warn_expected_workers(config: EvolveConfig, n_workers: int | None) -> int | None:
+    """Warn when more workers are expected than the CMA-ES population size.
+
+    Args:
+        config: The run's configuration.
+        n_workers: Workers expected (default: ``SLURM_ARRAY_TASK_COUNT`` when set).
+
+    Returns:
+        The population size the worker still warns about when too many trials run at once
+        (``None``: warned here already, or not CMA-ES).
+    """
+    popsize = cma_popsize(config)
     expected = n_workers or int(os.environ.get("SLURM_ARRAY_TASK_COUNT", "0") or 0)
     if popsize is not None and expected > popsize:
         warnings.warn(
             _popsize_message(popsize, expected, "this study expects up to"),
             PopulationWarning,
-            stacklevel=2,
+            stacklevel=3,  # run_evolution's caller
         )
-        warned_popsize = True
+        return None
+    return popsize
 
+
+def _queue_pending(
+    config: EvolveConfig, study: optuna.Study, queued_only: bool, say: Callable[[str], None]
+) -> bool:
+    """Queue again a reference trial every run cut short; ``True`` when trials are left to run.
+
+    Says so when the study already holds its budget and nothing is queued.
+    """
     n_trials = config.search.n_trials
     done_before = n_counted(study)
     queued = len(study.get_trials(deepcopy=False, states=(TrialState.WAITING,)))
@@ -241,56 +292,41 @@ def run_evolution(
         say(
             f"study {study.study_name!r} already has {done_before}/{n_trials} trials: nothing to do"
         )
-    guard = SignalGuard()
+    return done_before < n_trials or bool(queued)
 
-    generation: int | None = None
-    if problem.ppo.backend == "population":
-        generation = generation_size(config)
-        if evaluate_generation is None:
-            if config.generalization is not None:
-                evaluate_generation = generalization_generation(config, quiet=quiet, stream=out)
-            else:
 
-                def evaluate_generation(
-                    encoders: Sequence[EncoderConfig], runner: SeedRunner
-                ) -> list[FitnessResult | BaseException]:
-                    return evaluate_encoders(encoders, problem, runner=runner)
+def _generation_fitness(
+    config: EvolveConfig,
+    evaluate_generation: EvaluateGenerationFn | None,
+    quiet: bool,
+    out: TextIO,
+) -> tuple[int | None, EvaluateGenerationFn | None]:
+    """The generation size and a generation's fitness with the population backend.
 
-    with (
-        SeedRunner(
-            config.n_procs,
-            progress="none" if quiet else progress,
-            stream=out,
-            tensorboard=tensorboard,
-        ) as runner,
-        guard.installed(),
-    ):
-        worker = _Worker(
-            config,
-            study,
-            runner,
-            guard,
-            say,
-            heartbeats=heartbeats,
-            poll=min(max(interval / 2, 0.5), 5.0),
-            retry=retry if requeue_interrupted else None,
-            popsize=None if warned_popsize else popsize,
-            evaluate=evaluate,
-            evaluate_generation=evaluate_generation,
-            wait_for_running=wait_for_running,
-            queued_only=queued_only,
-            callbacks=callbacks,
-        )
-        if done_before < n_trials or queued:
-            _announce(config, runner, guard, say, generation)
-        while True:
-            guard.check()
-            go_on = worker.run_trial() if generation is None else worker.run_generation(generation)
-            if not go_on:
-                break
+    Args:
+        config: The run's configuration.
+        evaluate_generation: The caller's fitness of a generation (``None``: the problem's, or
+            the multi-task fitness of a generalization config).
+        quiet: No progress lines.
+        out: Where progress lines go.
 
-    worker.summary.best_value, _, worker.summary.best_params = best_trial(study)
-    return worker.summary
+    Returns:
+        ``(None, evaluate_generation)`` unchanged with another backend (trials one at a time).
+    """
+    if config.problem.ppo.backend != "population":
+        return None, evaluate_generation
+    generation = generation_size(config)
+    if evaluate_generation is None and config.generalization is not None:
+        evaluate_generation = generalization_generation(config, quiet=quiet, stream=out)
+    elif evaluate_generation is None:
+        problem = config.problem
+
+        def evaluate_generation(
+            encoders: Sequence[EncoderConfig], runner: SeedRunner
+        ) -> list[FitnessResult | BaseException]:
+            return evaluate_encoders(encoders, problem, runner=runner)
+
+    return generation, evaluate_generation
 
 
 def _announce(
@@ -332,7 +368,8 @@ class _Worker:
     :meth:`train_generation`), *recorded* in the study (:meth:`record`) and *finished*: counted
     and reported (:meth:`finish`). When the budget is reached while other workers' trials run,
     the worker *waits* for them (:meth:`wait`). :meth:`run_trial` and :meth:`run_generation`
-    chain the steps, with heartbeats on and signals deferred while the storage is written.
+    chain the steps, with heartbeats on and signals deferred while the storage is written, and
+    :meth:`run` repeats them until the worker stops.
 
     Args:
         config: The run's configuration.
@@ -392,6 +429,21 @@ class _Worker:
         self.pause = _FIRST_POLL  # before the next claim while waiting
         self.waiting_said = False
         self.failed_in_a_row = 0
+
+    def run(self, generation: int | None, announce: bool) -> None:
+        """Run trials (or whole generations of ``generation`` trials) until the worker stops.
+
+        Args:
+            generation: Trials trained together (population backend); ``None``: one at a time.
+            announce: First say how the trials will be trained (trials are left to run).
+        """
+        if announce:
+            _announce(self.config, self.runner, self.guard, self.say, generation)
+        while True:
+            self.guard.check()
+            go_on = self.run_trial() if generation is None else self.run_generation(generation)
+            if not go_on:
+                break
 
     def claim(self) -> Claim:
         """Claim a trial under the storage's lock (``claim.trial is None``: none left)."""
@@ -576,7 +628,7 @@ class _Worker:
             warnings.warn(
                 _popsize_message(self.popsize, claim.running, "trials running at once:"),
                 PopulationWarning,
-                stacklevel=3,  # run_evolution's caller
+                stacklevel=4,  # run_evolution's caller (through run())
             )
             self.popsize = None  # warned once
         self.summary.trials_run += 1
