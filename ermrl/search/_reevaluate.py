@@ -197,39 +197,18 @@ def record_reevaluation(
     pending = 0
     for number in candidates:
         mine = runs.get(number, [])
-        source = evolved.get(number)
-        row: dict[str, Any] = {
-            "trial": number,
-            "reference": bool(source is not None and source.user_attrs.get("reference")),
-            "params": dict(source.params) if source is not None else {},
-            "fitness": None,
-            "std": None,
-            "seed_values": [],
-            "evolution_fitness": None if source is None else source.value,
-            "reevaluation_trial": None,
-        }
+        row = _candidate_row(number, evolved.get(number))
         done = next(
             (t for t in mine if t.state == TrialState.COMPLETE and t.value is not None), None
         )
         if done is not None:
-            values = _seed_values(done)
-            row.update(
-                params=dict(done.params),
-                fitness=float(done.value),  # type: ignore[arg-type]
-                std=float(np.std(values, ddof=1)) if len(values) > 1 else None,
-                seed_values=values,
-                reevaluation_trial=done.number,
-            )
-            rows.append(row)
+            rows.append(_measured_row(row, done))
         elif _needs_run(mine) or any(
             t.state in (TrialState.RUNNING, TrialState.WAITING) for t in mine
         ):
             pending += 1
         else:
-            last = mine[-1]
-            reason = last.user_attrs.get("fail_reason") or last.state.name.lower()
-            row.update(failed=True, fail_reason=str(reason), reevaluation_trial=last.number)
-            failed.append(row)
+            failed.append(_failed_row(row, mine[-1]))
     rows.sort(key=lambda r: (-r["fitness"], r["trial"]))
     failed.sort(key=lambda r: r["trial"])
     doc = {
@@ -248,6 +227,40 @@ def record_reevaluation(
     }
     study.set_user_attr(REEVALUATION_ATTR, doc)
     return doc
+
+
+def _candidate_row(number: int, source: FrozenTrial | None) -> dict[str, Any]:
+    """A candidate's row of the ranking before its runs are read: what evolution measured."""
+    return {
+        "trial": number,
+        "reference": bool(source is not None and source.user_attrs.get("reference")),
+        "params": dict(source.params) if source is not None else {},
+        "fitness": None,
+        "std": None,
+        "seed_values": [],
+        "evolution_fitness": None if source is None else source.value,
+        "reevaluation_trial": None,
+    }
+
+
+def _measured_row(row: dict[str, Any], done: FrozenTrial) -> dict[str, Any]:
+    """``row`` filled in from the candidate's COMPLETE re-evaluation run ``done``."""
+    values = _seed_values(done)
+    row.update(
+        params=dict(done.params),
+        fitness=float(done.value),  # type: ignore[arg-type]
+        std=float(np.std(values, ddof=1)) if len(values) > 1 else None,
+        seed_values=values,
+        reevaluation_trial=done.number,
+    )
+    return row
+
+
+def _failed_row(row: dict[str, Any], last: FrozenTrial) -> dict[str, Any]:
+    """``row`` marked failed for good, with the reason of the candidate's ``last`` run."""
+    reason = last.user_attrs.get("fail_reason") or last.state.name.lower()
+    row.update(failed=True, fail_reason=str(reason), reevaluation_trial=last.number)
+    return row
 
 
 def evolve_and_reevaluate(
@@ -356,8 +369,6 @@ def reevaluate_study(
         is off, the study is not finished, or it has no COMPLETE trial.
     """
     from ermrl.search._evolve import run_evolution
-    from ermrl.search._progress import format_params
-    from ermrl.search._study import create_or_resume_study
 
     out = stream or sys.stdout
 
@@ -368,17 +379,77 @@ def reevaluate_study(
     k = config.search.reevaluate_top
     if k == 0:
         return None
-    finished, busy = _study_finished(study, config.search.n_trials)
+    candidates = _candidates_to_reevaluate(study, config.search.n_trials, k, say)
+    if not candidates:
+        return None
+    numbers = [t.number for t in candidates]
+    rconfig, rstudy = _queue_candidates(
+        config, study, storage_url, candidates,
+        heartbeat_interval=heartbeat_interval, grace_period=grace_period, max_retry=max_retry,
+    )  # fmt: skip
+    seeds = rconfig.problem.seeds
+    say(
+        f"re-evaluating {len(candidates)} candidates (trials {', '.join(map(str, numbers))}) on "
+        f"seeds {seeds[0]}..{seeds[-1]}, {rconfig.problem.budget.training_steps} steps each"
+    )
+    evaluate = evaluator_factory(rconfig) if evaluator_factory is not None else None
+    run_evolution(
+        rconfig, rstudy, quiet=quiet, stream=stream, evaluate=evaluate,
+        wait_for_running=wait_for_running, queued_only=True, progress=progress,
+    )  # fmt: skip
+    with study_lock(study):
+        doc = record_reevaluation(study, rstudy, rconfig, numbers, k)
+    _say_ranking(doc, say)
+    return doc
+
+
+def _candidates_to_reevaluate(
+    study: optuna.Study, n_trials: int, k: int, say: Callable[[str], None]
+) -> list[FrozenTrial]:
+    """The study's ``k`` best trials once it is finished; none (and why, said) before."""
+    finished, busy = _study_finished(study, n_trials)
     if not finished:
         say(
             f"re-evaluation waits for the study to finish ({busy} trial(s) running or queued); "
             "run this command again when they are done"
         )
-        return None
+        return []
     candidates = top_candidates(study, k)
     if not candidates:
         say("re-evaluation skipped: the study has no COMPLETE trial")
-        return None
+    return candidates
+
+
+def _queue_candidates(
+    config: EvolveConfig,
+    study: optuna.Study,
+    storage_url: str,
+    candidates: list[FrozenTrial],
+    *,
+    heartbeat_interval: int | None,
+    grace_period: int | None,
+    max_retry: int | None,
+) -> tuple[EvolveConfig, optuna.Study]:
+    """Open the re-evaluation study and queue the candidates that need a run.
+
+    A candidate is queued once; again only when a signal cut its last run short. Finished runs
+    of candidates still among the best are reused (a study that grew is re-ranked).
+
+    Args:
+        config: The evolution's configuration.
+        study: The evolution study.
+        storage_url: Its storage (the sibling study lives there too).
+        candidates: The trials to re-evaluate (:func:`top_candidates`).
+        heartbeat_interval: Heartbeats of the re-evaluation trials.
+        grace_period: Seconds without heartbeat before a run is failed and retried.
+        max_retry: Retries of a run whose worker died.
+
+    Returns:
+        The re-evaluation configuration (its ``n_trials``: every candidate it has run or will
+        run) and the re-evaluation study.
+    """
+    from ermrl.search._study import create_or_resume_study
+
     numbers = [t.number for t in candidates]
     rconfig = reevaluation_config(config, len(candidates))
     name = reevaluation_study_name(study.study_name)
@@ -392,8 +463,6 @@ def reevaluate_study(
         max_retry=max_retry,
     )
     with study_lock(rstudy):
-        # A candidate is queued once; again only when a signal cut its last run short. Finished
-        # runs of candidates still among the best are reused (a study that grew is re-ranked).
         runs = _candidate_runs(rstudy)
         for t in candidates:
             if _needs_run(runs.get(t.number, [])):
@@ -402,24 +471,13 @@ def reevaluate_study(
     rconfig = dataclasses.replace(
         rconfig, search=dataclasses.replace(rconfig.search, n_trials=n_total)
     )
-    seeds = rconfig.problem.seeds
-    say(
-        f"re-evaluating {len(candidates)} candidates (trials {', '.join(map(str, numbers))}) on "
-        f"seeds {seeds[0]}..{seeds[-1]}, {rconfig.problem.budget.training_steps} steps each"
-    )
-    evaluate = evaluator_factory(rconfig) if evaluator_factory is not None else None
-    run_evolution(
-        rconfig,
-        rstudy,
-        quiet=quiet,
-        stream=stream,
-        evaluate=evaluate,
-        wait_for_running=wait_for_running,
-        queued_only=True,
-        progress=progress,
-    )
-    with study_lock(study):
-        doc = record_reevaluation(study, rstudy, rconfig, numbers, k)
+    return rconfig, rstudy
+
+
+def _say_ranking(doc: dict[str, Any], say: Callable[[str], None]) -> None:
+    """Print a recorded ranking (:func:`record_reevaluation`) and whether it is complete."""
+    from ermrl.search._progress import format_params
+
     if doc["candidates"]:
         say("re-evaluated ranking (mean over fresh seeds; evolution fitness in brackets):")
         for row in doc["candidates"]:
@@ -440,7 +498,6 @@ def reevaluate_study(
             "other workers; the last of them to finish records the ranking (or run this command "
             "again once they are done)"
         )
-    return doc
 
 
 def stale_ranking(study: optuna.Study) -> str | None:
