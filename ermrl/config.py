@@ -555,6 +555,9 @@ class EvolveConfig:
         parts = [task.env_id, task.observe, f"{self.problem.budget.training_steps}steps"]
         if self.space.family != _reference_family():
             parts.append(self.space.family)
+        tag = getattr(self.space, "study_tag", "")  # a variant of its family (multi-timescale)
+        if tag:
+            parts.append(str(tag))
         if self.space.n_reservoirs > 1:
             parts.append(f"{self.space.n_reservoirs}res")
         return "__".join(parts)

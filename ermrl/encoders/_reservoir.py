@@ -4,6 +4,9 @@ The update rule is reservoirpy's ``Reservoir`` rule, applied to ``n_envs`` state
 
     x <- (1 - lr) * x + lr * tanh(W x + Win u + b)
 
+``lr`` is one leak rate for every unit, or one per unit: a multi-timescale reservoir
+(:attr:`ReservoirParams.lr_max`) spaces its units' leak rates log-uniformly between two bounds.
+
 A frozen layer of recurrent trace units (:class:`RTUParams`) is the linear case
 ``x <- W x + Win u`` with a block-rotation ``W`` (see :func:`rtu_weights`); the policy then sees
 ``tanh(x)``.
@@ -63,7 +66,8 @@ class ReservoirParams:
     Attributes:
         units: Number of reservoir neurons.
         sr: Spectral radius of the recurrent matrix ``W``.
-        lr: Leak rate in (0, 1]: ``x <- (1 - lr) x + lr tanh(W x + Win u + b)``.
+        lr: Leak rate in (0, 1]: ``x <- (1 - lr) x + lr tanh(W x + Win u + b)``; with
+            ``lr_max``, the smallest of the units' leak rates (``lr_min``).
         input_scaling: Scale of the input matrix ``Win`` (Bernoulli +-input_scaling entries).
         rc_connectivity: Density of ``W``.
         input_connectivity: Density of ``Win``.
@@ -82,6 +86,15 @@ class ReservoirParams:
             ``[e; u]``, two values per input, shown as it is: no weights, no tanh; ``units``,
             ``sr``, ``input_scaling`` and the connectivities are unused). Left out of
             :func:`to_dict` while ``"none"``.
+        lr_max: A multi-timescale reservoir: the largest of its units' leak rates, in
+            ``[lr, 1]``. Unit ``i`` of ``n`` leaks at
+            ``lr_i = lr * (lr_max / lr) ** (i / (n - 1))`` (:meth:`leak_rates`): log-uniformly
+            spaced from ``lr`` (unit 0) to ``lr_max`` (unit ``n - 1``), fixed by the two
+            bounds, not drawn, so the same settings give the same reservoir; each unit then
+            updates ``x_i <- (1 - lr_i) x_i + lr_i tanh(W x + Win u + b)_i``. The weights are
+            drawn as without it (the same seed gives the same ``W``, ``Win`` and bias).
+            ``None``: every unit leaks at ``lr``. Not with the ``"ema"`` ablation (one leak
+            rate). Left out of :func:`to_dict` while ``None``.
     """
 
     units: int = 100
@@ -93,8 +106,17 @@ class ReservoirParams:
     bias_scaling: float = 0.0
     bias_init: BiasInit = field(default="none", metadata={"omit_if_default": True})
     ablation: Ablation = field(default="none", metadata={"omit_if_default": True})
+    lr_max: float | None = field(default=None, metadata={"omit_if_default": True})
 
     family: ClassVar[str] = "esn"
+
+    def leak_rates(self) -> np.ndarray:
+        """Every unit's leak rate, shape ``(units,)``: ``lr`` for all, or with ``lr_max``
+        ``lr_i = lr * (lr_max / lr) ** (i / (units - 1))`` (one unit: ``lr``)."""
+        if self.lr_max is None or self.units == 1:
+            return np.full(self.units, float(self.lr))
+        steps = np.arange(self.units) / (self.units - 1)
+        return float(self.lr) * (float(self.lr_max) / float(self.lr)) ** steps
 
     @property
     def state_dim(self) -> int:
@@ -117,6 +139,17 @@ class ReservoirParams:
             raise ConfigError(f"spectral radius sr must be positive, got {self.sr}")
         if not (0 < self.lr <= 1):
             raise ConfigError(f"leak rate lr must be in (0, 1], got {self.lr}")
+        if self.lr_max is not None:
+            if not (self.lr <= self.lr_max <= 1):
+                raise ConfigError(
+                    f"the largest leak rate lr_max must be in [lr = {self.lr}, 1], "
+                    f"got {self.lr_max}"
+                )
+            if self.ablation == "ema":
+                raise ConfigError(
+                    "the 'ema' ablation averages at one leak rate; a multi-timescale reservoir "
+                    f"(lr {self.lr} to lr_max {self.lr_max}) has one per unit"
+                )
         if not (self.input_scaling > 0 and math.isfinite(self.input_scaling)):
             raise ConfigError(f"input_scaling must be positive, got {self.input_scaling}")
         for name in ("rc_connectivity", "input_connectivity"):
@@ -186,7 +219,7 @@ class ReservoirWeights:
         W: Recurrent matrix, shape ``(units, units)``.
         Win: Input matrix, shape ``(units, input_dim)``.
         bias: Bias vector, shape ``(units,)``.
-        lr: Leak rate.
+        lr: Leak rate: one for every unit, or one per unit, shape ``(units,)``.
         linear: The update is ``x <- W x + Win u`` (no tanh, no leak; an RTU layer) and the
             policy sees ``tanh(x)``.
         raw: With ``linear``, the policy sees the whole state as it is, without tanh (an
@@ -196,7 +229,7 @@ class ReservoirWeights:
     W: np.ndarray
     Win: np.ndarray
     bias: np.ndarray
-    lr: float
+    lr: float | np.ndarray
     linear: bool = False
     raw: bool = False
 
@@ -226,6 +259,8 @@ def reservoir_node(params: ReservoirParams, input_dim: int, seed: int) -> Reserv
     initializer itself wins over the one 0.4 passes). reservoirpy spawns independent generators
     for ``Win``, ``W`` and the bias from ``seed``, so the same seed gives the same ``W`` and bias
     for any ``input_dim`` (this is what "the same reservoir on another task" means in ermrl).
+    A multi-timescale reservoir's node gets its units' leak rates (reservoirpy takes one per
+    unit: :meth:`ReservoirParams.leak_rates`).
     """
     # reservoirpy (and scipy.stats under it) is imported here, not with this module: the CLI,
     # the configuration and a plan read this module without building a reservoir.
@@ -240,7 +275,7 @@ def reservoir_node(params: ReservoirParams, input_dim: int, seed: int) -> Reserv
     node = Reservoir(
         units=params.units,
         sr=params.sr,
-        lr=params.lr,
+        lr=params.lr if params.lr_max is None else params.leak_rates(),
         input_scaling=params.input_scaling,
         rc_connectivity=params.rc_connectivity,
         input_connectivity=params.input_connectivity,
@@ -261,7 +296,8 @@ def reservoir_weights(params: ReservoirParams, input_dim: int, seed: int) -> Res
         seed: Seed of the weights.
 
     Returns:
-        Dense float64 weights. An ablation (:attr:`ReservoirParams.ablation`): ``"leaky"``,
+        Dense float64 weights, with one leak rate per unit for a multi-timescale reservoir
+        (:meth:`ReservoirParams.leak_rates`). An ablation (:attr:`ReservoirParams.ablation`): ``"leaky"``,
         the same weights with ``W`` zero; ``"ema"``, the linear update of ``x = [e; u]``,
         ``e <- (1 - lr) e + lr u`` next to the current input ``u`` (``W = diag((1 - lr) I, 0)``,
         ``Win = [lr I; I]``, no bias), shown raw.
@@ -285,7 +321,8 @@ def reservoir_weights(params: ReservoirParams, input_dim: int, seed: int) -> Res
     W = _dense(node.W)
     if params.ablation == "leaky":
         W = np.zeros_like(W)
-    return ReservoirWeights(W=W, Win=_dense(node.Win), bias=bias, lr=float(params.lr))
+    lr = float(params.lr) if params.lr_max is None else params.leak_rates()
+    return ReservoirWeights(W=W, Win=_dense(node.Win), bias=bias, lr=lr)
 
 
 def rtu_weights(params: RTUParams, input_dim: int, seed: int) -> ReservoirWeights:
@@ -465,7 +502,8 @@ class ReservoirBank(StepBank):
     """Several reservoirs fused into one batched leaky-ESN update.
 
     The fused system has ``N = sum(units)`` units: ``W`` is block-diagonal, the input matrices
-    are stacked and the leak rate is a per-unit vector. Recurrent and input weights are stacked
+    are stacked and the leak rate is a per-unit vector (each reservoir's one rate repeated, or
+    its own per-unit rates). Recurrent and input weights are stacked
     into one matrix ``M = [W.T; Win.T]`` of shape ``(N + input_dim, N)``, so a step is a single
     matrix product of the buffer ``[x | u]`` (shape ``(n, N + input_dim)``) with ``M``.
 
@@ -507,7 +545,9 @@ class ReservoirBank(StepBank):
         # Row-vector convention: [x | u] (n, N + D) @ M (N + D, N) = x W.T + u Win.T.
         self.M = np.ascontiguousarray(np.vstack([W.T, Win.T]), dtype=self.dtype)
         self.bias = np.concatenate([w.bias for w in weights]).astype(self.dtype)
-        self.leak = np.concatenate([np.full(w.units, w.lr) for w in weights]).astype(self.dtype)
+        self.leak = np.concatenate(
+            [np.broadcast_to(np.asarray(w.lr, np.float64), (w.units,)) for w in weights]
+        ).astype(self.dtype)
         self.keep = (1.0 - self.leak).astype(self.dtype)
         self._has_bias = bool(np.any(self.bias))
 

@@ -1,7 +1,8 @@
 """``reservoir``: echo state networks built with reservoirpy, frozen, wrapping the env.
 
 The reference encoder, in one module: its search space (:class:`ReservoirSpace`: spectral
-radius, leak rate and input scaling per reservoir, log scale), its ``ermrl evolve`` flags
+radius, leak rate and input scaling per reservoir, log scale; or, for multi-timescale reservoirs
+(``--multiscale``), a band of leak rates in place of the one leak rate), its ``ermrl evolve`` flags
 (:data:`CLI_FLAGS`), its test-phase agents (:data:`AGENTS`) and the encoder itself
 (:class:`ReservoirEncoder`). One reservoir's settings (:class:`~ermrl.encoders.ReservoirParams`,
 reservoirpy's defaults: the unevolved reference) live with the weights they build, in
@@ -11,6 +12,7 @@ that steps them.
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import functools
 from collections.abc import Hashable, Mapping
@@ -18,7 +20,7 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 from ermrl._config_base import MAX_UNITS, AgentKind, ConfigError, Range, _check_units
-from ermrl.encoders._base import Encoder
+from ermrl.encoders._base import Encoder, flag_dest
 from ermrl.encoders._reservoir import (
     BIAS_INITS,
     Ablation,
@@ -42,6 +44,15 @@ class ReservoirSpace(PerReservoirSpace):
     independent sampling. With one reservoir the parameters are named ``sr``, ``lr`` and
     ``input_scaling``; with several, ``sr_0``, ``lr_0``, ``input_scaling_0``, ``sr_1``, ...
 
+    With ``multiscale``, each reservoir is a multi-timescale one
+    (:attr:`~ermrl.encoders.ReservoirParams.lr_max`: its units' leak rates spaced log-uniformly
+    from ``lr_min`` to ``lr_max``) and the genes ``lr_max`` and ``lr_min_ratio`` replace ``lr``:
+    ``lr_min = lr_min_ratio * lr_max``, which keeps ``lr_min <= lr_max`` everywhere in the box
+    that CMA-ES needs (with the default ranges ``lr_min`` reaches down to 1e-6). The genes are
+    then ``sr``, ``lr_max``, ``lr_min_ratio`` and ``input_scaling`` (when evolved). The
+    reference is still reservoirpy's defaults: ``lr_max = lr_min_ratio = 1``, every unit at
+    leak rate 1, the plain echo state network.
+
     Attributes:
         n_reservoirs: Reservoirs per agent, each with its own hyperparameters and weights.
         units: Fixed number of units per reservoir.
@@ -53,6 +64,11 @@ class ReservoirSpace(PerReservoirSpace):
         input_connectivity: Fixed input connectivity.
         bias_scaling: Fixed bias scaling.
         bias_init: Fixed bias initialization (:attr:`ReservoirParams.bias_init`).
+        multiscale: Evolve multi-timescale reservoirs (genes ``lr_max`` and ``lr_min_ratio``
+            in place of ``lr``, whose range is then unused). Left out of stored spaces while
+            off, as are the two ranges below at their defaults.
+        lr_max: Range of the largest leak rate (within (0, 1]), with ``multiscale``.
+        lr_min_ratio: Range of ``lr_min / lr_max`` (within (0, 1]), with ``multiscale``.
     """
 
     n_reservoirs: int = 1
@@ -65,6 +81,9 @@ class ReservoirSpace(PerReservoirSpace):
     input_connectivity: float = 0.1
     bias_scaling: float = 0.0
     bias_init: BiasInit = field(default="none", metadata={"omit_if_default": True})
+    multiscale: bool = field(default=False, metadata={"omit_if_default": True})
+    lr_max: Range = field(default=Range(1e-3, 1.0), metadata={"omit_if_default": True})
+    lr_min_ratio: Range = field(default=Range(1e-3, 1.0), metadata={"omit_if_default": True})
 
     family: ClassVar[str] = "esn"
 
@@ -79,6 +98,12 @@ class ReservoirSpace(PerReservoirSpace):
             )
         if self.lr.high > 1:
             raise ConfigError(f"the leak-rate range must stay within (0, 1], got {self.lr.high}")
+        for name in ("lr_max", "lr_min_ratio"):
+            band: Range = getattr(self, name)
+            if not (0 < band.low and band.high <= 1):
+                raise ConfigError(
+                    f"the {name} range must stay within (0, 1], got [{band.low}, {band.high}]"
+                )
         # Fail early on a bad fixed value.
         ReservoirParams(
             units=self.units,
@@ -89,26 +114,43 @@ class ReservoirSpace(PerReservoirSpace):
             bias_init=self.bias_init,
         )
 
+    @property
+    def study_tag(self) -> str:
+        """What a study's default name adds for this space: ``"multiscale"``, or nothing."""
+        return "multiscale" if self.multiscale else ""
+
     def _per_reservoir(self) -> dict[str, Range]:
-        per: dict[str, Range] = {"sr": self.sr, "lr": self.lr}
+        per: dict[str, Range] = {"sr": self.sr}
+        if self.multiscale:
+            per |= {"lr_max": self.lr_max, "lr_min_ratio": self.lr_min_ratio}
+        else:
+            per["lr"] = self.lr
         if self.input_scaling is not None:
             per["input_scaling"] = self.input_scaling
         return per
 
     def _reference_values(self) -> dict[str, float]:
         one = self.default_reservoirs()[0]
-        return {name: float(getattr(one, name)) for name in self.evolved}
+        lr_max = one.lr if one.lr_max is None else one.lr_max
+        values = {"sr": one.sr, "lr": one.lr, "input_scaling": one.input_scaling}
+        values |= {"lr_max": lr_max, "lr_min_ratio": one.lr / lr_max}
+        return {name: float(values[name]) for name in self.evolved}
 
     def _reservoir(self, values: Mapping[str, float]) -> ReservoirParams:
+        if self.multiscale:  # lr_min = lr_min_ratio * lr_max <= lr_max, the ratio being <= 1
+            lr, lr_max = values["lr_min_ratio"] * values["lr_max"], values["lr_max"]
+        else:
+            lr, lr_max = values["lr"], None
         return ReservoirParams(
             units=self.units,
             sr=values["sr"],
-            lr=values["lr"],
+            lr=lr,
             input_scaling=values.get("input_scaling", self.fixed_input_scaling),
             rc_connectivity=self.rc_connectivity,
             input_connectivity=self.input_connectivity,
             bias_scaling=self.bias_scaling,
             bias_init=self.bias_init,
+            lr_max=lr_max,
         )
 
     def reservoirs_from(self, params: Mapping[str, float]) -> tuple[ReservoirParams, ...]:
@@ -120,7 +162,8 @@ class ReservoirSpace(PerReservoirSpace):
         return tuple(self._reservoir(self._values(params, k)) for k in range(self.n_reservoirs))
 
     def default_reservoirs(self) -> tuple[ReservoirParams, ...]:
-        """Unevolved reservoirs (reservoirpy defaults for sr, lr and input scaling)."""
+        """Unevolved reservoirs (reservoirpy defaults for sr, lr and input scaling; with
+        ``multiscale``, ``lr = lr_max = 1``: the same plain echo state network)."""
         one = ReservoirParams(
             units=self.units,
             input_scaling=self.fixed_input_scaling if self.input_scaling is None else 1.0,
@@ -128,6 +171,7 @@ class ReservoirSpace(PerReservoirSpace):
             input_connectivity=self.input_connectivity,
             bias_scaling=self.bias_scaling,
             bias_init=self.bias_init,
+            lr_max=1.0 if self.multiscale else None,
         )
         return (one,) * self.n_reservoirs
 
@@ -155,7 +199,29 @@ CLI_FLAGS: tuple[dict[str, Any], ...] = (
         "help": "--encoder reservoir: units per reservoir, fixed (default 100)",
     },
     _log_range_flag("sr", (1e-4, 1e2), "spectral radius range (log scale)"),
-    _log_range_flag("lr", (1e-2, 1.0), "leak rate range (log scale, within (0, 1])"),
+    _log_range_flag(
+        "lr", (1e-2, 1.0), "leak rate range (log scale, within (0, 1]; not with --multiscale)"
+    ),
+    {
+        "flags": ("--multiscale",),
+        "action": argparse.BooleanOptionalAction,
+        "default": False,
+        "space_field": "multiscale",
+        "help": "--encoder reservoir: multi-timescale reservoirs: each unit its own leak rate, "
+        "spaced log-uniformly from lr_min (the first unit) to lr_max (the last); evolves "
+        "lr_max and lr_min_ratio = lr_min / lr_max in place of lr (reference: both 1, the "
+        "plain echo state network)",
+    },
+    _log_range_flag(
+        "lr_max",
+        (1e-3, 1.0),
+        "--multiscale: range of the largest leak rate (log scale, within (0, 1])",
+    ),
+    _log_range_flag(
+        "lr_min_ratio",
+        (1e-3, 1.0),
+        "--multiscale: range of lr_min / lr_max (log scale, within (0, 1])",
+    ),
     {
         "flags": ("--rc-connectivity",),
         "type": "positive_float",
@@ -210,7 +276,7 @@ AGENTS: dict[str, AgentKind] = {
     "leaky-res-ppo": AgentKind(
         "evolved", None,
         "the study's learner on the selected reservoir(s) without recurrent weights (W = 0; the "
-        "same input weights, bias and leak rate): a leaky integrator of a random projection",
+        "same input weights, bias and leak rate(s)): a leaky integrator of a random projection",
         None, "RES-PPO (evolved, W = 0)", "RES-PPO\n(W = 0)", "goldenrod", default=False,
         family="esn", derive=_ablated("leaky"),
     ),
@@ -250,8 +316,8 @@ class ReservoirEncoder(Encoder):
 
     name = "reservoir"
     description = (
-        "echo state networks initialized by reservoirpy (evolved sr, lr, input_scaling); "
-        "frozen, wraps the env"
+        "echo state networks initialized by reservoirpy (evolved sr, lr, input_scaling; with "
+        "--multiscale, a log-uniform band of leak rates lr_min..lr_max); frozen, wraps the env"
     )
     place = "env"
     family = "esn"
@@ -270,6 +336,29 @@ class ReservoirEncoder(Encoder):
             for p, s in zip(config.reservoirs, reservoir_seeds(seed, config.n_reservoirs))
         ]
         return ReservoirBank(weights, dtype=config.dtype)
+
+    def space_from_args(self, args: argparse.Namespace) -> Any:
+        """The search space of the flags; the leak-rate flags of the other mode are refused.
+
+        Raises:
+            ConfigError: ``--lr-range`` with ``--multiscale``, ``--lr-max-range`` or
+                ``--lr-min-ratio-range`` without it, or a bad value.
+        """
+        space = super().space_from_args(args)
+        if isinstance(space, ReservoirSpace):
+            unused = ("lr",) if space.multiscale else ("lr_max", "lr_min_ratio")
+            for name in unused:
+                default = next(f for f in self.cli_flags if flag_dest(f) == f"{name}_range")
+                given = getattr(args, f"{name}_range", None)
+                if given is not None and list(given) != list(default["default"]):
+                    mode = "with" if space.multiscale else "without"
+                    raise ConfigError(f"{default['flags'][0]} is unused {mode} --multiscale")
+        return space
+
+    def describe(self, space: Any) -> str:
+        """``n x units units``, and ``multi-timescale`` with ``--multiscale``."""
+        text = super().describe(space)
+        return f"{text}, multi-timescale" if getattr(space, "multiscale", False) else text
 
     def wrap_env(self, venv: Any, config: EncoderConfig, seed: int) -> Any:
         from ermrl.encoders._vec_env import ReservoirVecEnv
