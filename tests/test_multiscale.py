@@ -384,3 +384,12 @@ def test_a_multiscale_study_is_evolved_and_tested_with_its_ablation(tmp_path: Pa
         assert (res["lr"], res["lr_max"], res.get("ablation")) == (low, high, ablation), agent
         result = json.loads((out / "agents" / agent / "seed_10" / "result.json").read_text())
         assert np.isfinite(result["final_return"])
+
+
+def test_report_labels_name_the_band_genes() -> None:
+    """Figures and tables of a multiscale study label its genes in words, per reservoir too."""
+    from ermrl.analysis import param_label
+
+    assert param_label("lr_max") == "Highest leak rate lr_max"
+    assert param_label("lr_min_ratio_1") == "Lowest / highest leak rate lr_min_ratio_1 (reservoir 1)"
+    assert param_label("lr_0") == "Leak rate lr_0 (reservoir 0)"

@@ -51,6 +51,8 @@ PARAM_LABELS = {
     "sr": "Spectral radius",
     "lr": "Leak rate",
     "input_scaling": "Input scaling",
+    "lr_max": "Highest leak rate",  # a multi-timescale reservoir's band (--multiscale)
+    "lr_min_ratio": "Lowest / highest leak rate",
 }
 TRIAL_STATES = ("COMPLETE", "PRUNED", "FAIL", "RUNNING", "WAITING")
 
