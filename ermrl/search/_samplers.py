@@ -403,22 +403,7 @@ class RestartCmaEsSampler(CmaEsSampler):
             search_space, transform_step=not self._with_margin, transform_0_1=True
         )
 
-        optimizer, state = self._restore_state(completed_trials)
-        if optimizer is None and state is not None:  # a pickled optimizer was left unread
-            optimizer = self._init_optimizer(
-                trans, study.direction, population_size=state.popsize or self._popsize
-            )
-            popsize = optimizer.population_size
-            state = replace(
-                state,
-                popsize=popsize,
-                popsize0=state.popsize0 or popsize,
-                large_popsize=state.large_popsize or popsize,
-            )
-        elif optimizer is None or state is None:
-            optimizer = self._init_optimizer(trans, study.direction, population_size=self._popsize)
-            state = _RestartState.initial(optimizer.population_size)
-
+        optimizer, state = self._current_run(completed_trials, trans, study.direction)
         if optimizer.dim != len(trans.bounds):
             # Not silent: the search space changed, CMA-ES cannot continue.
             _logger.warning(
@@ -430,28 +415,97 @@ class RestartCmaEsSampler(CmaEsSampler):
                 trial.number,
             )
             return {}
+        optimizer, state = self._tell_generation(
+            study, trial, completed_trials, optimizer, state, trans
+        )
+        return trans.untransform(self._ask(study, trial, optimizer, state))
 
+    def _current_run(
+        self,
+        completed_trials: list[FrozenTrial],
+        trans: _SearchSpaceTransform,
+        direction: StudyDirection,
+    ) -> tuple[CmaClass, _RestartState]:
+        """The optimizer and restart state of the current run: restored from the storage, or new.
+
+        Args:
+            completed_trials: The study's completed trials (:meth:`_get_trials`).
+            trans: Search-space transform.
+            direction: Study direction.
+
+        Returns:
+            The optimizer and its restart state (a new first run when none is stored; a new
+            optimizer at the stored population size when a pickled one was left unread).
+        """
+        optimizer, state = self._restore_state(completed_trials)
+        if optimizer is None and state is not None:  # a pickled optimizer was left unread
+            optimizer = self._init_optimizer(
+                trans, direction, population_size=state.popsize or self._popsize
+            )
+            popsize = optimizer.population_size
+            state = replace(
+                state,
+                popsize=popsize,
+                popsize0=state.popsize0 or popsize,
+                large_popsize=state.large_popsize or popsize,
+            )
+        elif optimizer is None or state is None:
+            optimizer = self._init_optimizer(trans, direction, population_size=self._popsize)
+            state = _RestartState.initial(optimizer.population_size)
+        return optimizer, state
+
+    def _tell_generation(
+        self,
+        study: optuna.Study,
+        trial: FrozenTrial,
+        completed_trials: list[FrozenTrial],
+        optimizer: CmaClass,
+        state: _RestartState,
+        trans: _SearchSpaceTransform,
+    ) -> tuple[CmaClass, _RestartState]:
+        """Tell the optimizer its generation once complete, restart it if it should stop, and
+        store the new state on ``trial``.
+
+        Args:
+            study: The study.
+            trial: The trial being sampled (the state is stored on it).
+            completed_trials: The study's completed trials.
+            optimizer: The current run's optimizer.
+            state: Its restart state.
+            trans: Search-space transform.
+
+        Returns:
+            The optimizer and restart state to ask (unchanged while the generation is not
+            complete).
+        """
         solution_trials = self._solution_trials(
             completed_trials, state.n_restarts, optimizer.generation
         )
-        if len(solution_trials) >= optimizer.population_size:
-            solutions: list[tuple[np.ndarray, float]] = []
-            for t in solution_trials[: optimizer.population_size]:
-                assert t.value is not None, "completed trials must have a value"
-                if isinstance(optimizer, cmaes.CMAwM) and "fixed_params" not in t.system_attrs:
-                    x = np.array(t.system_attrs["x_for_tell"])
-                else:  # plain CMA-ES, or a trial whose parameters were fixed (enqueued)
-                    x = trans.transform(t.params)
-                y = t.value if study.direction == StudyDirection.MINIMIZE else -t.value
-                solutions.append((x, y))
-            optimizer.tell(solutions)
+        if len(solution_trials) < optimizer.population_size:
+            return optimizer, state
+        solutions: list[tuple[np.ndarray, float]] = []
+        for t in solution_trials[: optimizer.population_size]:
+            assert t.value is not None, "completed trials must have a value"
+            if isinstance(optimizer, cmaes.CMAwM) and "fixed_params" not in t.system_attrs:
+                x = np.array(t.system_attrs["x_for_tell"])
+            else:  # plain CMA-ES, or a trial whose parameters were fixed (enqueued)
+                x = trans.transform(t.params)
+            y = t.value if study.direction == StudyDirection.MINIMIZE else -t.value
+            solutions.append((x, y))
+        optimizer.tell(solutions)
 
-            if self._restart_strategy != "none" and optimizer.should_stop():
-                rng = self._restart_rng(study, state.n_restarts + 1, solution_trials[0].number)
-                optimizer, state = self._restart(optimizer, state, trans, study.direction, rng)
+        if self._restart_strategy != "none" and optimizer.should_stop():
+            rng = self._restart_rng(study, state.n_restarts + 1, solution_trials[0].number)
+            optimizer, state = self._restart(optimizer, state, trans, study.direction, rng)
 
-            self._store_state(study, trial, optimizer, state)
+        self._store_state(study, trial, optimizer, state)
+        return optimizer, state
 
+    def _ask(
+        self, study: optuna.Study, trial: FrozenTrial, optimizer: CmaClass, state: _RestartState
+    ) -> np.ndarray:
+        """Ask a point for ``trial`` (internal representation) and record its run, generation,
+        population size and regime in the trial's system attributes."""
         # Reseed the optimizer for every trial, from the trial's own stream.
         optimizer._rng.seed(self._trial_rng_seed(trial))
         if isinstance(optimizer, cmaes.CMAwM):
@@ -471,8 +525,7 @@ class RestartCmaEsSampler(CmaEsSampler):
             trial._trial_id, self._attr_key_popsize, optimizer.population_size
         )
         storage.set_trial_system_attr(trial._trial_id, self._attr_key_regime, state.regime)
-
-        return trans.untransform(params)
+        return params
 
     def sample_independent(
         self,
@@ -740,6 +793,34 @@ class RestartCmaEsSampler(CmaEsSampler):
         """
         if rng is None:
             rng = np.random.RandomState(_derive_seed(-1 if self._seed is None else self._seed))
+        mean, sigma0, cov = self._start_point(trans, direction, randomize_start_point, rng)
+        sigma = max(sigma0 * sigma_factor, _EPS)
+        seed = int(rng.randint(1, 2**31 - 2))
+        return self._new_cma(trans, mean, sigma, cov, seed, population_size)
+
+    def _start_point(
+        self,
+        trans: _SearchSpaceTransform,
+        direction: StudyDirection,
+        randomize_start_point: bool,
+        rng: np.random.RandomState,
+    ) -> tuple[np.ndarray, float, np.ndarray | None]:
+        """The mean, step size and covariance a new run starts from.
+
+        In this order: a uniform draw within the bounds (restarts), a warm start from
+        ``source_trials``, ``x0`` (clipped to the bounds), or the centre of the box.
+
+        Args:
+            trans: Search-space transform (bounds are ``[0, 1]`` per dimension).
+            direction: Study direction (the sign of the warm start's values).
+            randomize_start_point: Draw the mean uniformly within the bounds.
+            rng: Generator of the drawn mean.
+
+        Returns:
+            ``(mean, sigma0, cov)``: the mean, shape ``(n_dimension,)``, the initial step size
+            (a sixth of the narrowest range unless ``sigma0`` was given) and the covariance
+            (``None`` unless warm started).
+        """
         lower_bounds = trans.bounds[:, 0]
         upper_bounds = trans.bounds[:, 1]
         n_dimension = len(trans.bounds)
@@ -769,10 +850,33 @@ class RestartCmaEsSampler(CmaEsSampler):
             mean = np.clip(trans.transform(self._x0), lower_bounds, upper_bounds)
         else:
             mean = lower_bounds + (upper_bounds - lower_bounds) / 2
+        return mean, sigma0, cov
 
-        sigma = max(sigma0 * sigma_factor, _EPS)
-        seed = int(rng.randint(1, 2**31 - 2))
+    def _new_cma(
+        self,
+        trans: _SearchSpaceTransform,
+        mean: np.ndarray,
+        sigma: float,
+        cov: np.ndarray | None,
+        seed: int,
+        population_size: int | None,
+    ) -> CmaClass:
+        """The ``cmaes`` optimizer the sampler's settings ask for: ``SepCMA``, ``CMAwM`` or
+        ``CMA``.
 
+        Args:
+            trans: Search-space transform (bounds and, for ``CMAwM``, the genes' steps).
+            mean: Start point, shape ``(n_dimension,)``.
+            sigma: Initial step size.
+            cov: Initial covariance, shape ``(n_dimension, n_dimension)`` (``None``: identity;
+                ``SepCMA`` takes none).
+            seed: The optimizer's seed.
+            population_size: Population size; ``None`` for the ``cmaes`` default.
+
+        Returns:
+            The new optimizer.
+        """
+        n_dimension = len(trans.bounds)
         # cmaes divides by the rank-mu learning rate, which is 0 for popsize < 4 (mu = 1); the
         # resulting inf is discarded by a min(), so the warning is noise.
         if self._use_separable_cma and n_dimension == 1:
@@ -780,7 +884,7 @@ class RestartCmaEsSampler(CmaEsSampler):
                 "Separable CMA-ES does not operate meaningfully on single-dimensional search "
                 "spaces. The setting `use_separable_cma=True` will be ignored.",
                 UserWarning,
-                stacklevel=2,
+                stacklevel=3,  # _init_optimizer's caller
             )
         with np.errstate(divide="ignore"):
             if self._use_separable_cma and n_dimension > 1:
@@ -793,20 +897,11 @@ class RestartCmaEsSampler(CmaEsSampler):
                     population_size=population_size,
                 )
             if self._with_margin:
-                steps = np.empty(n_dimension, dtype=float)
-                for i, dist in enumerate(trans._search_space.values()):
-                    assert isinstance(dist, (IntDistribution, FloatDistribution))
-                    if dist.step is None or dist.log:
-                        steps[i] = 0.0
-                    elif dist.low == dist.high:
-                        steps[i] = 1.0
-                    else:
-                        steps[i] = dist.step / (dist.high - dist.low)
                 return cmaes.CMAwM(
                     mean=mean,
                     sigma=sigma,
                     bounds=trans.bounds,
-                    steps=steps,
+                    steps=_margin_steps(trans),
                     cov=cov,
                     seed=seed,
                     n_max_resampling=10 * n_dimension,
@@ -822,6 +917,21 @@ class RestartCmaEsSampler(CmaEsSampler):
                 population_size=population_size,
                 lr_adapt=self._lr_adapt,
             )
+
+
+def _margin_steps(trans: _SearchSpaceTransform) -> np.ndarray:
+    """The step of each gene for ``cmaes.CMAwM``, as a share of its range, shape
+    ``(n_dimension,)``: 0 for a continuous or log-scale gene, 1 for a gene fixed to one value."""
+    steps = np.empty(len(trans.bounds), dtype=float)
+    for i, dist in enumerate(trans._search_space.values()):
+        assert isinstance(dist, (IntDistribution, FloatDistribution))
+        if dist.step is None or dist.log:
+            steps[i] = 0.0
+        elif dist.low == dist.high:
+            steps[i] = 1.0
+        else:
+            steps[i] = dist.step / (dist.high - dist.low)
+    return steps
 
 
 # ---------------------------------------------------------------------- plain-data optimizer state
