@@ -11,6 +11,8 @@ The report is built from the study storage and the test-phase folder alone::
       test/*.png, test/*.csv          learning curves, final returns, statistics
       generalization/*.png, *.csv     per-task normalized scores (generalization studies)
       dynamics/*.png, *.npz, *.json   an episode of res-ppo: states, spectra, dominant frequency
+      dynamics/mechanism*.csv         its input stream through the evolved, unevolved and W = 0
+                                      reservoirs: shares of power near the gait (the mechanism)
 """
 
 from __future__ import annotations
@@ -943,4 +945,77 @@ def _dynamics_section(state: _State, runs: Path) -> None:
         "its surroundings), so a decaying start-of-episode transient is not taken for an "
         "oscillation."
     )
+    if evolved == "res-ppo" and rec.states.shape[1] > 0:
+        _mechanism_section(state, runs, rec, doc)
     state.sections.append(doc)
+
+
+def _mechanism_section(state: _State, runs: Path, recording: Any, doc: _Doc) -> None:
+    """Oscillations at the gait or leaky integration: the recorded episode's input stream drives
+    the evolved, the unevolved and the W = 0 reservoirs (:mod:`ermrl.analysis._mechanism`), and
+    ``res-ppo − leaky-res-ppo`` is judged when both ran."""
+    from ermrl.analysis._mechanism import (
+        ABLATED,
+        MECHANISM_FILE,
+        MECHANISM_SPECTRA_FILE,
+        SpectralCriterion,
+        mechanism_figure,
+        mechanism_reservoirs,
+        mechanism_table,
+        mechanism_verdict,
+        report_rule,
+        reservoir_spectra,
+        spectral_outcome,
+        write_mechanism,
+    )
+    from ermrl.analysis._verdicts import TaskRuns, judge, load_test_runs
+
+    criterion = SpectralCriterion()
+    space = getattr(state.config, "space", None)
+    defaults = getattr(space, "default_reservoirs", None)
+    reference = tuple(defaults()) if callable(defaults) else ()
+    encoder, reservoirs = mechanism_reservoirs(runs, recording.seed, reference)
+    test_runs = load_test_runs(runs)
+    seeds = sorted(
+        {int(s) for s in test_runs.loc[test_runs["agent"] == "res-ppo", "seed"]} | {recording.seed}
+    )
+    measured = reservoir_spectra(recording, encoder, reservoirs, seeds, criterion=criterion)
+    paths = write_mechanism(measured, state.out / "dynamics")
+    state.tables["mechanism"] = paths["mechanism"]
+    state.tables["mechanism_spectra"] = paths["spectra"]
+    spectral = spectral_outcome(measured.table, criterion)
+    rule = report_rule()
+    tests = judge([TaskRuns("report", "task", test_runs)], {"report": rule})
+    primary = tests[tests["metric"] == rule.primary].to_dict("records")
+    verdict = mechanism_verdict(primary[0] if primary else None, spectral)
+    doc.h(3, "Mechanism: oscillations at the gait, or leaky integration?")
+    doc.p(
+        f"**Mechanism ({rule.primary}):** {verdict.headline}; {verdict.text}. Here the family "
+        f"of `res-ppo − {ABLATED}` is this one test; the reproduction page adjusts it over every "
+        "task of the question (Holm)."
+    )
+    error = measured.replay_error
+    replay = (
+        "exactly"
+        if error == 0
+        else f"to within {error:.2g}"
+        if math.isfinite(error)
+        else "(not checked: the recorded seed's weights were not rebuilt)"
+    )
+    doc.p(
+        f"The input stream of this episode (observation, previous action, previous reward) "
+        f"drives three reservoirs, each with the weights of the {len(seeds)} `res-ppo` test "
+        "seed(s): the evolved one, the unevolved reference and the evolved one with W = 0 "
+        f"(`{ABLATED}`'s). Criterion: {criterion.describe()}. Replayed on the recorded seed's "
+        f"weights, the evolved reservoir reproduces the states the policy saw {replay}. Per "
+        f"seed: `dynamics/{MECHANISM_FILE}`; mean spectra: `dynamics/{MECHANISM_SPECTRA_FILE}`."
+    )
+    table = mechanism_table(spectral)
+    if not table.empty:
+        doc.table(table)
+    rel = state.figure(
+        "mechanism_spectra",
+        mechanism_figure(measured.spectra, spectral),
+        "dynamics/mechanism_spectra.png",
+    )
+    doc.img(rel, "Spectra of the joint angles and of three reservoirs driven by one input stream")

@@ -30,17 +30,30 @@ from typing import Any
 import pandas as pd
 import yaml
 
+from ermrl.analysis._mechanism import (
+    ABLATED,
+    MECHANISM_FILE,
+    describe_mechanism,
+    mechanism_question,
+    mechanism_table,
+    mechanism_verdict,
+    read_mechanism,
+    spectral_outcome,
+)
 from ermrl.analysis._stats import FEW_SEEDS
 from ermrl.analysis._verdicts import (
     METRICS,
+    NOT_RUN,
     Question,
     TaskRuns,
     VerdictRule,
     aggregate_question,
-    combine_outcomes,
     excluded_effects,
     first_result_date,
     judge,
+    load_test_runs,
+    not_run,
+    task_outcome,
 )
 
 __all__ = [
@@ -88,39 +101,6 @@ class TaskResult:
     @property
     def reference_selected(self) -> bool:
         return bool(self.selection.get("reference"))
-
-
-def load_test_runs(test_folder: str | Path) -> pd.DataFrame:
-    """A test phase's finished runs with every verdict metric (:data:`METRICS`).
-
-    ``last100_return`` is read from each run's ``result.json``, or computed from its
-    ``episodes.csv`` for runs written before it was recorded (the same definition: the mean of
-    the last 100 training episodes).
-    """
-    from ermrl.analysis._results import (
-        EPISODES_FILE,
-        RUNS_DIR,
-        load_run_results,
-        read_episodes,
-    )
-
-    runs = load_run_results(test_folder)
-    if runs.empty:
-        return runs
-    for column in ("last100_return", "eval_return"):
-        if column not in runs:
-            runs[column] = math.nan
-    missing = runs["last100_return"].isna()
-    for i in runs.index[missing]:
-        agent, seed = runs.at[i, "agent"], int(runs.at[i, "seed"])
-        episodes = read_episodes(
-            Path(test_folder) / RUNS_DIR / agent / f"seed_{seed}" / EPISODES_FILE
-        )
-        values = pd.to_numeric(episodes["episode_return"], errors="coerce").dropna()
-        runs.at[i, "last100_return"] = float(values.tail(100).mean()) if len(values) else math.nan
-    runs["last100_return"] = runs["last100_return"].astype(float)
-    runs["eval_return"] = pd.to_numeric(runs["eval_return"], errors="coerce")
-    return runs
 
 
 def _snapshot_evolution(doc: dict[str, Any] | None, n_trials: int) -> dict[str, Any]:
@@ -445,7 +425,7 @@ def write_reproduction_page(
 def _counts(outcomes: Sequence[str]) -> str:
     parts = [
         f"{outcomes.count(o)} {o}"
-        for o in ("supported", "contradicted", "inconclusive")
+        for o in ("supported", "contradicted", "inconclusive", NOT_RUN)
         if outcomes.count(o)
     ]
     return ", ".join(parts) if parts else "–"
@@ -459,10 +439,7 @@ def _question_outcomes(
         & (tests["question"] == question.name)
         & (tests["metric"] == metric)
     ]
-    return {
-        str(task): combine_outcomes(list(group["outcome"]))
-        for task, group in rows.groupby("task", sort=False)
-    }
+    return {str(task): task_outcome(group) for task, group in rows.groupby("task", sort=False)}
 
 
 def _hypothesis_section(
@@ -525,10 +502,11 @@ def _questions_block(
             f"{m}: {_counts(list(_question_outcomes(tests, hyp.name, question, m).values()))}"
             for m in rule.metrics[1:]
         )
+        adopted = f"; added {question.adopted}" if question.adopted else ""
         items.append(
             f"**{question.text}** (`{question.name}`: "
             + ", ".join(f"`{c.label}`" for c in question.comparisons)
-            + f") — {rule.primary}: {per_task}; {_counts(list(primary.values()))} of "
+            + f"{adopted}) — {rule.primary}: {per_task}; {_counts(list(primary.values()))} of "
             f"{len(primary)} task(s). Other metrics: {others}."
         )
         glance.append(
@@ -542,6 +520,8 @@ def _questions_block(
                 },
             }
         )
+        if primary and all(o == NOT_RUN for o in primary.values()):
+            continue  # no aggregate of a question none of whose comparisons ran
         for metric in rule.metrics:
             for row in aggregate_question(
                 runs, question, metric, normalize, n_resamples=rule.n_resamples
@@ -570,6 +550,7 @@ def _questions_block(
                 )
     doc.h(3, f"{hyp.name}: sub-questions")
     doc.bullets(items)
+    _mechanism_summary(doc, hyp, rule, judged, tests)
     if aggregate_rows:
         doc.p(
             "Aggregates over the tasks (rliable's definitions; scores normalized as "
@@ -578,6 +559,79 @@ def _questions_block(
             "95% interval lies above 1/2, contradicted below):"
         )
         doc.table(pd.DataFrame(aggregate_rows))
+
+
+def _task_mechanism(hyp: Hypothesis, result: TaskResult, tests: pd.DataFrame) -> Any:
+    """``(verdict, spectral outcome)`` of a task whose rule asks the mechanism question, read
+    from its judged comparison and its published ``report/dynamics/mechanism.csv``; ``None``
+    without that question."""
+    question = mechanism_question(hyp.rule)
+    if question is None or hyp.rule is None:
+        return None
+    rows = tests[
+        (tests["hypothesis"] == hyp.name)
+        & (tests["task"] == result.label)
+        & (tests["question"] == question.name)
+        & (tests["metric"] == hyp.rule.primary)
+        & (tests["baseline"] == ABLATED)
+    ].to_dict("records")
+    spectral = spectral_outcome(read_mechanism(result.folder / "report" / "dynamics"))
+    return mechanism_verdict(rows[0] if rows else None, spectral), spectral
+
+
+def _mechanism_summary(
+    doc: Any, hyp: Hypothesis, rule: VerdictRule, judged: list[TaskResult], tests: pd.DataFrame
+) -> None:
+    question = mechanism_question(rule)
+    if question is None:
+        return
+    labels = []
+    for result in judged:
+        verdict, _ = _task_mechanism(hyp, result, tests)
+        labels.append(f"{result.label}: {verdict.headline}")
+    doc.p(
+        f"**Mechanism: oscillations at the gait, or leaky integration?** ({rule.primary}, per "
+        f"task, from `{question.name}` and the spectra) "
+        + ("; ".join(labels) or "no task tested yet")
+        + f". How it is decided: {describe_mechanism()}."
+    )
+
+
+def _mechanism_section(
+    doc: Any, hyp: Hypothesis, result: TaskResult, docs_dir: Path, tests: pd.DataFrame
+) -> None:
+    found = _task_mechanism(hyp, result, tests)
+    if found is None:
+        return
+    verdict, spectral = found
+    assert hyp.rule is not None
+    doc.h(4, f"{result.label}: mechanism")
+    doc.p(f"**Mechanism ({hyp.rule.primary}):** {verdict.headline}; {verdict.text}.")
+    folder = result.folder / "report" / "dynamics"
+    if spectral.summary.empty:
+        doc.p(
+            f"Spectra: not recorded yet (the published report has no "
+            f"`dynamics/{MECHANISM_FILE}`; `ermrl report` writes it from an episode of the "
+            "test phase's saved `res-ppo` models)."
+        )
+        return
+    where = _rel(folder / MECHANISM_FILE, docs_dir)
+    band = ", ".join(f"{v:.3g}" for v in spectral.band)
+    gait = (
+        f"gait {spectral.gait_frequency:.3g} {spectral.unit}, band [{band}]"
+        if math.isfinite(spectral.gait_frequency)
+        else "no gait"
+    )
+    counts = (
+        f"the criterion holds on {spectral.n_holding} of {spectral.n_seeds} weight seeds"
+        if spectral.holds is not None
+        else f"the criterion cannot be judged: {spectral.reason}"
+    )
+    doc.p(f"Spectra ({gait}; {counts}; per seed: [{where}]({where})):")
+    doc.table(mechanism_table(spectral))
+    figure = folder / "mechanism_spectra.png"
+    if figure.exists():
+        doc.img(_rel(figure, docs_dir), f"{result.label}: one input stream, three reservoirs")
 
 
 def _reservoir_text(selection: dict[str, Any]) -> str:
@@ -635,6 +689,8 @@ def _agents_table(runs: pd.DataFrame) -> pd.DataFrame:
 def _tests_table(rows: pd.DataFrame) -> pd.DataFrame:
     out = []
     for row in rows.to_dict("records"):
+        if not_run(row):  # the task's verdict line says "not run yet"
+            continue
         tested = not row["note"]
         out.append(
             {
@@ -720,7 +776,7 @@ def _task_section(
         for question in hyp.rule.questions:
             q = primary[primary["question"] == question.name]
             if not q.empty:
-                words.append(f"{question.name}: **{combine_outcomes(list(q['outcome']))}**")
+                words.append(f"{question.name}: **{task_outcome(q)}**")
         doc.p(f"**Verdicts ({hyp.rule.primary}).** " + "; ".join(words) + ".")
     doc.p(
         evolution_text
@@ -748,3 +804,4 @@ def _task_section(
             f"Test phase: {int(result.runs['env_steps'].sum()) / 1e6:.4g}M env steps, "
             f"{float(result.runs['wall_seconds'].sum()) / 3600:.2f} h of run wall time."
         )
+    _mechanism_section(doc, hyp, result, docs_dir, tests)

@@ -19,7 +19,9 @@ test's intervals exclude 0 exactly when Holm rejects it (Welch's interval and We
 the bootstrap must agree too).
 
 A question's outcome on a task combines its comparisons: *supported* when all are,
-*contradicted* when any is, *inconclusive* otherwise. Over a hypothesis's tasks, the page counts
+*contradicted* when any is, *inconclusive* otherwise; *not run yet* when an agent of every one
+of its comparisons has no finished run on the task (such a comparison is not tested and does not
+count in its family). Over a hypothesis's tasks, the page counts
 the outcomes and gives two aggregates with stratified bootstrap intervals (Agarwal et al. 2021,
 rliable's definitions): the interquartile mean of normalized scores of each agent, and the
 probability of improvement ``P(candidate > baseline)``.
@@ -48,6 +50,7 @@ from ermrl.analysis._stats import (
 
 __all__ = [
     "METRICS",
+    "NOT_RUN",
     "OUTCOMES",
     "Comparison",
     "Question",
@@ -56,8 +59,11 @@ __all__ = [
     "VerdictError",
     "aggregate_question",
     "combine_outcomes",
+    "not_run",
+    "task_outcome",
     "holm",
     "judge",
+    "load_test_runs",
     "probability_of_improvement",
     "seeds_for_power",
 ]
@@ -73,6 +79,8 @@ METRICS: dict[str, tuple[str, str]] = {
     "eval": ("eval_return", "mean return of 10 deterministic evaluation episodes after training"),
 }
 OUTCOMES = ("supported", "contradicted", "inconclusive")
+#: A question's status on a task none of whose comparisons could run (not an outcome).
+NOT_RUN = "not run yet"
 CORRECTIONS = ("holm", "none")
 #: Seeds searched by :func:`seeds_for_power` before it gives up.
 MAX_POWER_SEEDS = 10_000
@@ -112,11 +120,14 @@ class Question:
             together.
         text: The question in words.
         comparisons: What answers it on a task (all must be supported for a supported answer).
+        adopted: When this question was added to its rule (ISO date), when later than the rule
+            itself; ``None``: with the rule.
     """
 
     name: str
     text: str
     comparisons: tuple[Comparison, ...]
+    adopted: str | None = None
 
 
 @dataclass(frozen=True)
@@ -174,14 +185,7 @@ class VerdictRule:
         resamples = doc.get("resamples", 10_000)
         if not isinstance(resamples, int) or isinstance(resamples, bool) or resamples < 100:
             raise VerdictError(f"{where}.resamples: an integer >= 100 is needed, got {resamples!r}")
-        adopted = doc.get("adopted")
-        if adopted is not None:
-            try:
-                adopted = dt.date.fromisoformat(str(adopted)).isoformat()
-            except ValueError:
-                raise VerdictError(
-                    f"{where}.adopted: a date (YYYY-MM-DD), got {adopted!r}"
-                ) from None
+        adopted = _date(doc.get("adopted"), f"{where}.adopted")
         questions_doc = doc.get("questions")
         if not isinstance(questions_doc, Mapping) or not questions_doc:
             raise VerdictError(f"{where}.questions: name at least one question")
@@ -191,15 +195,24 @@ class VerdictRule:
             if not isinstance(q, Mapping):
                 raise VerdictError(f"{here}: a mapping with text and compare is needed")
             for key in q:
-                if key not in ("text", "compare"):
-                    raise VerdictError(f"{here}: unknown key {key!r} (known: compare, text)")
+                if key not in ("adopted", "text", "compare"):
+                    raise VerdictError(
+                        f"{here}: unknown key {key!r} (known: adopted, compare, text)"
+                    )
             compare = q.get("compare")
             if isinstance(compare, str):
                 compare = [compare]
             if not isinstance(compare, list) or not compare:
                 raise VerdictError(f"{here}.compare: list 'CANDIDATE - BASELINE' comparisons")
             comparisons = tuple(Comparison.parse(c, f"{here}.compare") for c in compare)
-            questions.append(Question(str(name), str(q.get("text") or name), comparisons))
+            questions.append(
+                Question(
+                    str(name),
+                    str(q.get("text") or name),
+                    comparisons,
+                    _date(q.get("adopted"), f"{here}.adopted"),
+                )
+            )
         return cls(
             tuple(questions),
             float(alpha),
@@ -234,6 +247,16 @@ class VerdictRule:
         )
 
 
+def _date(value: Any, where: str) -> str | None:
+    """An ``adopted:`` value as an ISO date (``None`` stays ``None``)."""
+    if value is None:
+        return None
+    try:
+        return dt.date.fromisoformat(str(value)).isoformat()
+    except ValueError:
+        raise VerdictError(f"{where}: a date (YYYY-MM-DD), got {value!r}") from None
+
+
 @dataclass
 class TaskRuns:
     """One task's per-seed results, as a verdict reads them.
@@ -261,6 +284,10 @@ def _values(runs: pd.DataFrame, agent: str, column: str) -> pd.Series:
     values = pd.to_numeric(rows[column], errors="coerce")
     values.index = rows["seed"].to_numpy() if "seed" in rows else values.index
     return values[np.isfinite(values.to_numpy(dtype=float))]
+
+
+def _ran(runs: pd.DataFrame, agent: str) -> bool:
+    return not runs.empty and "agent" in runs and bool((runs["agent"] == agent).any())
 
 
 def holm(p_values: Sequence[float], alpha: float) -> tuple[list[float], list[float]]:
@@ -411,6 +438,21 @@ def combine_outcomes(outcomes: Sequence[str]) -> str:
     return "inconclusive"
 
 
+def not_run(row: Mapping[str, Any]) -> bool:
+    """Whether a judged comparison (a row of :func:`judge`) was not tested because one of its
+    agents has no finished run on the task."""
+    return str(row.get("note") or "").startswith(NOT_RUN)
+
+
+def task_outcome(rows: pd.DataFrame) -> str:
+    """A question's outcome on a task from its judged comparisons (rows of :func:`judge`):
+    :func:`combine_outcomes`, or :data:`NOT_RUN` when none of them could run."""
+    records = rows.to_dict("records")
+    if records and all(not_run(r) for r in records):
+        return NOT_RUN
+    return combine_outcomes([str(r["outcome"]) for r in records])
+
+
 TEST_COLUMNS = [
     "hypothesis", "task", "question", "comparison", "candidate", "baseline", "metric",
     "n_candidate", "n_baseline", "mean_diff", "welch_low", "welch_high", "boot_low",
@@ -434,7 +476,8 @@ def judge(
     Returns:
         One row per test (:data:`TEST_COLUMNS`). ``note`` explains a comparison that was not
         tested (an agent without runs under that metric, or the reference selected), whose
-        outcome is then ``inconclusive`` and which does not count in its family.
+        outcome is then ``inconclusive`` and which does not count in its family; an agent
+        without any finished run on the task makes it :data:`NOT_RUN` (outcome and note).
 
     Raises:
         VerdictError: two rules that pool a family disagree on its alpha or correction.
@@ -500,6 +543,11 @@ def _raw_test(
             "not tested: the selection chose the unevolved reference itself, so both agents are "
             "the same runs (evolution added nothing measurable)"
         )
+        return row
+    absent = [agent for agent in (comp.candidate, comp.baseline) if not _ran(task.runs, agent)]
+    if absent:
+        row["note"] = f"{NOT_RUN}: {absent[0]} has no finished run on this task"
+        row["outcome"] = NOT_RUN
         return row
     if len(a) < 2 or len(b) < 2:
         missing = comp.candidate if len(a) < 2 else comp.baseline
@@ -636,6 +684,39 @@ def aggregate_question(
                 row[f"iqm_{side}_high"] = result.ci_high
         rows.append(row)
     return rows
+
+
+def load_test_runs(test_folder: str | Path) -> pd.DataFrame:
+    """A test phase's finished runs with every verdict metric (:data:`METRICS`).
+
+    ``last100_return`` is read from each run's ``result.json``, or computed from its
+    ``episodes.csv`` for runs written before it was recorded (the same definition: the mean of
+    the last 100 training episodes).
+    """
+    from ermrl.analysis._results import (
+        EPISODES_FILE,
+        RUNS_DIR,
+        load_run_results,
+        read_episodes,
+    )
+
+    runs = load_run_results(test_folder)
+    if runs.empty:
+        return runs
+    for column in ("last100_return", "eval_return"):
+        if column not in runs:
+            runs[column] = math.nan
+    missing = runs["last100_return"].isna()
+    for i in runs.index[missing]:
+        agent, seed = runs.at[i, "agent"], int(runs.at[i, "seed"])
+        episodes = read_episodes(
+            Path(test_folder) / RUNS_DIR / agent / f"seed_{seed}" / EPISODES_FILE
+        )
+        values = pd.to_numeric(episodes["episode_return"], errors="coerce").dropna()
+        runs.at[i, "last100_return"] = float(values.tail(100).mean()) if len(values) else math.nan
+    runs["last100_return"] = runs["last100_return"].astype(float)
+    runs["eval_return"] = pd.to_numeric(runs["eval_return"], errors="coerce")
+    return runs
 
 
 def first_result_date(test_folder: Path) -> tuple[str | None, str]:
