@@ -401,6 +401,41 @@ class PopulationEnvs:
             episode keyed by ``(agent, env)`` (PPO bootstraps from it), and
             ``(agent, env, return, length)`` for each episode that ended.
         """
+        obs, raw, dones, last_obs, truncated = self._step_envs(actions)
+        episodes = self._end_episodes(raw, last_obs)
+        # What DummyVecEnv hands on (its reward buffer is float32): the reservoir, the
+        # normalization and PPO see these.
+        raw32 = raw.astype(np.float32)
+        if self.reservoir is not None:
+            policy, terminal = self._encode(obs, actions, raw32, last_obs, truncated)
+        else:
+            policy = obs.astype(np.float32)
+            terminal = {key: np.asarray(o, np.float32) for key, o in truncated.items()}
+        if self.obs_rms is not None and self.training:
+            self.obs_rms.update(policy)
+        policy = self._norm_obs(policy)
+        for (p, i), o in terminal.items():
+            terminal[(p, i)] = self._norm_obs(o, p)
+        rewards = self._norm_reward(raw32, dones)
+        return policy, rewards, raw, dones, terminal, episodes
+
+    def _step_envs(
+        self, actions: np.ndarray
+    ) -> tuple[
+        np.ndarray,
+        np.ndarray,
+        np.ndarray,
+        dict[tuple[int, int], np.ndarray],
+        dict[tuple[int, int], np.ndarray],
+    ]:
+        """Step each env once, resetting those whose episode ended (as ``DummyVecEnv``).
+
+        Returns:
+            ``(obs, raw, dones, last_obs, truncated)``: the observations ``[P, E, obs_dim]``
+            (the next episode's first for finished envs), the rewards and ``dones``
+            ``[P, E]``, and the true last observation of each finished and each truncated
+            episode, keyed by ``(agent, env)``.
+        """
         P, E = self.n_agents, self.n_envs
         t0 = time.perf_counter()
         obs = np.empty((P, E, self.obs_dim), np.float64)
@@ -422,13 +457,17 @@ class PopulationEnvs:
                         truncated[(p, i)] = o
                     o, _ = env.reset()
                 obs[p, i] = o
-        t1 = time.perf_counter()
-        self.env_seconds += t1 - t0
-        self.episode_reward += raw  # Monitor's sums: the rewards as the env returned them
+        self.env_seconds += time.perf_counter() - t0
+        return obs, raw, dones, last_obs, truncated
+
+    def _end_episodes(
+        self, raw: np.ndarray, last_obs: dict[tuple[int, int], np.ndarray]
+    ) -> list[tuple[int, int, float, int]]:
+        """Add this step's raw rewards ``[P, E]`` to the episodes' sums (as ``Monitor``: the
+        rewards as the envs returned them), and close the episodes that ended (the keys of
+        ``last_obs``): ``(agent, env, return, length)`` each."""
+        self.episode_reward += raw
         self.episode_length += 1
-        # What DummyVecEnv hands on (its reward buffer is float32): the reservoir, the
-        # normalization and PPO see these.
-        raw32 = raw.astype(np.float32)
         episodes: list[tuple[int, int, float, int]] = []
         for p, i in last_obs:
             episodes.append(
@@ -436,44 +475,51 @@ class PopulationEnvs:
             )
             self.episode_reward[p, i] = 0.0
             self.episode_length[p, i] = 0
+        return episodes
 
+    def _encode(
+        self,
+        obs: np.ndarray,
+        actions: np.ndarray,
+        raw32: np.ndarray,
+        last_obs: dict[tuple[int, int], np.ndarray],
+        truncated: dict[tuple[int, int], np.ndarray],
+    ) -> tuple[np.ndarray, dict[tuple[int, int], np.ndarray]]:
+        """Step the reservoirs with the observations, actions and float32 rewards of this
+        step; the rows of finished episodes see their true last observation first, then
+        restart from the next episode's first.
+
+        Returns:
+            ``(policy, terminal)``: the policy observations ``[P, E, d]`` and the encoded last
+            state of each truncated episode, keyed by ``(agent, env)``.
+        """
+        t0 = time.perf_counter()
+        res = self.reservoir
+        assert res is not None
         terminal: dict[tuple[int, int], np.ndarray] = {}
-        if self.reservoir is not None:
-            res = self.reservoir
-            res.set_action_reward(actions, raw32)
-            if not last_obs:
-                res.set_obs(obs)
-                res.step_all()
-                policy = res.policy_obs()
-            else:
-                # Terminal step: the finished rows see the true last observation first.
-                feed = obs.copy()
-                for (p, i), o in last_obs.items():
-                    feed[p, i] = o
-                res.set_obs(feed)
-                res.step_all()
-                by_agent: dict[int, list[int]] = {}
-                for p, i in last_obs:
-                    by_agent.setdefault(p, []).append(i)
-                for p, rows in by_agent.items():
-                    enc = res.policy_obs(p, np.asarray(rows))
-                    for j, i in enumerate(rows):
-                        if (p, i) in truncated:
-                            terminal[(p, i)] = enc[j]
-                    res.reset_rows(p, np.asarray(rows), obs[p, rows])
-                policy = res.policy_obs()
-            self.reservoir_seconds += time.perf_counter() - t1
+        res.set_action_reward(actions, raw32)
+        if not last_obs:
+            res.set_obs(obs)
+            res.step_all()
         else:
-            policy = obs.astype(np.float32)
-            for key, o in truncated.items():
-                terminal[key] = np.asarray(o, np.float32)
-        if self.obs_rms is not None and self.training:
-            self.obs_rms.update(policy)
-        policy = self._norm_obs(policy)
-        for (p, i), o in terminal.items():
-            terminal[(p, i)] = self._norm_obs(o, p)
-        rewards = self._norm_reward(raw32, dones)
-        return policy, rewards, raw, dones, terminal, episodes
+            # Terminal step: the finished rows see the true last observation first.
+            feed = obs.copy()
+            for (p, i), o in last_obs.items():
+                feed[p, i] = o
+            res.set_obs(feed)
+            res.step_all()
+            by_agent: dict[int, list[int]] = {}
+            for p, i in last_obs:
+                by_agent.setdefault(p, []).append(i)
+            for p, rows in by_agent.items():
+                enc = res.policy_obs(p, np.asarray(rows))
+                for j, i in enumerate(rows):
+                    if (p, i) in truncated:
+                        terminal[(p, i)] = enc[j]
+                res.reset_rows(p, np.asarray(rows), obs[p, rows])
+        policy = res.policy_obs()
+        self.reservoir_seconds += time.perf_counter() - t0
+        return policy, terminal
 
     def keep(self, idx: np.ndarray) -> None:
         """Keep only the agents ``idx`` (the others' envs are closed)."""

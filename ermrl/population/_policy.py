@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -169,6 +170,24 @@ class StackedAdam:
         return out
 
 
+@dataclass
+class _Distribution:
+    """The action distribution of an update's minibatch and what its gradient reads: the
+    log-probabilities ``[P, B]`` of the actions, the categorical's log-probabilities of every
+    action (``logp_all``), or the Gaussian's standardized actions ``z``, ``scale`` and
+    ``log_scale`` (and with gSDE, the ``variance``, the squared stds ``std2`` and the squared
+    latent ``latent2``)."""
+
+    log_prob: np.ndarray
+    logp_all: np.ndarray | None = None
+    z: np.ndarray | None = None
+    scale: np.ndarray | None = None
+    log_scale: np.ndarray | None = None
+    variance: np.ndarray | None = None
+    std2: np.ndarray | None = None
+    latent2: np.ndarray | None = None
+
+
 class StackedPolicy:
     """The policies of ``P`` agents as stacked torch parameters in one flat buffer.
 
@@ -219,6 +238,7 @@ class StackedPolicy:
         # With a list here, ppo_gradient appends each minibatch's loss terms per agent (SB3's
         # train/* scalars, for TensorBoard); None: not computed.
         self.loss_terms: list[dict[str, np.ndarray]] | None = None
+
     def _bind(self, flat: torch.Tensor) -> None:
         """Make ``flat`` (``[P, row_size]``) the buffer, :attr:`params` views of it, and
         :attr:`np` numpy views of those."""
@@ -353,9 +373,49 @@ class StackedPolicy:
             ``[P, row_size]`` float32: the gradient (zero in the padding); a buffer the next
             call overwrites.
         """
-        s, w = self.spec, self.np
-        P, B = obs.shape[:2]
+        B = obs.shape[1]
+        pi, vf, head, values = self._forward_layers(obs)
+        dist = self._distribution(head, pi[-1], actions)
+        if normalize_advantage and B > 1:
+            advantages = (advantages - advantages.mean(1, keepdims=True)) / (
+                advantages.std(1, ddof=1, keepdims=True) + np.float32(1e-8)
+            )
+        ratio = np.exp(dist.log_prob - old_log_probs)
+        unclipped = advantages * ratio
+        clipped = advantages * np.clip(ratio, 1 - clip_range, 1 + clip_range)
+        # d(-mean(min(unclipped, clipped)))/d ratio: the unclipped branch's, where it is the
+        # minimum (or ties, the ratio then inside the range); 0 where the clipped one is smaller.
+        d_ratio = np.where(unclipped <= clipped, advantages * np.float32(-1.0 / B), np.float32(0))
+        d_logp = (d_ratio * ratio)[..., None]
+        # Of the loss, per unit of entropy gradient.
+        d_head, entropy = self._head_gradient(dist, actions, d_logp, np.float32(ent_coef / B))
+        if self.loss_terms is not None:
+            # SB3 PPO.train's logged terms, per agent over this minibatch.
+            if entropy is None:  # the Gaussian's, per sample
+                assert dist.log_scale is not None
+                entropy = (dist.log_scale + np.float32(0.5 + LOG_SQRT_2PI)).sum(-1)
+            log_ratio = dist.log_prob - old_log_probs
+            self.loss_terms.append(
+                {
+                    "policy_gradient_loss": -np.minimum(unclipped, clipped).mean(1),
+                    "entropy_loss": -entropy.mean(1),
+                    "clip_fraction": (np.abs(ratio - 1) > clip_range).mean(1),
+                    "approx_kl": ((ratio - 1) - log_ratio).mean(1),
+                }
+            )
+        d_values = self._value_gradient(values, old_values, returns, clip_range_vf, vf_coef)
         grads = self._grads
+        self._backward(pi, d_head.astype(np.float32, copy=False), "pi", "action", grads)
+        self._backward(vf, d_values[..., None].astype(np.float32, copy=False), "vf", "value", grads)
+        return self._grad
+
+    def _forward_layers(
+        self, obs: np.ndarray
+    ) -> tuple[list[np.ndarray], list[np.ndarray], np.ndarray, np.ndarray]:
+        """The forward pass of an update, keeping each layer's input for the backward pass:
+        ``(pi, vf, head, values)``, ``pi`` and ``vf`` the observations ``[P, B, obs_dim]`` then
+        each hidden layer's output, ``head`` ``[P, B, out]`` and ``values`` ``[P, B]``."""
+        s, w = self.spec, self.np
         pi, vf = [obs], [obs]
         for inputs, prefix, n in ((pi, "pi", len(s.pi)), (vf, "vf", len(s.vf))):
             for i in range(n):
@@ -365,66 +425,82 @@ class StackedPolicy:
         head = np.matmul(pi[-1], w["action.w"])
         head += w["action.b"]
         values = np.matmul(vf[-1], w["value.w"])[..., 0] + w["value.b"][..., 0]
-        # Gradients of the loss with respect to the log-probabilities and the head.
+        return pi, vf, head, values
+
+    def _distribution(
+        self, head: np.ndarray, latent: np.ndarray, actions: np.ndarray
+    ) -> _Distribution:
+        """The action distribution at ``head`` (``latent``: the policy MLP's output, for gSDE)
+        and the log-probabilities of ``actions`` ``[P, B]``."""
+        s, w = self.spec, self.np
         if s.discrete:
             logits = head - head.max(-1, keepdims=True)
             logp_all = logits - np.log(np.exp(logits).sum(-1, keepdims=True))
             log_prob = np.take_along_axis(logp_all, actions[..., None].astype(np.int64), -1)[..., 0]
+            return _Distribution(log_prob, logp_all=logp_all)
+        variance = std2 = latent2 = None
+        if s.use_sde:
+            std2 = np.exp(2.0 * w["log_std"])  # [P, L, A]
+            latent2 = np.square(latent)
+            variance = np.matmul(latent2, std2) + np.float32(SDE_EPSILON)
+            scale = np.sqrt(variance)
+            log_scale = np.log(scale)
         else:
-            if s.use_sde:
-                std2 = np.exp(2.0 * w["log_std"])  # [P, L, A]
-                latent2 = np.square(pi[-1])
-                variance = np.matmul(latent2, std2) + np.float32(SDE_EPSILON)
-                scale = np.sqrt(variance)
-                log_scale = np.log(scale)
-            else:
-                log_scale = np.broadcast_to(w["log_std"][:, None, :], head.shape)
-                scale = np.exp(log_scale)
-            z = (actions - head) / scale
-            log_prob = (-0.5 * np.square(z) - log_scale - np.float32(LOG_SQRT_2PI)).sum(-1)
-        if normalize_advantage and B > 1:
-            advantages = (advantages - advantages.mean(1, keepdims=True)) / (
-                advantages.std(1, ddof=1, keepdims=True) + np.float32(1e-8)
-            )
-        ratio = np.exp(log_prob - old_log_probs)
-        unclipped = advantages * ratio
-        clipped = advantages * np.clip(ratio, 1 - clip_range, 1 + clip_range)
-        # d(-mean(min(unclipped, clipped)))/d ratio: the unclipped branch's, where it is the
-        # minimum (or ties, the ratio then inside the range); 0 where the clipped one is smaller.
-        d_ratio = np.where(unclipped <= clipped, advantages * np.float32(-1.0 / B), np.float32(0))
-        d_logp = (d_ratio * ratio)[..., None]
-        entropy_grad = np.float32(ent_coef / B)  # of the loss, per unit of entropy gradient
-        if s.discrete:
-            probs = np.exp(logp_all)
-            entropy = -(probs * logp_all).sum(-1, keepdims=True)
+            log_scale = np.broadcast_to(w["log_std"][:, None, :], head.shape)
+            scale = np.exp(log_scale)
+        z = (actions - head) / scale
+        log_prob = (-0.5 * np.square(z) - log_scale - np.float32(LOG_SQRT_2PI)).sum(-1)
+        return _Distribution(
+            log_prob, z=z, scale=scale, log_scale=log_scale, variance=variance, std2=std2,
+            latent2=latent2,
+        )  # fmt: skip
+
+    def _head_gradient(
+        self, dist: _Distribution, actions: np.ndarray, d_logp: np.ndarray, entropy_grad: Any
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """The loss's gradient at the action head (``log_std``'s written into the gradient
+        buffer), from ``d_logp`` ``[P, B, 1]`` (its gradient with respect to the
+        log-probabilities) and ``entropy_grad`` (per unit of the entropy's gradient).
+
+        Returns:
+            ``(d_head, entropy)``: ``[P, B, out]``, and the categorical's entropy per sample
+            ``[P, B]`` (``None`` for a Gaussian, whose entropy's gradient needs no samples).
+        """
+        grads = self._grads
+        if self.spec.discrete:
+            assert dist.logp_all is not None
+            probs = np.exp(dist.logp_all)
+            entropy = -(probs * dist.logp_all).sum(-1, keepdims=True)
             onehot = np.zeros_like(probs)
             np.put_along_axis(onehot, actions[..., None].astype(np.int64), 1.0, -1)
-            d_head = d_logp * (onehot - probs) + entropy_grad * probs * (logp_all + entropy)
+            d_head = d_logp * (onehot - probs) + entropy_grad * probs * (dist.logp_all + entropy)
+            return d_head, entropy[..., 0]
+        z, scale, log_scale = dist.z, dist.scale, dist.log_scale
+        assert z is not None and scale is not None and log_scale is not None
+        d_head = d_logp * z / scale
+        # d log_prob / d log_scale = z^2 - 1; the entropy's is 1 per element.
+        d_log_scale = d_logp * (np.square(z) - 1) - entropy_grad
+        if self.spec.use_sde:
+            assert dist.variance is not None and dist.latent2 is not None
+            assert dist.std2 is not None
+            d_variance = d_log_scale / (2 * dist.variance)
+            d_std2 = np.matmul(dist.latent2.transpose(0, 2, 1), d_variance)
+            np.multiply(d_std2, 2 * dist.std2, out=grads["log_std"])
         else:
-            d_head = d_logp * z / scale
-            # d log_prob / d log_scale = z^2 - 1; the entropy's is 1 per element.
-            d_log_scale = d_logp * (np.square(z) - 1) - entropy_grad
-            if s.use_sde:
-                d_variance = d_log_scale / (2 * variance)
-                d_std2 = np.matmul(latent2.transpose(0, 2, 1), d_variance)
-                np.multiply(d_std2, 2 * std2, out=grads["log_std"])
-            else:
-                np.sum(d_log_scale, axis=1, out=grads["log_std"])
-        if self.loss_terms is not None:
-            # SB3 PPO.train's logged terms, per agent over this minibatch.
-            if s.discrete:
-                sample_entropy = entropy[..., 0]
-            else:
-                sample_entropy = (log_scale + np.float32(0.5 + LOG_SQRT_2PI)).sum(-1)
-            log_ratio = log_prob - old_log_probs
-            self.loss_terms.append(
-                {
-                    "policy_gradient_loss": -np.minimum(unclipped, clipped).mean(1),
-                    "entropy_loss": -sample_entropy.mean(1),
-                    "clip_fraction": (np.abs(ratio - 1) > clip_range).mean(1),
-                    "approx_kl": ((ratio - 1) - log_ratio).mean(1),
-                }
-            )
+            np.sum(d_log_scale, axis=1, out=grads["log_std"])
+        return d_head, None
+
+    def _value_gradient(
+        self,
+        values: np.ndarray,
+        old_values: np.ndarray,
+        returns: np.ndarray,
+        clip_range_vf: float | None,
+        vf_coef: float,
+    ) -> np.ndarray:
+        """The value loss's gradient at the values ``[P, B]`` (clipped around ``old_values``
+        by ``clip_range_vf``, ``None``: unclipped); the loss itself goes to the logged terms."""
+        B = values.shape[1]
         if clip_range_vf is not None:
             delta = values - old_values
             values = old_values + np.clip(delta, -clip_range_vf, clip_range_vf)
@@ -434,9 +510,7 @@ class StackedPolicy:
             d_values = np.float32(-2.0 * vf_coef / B) * (returns - values)
         if self.loss_terms is not None:
             self.loss_terms[-1]["value_loss"] = np.square(returns - values).mean(1)
-        self._backward(pi, d_head.astype(np.float32, copy=False), "pi", "action", grads)
-        self._backward(vf, d_values[..., None].astype(np.float32, copy=False), "vf", "value", grads)
-        return self._grad
+        return d_values
 
     # -- SB3 state dicts -----------------------------------------------------------------------
     def _sb3_names(self) -> list[tuple[str, str]]:

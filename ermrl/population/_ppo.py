@@ -17,6 +17,7 @@ weights, optimizer state, envs and reservoir rows sliced away); the others go on
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import io
 import json
@@ -42,7 +43,7 @@ from ermrl._progress import Progress
 from ermrl.agents._train import NoEpisodeFinished, RunResult, TrainingDiverged, derive_seeds
 from ermrl.config import BudgetConfig, ConfigError, EncoderConfig, PPOConfig, TaskConfig, to_dict
 from ermrl.population._envs import PopulationEnvs
-from ermrl.population._policy import StackedAdam, StackedPolicy, policy_spec
+from ermrl.population._policy import PolicySpec, StackedAdam, StackedPolicy, policy_spec
 from ermrl.population._tensorboard import PopulationLogs
 
 __all__ = [
@@ -221,6 +222,46 @@ class Checkpoint:
 
     def remove(self) -> None:
         self.path.unlink(missing_ok=True)
+
+
+@dataclass
+class _Rollout:
+    """One rollout of every agent: arrays ``[P, n_steps, E, ...]`` (SB3's ``RolloutBuffer``)."""
+
+    obs: np.ndarray
+    actions: np.ndarray
+    rewards: np.ndarray
+    starts: np.ndarray
+    values: np.ndarray
+    log_probs: np.ndarray
+
+    @classmethod
+    def empty(
+        cls, P: int, n_steps: int, E: int, obs_dim: int, spec: PolicySpec, discrete: bool
+    ) -> _Rollout:
+        """Zeros for ``P`` agents (actions: integers ``[P, n_steps, E]`` when ``discrete``,
+        else ``[P, n_steps, E, spec.action_dim]``)."""
+        return cls(
+            obs=np.zeros((P, n_steps, E, obs_dim), np.float32),
+            actions=np.zeros(
+                (P, n_steps, E) if discrete else (P, n_steps, E, spec.action_dim),
+                np.int64 if discrete else np.float32,
+            ),
+            rewards=np.zeros((P, n_steps, E), np.float32),
+            starts=np.zeros((P, n_steps, E), np.float32),
+            values=np.zeros((P, n_steps, E), np.float32),
+            log_probs=np.zeros((P, n_steps, E), np.float32),
+        )
+
+    def keep(self, keep: np.ndarray) -> None:
+        """Keep only the agents at positions ``keep``."""
+        for f in dataclasses.fields(self):
+            setattr(self, f.name, getattr(self, f.name)[keep])
+
+    def store(self, step: int, *arrays: np.ndarray) -> None:
+        """Store one step: ``obs, actions, rewards, starts, values, log_probs`` (``[P, E, ...]``)."""
+        for f, a in zip(dataclasses.fields(self), arrays, strict=True):
+            getattr(self, f.name)[:, step] = a
 
 
 def _schedule(value: Any) -> Any:
@@ -457,117 +498,17 @@ class PopulationPPO:
         """
         start = time.perf_counter()
         key = self.checkpoint_key(total_timesteps)
-        saved = None if checkpoint is None else checkpoint.load(key)
-        if saved is not None and not same_code(saved[0].get("code")):
-            # The same training by other code: its state may not mean what this code reads.
-            assert checkpoint is not None
-            line = (
-                f"not resumed: {checkpoint.path} was saved by other code "
-                f"({describe_code(saved[0].get('code'))}; this is "
-                f"{describe_code(code_identity())}): training from the start"
-            )
-            if progress is not None:
-                progress.message(line)
-            else:
-                print(line, file=sys.stderr, flush=True)
-            saved = None
-        if saved is not None:
-            assert checkpoint is not None
-            self._restore(*saved)
-            if progress is not None:
-                progress.message(
-                    f"resumed from {checkpoint.path} at {self.num_timesteps:,} steps each"
-                )
-        s, E = self.s, self.envs.n_envs
-        n_steps, gamma, lam = int(s["n_steps"]), float(s["gamma"]), float(s["gae_lambda"])
-        use_sde, freq = self.spec.use_sde, int(s["sde_sample_freq"])
+        if checkpoint is not None:
+            self._resume(checkpoint, key, progress)
         obs = self.envs.reset(seed_offset=self.num_timesteps)
-        starts = np.ones((self.n_agents, E), np.float32)
+        starts = np.ones((self.n_agents, self.envs.n_envs), np.float32)
         last_saved = self.num_timesteps
         while self.num_timesteps < total_timesteps and self.n_agents:
-            P = self.n_agents
-            buf_obs = np.zeros((P, n_steps, E, self.envs.policy_dim), np.float32)
-            buf_act = np.zeros(
-                (P, n_steps, E) if self.discrete else (P, n_steps, E, self.spec.action_dim),
-                np.int64 if self.discrete else np.float32,
-            )
-            buf_rew = np.zeros((P, n_steps, E), np.float32)
-            buf_start = np.zeros((P, n_steps, E), np.float32)
-            buf_val = np.zeros((P, n_steps, E), np.float32)
-            buf_logp = np.zeros((P, n_steps, E), np.float32)
-            if use_sde:
-                self._reset_noise()
-            dones = np.zeros((P, E), bool)
-            step = 0
-            while step < n_steps:
-                if use_sde and freq > 0 and step % freq == 0:
-                    self._reset_noise()
-                t0 = time.perf_counter()
-                actions, values, log_probs = self._act(obs)
-                self.timings["policy"] += time.perf_counter() - t0
-                bad = ~np.isfinite(actions.reshape(P, -1)).all(1) | ~np.isfinite(values).all(1)
-                if bad.any():
-                    keep = self._drop(np.flatnonzero(bad).tolist(), "training diverged (NaN)")
-                    obs, starts, dones = obs[keep], starts[keep], dones[keep]
-                    actions, values, log_probs = actions[keep], values[keep], log_probs[keep]
-                    buf_obs, buf_act, buf_rew = buf_obs[keep], buf_act[keep], buf_rew[keep]
-                    buf_start, buf_val, buf_logp = buf_start[keep], buf_val[keep], buf_logp[keep]
-                    P = self.n_agents
-                    if not P:
-                        break
-                new_obs, rewards, _, dones, terminal, finished = self.envs.step(self._clip(actions))
-                self.num_timesteps += E
-                if progress is not None:
-                    progress.update(self.num_timesteps)
-                for p, _, ret, length in finished:
-                    self.episodes[self.alive[p]].append((ret, self.num_timesteps))
-                    self.episode_lengths[self.alive[p]].append(length)
-                rewards = rewards.astype(np.float32)
-                if terminal:
-                    keys = list(terminal)
-                    agents = np.asarray([p for p, _ in keys])
-                    t0 = time.perf_counter()
-                    boot = self.policy.values_np(np.stack([terminal[k] for k in keys]), agents)
-                    self.timings["policy"] += time.perf_counter() - t0
-                    for (p, i), v in zip(keys, boot):
-                        rewards[p, i] += gamma * v
-                buf_obs[:, step] = obs
-                buf_act[:, step] = actions
-                buf_rew[:, step] = rewards
-                buf_start[:, step] = starts
-                buf_val[:, step] = values
-                buf_logp[:, step] = log_probs
-                obs, starts = new_obs, dones.astype(np.float32)
-                step += 1
+            obs, starts, dones, rollout = self._collect_rollout(obs, starts, progress)
             if not self.n_agents:
                 break
-            t0 = time.perf_counter()
-            _, _, last_values = self.policy.forward_np(obs)
-            adv, returns = compute_gae(buf_rew, buf_val, buf_start, last_values, dones, gamma, lam)
-            self.timings["policy"] += time.perf_counter() - t0
             remaining = 1.0 - float(self.num_timesteps) / float(total_timesteps)
-            t0 = time.perf_counter()
-            logging = logs is not None and logs.wants_losses()
-            self.policy.loss_terms = [] if logging else None
-            alive_before = list(self.alive)
-            kept = self._train(remaining, buf_obs, buf_act, buf_val, buf_logp, adv, returns)
-            self.timings["update"] += time.perf_counter() - t0
-            if logging:
-                assert logs is not None
-                elapsed = max(time.perf_counter() - start, 1e-9)
-                scalars = self._train_scalars(remaining, buf_val, returns)
-                if kept is not None:  # the dropped agents log nothing more
-                    alive_before = [alive_before[int(k)] for k in kept]
-                    scalars = {k: np.asarray(v)[kept] for k, v in scalars.items()}
-                logs.write(
-                    self.num_timesteps,
-                    alive_before,
-                    self.episodes,
-                    self.episode_lengths,
-                    (self.num_timesteps - self.resumed_at) / elapsed,
-                    scalars,
-                )
-                self.policy.loss_terms = None
+            kept = self._update_rollout(rollout, obs, dones, remaining, logs, start)
             if kept is not None:  # agents whose weights became NaN were dropped
                 obs, starts = obs[kept], starts[kept]
             if (
@@ -583,6 +524,137 @@ class PopulationPPO:
         self.timings["total"] += time.perf_counter() - start
         if progress is not None:
             progress.close()
+
+    def _resume(self, checkpoint: Checkpoint, key: str, progress: Progress | None) -> None:
+        """Restore this training's state from ``checkpoint``'s file, if it holds it and was
+        saved by this code (a line says so, or why it was not resumed)."""
+        saved = checkpoint.load(key)
+        if saved is None:
+            return
+        if not same_code(saved[0].get("code")):
+            # The same training by other code: its state may not mean what this code reads.
+            line = (
+                f"not resumed: {checkpoint.path} was saved by other code "
+                f"({describe_code(saved[0].get('code'))}; this is "
+                f"{describe_code(code_identity())}): training from the start"
+            )
+            if progress is not None:
+                progress.message(line)
+            else:
+                print(line, file=sys.stderr, flush=True)
+            return
+        self._restore(*saved)
+        if progress is not None:
+            progress.message(f"resumed from {checkpoint.path} at {self.num_timesteps:,} steps each")
+
+    def _collect_rollout(
+        self, obs: np.ndarray, starts: np.ndarray, progress: Progress | None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, _Rollout]:
+        """One rollout of ``n_steps`` steps of every agent's envs (SB3's ``collect_rollouts``),
+        from observations ``obs`` ``[P, E, d]`` and episode starts ``starts`` ``[P, E]``. An
+        agent whose actions or values are not finite is dropped on the way.
+
+        Returns:
+            ``(obs, starts, dones, rollout)`` after the last step, for the agents still alive.
+        """
+        s, E = self.s, self.envs.n_envs
+        n_steps, use_sde, freq = int(s["n_steps"]), self.spec.use_sde, int(s["sde_sample_freq"])
+        P = self.n_agents
+        rollout = _Rollout.empty(P, n_steps, E, self.envs.policy_dim, self.spec, self.discrete)
+        if use_sde:
+            self._reset_noise()
+        dones = np.zeros((P, E), bool)
+        for step in range(n_steps):
+            if use_sde and freq > 0 and step % freq == 0:
+                self._reset_noise()
+            t0 = time.perf_counter()
+            actions, values, log_probs = self._act(obs)
+            self.timings["policy"] += time.perf_counter() - t0
+            P = self.n_agents
+            bad = ~np.isfinite(actions.reshape(P, -1)).all(1) | ~np.isfinite(values).all(1)
+            if bad.any():
+                keep = self._drop(np.flatnonzero(bad).tolist(), "training diverged (NaN)")
+                obs, starts, dones = obs[keep], starts[keep], dones[keep]
+                actions, values, log_probs = actions[keep], values[keep], log_probs[keep]
+                rollout.keep(keep)
+                if not self.n_agents:
+                    break
+            new_obs, rewards, dones = self._step_envs(actions, progress)
+            rollout.store(step, obs, actions, rewards, starts, values, log_probs)
+            obs, starts = new_obs, dones.astype(np.float32)
+        return obs, starts, dones, rollout
+
+    def _step_envs(
+        self, actions: np.ndarray, progress: Progress | None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Step every env once with ``actions``; record the episodes that ended and bootstrap
+        truncated ones from their last state's value. Returns ``(obs, rewards, dones)``."""
+        new_obs, rewards, _, dones, terminal, finished = self.envs.step(self._clip(actions))
+        self.num_timesteps += self.envs.n_envs
+        if progress is not None:
+            progress.update(self.num_timesteps)
+        for p, _, ret, length in finished:
+            self.episodes[self.alive[p]].append((ret, self.num_timesteps))
+            self.episode_lengths[self.alive[p]].append(length)
+        rewards = rewards.astype(np.float32)
+        if terminal:
+            keys = list(terminal)
+            agents = np.asarray([p for p, _ in keys])
+            t0 = time.perf_counter()
+            boot = self.policy.values_np(np.stack([terminal[k] for k in keys]), agents)
+            self.timings["policy"] += time.perf_counter() - t0
+            for (p, i), v in zip(keys, boot):
+                rewards[p, i] += float(self.s["gamma"]) * v
+        return new_obs, rewards, dones
+
+    def _update_rollout(
+        self,
+        rollout: _Rollout,
+        obs: np.ndarray,
+        dones: np.ndarray,
+        remaining: float,
+        logs: PopulationLogs | None,
+        start: float,
+    ) -> np.ndarray | None:
+        """GAE on ``rollout`` (bootstrapped from the values of ``obs`` where not ``dones``),
+        then the PPO update at ``remaining`` progress, and its scalars to ``logs``.
+
+        Returns:
+            The kept positions when agents were dropped (``None``: none dropped).
+        """
+        gamma, lam = float(self.s["gamma"]), float(self.s["gae_lambda"])
+        t0 = time.perf_counter()
+        _, _, last_values = self.policy.forward_np(obs)
+        adv, returns = compute_gae(
+            rollout.rewards, rollout.values, rollout.starts, last_values, dones, gamma, lam
+        )
+        self.timings["policy"] += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        logging = logs is not None and logs.wants_losses()
+        self.policy.loss_terms = [] if logging else None
+        alive_before = list(self.alive)
+        kept = self._train(
+            remaining, rollout.obs, rollout.actions, rollout.values, rollout.log_probs, adv,
+            returns,
+        )  # fmt: skip
+        self.timings["update"] += time.perf_counter() - t0
+        if logging:
+            assert logs is not None
+            elapsed = max(time.perf_counter() - start, 1e-9)
+            scalars = self._train_scalars(remaining, rollout.values, returns)
+            if kept is not None:  # the dropped agents log nothing more
+                alive_before = [alive_before[int(k)] for k in kept]
+                scalars = {k: np.asarray(v)[kept] for k, v in scalars.items()}
+            logs.write(
+                self.num_timesteps,
+                alive_before,
+                self.episodes,
+                self.episode_lengths,
+                (self.num_timesteps - self.resumed_at) / elapsed,
+                scalars,
+            )
+            self.policy.loss_terms = None
+        return kept
 
     def _train_scalars(
         self, progress: float, values: np.ndarray, returns: np.ndarray
@@ -851,38 +923,49 @@ def train_population(
         if logs is not None:
             logs.close()
     wall = time.perf_counter() - start + population.wall_before
-    results: list[RunResult | BaseException] = []
-    for j, job in enumerate(jobs):
-        if j in population.failed:
-            results.append(population.failed[j])
-            continue
-        episodes = population.episodes[j]
-        result = RunResult(
-            seed=job.seed,
-            episode_returns=[r for r, _ in episodes],
-            episode_steps=[s for _, s in episodes],
-            env_steps=population.num_timesteps,
-            wall_seconds=wall / len(jobs),
-            timings=dict(population.timings),
-        )
-        if not all(math.isfinite(r) for r in result.episode_returns):
-            results.append(TrainingDiverged(f"seed {job.seed}: non-finite episode return"))
-            continue
-        if result.episode_returns:
-            result.last_return = float(np.mean(result.episode_returns[-budget.n_last_episodes :]))
-        elif budget.fitness == "last":
-            results.append(
-                NoEpisodeFinished(
-                    f"seed {job.seed}: no episode of {task.env_id} ended within "
-                    f"{budget.training_steps} training steps; raise --training-steps or use "
-                    "--fitness eval"
-                )
-            )
-            continue
-        if j in eval_returns:
-            result.eval_returns = [float(r) for r in eval_returns[j]]
-            result.eval_return = float(np.mean(result.eval_returns))
-        results.append(result)
+    results = [
+        _job_result(population, j, task, budget, wall / len(jobs), eval_returns.get(j))
+        for j in range(len(jobs))
+    ]
     if checkpoint is not None:
         checkpoint.remove()
     return results
+
+
+def _job_result(
+    population: PopulationPPO,
+    j: int,
+    task: TaskConfig,
+    budget: BudgetConfig,
+    wall_seconds: float,
+    eval_returns: Sequence[float] | None,
+) -> RunResult | BaseException:
+    """Job ``j``'s result in a trained ``population`` (with its ``wall_seconds`` share and its
+    evaluation returns, ``None``: not evaluated), or the exception
+    :func:`~ermrl.agents.train_agent` would have raised for it."""
+    job = population.jobs[j]
+    if j in population.failed:
+        return population.failed[j]
+    episodes = population.episodes[j]
+    result = RunResult(
+        seed=job.seed,
+        episode_returns=[r for r, _ in episodes],
+        episode_steps=[s for _, s in episodes],
+        env_steps=population.num_timesteps,
+        wall_seconds=wall_seconds,
+        timings=dict(population.timings),
+    )
+    if not all(math.isfinite(r) for r in result.episode_returns):
+        return TrainingDiverged(f"seed {job.seed}: non-finite episode return")
+    if result.episode_returns:
+        result.last_return = float(np.mean(result.episode_returns[-budget.n_last_episodes :]))
+    elif budget.fitness == "last":
+        return NoEpisodeFinished(
+            f"seed {job.seed}: no episode of {task.env_id} ended within "
+            f"{budget.training_steps} training steps; raise --training-steps or use "
+            "--fitness eval"
+        )
+    if eval_returns is not None:
+        result.eval_returns = [float(r) for r in eval_returns]
+        result.eval_return = float(np.mean(result.eval_returns))
+    return result
