@@ -241,6 +241,47 @@ def evolve(
     """
     from ermrl.search import create_or_resume_study, evolve_and_reevaluate
 
+    config, command = _resolved_config(config, storage, study_name, tensorboard, options)
+    name = study_name or config.default_study_name
+    study_kwargs: dict[str, Any] = {
+        "heartbeat_interval": heartbeat_interval or None,
+        "grace_period": grace_period,
+        "max_retry": max_retry,
+    }
+    with _optuna_warnings_only(quiet):
+        study = create_or_resume_study(config, storage, name, command=command, **study_kwargs)
+        worker = evolve_and_reevaluate(
+            config, study, storage, quiet=quiet, stream=stream, study_kwargs=study_kwargs,
+            wait_for_running=wait_for_running, progress=progress, tensorboard=tensorboard,
+        )  # fmt: skip
+    return _evolve_result(study, storage, worker)
+
+
+def _resolved_config(
+    config: EvolveConfig | str,
+    storage: str,
+    study_name: str | None,
+    tensorboard: str | Path | None,
+    options: dict[str, Any],
+) -> tuple[EvolveConfig, str | None]:
+    """The configuration :func:`evolve` runs, checked, and the command line that runs it.
+
+    Args:
+        config: A configuration, or an env id whose configuration ``options`` give.
+        storage: The Optuna storage URL.
+        study_name: The study's name (``None``: the configuration's default).
+        tensorboard: The TensorBoard folder (``None``: no logs).
+        options: ``ermrl evolve`` options (with an env id only).
+
+    Returns:
+        The configuration, and the equivalent ``ermrl evolve`` command (with an env id; the
+        study keeps it), else ``None``.
+
+    Raises:
+        ExperimentError: A bad option (with an env id).
+        TypeError: Options with a configuration object.
+        ConfigError: A configuration evolved on several tasks.
+    """
     command = None
     if isinstance(config, str):
         config, argv = _evolve_config_and_argv(
@@ -261,26 +302,7 @@ def evolve(
             "a configuration evolved on several tasks runs from an experiment file "
             "(evolve.suite) or ermrl evolve-generalization"
         )
-    name = study_name or config.default_study_name
-    study_kwargs: dict[str, Any] = {
-        "heartbeat_interval": heartbeat_interval or None,
-        "grace_period": grace_period,
-        "max_retry": max_retry,
-    }
-    with _optuna_warnings_only(quiet):
-        study = create_or_resume_study(config, storage, name, command=command, **study_kwargs)
-        worker = evolve_and_reevaluate(
-            config,
-            study,
-            storage,
-            quiet=quiet,
-            stream=stream,
-            study_kwargs=study_kwargs,
-            wait_for_running=wait_for_running,
-            progress=progress,
-            tensorboard=tensorboard,
-        )
-    return _evolve_result(study, storage, worker)
+    return config, command
 
 
 @contextlib.contextmanager
