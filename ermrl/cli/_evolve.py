@@ -52,7 +52,7 @@ from ermrl.learners import LEARNERS
 if TYPE_CHECKING:
     import optuna
 
-    from ermrl.search import Interrupted
+    from ermrl.search import EvolutionSummary, Interrupted
 
 __all__ = [
     "build_evolve_parser",
@@ -887,7 +887,7 @@ def run_and_report(
     from optuna.exceptions import StorageInternalError
 
     from ermrl.experiments._test_phase import WRITE_ERRNOS
-    from ermrl.search import Interrupted, evolve_and_reevaluate, format_params
+    from ermrl.search import Interrupted, evolve_and_reevaluate
     from ermrl.storage import StorageError
 
     where = storage_url or "the storage"
@@ -907,53 +907,74 @@ def run_and_report(
         print(f"{prog}: {interrupted_message(err)}", file=sys.stderr)
         return EXIT_TERMINATED
     except KeyboardInterrupt as err:
-        number = getattr(err, "trial_number", None)
-        requeued = (
-            " and queued again"
-            if getattr(err, "requeued", False)
-            else " (its retries are spent; not queued again)"
-        )
-        closed = (
-            "between trials; no trial of this worker was running"
-            if number is None
-            else f"; the running trial #{number} was closed as FAIL{requeued}"
-        )
-        print(f"{prog}: interrupted{' ' if number is None else ''}{closed}", file=sys.stderr)
+        print(f"{prog}: {_ctrl_c_message(err)}", file=sys.stderr)
         return EXIT_INTERRUPTED
     except StorageError as err:  # e.g. another process damaged a journal while this one ran
         fail(prog, str(err))
     except StorageInternalError as err:  # a database's write failed: a full disk, say
-        fail(
-            prog,
-            f"cannot write to {where}: {database_cause(err)}; its finished trials are kept, "
-            "a trial cut short is retried once its heartbeat is stale (or run ermrl study "
-            "fail-stale): free space (or fix the database) and rerun",
-        )
+        fail(prog, _database_write_failure(err, where))
     except OSError as err:  # a full disk, a quota or a read-only folder under a journal file
         if err.errno not in WRITE_ERRNOS:
             raise
-        fail(
-            prog,
-            f"cannot write to {where}: {err.strerror or err}; its finished trials are kept, "
-            "a trial cut short is retried once its heartbeat is stale (or run ermrl study "
-            "fail-stale), and a record cut short is set aside when the next worker opens the "
-            "journal: free space (or fix the folder) and rerun",
-        )
+        fail(prog, _journal_write_failure(err, where))
     finally:
         finish_wandb()
     if not quiet:
-        best = (
-            "none yet"
-            if summary.best_value is None
-            else f"{summary.best_value:.4g} with {format_params(summary.best_params or {})}"
-        )
-        print(
-            f"done: this worker ran {plural(summary.trials_run, 'trial')} ({summary.completed} complete, "
-            f"{summary.pruned} pruned, {summary.failed} failed); best {fitness_name} {best}\n"
-            f"next: {next_command}",
-            flush=True,
-        )
+        _print_summary(summary, fitness_name, next_command)
     return 0
+
+
+def _ctrl_c_message(err: KeyboardInterrupt) -> str:
+    """What Ctrl-C did to this worker's trial, in words (after ``prog: ``)."""
+    number = getattr(err, "trial_number", None)
+    requeued = (
+        " and queued again"
+        if getattr(err, "requeued", False)
+        else " (its retries are spent; not queued again)"
+    )
+    closed = (
+        "between trials; no trial of this worker was running"
+        if number is None
+        else f"; the running trial #{number} was closed as FAIL{requeued}"
+    )
+    return f"interrupted{' ' if number is None else ''}{closed}"
+
+
+def _database_write_failure(err: BaseException, where: str) -> str:
+    """One line for a database write that failed while the worker ran (a full disk, say)."""
+    return (
+        f"cannot write to {where}: {database_cause(err)}; its finished trials are kept, "
+        "a trial cut short is retried once its heartbeat is stale (or run ermrl study "
+        "fail-stale): free space (or fix the database) and rerun"
+    )
+
+
+def _journal_write_failure(err: OSError, where: str) -> str:
+    """One line for a journal file that could not be written while the worker ran (a full
+    disk, a quota or a read-only folder)."""
+    return (
+        f"cannot write to {where}: {err.strerror or err}; its finished trials are kept, "
+        "a trial cut short is retried once its heartbeat is stale (or run ermrl study "
+        "fail-stale), and a record cut short is set aside when the next worker opens the "
+        "journal: free space (or fix the folder) and rerun"
+    )
+
+
+def _print_summary(summary: EvolutionSummary, fitness_name: str, next_command: str) -> None:
+    """What this worker did, the study's best and the command to run next."""
+    from ermrl.search import format_params
+
+    best = (
+        "none yet"
+        if summary.best_value is None
+        else f"{summary.best_value:.4g} with {format_params(summary.best_params or {})}"
+    )
+    print(
+        f"done: this worker ran {plural(summary.trials_run, 'trial')} ({summary.completed} complete, "
+        f"{summary.pruned} pruned, {summary.failed} failed); best {fitness_name} {best}\n"
+        f"next: {next_command}",
+        flush=True,
+    )
 
 
 def evolve_main(argv: Sequence[str] | None = None, prog: str = "ermrl evolve") -> int:
