@@ -10,7 +10,7 @@ import sys
 import textwrap
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ermrl._text import plural
 from ermrl.cli._common import (
@@ -50,7 +50,10 @@ from ermrl.cli._test import (
     setup_errors,
     test_options,
 )
-from ermrl.config import ConfigError, EvolveConfig, PPOConfig
+from ermrl.config import ConfigError, EvolveConfig, GeneralizationTask, PPOConfig, TaskConfig
+
+if TYPE_CHECKING:
+    from ermrl.experiments import TestPlan
 
 __all__ = [
     "build_evolve_generalization_parser",
@@ -167,27 +170,12 @@ def generalization_config_from_args(
         notes: Receives the one-line reason when ``--backend`` is left out and the population
             backend does not apply to some task (the study then trains with sb3).
     """
-    from ermrl.agents import check_ppo_config, parse_overrides
+    from ermrl.agents import parse_overrides
     from ermrl.encoders import get_encoder
-    from ermrl.envs import get_suite
     from ermrl.search import generalization_config, generalization_tasks
 
-    suite = None
-    if args.suite is not None:
-        found = get_suite(args.suite, args.suites_file, env_version=args.env_version)
-        env_ids: Sequence[str] = found.env_ids
-        suite = found.name
-    else:
-        if args.env_version is not None:
-            raise ConfigError("--env-version applies to --suite only; write the ids in full")
-        env_ids = args.env_ids or ()
-    from ermrl.learners import get_learner
-
-    if get_learner(args.learner).genes:
-        raise ConfigError(
-            f"evolve-generalization evolves encoders; the {args.learner} learner's genes are "
-            "evolved on one task with evolve"
-        )
+    env_ids, suite = _suite_env_ids(args)
+    _refuse_learner_genes(args.learner)
     overrides = {**parse_overrides(args.ppo, args.learner), **learner_flags(args, args.learner)}
     tasks = generalization_tasks(
         env_ids,
@@ -202,24 +190,7 @@ def generalization_config_from_args(
         backend=args.backend or "sb3",
     )
     if args.backend is None:  # population where it applies to every task; a study has one
-        from ermrl.population import choose_backend
-
-        backend, why = "population", None
-        for t in tasks:
-            backend, why = choose_backend(
-                None,
-                t.ppo,
-                (t.task,),
-                pruner=args.pruner,
-                encoder=args.encoder,
-            )
-            if why is not None:
-                if notes is not None:
-                    notes.append(f"{t.task.env_id}: {why}")
-                break
-        tasks = tuple(
-            dataclasses.replace(t, ppo=dataclasses.replace(t.ppo, backend=backend)) for t in tasks
-        )
+        tasks = _one_backend(tasks, args, notes)
     space = space_from_args(args)
     encoder = encoder_from_args(args, space)
     for t in tasks:  # what depends on a task's sizes is refused before the study exists
@@ -239,15 +210,88 @@ def generalization_config_from_args(
         n_envs=args.n_envs,
         hyperparams=args.hyperparams,
     )
-    # What PPO or the encoder would refuse in the first trial is refused before the study exists.
+    _check_agents(config, tasks, build_agent)
+    check_tensorboard(args)
+    return config
+
+
+def _suite_env_ids(args: argparse.Namespace) -> tuple[Sequence[str], str | None]:
+    """The evolution tasks' env ids and the suite they come from (``None``: ``--env-ids``).
+
+    Raises:
+        ConfigError: ``--env-version`` without ``--suite``, or an unknown suite.
+    """
+    from ermrl.envs import get_suite
+
+    if args.suite is not None:
+        found = get_suite(args.suite, args.suites_file, env_version=args.env_version)
+        return found.env_ids, found.name
+    if args.env_version is not None:
+        raise ConfigError("--env-version applies to --suite only; write the ids in full")
+    return args.env_ids or (), None
+
+
+def _refuse_learner_genes(learner: str) -> None:
+    """A learner with genes of its own is evolved on one task (``ermrl evolve``).
+
+    Raises:
+        ConfigError: The learner has genes.
+    """
+    from ermrl.learners import get_learner
+
+    if get_learner(learner).genes:
+        raise ConfigError(
+            f"evolve-generalization evolves encoders; the {learner} learner's genes are "
+            "evolved on one task with evolve"
+        )
+
+
+def _one_backend(
+    tasks: Sequence[GeneralizationTask], args: argparse.Namespace, notes: list[str] | None
+) -> tuple[GeneralizationTask, ...]:
+    """The tasks with one backend for all: population where it applies to every task, else sb3.
+
+    Args:
+        tasks: The evolution tasks.
+        args: The parsed options (``--pruner``, ``--encoder``).
+        notes: Receives the first task's reason the population backend does not apply.
+
+    Returns:
+        The tasks, each with the chosen backend.
+    """
+    from ermrl.population import choose_backend
+
+    backend, why = "population", None
+    for t in tasks:
+        backend, why = choose_backend(
+            None,
+            t.ppo,
+            (t.task,),
+            pruner=args.pruner,
+            encoder=args.encoder,
+        )
+        if why is not None:
+            if notes is not None:
+                notes.append(f"{t.task.env_id}: {why}")
+            break
+    return tuple(
+        dataclasses.replace(t, ppo=dataclasses.replace(t.ppo, backend=backend)) for t in tasks
+    )
+
+
+def _check_agents(
+    config: EvolveConfig, tasks: Sequence[GeneralizationTask], build_agent: bool
+) -> None:
+    """What PPO (or the population backend) would refuse in the first trial is refused before
+    the study exists; ``build_agent=False`` skips building each task's agent."""
+    from ermrl.agents import check_ppo_config
+
     for task in tasks if build_agent else ():
         check_ppo_config(task.task, config.problem.encoder, task.ppo, where=task.task.env_id)
     if config.problem.ppo.backend == "population":
         from ermrl.population import check_population_config
 
         check_population_config(config.problem.ppo)
-    check_tensorboard(args)
-    return config
 
 
 def _command(prog: str, argv: Sequence[str] | None) -> str:
@@ -300,19 +344,7 @@ def evolve_generalization_main(
         fail(prog, str(err))
     assert config.generalization is not None
     print_backend_notes(prog, config, notes)
-    # Cluster options of add_search_args (heartbeats, retries), forwarded like ermrl evolve does.
-    study_kwargs: dict[str, Any] = {}
-    if getattr(args, "heartbeat_interval", None) is not None:
-        study_kwargs["heartbeat_interval"] = args.heartbeat_interval or None
-    for name in ("grace_period", "max_retry"):
-        if hasattr(args, name):
-            study_kwargs[name] = getattr(args, name)
-    run_kwargs: dict[str, Any] = {
-        "progress": progress_mode(args),
-        "tensorboard": getattr(args, "tensorboard", None),
-    }
-    if hasattr(args, "wait_for_running"):
-        run_kwargs["wait_for_running"] = args.wait_for_running
+    study_kwargs, run_kwargs = _forwarded_options(args)
     try:
         study = create_or_resume_generalization_study(
             config, args.storage, study_name, command=_command(prog, argv), **study_kwargs
@@ -324,24 +356,8 @@ def evolve_generalization_main(
         if message is None:
             raise
         fail(prog, message)
-    gen = config.generalization
     if not args.quiet:
-        suite = f" (suite {gen.suite})" if gen.suite else ""
-        print(
-            f"study {study_name!r} in {args.storage}: {len(gen.tasks)} tasks{suite}, "
-            f"{plural(len(config.problem.seeds), 'seed')} x {config.problem.budget.training_steps} steps "
-            f"per task per trial, {config.space.n_reservoirs} reservoir(s), "
-            f"{config.search.sampler} sampler, {plural(config.search.n_trials, 'trial')}",
-            flush=True,
-        )
-        if (live := dashboard_line(args.storage)) is not None:
-            print(live, flush=True)
-        for t in gen.tasks:
-            print(
-                f"  {t.task.label}: R_random {t.random_return:.4g}, R_target "
-                f"{t.target_return:.4g} ({gen.target_column}), n_envs {t.ppo.n_envs}",
-                flush=True,
-            )
+        _print_study(config, study_name, args.storage)
     return run_and_report(
         prog,
         config,
@@ -357,6 +373,50 @@ def evolve_generalization_main(
         wandb=args.wandb,
         **run_kwargs,
     )
+
+
+def _forwarded_options(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The study's and the run's options, forwarded like ``ermrl evolve`` does.
+
+    Returns:
+        ``(study_kwargs, run_kwargs)``: the cluster options of ``add_search_args`` (heartbeats,
+        retries) given, and ``progress``, ``tensorboard`` and ``wait_for_running``.
+    """
+    study_kwargs: dict[str, Any] = {}
+    if getattr(args, "heartbeat_interval", None) is not None:
+        study_kwargs["heartbeat_interval"] = args.heartbeat_interval or None
+    for name in ("grace_period", "max_retry"):
+        if hasattr(args, name):
+            study_kwargs[name] = getattr(args, name)
+    run_kwargs: dict[str, Any] = {
+        "progress": progress_mode(args),
+        "tensorboard": getattr(args, "tensorboard", None),
+    }
+    if hasattr(args, "wait_for_running"):
+        run_kwargs["wait_for_running"] = args.wait_for_running
+    return study_kwargs, run_kwargs
+
+
+def _print_study(config: EvolveConfig, study_name: str, storage: str) -> None:
+    """The study's tasks, seeds, budget and search, and where to watch it live."""
+    gen = config.generalization
+    assert gen is not None
+    suite = f" (suite {gen.suite})" if gen.suite else ""
+    print(
+        f"study {study_name!r} in {storage}: {len(gen.tasks)} tasks{suite}, "
+        f"{plural(len(config.problem.seeds), 'seed')} x {config.problem.budget.training_steps} steps "
+        f"per task per trial, {config.space.n_reservoirs} reservoir(s), "
+        f"{config.search.sampler} sampler, {plural(config.search.n_trials, 'trial')}",
+        flush=True,
+    )
+    if (live := dashboard_line(storage)) is not None:
+        print(live, flush=True)
+    for t in gen.tasks:
+        print(
+            f"  {t.task.label}: R_random {t.random_return:.4g}, R_target "
+            f"{t.target_return:.4g} ({gen.target_column}), n_envs {t.ppo.n_envs}",
+            flush=True,
+        )
 
 
 # -- test-generalization ------------------------------------------------------------------------
@@ -479,114 +539,171 @@ def _normalize_summary(summary: Any, out: Path, reference: tuple[float, float] |
     return summary
 
 
+@dataclasses.dataclass(frozen=True)
+class _GeneralizationTest:
+    """What ``ermrl test-generalization`` trains, resolved before any training.
+
+    Attributes:
+        config: The study's configuration.
+        task: The test task (the study's task settings on the test env).
+        ppo: The test env's PPO settings.
+        plan: The test phase's plan (agents, seeds, selected trial, output folder).
+        evolution_ids: The env ids the study evolved on.
+        warning: Why this is not a generalization test (``None``: it is one).
+        reference: The test env's random and target returns (``None``: no reference scores).
+        target_column: The scores table's target column.
+    """
+
+    config: EvolveConfig
+    task: TaskConfig
+    ppo: PPOConfig
+    plan: TestPlan
+    evolution_ids: tuple[str, ...]
+    warning: str | None
+    reference: tuple[float, float] | None
+    target_column: str
+
+
 def test_generalization_main(
     argv: Sequence[str] | None = None, prog: str = "ermrl test-generalization"
 ) -> int:
     """Entry point of ``ermrl test-generalization`` and ``test_generalization.py``."""
-    from ermrl.agents import check_ppo_config
-    from ermrl.envs import check_env_id, observation_indices
-    from ermrl.experiments import describe_selection, selection_metadata
-    from ermrl.experiments._prepare import choose_agents, plan_test_phase, with_backend
-    from ermrl.search import study_config
-    from ermrl.search._scores import load_scores, reference_returns
-    from ermrl.storage import load_study
-
     parser = build_test_generalization_parser(prog)
     quiet_libraries()
     args = parser.parse_args(argv)
     require_tensorboard(args, prog)
-    warning: str | None = None
     notes: list[str] = []
     try:
-        study = load_study(args.study_name, args.storage)
-        config = study_config(study)
-        problem = config.problem
-        gen = config.generalization
-        observe = args.observe or problem.task.observe
-        check_env_id(args.env_id)
-        observation_indices(args.env_id, observe)
-        evolution_ids = _evolution_env_ids(config)
-        warning = overlap_warning(args.env_id, evolution_ids, args.study_name)
-        options = test_options(args)
-        options = dataclasses.replace(options, agents=choose_agents(options, config, observe))
-        task = dataclasses.replace(problem.task, env_id=args.env_id, observe=observe)
-        default_out = Path("runs") / f"{args.study_name}__{args.env_id}"
-        ppo = with_backend(
-            _test_ppo(config, args.env_id, args),
-            options,
-            task=task,
-            out=Path(args.out) if args.out else default_out,
-            notes=notes,
-        )
-        # The test env's settings (the study's, a table's, --ppo): refused now, not by a run.
-        check_ppo_config(task, problem.encoder, ppo, where=args.env_id)
-        plan = plan_test_phase(
-            options,
-            study,
-            config,
-            task,
-            ppo,
-            default_out,
-            observe=observe,
-        )
-        scores = args.scores
-        if scores is None and gen is not None and gen.scores != "packaged":
-            scores = gen.scores if Path(gen.scores).exists() else None
-        target_column = gen.target_column if gen is not None else "target"
-        table = load_scores(scores)
-        try:
-            reference: tuple[float, float] | None = reference_returns(
-                args.env_id, table, target_column=target_column, path=scores
-            )
-        except ConfigError:
-            reference = None
+        test = _resolve_test(args, notes)
     except setup_errors() as err:
         fail(prog, str(err))
-    print_notes(prog, ppo, notes)
-    if warning:
-        _shout(warning)
+    print_notes(prog, test.ppo, notes)
+    _say_test_plan(prog, args, test)
+    summary = run_test_phase(
+        prog,
+        args,
+        test.plan,
+        test.task,
+        test.config.problem.encoder,
+        test.ppo,
+        _test_metadata(args, test),
+        then=lambda table: _normalize_summary(table, test.plan.out, test.reference),
+    )
+    if summary is None:
+        return EXIT_INTERRUPTED
+    if not args.quiet:
+        if test.reference is None:
+            print(f"note: no reference scores for {args.env_id}: summary.csv has raw returns only")
+        print(f"wrote {test.plan.out}/summary.csv, curves.csv, learning_curves.png", flush=True)
+        if test.warning:  # again, below the progress lines
+            _shout(test.warning)
+    return 0
+
+
+def _resolve_test(args: argparse.Namespace, notes: list[str]) -> _GeneralizationTest:
+    """Read the study and resolve the test task, its PPO settings and the test phase's plan.
+
+    Args:
+        args: The parsed options.
+        notes: Receives why the test trains with the backend it does.
+
+    Raises:
+        The errors of :func:`setup_errors` (a bad env id, study or option).
+    """
+    from ermrl.agents import check_ppo_config
+    from ermrl.envs import check_env_id, observation_indices
+    from ermrl.experiments._prepare import choose_agents, plan_test_phase, with_backend
+    from ermrl.search import study_config
+    from ermrl.storage import load_study
+
+    study = load_study(args.study_name, args.storage)
+    config = study_config(study)
+    problem = config.problem
+    observe = args.observe or problem.task.observe
+    check_env_id(args.env_id)
+    observation_indices(args.env_id, observe)
+    evolution_ids = _evolution_env_ids(config)
+    warning = overlap_warning(args.env_id, evolution_ids, args.study_name)
+    options = test_options(args)
+    options = dataclasses.replace(options, agents=choose_agents(options, config, observe))
+    task = dataclasses.replace(problem.task, env_id=args.env_id, observe=observe)
+    default_out = Path("runs") / f"{args.study_name}__{args.env_id}"
+    ppo = with_backend(
+        _test_ppo(config, args.env_id, args),
+        options,
+        task=task,
+        out=Path(args.out) if args.out else default_out,
+        notes=notes,
+    )
+    # The test env's settings (the study's, a table's, --ppo): refused now, not by a run.
+    check_ppo_config(task, problem.encoder, ppo, where=args.env_id)
+    plan = plan_test_phase(options, study, config, task, ppo, default_out, observe=observe)
+    reference, target_column = _reference_returns(args, config)
+    return _GeneralizationTest(
+        config, task, ppo, plan, evolution_ids, warning, reference, target_column
+    )
+
+
+def _reference_returns(
+    args: argparse.Namespace, config: EvolveConfig
+) -> tuple[tuple[float, float] | None, str]:
+    """The test env's random and target returns (``None``: not in the scores table) and the
+    table's target column: ``--scores``, else the study's table, else the packaged one."""
+    from ermrl.search._scores import load_scores, reference_returns
+
+    gen = config.generalization
+    scores = args.scores
+    if scores is None and gen is not None and gen.scores != "packaged":
+        scores = gen.scores if Path(gen.scores).exists() else None
+    target_column = gen.target_column if gen is not None else "target"
+    table = load_scores(scores)
+    try:
+        reference: tuple[float, float] | None = reference_returns(
+            args.env_id, table, target_column=target_column, path=scores
+        )
+    except ConfigError:
+        reference = None
+    return reference, target_column
+
+
+def _say_test_plan(prog: str, args: argparse.Namespace, test: _GeneralizationTest) -> None:
+    """The warnings (also with ``--quiet``) and, unless quiet, what the test trains."""
+    from ermrl.experiments import describe_selection
+
+    if test.warning:
+        _shout(test.warning)
+    plan = test.plan
     if plan.warning:  # also with --quiet: the selection is not the one a ranking would give
         print(f"{prog}: warning: {plan.warning}", file=sys.stderr, flush=True)
     if not args.quiet:
         best = describe_selection(plan.chosen)
         print(
-            f"generalization test of {args.study_name!r} (evolved on {', '.join(evolution_ids)}) "
-            f"on {task.label}: agents {' '.join(plan.agent_names)}, "
-            f"seeds {' '.join(map(str, plan.seeds))}, {args.training_steps} steps each; "
-            f"selected: {best}; out: {plan.out}",
+            f"generalization test of {args.study_name!r} (evolved on "
+            f"{', '.join(test.evolution_ids)}) on {test.task.label}: agents "
+            f"{' '.join(plan.agent_names)}, seeds {' '.join(map(str, plan.seeds))}, "
+            f"{args.training_steps} steps each; selected: {best}; out: {plan.out}",
             flush=True,
         )
-    metadata = {
+
+
+def _test_metadata(args: argparse.Namespace, test: _GeneralizationTest) -> dict[str, Any]:
+    """What the run folder records of the study, the selection and the test env."""
+    from ermrl.experiments import selection_metadata
+
+    gen = test.config.generalization
+    reference = test.reference
+    return {
         "study_name": args.study_name,
         "storage": args.storage,
-        **selection_metadata(plan.chosen),
-        "evolution_env_ids": list(evolution_ids),
+        **selection_metadata(test.plan.chosen),
+        "evolution_env_ids": list(test.evolution_ids),
         "evolution_suite": gen.suite if gen is not None else None,
         "test_env_id": args.env_id,
-        "in_evolution_set": args.env_id in evolution_ids,
+        "in_evolution_set": args.env_id in test.evolution_ids,
         "reference_returns": None
         if reference is None
-        else {"random": reference[0], "target": reference[1], "column": target_column},
+        else {"random": reference[0], "target": reference[1], "column": test.target_column},
     }
-    summary = run_test_phase(
-        prog,
-        args,
-        plan,
-        task,
-        problem.encoder,
-        ppo,
-        metadata,
-        then=lambda table: _normalize_summary(table, plan.out, reference),
-    )
-    if summary is None:
-        return EXIT_INTERRUPTED
-    if not args.quiet:
-        if reference is None:
-            print(f"note: no reference scores for {args.env_id}: summary.csv has raw returns only")
-        print(f"wrote {plan.out}/summary.csv, curves.csv, learning_curves.png", flush=True)
-        if warning:  # again, below the progress lines
-            _shout(warning)
-    return 0
 
 
 test_generalization_main.__test__ = False  # type: ignore[attr-defined]  # not a pytest test
