@@ -556,31 +556,61 @@ def check_finished_runs(
         requested = name in expected and seed in seeds
         if requested and overwrite:
             continue
-        # A run that is kept is read back by the summary: a damaged one stops us now.
-        read_run_result(path)
-        read_episodes(folder / EPISODES_FILE)
         label = f"{name} seed {seed}"
-        record_path = folder / RUN_SETTINGS_FILE
-        if not record_path.is_file():
+        keys = _finished_run_diff(folder, name, seed, expected, shared, shared_ppo)
+        if keys is None:
             unrecorded.append(label)
-            outside += [] if requested else [label]
-            continue
-        stored = read_run_settings(record_path)
-        if name in expected:
-            keys = settings_diff(stored, {**expected[name], "seed": seed})
-        else:
-            own = {**shared, "ppo": shared_ppo.get(_learner_of(stored.get("ppo") or {}))}
-            keys = [
-                key
-                for key in settings_diff({k: stored.get(k) for k in _SHARED_KEYS}, own)
-                if own["ppo"] is not None or not key.startswith("ppo")
-            ]
-        if keys:
+        elif keys:
             shown = ", ".join(keys[:4]) + (", ..." if len(keys) > 4 else "")
             differing.append(f"{label} differs in {shown}")
-            outside += [] if requested else [label]
-    if not (differing or unrecorded):
-        return
+        else:
+            continue
+        outside += [] if requested else [label]
+    if differing or unrecorded:
+        raise _mixed_runs_error(out, differing, unrecorded, outside)
+
+
+def _finished_run_diff(
+    folder: Path,
+    name: str,
+    seed: int,
+    expected: Mapping[str, Any],
+    shared: Mapping[str, Any],
+    shared_ppo: Mapping[str, Any],
+) -> list[str] | None:
+    """The keys in which the finished run of agent ``name`` in ``folder`` differs from
+    ``expected`` (see :func:`check_finished_runs`), or ``None`` when it has no settings record.
+
+    The run of an agent not in ``expected`` is compared on ``shared`` (what every agent
+    shares), with its own learner's settings from ``shared_ppo`` (learner name -> settings);
+    learner settings are left out when no agent asked for has its learner.
+
+    Raises:
+        RunFolderError: the run's ``result.json``, ``episodes.csv`` or ``settings.json`` is
+            damaged.
+    """
+    # A run that is kept is read back by the summary: a damaged one stops us now.
+    read_run_result(folder / "result.json")
+    read_episodes(folder / EPISODES_FILE)
+    record_path = folder / RUN_SETTINGS_FILE
+    if not record_path.is_file():
+        return None
+    stored = read_run_settings(record_path)
+    if name in expected:
+        return settings_diff(stored, {**expected[name], "seed": seed})
+    own = {**shared, "ppo": shared_ppo.get(_learner_of(stored.get("ppo") or {}))}
+    return [
+        key
+        for key in settings_diff({k: stored.get(k) for k in _SHARED_KEYS}, own)
+        if own["ppo"] is not None or not key.startswith("ppo")
+    ]
+
+
+def _mixed_runs_error(
+    out: Path, differing: list[str], unrecorded: list[str], outside: list[str]
+) -> ConfigError:
+    """The error of :func:`check_finished_runs`: the runs that differ (a few of them), those
+    without a settings record, and those ``--overwrite`` would not retrain."""
     problems = differing[:3] + (["..."] if len(differing) > 3 else [])
     if unrecorded:
         problems.append(
@@ -594,7 +624,7 @@ def check_finished_runs(
             f" (--overwrite retrains only the agents and seeds asked for, not "
             f"{', '.join(outside[:3])}{', ...' if len(outside) > 3 else ''})"
         )
-    raise ConfigError(
+    return ConfigError(
         f"{out} holds finished runs made with other settings than these: "
         + "; ".join(problems)
         + f"; {advice}"
