@@ -263,15 +263,13 @@ def plan_test_phase(
         ConfigError: bad settings, test seeds evolution or the re-evaluation used, a bad
             folder, or an agent that cannot be built.
     """
-    from ermrl.agents import check_ppo_config
     from ermrl.experiments._test_phase import (
-        TestSettings,
         check_out_folder,
         default_test_seeds,
         learner_settings_for,
         study_agents,
     )
-    from ermrl.search import stale_ranking, used_reevaluation_seeds
+    from ermrl.search import used_reevaluation_seeds
 
     problem = config.problem
     seeds = tuple(options.seeds) if options.seeds else default_test_seeds(problem.seeds)
@@ -288,21 +286,45 @@ def plan_test_phase(
         learner_settings_for(ppo, task.env_id, overrides, own),
         ppo,
     )
-    # An agent of another learner than the study's has settings no study checked (its table,
-    # --ppo, --for-learner; dagger's expert): refused now rather than by its first run.
+    _check_agent_settings(agents, task)
+    out = Path(options.out) if options.out else default_out
+    check_out_folder(out)
+    settings = _test_settings(options, seeds, out, problem.budget.n_last_episodes)
+    warning = _stale_ranking_warning(study, chosen, options.trial)
+    return TestPlan(agents, chosen, seeds, settings, out, warning, tuple(names))
+
+
+def _check_agent_settings(agents: Sequence[AgentSpec], task: TaskConfig) -> None:
+    """Check the settings of each agent of another learner than the study's.
+
+    Such an agent has settings no study checked (its table, ``--ppo``, ``--for-learner``;
+    dagger's expert): refused now rather than by its first run.
+
+    Raises:
+        ConfigError: an agent's settings are bad, naming the agent.
+    """
+    from ermrl.agents import check_ppo_config
+
     for agent in agents:
         if agent.ppo is not None:
             check_ppo_config(agent.task(task), None, agent.ppo, where=agent.name)
-    out = Path(options.out) if options.out else default_out
-    check_out_folder(out)
-    settings = TestSettings(
+
+
+def _test_settings(
+    options: TestOptions, seeds: tuple[int, ...], out: Path, n_last_episodes: int
+) -> TestSettings:
+    """How the comparison runs: ``options`` on ``seeds`` into ``out``, each run's final return
+    the mean of its last ``n_last_episodes`` training episodes (the study's measure)."""
+    from ermrl.experiments._test_phase import TestSettings
+
+    return TestSettings(
         training_steps=options.training_steps,
         seeds=seeds,
         out=out,
         n_procs=options.n_procs,
         evaluate=options.evaluate,
         n_eval_episodes=options.n_eval_episodes,
-        n_last_episodes=problem.budget.n_last_episodes,
+        n_last_episodes=n_last_episodes,
         save_models=options.save_models,
         overwrite=options.overwrite,
         tensorboard=Path(options.tensorboard) if options.tensorboard else None,
@@ -310,17 +332,26 @@ def plan_test_phase(
         progress=options.progress,
         checkpoint_every=options.checkpoint_every,
     )
-    warning = None
-    # Only when the ranking would have picked the trial: not with a trial given, nor when no
-    # agent uses the evolved trial (chosen is None).
-    stale = None if chosen is None or options.trial is not None else stale_ranking(study)
-    if chosen is not None and stale is not None:
-        warning = (
-            f"the re-evaluated ranking is stale and not used ({stale}); testing trial "
-            f"{chosen.number}, the best evolution fitness (run the evolve command again to "
-            "re-rank, or pass --trial N)"
-        )
-    return TestPlan(agents, chosen, seeds, settings, out, warning, tuple(names))
+
+
+def _stale_ranking_warning(
+    study: optuna.Study, chosen: Selection | None, trial: int | None
+) -> str | None:
+    """A line for stderr when the stored ranking is stale and the trial was selected without it.
+
+    Only when the ranking would have picked the trial: not with a trial given (``trial``), nor
+    when no agent uses the evolved trial (``chosen`` is ``None``).
+    """
+    from ermrl.search import stale_ranking
+
+    stale = None if chosen is None or trial is not None else stale_ranking(study)
+    if chosen is None or stale is None:
+        return None
+    return (
+        f"the re-evaluated ranking is stale and not used ({stale}); testing trial "
+        f"{chosen.number}, the best evolution fitness (run the evolve command again to "
+        "re-rank, or pass --trial N)"
+    )
 
 
 def with_backend(
