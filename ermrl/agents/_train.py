@@ -7,6 +7,7 @@ when the PPO settings say ``normalize``), so episode returns are always the task
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import time
@@ -417,32 +418,65 @@ def train_agent(
         NoEpisodeFinished: the ``last`` measure is needed but no episode ended.
         ValueError: a step of ``eval_at`` outside ``[1, budget.training_steps]``.
     """
+    bad = [s for s in eval_at if not 1 <= int(s) <= budget.training_steps]
+    if bad:
+        raise ValueError(f"eval_at steps must be in [1, {budget.training_steps}], got {bad}")
+    run = functools.partial(
+        _train, task, encoder, ppo, budget, seed, evaluate=evaluate, model_path=model_path,
+        report=report, eval_at=eval_at, progress=progress, checkpoint=checkpoint,
+    )  # fmt: skip
+    if wandb is not None:
+        return _train_with_wandb(run, wandb, tensorboard_log, callbacks)
+    return run(tensorboard_log=tensorboard_log, callbacks=callbacks)
+
+
+def _train_with_wandb(
+    run: Callable[..., RunResult],
+    wandb: WandbRun,
+    tensorboard_log: str | None,
+    callbacks: Sequence[Any],
+) -> RunResult:
+    """``run(tensorboard_log=..., callbacks=...)`` logged to Weights & Biases (see
+    :func:`train_agent`): wandb's SB3 callback after ``callbacks``, and the outcome in the W&B
+    run's summary."""
+    from ermrl.agents._wandb import wandb_run
+
+    with wandb_run(wandb, tensorboard_log) as (wandb_callback, log_dir, session):
+        result = run(tensorboard_log=log_dir, callbacks=(*callbacks, wandb_callback))
+        session.summary.update(
+            {
+                "ermrl/last_return": result.last_return,
+                "ermrl/eval_return": result.eval_return,
+                "ermrl/env_steps": result.env_steps,
+                "ermrl/wall_seconds": result.wall_seconds,
+            }
+        )
+    return result
+
+
+def _train(
+    task: TaskConfig,
+    encoder: EncoderConfig | None,
+    ppo: PPOConfig,
+    budget: BudgetConfig,
+    seed: int,
+    *,
+    evaluate: bool | None,
+    model_path: str | Path | None,
+    report: ReportFn | None,
+    tensorboard_log: str | None,
+    eval_at: Sequence[int],
+    callbacks: Sequence[Any],
+    progress: Progress | None,
+    checkpoint: RunCheckpoint | None,
+) -> RunResult:
+    """:func:`train_agent` once its arguments are checked and W&B is set up: build the env and
+    the learner, resume, learn, measure the returns, evaluate, save."""
     import torch
 
     from ermrl.agents._normalize import normalize_env, save_normalize_stats, stats_path
     from ermrl.learners import get_learner
 
-    bad = [s for s in eval_at if not 1 <= int(s) <= budget.training_steps]
-    if bad:
-        raise ValueError(f"eval_at steps must be in [1, {budget.training_steps}], got {bad}")
-    if wandb is not None:
-        from ermrl.agents._wandb import wandb_run
-
-        with wandb_run(wandb, tensorboard_log) as (wandb_callback, log_dir, run):
-            result = train_agent(
-                task, encoder, ppo, budget, seed, evaluate=evaluate, model_path=model_path,
-                report=report, tensorboard_log=log_dir, eval_at=eval_at,
-                callbacks=(*callbacks, wandb_callback), progress=progress, checkpoint=checkpoint,
-            )  # fmt: skip
-            run.summary.update(
-                {
-                    "ermrl/last_return": result.last_return,
-                    "ermrl/eval_return": result.eval_return,
-                    "ermrl/env_steps": result.env_steps,
-                    "ermrl/wall_seconds": result.wall_seconds,
-                }
-            )
-        return result
     learner = get_learner(ppo.learner)
     torch.set_num_threads(ppo.torch_threads)
     # BLAS (numpy's matrix products in the encoder) gets the same thread budget: with several
@@ -450,7 +484,6 @@ def train_agent(
     threadpoolctl.threadpool_limits(ppo.torch_threads)
     seeds = derive_seeds(seed)
     result = RunResult(seed=seed)
-    resumed, wall_before = 0, 0.0  # steps and wall seconds restored from a checkpoint
     start = time.perf_counter()
     # VecNormalize (ppo.normalize) sees the reservoir states; the learner's own wrappers (a
     # frame stack) come last, as in rl-baselines3-zoo.
@@ -464,89 +497,21 @@ def train_agent(
         env.seed(seeds.env)
         if checkpoint is not None and not can_checkpoint(model):
             checkpoint = None
-        # restore() loads the weights and statistics, or sets a checkpoint that does not fit
-        # this model aside (one line) and leaves the model as built.
-        saved = None if checkpoint is None else checkpoint.restore(model, normalized)
-        if saved is not None:
-            assert checkpoint is not None
-            model.num_timesteps = resumed = int(saved["num_timesteps"])
-            result.episode_returns = [float(r) for r in saved["episode_returns"]]
-            result.episode_steps = [int(t) for t in saved["episode_steps"]]
-            result.checkpoint_returns = [(int(t), float(r)) for t, r in saved["checkpoint_returns"]]
-            wall_before = float(saved["wall_seconds"])
-            eval_at = [t for t in eval_at if t > resumed]
-            env.seed(seeds.env + resumed)  # fresh episodes, not the first ones again
-            if progress is not None:
-                progress.message(f"resumed from {checkpoint.folder} at {resumed:,} steps")
+        resumed, wall_before = _resume(model, checkpoint, normalized, env, seeds, result, progress)
+        eval_at = [t for t in eval_at if t > resumed]
         recorder = _episode_callback(result, budget, report)
-        if progress is not None:
-            callbacks = (*callbacks, _progress_callback(progress))
-        if checkpoint is not None:
-
-            def records() -> dict[str, Any]:
-                return {
-                    "episode_returns": result.episode_returns,
-                    "episode_steps": result.episode_steps,
-                    "checkpoint_returns": result.checkpoint_returns,
-                    "wall_seconds": wall_before + time.perf_counter() - start,
-                }
-
-            callbacks = (*callbacks, saver_callback(checkpoint, normalized, records))
-        callback: Any = [recorder, *callbacks] if callbacks else recorder
-        if eval_at:
-
-            def evaluate_now() -> float:
-                returns = _evaluate(
-                    model, task, encoder, ppo, seeds, normalized, budget.n_eval_episodes
-                )
-                return float(np.mean(returns))
-
-            callback = [
-                *(callback if isinstance(callback, list) else [callback]),
-                _checkpoint_callback(result, eval_at, budget.training_steps, evaluate_now),
-            ]
-        # A resumed run trains the steps left; with reset_num_timesteps=False SB3 counts on
-        # from num_timesteps, so its schedules end at the budget as the uninterrupted run's.
-        resume_kwargs = {"reset_num_timesteps": False} if resumed else {}
-        try:
-            model.learn(
-                total_timesteps=budget.training_steps - resumed,
-                callback=callback,
-                progress_bar=False,
-                **resume_kwargs,
-            )
-        except ValueError as err:
-            # torch.distributions raises ValueError when the policy outputs NaN.
-            if "nan" in str(err).lower() or "invalid values" in str(err).lower():
-                raise TrainingDiverged(f"seed {seed}: training diverged ({err})") from err
-            raise
-        result.env_steps = int(model.num_timesteps)
-        phase_steps = getattr(model, "phase_steps", None)
-        if isinstance(phase_steps, dict):
-            result.phase_steps = {str(k): int(v) for k, v in phase_steps.items()}
-        if not all(math.isfinite(r) for r in result.episode_returns):
-            raise TrainingDiverged(f"seed {seed}: non-finite episode return")
-        if result.episode_returns:
-            result.last_return = float(np.mean(result.episode_returns[-budget.n_last_episodes :]))
-        elif budget.fitness == "last" and recorder.mixture_episodes:
-            raise NoEpisodeFinished(
-                f"seed {seed}: none of the {recorder.mixture_episodes} episodes of "
-                f"{task.env_id} that ended within {budget.training_steps} training steps was "
-                "the learner's alone (the expert acted in each, and an imitation learner's "
-                "training returns count only learner-only episodes); raise --training-steps "
-                "past the expert's share (beta), or measure by evaluation (--fitness eval; "
-                "--eval in a test phase)"
-            )
-        elif budget.fitness == "last":
-            raise NoEpisodeFinished(
-                f"seed {seed}: no episode of {task.env_id} ended within "
-                f"{budget.training_steps} training steps; raise --training-steps or use "
-                "--fitness eval"
-            )
+        callback = _training_callback(
+            recorder, callbacks, progress, checkpoint, normalized, result, wall_before, start
+        )
+        # The returns of deterministic episodes on a fresh evaluation env (see _evaluate).
+        episodes = functools.partial(
+            _evaluate, model, task, encoder, ppo, seeds, normalized, budget.n_eval_episodes
+        )
+        callback = _with_evaluations(callback, result, eval_at, budget.training_steps, episodes)
+        _learn(model, callback, budget.training_steps, resumed, seed)
+        _measure_training(result, model, recorder, budget, task.env_id, seed)
         if evaluate if evaluate is not None else budget.fitness == "eval":
-            result.eval_returns = _evaluate(
-                model, task, encoder, ppo, seeds, normalized, budget.n_eval_episodes
-            )
+            result.eval_returns = episodes()
             result.eval_return = float(np.mean(result.eval_returns))
             if not math.isfinite(result.eval_return):
                 raise TrainingDiverged(f"seed {seed}: non-finite evaluation return")
@@ -560,3 +525,148 @@ def train_agent(
     if checkpoint is not None:
         checkpoint.remove()
     return result
+
+
+def _resume(
+    model: Any,
+    checkpoint: RunCheckpoint | None,
+    normalized: Any,
+    env: Any,
+    seeds: SeedSet,
+    result: RunResult,
+    progress: Progress | None,
+) -> tuple[int, float]:
+    """Restore a run from ``checkpoint`` when it holds this run's state.
+
+    ``restore()`` loads the weights and statistics, or sets a checkpoint that does not fit
+    this model aside (one line) and leaves the model as built. A restored run gets back its
+    step count, its records so far (into ``result``) and fresh episodes (``env`` reseeded).
+
+    Returns:
+        The env steps and wall seconds restored (``(0, 0.0)``: none).
+    """
+    saved = None if checkpoint is None else checkpoint.restore(model, normalized)
+    if saved is None:
+        return 0, 0.0
+    assert checkpoint is not None
+    model.num_timesteps = resumed = int(saved["num_timesteps"])
+    result.episode_returns = [float(r) for r in saved["episode_returns"]]
+    result.episode_steps = [int(t) for t in saved["episode_steps"]]
+    result.checkpoint_returns = [(int(t), float(r)) for t, r in saved["checkpoint_returns"]]
+    wall_before = float(saved["wall_seconds"])
+    env.seed(seeds.env + resumed)  # fresh episodes, not the first ones again
+    if progress is not None:
+        progress.message(f"resumed from {checkpoint.folder} at {resumed:,} steps")
+    return resumed, wall_before
+
+
+def _training_callback(
+    recorder: Any,
+    callbacks: Sequence[Any],
+    progress: Progress | None,
+    checkpoint: RunCheckpoint | None,
+    normalized: Any,
+    result: RunResult,
+    wall_before: float,
+    start: float,
+) -> Any:
+    """The SB3 callback of a run: ``recorder``, then ``callbacks``, then the progress's and the
+    checkpoint saver's (a list when there is more than ``recorder``).
+
+    The saver stores ``result``'s records so far and the wall seconds of the run: ``wall_before``
+    restored, plus the time since ``start`` (``time.perf_counter()``).
+    """
+    if progress is not None:
+        callbacks = (*callbacks, _progress_callback(progress))
+    if checkpoint is not None:
+
+        def records() -> dict[str, Any]:
+            return {
+                "episode_returns": result.episode_returns,
+                "episode_steps": result.episode_steps,
+                "checkpoint_returns": result.checkpoint_returns,
+                "wall_seconds": wall_before + time.perf_counter() - start,
+            }
+
+        callbacks = (*callbacks, saver_callback(checkpoint, normalized, records))
+    return [recorder, *callbacks] if callbacks else recorder
+
+
+def _with_evaluations(
+    callback: Any,
+    result: RunResult,
+    eval_at: Sequence[int],
+    training_steps: int,
+    episodes: Callable[[], list[float]],
+) -> Any:
+    """``callback``, followed by the evaluations at the steps of ``eval_at`` (none: ``callback``
+    alone), each the mean return of ``episodes()`` (see :func:`_checkpoint_callback`)."""
+    if not eval_at:
+        return callback
+
+    def evaluate_now() -> float:
+        return float(np.mean(episodes()))
+
+    return [
+        *(callback if isinstance(callback, list) else [callback]),
+        _checkpoint_callback(result, eval_at, training_steps, evaluate_now),
+    ]
+
+
+def _learn(model: Any, callback: Any, training_steps: int, resumed: int, seed: int) -> None:
+    """Train ``model`` up to ``training_steps`` env steps, from ``resumed`` on.
+
+    Raises:
+        TrainingDiverged: the policy output NaN (torch.distributions raises ``ValueError``).
+    """
+    # A resumed run trains the steps left; with reset_num_timesteps=False SB3 counts on
+    # from num_timesteps, so its schedules end at the budget as the uninterrupted run's.
+    resume_kwargs = {"reset_num_timesteps": False} if resumed else {}
+    try:
+        model.learn(
+            total_timesteps=training_steps - resumed,
+            callback=callback,
+            progress_bar=False,
+            **resume_kwargs,
+        )
+    except ValueError as err:
+        # torch.distributions raises ValueError when the policy outputs NaN.
+        if "nan" in str(err).lower() or "invalid values" in str(err).lower():
+            raise TrainingDiverged(f"seed {seed}: training diverged ({err})") from err
+        raise
+
+
+def _measure_training(
+    result: RunResult, model: Any, recorder: Any, budget: BudgetConfig, env_id: str, seed: int
+) -> None:
+    """Fill in ``result``'s env steps, the learner's own split of them and the final return
+    (the mean of the last ``budget.n_last_episodes`` training episodes).
+
+    Raises:
+        TrainingDiverged: an episode's return is not finite.
+        NoEpisodeFinished: the ``last`` measure is needed but no episode (of the learner's
+            own) ended.
+    """
+    result.env_steps = int(model.num_timesteps)
+    phase_steps = getattr(model, "phase_steps", None)
+    if isinstance(phase_steps, dict):
+        result.phase_steps = {str(k): int(v) for k, v in phase_steps.items()}
+    if not all(math.isfinite(r) for r in result.episode_returns):
+        raise TrainingDiverged(f"seed {seed}: non-finite episode return")
+    if result.episode_returns:
+        result.last_return = float(np.mean(result.episode_returns[-budget.n_last_episodes :]))
+    elif budget.fitness == "last" and recorder.mixture_episodes:
+        raise NoEpisodeFinished(
+            f"seed {seed}: none of the {recorder.mixture_episodes} episodes of "
+            f"{env_id} that ended within {budget.training_steps} training steps was "
+            "the learner's alone (the expert acted in each, and an imitation learner's "
+            "training returns count only learner-only episodes); raise --training-steps "
+            "past the expert's share (beta), or measure by evaluation (--fitness eval; "
+            "--eval in a test phase)"
+        )
+    elif budget.fitness == "last":
+        raise NoEpisodeFinished(
+            f"seed {seed}: no episode of {env_id} ended within "
+            f"{budget.training_steps} training steps; raise --training-steps or use "
+            "--fitness eval"
+        )
