@@ -295,12 +295,13 @@ def test_a_ranking_from_before_the_study_grew_is_stale_and_recomputed(tmp_path: 
     assert chosen.number == new_best.number and "ranked trials" in how and "stale" in how
     # ermrl test says it in one stderr line (the training itself is skipped here).
     import ermrl.cli._test
+    import ermrl.runner._commands
 
     out = tmp_path / "run"
     argv = ["--study-name", "s", "--storage", url, "--agents", "res-ppo", "--seeds", "5",
             "--training-steps", "64", "--quiet", "--out", str(out)]  # fmt: skip
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(ermrl.cli._test, "run_test_phase", lambda *a, **k: object())
+        mp.setattr(ermrl.runner._commands, "run_test_phase", lambda *a, **k: object())
         err = io.StringIO()
         mp.setattr(sys, "stderr", err)
         assert ermrl.cli._test.test_main(argv) == 0
@@ -330,10 +331,10 @@ def test_test_seeds_used_by_evolution_or_reevaluation_are_refused(
     used_by: str,
 ) -> None:
     """The selection saw those seeds: one line, exit 2, nothing written."""
-    import ermrl.cli._test
+    import ermrl.runner._commands
     from ermrl.cli._test import test_main
 
-    monkeypatch.setattr(ermrl.cli._test, "run_test_phase", lambda *a, **k: object())  # no training
+    monkeypatch.setattr(ermrl.runner._commands, "run_test_phase", lambda *a, **k: object())  # no training
     url = f"sqlite:///{tmp_path}/s.db"
     config = make_config(n_trials=4, popsize=4, reevaluate_top=1, reevaluate_seeds=2)
     study = create_or_resume_study(config, url, "s")

@@ -4,9 +4,16 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any, NoReturn
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, Any, NoReturn, TypeVar
 
+from ermrl.runner._commands import (
+    EXIT_INTERRUPTED,
+    EXIT_TERMINATED,
+    EXIT_USAGE,
+    dashboard_line,
+    quiet_libraries,
+)
 from ermrl.storage import DEFAULT_STORAGE
 
 __all__ = [
@@ -28,27 +35,37 @@ __all__ = [
     "PROGRESS_DEFAULT_HELP",
     "add_progress_arg",
     "progress_mode",
+    "dashboard_line",
+    "exit_on_failure",
+    "quiet_libraries",
+    "EXIT_INTERRUPTED",
+    "EXIT_TERMINATED",
+    "EXIT_USAGE",
 ]
 
 if TYPE_CHECKING:
     from ermrl._progress import ProgressMode
 
-EXIT_USAGE = 2
-EXIT_INTERRUPTED = 130
-EXIT_TERMINATED = 143
-
-
-def quiet_libraries() -> None:
-    """Keep the terminal for ermrl's own progress lines: Optuna logs warnings only."""
-    import optuna
-
-    optuna.logging.set_verbosity(optuna.logging.WARNING)
+T = TypeVar("T")
 
 
 def fail(prog: str, message: str, code: int = EXIT_USAGE) -> NoReturn:
     """Print a one-line error and exit (code 2: bad input)."""
     print(f"{prog}: error: {message}", file=sys.stderr)
     raise SystemExit(code)
+
+
+def exit_on_failure(prog: str, run: Callable[[], T]) -> T:
+    """``run()``, whose :class:`~ermrl.runner._commands.CommandFailed` becomes its one-line
+    error on stderr and its exit code (:func:`fail`)."""
+    from ermrl.runner._commands import CommandFailed
+
+    try:
+        return run()
+    except CommandFailed as err:
+        if err.message is None:
+            raise SystemExit(err.code) from None
+        fail(prog, err.message, err.code)
 
 
 class ArgumentParser(argparse.ArgumentParser):
@@ -111,19 +128,6 @@ def progress_mode(args: argparse.Namespace) -> ProgressMode:
 
     value = getattr(args, "progress", None)
     return default_mode() if value is None else value
-
-
-def dashboard_line(storage: str) -> str | None:
-    """The line that tells how to watch a study live in optuna-dashboard (``None``: it cannot)."""
-    import importlib.util
-
-    from ermrl.storage import dashboard_command
-
-    command = dashboard_command(storage)
-    if command is None:
-        return None
-    missing = importlib.util.find_spec("optuna_dashboard") is None
-    return f"live view: {command}" + ("  (pip install 'ermrl[viz]')" if missing else "")
 
 
 def positive_int(text: str) -> int:

@@ -10,22 +10,18 @@ import textwrap
 from collections.abc import Callable, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
-from ermrl._text import plural
 from ermrl.cli._common import (
-    EXIT_INTERRUPTED,
-    EXIT_TERMINATED,
     ArgumentParser,
     HelpFormatter,
     add_for_learner_arg,
     add_progress_arg,
     add_stale_gradient_arg,
     add_storage_args,
-    dashboard_line,
+    exit_on_failure,
     fail,
     nonneg_int,
     positive_float,
     positive_int,
-    progress_mode,
     quiet_libraries,
 )
 from ermrl.config import (
@@ -48,11 +44,16 @@ from ermrl.config import (
 )
 from ermrl.encoders import ENCODERS, flag_dest, get_encoder, reference_encoder
 from ermrl.learners import LEARNERS
+from ermrl.runner import _commands
+from ermrl.runner._commands import (
+    database_cause,
+    interrupted_message,
+    print_backend_notes,
+    study_write_failure,
+)
 
 if TYPE_CHECKING:
     import optuna
-
-    from ermrl.search import EvolutionSummary, Interrupted
 
 __all__ = [
     "build_evolve_parser",
@@ -61,7 +62,11 @@ __all__ = [
     "evolve_main",
     "keep_study_backend",
     "check_tensorboard",
+    "check_wandb",
+    "database_cause",
+    "interrupted_message",
     "print_backend_notes",
+    "study_write_failure",
     "run_and_report",
     "stored_backend",
 ]
@@ -746,17 +751,6 @@ def keep_study_backend(
     return args, build(args)
 
 
-def print_backend_notes(prog: str, config: EvolveConfig, notes: Sequence[str]) -> None:
-    """One line on stderr (also with ``--quiet``) per reason the run trains with its backend
-    when ``--backend`` was left out."""
-    for note in notes:
-        print(
-            f"{prog}: training with the {config.problem.ppo.backend} backend: {note}",
-            file=sys.stderr,
-            flush=True,
-        )
-
-
 def command_line(prog: str, argv: Sequence[str] | None) -> str:
     """The command as it can be pasted back into a shell (stored in the study).
 
@@ -776,212 +770,19 @@ def command_line(prog: str, argv: Sequence[str] | None) -> str:
     )
 
 
-def database_cause(err: BaseException) -> str:
-    """What the database said under Optuna's ``StorageInternalError`` (whose own message
-    blames "invalid data ... e.g. exceeding max length" whatever happened): the driver's
-    error, e.g. SQLite's ``database or disk is full``, in one line."""
-    seen: set[int] = set()
-    cause: BaseException | None = err
-    found = None
-    while cause is not None and id(cause) not in seen:
-        seen.add(id(cause))
-        orig = getattr(cause, "orig", None)  # SQLAlchemy's DBAPIError: the driver's error
-        if isinstance(orig, BaseException):
-            found = orig
-        cause = cause.__cause__ or cause.__context__
-    text = str(found if found is not None else err).strip()
-    return text.splitlines()[0] if text else type(err).__name__
-
-
-def interrupted_message(err: Interrupted) -> str:
-    """What a signal did to this worker's trial, in words (after ``prog: ``)."""
-    signame = err.args[0]
-    if err.trial_number is None:
-        return f"stopped by {signame} between trials; no trial of this worker was running"
-    requeued = " and queued again" if err.requeued else " (its retries are spent; not queued again)"
-    return (
-        f"stopped by {signame}; the running trial #{err.trial_number} was closed as FAIL{requeued}"
-    )
-
-
-def study_write_failure(err: OSError, storage: str) -> str | None:
-    """One line for a study that could not be created because its storage cannot be written.
-
-    ``None``: not a full disk, a quota or a read-only folder (the caller re-raises).
-    """
-    from ermrl.experiments._test_phase import WRITE_ERRNOS
-
-    if err.errno not in WRITE_ERRNOS:
-        return None
-    return (
-        f"cannot write to {storage}: {err.strerror or err}; the study was not created (or "
-        "not changed): free space (or fix the folder) and rerun"
-    )
-
-
 def check_wandb(prog: str, project: str | None) -> None:
     """``--wandb`` without its packages: one line, before anything is written."""
-    if project is not None:
-        from ermrl.agents import WANDB_MISSING, wandb_installed
-
-        if not wandb_installed():
-            fail(prog, WANDB_MISSING)
+    exit_on_failure(prog, lambda: _commands.check_wandb(project))
 
 
-def wandb_callbacks(
-    prog: str, project: str | None, study_name: str, config: EvolveConfig
-) -> tuple[list[Any], Callable[[], None]]:
-    """The trial callbacks of ``--wandb PROJECT`` (none without it) and what ends them."""
-    if project is None:
-        return [], lambda: None
-    import warnings
-
-    from ermrl.agents import study_wandb_callback
-    from ermrl.config import to_dict
-
-    check_wandb(prog, project)
-    with warnings.catch_warnings():  # optuna marks the callback experimental
-        warnings.simplefilter("ignore")
-        callback, finish = study_wandb_callback(project, study_name, to_dict(config))
-    return [callback], finish
-
-
-def run_and_report(
-    prog: str,
-    config: EvolveConfig,
-    study: optuna.Study,
-    *,
-    quiet: bool,
-    fitness_name: str,
-    next_command: str,
-    storage_url: str | None = None,
-    study_kwargs: dict[str, Any] | None = None,
-    evaluator_factory: Any = None,
-    wandb: str | None = None,
-    **run_kwargs: Any,
-) -> int:
-    """Run this worker's trials of ``study`` and print how it ended; return the exit code.
-
-    Shared by ``ermrl evolve`` and ``ermrl evolve-generalization``. On SIGTERM or Ctrl-C, one
-    line on stderr says what became of the running trial.
-
-    Args:
-        prog: program name that starts the stderr lines.
-        config: the study's configuration.
-        study: the created or resumed study.
-        quiet: no progress lines and no summary (the stderr lines are still printed).
-        fitness_name: what the summary calls the best value, e.g. ``"normalized fitness"``.
-        next_command: the test command the summary suggests next.
-        storage_url: the study's storage, where its re-evaluation study lives (``None``: no
-            re-evaluation).
-        study_kwargs: heartbeat and retry options of the re-evaluation study.
-        evaluator_factory: builds the fitness of the re-evaluation config (multi-task runs).
-        wandb: ``--wandb PROJECT``: each recorded trial is logged there (``None``: not).
-        **run_kwargs: passed on to :func:`ermrl.search.evolve_and_reevaluate` (``evaluate``,
-            ``wait_for_running``, ``progress``, ``tensorboard``).
-
-    Returns:
-        0 when the worker finished, ``EXIT_TERMINATED`` (143) when stopped by a signal,
-        ``EXIT_INTERRUPTED`` (130) on Ctrl-C.
-    """
-    from optuna.exceptions import StorageInternalError
-
-    from ermrl.experiments._test_phase import WRITE_ERRNOS
-    from ermrl.search import Interrupted, evolve_and_reevaluate
-    from ermrl.storage import StorageError
-
-    where = storage_url or "the storage"
-    callbacks, finish_wandb = wandb_callbacks(prog, wandb, study.study_name, config)
-    try:
-        summary = evolve_and_reevaluate(
-            config,
-            study,
-            storage_url,
-            quiet=quiet,
-            evaluator_factory=evaluator_factory,
-            study_kwargs=study_kwargs,
-            callbacks=callbacks,
-            **run_kwargs,
-        )
-    except Interrupted as err:
-        print(f"{prog}: {interrupted_message(err)}", file=sys.stderr)
-        return EXIT_TERMINATED
-    except KeyboardInterrupt as err:
-        print(f"{prog}: {_ctrl_c_message(err)}", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    except StorageError as err:  # e.g. another process damaged a journal while this one ran
-        fail(prog, str(err))
-    except StorageInternalError as err:  # a database's write failed: a full disk, say
-        fail(prog, _database_write_failure(err, where))
-    except OSError as err:  # a full disk, a quota or a read-only folder under a journal file
-        if err.errno not in WRITE_ERRNOS:
-            raise
-        fail(prog, _journal_write_failure(err, where))
-    finally:
-        finish_wandb()
-    if not quiet:
-        _print_summary(summary, fitness_name, next_command)
-    return 0
-
-
-def _ctrl_c_message(err: KeyboardInterrupt) -> str:
-    """What Ctrl-C did to this worker's trial, in words (after ``prog: ``)."""
-    number = getattr(err, "trial_number", None)
-    requeued = (
-        " and queued again"
-        if getattr(err, "requeued", False)
-        else " (its retries are spent; not queued again)"
-    )
-    closed = (
-        "between trials; no trial of this worker was running"
-        if number is None
-        else f"; the running trial #{number} was closed as FAIL{requeued}"
-    )
-    return f"interrupted{' ' if number is None else ''}{closed}"
-
-
-def _database_write_failure(err: BaseException, where: str) -> str:
-    """One line for a database write that failed while the worker ran (a full disk, say)."""
-    return (
-        f"cannot write to {where}: {database_cause(err)}; its finished trials are kept, "
-        "a trial cut short is retried once its heartbeat is stale (or run ermrl study "
-        "fail-stale): free space (or fix the database) and rerun"
-    )
-
-
-def _journal_write_failure(err: OSError, where: str) -> str:
-    """One line for a journal file that could not be written while the worker ran (a full
-    disk, a quota or a read-only folder)."""
-    return (
-        f"cannot write to {where}: {err.strerror or err}; its finished trials are kept, "
-        "a trial cut short is retried once its heartbeat is stale (or run ermrl study "
-        "fail-stale), and a record cut short is set aside when the next worker opens the "
-        "journal: free space (or fix the folder) and rerun"
-    )
-
-
-def _print_summary(summary: EvolutionSummary, fitness_name: str, next_command: str) -> None:
-    """What this worker did, the study's best and the command to run next."""
-    from ermrl.search import format_params
-
-    best = (
-        "none yet"
-        if summary.best_value is None
-        else f"{summary.best_value:.4g} with {format_params(summary.best_params or {})}"
-    )
-    print(
-        f"done: this worker ran {plural(summary.trials_run, 'trial')} ({summary.completed} complete, "
-        f"{summary.pruned} pruned, {summary.failed} failed); best {fitness_name} {best}\n"
-        f"next: {next_command}",
-        flush=True,
-    )
+def run_and_report(prog: str, config: EvolveConfig, study: optuna.Study, **kwargs: Any) -> int:
+    """:func:`ermrl.runner._commands.run_and_report`, its one-line errors exiting with code 2."""
+    return exit_on_failure(prog, lambda: _commands.run_and_report(prog, config, study, **kwargs))
 
 
 def evolve_main(argv: Sequence[str] | None = None, prog: str = "ermrl evolve") -> int:
     """Entry point of ``ermrl evolve`` and ``evolve_res.py``."""
     from ermrl.envs import UnknownEnvError, UnsupportedObserveError
-    from ermrl.search import create_or_resume_study
-    from ermrl.storage import LockTimeout, StorageError
 
     parser = build_evolve_parser(prog)
     quiet_libraries()
@@ -996,45 +797,9 @@ def evolve_main(argv: Sequence[str] | None = None, prog: str = "ermrl evolve") -
         )
     except (ConfigError, UnknownEnvError, UnsupportedObserveError) as err:
         fail(prog, str(err))
-    print_backend_notes(prog, config, notes)
-    command = command_line(prog, argv)
-    study_kwargs = {
-        "heartbeat_interval": args.heartbeat_interval or None,
-        "grace_period": args.grace_period,
-        "max_retry": args.max_retry,
-    }
-    try:
-        study = create_or_resume_study(
-            config, args.storage, study_name, command=command, **study_kwargs
-        )
-    except (ConfigError, StorageError, LockTimeout) as err:
-        fail(prog, str(err))
-    except OSError as err:  # a full disk or read-only folder under a journal file
-        message = study_write_failure(err, args.storage)
-        if message is None:
-            raise
-        fail(prog, message)
-    if not args.quiet:
-        print(
-            f"study {study_name!r} in {args.storage}: {config.problem.task.label}, "
-            f"{plural(len(config.problem.seeds), 'seed')} x {config.problem.budget.training_steps} steps per trial, "
-            f"{config.search.sampler} sampler, {plural(config.search.n_trials, 'trial')}",
-            flush=True,
-        )
-        if (live := dashboard_line(args.storage)) is not None:
-            print(live, flush=True)
-    return run_and_report(
-        prog,
-        config,
-        study,
-        quiet=args.quiet,
-        fitness_name="fitness",
-        next_command=f"ermrl test --study-name {shlex.quote(study_name)} "
-        f"--storage {shlex.quote(args.storage)}",
-        storage_url=args.storage,
-        study_kwargs=study_kwargs,
-        wait_for_running=args.wait_for_running,
-        progress=progress_mode(args),
-        wandb=args.wandb,
-        tensorboard=args.tensorboard,
-    )
+    request = _commands.EvolveRequest(
+        config, args.storage, study_name, command_line(prog, argv), tuple(notes), args.quiet,
+        args.progress, args.tensorboard, args.wandb, args.heartbeat_interval, args.grace_period,
+        args.max_retry, args.wait_for_running,
+    )  # fmt: skip
+    return exit_on_failure(prog, lambda: _commands.run_evolve(request, prog))

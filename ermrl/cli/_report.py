@@ -3,19 +3,17 @@
 from __future__ import annotations
 
 import argparse
-import sys
 import textwrap
 from collections.abc import Sequence
-from pathlib import Path
 
-from ermrl._interrupt import interruption
 from ermrl.cli._common import (
     ArgumentParser,
     HelpFormatter,
     add_storage_args,
-    fail,
+    exit_on_failure,
     quiet_libraries,
 )
+from ermrl.runner import _commands
 
 __all__ = ["build_report_parser", "report_main"]
 
@@ -74,54 +72,11 @@ def build_report_parser(prog: str = "ermrl report") -> ArgumentParser:
 
 def report_main(argv: Sequence[str] | None = None, prog: str = "ermrl report") -> int:
     """Entry point of ``ermrl report``."""
-    from ermrl.analysis import RunFolderError
-    from ermrl.envs import UnknownEnvError
-    from ermrl.runner import NothingToReport, report
-    from ermrl.storage import StorageError, StudyNotFound
-
     parser = build_report_parser(prog)
     quiet_libraries()
     args = parser.parse_args(argv)
-    if args.runs is not None and not Path(args.runs).is_dir():
-        fail(prog, f"--runs {args.runs}: no such folder (the --out of ermrl test)")
-    try:
-        result = report(
-            args.study_name,
-            args.storage,
-            runs=args.runs,
-            out=args.out,
-            band=args.band,
-            dynamics=args.dynamics,
-            interactive=args.interactive,
-            html=args.html,
-            quiet=args.quiet,
-        )
-    except (
-        NothingToReport,
-        StorageError,
-        StudyNotFound,
-        FileNotFoundError,
-        UnknownEnvError,
-        RunFolderError,
-    ) as err:
-        fail(prog, str(err))
-    except OSError as err:  # a read-only folder, a full disk: the report was staged, not written
-        fail(
-            prog,
-            f"cannot write the report {args.out or Path('reports') / args.study_name}: "
-            f"{err.strerror or err}; nothing was written (free space, or choose a writable --out)",
-        )
-    except KeyboardInterrupt as err:
-        what, code = interruption(err)
-        print(f"{prog}: {what}; no report written", file=sys.stderr)
-        return code
-    if not args.quiet:
-        for note in result.notes:
-            print(f"left out: {note}")
-        print(
-            f"wrote {result.markdown}"
-            + (f" and {result.html}" if result.html else "")
-            + f" ({len(result.figures)} figures, {len(result.tables)} tables)",
-            flush=True,
-        )
-    return 0
+    request = _commands.ReportRequest(
+        args.study_name, args.storage, runs=args.runs, out=args.out, band=args.band,
+        dynamics=args.dynamics, interactive=args.interactive, html=args.html, quiet=args.quiet,
+    )  # fmt: skip
+    return exit_on_failure(prog, lambda: _commands.run_report(request, prog))

@@ -10,23 +10,22 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
-from ermrl._interrupt import interruption
 from ermrl.cli._common import (
-    EXIT_INTERRUPTED,
     ArgumentParser,
     HelpFormatter,
     add_for_learner_arg,
     add_progress_arg,
     add_stale_gradient_arg,
     add_storage_args,
-    fail,
+    exit_on_failure,
     nonneg_int,
     positive_int,
     progress_mode,
     quiet_libraries,
 )
-from ermrl.config import ConfigError
 from ermrl.learners import AGENT_KINDS
+from ermrl.runner import _commands
+from ermrl.runner._commands import print_notes, setup_errors
 
 if TYPE_CHECKING:
     from ermrl.experiments import TestOptions, TestPlan
@@ -37,6 +36,7 @@ __all__ = [
     "add_tensorboard_arg",
     "add_test_args",
     "build_test_parser",
+    "print_notes",
     "require_tensorboard",
     "run_or_exit",
     "run_test_phase",
@@ -192,60 +192,9 @@ def build_test_parser(prog: str = "ermrl test") -> ArgumentParser:
 
 
 def run_or_exit(prog: str, out: Path, run: Callable[[], T]) -> T | None:
-    """:func:`_run_or_exit`, removing ``out`` again when this command created it and fails
-    (an error, a crash, a signal) before it holds anything but its skeleton: no finished run,
-    no checkpoint (:func:`ermrl.experiments.run_in_folder`)."""
-    from ermrl.experiments import run_in_folder
-
-    return _run_or_exit(prog, out, lambda: run_in_folder(out, run))
-
-
-def _run_or_exit(prog: str, out: Path, run: Callable[[], T]) -> T | None:
-    """Run a test phase; its expected failures become one line on stderr.
-
-    Shared by ``ermrl test`` and ``ermrl test-generalization``.
-
-    Args:
-        prog: program name that starts the error line.
-        out: the output folder (named in the messages).
-        run: the test phase.
-
-    Returns:
-        What ``run`` returned, or ``None`` after Ctrl-C (finished runs are kept; the caller
-        exits with ``EXIT_INTERRUPTED``).
-
-    Raises:
-        SystemExit: exit code 2 when ``--out`` holds runs made with other settings or a damaged
-            finished run, when a run
-            ends no episode or diverges, or when a full disk, a quota or a read-only folder
-            stops a write.
-    """
-    from ermrl.agents import NoEpisodeFinished, TrainingDiverged
-    from ermrl.analysis import RunFolderError
-    from ermrl.experiments._test_phase import WRITE_ERRNOS, write_error_message
-
-    try:
-        return run()
-    except ConfigError as err:  # --out holds runs made with other settings
-        fail(prog, str(err))
-    except RunFolderError as err:  # a finished run in --out that would be kept is damaged
-        fail(
-            prog,
-            f"{err}; move that run folder away, or rerun with --overwrite to retrain the "
-            "runs asked for",
-        )
-    except (NoEpisodeFinished, TrainingDiverged) as err:  # a run could not be measured
-        fail(prog, f"{err}; finished runs are kept in {out}")
-    except OSError as err:  # a full disk, a quota, a read-only folder
-        if err.errno not in WRITE_ERRNOS:
-            raise
-        fail(prog, write_error_message(err, out))
-    except KeyboardInterrupt as err:
-        what, code = interruption(err)
-        print(f"{prog}: {what}; finished runs are kept in {out}", file=sys.stderr)
-        if code != EXIT_INTERRUPTED:
-            raise SystemExit(code) from None
-        return None
+    """:func:`ermrl.runner._commands.run_or_fail`, its one-line errors exiting with code 2
+    (a signal's code after its line)."""
+    return exit_on_failure(prog, lambda: _commands.run_or_fail(prog, out, run))
 
 
 def test_options(args: argparse.Namespace) -> TestOptions:
@@ -280,22 +229,6 @@ def test_options(args: argparse.Namespace) -> TestOptions:
     )
 
 
-def print_notes(prog: str, ppo: Any, notes: Sequence[str]) -> None:
-    """One line on stderr (also with ``--quiet``) per reason the study's agents train with
-    their backend when ``--backend`` was left out."""
-    for note in notes:
-        print(
-            f"{prog}: training with the {ppo.backend} backend: {note}", file=sys.stderr, flush=True
-        )
-
-
-def setup_errors() -> tuple[type[BaseException], ...]:
-    from ermrl.envs import UnknownEnvError, UnsupportedObserveError
-    from ermrl.storage import StorageError, StudyNotFound
-
-    return (ConfigError, StorageError, StudyNotFound, UnknownEnvError, UnsupportedObserveError)
-
-
 def run_test_phase(
     prog: str,
     args: argparse.Namespace,
@@ -307,25 +240,17 @@ def run_test_phase(
     *,
     then: Callable[[Any], Any] | None = None,
 ) -> Any:
-    """Train the plan's agents (one-line errors, Ctrl-C keeps finished runs) and print the
-    summary; ``then`` post-processes the summary table. Returns it, or ``None`` after Ctrl-C."""
-    from ermrl.experiments import run_comparison
-
-    def run() -> Any:
-        summary = run_comparison(
-            task, encoder, ppo, plan.agents, plan.settings, metadata=metadata, quiet=args.quiet,
+    """:func:`ermrl.runner._commands.run_test_phase` with the parsed options' ``--quiet`` and
+    command line, its one-line errors exiting with code 2."""
+    return exit_on_failure(
+        prog,
+        lambda: _commands.run_test_phase(
+            *(prog, plan, task, encoder, ppo, metadata),
+            quiet=args.quiet,
             command=getattr(args, "command_line", None),
-        )  # fmt: skip
-        return summary if then is None else then(summary)
-
-    summary = run_or_exit(prog, plan.out, run)
-    if summary is not None and not args.quiet:
-        # Without --eval the evaluation columns are empty: left out of the printed table (they
-        # stay in summary.csv, whose columns do not depend on the options).
-        shown = summary.drop(columns=["seeds"])
-        empty = [c for c in shown.columns if c.startswith("eval_") and shown[c].isna().all()]
-        print(shown.drop(columns=empty).to_string(index=False, float_format=lambda v: f"{v:.4g}"))
-    return summary
+            then=then,
+        ),
+    )
 
 
 def add_tensorboard_arg(parser: argparse.ArgumentParser) -> None:
@@ -342,53 +267,21 @@ def add_tensorboard_arg(parser: argparse.ArgumentParser) -> None:
 
 def require_tensorboard(args: argparse.Namespace, prog: str) -> None:
     """Exit 2 in one line when ``--tensorboard`` is given without the tensorboard package."""
-    if not getattr(args, "tensorboard", None):
-        return
-    import importlib.util
-
-    if importlib.util.find_spec("tensorboard") is None:
-        fail(
-            prog,
-            "--tensorboard needs the tensorboard package, which is not installed "
-            "(pip install tensorboard)",
-        )
+    exit_on_failure(prog, lambda: _commands.require_tensorboard(getattr(args, "tensorboard", None)))
 
 
 def test_main(argv: Sequence[str] | None = None, prog: str = "ermrl test") -> int:
     """Entry point of ``ermrl test`` and ``test.py``."""
-    from ermrl.experiments import describe_selection, prepare_test
-
     parser = build_test_parser(prog)
     quiet_libraries()
     args = parser.parse_args(argv)
     # The command that made the test folder (command.txt): `ermrl test ...` also when `ermrl
-    # run` runs this stage in its own process.
-    args.command_line = shlex.join([*prog.split(), *(sys.argv[1:] if argv is None else argv)])
+    # run` runs this stage.
+    command = shlex.join([*prog.split(), *(sys.argv[1:] if argv is None else argv)])
     require_tensorboard(args, prog)
     if args.wandb:
-        from ermrl.agents import WANDB_MISSING, wandb_installed
-
-        if not wandb_installed():
-            fail(prog, WANDB_MISSING)
-    try:
-        phase = prepare_test(args.study_name, args.storage, test_options(args))
-    except setup_errors() as err:
-        fail(prog, str(err))
-    plan = phase.plan
-    print_notes(prog, phase.ppo, phase.notes)
-    if plan.warning:  # also with --quiet: the selection is not the one a ranking would give
-        print(f"{prog}: warning: {plan.warning}", file=sys.stderr, flush=True)
-    if not args.quiet:
-        best = describe_selection(plan.chosen)
-        print(
-            f"test phase of {args.study_name!r}: {phase.task.label}, agents "
-            f"{' '.join(plan.agent_names)}, seeds {' '.join(map(str, plan.seeds))}, "
-            f"{args.training_steps} steps each; selected: {best}; out: {plan.out}",
-            flush=True,
-        )
-    summary = run_test_phase(prog, args, plan, phase.task, phase.encoder, phase.ppo, phase.metadata)
-    if summary is None:
-        return EXIT_INTERRUPTED
-    if not args.quiet:
-        print(f"wrote {plan.out}/summary.csv, curves.csv, learning_curves.png", flush=True)
-    return 0
+        exit_on_failure(prog, lambda: _commands.check_wandb(args.wandb))
+    request = _commands.TestRequest(
+        args.study_name, args.storage, test_options(args), args.quiet, command
+    )
+    return exit_on_failure(prog, lambda: _commands.run_test(request, prog))

@@ -41,6 +41,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 import yaml
 
 from ermrl.config import ConfigError
+from ermrl.runner._requests import EvolveRequest, ReportRequest, TestRequest
 
 if TYPE_CHECKING:
     from ermrl._progress import ProgressMode
@@ -659,6 +660,9 @@ class Step:
         replayed: ``(agent, seed)`` runs of a test step whose saved models the report replays
             (its dynamics section); a snapshot carries no models, so these are retrained.
         note: A line the plan prints under it (a budget rounded up to whole rollouts).
+        request: What it runs, resolved from its options: the configuration objects of the
+            library function that runs it (:mod:`ermrl.runner._commands`); ``None`` for the
+            generalization commands, which run through their ``main(argv)``.
     """
 
     stage: str
@@ -672,6 +676,7 @@ class Step:
     folder: Path | None = None
     replayed: tuple[tuple[str, int], ...] = ()
     note: str = ""
+    request: Any = None
 
     @property
     def command_line(self) -> str:
@@ -776,14 +781,18 @@ def _single_task_steps(exp: Experiment, task: TaskLine, build_agents: bool) -> l
 
     where = f"{exp.path}: {task.env_id}: evolve"
     argv, args = _evolve_parts(exp, task, build_evolve_parser(), where)
-    config = _config_error(exp, where, lambda: config_from_args(args, build_agent=build_agents))
+    notes: list[str] = []
+    config = _config_error(
+        exp, where, lambda: config_from_args(args, build_agent=build_agents, notes=notes)
+    )
     study_name = config.default_study_name
     argv += ["--study-name", study_name]
     config = _keep_study_backend(
         exp, where, args, config, study_name,
-        lambda a: config_from_args(a, build_agent=build_agents),
+        lambda a: config_from_args(a, build_agent=build_agents), notes,
     )  # fmt: skip
     _check_study(exp, config, study_name, where)
+    request = _evolve_request(exp, args, config, study_name, notes)
     problem = config.problem
     n_seeds = len(problem.seeds)
     per_run, note = _rounded(problem.ppo, problem.budget.training_steps)
@@ -796,6 +805,7 @@ def _single_task_steps(exp: Experiment, task: TaskLine, build_agents: bool) -> l
         "evolve", task.env_id, "evolve", argv, n_trials * steps_per_trial,
         n_trials * steps_per_trial / rate,
         _evolve_status(exp.storage, study_name, n_trials), study_name, note=note,
+        request=request,
     )  # fmt: skip
     steps = [evolve]
     search = config.search
@@ -812,6 +822,7 @@ def _single_task_steps(exp: Experiment, task: TaskLine, build_agents: bool) -> l
                 total / rate,
                 _reevaluate_status(exp.storage, study_name),
                 study_name,
+                request=request,
             )  # fmt: skip
         )
     if "test" in exp.document or exp.stages["test"]:
@@ -895,10 +906,11 @@ def _test_step(
         family = config.space.family
         wanted = (evolved_agent(family), unevolved_agent(family))
         replayed = tuple((a, min(seeds)) for a in wanted if a in agents)
+    request = None if env_id else _test_request(exp, where, args, study_name)
     return Step(
         "test", label, "test-generalization" if env_id else "test", argv, total,
         estimate_seconds(parts), _test_status(folder, agents, seeds), study_name, folder,
-        replayed, note,
+        replayed, note, request,
     )  # fmt: skip
 
 
@@ -917,10 +929,41 @@ def _report_step(
     argv += ["--storage", exp.storage, "--study-name", study_name, "--out", str(folder)]
     if runs is not None:
         argv += ["--runs", str(runs)]
-    parse_checked(parser, argv, where)
+    args = parse_checked(parser, argv, where)
+    request = ReportRequest(
+        study_name, exp.storage, runs=args.runs, out=args.out, band=args.band,
+        dynamics=args.dynamics, interactive=args.interactive, html=args.html, quiet=args.quiet,
+    )  # fmt: skip
     return Step(
-        "report", name, "report", argv, 0, 30.0, _report_status(folder, runs), study_name, folder
-    )
+        "report", name, "report", argv, 0, 30.0, _report_status(folder, runs), study_name, folder,
+        request=request,
+    )  # fmt: skip
+
+
+def _evolve_request(
+    exp: Experiment, args: argparse.Namespace, config: Any, study_name: str, notes: list[str]
+) -> EvolveRequest:
+    """What an evolve step runs: its configuration and the worker's options the file gives
+    (``ermrl run``'s own are added when it runs)."""
+    return EvolveRequest(
+        config, exp.storage, study_name, command="", notes=tuple(notes), quiet=args.quiet,
+        progress=args.progress,
+        tensorboard=None if args.tensorboard == _TENSORBOARD_IN_PLAN else args.tensorboard,
+        wandb=args.wandb, heartbeat_interval=args.heartbeat_interval,
+        grace_period=args.grace_period, max_retry=args.max_retry,
+        wait_for_running=args.wait_for_running,
+    )  # fmt: skip
+
+
+def _test_request(
+    exp: Experiment, where: str, args: argparse.Namespace, study_name: str
+) -> TestRequest:
+    """What a test step runs: the test phase's options the file gives (``ermrl run``'s own
+    ``--tensorboard``, ``--wandb``, ``--progress`` and ``--quiet`` are added when it runs)."""
+    from ermrl.cli._test import test_options
+
+    options = _config_error(exp, where, lambda: test_options(args))
+    return TestRequest(study_name, exp.storage, options, quiet=args.quiet)
 
 
 def _generalization_plan(
@@ -1053,6 +1096,7 @@ def _keep_study_backend(
     config: Any,
     study_name: str,
     build: Callable[[argparse.Namespace], Any],
+    notes: list[str] | None = None,
 ) -> Any:
     """The configuration with the backend the study was created with, when the file sets no
     ``backend`` and the study exists (as the evolve command resumes it)."""
@@ -1063,7 +1107,9 @@ def _keep_study_backend(
     return _config_error(
         exp,
         where,
-        lambda: keep_study_backend(args, config, exp.storage, study_name, build, [])[1],
+        lambda: keep_study_backend(
+            args, config, exp.storage, study_name, build, [] if notes is None else notes
+        )[1],
     )
 
 

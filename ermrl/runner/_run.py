@@ -1,9 +1,10 @@
 """Running an experiment file: its plan, what is done, and the unfinished stages in order.
 
-``ermrl run FILE`` and :meth:`ermrl.Experiment.run` share this code. Each stage runs the
-``ermrl`` command of the same name in this process (its ``main(argv)``, with the options the
-file gives it), so a stage run from Python is the command a shell would run, and each prints
-that command line. The study and the run folders are the state: a stage the storage or the
+``ermrl run FILE`` and :meth:`ermrl.Experiment.run` share this code. Each evolve, test and
+report stage runs the library function its command runs (:mod:`ermrl.runner._commands`) with
+the configuration the plan resolved from the file's options, in this process, and prints the
+equivalent command line first, so that one stage can be run by hand; a generalization stage
+runs its command's ``main(argv)``. The study and the run folders are the state: a stage the storage or the
 folders say is done is skipped, and an interrupted one resumes.
 """
 
@@ -18,6 +19,7 @@ from pathlib import Path
 from typing import TextIO
 
 from ermrl._text import plural
+from ermrl.runner._commands import run_request
 from ermrl.runner._experiment import (
     DEFAULT_SNAPSHOT_EVERY,
     PUBLISH_MAX_BYTES,
@@ -35,6 +37,7 @@ from ermrl.runner._experiment import (
     snapshot_status,
     write_snapshots,
 )
+from ermrl.runner._requests import with_run_options
 
 __all__ = [
     "DEFAULT_SNAPSHOT_EVERY",
@@ -495,14 +498,13 @@ def _run_steps(
     stream: TextIO,
     wandb: str | None = None,
 ) -> None:
-    """Run the unfinished steps in order, each through its command's ``main(argv)``.
+    """Run the unfinished steps in order, each through the library function of its command
+    (:func:`_run_step`).
 
     Raises:
         StageFailed: The first step whose command stopped with an error.
         StageInterrupted: Ctrl-C or SIGTERM during a step.
     """
-    from ermrl.cli import COMMANDS, _load
-
     skipped: list[Step] = []
     for step in chosen:
         done, _, text = step.status()
@@ -516,12 +518,11 @@ def _run_steps(
                 )
             continue
         argv = stage_argv(step, progress, tensorboard, quiet=quiet_stages, wandb=wandb)
+        line = shlex.join(["ermrl", step.command, *argv])
         if not quiet:
-            line = shlex.join(["ermrl", step.command, *argv])
             print(f"[{step.stage} {step.label}] {line}", file=stream, flush=True)
-        run = _load(COMMANDS[step.command][0])
         try:
-            code = int(run(argv, prog=f"ermrl {step.command}") or 0)
+            code = _run_step(step, argv, line, progress, tensorboard, quiet_stages, wandb)
         except SystemExit as err:
             code = err.code if isinstance(err.code, int) else 1
         except KeyboardInterrupt as err:
@@ -545,6 +546,42 @@ def _run_steps(
     if not quiet:
         for line in results_lines(skipped):
             print(line, file=stream, flush=True)
+
+
+def _run_step(
+    step: Step,
+    argv: list[str],
+    line: str,
+    progress: str | None,
+    tensorboard: str | None,
+    quiet_stages: bool,
+    wandb: str | None,
+) -> int:
+    """Run one step, printing what its command prints; return the command's exit code.
+
+    An evolve, test or report step runs its planned configuration through the library
+    (:mod:`ermrl.runner._commands`) with ``ermrl run``'s own options added as
+    :func:`stage_argv` adds them to the printed command line (``line``, which the study or the
+    test folder keeps). A generalization step runs its command's ``main(argv)``.
+    """
+    prog = f"ermrl {step.command}"
+    if step.request is None:
+        from ermrl.cli import COMMANDS, _load
+
+        return int(_load(COMMANDS[step.command][0])(argv, prog=prog) or 0)
+    request = with_run_options(
+        step.request,
+        quiet=quiet_stages,
+        progress=progress if step.stage in PROGRESS_STAGES else None,  # type: ignore[arg-type]
+        tensorboard=(
+            str(Path(tensorboard) / step.label / step.stage)
+            if tensorboard is not None and step.command in TENSORBOARD_COMMANDS
+            else None
+        ),
+        wandb=wandb if step.command in WANDB_COMMANDS else None,
+        command=line,
+    )
+    return run_request(request, prog)
 
 
 def results_lines(steps: Sequence[Step]) -> list[str]:

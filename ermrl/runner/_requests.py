@@ -1,0 +1,128 @@
+"""What a stage of an experiment runs, resolved from its options: the configuration objects
+of the library function that runs it (:mod:`ermrl.runner._commands`).
+
+The plan (:func:`ermrl.runner.experiment_plan`) builds one per evolve, test and report step;
+``ermrl run`` adds its own options (:func:`with_run_options`) and runs it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from ermrl._progress import ProgressMode
+    from ermrl.config import EvolveConfig
+    from ermrl.experiments import TestOptions
+
+__all__ = ["EvolveRequest", "ReportRequest", "TestRequest", "with_run_options"]
+
+
+@dataclass(frozen=True)
+class EvolveRequest:
+    """What ``ermrl evolve`` runs: the configuration and the options of this worker.
+
+    Attributes:
+        config: The run's configuration.
+        storage: The Optuna storage URL.
+        study_name: The study.
+        command: The command line the study keeps.
+        notes: Why the run trains with its backend when none was asked for (one line each).
+        quiet: No progress lines and no summary.
+        progress: ``bar``, ``lines`` or ``none`` inside each trial (``None``: the default for
+            where stdout goes).
+        tensorboard: The TensorBoard folder (``None``: no logs).
+        wandb: A Weights & Biases project (``None``: none).
+        heartbeat_interval: Seconds between a running trial's heartbeats (0: off).
+        grace_period: Seconds without heartbeat before a running trial is failed.
+        max_retry: Retries of a trial whose worker died.
+        wait_for_running: At the end, wait for other workers' running trials.
+    """
+
+    config: EvolveConfig
+    storage: str
+    study_name: str
+    command: str
+    notes: tuple[str, ...] = ()
+    quiet: bool = False
+    progress: ProgressMode | None = None
+    tensorboard: str | None = None
+    wandb: str | None = None
+    heartbeat_interval: int = 60
+    grace_period: int = 300
+    max_retry: int = 3
+    wait_for_running: bool = True
+
+
+@dataclass(frozen=True)
+class TestRequest:
+    """What ``ermrl test`` runs.
+
+    Attributes:
+        study_name: The evolution study.
+        storage: Its storage URL.
+        options: The test phase's options.
+        quiet: No progress lines and no summary table.
+        command: The command line the test folder keeps (``command.txt``).
+    """
+
+    __test__ = False  # not a pytest test class
+
+    study_name: str
+    storage: str
+    options: TestOptions
+    quiet: bool = False
+    command: str | None = None
+
+
+@dataclass(frozen=True)
+class ReportRequest:
+    """What ``ermrl report`` writes (the arguments of :func:`ermrl.report`)."""
+
+    study_name: str
+    storage: str
+    runs: str | None = None
+    out: str | None = None
+    band: str = "ci95"
+    dynamics: bool = True
+    interactive: bool = True
+    html: bool = True
+    quiet: bool = False
+
+
+def with_run_options(
+    request: Any,
+    *,
+    quiet: bool,
+    progress: ProgressMode | None,
+    tensorboard: str | None,
+    wandb: str | None,
+    command: str,
+) -> Any:
+    """A planned request with ``ermrl run``'s own options on top of the file's (``None``:
+    the file's): ``--quiet``, ``--progress``, ``--tensorboard`` and ``--wandb``, and the
+    stage's command line."""
+    if isinstance(request, EvolveRequest):
+        return dataclasses.replace(
+            request,
+            quiet=request.quiet or quiet,
+            progress=progress if progress is not None else request.progress,
+            tensorboard=tensorboard if tensorboard is not None else request.tensorboard,
+            wandb=wandb if wandb is not None else request.wandb,
+            command=command,
+        )
+    if isinstance(request, TestRequest):
+        options = request.options
+        options = dataclasses.replace(
+            options,
+            progress=progress if progress is not None else options.progress,
+            tensorboard=tensorboard if tensorboard is not None else options.tensorboard,
+            wandb=wandb if wandb is not None else options.wandb,
+        )
+        return dataclasses.replace(
+            request, options=options, quiet=request.quiet or quiet, command=command
+        )
+    if isinstance(request, ReportRequest):
+        return dataclasses.replace(request, quiet=request.quiet or quiet)
+    raise TypeError(f"not a stage's request: {request!r}")
