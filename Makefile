@@ -40,8 +40,10 @@ demo: install
 test: install
 	$(PY) -m pytest -m "not slow" -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS)
 
+# The slow tests (end-to-end runs, SLURM, notebooks, benchmarks' quick modes) in the same
+# processes as the default suite: a file stays in one process, files run side by side.
 test-slow: install
-	$(PY) -m pytest -m slow $(PYTEST_ARGS)
+	$(PY) -m pytest -m slow -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS)
 
 lint: install
 	$(PY) -m ruff check ermrl tests benchmarks *.py
