@@ -18,8 +18,6 @@ import math
 import re
 import sys
 import textwrap
-import time
-from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -34,6 +32,15 @@ from ermrl.cli._common import (
     nonneg_int,
     quiet_libraries,
     storage_arg,
+)
+from ermrl.storage._summary import (
+    STATES,
+    best_trial_or_none,
+    stored_budget,
+    study_summary,
+    trial_counts,
+    worker_budgets,
+    worker_label,
 )
 
 __all__ = ["build_study_parser", "study_main", "parse_duration"]
@@ -58,7 +65,6 @@ DESCRIPTION = textwrap.dedent(
     """
 )
 
-_STATES = ("COMPLETE", "PRUNED", "RUNNING", "WAITING", "FAIL")
 _UNITS = {"s": 1, "m": 60, "h": 3600, "d": 86400}
 
 
@@ -211,46 +217,10 @@ def build_study_parser(prog: str = "ermrl study") -> ArgumentParser:
     return parser
 
 
-def _counts(trials: Sequence[Any]) -> dict[str, int]:
-    counter = Counter(t.state.name for t in trials)
-    return {state: counter.get(state, 0) for state in _STATES}
-
-
-def _budget(study: Any) -> int | None:
-    config = study.user_attrs.get("ermrl_config") or {}
-    value = (config.get("search") or {}).get("n_trials")
-    return int(value) if value is not None else None
-
-
-def _worker_budgets(trials: Sequence[Any]) -> dict[int, int]:
-    """How many trials were claimed under each worker's ``--n-trials`` (largest first)."""
-    counter = Counter(
-        int(t.user_attrs["worker_n_trials"]) for t in trials if "worker_n_trials" in t.user_attrs
-    )
-    return dict(sorted(counter.items(), reverse=True))
-
-
 def _budget_text(budget: int | None, worker_budgets: dict[int, int]) -> str:
     """``"9"``, or ``"1,10"`` when workers and the stored configuration disagree."""
     values = sorted({*worker_budgets, *([budget] if budget else [])})
     return ",".join(map(str, values)) if values else "?"
-
-
-def _best(study: Any) -> Any:
-    try:
-        return study.best_trial
-    except ValueError:
-        return None
-
-
-def _worker(trial: Any) -> str:
-    attrs = trial.user_attrs
-    host = attrs.get("worker_hostname", "?")
-    pid = attrs.get("worker_pid", "?")
-    job = attrs.get("worker_slurm_array_job_id") or attrs.get("worker_slurm_job_id")
-    task = attrs.get("worker_slurm_array_task_id")
-    slurm = f" job {job}" + (f"_{task}" if task is not None else "") if job else ""
-    return f"{host}:{pid}{slurm}"
 
 
 def _fmt(value: float | None) -> str:
@@ -325,70 +295,29 @@ def _list(args: argparse.Namespace, prog: str) -> int:
     for frozen in studies:
         study = optuna.load_study(study_name=frozen.study_name, storage=storage)
         trials = study.get_trials(deepcopy=False)
-        counts = _counts(trials)
-        best = _best(study)
-        budget = _budget(study)
+        counts = trial_counts(trials)
+        best = best_trial_or_none(study)
+        budget = stored_budget(study)
         rows.append(
             [
                 frozen.study_name,
                 str(study.user_attrs.get("ermrl_kind", "-")),
                 f"{counts['COMPLETE'] + counts['PRUNED']}/"
-                + _budget_text(budget, _worker_budgets(trials)),
-                *(str(counts[s]) for s in _STATES),
+                + _budget_text(budget, worker_budgets(trials)),
+                *(str(counts[s]) for s in STATES),
                 _fmt(best.value if best else None),
             ]
         )
-    header = ["study", "kind", "done/budget", *(s.lower() for s in _STATES), "best"]
+    header = ["study", "kind", "done/budget", *(s.lower() for s in STATES), "best"]
     widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
     for row in [header, *rows]:
         print("  ".join(cell.ljust(w) for cell, w in zip(row, widths)).rstrip())
     return 0
 
 
-def _summary(study: Any) -> dict[str, Any]:
-    from ermrl.storage import last_seen
-
-    trials = study.get_trials(deepcopy=False)
-    best = _best(study)
-    now = time.time()
-    config = study.user_attrs.get("ermrl_config") or {}
-    task = (config.get("problem") or {}).get("task") or {}
-    budget_steps = ((config.get("problem") or {}).get("budget") or {}).get("training_steps")
-    workers = Counter(_worker(t) for t in trials if "worker_pid" in t.user_attrs)
-    return {
-        "study": study.study_name,
-        "kind": study.user_attrs.get("ermrl_kind"),
-        "env_id": task.get("env_id"),
-        "observe": task.get("observe"),
-        "training_steps": budget_steps,
-        "budget": _budget(study),
-        "worker_budgets": _worker_budgets(trials),
-        "counts": _counts(trials),
-        "retried": sum(1 for t in trials if "retry_of" in t.user_attrs),
-        "best": None
-        if best is None
-        else {
-            "number": best.number,
-            "value": best.value,
-            "params": best.params,
-            "worker": _worker(best),
-        },
-        "workers": dict(workers.most_common()),
-        "running": [
-            {
-                "number": t.number,
-                "worker": _worker(t),
-                "seconds_since_heartbeat": round(now - last_seen(t), 1),
-            }
-            for t in trials
-            if t.state.name == "RUNNING"
-        ],
-    }
-
-
 def _show(args: argparse.Namespace, prog: str) -> int:
     study = _open_study(args, prog)
-    info = _summary(study)
+    info = study_summary(study)
     info["reevaluation"] = study.user_attrs.get("ermrl_reevaluation")
     if args.json:
         print(json.dumps(info, indent=2, default=str))
@@ -405,7 +334,7 @@ def _show(args: argparse.Namespace, prog: str) -> int:
     agreed = _budget_text(info["budget"], budgets)
     print(
         (f"trials: {done}/{agreed} done | " if "," not in agreed else f"trials: {done} done | ")
-        + ", ".join(f"{counts[s]} {s.lower()}" for s in _STATES)
+        + ", ".join(f"{counts[s]} {s.lower()}" for s in STATES)
         + f" | {info['retried']} retries"
     )
     if "," in agreed:  # workers were started with different --n-trials
@@ -573,7 +502,7 @@ def _fail_stale(args: argparse.Namespace, prog: str) -> int:
     verb = "would fail" if args.dry_run else "failed"
     for trial, retried in done:
         then = " and retry" if retried else ""
-        print(f"{verb}{then} trial {trial.number} (worker {_worker(trial)})")
+        print(f"{verb}{then} trial {trial.number} (worker {worker_label(trial)})")
     print(
         f"{len(done)} stale trial(s) older than {args.older_than:.0f} s in {args.study_name!r}"
         + (" (dry run)" if args.dry_run else "")
