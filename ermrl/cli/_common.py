@@ -14,6 +14,7 @@ from ermrl.runner._commands import (
     dashboard_line,
     quiet_libraries,
 )
+from ermrl.runner._resolve import for_learner_names, learner_overrides
 from ermrl.storage import DEFAULT_STORAGE
 
 __all__ = [
@@ -366,24 +367,3 @@ def add_for_learner_arg(parser: argparse.ArgumentParser | argparse._ArgumentGrou
         metavar=("LEARNER", "KEY=VALUE"),
         help=FOR_LEARNER_HELP,
     )
-
-
-def for_learner_names(args: argparse.Namespace) -> tuple[str, ...]:
-    """The learners named by ``--for-learner`` flags, in order, each once."""
-    given = getattr(args, "for_learner", None) or []
-    return tuple(dict.fromkeys(name for name, _ in given))
-
-
-def learner_overrides(args: argparse.Namespace) -> dict[str, dict[str, Any]]:
-    """Settings given by learner-specific flags, keyed by the learner they apply to.
-
-    ``--stale-gradient`` (rtu-ppo's ``stale_gradient``) first, then each ``--for-learner`` in
-    the order given: a later flag wins per key.
-    """
-    out: dict[str, dict[str, Any]] = {}
-    stale = getattr(args, "stale_gradient", None)
-    if stale is not None:
-        out["rtu-ppo"] = {"stale_gradient": stale}
-    for name, settings in getattr(args, "for_learner", None) or []:
-        out[name] = {**out.get(name, {}), **settings}
-    return out

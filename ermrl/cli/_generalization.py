@@ -28,29 +28,33 @@ from ermrl.cli._common import (
 from ermrl.cli._evolve import (
     add_problem_args,
     add_search_args,
-    budget_from_args,
-    check_tensorboard,
     check_wandb,
     command_line,
-    encoder_from_args,
-    keep_study_backend,
-    learner_flags,
-    print_backend_notes,
     run_and_report,
-    search_from_args,
-    space_from_args,
-    study_write_failure,
 )
 from ermrl.cli._test import (
     add_tensorboard_arg,
     add_test_args,
-    print_notes,
     require_tensorboard,
     run_test_phase,
-    setup_errors,
-    test_options,
 )
 from ermrl.config import ConfigError, EvolveConfig, GeneralizationTask, PPOConfig, TaskConfig
+from ermrl.runner._commands import (
+    print_backend_notes,
+    print_notes,
+    setup_errors,
+    study_write_failure,
+)
+from ermrl.runner._resolve import (
+    budget_from_args,
+    check_tensorboard,
+    encoder_from_args,
+    keep_study_backend,
+    learner_flags,
+    search_from_args,
+    space_from_args,
+    test_options,
+)
 
 if TYPE_CHECKING:
     from ermrl.experiments import TestPlan
@@ -498,7 +502,7 @@ def _shout(message: str) -> None:
 def _test_ppo(config: EvolveConfig, env_id: str, args: argparse.Namespace) -> PPOConfig:
     """PPO settings of the test env: the study's for an evolution task, else table + overrides."""
     from ermrl.agents import parse_overrides, resolve_ppo_config, with_overrides
-    from ermrl.cli._common import learner_overrides
+    from ermrl.runner._resolve import learner_overrides
 
     own = learner_overrides(args).get(config.problem.ppo.learner, {})
     cli = {**parse_overrides(args.ppo, config.problem.ppo.learner), **own}

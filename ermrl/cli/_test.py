@@ -20,15 +20,15 @@ from ermrl.cli._common import (
     exit_on_failure,
     nonneg_int,
     positive_int,
-    progress_mode,
     quiet_libraries,
 )
 from ermrl.learners import AGENT_KINDS
 from ermrl.runner import _commands
 from ermrl.runner._commands import print_notes, setup_errors
+from ermrl.runner._resolve import test_options
 
 if TYPE_CHECKING:
-    from ermrl.experiments import TestOptions, TestPlan
+    from ermrl.experiments import TestPlan
 
 T = TypeVar("T")
 
@@ -195,38 +195,6 @@ def run_or_exit(prog: str, out: Path, run: Callable[[], T]) -> T | None:
     """:func:`ermrl.runner._commands.run_or_fail`, its one-line errors exiting with code 2
     (a signal's code after its line)."""
     return exit_on_failure(prog, lambda: _commands.run_or_fail(prog, out, run))
-
-
-def test_options(args: argparse.Namespace) -> TestOptions:
-    """The parsed options of ``ermrl test`` or ``ermrl test-generalization`` as the library's
-    :class:`~ermrl.experiments.TestOptions` (``--ppo`` words kept: they are read, and refused,
-    where the command always read them)."""
-    from ermrl.experiments import TestOptions
-
-    for_learner: dict[str, dict[str, Any]] = {}
-    for name, settings in getattr(args, "for_learner", None) or []:
-        for_learner[name] = {**for_learner.get(name, {}), **settings}
-    tensorboard = getattr(args, "tensorboard", None)
-    return TestOptions(
-        training_steps=args.training_steps,
-        seeds=args.seeds,
-        agents=args.agents,
-        out=args.out,
-        trial=args.trial,
-        n_procs=args.n_procs,
-        evaluate=args.eval,
-        n_eval_episodes=args.n_eval_episodes,
-        ppo=tuple(args.ppo),
-        stale_gradient=getattr(args, "stale_gradient", None),
-        for_learner=for_learner,
-        backend=args.backend,
-        save_models=args.save_models,
-        overwrite=args.overwrite,
-        checkpoint_every=args.checkpoint_every,
-        tensorboard=tensorboard,
-        wandb=getattr(args, "wandb", None),
-        progress=progress_mode(args),
-    )
 
 
 def run_test_phase(

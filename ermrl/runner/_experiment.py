@@ -775,9 +775,10 @@ def _config_error(exp: Experiment, where: str, build: Callable[[], Any]) -> Any:
 
 
 def _single_task_steps(exp: Experiment, task: TaskLine, build_agents: bool) -> list[Step]:
-    from ermrl.cli._evolve import build_evolve_parser, config_from_args
+    from ermrl.cli._evolve import build_evolve_parser
     from ermrl.cli._report import build_report_parser
     from ermrl.cli._test import build_test_parser
+    from ermrl.runner._resolve import config_from_args
 
     where = f"{exp.path}: {task.env_id}: evolve"
     argv, args = _evolve_parts(exp, task, build_evolve_parser(), where)
@@ -960,7 +961,7 @@ def _test_request(
 ) -> TestRequest:
     """What a test step runs: the test phase's options the file gives (``ermrl run``'s own
     ``--tensorboard``, ``--wandb``, ``--progress`` and ``--quiet`` are added when it runs)."""
-    from ermrl.cli._test import test_options
+    from ermrl.runner._resolve import test_options
 
     options = _config_error(exp, where, lambda: test_options(args))
     return TestRequest(study_name, exp.storage, options, quiet=args.quiet)
@@ -1100,7 +1101,7 @@ def _keep_study_backend(
 ) -> Any:
     """The configuration with the backend the study was created with, when the file sets no
     ``backend`` and the study exists (as the evolve command resumes it)."""
-    from ermrl.cli._evolve import keep_study_backend
+    from ermrl.runner._resolve import keep_study_backend
 
     if not _storage_exists(exp.storage):
         return config

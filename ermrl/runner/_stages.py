@@ -161,9 +161,10 @@ def _evolve_config_and_argv(
     tensorboard: bool,
     options: Mapping[str, Any],
 ) -> tuple[EvolveConfig, list[str]]:
-    from ermrl.cli._evolve import build_evolve_parser, config_from_args, keep_study_backend
+    from ermrl.cli._evolve import build_evolve_parser
     from ermrl.envs import UnknownEnvError, UnsupportedObserveError
     from ermrl.runner._experiment import ExperimentError, options_to_argv, parse_checked
+    from ermrl.runner._resolve import config_from_args, keep_study_backend
 
     where = f"evolve {env_id}"
     reserved = sorted(set(options) & _NOT_CONFIG)
@@ -294,7 +295,7 @@ def _resolved_config(
     elif tensorboard is not None:
         import argparse
 
-        from ermrl.cli._evolve import check_tensorboard
+        from ermrl.runner._resolve import check_tensorboard
 
         check_tensorboard(argparse.Namespace(tensorboard=str(tensorboard)))
     if config.generalization is not None:

@@ -1,0 +1,387 @@
+"""The parsed options of the evolve and test commands as the library's configuration objects.
+
+``ermrl evolve``, ``ermrl evolve-generalization``, ``ermrl test`` and ``ermrl
+test-generalization`` parse their argv and build their configuration here; so does the plan of
+an experiment file (:func:`ermrl.runner.experiment_plan`), whose stages' options are parsed as
+the commands parse them. Every function raises :class:`~ermrl.config.ConfigError` (or an env
+error) on a value the configuration refuses, in one line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from collections.abc import Callable, Mapping, Sequence
+from typing import TYPE_CHECKING, Any
+
+from ermrl.config import (
+    BudgetConfig,
+    ConfigError,
+    EncoderConfig,
+    EncoderSpace,
+    EvolveConfig,
+    LearnerSpace,
+    PPOConfig,
+    Problem,
+    Range,
+    SearchConfig,
+    SearchSpaceConfig,
+    TaskConfig,
+)
+from ermrl.encoders import ENCODERS, flag_dest, get_encoder, reference_encoder
+
+if TYPE_CHECKING:
+    from ermrl._progress import ProgressMode
+    from ermrl.experiments import TestOptions
+
+__all__ = [
+    "budget_from_args",
+    "check_tensorboard",
+    "config_from_args",
+    "encoder_from_args",
+    "for_learner_names",
+    "keep_study_backend",
+    "learner_flags",
+    "learner_overrides",
+    "learner_space_from_args",
+    "parse_gene_ranges",
+    "search_from_args",
+    "space_from_args",
+    "stored_backend",
+    "test_options",
+    "validate_task",
+]
+
+
+def _progress_mode(args: argparse.Namespace) -> ProgressMode:
+    """``args.progress``, or the default for where stdout goes."""
+    from ermrl._progress import default_mode
+
+    value = getattr(args, "progress", None)
+    return default_mode() if value is None else value
+
+
+def for_learner_names(args: argparse.Namespace) -> tuple[str, ...]:
+    """The learners named by ``--for-learner`` flags, in order, each once."""
+    given = getattr(args, "for_learner", None) or []
+    return tuple(dict.fromkeys(name for name, _ in given))
+
+
+def learner_overrides(args: argparse.Namespace) -> dict[str, dict[str, Any]]:
+    """Settings given by learner-specific flags, keyed by the learner they apply to.
+
+    ``--stale-gradient`` (rtu-ppo's ``stale_gradient``) first, then each ``--for-learner`` in
+    the order given: a later flag wins per key.
+    """
+    out: dict[str, dict[str, Any]] = {}
+    stale = getattr(args, "stale_gradient", None)
+    if stale is not None:
+        out["rtu-ppo"] = {"stale_gradient": stale}
+    for name, settings in getattr(args, "for_learner", None) or []:
+        out[name] = {**out.get(name, {}), **settings}
+    return out
+
+
+def parse_gene_ranges(items: Sequence[str], genes: Mapping[str, Range]) -> dict[str, Range]:
+    """``--gene NAME=LOW:HIGH[:lin|:log]`` as ranges (the scale defaults to the gene's own).
+
+    Raises:
+        ConfigError: a malformed item, an unknown gene or a bad range.
+    """
+    out: dict[str, Range] = {}
+    for item in items:
+        name, sep, text = item.partition("=")
+        parts = text.split(":")
+        if (
+            not sep
+            or len(parts) not in (2, 3)
+            or (len(parts) == 3 and parts[2] not in ("lin", "log"))
+        ):
+            raise ConfigError(f"--gene expects NAME=LOW:HIGH[:lin|:log], got {item!r}")
+        if name not in genes:
+            raise ConfigError(f"unknown gene {name!r}; the genes are {', '.join(genes)}")
+        try:
+            low, high = float(parts[0]), float(parts[1])
+        except ValueError:
+            raise ConfigError(f"--gene {name}: bounds must be numbers, got {text!r}") from None
+        log = genes[name].log if len(parts) == 2 else parts[2] == "log"
+        out[name] = Range(low, high, log=log)
+    return out
+
+
+def learner_space_from_args(args: argparse.Namespace, ppo: PPOConfig) -> LearnerSpace:
+    """The gene space of a learner with genes; the encoder's flags are refused."""
+    from ermrl.learners import get_learner
+
+    for dest, (flag, default) in getattr(args, "encoder_flags", {}).items():
+        if getattr(args, dest, default) != default:
+            raise ConfigError(
+                f"{flag} sets an evolved encoder; --learner {ppo.learner} has none (evolution "
+                "shapes its genes: see --gene)"
+            )
+    learner = get_learner(ppo.learner)
+    return learner.gene_space(ppo, parse_gene_ranges(getattr(args, "gene", []), learner.genes))
+
+
+def space_from_args(args: argparse.Namespace) -> EncoderSpace:
+    """The search space of the chosen encoder (``--encoder``) from its flags.
+
+    Raises:
+        ConfigError: a flag of another encoder only, or a bad value.
+    """
+    encoder = get_encoder(getattr(args, "encoder", reference_encoder().name))
+    own = {flag_dest(f) for f in encoder.cli_flags}
+    for other in ENCODERS.values():
+        for flag in other.cli_flags:
+            dest = flag_dest(flag)
+            if dest not in own and getattr(args, dest, None) not in (None, flag.get("default")):
+                takers = [  # every encoder that declares the flag (--units: two of them)
+                    e.name for e in ENCODERS.values() if dest in map(flag_dest, e.cli_flags)
+                ]
+                raise ConfigError(
+                    f"{flag['flags'][0]} applies to --encoder {' or '.join(takers)}, not to "
+                    f"--encoder {encoder.name}"
+                )
+    space: EncoderSpace = encoder.space_from_args(args)
+    return space
+
+
+def encoder_from_args(args: argparse.Namespace, space: EncoderSpace) -> EncoderConfig:
+    return EncoderConfig(
+        reservoirs=space.default_reservoirs(),
+        skip_connection=args.skip_connection,
+        reset=args.reset,
+        exposed_units=args.exposed_units,
+        reward_scale=args.reward_scale,
+        feed_action=args.feed_action,
+        feed_reward=args.feed_reward,
+        dtype=args.dtype,
+    )
+
+
+def budget_from_args(args: argparse.Namespace) -> BudgetConfig:
+    return BudgetConfig(
+        training_steps=args.training_steps,
+        fitness=args.fitness,
+        n_last_episodes=args.n_last_episodes,
+        n_eval_episodes=args.n_eval_episodes,
+        n_reports=4 if args.pruner != "none" else 0,
+    )
+
+
+def search_from_args(args: argparse.Namespace) -> SearchConfig:
+    return SearchConfig(
+        sampler=args.sampler,
+        sampler_seed=args.sampler_seed,
+        restart=args.restart,
+        popsize=args.popsize,
+        pruner=args.pruner,
+        n_trials=args.n_trials,
+        start=args.cma_start,
+        reference_trial=args.reference_trial,
+        reevaluate_top=args.reevaluate_top,
+        reevaluate_seeds=args.reevaluate_seeds,
+        reevaluate_steps=args.reevaluate_steps,
+    )
+
+
+def validate_task(env_id: str, observe: str) -> None:
+    """Cheap checks of an env id and mask (no env is built for an unknown id)."""
+    from ermrl.envs import check_env_id, observation_indices
+
+    check_env_id(env_id)
+    observation_indices(env_id, observe)  # type: ignore[arg-type]
+
+
+def learner_flags(args: argparse.Namespace, learner: str) -> dict[str, Any]:
+    """The learner-specific flags' settings for ``learner``, the study's learner.
+
+    Raises:
+        ConfigError: a flag of another learner (``--for-learner dagger`` in a study of
+            ``--learner ppo``; ``--stale-gradient`` without ``--learner rtu-ppo``).
+    """
+    for name in for_learner_names(args):
+        if name != learner:
+            raise ConfigError(
+                f"--for-learner {name}: no agent of this run uses learner {name} (the study "
+                f"trains --learner {learner})"
+            )
+    given = learner_overrides(args)
+    for name in given:
+        if name != learner:
+            raise ConfigError(f"--stale-gradient applies to --learner {name} only")
+    return dict(given.get(learner, {}))
+
+
+def config_from_args(
+    args: argparse.Namespace, *, build_agent: bool = True, notes: list[str] | None = None
+) -> EvolveConfig:
+    """Build and validate the run's configuration (raises ConfigError / env errors).
+
+    Args:
+        args: The parsed options.
+        build_agent: Also build the agent once on the real env (and reservoir), so that what
+            PPO or the encoder would only refuse in the first trial is refused now; ``False``
+            (``ermrl run --dry-run``) checks the options and tables only.
+        notes: Receives the one-line reason when ``--backend`` is left out and the population
+            backend does not apply (the run then trains with sb3).
+    """
+    from ermrl.agents import check_ppo_config, parse_overrides, resolve_ppo_config
+    from ermrl.learners import get_learner
+    from ermrl.population import choose_backend
+
+    validate_task(args.env_id, args.observe)
+    learner = getattr(args, "learner", "ppo")
+    ppo = resolve_ppo_config(
+        args.env_id,
+        {**parse_overrides(args.ppo, learner), **learner_flags(args, learner)},
+        n_envs=args.n_envs,
+        table_path=args.hyperparams,
+        torch_threads=args.torch_threads,
+        learner=learner,
+    )
+    evolves_encoder = not get_learner(learner).genes
+    encoder_name = getattr(args, "encoder", None) if evolves_encoder else None
+    backend, why = choose_backend(
+        getattr(args, "backend", None),
+        ppo,
+        (TaskConfig(env_id=args.env_id, observe=args.observe),),
+        pruner=getattr(args, "pruner", "none"),
+        encoder=encoder_name,
+    )
+    if why is not None and notes is not None:
+        notes.append(why)
+    ppo = dataclasses.replace(ppo, backend=backend)
+    space: SearchSpaceConfig
+    if not evolves_encoder:
+        space, encoder = learner_space_from_args(args, ppo), None
+    else:
+        if getattr(args, "gene", []):
+            raise ConfigError(f"--gene evolves a learner's genes; learner {learner!r} has none")
+        space = space_from_args(args)
+        encoder = encoder_from_args(args, space)
+        get_encoder(args.encoder).check(
+            TaskConfig(env_id=args.env_id, observe=args.observe), encoder, space
+        )
+    problem = Problem(
+        task=TaskConfig(env_id=args.env_id, observe=args.observe),
+        encoder=encoder,
+        ppo=ppo,
+        budget=budget_from_args(args),
+        seeds=tuple(range(args.seed, args.seed + args.n_seeds)),
+    )
+    config = EvolveConfig(
+        problem=problem, space=space, search=search_from_args(args), n_procs=args.n_procs
+    )
+    # Whatever PPO or the encoder would refuse in the first trial is refused now, before the
+    # study (and a FAIL trial) exists.
+    if build_agent:
+        check_ppo_config(problem.task, problem.encoder, ppo)
+    if ppo.backend == "population":
+        from ermrl.population import check_population_config
+
+        check_population_config(ppo)
+        if encoder_name is not None and not get_encoder(encoder_name).population:
+            raise ConfigError(
+                f"the population backend does not step --encoder {encoder_name}'s reservoirs; "
+                "use --backend sb3"
+            )
+    check_tensorboard(args)
+    return config
+
+
+def check_tensorboard(args: argparse.Namespace) -> None:
+    """``--tensorboard`` needs the tensorboard package (on either backend).
+
+    Raises:
+        ConfigError: ``--tensorboard`` without the tensorboard package.
+    """
+    if not getattr(args, "tensorboard", None):
+        return
+    import importlib.util
+
+    if importlib.util.find_spec("tensorboard") is None:
+        raise ConfigError(
+            "--tensorboard needs the tensorboard package, which is not installed "
+            "(pip install tensorboard)"
+        )
+
+
+def stored_backend(storage: str, study_name: str) -> str | None:
+    """The backend an existing study was created with (``None``: no such study or storage, or
+    a study without an ermrl configuration). Reads only: nothing is created."""
+    from ermrl.search import STUDY_CONFIG_ATTR
+    from ermrl.storage import StorageError, StudyNotFound, load_study
+
+    try:
+        stored = load_study(study_name, storage).user_attrs.get(STUDY_CONFIG_ATTR)
+    except (StorageError, StudyNotFound):
+        return None
+    if not isinstance(stored, Mapping):
+        return None
+    ppo = (stored.get("problem") or {}).get("ppo") or {}
+    return str(ppo.get("backend", "sb3")) if isinstance(ppo, Mapping) else None
+
+
+def keep_study_backend(
+    args: argparse.Namespace,
+    config: EvolveConfig,
+    storage: str,
+    study_name: str,
+    build: Callable[[argparse.Namespace], EvolveConfig],
+    notes: list[str],
+) -> tuple[argparse.Namespace, EvolveConfig]:
+    """A resumed study keeps the backend it was created with when ``--backend`` is left out.
+
+    Args:
+        args: The parsed options.
+        config: The configuration built from them.
+        storage: The study's storage.
+        study_name: The study's name.
+        build: Builds the configuration from options (``config_from_args``, ...).
+        notes: The one-line notes to print; replaced by the study's when it keeps its backend.
+
+    Returns:
+        ``(args, config)``, with ``--backend`` set to the study's and the configuration rebuilt
+        when the study was created with another backend than the one chosen now.
+    """
+    if getattr(args, "backend", None) is not None:
+        return args, config
+    kept = stored_backend(storage, study_name)
+    if kept is None or kept == config.problem.ppo.backend:
+        return args, config
+    args = argparse.Namespace(**{**vars(args), "backend": kept})
+    notes[:] = [f"study {study_name!r} was created with it (a study never mixes backends)"]
+    return args, build(args)
+
+
+def test_options(args: argparse.Namespace) -> TestOptions:
+    """The parsed options of ``ermrl test`` or ``ermrl test-generalization`` as the library's
+    :class:`~ermrl.experiments.TestOptions` (``--ppo`` words kept: they are read, and refused,
+    where the command always read them)."""
+    from ermrl.experiments import TestOptions
+
+    for_learner: dict[str, dict[str, Any]] = {}
+    for name, settings in getattr(args, "for_learner", None) or []:
+        for_learner[name] = {**for_learner.get(name, {}), **settings}
+    tensorboard = getattr(args, "tensorboard", None)
+    return TestOptions(
+        training_steps=args.training_steps,
+        seeds=args.seeds,
+        agents=args.agents,
+        out=args.out,
+        trial=args.trial,
+        n_procs=args.n_procs,
+        evaluate=args.eval,
+        n_eval_episodes=args.n_eval_episodes,
+        ppo=tuple(args.ppo),
+        stale_gradient=getattr(args, "stale_gradient", None),
+        for_learner=for_learner,
+        backend=args.backend,
+        save_models=args.save_models,
+        overwrite=args.overwrite,
+        checkpoint_every=args.checkpoint_every,
+        tensorboard=tensorboard,
+        wandb=getattr(args, "wandb", None),
+        progress=_progress_mode(args),
+    )
