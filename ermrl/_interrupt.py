@@ -21,7 +21,14 @@ import signal
 import threading
 from typing import Any
 
-__all__ = ["Terminated", "catch_sigint", "catch_sigterm", "interruption", "sigint_received"]
+__all__ = [
+    "Terminated",
+    "catch_sigint",
+    "catch_sigterm",
+    "interruption",
+    "raise_swallowed_sigint",
+    "sigint_received",
+]
 
 _received = False
 
@@ -43,6 +50,22 @@ def catch_sigint() -> None:
 def sigint_received() -> bool:
     """Whether a SIGINT reached the handler of :func:`catch_sigint` since it was installed."""
     return _received
+
+
+def raise_swallowed_sigint() -> None:
+    """Raise ``KeyboardInterrupt`` if a SIGINT reached the handler of :func:`catch_sigint` and
+    was lost, then forget it; a training loop calls this at every step (a module-level flag: no
+    measurable cost).
+
+    A Ctrl-C can land where Python cannot raise it: in a weakref callback of the import system
+    (``_get_module_lock``), whose exceptions are printed as "Exception ignored in" and dropped.
+    A lazy import in a training loop's first steps is such a place; without this check the
+    command would train on to the end of its budget.
+    """
+    global _received
+    if _received:
+        _received = False
+        raise KeyboardInterrupt
 
 
 class Terminated(KeyboardInterrupt):
