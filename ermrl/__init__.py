@@ -39,7 +39,7 @@ _LAZY = {
     "ReportResult": "ermrl.analysis",
     "StageFailed": "ermrl.runner",
     "TaskResult": "ermrl.runner",
-    "TestOptions": "ermrl.experiments",
+    "TestOptions": "ermrl.test_phase",
     "TestResult": "ermrl.runner",
     "evolve": "ermrl.runner",
     "report": "ermrl.runner",

@@ -21,9 +21,9 @@ import yaml
 from ermrl.agents import make_vec_env
 from ermrl.config import EncoderConfig, PPOConfig, ReservoirParams, TaskConfig
 from ermrl.encoders import ReservoirBank, ReservoirEncoder
-from ermrl.experiments import TestSettings, agent_specs, run_comparison
 from ermrl.learners import AGENT_KINDS
 from ermrl.population import PopulationEnvs
+from ermrl.test_phase import TestSettings, agent_specs, run_comparison
 
 # A reservoir as evolution selects them: small spectral radius, a leak rate below 1, a bias.
 SELECTED = ReservoirParams(units=6, sr=0.05, lr=0.3, input_scaling=0.7, bias_scaling=0.2)

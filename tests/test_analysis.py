@@ -438,7 +438,7 @@ def test_replay_normalizes_like_training(tmp_path: Path, monkeypatch: pytest.Mon
 
     import ermrl.agents._normalize as normalize_module
     from ermrl.config import NormalizeConfig, ReservoirParams
-    from ermrl.experiments import AgentSpec, TestSettings, run_comparison
+    from ermrl.test_phase import AgentSpec, TestSettings, run_comparison
 
     saved: list = []  # the training VecNormalize, as training left it
     save = normalize_module.save_normalize_stats

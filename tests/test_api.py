@@ -289,3 +289,24 @@ def test_the_example_script_runs_an_experiment_an_evolution_and_a_test(tmp_path:
     assert (tmp_path / "runs" / "tiny" / "quick" / "Pendulum-v1" / "test" / "summary.csv").is_file()
     assert (tmp_path / "runs" / "example.db").is_file()
     assert (tmp_path / "runs" / "CartPole-v1__all__2000steps" / "summary.csv").is_file()
+
+
+def test_old_test_phase_package_name_warns_and_is_the_same_code():
+    """``ermrl.experiments`` (the test phase's old name) still imports, with a warning, and its
+    names and private modules are ``ermrl.test_phase``'s very objects (a script or a pickle that
+    names the old module keeps working)."""
+    import importlib
+    import sys
+
+    import ermrl.test_phase
+    import ermrl.test_phase._test_phase
+
+    for name in [
+        m for m in sys.modules if m == "ermrl.experiments" or m.startswith("ermrl.experiments.")
+    ]:
+        del sys.modules[name]
+    with pytest.warns(DeprecationWarning, match="renamed ermrl.test_phase"):
+        old = importlib.import_module("ermrl.experiments")
+    assert old.aggregate is ermrl.test_phase.aggregate
+    assert old.__all__ == ermrl.test_phase.__all__
+    assert importlib.import_module("ermrl.experiments._test_phase") is ermrl.test_phase._test_phase

@@ -118,8 +118,8 @@ def test_agent_registry_drives_choices_defaults_and_labels() -> None:
     from ermrl.analysis._style import AGENT_COLORS, AGENT_LABELS, AGENT_SHORT_LABELS
     from ermrl.cli._test import build_test_parser
     from ermrl.config import ConfigError
-    from ermrl.experiments import agent_specs
     from ermrl.learners import AGENTS, default_agents
+    from ermrl.test_phase import agent_specs
 
     # The raw-observation PPO agents, each registered encoder's agents, then the learners'.
     assert AGENTS == (

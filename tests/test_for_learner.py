@@ -27,8 +27,8 @@ from ermrl.cli._generalization import test_generalization_main as run_test_gener
 from ermrl.cli._test import build_test_parser
 from ermrl.cli._test import test_main as run_test
 from ermrl.config import ConfigError
-from ermrl.experiments._prepare import agent_learners
 from ermrl.learners import AGENT_KINDS, default_agents, learner_names
+from ermrl.test_phase._prepare import agent_learners
 
 PENDULUM = "Pendulum-v1"
 
@@ -232,7 +232,10 @@ def _test_args(url: str, out: Path, *extra: str) -> list[str]:
             "--for-learner dagger: no agent of this run uses learner dagger (agents ppo res-ppo "
             "use ppo)",
         ),
-        (["--agents", "ppo", "--for-learner", "ppo", "expert=x"], "'expert' is a setting of another"),
+        (
+            ["--agents", "ppo", "--for-learner", "ppo", "expert=x"],
+            "'expert' is a setting of another",
+        ),
         (["--agents", "ppo", "--for-learner", "ppo", "n_steps=0"], "n_steps must be >= 1"),
         (
             ["--agents", "dagger", "--for-learner", "dagger", "expert=x", "n_steps=64"],

@@ -19,9 +19,9 @@ from ermrl.agents._train import (
     train_agent,
 )
 from ermrl.config import BudgetConfig, ConfigError, EncoderConfig, ReservoirParams, TaskConfig
-from ermrl.experiments._results import write_run
 from ermrl.learners import get_learner
 from ermrl.learners._imitation import beta
+from ermrl.test_phase._results import write_run
 
 PENDULUM = "Pendulum-v1"
 LEARNER = "imitation-sac"

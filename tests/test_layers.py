@@ -37,8 +37,8 @@ Four rules:
    loop and the settings it resolves), the experts (trained and evaluated by the agents' loop),
    the population backend (which
    trains many agents at once with the agents' seeds and files), storage, the outer-loop search,
-   analysis (which only reads results: studies and run folders), experiments (the test phase,
-   which writes run folders and summarizes them with analysis), the runner (experiment files and
+   analysis (which only reads results: studies and run folders), the test phase
+   (``ermrl.test_phase``, which writes run folders and summarizes them with analysis), the runner (experiment files and
    the Python API, which drive all of them), and the CLI on top. Storage sits above agents and below search, where the concepts put it: measured, it
    imports no other ermrl unit and only search, analysis and the CLI import it, so it needs no
    other place to avoid violations.
@@ -85,7 +85,8 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("ermrl.storage",),
     ("ermrl.search",),
     ("ermrl.analysis",),
-    ("ermrl.experiments",),
+    # ermrl.experiments: the test phase's old name, a deprecated alias of ermrl.test_phase.
+    ("ermrl.test_phase", "ermrl.experiments"),
     # The runner shares the CLI's row while it still checks each stage's options with the
     # commands' own parsers and runs the generalization commands' main(argv) (see
     # ALLOWED_BACK_IMPORTS).

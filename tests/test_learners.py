@@ -197,7 +197,7 @@ def test_a_learner_added_in_one_place_is_trained(monkeypatch: pytest.MonkeyPatch
     assert model.policy.mlp_extractor.policy_net[0].out_features == 8
     # Its agent came with it: the test phase builds it with the learner's own settings, after
     # the agents registered before it; the PPO agents it would inherit are not declared again.
-    from ermrl.experiments import agent_specs, learner_settings_for
+    from ermrl.test_phase import agent_specs, learner_settings_for
 
     assert list(AGENT_KINDS)[-1] == "small-ppo" and list(AGENT_KINDS).count("ppo") == 1
     base = resolve_ppo_config("Pendulum-v1", learner="ppo")

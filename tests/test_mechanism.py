@@ -329,7 +329,7 @@ def test_the_report_writes_the_mechanism_of_a_trained_agent(tmp_path: Path) -> N
 
     from ermrl.analysis._report import _dynamics_section, _State
     from ermrl.config import EncoderConfig, PPOConfig, ReservoirParams, TaskConfig
-    from ermrl.experiments import AgentSpec, TestSettings, run_comparison
+    from ermrl.test_phase import AgentSpec, TestSettings, run_comparison
 
     evolved = (ReservoirParams(units=20, sr=0.05, lr=0.3),)
     leaky = tuple(dataclasses.replace(p, ablation="leaky") for p in evolved)

@@ -82,7 +82,7 @@ def test_plain_policy_file_holds_tensors_only(tmp_path: Path) -> None:
 @pytest.fixture(scope="module")
 def run_folder(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A test-phase folder with one tiny res-ppo run (policy.pt and model.zip)."""
-    from ermrl.experiments import AgentSpec, TestSettings, run_comparison
+    from ermrl.test_phase import AgentSpec, TestSettings, run_comparison
 
     out = tmp_path_factory.mktemp("runs")
     run_comparison(

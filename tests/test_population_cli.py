@@ -403,8 +403,8 @@ def test_the_test_phase_defaults_to_population_where_it_applies(tmp_path: Path) 
 
     from ermrl.agents import resolve_ppo_config
     from ermrl.config import TaskConfig
-    from ermrl.experiments import TestOptions
-    from ermrl.experiments._prepare import with_backend
+    from ermrl.test_phase import TestOptions
+    from ermrl.test_phase._prepare import with_backend
 
     task = TaskConfig("Pendulum-v1", "positions")
     ppo = resolve_ppo_config("Pendulum-v1", backend="population")  # a study evolved so

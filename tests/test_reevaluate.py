@@ -334,7 +334,9 @@ def test_test_seeds_used_by_evolution_or_reevaluation_are_refused(
     import ermrl.runner._commands
     from ermrl.cli._test import test_main
 
-    monkeypatch.setattr(ermrl.runner._commands, "run_test_phase", lambda *a, **k: object())  # no training
+    monkeypatch.setattr(
+        ermrl.runner._commands, "run_test_phase", lambda *a, **k: object()
+    )  # no training
     url = f"sqlite:///{tmp_path}/s.db"
     config = make_config(n_trials=4, popsize=4, reevaluate_top=1, reevaluate_seeds=2)
     study = create_or_resume_study(config, url, "s")
@@ -430,10 +432,10 @@ def test_a_test_phase_trains_once_the_runs_two_agents_share(
 
     import pandas as pd
 
-    import ermrl.experiments._test_phase as test_phase
     import ermrl.population as population
+    import ermrl.test_phase._test_phase as test_phase
     from ermrl.config import EncoderConfig, PPOConfig, ReservoirParams, TaskConfig
-    from ermrl.experiments import AgentSpec, TestSettings, run_comparison
+    from ermrl.test_phase import AgentSpec, TestSettings, run_comparison
 
     trained: list[tuple[str, int]] = []  # (backend, seed) of each run actually trained
     train_agent = test_phase.train_agent

@@ -137,7 +137,7 @@ def test_an_rtu_study_configuration_round_trips_and_esn_dicts_are_unchanged(
 
 
 def test_agents_follow_the_studys_encoder_family() -> None:
-    from ermrl.experiments import agent_specs
+    from ermrl.test_phase import agent_specs
 
     assert evolved_agent("rtu") == "rtu-res-ppo" and unevolved_agent("rtu") == "random-rtu-res-ppo"
     assert evolved_agent() == "res-ppo"

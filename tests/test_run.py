@@ -537,7 +537,7 @@ def test_a_run_trained_again_for_its_model_keeps_its_published_result(
     import json
 
     import ermrl.runner._experiment as experiment
-    from ermrl.experiments._results import keep_published_record
+    from ermrl.test_phase._results import keep_published_record
 
     monkeypatch.chdir(tmp_path)
     path = write(tmp_path, {**TINY, "publish": "published",
@@ -589,7 +589,7 @@ def test_the_test_phase_puts_a_kept_record_back_before_its_summary(tmp_path: Pat
     import pandas as pd
 
     from ermrl.config import EncoderConfig, PPOConfig, ReservoirParams, TaskConfig
-    from ermrl.experiments import AgentSpec, TestSettings, run_comparison
+    from ermrl.test_phase import AgentSpec, TestSettings, run_comparison
 
     reservoirs = (ReservoirParams(units=20, sr=0.9, lr=0.5),)
     kept = tmp_path / "test" / "agents" / "res-ppo" / "seed_3" / "published-record"

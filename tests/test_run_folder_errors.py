@@ -203,7 +203,7 @@ def test_test_phase_rerun_on_a_damaged_finished_run_is_one_line_and_writes_nothi
 def test_a_settings_record_that_is_a_device_is_not_read_to_its_end(tmp_path: Path) -> None:
     """finished_backend reads settings.json as every record is read (capped, regular files):
     a device there is skipped, not read until memory runs out."""
-    from ermrl.experiments._test_phase import finished_backend
+    from ermrl.test_phase._test_phase import finished_backend
 
     run = tmp_path / "agents" / "ppo" / "seed_1"
     run.mkdir(parents=True)

@@ -31,7 +31,7 @@ __all__ = [
 RUNS_DIR = "agents"
 #: A run folder's subfolder holding the published records of a run trained again only for the
 #: model the report replays (a published run carries no model): they replace the new training's
-#: records as it ends (:func:`ermrl.experiments._results.keep_published_record`), so a result
+#: records as it ends (:func:`ermrl.test_phase._results.keep_published_record`), so a result
 #: once published never changes.
 KEPT_RECORD_DIR = "published-record"
 CURVE_COLUMNS = ["agent", "seed", "env_step", "episode_return"]

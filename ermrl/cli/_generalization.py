@@ -57,7 +57,7 @@ from ermrl.runner._resolve import (
 )
 
 if TYPE_CHECKING:
-    from ermrl.experiments import TestPlan
+    from ermrl.test_phase import TestPlan
 
 __all__ = [
     "build_evolve_generalization_parser",
@@ -616,9 +616,9 @@ def _resolve_test(args: argparse.Namespace, notes: list[str]) -> _Generalization
     """
     from ermrl.agents import check_ppo_config
     from ermrl.envs import check_env_id, observation_indices
-    from ermrl.experiments._prepare import choose_agents, plan_test_phase, with_backend
     from ermrl.search import study_config
     from ermrl.storage import load_study
+    from ermrl.test_phase._prepare import choose_agents, plan_test_phase, with_backend
 
     study = load_study(args.study_name, args.storage)
     config = study_config(study)
@@ -672,7 +672,7 @@ def _reference_returns(
 
 def _say_test_plan(prog: str, args: argparse.Namespace, test: _GeneralizationTest) -> None:
     """The warnings (also with ``--quiet``) and, unless quiet, what the test trains."""
-    from ermrl.experiments import describe_selection
+    from ermrl.test_phase import describe_selection
 
     if test.warning:
         _shout(test.warning)
@@ -692,7 +692,7 @@ def _say_test_plan(prog: str, args: argparse.Namespace, test: _GeneralizationTes
 
 def _test_metadata(args: argparse.Namespace, test: _GeneralizationTest) -> dict[str, Any]:
     """What the run folder records of the study, the selection and the test env."""
-    from ermrl.experiments import selection_metadata
+    from ermrl.test_phase import selection_metadata
 
     gen = test.config.generalization
     reference = test.reference

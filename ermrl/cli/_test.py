@@ -28,7 +28,7 @@ from ermrl.runner._commands import print_notes, setup_errors
 from ermrl.runner._resolve import test_options
 
 if TYPE_CHECKING:
-    from ermrl.experiments import TestPlan
+    from ermrl.test_phase import TestPlan
 
 T = TypeVar("T")
 

@@ -1,59 +1,23 @@
-"""Experiments built on evolved reservoirs: the test phase against baselines."""
+"""Deprecated: the test phase's old package name; use :mod:`ermrl.test_phase`.
 
-from ermrl.experiments._prepare import (
-    TestOptions,
-    TestPhase,
-    TestPlan,
-    prepare_test,
-    run_in_folder,
-)
-from ermrl.experiments._test_phase import (
-    AGENT_KINDS,
-    AGENTS,
-    AgentKind,
-    AgentSpec,
-    Selection,
-    TestSettings,
-    agent_specs,
-    aggregate,
-    check_finished_runs,
-    default_agents,
-    default_test_seeds,
-    describe_selection,
-    learner_settings_for,
-    run_comparison,
-    run_settings,
-    select_reservoirs,
-    selection_metadata,
-    settings_diff,
-    study_agents,
-    study_reservoirs,
+``import ermrl.experiments`` (and its private modules, ``ermrl.experiments._test_phase``, ...)
+still works and gives the very objects of :mod:`ermrl.test_phase`, with a
+:class:`DeprecationWarning`. It will be removed in a later release.
+"""
+
+import importlib
+import sys
+import warnings
+
+from ermrl.test_phase import *  # noqa: F403  (the alias re-exports the whole public API)
+from ermrl.test_phase import __all__  # noqa: F401
+
+warnings.warn(
+    "ermrl.experiments is renamed ermrl.test_phase (the test phase against baselines); "
+    "the old name will be removed in a later release",
+    DeprecationWarning,
+    stacklevel=2,
 )
 
-__all__ = [
-    "AGENTS",
-    "AGENT_KINDS",
-    "AgentKind",
-    "AgentSpec",
-    "TestOptions",
-    "TestPhase",
-    "TestPlan",
-    "TestSettings",
-    "prepare_test",
-    "run_in_folder",
-    "agent_specs",
-    "learner_settings_for",
-    "aggregate",
-    "check_finished_runs",
-    "default_agents",
-    "default_test_seeds",
-    "describe_selection",
-    "Selection",
-    "run_comparison",
-    "run_settings",
-    "select_reservoirs",
-    "selection_metadata",
-    "settings_diff",
-    "study_agents",
-    "study_reservoirs",
-]
+for _module in ("_prepare", "_results", "_test_phase"):
+    sys.modules[f"{__name__}.{_module}"] = importlib.import_module(f"ermrl.test_phase.{_module}")

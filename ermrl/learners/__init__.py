@@ -105,7 +105,7 @@ def _own_agents(learner: Learner) -> Mapping[str, AgentKind]:
     return vars(type(learner)).get("agents", {})
 
 
-# The registry of test-phase agents (ermrl.experiments builds them): CLI choices, defaults, the
+# The registry of test-phase agents (ermrl.test_phase builds them): CLI choices, defaults, the
 # analysis' agent order, labels and colours are read from it. A learner's agents come with the
 # learner (Learner.agents), an encoder's with the encoder (Encoder.agents).
 AGENT_KINDS: Mapping[str, AgentKind] = _AgentTable()

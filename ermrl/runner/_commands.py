@@ -25,8 +25,8 @@ if TYPE_CHECKING:
 
     from ermrl._progress import ProgressMode
     from ermrl.config import EvolveConfig
-    from ermrl.experiments import TestPlan
     from ermrl.search import EvolutionSummary, Interrupted
+    from ermrl.test_phase import TestPlan
 
 __all__ = [
     "EXIT_INTERRUPTED",
@@ -206,7 +206,7 @@ def study_write_failure(err: OSError, storage: str) -> str | None:
 
     ``None``: not a full disk, a quota or a read-only folder (the caller re-raises).
     """
-    from ermrl.experiments._test_phase import WRITE_ERRNOS
+    from ermrl.test_phase._test_phase import WRITE_ERRNOS
 
     if err.errno not in WRITE_ERRNOS:
         return None
@@ -290,9 +290,9 @@ def run_and_report(
     """
     from optuna.exceptions import StorageInternalError
 
-    from ermrl.experiments._test_phase import WRITE_ERRNOS
     from ermrl.search import Interrupted, evolve_and_reevaluate
     from ermrl.storage import StorageError
+    from ermrl.test_phase._test_phase import WRITE_ERRNOS
 
     where = storage_url or "the storage"
     callbacks, finish_wandb = wandb_callbacks(wandb, study.study_name, config)
@@ -387,7 +387,7 @@ def _print_summary(summary: EvolutionSummary, fitness_name: str, next_command: s
 
 def run_or_fail(prog: str, out: Path, run: Callable[[], T]) -> T | None:
     """Run a test phase in ``out`` (removed again when this call created it and it fails
-    before it holds anything but its skeleton: :func:`ermrl.experiments.run_in_folder`); its
+    before it holds anything but its skeleton: :func:`ermrl.test_phase.run_in_folder`); its
     expected failures become one line.
 
     Shared by ``ermrl test`` and ``ermrl test-generalization``.
@@ -406,7 +406,7 @@ def run_or_fail(prog: str, out: Path, run: Callable[[], T]) -> T | None:
             damaged finished run, when a run ends no episode or diverges, or when a full disk,
             a quota or a read-only folder stops a write; a signal's code after its line.
     """
-    from ermrl.experiments import run_in_folder
+    from ermrl.test_phase import run_in_folder
 
     return _run_or_fail(prog, out, lambda: run_in_folder(out, run))
 
@@ -414,7 +414,7 @@ def run_or_fail(prog: str, out: Path, run: Callable[[], T]) -> T | None:
 def _run_or_fail(prog: str, out: Path, run: Callable[[], T]) -> T | None:
     from ermrl.agents import NoEpisodeFinished, TrainingDiverged
     from ermrl.analysis import RunFolderError
-    from ermrl.experiments._test_phase import WRITE_ERRNOS, write_error_message
+    from ermrl.test_phase._test_phase import WRITE_ERRNOS, write_error_message
 
     try:
         return run()
@@ -491,7 +491,7 @@ def run_test_phase(
     Raises:
         CommandFailed: see :func:`run_or_fail`.
     """
-    from ermrl.experiments import run_comparison
+    from ermrl.test_phase import run_comparison
 
     def run() -> Any:
         summary = run_comparison(
@@ -516,7 +516,7 @@ def run_test(request: TestRequest, prog: str = "ermrl test") -> int:
     Raises:
         CommandFailed: Bad options, study or folder, or a run that cannot be measured.
     """
-    from ermrl.experiments import describe_selection, prepare_test
+    from ermrl.test_phase import describe_selection, prepare_test
 
     options = request.options
     require_tensorboard(options.tensorboard)

@@ -811,7 +811,9 @@ def _single_task_steps(exp: Experiment, task: TaskLine, build_agents: bool) -> l
     steps = [evolve]
     search = config.search
     if search.reevaluate_top > 0:
-        re_steps, _ = _rounded(problem.ppo, search.reevaluate_steps or problem.budget.training_steps)
+        re_steps, _ = _rounded(
+            problem.ppo, search.reevaluate_steps or problem.budget.training_steps
+        )
         total = (search.reevaluate_top + 1) * search.reevaluate_seeds * re_steps
         steps.append(
             Step(
@@ -885,9 +887,7 @@ def _test_step(
     if backend is None:  # as the test command chooses (the env's spaces aside)
         from ermrl.population import population_refusal
 
-        refused = population_refusal(
-            config.problem.ppo, wandb=bool(getattr(args, "wandb", None))
-        )
+        refused = population_refusal(config.problem.ppo, wandb=bool(getattr(args, "wandb", None)))
         backend = "sb3" if refused else "population"
     # The study's learner's runs round up to whole rollouts of its settings (another learner's
     # agents train with their own tables: counted at the budget).
@@ -1019,7 +1019,9 @@ def _generalization_plan(
     ]
     search = config.search
     if search.reevaluate_top > 0:
-        re_steps, _ = _rounded(problem.ppo, search.reevaluate_steps or problem.budget.training_steps)
+        re_steps, _ = _rounded(
+            problem.ppo, search.reevaluate_steps or problem.budget.training_steps
+        )
         re_total = (search.reevaluate_top + 1) * search.reevaluate_seeds * re_steps
         re_parts = [(re_total, rate) for _, rate in ((0, p[1]) for p in parts)]
         steps.append(
@@ -1535,7 +1537,7 @@ def restore_finished_runs(exp: Experiment, step: Step) -> tuple[int, list[tuple[
             continue
         if key in step.replayed:
             # Trained again for its model; its published records are kept aside and put back
-            # as that training ends (ermrl.experiments.keep_published_record).
+            # as that training ends (ermrl.test_phase.keep_published_record).
             if _copy_run(run, target / KEPT_RECORD_DIR, PUBLISH_MAX_BYTES):
                 retrained.append(key)
             continue

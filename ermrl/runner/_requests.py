@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from ermrl._progress import ProgressMode
     from ermrl.config import EvolveConfig
-    from ermrl.experiments import TestOptions
+    from ermrl.test_phase import TestOptions
 
 __all__ = ["EvolveRequest", "ReportRequest", "TestRequest", "with_run_options"]
 

@@ -32,7 +32,7 @@ from ermrl.encoders import ENCODERS, flag_dest, get_encoder, reference_encoder
 
 if TYPE_CHECKING:
     from ermrl._progress import ProgressMode
-    from ermrl.experiments import TestOptions
+    from ermrl.test_phase import TestOptions
 
 __all__ = [
     "budget_from_args",
@@ -357,9 +357,9 @@ def keep_study_backend(
 
 def test_options(args: argparse.Namespace) -> TestOptions:
     """The parsed options of ``ermrl test`` or ``ermrl test-generalization`` as the library's
-    :class:`~ermrl.experiments.TestOptions` (``--ppo`` words kept: they are read, and refused,
+    :class:`~ermrl.test_phase.TestOptions` (``--ppo`` words kept: they are read, and refused,
     where the command always read them)."""
-    from ermrl.experiments import TestOptions
+    from ermrl.test_phase import TestOptions
 
     for_learner: dict[str, dict[str, Any]] = {}
     for name, settings in getattr(args, "for_learner", None) or []:

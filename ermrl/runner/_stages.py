@@ -28,8 +28,8 @@ if TYPE_CHECKING:
     from ermrl._progress import ProgressMode
     from ermrl.analysis import ReportResult
     from ermrl.config import EvolveConfig
-    from ermrl.experiments import TestOptions
     from ermrl.search import EvolutionSummary
+    from ermrl.test_phase import TestOptions
 
 __all__ = [
     "EvolveResult",
@@ -370,10 +370,10 @@ def test(
     Args:
         study_name: The evolution study (a single-task one).
         storage: Its storage URL.
-        options: The test phase's options (:class:`~ermrl.experiments.TestOptions`).
+        options: The test phase's options (:class:`~ermrl.test_phase.TestOptions`).
         quiet: No progress lines.
         stream: Where progress lines go (default ``sys.stdout``).
-        **keywords: Fields of :class:`~ermrl.experiments.TestOptions` (``training_steps``,
+        **keywords: Fields of :class:`~ermrl.test_phase.TestOptions` (``training_steps``,
             ``seeds``, ``agents``, ``out``, ``trial``, ...), on top of ``options``.
 
     Returns:
@@ -393,7 +393,7 @@ def test(
         >>> result.summary[["agent", "final_return_mean"]]  # doctest: +SKIP
     """
     from ermrl.analysis import load_run_results
-    from ermrl.experiments import TestOptions, prepare_test, run_comparison, run_in_folder
+    from ermrl.test_phase import TestOptions, prepare_test, run_comparison, run_in_folder
 
     options = dataclasses.replace(options or TestOptions(), **keywords)
     phase = prepare_test(study_name, storage, options)

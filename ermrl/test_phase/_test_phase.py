@@ -86,8 +86,8 @@ from ermrl.config import (
     to_dict,
 )
 from ermrl.encoders import encoder_families, encoder_of_family
-from ermrl.experiments._results import REPLAY_MODEL_FILE, keep_published_record, write_run
 from ermrl.learners import AGENT_KINDS, AGENTS, default_agents, evolved_agent, unevolved_agent
+from ermrl.test_phase._results import REPLAY_MODEL_FILE, keep_published_record, write_run
 
 __all__ = [
     "AGENTS",
@@ -969,7 +969,7 @@ def _write_records(
 
     Returns:
         The published run's final return, kept in place of this run's (see
-        :func:`~ermrl.experiments._results.keep_published_record`), or ``None``.
+        :func:`~ermrl.test_phase._results.keep_published_record`), or ``None``.
     """
     extra = {
         "env_id": task.env_id,

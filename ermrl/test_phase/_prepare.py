@@ -3,7 +3,7 @@
 ``ermrl test``, ``ermrl test-generalization`` and :func:`ermrl.test` share this code. The options
 are a :class:`TestOptions` (the command-line options of the test commands, as plain data);
 :func:`prepare_test` turns them and a study into a :class:`TestPhase`, every check done, which
-:func:`~ermrl.experiments.run_comparison` then trains.
+:func:`~ermrl.test_phase.run_comparison` then trains.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ if TYPE_CHECKING:
     import optuna
 
     from ermrl.config import EncoderConfig, EvolveConfig, PPOConfig, TaskConfig
-    from ermrl.experiments._test_phase import AgentSpec, Selection, TestSettings
+    from ermrl.test_phase._test_phase import AgentSpec, Selection, TestSettings
 
 T = TypeVar("T")
 
@@ -263,13 +263,13 @@ def plan_test_phase(
         ConfigError: bad settings, test seeds evolution or the re-evaluation used, a bad
             folder, or an agent that cannot be built.
     """
-    from ermrl.experiments._test_phase import (
+    from ermrl.search import used_reevaluation_seeds
+    from ermrl.test_phase._test_phase import (
         check_out_folder,
         default_test_seeds,
         learner_settings_for,
         study_agents,
     )
-    from ermrl.search import used_reevaluation_seeds
 
     problem = config.problem
     seeds = tuple(options.seeds) if options.seeds else default_test_seeds(problem.seeds)
@@ -315,7 +315,7 @@ def _test_settings(
 ) -> TestSettings:
     """How the comparison runs: ``options`` on ``seeds`` into ``out``, each run's final return
     the mean of its last ``n_last_episodes`` training episodes (the study's measure)."""
-    from ermrl.experiments._test_phase import TestSettings
+    from ermrl.test_phase._test_phase import TestSettings
 
     return TestSettings(
         training_steps=options.training_steps,
@@ -384,7 +384,7 @@ def with_backend(
     from ermrl.population import choose_backend
 
     if options.backend is None:
-        from ermrl.experiments._test_phase import finished_backend
+        from ermrl.test_phase._test_phase import finished_backend
 
         if ppo.backend == "sb3" and ppo.learner == "ppo":
             return ppo  # the study's own backend: kept silently, as an evolution resumes it
@@ -444,7 +444,7 @@ class TestPhase:
     @property
     def metadata(self) -> dict[str, Any]:
         """What ``config.yaml`` records besides the settings: the study and the selection."""
-        from ermrl.experiments._test_phase import selection_metadata
+        from ermrl.test_phase._test_phase import selection_metadata
 
         return {
             "study_name": self.study_name,
@@ -462,7 +462,7 @@ def prepare_test(study_name: str, storage: str, options: TestOptions) -> TestPha
         options: The test phase's options.
 
     Returns:
-        The test phase, ready for :func:`~ermrl.experiments.run_comparison`.
+        The test phase, ready for :func:`~ermrl.test_phase.run_comparison`.
 
     Raises:
         ConfigError: Bad options, a study evolved on several tasks (its test is
