@@ -88,8 +88,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     # ermrl.experiments: the test phase's old name, a deprecated alias of ermrl.test_phase.
     ("ermrl.test_phase", "ermrl.experiments"),
     # The runner shares the CLI's row while it still checks each stage's options with the
-    # commands' own parsers and runs the generalization commands' main(argv) (see
-    # ALLOWED_BACK_IMPORTS).
+    # commands' own parsers (see ALLOWED_BACK_IMPORTS).
     ("ermrl.runner", "ermrl.cli", "ermrl.__main__"),
 )
 ALL_KINDS = frozenset({"module", "function", "type-checking"})
@@ -104,12 +103,10 @@ KNOWN_VIOLATIONS: frozenset[tuple[str, str]] = frozenset()
 ALLOWED_BACK_IMPORTS: dict[tuple[str, str], str] = {
     ("ermrl.runner", "ermrl.cli"): (
         "a debt, smaller: the experiment runner checks each stage's options with that "
-        "command's own parser (build_*_parser), builds a generalization stage's configuration "
-        "with generalization_config_from_args and runs the two generalization commands' "
-        "main(argv); the CLI calls the runner. Evolve, test and report stages already run "
-        "library functions (ermrl.runner._commands) with configuration objects resolved in "
-        "ermrl.runner._resolve. Gone when the generalization stages do too and the options' "
-        "parsers move below the CLI."
+        "command's own parser (build_*_parser); the CLI calls the runner. Every stage, the "
+        "generalization ones included, already runs a library function "
+        "(ermrl.runner._commands, ermrl.runner._generalization) with configuration objects "
+        "resolved in ermrl.runner._resolve. Gone when the options' parsers move below the CLI."
     ),
 }
 

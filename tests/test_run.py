@@ -760,3 +760,39 @@ def test_a_failed_run_leaves_no_resolved_file_behind(
     code = run_main([str(path), "--stage", "test", "--quiet"])
     assert code != 0
     assert sorted(p.name for p in tmp_path.iterdir()) == ["exp.yaml"]
+
+
+@pytest.mark.slow
+def test_a_generalization_file_runs_its_stages_through_the_library(tmp_path: Path) -> None:
+    """``ermrl run`` of H3's quick variant: the evolution on a task set and the test on an unseen
+    task run as library calls (no command's ``main(argv)``), print the command lines a user can
+    paste, and the test folder keeps that line, not ``ermrl run ...``."""
+    path = ROOT / "experiments" / "paper" / "h3_generalization.yaml"
+    exp = load_experiment(path, "quick")
+    done = subprocess.run(
+        [sys.executable, "-m", "ermrl", "run", str(path), "--variant", "quick",
+         "--stage", "evolve", "reevaluate", "test"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=900,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    lines = [ln for ln in done.stdout.splitlines() if ln.startswith("[")]
+    evolve = next(ln for ln in lines if ln.startswith("[evolve "))
+    test = next(ln for ln in lines if ln.startswith("[test Hopper-v5] "))
+    assert " ermrl evolve-generalization --suite cheetah_swimmer " in evolve
+    assert "normalized fitness" in done.stdout  # the generalization worker's summary
+    db = tmp_path / exp.out / "ermrl.db"
+    study = optuna.load_study(study_name=_only_study(db), storage=f"sqlite:///{db}")
+    assert len(study.get_trials(states=[TrialState.COMPLETE])) >= 2
+    folder = tmp_path / exp.out / "test" / "Hopper-v5"
+    summary = (folder / "summary.csv").read_text()
+    assert "final_return_normalized_mean" in summary  # Hopper-v5 has reference scores
+    recorded = (folder / "command.txt").read_text().strip()
+    assert recorded == test.split("] ", 1)[1]
+    assert recorded.startswith("ermrl test-generalization --env-id Hopper-v5 ")
+
+
+def _only_study(db: Path) -> str:
+    names = [s.study_name for s in optuna.get_all_study_summaries(f"sqlite:///{db}")]
+    main = [n for n in names if not n.endswith(".reeval")]
+    assert len(main) == 1, names
+    return main[0]

@@ -42,6 +42,8 @@ __all__ = [
     "quiet_libraries",
     "require_tensorboard",
     "run_and_report",
+    "create_study",
+    "progress_or_default",
     "run_evolve",
     "run_or_fail",
     "run_report",
@@ -88,7 +90,7 @@ def exit_code(prog: str, run: Callable[[], int]) -> int:
 # evolve
 
 
-def _progress(value: ProgressMode | None) -> ProgressMode:
+def progress_or_default(value: ProgressMode | None) -> ProgressMode:
     from ermrl._progress import default_mode
 
     return default_mode() if value is None else value
@@ -107,27 +109,27 @@ def dashboard_line(storage: str) -> str | None:
     return f"live view: {command}" + ("  (pip install 'ermrl[viz]')" if missing else "")
 
 
-def run_evolve(request: EvolveRequest, prog: str = "ermrl evolve") -> int:
-    """Create or resume the study and run this worker's trials, printing what ``ermrl evolve``
-    prints; return its exit code.
+def create_study(request: EvolveRequest, prog: str) -> optuna.Study:
+    """Check the worker's options, print the backend notes and create or resume the study
+    (on one task or a set of tasks, as the configuration says).
 
     Raises:
         CommandFailed: The study cannot be created or written (one line, exit code 2).
     """
-    from ermrl.search import create_or_resume_study
+    from ermrl.search import create_or_resume_generalization_study, create_or_resume_study
     from ermrl.storage import LockTimeout, StorageError
 
-    config, storage, study_name = request.config, request.storage, request.study_name
+    config, storage = request.config, request.storage
     check_wandb(request.wandb)
     print_backend_notes(prog, config, request.notes)
-    study_kwargs: dict[str, Any] = {
-        "heartbeat_interval": request.heartbeat_interval or None,
-        "grace_period": request.grace_period,
-        "max_retry": request.max_retry,
-    }
+    create = (
+        create_or_resume_study
+        if config.generalization is None
+        else create_or_resume_generalization_study
+    )
     try:
-        study = create_or_resume_study(
-            config, storage, study_name, command=request.command, **study_kwargs
+        return create(
+            config, storage, request.study_name, command=request.command, **study_options(request)
         )
     except (ConfigError, StorageError, LockTimeout) as err:
         raise CommandFailed(str(err)) from None
@@ -136,6 +138,27 @@ def run_evolve(request: EvolveRequest, prog: str = "ermrl evolve") -> int:
         if message is None:
             raise
         raise CommandFailed(message) from None
+
+
+def study_options(request: EvolveRequest) -> dict[str, Any]:
+    """The study's heartbeat and retry options of the worker (also its re-evaluation's)."""
+    return {
+        "heartbeat_interval": request.heartbeat_interval or None,
+        "grace_period": request.grace_period,
+        "max_retry": request.max_retry,
+    }
+
+
+def run_evolve(request: EvolveRequest, prog: str = "ermrl evolve") -> int:
+    """Create or resume the study and run this worker's trials, printing what ``ermrl evolve``
+    prints; return its exit code. (A study on a set of tasks:
+    :func:`ermrl.runner._generalization.run_evolve_generalization`.)
+
+    Raises:
+        CommandFailed: The study cannot be created or written (one line, exit code 2).
+    """
+    config, storage, study_name = request.config, request.storage, request.study_name
+    study = create_study(request, prog)
     if not request.quiet:
         print(
             f"study {study_name!r} in {storage}: {config.problem.task.label}, "
@@ -154,9 +177,9 @@ def run_evolve(request: EvolveRequest, prog: str = "ermrl evolve") -> int:
         next_command=f"ermrl test --study-name {shlex.quote(study_name)} "
         f"--storage {shlex.quote(storage)}",
         storage_url=storage,
-        study_kwargs=study_kwargs,
+        study_kwargs=study_options(request),
         wait_for_running=request.wait_for_running,
-        progress=_progress(request.progress),
+        progress=progress_or_default(request.progress),
         wandb=request.wandb,
         tensorboard=request.tensorboard,
     )
@@ -600,14 +623,3 @@ def run_report(request: ReportRequest, prog: str = "ermrl report") -> int:
             flush=True,
         )
     return 0
-
-
-def run_request(request: Any, prog: str) -> int:
-    """Run a planned stage's request; its one-line error on stderr, its exit code back."""
-    runs: dict[type, Callable[[Any, str], int]] = {
-        EvolveRequest: run_evolve,
-        TestRequest: run_test,
-        ReportRequest: run_report,
-    }
-    quiet_libraries()
-    return exit_code(prog, lambda: runs[type(request)](request, prog))

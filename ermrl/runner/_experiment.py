@@ -41,7 +41,12 @@ from typing import TYPE_CHECKING, Any, TextIO
 import yaml
 
 from ermrl.config import ConfigError
-from ermrl.runner._requests import EvolveRequest, ReportRequest, TestRequest
+from ermrl.runner._requests import (
+    EvolveRequest,
+    ReportRequest,
+    TestGeneralizationRequest,
+    TestRequest,
+)
 
 if TYPE_CHECKING:
     from ermrl._progress import ProgressMode
@@ -661,8 +666,8 @@ class Step:
             (its dynamics section); a snapshot carries no models, so these are retrained.
         note: A line the plan prints under it (a budget rounded up to whole rollouts).
         request: What it runs, resolved from its options: the configuration objects of the
-            library function that runs it (:mod:`ermrl.runner._commands`); ``None`` for the
-            generalization commands, which run through their ``main(argv)``.
+            library function that runs it (:mod:`ermrl.runner._commands`,
+            :mod:`ermrl.runner._generalization``.
     """
 
     stage: str
@@ -907,7 +912,7 @@ def _test_step(
         family = config.space.family
         wanted = (evolved_agent(family), unevolved_agent(family))
         replayed = tuple((a, min(seeds)) for a in wanted if a in agents)
-    request = None if env_id else _test_request(exp, where, args, study_name)
+    request = _test_request(exp, where, args, study_name, env_id)
     return Step(
         "test", label, "test-generalization" if env_id else "test", argv, total,
         estimate_seconds(parts), _test_status(folder, agents, seeds), study_name, folder,
@@ -957,14 +962,20 @@ def _evolve_request(
 
 
 def _test_request(
-    exp: Experiment, where: str, args: argparse.Namespace, study_name: str
-) -> TestRequest:
+    exp: Experiment, where: str, args: argparse.Namespace, study_name: str, env_id: str | None
+) -> TestRequest | TestGeneralizationRequest:
     """What a test step runs: the test phase's options the file gives (``ermrl run``'s own
-    ``--tensorboard``, ``--wandb``, ``--progress`` and ``--quiet`` are added when it runs)."""
+    ``--tensorboard``, ``--wandb``, ``--progress`` and ``--quiet`` are added when it runs); a
+    generalization test on ``env_id`` also takes the test task's own options."""
     from ermrl.runner._resolve import test_options
 
     options = _config_error(exp, where, lambda: test_options(args))
-    return TestRequest(study_name, exp.storage, options, quiet=args.quiet)
+    if env_id is None:
+        return TestRequest(study_name, exp.storage, options, quiet=args.quiet)
+    return TestGeneralizationRequest(
+        study_name, exp.storage, env_id, options, observe=args.observe, n_envs=args.n_envs,
+        hyperparams=args.hyperparams, scores=args.scores, quiet=args.quiet,
+    )  # fmt: skip
 
 
 def _generalization_plan(
@@ -973,23 +984,27 @@ def _generalization_plan(
     from ermrl.cli._generalization import (
         build_evolve_generalization_parser,
         build_test_generalization_parser,
-        generalization_config_from_args,
     )
     from ermrl.cli._report import build_report_parser
+    from ermrl.runner._resolve import generalization_config_from_args
     from ermrl.search import generalization_study_name
 
     where = f"{exp.path}: evolve"
     argv, args = _evolve_parts(exp, None, build_evolve_generalization_parser(), where)
+    notes: list[str] = []
     config = _config_error(
-        exp, where, lambda: generalization_config_from_args(args, build_agent=build_agents)
+        exp,
+        where,
+        lambda: generalization_config_from_args(args, build_agent=build_agents, notes=notes),
     )
     study_name = generalization_study_name(config)
     argv += ["--study-name", study_name]
     config = _keep_study_backend(
         exp, where, args, config, study_name,
-        lambda a: generalization_config_from_args(a, build_agent=build_agents),
+        lambda a: generalization_config_from_args(a, build_agent=build_agents), notes,
     )  # fmt: skip
     _check_study(exp, config, study_name, where)
+    request = _evolve_request(exp, args, config, study_name, notes)
     gen = config.generalization
     label = gen.suite or "+".join(gen.env_ids)
     problem = config.problem
@@ -1015,6 +1030,7 @@ def _generalization_plan(
             _evolve_status(exp.storage, study_name, n_trials),
             study_name,
             note=note,
+            request=request,
         )  # fmt: skip
     ]
     search = config.search
@@ -1034,6 +1050,7 @@ def _generalization_plan(
                 estimate_seconds(re_parts),
                 _reevaluate_status(exp.storage, study_name),
                 study_name,
+                request=request,
             )  # fmt: skip
         )
     env_ids = exp.stages["test"].get("env_ids") or []

@@ -12,11 +12,18 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
+    from ermrl._config_base import ObserveMode
     from ermrl._progress import ProgressMode
     from ermrl.config import EvolveConfig
     from ermrl.test_phase import TestOptions
 
-__all__ = ["EvolveRequest", "ReportRequest", "TestRequest", "with_run_options"]
+__all__ = [
+    "EvolveRequest",
+    "ReportRequest",
+    "TestGeneralizationRequest",
+    "TestRequest",
+    "with_run_options",
+]
 
 
 @dataclass(frozen=True)
@@ -77,6 +84,37 @@ class TestRequest:
 
 
 @dataclass(frozen=True)
+class TestGeneralizationRequest:
+    """What ``ermrl test-generalization`` runs: the study's reservoirs tested on ``env_id``.
+
+    Attributes:
+        study_name: The evolution study (one task or a set).
+        storage: Its storage URL.
+        env_id: The test task.
+        options: The test phase's options.
+        observe: The test task's observation mask (``None``: the study's).
+        n_envs: Environments per agent (``None``: the study's, else the PPO table's).
+        hyperparams: The PPO table keyed by env id (``None``: the study's, else the packaged).
+        scores: The reference scores for normalized returns (``None``: the study's).
+        quiet: No progress lines and no summary table.
+        command: The command line the test folder keeps (``command.txt``).
+    """
+
+    __test__ = False  # not a pytest test class
+
+    study_name: str
+    storage: str
+    env_id: str
+    options: TestOptions
+    observe: ObserveMode | None = None
+    n_envs: int | None = None
+    hyperparams: str | None = None
+    scores: str | None = None
+    quiet: bool = False
+    command: str | None = None
+
+
+@dataclass(frozen=True)
 class ReportRequest:
     """What ``ermrl report`` writes (the arguments of :func:`ermrl.report`)."""
 
@@ -112,7 +150,7 @@ def with_run_options(
             wandb=wandb if wandb is not None else request.wandb,
             command=command,
         )
-    if isinstance(request, TestRequest):
+    if isinstance(request, (TestRequest, TestGeneralizationRequest)):
         options = request.options
         options = dataclasses.replace(
             options,

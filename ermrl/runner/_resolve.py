@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from ermrl.config import (
@@ -20,6 +21,7 @@ from ermrl.config import (
     EncoderConfig,
     EncoderSpace,
     EvolveConfig,
+    GeneralizationTask,
     LearnerSpace,
     PPOConfig,
     Problem,
@@ -40,6 +42,7 @@ __all__ = [
     "config_from_args",
     "encoder_from_args",
     "for_learner_names",
+    "generalization_config_from_args",
     "keep_study_backend",
     "learner_flags",
     "learner_overrides",
@@ -385,3 +388,138 @@ def test_options(args: argparse.Namespace) -> TestOptions:
         wandb=getattr(args, "wandb", None),
         progress=_progress_mode(args),
     )
+
+
+# -- a study on a set of tasks (ermrl evolve-generalization) ------------------------------------
+
+
+def generalization_config_from_args(
+    args: argparse.Namespace, *, build_agent: bool = True, notes: list[str] | None = None
+) -> EvolveConfig:
+    """Build and validate a multi-task configuration (raises ConfigError / env errors).
+
+    Args:
+        args: The parsed options of ``ermrl evolve-generalization``.
+        build_agent: Also build each task's agent once (see
+            :func:`ermrl.runner._resolve.config_from_args`); ``False`` checks the options only.
+        notes: Receives the one-line reason when ``--backend`` is left out and the population
+            backend does not apply to some task (the study then trains with sb3).
+    """
+    from ermrl.agents import parse_overrides
+    from ermrl.encoders import get_encoder
+    from ermrl.search import generalization_config, generalization_tasks
+
+    env_ids, suite = _suite_env_ids(args)
+    _refuse_learner_genes(args.learner)
+    overrides = {**parse_overrides(args.ppo, args.learner), **learner_flags(args, args.learner)}
+    tasks = generalization_tasks(
+        env_ids,
+        observe=args.observe,
+        ppo_overrides=overrides,
+        n_envs=args.n_envs,
+        hyperparams=args.hyperparams,
+        torch_threads=args.torch_threads,
+        scores=args.scores,
+        target_column=args.target_column,
+        learner=args.learner,
+        backend=args.backend or "sb3",
+    )
+    if args.backend is None:  # population where it applies to every task; a study has one
+        tasks = _one_backend(tasks, args, notes)
+    space = space_from_args(args)
+    encoder = encoder_from_args(args, space)
+    for t in tasks:  # what depends on a task's sizes is refused before the study exists
+        get_encoder(args.encoder).check(t.task, encoder, space)
+    config = generalization_config(
+        tasks,
+        encoder=encoder,
+        budget=budget_from_args(args),
+        seeds=tuple(range(args.seed, args.seed + args.n_seeds)),
+        space=space,
+        search=search_from_args(args),
+        n_procs=args.n_procs,
+        suite=suite,
+        scores=None if args.scores is None else str(Path(args.scores).resolve()),
+        target_column=args.target_column,
+        ppo_overrides=overrides,
+        n_envs=args.n_envs,
+        hyperparams=args.hyperparams,
+    )
+    _check_agents(config, tasks, build_agent)
+    check_tensorboard(args)
+    return config
+
+
+def _suite_env_ids(args: argparse.Namespace) -> tuple[Sequence[str], str | None]:
+    """The evolution tasks' env ids and the suite they come from (``None``: ``--env-ids``).
+
+    Raises:
+        ConfigError: ``--env-version`` without ``--suite``, or an unknown suite.
+    """
+    from ermrl.envs import get_suite
+
+    if args.suite is not None:
+        found = get_suite(args.suite, args.suites_file, env_version=args.env_version)
+        return found.env_ids, found.name
+    if args.env_version is not None:
+        raise ConfigError("--env-version applies to --suite only; write the ids in full")
+    return args.env_ids or (), None
+
+
+def _refuse_learner_genes(learner: str) -> None:
+    """A learner with genes of its own is evolved on one task (``ermrl evolve``).
+
+    Raises:
+        ConfigError: The learner has genes.
+    """
+    from ermrl.learners import get_learner
+
+    if get_learner(learner).genes:
+        raise ConfigError(
+            f"evolve-generalization evolves encoders; the {learner} learner's genes are "
+            "evolved on one task with evolve"
+        )
+
+
+def _one_backend(
+    tasks: Sequence[GeneralizationTask], args: argparse.Namespace, notes: list[str] | None
+) -> tuple[GeneralizationTask, ...]:
+    """The tasks with one backend for all: population where it applies to every task, else sb3.
+
+    Args:
+        tasks: The evolution tasks.
+        args: The parsed options (``--pruner``, ``--encoder``).
+        notes: Receives the first task's reason the population backend does not apply.
+
+    Returns:
+        The tasks, each with the chosen backend.
+    """
+    from ermrl.population import choose_backend
+
+    backend, why = "population", None
+    for t in tasks:
+        backend, why = choose_backend(
+            None, t.ppo, (t.task,), pruner=args.pruner, encoder=args.encoder
+        )
+        if why is not None:
+            if notes is not None:
+                notes.append(f"{t.task.env_id}: {why}")
+            break
+    return tuple(
+        dataclasses.replace(t, ppo=dataclasses.replace(t.ppo, backend=backend)) for t in tasks
+    )
+
+
+def _check_agents(
+    config: EvolveConfig, tasks: Sequence[GeneralizationTask], build_agent: bool
+) -> None:
+    """What PPO (or the population backend) would refuse in the first trial is refused before
+    the study exists; ``build_agent=False`` skips building each task's agent."""
+    from ermrl.agents import check_ppo_config
+
+    for task in tasks if build_agent else ():
+        check_ppo_config(task.task, config.problem.encoder, task.ppo, where=task.task.env_id)
+    if config.problem.ppo.backend == "population":
+        from ermrl.population import check_population_config
+
+        check_population_config(config.problem.ppo)

@@ -1,10 +1,10 @@
 """Running an experiment file: its plan, what is done, and the unfinished stages in order.
 
-``ermrl run FILE`` and :meth:`ermrl.Experiment.run` share this code. Each evolve, test and
-report stage runs the library function its command runs (:mod:`ermrl.runner._commands`) with
-the configuration the plan resolved from the file's options, in this process, and prints the
-equivalent command line first, so that one stage can be run by hand; a generalization stage
-runs its command's ``main(argv)``. The study and the run folders are the state: a stage the storage or the
+``ermrl run FILE`` and :meth:`ermrl.Experiment.run` share this code. Each stage runs the
+library function its command runs (:mod:`ermrl.runner._commands`,
+:mod:`ermrl.runner._generalization`) with the configuration the plan resolved from the file's
+options, in this process, and prints the equivalent command line first, so that one stage can
+be run by hand. The study and the run folders are the state: a stage the storage or the
 folders say is done is skipped, and an interrupted one resumes.
 """
 
@@ -14,12 +14,21 @@ import contextlib
 import shlex
 import signal
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TextIO
+from typing import Any, TextIO
 
 from ermrl._text import plural
-from ermrl.runner._commands import run_request
+from ermrl.runner._commands import (
+    EvolveRequest,
+    ReportRequest,
+    TestRequest,
+    exit_code,
+    quiet_libraries,
+    run_evolve,
+    run_report,
+    run_test,
+)
 from ermrl.runner._experiment import (
     DEFAULT_SNAPSHOT_EVERY,
     PUBLISH_MAX_BYTES,
@@ -36,6 +45,11 @@ from ermrl.runner._experiment import (
     restore_finished_runs,
     snapshot_status,
     write_snapshots,
+)
+from ermrl.runner._generalization import (
+    TestGeneralizationRequest,
+    run_evolve_generalization,
+    run_test_generalization,
 )
 from ermrl.runner._requests import with_run_options
 
@@ -522,7 +536,7 @@ def _run_steps(
         if not quiet:
             print(f"[{step.stage} {step.label}] {line}", file=stream, flush=True)
         try:
-            code = _run_step(step, argv, line, progress, tensorboard, quiet_stages, wandb)
+            code = _run_step(step, line, progress, tensorboard, quiet_stages, wandb)
         except SystemExit as err:
             code = err.code if isinstance(err.code, int) else 1
         except KeyboardInterrupt as err:
@@ -550,7 +564,6 @@ def _run_steps(
 
 def _run_step(
     step: Step,
-    argv: list[str],
     line: str,
     progress: str | None,
     tensorboard: str | None,
@@ -559,16 +572,12 @@ def _run_step(
 ) -> int:
     """Run one step, printing what its command prints; return the command's exit code.
 
-    An evolve, test or report step runs its planned configuration through the library
+    Each step runs its planned configuration through the library
     (:mod:`ermrl.runner._commands`) with ``ermrl run``'s own options added as
     :func:`stage_argv` adds them to the printed command line (``line``, which the study or the
-    test folder keeps). A generalization step runs its command's ``main(argv)``.
+    test folder keeps).
     """
     prog = f"ermrl {step.command}"
-    if step.request is None:
-        from ermrl.cli import COMMANDS, _load
-
-        return int(_load(COMMANDS[step.command][0])(argv, prog=prog) or 0)
     request = with_run_options(
         step.request,
         quiet=quiet_stages,
@@ -582,6 +591,20 @@ def _run_step(
         command=line,
     )
     return run_request(request, prog)
+
+
+def run_request(request: Any, prog: str) -> int:
+    """Run a planned stage's request; its one-line error on stderr, its exit code back."""
+    runs: dict[type, Callable[[Any, str], int]] = {
+        EvolveRequest: run_evolve,
+        TestRequest: run_test,
+        TestGeneralizationRequest: run_test_generalization,
+        ReportRequest: run_report,
+    }
+    if isinstance(request, EvolveRequest) and request.config.generalization is not None:
+        runs[EvolveRequest] = run_evolve_generalization
+    quiet_libraries()
+    return exit_code(prog, lambda: runs[type(request)](request, prog))
 
 
 def results_lines(steps: Sequence[Step]) -> list[str]:

@@ -112,8 +112,12 @@ class TestOptions:
                 f"progress must be one of {', '.join(PROGRESS_MODES)}, got {self.progress!r}"
             )
 
-    def ppo_overrides(self) -> dict[str, Any]:
+    def ppo_overrides(self, learner: str | None = None) -> dict[str, Any]:
         """``ppo`` as a checked mapping (values read as ``--ppo`` reads them).
+
+        Args:
+            learner: The learner the settings are for: an unknown key is then matched against
+                its keys only (``None``: any learner's).
 
         Raises:
             ConfigError: A malformed item or an unknown key.
@@ -122,8 +126,8 @@ class TestOptions:
 
         if isinstance(self.ppo, Mapping):
             words = [f"{k}={json.dumps(v, default=str)}" for k, v in self.ppo.items()]
-            return parse_overrides(words)
-        return parse_overrides(list(self.ppo))
+            return parse_overrides(words, learner)
+        return parse_overrides(list(self.ppo), learner)
 
     def learner_settings(self) -> dict[str, dict[str, Any]]:
         """Settings of one learner only, keyed by learner: ``stale_gradient`` (rtu-ppo's)
