@@ -50,6 +50,7 @@ from ermrl.runner._requests import (
 
 if TYPE_CHECKING:
     from ermrl._progress import ProgressMode
+    from ermrl.config import EvolveConfig
 
     # Through the package (the rule of tests/test_layers.py: a unit's modules may read its
     # __init__): _results builds on this module.
@@ -981,11 +982,45 @@ def _test_request(
 def _generalization_plan(
     exp: Experiment, only: Sequence[str] | None, build_agents: bool
 ) -> list[Step]:
-    from ermrl.cli._generalization import (
-        build_evolve_generalization_parser,
-        build_test_generalization_parser,
-    )
+    """The steps of a generalization file: evolve (and re-evaluate) on the task set, then test
+    (and report) on each test task (``only``: these test tasks)."""
+    from ermrl.cli._generalization import build_test_generalization_parser
     from ermrl.cli._report import build_report_parser
+
+    steps, config, study_name = _generalization_evolve_steps(exp, build_agents)
+    env_ids = exp.stages["test"].get("env_ids") or []
+    if isinstance(env_ids, str):
+        env_ids = [env_ids]
+    if not isinstance(env_ids, list):
+        raise ExperimentError(f"{exp.path}: test.env_ids: a list of env ids")
+    if only:
+        # Test tasks the file does not name run with the file's test settings.
+        env_ids = list(dict.fromkeys(only))
+    test_parser = build_test_generalization_parser()
+    report_parser = build_report_parser()
+    for env_id in env_ids:
+        folder = exp.out / "test" / env_id
+        steps.append(_test_step(exp, None, study_name, test_parser, config, folder, env_id))
+        if "report" in exp.document or exp.stages["report"]:
+            steps.append(
+                _report_step(
+                    exp,
+                    None,
+                    study_name,
+                    report_parser,
+                    folder,
+                    exp.out / "report" / env_id,
+                    label=env_id,
+                )
+            )
+    return steps
+
+
+def _generalization_evolve_steps(
+    exp: Experiment, build_agents: bool
+) -> tuple[list[Step], EvolveConfig, str]:
+    """A generalization file's evolve (and re-evaluate) steps, its configuration and study."""
+    from ermrl.cli._generalization import build_evolve_generalization_parser
     from ermrl.runner._resolve import generalization_config_from_args
     from ermrl.search import generalization_study_name
 
@@ -1053,32 +1088,7 @@ def _generalization_plan(
                 request=request,
             )  # fmt: skip
         )
-    env_ids = exp.stages["test"].get("env_ids") or []
-    if isinstance(env_ids, str):
-        env_ids = [env_ids]
-    if not isinstance(env_ids, list):
-        raise ExperimentError(f"{exp.path}: test.env_ids: a list of env ids")
-    if only:
-        # Test tasks the file does not name run with the file's test settings.
-        env_ids = list(dict.fromkeys(only))
-    test_parser = build_test_generalization_parser()
-    report_parser = build_report_parser()
-    for env_id in env_ids:
-        folder = exp.out / "test" / env_id
-        steps.append(_test_step(exp, None, study_name, test_parser, config, folder, env_id))
-        if "report" in exp.document or exp.stages["report"]:
-            steps.append(
-                _report_step(
-                    exp,
-                    None,
-                    study_name,
-                    report_parser,
-                    folder,
-                    exp.out / "report" / env_id,
-                    label=env_id,
-                )
-            )
-    return steps
+    return steps, config, study_name
 
 
 # ---------------------------------------------------------------------------------------------
