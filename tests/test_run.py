@@ -122,7 +122,7 @@ def test_the_plan_counts_env_steps_from_the_file(tmp_path: Path) -> None:
     assert by_stage["evolve"].env_steps == 100 * 3 * 301_056
     assert "budget of 300,000 steps rounds up to 301,056" in by_stage["evolve"].note
     assert by_stage["reevaluate"].env_steps == (3 + 1) * 3 * 301_056
-    assert by_stage["test"].env_steps == 3 * 20 * 1_001_472  # 3 agents x seeds 10-29
+    assert by_stage["test"].env_steps == 5 * 20 * 1_001_472  # 5 agents x seeds 10-29
     assert "rounds up to 1,001,472" in by_stage["test"].note
     assert by_stage["evolve"].seconds > 0
     # Per-task overrides change the scale of that task only.
