@@ -1,10 +1,15 @@
-"""Shared pieces of the command-line interface."""
+"""Shared pieces of the command-line interface: one-line errors, exit codes, progress mode.
+
+The options' own pieces (the parser class, its types and shared flags) live below the CLI, in
+:mod:`ermrl.runner._options`, since experiment files check their stages with them; they are
+re-exported here.
+"""
 
 from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, NoReturn, TypeVar
 
 from ermrl.runner._commands import (
@@ -14,11 +19,26 @@ from ermrl.runner._commands import (
     dashboard_line,
     quiet_libraries,
 )
+from ermrl.runner._options import (
+    PROGRESS_DEFAULT_HELP,
+    ArgumentParser,
+    HelpFormatter,
+    add_for_learner_arg,
+    add_progress_arg,
+    add_stale_gradient_arg,
+    add_storage_args,
+    nonneg_int,
+    parse_for_learner,
+    positive_float,
+    positive_int,
+    storage_arg,
+    study_name_arg,
+)
 from ermrl.runner._resolve import for_learner_names, learner_overrides
-from ermrl.storage import DEFAULT_STORAGE
 
 __all__ = [
     "ArgumentParser",
+    "HelpFormatter",
     "fail",
     "add_storage_args",
     "storage_arg",
@@ -69,149 +89,12 @@ def exit_on_failure(prog: str, run: Callable[[], T]) -> T:
         fail(prog, err.message, err.code)
 
 
-class ArgumentParser(argparse.ArgumentParser):
-    """``argparse`` with one-line errors (``prog: error: ... (see --help)``) and exit code 2."""
-
-    def error(self, message: str) -> NoReturn:
-        fail(self.prog, f"{message} (see --help)")
-
-
-class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
-    """Shows defaults and keeps the description's line breaks.
-
-    A help text that already says what its default is ("default: the packaged table") gets no
-    second one, and an option whose default is ``None`` (not given: its help says what happens)
-    gets no literal "(default: None)".
-    """
-
-    def _get_help_string(self, action: argparse.Action) -> str | None:
-        text = action.help or ""
-        if "default" in text.lower() or action.default is None:
-            return text
-        return super()._get_help_string(action)
-
-
-PROGRESS_DEFAULT_HELP = "default: bar when stdout is a terminal, lines otherwise"
-
-
-def add_progress_arg(
-    parser: argparse.ArgumentParser,
-    *,
-    inside: str = "trial (or generation)",
-    finished: str = "trial",
-) -> None:
-    """``--progress bar|lines|none``: a live bar or progress lines for each run, or none.
-
-    The default (``None``) is resolved by :func:`progress_mode` once the arguments are parsed.
-
-    Args:
-        parser: The command's parser.
-        inside: What the runs are part of ("" for none), for the help.
-        finished: What ``none`` still prints a line for, once finished.
-    """
-    from ermrl._progress import PROGRESS_MODES
-
-    where = f" inside each {inside}" if inside else ""
-    parser.add_argument(
-        "--progress",
-        choices=PROGRESS_MODES,
-        default=None,
-        help=f"bar: a live bar per run (or population){where}, with its rate (from its first "
-        "step: start-up excluded) and ETA, a population split over processes printing lines "
-        "from each part; lines: a line per run every tenth of its steps or 30 s, with the same "
-        f"rate and ETA; none: a line per finished {finished} only ({PROGRESS_DEFAULT_HELP})",
-    )
-
-
 def progress_mode(args: argparse.Namespace) -> ProgressMode:
     """``args.progress``, or the default for where stdout goes (see :func:`add_progress_arg`)."""
     from ermrl._progress import default_mode
 
     value = getattr(args, "progress", None)
     return default_mode() if value is None else value
-
-
-def positive_int(text: str) -> int:
-    try:
-        value = int(float(text)) if "e" in text.lower() else int(text)
-    except (ValueError, OverflowError) as err:  # OverflowError: "1e400" is infinite
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from err
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be positive, got {text}")
-    return value
-
-
-def nonneg_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError as err:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from err
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
-    return value
-
-
-def positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError as err:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from err
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"must be positive, got {text}")
-    return value
-
-
-def storage_arg(text: str) -> str:
-    """An ``argparse`` type for ``--storage``: a supported URL, not an in-memory database.
-
-    Checked while parsing, so that a bad URL stops a command before it builds anything.
-    """
-    from ermrl.storage import StorageError, storage_kind
-
-    try:
-        storage_kind(text)
-    except StorageError as err:
-        raise argparse.ArgumentTypeError(str(err)) from err
-    return text
-
-
-# Optuna's `studies.study_name` column is a VARCHAR(512): MySQL refuses a longer name with a
-# DataError (SQLite would store it, so a study could not move to a server later).
-MAX_STUDY_NAME_LENGTH = 512
-
-
-def study_name_arg(text: str) -> str:
-    """An ``argparse`` type for ``--study-name``: not blank, at most 512 characters.
-
-    An empty name would silently become the default one; a longer one does not fit Optuna's
-    database column. Checked while parsing, before any storage is opened.
-    """
-    if not text.strip():
-        raise argparse.ArgumentTypeError("the study name is empty")
-    if len(text) > MAX_STUDY_NAME_LENGTH:
-        raise argparse.ArgumentTypeError(
-            f"the study name has {len(text)} characters; Optuna stores at most "
-            f"{MAX_STUDY_NAME_LENGTH} characters"
-        )
-    return text
-
-
-def add_storage_args(parser: argparse.ArgumentParser, *, study_required: bool) -> None:
-    parser.add_argument(
-        "--storage",
-        type=storage_arg,
-        default=DEFAULT_STORAGE,
-        help="Optuna storage URL: sqlite:///file.db (embedded default), postgresql://user@host/db, "
-        "mysql+pymysql://..., journal:///file.log (or file.log), redis://host:port",
-    )
-    parser.add_argument(
-        "--study-name",
-        type=study_name_arg,
-        required=study_required,
-        default=None,
-        help="study name"
-        + ("" if study_required else " (default: derived from env, mask and budget)"),
-    )
 
 
 def add_run_folder_args(parser: argparse.ArgumentParser, *, agent_help: str, out_help: str) -> None:
@@ -271,99 +154,3 @@ def run_folder_kwargs(args: argparse.Namespace) -> dict[str, Any]:
         "deterministic": args.deterministic,
         "env_seed": args.env_seed,
     }
-
-
-def add_stale_gradient_arg(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
-    """``--stale-gradient/--no-stale-gradient``: the rtu-ppo learner's ``stale_gradient``."""
-    parser.add_argument(
-        "--stale-gradient",
-        action=argparse.BooleanOptionalAction,
-        default=None,
-        help="rtu-ppo only: keep each stored RTU carry as it was collected (the default, the "
-        "paper's stale gradient), or re-scan the rollout with the new parameters after each "
-        "epoch (--no-stale-gradient, about half as fast)",
-    )
-
-
-FOR_LEARNER_HELP = (
-    "settings of one learner only, on top of its table and --ppo: the first word names the "
-    "learner, the rest are KEY=VALUE as in --ppo (values read as YAML). Repeatable; a later "
-    "flag wins per key. Use it for what other learners refuse, e.g. the dagger learner's "
-    "expert: --for-learner dagger expert=experts/hopper steps_per_iteration=500"
-)
-
-
-def parse_for_learner(values: Sequence[str]) -> tuple[str, dict[str, Any]]:
-    """One ``--for-learner LEARNER KEY=VALUE [KEY=VALUE ...]``: the learner and its settings.
-
-    Values are read as ``--ppo`` values are (:func:`ermrl.agents.parse_overrides`: YAML,
-    ``1e-4`` a number, ``[64, 64]`` a list).
-
-    Args:
-        values: The flag's words, the learner's name first.
-
-    Returns:
-        The learner's name and its settings.
-
-    Raises:
-        ConfigError: an unregistered learner, no ``KEY=VALUE``, a malformed one or an unknown
-            key (one line, starting ``--for-learner LEARNER:``).
-
-    Example:
-        >>> parse_for_learner(["dagger", "expert=experts/hopper", "epochs=3"])
-        ('dagger', {'expert': 'experts/hopper', 'epochs': 3})
-    """
-    from ermrl.agents import parse_overrides
-    from ermrl.config import ConfigError
-    from ermrl.learners import learner_names
-
-    name, *items = values
-    where = f"--for-learner {name}"
-    if name not in learner_names():
-        raise ConfigError(
-            f"{where}: unknown learner {name!r}; choose from {', '.join(learner_names())}"
-        )
-    if not items:
-        raise ConfigError(f"{where}: give at least one KEY=VALUE after the learner's name")
-    settings: dict[str, Any] = {}
-    for item in items:
-        key, sep, _ = item.replace(":", "=", 1).partition("=")
-        if not sep or not key.strip():
-            raise ConfigError(f"{where}: {item!r} is not KEY=VALUE (or KEY:VALUE)")
-        try:
-            settings.update(parse_overrides([item], name))
-        except ConfigError as err:
-            raise ConfigError(f"{where}: {str(err).removeprefix('--ppo: ')}") from None
-    return name, settings
-
-
-class ForLearnerAction(argparse.Action):
-    """Appends each ``--for-learner`` as ``(learner, settings)``, checked while parsing."""
-
-    def __call__(
-        self,
-        parser: argparse.ArgumentParser,
-        namespace: argparse.Namespace,
-        values: str | Sequence[Any] | None,
-        option_string: str | None = None,
-    ) -> None:
-        from ermrl.config import ConfigError
-
-        words = [values] if isinstance(values, str) else list(values or [])
-        try:
-            parsed = parse_for_learner(words)
-        except ConfigError as err:
-            raise argparse.ArgumentError(None, str(err)) from None
-        setattr(namespace, self.dest, [*(getattr(namespace, self.dest, None) or []), parsed])
-
-
-def add_for_learner_arg(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
-    """``--for-learner LEARNER KEY=VALUE [KEY=VALUE ...]``: settings of one learner only."""
-    parser.add_argument(
-        "--for-learner",
-        action=ForLearnerAction,
-        nargs="+",
-        default=[],
-        metavar=("LEARNER", "KEY=VALUE"),
-        help=FOR_LEARNER_HELP,
-    )

@@ -9,14 +9,8 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from ermrl._interrupt import interruption
-from ermrl.cli._common import (
-    ArgumentParser,
-    HelpFormatter,
-    add_run_folder_args,
-    fail,
-    positive_int,
-    run_folder_kwargs,
-)
+from ermrl.cli._common import add_run_folder_args, fail, run_folder_kwargs
+from ermrl.runner._options import ArgumentParser, HelpFormatter, positive_int
 
 __all__ = ["build_dynamics_parser", "dynamics_main"]
 

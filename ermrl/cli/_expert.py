@@ -11,15 +11,13 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from ermrl._progress import PROGRESS_MODES, Progress
-from ermrl.cli._common import (
-    EXIT_INTERRUPTED,
+from ermrl.cli._common import EXIT_INTERRUPTED, fail, progress_mode
+from ermrl.runner._options import (
     PROGRESS_DEFAULT_HELP,
     ArgumentParser,
     HelpFormatter,
-    fail,
     nonneg_int,
     positive_int,
-    progress_mode,
 )
 
 __all__ = ["build_expert_parser", "expert_main"]

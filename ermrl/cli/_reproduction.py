@@ -8,7 +8,8 @@ import textwrap
 from collections.abc import Sequence
 from pathlib import Path
 
-from ermrl.cli._common import ArgumentParser, HelpFormatter, fail
+from ermrl.cli._common import fail
+from ermrl.runner._options import ArgumentParser, HelpFormatter
 
 __all__ = ["build_reproduction_parser", "reproduction_main"]
 

@@ -12,7 +12,8 @@ from collections.abc import Sequence
 
 from ermrl._interrupt import interruption
 from ermrl._progress import PROGRESS_MODES
-from ermrl.cli._common import ArgumentParser, HelpFormatter, fail
+from ermrl.cli._common import fail
+from ermrl.runner._options import ArgumentParser, HelpFormatter
 from ermrl.runner._run import DEFAULT_SNAPSHOT_EVERY, STAGE_CHOICES
 
 __all__ = ["build_run_parser", "run_main"]

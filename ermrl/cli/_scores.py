@@ -5,14 +5,9 @@ from __future__ import annotations
 import textwrap
 from collections.abc import Sequence
 
-from ermrl.cli._common import (
-    ArgumentParser,
-    HelpFormatter,
-    fail,
-    nonneg_int,
-    positive_int,
-)
+from ermrl.cli._common import fail
 from ermrl.config import ConfigError
+from ermrl.runner._options import ArgumentParser, HelpFormatter, nonneg_int, positive_int
 
 __all__ = ["build_scores_parser", "scores_main"]
 

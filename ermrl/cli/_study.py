@@ -24,13 +24,12 @@ from typing import Any
 
 from ermrl._io import write_atomic
 from ermrl._text import plural
-from ermrl.cli._common import (
+from ermrl.cli._common import fail, quiet_libraries
+from ermrl.runner._options import (
     ArgumentParser,
     HelpFormatter,
     add_storage_args,
-    fail,
     nonneg_int,
-    quiet_libraries,
     storage_arg,
 )
 from ermrl.storage._summary import (
@@ -94,7 +93,7 @@ def build_study_parser(prog: str = "ermrl study") -> ArgumentParser:
     sub = parser.add_subparsers(dest="action", metavar="ACTION", parser_class=ArgumentParser)
     sub.required = True
 
-    from ermrl.cli._evolve import add_problem_args, add_search_args
+    from ermrl.runner._parsers import add_problem_args, add_search_args
 
     create = sub.add_parser(
         "create",

@@ -9,13 +9,8 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from ermrl._interrupt import interruption
-from ermrl.cli._common import (
-    ArgumentParser,
-    HelpFormatter,
-    add_run_folder_args,
-    fail,
-    run_folder_kwargs,
-)
+from ermrl.cli._common import add_run_folder_args, fail, run_folder_kwargs
+from ermrl.runner._options import ArgumentParser, HelpFormatter
 
 __all__ = ["build_video_parser", "video_main"]
 

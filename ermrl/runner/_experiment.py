@@ -781,9 +781,7 @@ def _config_error(exp: Experiment, where: str, build: Callable[[], Any]) -> Any:
 
 
 def _single_task_steps(exp: Experiment, task: TaskLine, build_agents: bool) -> list[Step]:
-    from ermrl.cli._evolve import build_evolve_parser
-    from ermrl.cli._report import build_report_parser
-    from ermrl.cli._test import build_test_parser
+    from ermrl.runner._parsers import build_evolve_parser, build_report_parser, build_test_parser
     from ermrl.runner._resolve import config_from_args
 
     where = f"{exp.path}: {task.env_id}: evolve"
@@ -984,8 +982,7 @@ def _generalization_plan(
 ) -> list[Step]:
     """The steps of a generalization file: evolve (and re-evaluate) on the task set, then test
     (and report) on each test task (``only``: these test tasks)."""
-    from ermrl.cli._generalization import build_test_generalization_parser
-    from ermrl.cli._report import build_report_parser
+    from ermrl.runner._parsers import build_report_parser, build_test_generalization_parser
 
     steps, config, study_name = _generalization_evolve_steps(exp, build_agents)
     env_ids = exp.stages["test"].get("env_ids") or []
@@ -1020,7 +1017,7 @@ def _generalization_evolve_steps(
     exp: Experiment, build_agents: bool
 ) -> tuple[list[Step], EvolveConfig, str]:
     """A generalization file's evolve (and re-evaluate) steps, its configuration and study."""
-    from ermrl.cli._generalization import build_evolve_generalization_parser
+    from ermrl.runner._parsers import build_evolve_generalization_parser
     from ermrl.runner._resolve import generalization_config_from_args
     from ermrl.search import generalization_study_name
 
@@ -1322,19 +1319,9 @@ def resolved_document(exp: Experiment, steps: Sequence[Step]) -> dict[str, Any]:
 
 
 def _resolved_command(step: Step) -> dict[str, Any]:
-    from ermrl.cli import COMMANDS
+    from ermrl.runner._parsers import PARSERS
 
-    builders = {
-        "evolve": "ermrl.cli._evolve:build_evolve_parser",
-        "evolve-generalization": "ermrl.cli._generalization:build_evolve_generalization_parser",
-        "test": "ermrl.cli._test:build_test_parser",
-        "test-generalization": "ermrl.cli._generalization:build_test_generalization_parser",
-        "report": "ermrl.cli._report:build_report_parser",
-    }
-    assert step.command in COMMANDS
-    from ermrl.cli import _load
-
-    parser = _load(builders[step.command])()
+    parser = PARSERS[step.command]()
     args = vars(parser.parse_args(step.argv))
     options = {k: _plain(v) for k, v in sorted(args.items())}
     return {

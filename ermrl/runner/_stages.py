@@ -161,9 +161,9 @@ def _evolve_config_and_argv(
     tensorboard: bool,
     options: Mapping[str, Any],
 ) -> tuple[EvolveConfig, list[str]]:
-    from ermrl.cli._evolve import build_evolve_parser
     from ermrl.envs import UnknownEnvError, UnsupportedObserveError
     from ermrl.runner._experiment import ExperimentError, options_to_argv, parse_checked
+    from ermrl.runner._parsers import build_evolve_parser
     from ermrl.runner._resolve import config_from_args, keep_study_backend
 
     where = f"evolve {env_id}"
