@@ -11,6 +11,7 @@ from __future__ import annotations
 import io
 import json
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -47,6 +48,88 @@ def recurrent_weights(units: int, spectral_radius: float, seed: Any) -> np.ndarr
     np.fill_diagonal(J, 0.0)
     radius = float(np.max(np.abs(np.linalg.eigvals(J)))) if units > 1 else 0.0
     return J * (spectral_radius / radius) if radius > 0 else J
+
+
+def _as_callback(callback: Any) -> Any:
+    """``learn``'s callback as one SB3 ``BaseCallback`` (a list becomes a ``CallbackList``).
+
+    Args:
+        callback: A ``BaseCallback``, a list of them, or ``None``.
+
+    Returns:
+        The callback, or ``None``.
+
+    Raises:
+        TypeError: ``callback`` is not an SB3 callback.
+    """
+    from stable_baselines3.common.callbacks import BaseCallback, CallbackList
+
+    if isinstance(callback, list):
+        callback = CallbackList(callback)
+    if callback is not None and not isinstance(callback, BaseCallback):
+        raise TypeError(f"callback must be an SB3 BaseCallback, got {type(callback).__name__}")
+    return callback
+
+
+@dataclass(frozen=True)
+class _Rule:
+    """The learning rule's constants for one :meth:`HebbianAgent.learn` (read from its settings).
+
+    With a critic, the rule is actor-critic with eligibility traces (Sutton and Barto 2018,
+    13.6): the actor's trace decays by ``gamma * lambda`` and each step's TD error modulates it,
+    so ``G = sum_k psi_k h_k^T sum_{t>=k} (gamma lambda)^(t-k) delta_t`` (GAE(lambda) per step
+    ``k``).
+
+    Attributes:
+        sigma: The exploration noise (Box actions).
+        actor_decay: The eligibility's decay per step: ``gamma * trace_decay`` with a critic,
+            else ``trace_decay``.
+        baseline: ``"none"``, ``"mean"``, ``"critic"`` or ``"td"``.
+        baseline_decay: The running mean's decay (``baseline="mean"``).
+        gamma: The discount of the TD error (with a critic).
+        critic_lr: The critic's learning rate.
+        critic_lambda: The critic's trace decay (TD(lambda)).
+        update_every: Batch steps between updates of ``J_out`` (0: when an episode ends).
+    """
+
+    sigma: float
+    actor_decay: float
+    baseline: str
+    baseline_decay: float
+    gamma: float
+    critic_lr: float
+    critic_lambda: float
+    update_every: int
+
+    @property
+    def use_critic(self) -> bool:
+        """Whether a critic's TD error modulates the traces (``critic`` and ``td``)."""
+        return self.baseline in ("critic", "td")
+
+    @classmethod
+    def from_settings(cls, s: Mapping[str, Any]) -> _Rule:
+        """The constants of the learner's settings (:class:`HebbianAgent`'s ``settings``)."""
+        baseline, gamma, trace_decay = (
+            str(s["baseline"]),
+            float(s["gamma"]),
+            float(s["trace_decay"]),
+        )
+        return cls(
+            sigma=float(s["sigma"]),
+            actor_decay=gamma * trace_decay if baseline in ("critic", "td") else trace_decay,
+            baseline=baseline,
+            baseline_decay=float(s["baseline_decay"]),
+            gamma=gamma,
+            critic_lr=float(s["critic_lr"]),
+            critic_lambda=float(s["critic_lambda"]),
+            update_every=int(s["update_every"]),
+        )
+
+    def update_due(self, since_update: int, dones: np.ndarray) -> bool:
+        """Whether ``J_out`` learns now: every ``update_every`` batch steps, or (0) when any of
+        the ``(E,)`` ``dones`` ends an episode."""
+        every = self.update_every
+        return bool((every > 0 and since_update >= every) or (every == 0 and dones.any()))
 
 
 class HebbianPolicy:
@@ -338,6 +421,104 @@ class HebbianAgent:
                 "(MuJoCo locomotion tasks such as Ant-v5)"
             ) from None
 
+    def _explore(self, h: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Draw this step's actions and their eligibility factor ``psi`` (one draw of ``rng``).
+
+        Args:
+            h: The hidden state ``(E, N)``.
+            sigma: The exploration noise (Box actions).
+
+        Returns:
+            ``mu`` (Box: the means ``tanh(J_out h)``; Discrete: the probabilities), each
+            ``(E, A)``; the actions (Box: ``mu + sigma xi``, ``(E, A)``; Discrete: indices
+            ``(E,)``); ``psi`` ``(E, A)``, the factor of the eligibility ``e = lambda e + psi
+            h^T``: ``(a - mu)(1 - mu^2) / sigma^2`` (Box) or ``onehot(a) - p`` (Discrete).
+        """
+        n_envs = self.n_envs
+        if self.discrete:
+            # softmax policy: e = lambda e + (onehot(a) - p) h^T, per env
+            mu = self.policy.probabilities(h)
+            actions = self._sample(mu)
+            psi = -mu
+            psi[np.arange(n_envs), actions] += 1.0
+        else:
+            mu = self.policy.mean(h)
+            actions = mu + sigma * self.rng.standard_normal(mu.shape)
+            # e = lambda e + ((a - mu)(1 - mu^2) / sigma^2) h^T, per env
+            psi = (actions - mu) * (1.0 - mu * mu) / (sigma * sigma)
+        return mu, actions, psi
+
+    def _td_error(
+        self,
+        rule: _Rule,
+        h: np.ndarray,
+        h_next: np.ndarray,
+        reward: np.ndarray,
+        dones: np.ndarray,
+        infos: list[dict[str, Any]],
+        critic_trace: np.ndarray,
+        critic_bias_trace: np.ndarray,
+    ) -> np.ndarray:
+        """The TD errors ``delta = r + gamma V(h') - V(h)``; the critic then takes a TD(lambda) step.
+
+        ``V(h') = 0`` after a termination; after a truncation, ``h'`` is the state reached on the
+        env's terminal observation. The critic ``V(h) = w.h + c`` learns with accumulating
+        traces, updated in place and reset where an episode ended.
+
+        Args:
+            rule: The learning rule's constants.
+            h: The state the actions were taken in, ``(E, N)``.
+            h_next: The next state ``(E, N)`` (reset where ``dones``).
+            reward: The rewards ``(E,)``.
+            dones: ``(E,)`` booleans.
+            infos: The envs' infos (``terminal_observation``, ``TimeLimit.truncated``).
+            critic_trace: The trace of ``w``, ``(E, N)``.
+            critic_bias_trace: The trace of ``c``, ``(E,)``.
+
+        Returns:
+            ``delta``, shape ``(E,)``: the modulator with a critic (``critic`` and ``td``
+            alike; ``r_t - V(h_t)`` was biased for ``t > k``).
+        """
+        policy, dtype, gamma = self.policy, self.dtype, rule.gamma
+        value = policy.value(h)
+        value_next = policy.value(h_next)
+        for i in np.flatnonzero(dones):
+            terminal = infos[i].get("terminal_observation")
+            truncated = bool(infos[i].get("TimeLimit.truncated", False))
+            if truncated and terminal is not None:
+                last = policy.recur(h[i : i + 1], np.asarray(terminal, dtype=dtype)[None])
+                value_next[i] = policy.value(last)[0]
+            else:
+                value_next[i] = 0.0
+        delta = reward + gamma * value_next - value
+        # TD(lambda) with accumulating traces on V(h) = w.h + c
+        critic_trace *= gamma * rule.critic_lambda
+        critic_trace += h
+        critic_bias_trace *= gamma * rule.critic_lambda
+        critic_bias_trace += 1.0
+        policy.critic_w += rule.critic_lr * (delta @ critic_trace) / self.n_envs
+        policy.critic_b += rule.critic_lr * float(delta @ critic_bias_trace) / self.n_envs
+        critic_trace[dones] = 0.0
+        critic_bias_trace[dones] = 0.0
+        return delta
+
+    def _minus_running_mean(self, reward: np.ndarray, decay: float) -> np.ndarray:
+        """``r - b`` with ``b`` the running mean of the rewards so far, then ``b`` takes ``r``.
+
+        Args:
+            reward: The rewards ``(E,)``, folded into the mean env by env.
+            decay: The exponential mean's decay.
+
+        Returns:
+            The modulator ``(E,)``.
+        """
+        current = self.baseline_sum / self.baseline_weight if self.baseline_weight else 0.0
+        modulator = reward - current
+        for r in reward:
+            self.baseline_sum = decay * self.baseline_sum + (1.0 - decay) * float(r)
+            self.baseline_weight = decay * self.baseline_weight + (1.0 - decay)
+        return modulator
+
     def learn(
         self,
         total_timesteps: int,
@@ -363,30 +544,12 @@ class HebbianAgent:
             ValueError: the network's state or weights became non-finite (the message says
                 "nan").
         """
-        from stable_baselines3.common.callbacks import BaseCallback, CallbackList
-
-        if isinstance(callback, list):
-            callback = CallbackList(callback)
-        if callback is not None and not isinstance(callback, BaseCallback):
-            raise TypeError(f"callback must be an SB3 BaseCallback, got {type(callback).__name__}")
+        callback = _as_callback(callback)
         if reset_num_timesteps:
             self.num_timesteps = 0
         total_timesteps = int(total_timesteps) + (0 if reset_num_timesteps else self.num_timesteps)
-        s = self.settings
+        rule = _Rule.from_settings(self.settings)
         policy, n_envs, dtype = self.policy, self.n_envs, self.dtype
-        sigma, trace_decay = float(s["sigma"]), float(s["trace_decay"])
-        baseline, decay = str(s["baseline"]), float(s["baseline_decay"])
-        gamma, critic_lr, critic_lambda = (
-            float(s["gamma"]),
-            float(s["critic_lr"]),
-            float(s["critic_lambda"]),
-        )
-        update_every = int(s["update_every"])
-        use_critic = baseline in ("critic", "td")
-        # With a critic, actor-critic with eligibility traces (Sutton and Barto 2018, 13.6): the
-        # actor's trace decays by gamma * lambda and each step's TD error modulates it, so
-        # G = sum_k psi_k h_k^T sum_{t>=k} (gamma lambda)^(t-k) delta_t (GAE(lambda) per step k).
-        actor_decay = gamma * trace_decay if use_critic else trace_decay
         n = policy.J.shape[0]
         eligibility = np.zeros((n_envs, self.act_dim, n), dtype=dtype)
         critic_trace = np.zeros((n_envs, n), dtype=dtype)
@@ -396,21 +559,11 @@ class HebbianAgent:
         obs = np.asarray(self.env.reset(), dtype=dtype)
         h = policy.recur(np.zeros((n_envs, n), dtype=dtype), obs)
         if callback is not None:
-            callback.init_callback(self)  # type: ignore[arg-type]
+            callback.init_callback(self)
             callback.on_training_start(locals(), globals())
         while self.num_timesteps < total_timesteps:
-            if self.discrete:
-                # softmax policy: e = lambda e + (onehot(a) - p) h^T, per env
-                mu = policy.probabilities(h)
-                actions = self._sample(mu)
-                psi = -mu
-                psi[np.arange(n_envs), actions] += 1.0
-            else:
-                mu = policy.mean(h)
-                actions = mu + sigma * self.rng.standard_normal(mu.shape)
-                # e = lambda e + ((a - mu)(1 - mu^2) / sigma^2) h^T, per env
-                psi = (actions - mu) * (1.0 - mu * mu) / (sigma * sigma)
-            eligibility *= actor_decay
+            mu, actions, psi = self._explore(h, rule.sigma)
+            eligibility *= rule.actor_decay
             eligibility += psi[:, :, None] * h[:, None, :]
             new_obs, rewards, dones, infos = self.env.step(self._env_action(actions))
             new_obs = np.asarray(new_obs, dtype=dtype)
@@ -421,47 +574,20 @@ class HebbianAgent:
             h_next = policy.recur(h_start, new_obs)
             if not np.all(np.isfinite(h_next)):
                 raise ValueError("hebbian: the network state became non-finite (nan or inf)")
-
-            if use_critic:
-                value = policy.value(h)
-                value_next = policy.value(h_next)
-                for i in np.flatnonzero(dones):
-                    terminal = infos[i].get("terminal_observation")
-                    truncated = bool(infos[i].get("TimeLimit.truncated", False))
-                    if truncated and terminal is not None:
-                        last = policy.recur(h[i : i + 1], np.asarray(terminal, dtype=dtype)[None])
-                        value_next[i] = policy.value(last)[0]
-                    else:
-                        value_next[i] = 0.0
-                delta = reward + gamma * value_next - value
-                # TD(lambda) with accumulating traces on V(h) = w.h + c
-                critic_trace *= gamma * critic_lambda
-                critic_trace += h
-                critic_bias_trace *= gamma * critic_lambda
-                critic_bias_trace += 1.0
-                policy.critic_w += critic_lr * (delta @ critic_trace) / n_envs
-                policy.critic_b += critic_lr * float(delta @ critic_bias_trace) / n_envs
-                modulator = delta  # critic and td alike (r_t - V(h_t) was biased for t > k)
-                critic_trace[dones] = 0.0
-                critic_bias_trace[dones] = 0.0
-            elif baseline == "mean":
-                current = self.baseline_sum / self.baseline_weight if self.baseline_weight else 0.0
-                modulator = reward - current
-                for r in reward:
-                    self.baseline_sum = decay * self.baseline_sum + (1.0 - decay) * float(r)
-                    self.baseline_weight = decay * self.baseline_weight + (1.0 - decay)
+            if rule.use_critic:
+                modulator = self._td_error(
+                    rule, h, h_next, reward, dones, infos, critic_trace, critic_bias_trace
+                )
+            elif rule.baseline == "mean":
+                modulator = self._minus_running_mean(reward, rule.baseline_decay)
             else:
                 modulator = reward
-            # G += (r - b) e (with a critic, delta e), summed over envs (the update divides by
-            # n_envs)
+            # G += (r - b) e (with a critic, delta e), summed over envs (the update divides by E)
             self.G += np.tensordot(modulator.astype(dtype), eligibility, axes=1)
             eligibility[dones] = 0.0
-
             self.num_timesteps += n_envs
             since_update += 1
-            if (update_every > 0 and since_update >= update_every) or (
-                update_every == 0 and dones.any()
-            ):
+            if rule.update_due(since_update, dones):
                 self._apply_update()
                 since_update = 0
             obs, h = new_obs, h_next
