@@ -40,6 +40,7 @@ from ermrl.config import ConfigError
 from ermrl.learners._imitation import (
     FullObservations,
     ImitationPolicy,
+    StepHook,
     _act,
     bc_fit,
     beta,
@@ -49,6 +50,27 @@ from ermrl.learners._imitation import (
 )
 
 __all__ = ["ImitationAgent", "load_expert_for"]
+
+
+def _as_callback(callback: Any) -> Any:
+    """``learn``'s callback as one SB3 ``BaseCallback`` (a list becomes a ``CallbackList``).
+
+    Args:
+        callback: A ``BaseCallback``, a list of them, or ``None``.
+
+    Returns:
+        The callback, or ``None``.
+
+    Raises:
+        TypeError: ``callback`` is not an SB3 callback.
+    """
+    from stable_baselines3.common.callbacks import BaseCallback, CallbackList
+
+    if isinstance(callback, list):
+        callback = CallbackList(callback)
+    if callback is not None and not isinstance(callback, BaseCallback):
+        raise TypeError(f"callback must be an SB3 BaseCallback, got {type(callback).__name__}")
+    return callback
 
 
 def load_expert_for(env: Any, path: Any, learner: str) -> Any:
@@ -221,6 +243,99 @@ class ImitationAgent:
                 f"env's full observation has shape {tuple(full_obs.shape[1:])}"
             )
 
+    def _reset(self, full: FullObservations) -> tuple[np.ndarray, np.ndarray]:
+        """Reset every env: no episode has been mixed yet.
+
+        Args:
+            full: Reads the full observations after the reset.
+
+        Returns:
+            The learner's observations ``(E, obs_dim)`` and the full ones ``(E, full_dim)``.
+        """
+        obs = np.asarray(self.env.reset())
+        full_obs = full.after_reset()
+        self.episode_mixed[:] = False
+        return obs, full_obs
+
+    def _clone_expert(self, obs: np.ndarray, full_obs: np.ndarray, full: FullObservations) -> None:
+        """BC's data: the expert alone for ``n_expert_transitions`` steps (rounded up to whole
+        steps of every env, counted in :attr:`expert_env_steps`), then a fit on its labels.
+
+        Args:
+            obs: The learner's observations ``(E, obs_dim)`` after a reset.
+            full_obs: The full observations ``(E, full_dim)``.
+            full: Reads the full observations after each step.
+        """
+        per_env = math.ceil(int(self.settings["n_expert_transitions"]) / self.n_envs)
+        data = dagger_rollout(
+            self.env, None, self.expert, 1.0, per_env, self.rng, obs, full_obs, full=full
+        )
+        self.expert_env_steps += per_env * self.n_envs
+        self._add(data.observations, data.expert_actions)
+        self._fit(
+            {
+                "beta": 1.0,
+                "steps": 0,
+                "expert_executed": data.n_expert_executed,
+                "learner_executed": 0,
+            }
+        )
+
+    def _dagger_iteration(
+        self,
+        obs: np.ndarray,
+        full_obs: np.ndarray,
+        full: FullObservations,
+        total: int,
+        on_step: StepHook,
+    ) -> tuple[np.ndarray, np.ndarray, bool]:
+        """One DAgger iteration: a rollout of the mixture with ``beta_i``, then a fit on every
+        label so far (none when the callback stopped the rollout; its record is kept).
+
+        Args:
+            obs: The learner's current observations ``(E, obs_dim)``.
+            full_obs: The current full observations ``(E, full_dim)``.
+            full: Reads the full observations after each step.
+            total: The learner env steps to reach; the iteration takes ``steps_per_iteration``
+                of them at most.
+            on_step: Called after every step; returning ``False`` stops the rollout.
+
+        Returns:
+            The observations and the full observations after the rollout, and whether it was
+            stopped.
+        """
+        s, n_envs = self.settings, self.n_envs
+        remaining = math.ceil((total - self.num_timesteps) / n_envs)
+        i = len(self.iterations)
+        b = beta(str(s["beta_schedule"]), i, int(s["beta_iterations"]))
+        per_env = min(math.ceil(int(s["steps_per_iteration"]) / n_envs), remaining)
+        start = self.num_timesteps
+        rollout = dagger_rollout(
+            self.env,
+            self.policy,
+            self.expert,
+            b,
+            per_env,
+            self.rng,
+            obs,
+            full_obs,
+            full=full,
+            on_step=on_step,
+            episode_mixed=self.episode_mixed,
+        )
+        self._add(rollout.observations, rollout.expert_actions)
+        record = {
+            "beta": b,
+            "steps": self.num_timesteps - start,
+            "expert_executed": rollout.n_expert_executed,
+            "learner_executed": rollout.n_learner_executed,
+        }
+        if rollout.stopped:
+            self.iterations.append(record)
+        else:
+            self._fit(record)
+        return rollout.obs, rollout.full_obs, rollout.stopped
+
     def learn(
         self,
         total_timesteps: int,
@@ -248,16 +363,11 @@ class ImitationAgent:
         Returns:
             ``self``.
         """
-        from stable_baselines3.common.callbacks import BaseCallback, CallbackList
-
-        if isinstance(callback, list):
-            callback = CallbackList(callback)
-        if callback is not None and not isinstance(callback, BaseCallback):
-            raise TypeError(f"callback must be an SB3 BaseCallback, got {type(callback).__name__}")
+        callback = _as_callback(callback)
         if reset_num_timesteps:
             self.num_timesteps = 0
         total = int(total_timesteps) + (0 if reset_num_timesteps else self.num_timesteps)
-        s, n_envs = self.settings, self.n_envs
+        n_envs = self.n_envs
         full = FullObservations(self.env)
 
         def on_step(infos: Any, dones: Any, rewards: Any, actions: Any) -> bool:
@@ -269,68 +379,24 @@ class ImitationAgent:
             )
             return bool(callback.on_step())
 
-        obs = np.asarray(self.env.reset())
-        full_obs = full.after_reset()
-        self.episode_mixed[:] = False
+        obs, full_obs = self._reset(full)
         self._check_full(full_obs)
         if self.mode == "bc" and not self.iterations:
-            per_env = math.ceil(int(s["n_expert_transitions"]) / n_envs)
-            data = dagger_rollout(
-                self.env, None, self.expert, 1.0, per_env, self.rng, obs, full_obs, full=full
-            )
-            self.expert_env_steps += per_env * n_envs
-            self._add(data.observations, data.expert_actions)
-            self._fit(
-                {
-                    "beta": 1.0,
-                    "steps": 0,
-                    "expert_executed": data.n_expert_executed,
-                    "learner_executed": 0,
-                }
-            )
-            obs = np.asarray(self.env.reset())  # the learner's episodes start afresh
-            full_obs = full.after_reset()
-            self.episode_mixed[:] = False
+            self._clone_expert(obs, full_obs, full)
+            obs, full_obs = self._reset(full)  # the learner's episodes start afresh
         if callback is not None:
-            callback.init_callback(self)  # type: ignore[arg-type]
+            callback.init_callback(self)
             callback.on_training_start(locals(), globals())
         while self.num_timesteps < total:
-            remaining = math.ceil((total - self.num_timesteps) / n_envs)
             if self.mode == "bc":
                 action, _state = self.predict(obs)
                 obs, rewards, dones, infos = self.env.step(action)
                 if not on_step(infos, dones, rewards, action):
                     break
                 continue
-            i = len(self.iterations)
-            b = beta(str(s["beta_schedule"]), i, int(s["beta_iterations"]))
-            per_env = min(math.ceil(int(s["steps_per_iteration"]) / n_envs), remaining)
-            start = self.num_timesteps
-            rollout = dagger_rollout(
-                self.env,
-                self.policy,
-                self.expert,
-                b,
-                per_env,
-                self.rng,
-                obs,
-                full_obs,
-                full=full,
-                on_step=on_step,
-                episode_mixed=self.episode_mixed,
-            )
-            obs, full_obs = rollout.obs, rollout.full_obs
-            self._add(rollout.observations, rollout.expert_actions)
-            record = {
-                "beta": b,
-                "steps": self.num_timesteps - start,
-                "expert_executed": rollout.n_expert_executed,
-                "learner_executed": rollout.n_learner_executed,
-            }
-            if rollout.stopped:
-                self.iterations.append(record)
+            obs, full_obs, stopped = self._dagger_iteration(obs, full_obs, full, total, on_step)
+            if stopped:
                 break
-            self._fit(record)
         if callback is not None:
             callback.on_training_end()
         return self
