@@ -9,6 +9,7 @@ crash, a full disk) never leaves a half-written expert under its final name.
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import shutil
@@ -17,11 +18,11 @@ import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ermrl._io import write_atomic
 from ermrl._progress import Progress
-from ermrl.config import BudgetConfig, ConfigError, TaskConfig
+from ermrl.config import BudgetConfig, ConfigError, PPOConfig, TaskConfig
 from ermrl.experts._expert import (
     EXPERT_FILE,
     NORMALIZE_FILE,
@@ -30,6 +31,9 @@ from ermrl.experts._expert import (
     expert_algos,
     is_expert_folder,
 )
+
+if TYPE_CHECKING:
+    from ermrl.agents import RunResult
 
 __all__ = ["ExpertExists", "TrainingProgress", "check_expert_out", "train_expert"]
 
@@ -129,6 +133,148 @@ def _check_task(env_id: str, algo: str) -> tuple[tuple[int, ...], tuple[int, ...
     return tuple(obs_space.shape), tuple(act_space.shape or ())
 
 
+def _resolve_settings(
+    env_id: str,
+    algo: str,
+    steps: int,
+    seed: int,
+    overrides: Mapping[str, Any] | None,
+    n_eval_episodes: int,
+    n_reports: int,
+) -> tuple[PPOConfig, BudgetConfig]:
+    """Check :func:`train_expert`'s request and resolve the learner's settings and the budget.
+
+    Args:
+        env_id: The task.
+        algo: The learner (a name of :func:`~ermrl.experts.expert_algos`).
+        steps: Training environment steps.
+        seed: The run's seed.
+        overrides: Learner settings over the learner's table.
+        n_eval_episodes: Deterministic evaluation episodes after training.
+        n_reports: Progress reports over the training.
+
+    Returns:
+        The learner's settings and the training budget.
+
+    Raises:
+        ConfigError: unknown learner, bad settings, or a step count or seed out of range.
+        UnknownEnvError: ``env_id`` is not registered.
+    """
+    from ermrl.agents import resolve_ppo_config
+    from ermrl.envs import check_env_id
+
+    algos = expert_algos()
+    if algo not in algos:
+        raise ConfigError(f"unknown expert algorithm {algo!r}; choose from {', '.join(algos)}")
+    if steps < 1:
+        raise ConfigError(f"steps must be >= 1, got {steps}")
+    if seed < 0:
+        raise ConfigError(f"seed must be >= 0, got {seed}")
+    check_env_id(env_id)
+    ppo = resolve_ppo_config(env_id, dict(overrides or {}), learner=algo)
+    from ermrl.learners import get_learner
+
+    get_learner(algo).check(ppo)
+    budget = BudgetConfig(
+        training_steps=steps,
+        fitness="eval",
+        n_eval_episodes=n_eval_episodes,
+        n_reports=n_reports,
+    )
+    return ppo, budget
+
+
+def _progress_hook(
+    steps: int,
+    progress: Callable[[TrainingProgress], None] | None,
+    display: Progress | None,
+) -> Callable[[int, float], None]:
+    """The ``report`` hook of :func:`ermrl.agents.train_agent`, timed from now.
+
+    Args:
+        steps: The steps asked for.
+        progress: Given a :class:`TrainingProgress` at each report.
+        display: Its note becomes the recent return.
+
+    Returns:
+        ``report(step, recent_return)``.
+    """
+    start = time.perf_counter()
+    previous = (0, 0.0)
+
+    def report(step: int, recent: float) -> None:
+        nonlocal previous
+        elapsed = time.perf_counter() - start
+        if display is not None:
+            display.note = f"recent return {recent:.1f}"
+        if progress is not None:
+            progress(TrainingProgress(step, steps, recent, elapsed, *previous))
+        previous = (step, elapsed)
+
+    return report
+
+
+def _train_into(
+    partial: Path,
+    env_id: str,
+    ppo: PPOConfig,
+    budget: BudgetConfig,
+    seed: int,
+    report: Callable[[int, float], None],
+    display: Progress | None,
+) -> RunResult:
+    """Train and evaluate the expert on the full observation, its policy written in ``partial``.
+
+    Args:
+        partial: The folder being built.
+        env_id: The task.
+        ppo: The learner's settings.
+        budget: The training steps, evaluation episodes and reports.
+        seed: The run's seed.
+        report: Called at each progress report.
+        display: Told the env steps as training goes.
+
+    Returns:
+        The run's result (env steps, wall time, training and evaluation returns).
+    """
+    from ermrl.agents import train_agent
+
+    result = train_agent(
+        TaskConfig(env_id, "all"),
+        None,
+        ppo,
+        budget,
+        seed,
+        evaluate=True,
+        model_path=partial / "model.zip",
+        report=report,
+        progress=display,
+    )
+    # train_agent also writes SB3's model.zip (pickles): an expert folder holds none.
+    (partial / "model.zip").unlink(missing_ok=True)
+    return result
+
+
+def _finish_folder(partial: Path, info: ExpertInfo) -> None:
+    """Write ``expert.json``, check that ``partial`` holds the expert's files and nothing else,
+    and give them the usual permissions.
+
+    Raises:
+        RuntimeError: the folder holds other files than the expert's.
+    """
+    from ermrl.agents import POLICY_FILE
+
+    write_atomic(partial / EXPERT_FILE, json.dumps(info.to_dict(), indent=1) + "\n")
+    expected = {EXPERT_FILE, POLICY_FILE} | ({NORMALIZE_FILE} if info.normalized else set())
+    written = {p.name for p in partial.iterdir()}
+    if written != expected:  # a change in train_agent's files must not slip in unnoticed
+        raise RuntimeError(f"unexpected expert files {sorted(written)}, not {sorted(expected)}")
+    # mkdtemp and mkstemp make them private (0o700, 0o600): give the usual permissions.
+    os.chmod(partial, 0o777 & ~_umask())
+    for file in partial.iterdir():
+        os.chmod(file, 0o666 & ~_umask())
+
+
 def train_expert(
     env_id: str,
     algo: str = "sac",
@@ -171,58 +317,16 @@ def train_expert(
         FileExistsError: ``out`` holds an expert (and not ``overwrite``) or other files.
         TrainingDiverged: training produced NaN values.
     """
-    from ermrl.agents import POLICY_FILE, resolve_ppo_config, train_agent
-    from ermrl.envs import check_env_id
-
-    algos = expert_algos()
-    if algo not in algos:
-        raise ConfigError(f"unknown expert algorithm {algo!r}; choose from {', '.join(algos)}")
-    if steps < 1:
-        raise ConfigError(f"steps must be >= 1, got {steps}")
-    if seed < 0:
-        raise ConfigError(f"seed must be >= 0, got {seed}")
-    check_env_id(env_id)
-    ppo = resolve_ppo_config(env_id, dict(overrides or {}), learner=algo)
-    from ermrl.learners import get_learner
-
-    get_learner(algo).check(ppo)
-    budget = BudgetConfig(
-        training_steps=steps,
-        fitness="eval",
-        n_eval_episodes=n_eval_episodes,
-        n_reports=n_reports,
+    ppo, budget = _resolve_settings(
+        env_id, algo, steps, seed, overrides, n_eval_episodes, n_reports
     )
     obs_shape, act_shape = _check_task(env_id, algo)
     final = check_expert_out(out, overwrite)
     final.parent.mkdir(parents=True, exist_ok=True)
-
-    start = time.perf_counter()
-    previous = (0, 0.0)
-
-    def report(step: int, recent: float) -> None:
-        nonlocal previous
-        elapsed = time.perf_counter() - start
-        if display is not None:
-            display.note = f"recent return {recent:.1f}"
-        if progress is not None:
-            progress(TrainingProgress(step, steps, recent, elapsed, *previous))
-        previous = (step, elapsed)
-
+    report = _progress_hook(steps, progress, display)
     partial = Path(tempfile.mkdtemp(dir=final.parent, prefix=f".{final.name}.partial-"))
     try:
-        result = train_agent(
-            TaskConfig(env_id, "all"),
-            None,
-            ppo,
-            budget,
-            seed,
-            evaluate=True,
-            model_path=partial / "model.zip",
-            report=report,
-            progress=display,
-        )
-        # train_agent also writes SB3's model.zip (pickles): an expert folder holds none.
-        (partial / "model.zip").unlink(missing_ok=True)
+        result = _train_into(partial, env_id, ppo, budget, seed, report, display)
         info = ExpertInfo(
             env_id=env_id,
             algo=algo,
@@ -238,17 +342,7 @@ def train_expert(
             versions=_versions(_VERSIONED),
             command=command,
         )
-        import json
-
-        write_atomic(partial / EXPERT_FILE, json.dumps(info.to_dict(), indent=1) + "\n")
-        expected = {EXPERT_FILE, POLICY_FILE} | ({NORMALIZE_FILE} if info.normalized else set())
-        written = {p.name for p in partial.iterdir()}
-        if written != expected:  # a change in train_agent's files must not slip in unnoticed
-            raise RuntimeError(f"unexpected expert files {sorted(written)}, not {sorted(expected)}")
-        # mkdtemp and mkstemp make them private (0o700, 0o600): give the usual permissions.
-        os.chmod(partial, 0o777 & ~_umask())
-        for file in partial.iterdir():
-            os.chmod(file, 0o666 & ~_umask())
+        _finish_folder(partial, info)
         _install(partial, final)
     finally:
         shutil.rmtree(partial, ignore_errors=True)
