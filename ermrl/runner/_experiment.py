@@ -360,21 +360,13 @@ def _mapping(value: Any, where: str) -> dict[str, Any]:
     return dict(value)
 
 
-def load_experiment(path: str | Path, variant: str | None = None) -> Experiment:
-    """Read an experiment file and apply a variant.
-
-    Args:
-        path: The YAML file.
-        variant: A key of its ``variants`` (``None``: the file as written).
-
-    Returns:
-        The experiment (not yet checked against the commands: see :func:`experiment_plan`).
+def _read_document(path: Path) -> Mapping[str, Any]:
+    """The file's mapping, its top-level keys checked (:data:`TOP_LEVEL_KEYS`).
 
     Raises:
-        ExperimentError: unreadable file, unknown key (with the nearest valid one), wrong type,
-            unknown variant.
+        ExperimentError: unreadable file, not YAML, not a mapping, or an unknown key (with the
+            nearest valid one).
     """
-    path = Path(path)
     text = _read_text(path)
     try:
         doc = yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 (a safe loader)
@@ -390,45 +382,58 @@ def load_experiment(path: str | Path, variant: str | None = None) -> Experiment:
             raise ExperimentError(
                 f"{path}: unknown key {key!r}{_nearest(str(key), TOP_LEVEL_KEYS)}"
             )
+    return doc
+
+
+def _apply_variant(
+    doc: Mapping[str, Any], variant: str | None, path: Path
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The document without its ``variants``, with ``variant``'s overrides merged in.
+
+    Args:
+        doc: The file's mapping.
+        variant: A key of its ``variants`` (``None``: the file as written).
+        path: The file (for messages).
+
+    Returns:
+        The merged document, and the variant's own overrides (empty without a variant).
+
+    Raises:
+        ExperimentError: ``variants`` is not a mapping, no such variant, or a key a variant
+            cannot set.
+    """
     variants = _mapping(doc.get("variants"), f"{path}: variants")
     base = {k: v for k, v in doc.items() if k != "variants"}
-    if variant is not None:
-        if variant not in variants:
-            have = ", ".join(variants) or "none"
-            raise ExperimentError(f"{path}: no variant {variant!r} (variants: {have})")
-        over = _mapping(variants[variant], f"{path}: variants.{variant}")
-        for key in over:
-            if key not in TOP_LEVEL_KEYS or key in ("variants", "name"):
-                valid = [k for k in TOP_LEVEL_KEYS if k not in ("variants", "name")]
-                raise ExperimentError(
-                    f"{path}: variants.{variant}: unknown key {key!r}{_nearest(str(key), valid)}"
-                )
-        base = _merge(base, over)
-    name = base.get("name")
-    if not isinstance(name, str) or not name.strip() or "/" in name:
-        raise ExperimentError(f"{path}: name: a word is required (it names the results folder)")
-    out = _path_value(base.get("out"), "out", path) or Path("runs") / name
-    if variant is not None and "out" not in _mapping(variants[variant], "variants"):
-        out = out / variant
-    storage = base.get("storage")
-    if storage is not None and (not isinstance(storage, str) or not storage.strip()):
-        raise ExperimentError(
-            f"{path}: storage: a storage URL (a string) is expected, got {storage!r}"
-        )
-    storage = storage or f"sqlite:///{out / 'ermrl.db'}"
-    # A variant (a CI-sized run, say) publishes only where it says so itself.
-    publish = (
-        base.get("publish")
-        if variant is None
-        else _mapping(variants[variant], "variants").get("publish")
-    )
-    stages = {s: _mapping(base.get(s), f"{path}: {s}") for s in STAGES}
-    for key in stages["reevaluate"]:
-        if key not in REEVALUATE_KEYS:
+    if variant is None:
+        return base, {}
+    if variant not in variants:
+        have = ", ".join(variants) or "none"
+        raise ExperimentError(f"{path}: no variant {variant!r} (variants: {have})")
+    over = _mapping(variants[variant], f"{path}: variants.{variant}")
+    for key in over:
+        if key not in TOP_LEVEL_KEYS or key in ("variants", "name"):
+            valid = [k for k in TOP_LEVEL_KEYS if k not in ("variants", "name")]
             raise ExperimentError(
-                f"{path}: reevaluate: unknown key {key!r}{_nearest(key, REEVALUATE_KEYS)}"
+                f"{path}: variants.{variant}: unknown key {key!r}{_nearest(str(key), valid)}"
             )
-    tasks = _tasks(base.get("tasks"), path)
+    return _merge(base, over), over
+
+
+def _check_task_list(
+    tasks: tuple[TaskLine, ...],
+    stages: Mapping[str, Mapping[str, Any]],
+    base: Mapping[str, Any],
+    path: Path,
+) -> None:
+    """Check that the file names its tasks the way its kind of experiment needs.
+
+    A single-task experiment lists ``tasks``; a generalization one (``evolve.suite`` or
+    ``evolve.env_ids``) lists none, and names its test tasks in ``test.env_ids`` when it has
+    a ``test`` stage.
+
+    Raises:
+        ExperimentError: tasks missing, or given where they do not belong.
+    """
     generalization = "suite" in stages["evolve"] or "env_ids" in stages["evolve"]
     if generalization and tasks:
         raise ExperimentError(
@@ -442,6 +447,46 @@ def load_experiment(path: str | Path, variant: str | None = None) -> Experiment:
         )
     if generalization and not stages["test"].get("env_ids") and base.get("test") is not None:
         raise ExperimentError(f"{path}: test.env_ids: name the unseen tasks to test on")
+
+
+def load_experiment(path: str | Path, variant: str | None = None) -> Experiment:
+    """Read an experiment file and apply a variant.
+
+    Args:
+        path: The YAML file.
+        variant: A key of its ``variants`` (``None``: the file as written).
+
+    Returns:
+        The experiment (not yet checked against the commands: see :func:`experiment_plan`).
+
+    Raises:
+        ExperimentError: unreadable file, unknown key (with the nearest valid one), wrong type,
+            unknown variant.
+    """
+    path = Path(path)
+    base, over = _apply_variant(_read_document(path), variant, path)
+    name = base.get("name")
+    if not isinstance(name, str) or not name.strip() or "/" in name:
+        raise ExperimentError(f"{path}: name: a word is required (it names the results folder)")
+    out = _path_value(base.get("out"), "out", path) or Path("runs") / name
+    if variant is not None and "out" not in over:
+        out = out / variant
+    storage = base.get("storage")
+    if storage is not None and (not isinstance(storage, str) or not storage.strip()):
+        raise ExperimentError(
+            f"{path}: storage: a storage URL (a string) is expected, got {storage!r}"
+        )
+    storage = storage or f"sqlite:///{out / 'ermrl.db'}"
+    # A variant (a CI-sized run, say) publishes only where it says so itself.
+    publish = base.get("publish") if variant is None else over.get("publish")
+    stages = {s: _mapping(base.get(s), f"{path}: {s}") for s in STAGES}
+    for key in stages["reevaluate"]:
+        if key not in REEVALUATE_KEYS:
+            raise ExperimentError(
+                f"{path}: reevaluate: unknown key {key!r}{_nearest(key, REEVALUATE_KEYS)}"
+            )
+    tasks = _tasks(base.get("tasks"), path)
+    _check_task_list(tasks, stages, base, path)
     return Experiment(
         path=path,
         name=name,
