@@ -364,6 +364,37 @@ class DaggerRollout:
         return int(self.expert_executed.size - self.n_expert_executed)
 
 
+def _mixture_action(
+    space: spaces.Box,
+    policy_mean: nn.Module | None,
+    obs: np.ndarray,
+    expert_action: np.ndarray,
+    by_expert: np.ndarray,
+) -> np.ndarray:
+    """The actions the envs execute: the expert's where ``by_expert``, else the learner's.
+
+    Args:
+        space: The env's action space (Box).
+        policy_mean: The learner (``None``: only the expert may act).
+        obs: The learner's observations ``(E, obs_dim)``.
+        expert_action: The expert's actions ``(E, *action_shape)``.
+        by_expert: Whether the expert acts in each env, ``(E,)`` bool.
+
+    Returns:
+        Env actions ``(E, *action_shape)`` (a new array).
+
+    Raises:
+        ValueError: the learner should act somewhere but ``policy_mean`` is ``None``.
+    """
+    if by_expert.all() or policy_mean is None:
+        if policy_mean is None and not by_expert.all():
+            raise ValueError("dagger_rollout: beta < 1 needs a learner policy")
+        return expert_action.copy()
+    action = unscale_actions(space, _act(policy_mean, obs))
+    action[by_expert] = expert_action[by_expert]
+    return action
+
+
 def dagger_rollout(
     venv: Any,
     policy_mean: nn.Module | None,
@@ -416,13 +447,7 @@ def dagger_rollout(
             (n_envs, *space.shape)
         )
         by_expert = rng.random(n_envs) < beta
-        if by_expert.all() or policy_mean is None:
-            if policy_mean is None and not by_expert.all():
-                raise ValueError("dagger_rollout: beta < 1 needs a learner policy")
-            action = expert_action.copy()
-        else:
-            action = unscale_actions(space, _act(policy_mean, obs))
-            action[by_expert] = expert_action[by_expert]
+        action = _mixture_action(space, policy_mean, obs, expert_action, by_expert)
         observations.append(np.array(obs))
         fulls.append(np.array(full_obs))
         labels.append(expert_action)
