@@ -37,6 +37,7 @@ import numpy as np
 import torch
 
 from ermrl.config import ConfigError
+from ermrl.learners._callbacks import as_callback
 from ermrl.learners._imitation import (
     FullObservations,
     ImitationPolicy,
@@ -50,27 +51,6 @@ from ermrl.learners._imitation import (
 )
 
 __all__ = ["ImitationAgent", "load_expert_for"]
-
-
-def _as_callback(callback: Any) -> Any:
-    """``learn``'s callback as one SB3 ``BaseCallback`` (a list becomes a ``CallbackList``).
-
-    Args:
-        callback: A ``BaseCallback``, a list of them, or ``None``.
-
-    Returns:
-        The callback, or ``None``.
-
-    Raises:
-        TypeError: ``callback`` is not an SB3 callback.
-    """
-    from stable_baselines3.common.callbacks import BaseCallback, CallbackList
-
-    if isinstance(callback, list):
-        callback = CallbackList(callback)
-    if callback is not None and not isinstance(callback, BaseCallback):
-        raise TypeError(f"callback must be an SB3 BaseCallback, got {type(callback).__name__}")
-    return callback
 
 
 def load_expert_for(env: Any, path: Any, learner: str) -> Any:
@@ -363,7 +343,7 @@ class ImitationAgent:
         Returns:
             ``self``.
         """
-        callback = _as_callback(callback)
+        callback = as_callback(callback)
         if reset_num_timesteps:
             self.num_timesteps = 0
         total = int(total_timesteps) + (0 if reset_num_timesteps else self.num_timesteps)

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from ermrl.config import ConfigError
+from ermrl.learners._callbacks import as_callback
 
 __all__ = ["HebbianAgent", "HebbianPolicy", "leak_factors", "load_npz", "recurrent_weights"]
 
@@ -48,27 +49,6 @@ def recurrent_weights(units: int, spectral_radius: float, seed: Any) -> np.ndarr
     np.fill_diagonal(J, 0.0)
     radius = float(np.max(np.abs(np.linalg.eigvals(J)))) if units > 1 else 0.0
     return J * (spectral_radius / radius) if radius > 0 else J
-
-
-def _as_callback(callback: Any) -> Any:
-    """``learn``'s callback as one SB3 ``BaseCallback`` (a list becomes a ``CallbackList``).
-
-    Args:
-        callback: A ``BaseCallback``, a list of them, or ``None``.
-
-    Returns:
-        The callback, or ``None``.
-
-    Raises:
-        TypeError: ``callback`` is not an SB3 callback.
-    """
-    from stable_baselines3.common.callbacks import BaseCallback, CallbackList
-
-    if isinstance(callback, list):
-        callback = CallbackList(callback)
-    if callback is not None and not isinstance(callback, BaseCallback):
-        raise TypeError(f"callback must be an SB3 BaseCallback, got {type(callback).__name__}")
-    return callback
 
 
 @dataclass(frozen=True)
@@ -544,7 +524,7 @@ class HebbianAgent:
             ValueError: the network's state or weights became non-finite (the message says
                 "nan").
         """
-        callback = _as_callback(callback)
+        callback = as_callback(callback)
         if reset_num_timesteps:
             self.num_timesteps = 0
         total_timesteps = int(total_timesteps) + (0 if reset_num_timesteps else self.num_timesteps)
