@@ -78,7 +78,8 @@ EVOLVE_DESCRIPTION = textwrap.dedent(
 
 
 def add_problem_args(parser: argparse.ArgumentParser, *, multi_task: bool = False) -> None:
-    """Arguments shared by single-task and generalization evolution."""
+    """Arguments shared by single-task and generalization evolution: the task, the inner
+    loop (learner), the reservoirs and, on one task, the learner's genes."""
     if not multi_task:
         parser.add_argument(
             "--env-id",
@@ -91,6 +92,14 @@ def add_problem_args(parser: argparse.ArgumentParser, *, multi_task: bool = Fals
         default="all",
         help="keep the whole observation, only its positions (velocities hidden) or only its velocities",
     )
+    _add_learner_args(parser)
+    _add_reservoir_args(parser)
+    if not multi_task:
+        _add_gene_args(parser)
+
+
+def _add_learner_args(parser: argparse.ArgumentParser) -> None:
+    """The inner loop's options: the learner, its settings and its training layout."""
     g = parser.add_argument_group("inner loop (the learner: PPO by default)")
     g.add_argument(
         "--learner",
@@ -131,6 +140,12 @@ def add_problem_args(parser: argparse.ArgumentParser, *, multi_task: bool = Fals
         default=0,
         help="first training seed; a trial uses seed .. seed+n_seeds-1",
     )
+    _add_fitness_args(g)
+    _add_layout_args(g)
+
+
+def _add_fitness_args(g: argparse._ArgumentGroup) -> None:
+    """How a run's fitness is measured (part of the inner loop's options)."""
     g.add_argument(
         "--fitness",
         choices=FITNESS_MODES,
@@ -150,6 +165,11 @@ def add_problem_args(parser: argparse.ArgumentParser, *, multi_task: bool = Fals
         default=5,
         help="evaluation episodes of --fitness eval",
     )
+
+
+def _add_layout_args(g: argparse._ArgumentGroup) -> None:
+    """The learner's settings and the runs' processes and threads (part of the inner loop's
+    options)."""
     g.add_argument(
         "--n-envs",
         type=positive_int,
@@ -184,6 +204,11 @@ def add_problem_args(parser: argparse.ArgumentParser, *, multi_task: bool = Fals
         "--torch-threads", type=positive_int, default=1, help="torch threads per training process"
     )
 
+
+def _add_reservoir_args(parser: argparse.ArgumentParser) -> None:
+    """The evolved encoder's options; each option's flag and default are kept in
+    ``encoder_flags`` (a parser default), so that a learner with genes, which has no encoder,
+    refuses them."""
     r = parser.add_argument_group("reservoirs (the evolved encoder)")
     encoder_flags: dict[str, tuple[str, Any]] = {}
 
@@ -205,6 +230,13 @@ def add_problem_args(parser: argparse.ArgumentParser, *, multi_task: bool = Fals
         "parameters",
     )
     add_encoder_args(radd)
+    _add_reservoir_io_args(radd)
+    parser.set_defaults(encoder_flags=encoder_flags)
+
+
+def _add_reservoir_io_args(radd: Callable[..., None]) -> None:
+    """What the reservoirs read and show the policy: input scaling, skip connection, resets,
+    exposed units, reward scale, precision and the fed action and reward."""
     radd(
         "--input-scaling-range",
         nargs=2,
@@ -265,28 +297,32 @@ def add_problem_args(parser: argparse.ArgumentParser, *, multi_task: bool = Fals
         default=True,
         help="feed the previous reward to the reservoir",
     )
-    parser.set_defaults(encoder_flags=encoder_flags)
-    if not multi_task:
-        genes = "; ".join(
-            f"{name}: " + ", ".join(f"{g} {_range_text(r)}" for g, r in learner.genes.items())
-            for name, learner in LEARNERS.items()
-            if learner.genes
-        )
-        e = parser.add_argument_group(
-            "learner genes (a learner with genes, --learner hebbian, has no encoder: evolution "
-            "shapes the learner itself)"
-        )
-        e.add_argument(
-            "--gene",
-            nargs="+",
-            default=argparse.SUPPRESS,
-            metavar="NAME=LOW:HIGH",
-            help="another search range for a gene (log scale when the default range is; "
-            f"NAME=LOW:HIGH:lin or :log to choose). Genes and default ranges: {genes}",
-        )
+
+
+def _add_gene_args(parser: argparse.ArgumentParser) -> None:
+    """``--gene``: other search ranges of a learner's genes (one-task evolution only)."""
+    genes = "; ".join(
+        f"{name}: " + ", ".join(f"{g} {_range_text(r)}" for g, r in learner.genes.items())
+        for name, learner in LEARNERS.items()
+        if learner.genes
+    )
+    e = parser.add_argument_group(
+        "learner genes (a learner with genes, --learner hebbian, has no encoder: evolution "
+        "shapes the learner itself)"
+    )
+    e.add_argument(
+        "--gene",
+        nargs="+",
+        default=argparse.SUPPRESS,
+        metavar="NAME=LOW:HIGH",
+        help="another search range for a gene (log scale when the default range is; "
+        f"NAME=LOW:HIGH:lin or :log to choose). Genes and default ranges: {genes}",
+    )
 
 
 def add_search_args(parser: argparse.ArgumentParser) -> None:
+    """The outer loop's options (sampler, pruner, re-evaluation), the storage, the workers'
+    recovery options and the logs of ``ermrl evolve`` and ``ermrl evolve-generalization``."""
     s = parser.add_argument_group("outer loop (Optuna)")
     s.add_argument(
         "--n-trials",
@@ -338,6 +374,14 @@ def add_search_args(parser: argparse.ArgumentParser) -> None:
         help="queue the unevolved reference reservoir as the study's first trial, so that the "
         "study's best can never be worse than it without showing it",
     )
+    _add_reevaluation_args(s)
+    add_storage_args(parser, study_required=False)
+    _add_worker_args(parser)
+    _add_logging_args(parser)
+
+
+def _add_reevaluation_args(s: argparse._ArgumentGroup) -> None:
+    """The re-evaluation of the best trials on fresh seeds (part of the outer loop's options)."""
     s.add_argument(
         "--reevaluate-top",
         type=nonneg_int,
@@ -359,7 +403,10 @@ def add_search_args(parser: argparse.ArgumentParser) -> None:
         help="training steps of a re-evaluation run (default: --training-steps; the test "
         "budget removes the evolution/test budget mismatch)",
     )
-    add_storage_args(parser, study_required=False)
+
+
+def _add_worker_args(parser: argparse.ArgumentParser) -> None:
+    """Heartbeats, retries and the end of a worker that shares a study with others."""
     w = parser.add_argument_group("workers sharing a study (crash and preemption recovery)")
     w.add_argument(
         "--heartbeat-interval",
@@ -389,6 +436,10 @@ def add_search_args(parser: argparse.ArgumentParser) -> None:
         help="when the budget is reached, wait for other workers' running trials (and retry "
         "those whose worker died) instead of exiting",
     )
+
+
+def _add_logging_args(parser: argparse.ArgumentParser) -> None:
+    """Progress lines, TensorBoard and Weights & Biases logs, and ``--quiet``."""
     add_progress_arg(parser)
     parser.add_argument(
         "--tensorboard",
@@ -549,6 +600,12 @@ def add_test_args(
     parser.add_argument("--ppo", nargs="+", default=[], metavar="KEY=VALUE", help=ppo_help)
     add_stale_gradient_arg(parser)
     add_for_learner_arg(parser)
+    _add_test_run_args(parser)
+
+
+def _add_test_run_args(parser: argparse.ArgumentParser) -> None:
+    """How the test phase trains and keeps its runs: backend, saved models, overwriting and
+    checkpoints."""
     parser.add_argument(
         "--backend",
         choices=("population", "sb3"),
