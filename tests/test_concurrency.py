@@ -297,7 +297,10 @@ def test_four_cli_workers_at_once_on_a_fresh_sqlite_study(tmp_path: Path) -> Non
 @pytest.mark.slow
 @pytest.mark.services
 def test_kill_9_a_cli_worker_on_postgresql(postgres_url: str, tmp_path: Path) -> None:
-    args = ["--study-name", "t", "--n-trials", "4", "--training-steps", "1024"]
+    # 8192 steps: a trial runs for seconds, so the poll sees the victim's trial RUNNING even on
+    # a loaded machine (at 1024 steps a trial lasted about half a second, and the poll missed
+    # both of the victim's trials once).
+    args = ["--study-name", "t", "--n-trials", "4", "--training-steps", "8192"]
     args += ["--heartbeat-interval", "1", "--grace-period", "4"]
     survivor = start_cli_worker(postgres_url, tmp_path / "w1.log", *args)
     victim = start_cli_worker(postgres_url, tmp_path / "w2.log", *args)
