@@ -231,7 +231,9 @@ def format_table(report: dict[str, Any]) -> str:
                     f"[{_fmt(lo)}, {_fmt(hi)}] | {_fmt(c['p_value'])} |"
                 )
         best = task.get("winner")
-        if best is not None:
+        if best is not None and best["runner_up"] is None:  # one agent: nothing to rank
+            lines.append(f"\nonly agent: {best['agent']} (no comparison)")
+        elif best is not None:
             how = "clearly" if best["clear"] else "within the noise of the runner-up"
             runner = f" ({best['runner_up']})" if best["runner_up"] else ""
             lines.append(f"\nbest mean: {best['agent']}, {how}{runner}")

@@ -257,6 +257,28 @@ def test_the_memory_benchmark_reuses_a_task_only_with_the_same_budgets(tmp_path:
     assert reusable(path, budgets, ["ppo", "lstm-ppo"]) is None
 
 
+def test_the_memory_table_of_one_agent_claims_no_ranking() -> None:
+    """With one agent (``--agents nvar-res-ppo``) there is no runner-up to be within the noise
+    of: the table says so instead of ranking."""
+    from benchmarks.bench_memory import format_table, winner
+
+    row = {"final_returns": [1.0, 2.0, 3.0], "mean": 2.0, "std": 1.0, "ci95": [-0.5, 4.5],
+           "wall_seconds": 6.0, "env_steps": 30}  # fmt: skip
+    task = {
+        "label": "T[all]", "agents": {"nvar-res-ppo": row}, "comparisons": [],
+        "evolution_seconds": {"nvar-res-ppo": 9.0}, "selected": {},
+        "winner": winner({"nvar-res-ppo": row}),
+    }  # fmt: skip
+    text = format_table({"tasks": [task]})
+    assert "only agent: nvar-res-ppo (no comparison)" in text
+    assert "runner-up" not in text
+    pair = {**task, "agents": {"ppo": row, "nvar-res-ppo": {**row, "mean": 3.0}}}
+    pair["winner"] = winner(pair["agents"])
+    assert "best mean: nvar-res-ppo, within the noise of the runner-up (ppo)" in format_table(
+        {"tasks": [pair]}
+    )
+
+
 @pytest.mark.slow
 def test_the_learner_cost_benchmark_runs_in_quick_mode(tmp_path: Path) -> None:
     def run(suite: str) -> dict[str, dict]:
