@@ -19,9 +19,12 @@ from ermrl.analysis import (
     VerdictRule,
     band_share,
     dominant_frequency,
+    gait_segment,
+    lowest_bin,
     mechanism_question,
     mechanism_verdict,
     power_spectrum,
+    read_mechanism,
     reservoir_spectra,
     spectral_outcome,
     write_reproduction_page,
@@ -89,6 +92,50 @@ def test_the_band_is_at_least_one_bin_and_unknown_without_a_gait() -> None:
     freqs, power = power_spectrum(_sine(), DT)
     assert math.isnan(band_share(freqs, power, (math.nan, math.nan)))
     assert math.isnan(band_share(freqs, np.zeros_like(power), (0.5, 1.0)))
+
+
+def test_a_gait_slower_than_a_segment_is_resolved_with_the_whole_episode() -> None:
+    """Swimmer's gait can be slower than 256-step segments resolve (0.098 Hz at dt 0.04 s): with
+    them the joint angles' power is largest in the lowest bin and has no peak; the whole episode
+    as one segment finds it. A gait the segments resolve keeps them."""
+    t = np.arange(STEPS)[:, None] * DT
+    slow_gait = 2 / (STEPS * DT)  # 0.05 Hz: two cycles in the 40 s episode
+    slow = np.sin(2 * np.pi * slow_gait * t + np.array([0.0, 1.0, 2.0]))
+    freqs, power = power_spectrum(slow, DT)
+    assert math.isnan(dominant_frequency(freqs, power)) and lowest_bin(freqs, power)
+    assert gait_segment(slow, DT) == STEPS
+    freqs, power = power_spectrum(slow, DT, STEPS)
+    assert dominant_frequency(freqs, power) == pytest.approx(slow_gait)
+    assert not lowest_bin(freqs, power)
+    assert gait_segment(_sine(3), DT) == 256  # 0.78 Hz: resolved by 256-step segments
+    assert gait_segment(_sine(3)[:200], DT) == 256  # shorter than a segment: nothing to widen
+    assert gait_segment(None, DT) == 256
+
+
+def test_a_gait_below_the_resolution_is_told_apart_from_no_gait(tmp_path: Path) -> None:
+    """A table whose joint angles peak in the lowest bin even over the whole episode says
+    "gait below resolution"; one without that column (written before it existed) or without
+    such power says "no gait"; both leave the criterion unjudged."""
+    table = _spectra_table(0.5, 0.1, GAIT).assign(
+        gait_frequency=math.nan, resolution=1 / (STEPS * DT), lowest_bin=False
+    )
+    table.loc[table["signal"] == "joint angles", "lowest_bin"] = True
+    (tmp_path / "below").mkdir()
+    table.to_csv(tmp_path / "below" / MECHANISM_FILE, index=False)
+    read = read_mechanism(tmp_path / "below")
+    assert read is not None
+    outcome = spectral_outcome(read)
+    assert outcome.holds is None
+    assert outcome.reason.startswith("gait below resolution: the joint angles' power is largest")
+    assert "(0.025 Hz) even with the whole 1000-step episode as one segment" in outcome.reason
+    old = table.drop(columns="lowest_bin")
+    (tmp_path / "old").mkdir()
+    old.to_csv(tmp_path / "old" / MECHANISM_FILE, index=False)
+    read_old = read_mechanism(tmp_path / "old")
+    assert read_old is not None and list(read_old.columns) == list(table.columns)
+    assert spectral_outcome(read_old).reason.startswith("no gait")
+    flat = table.assign(lowest_bin=False)
+    assert spectral_outcome(flat).reason.startswith("no gait")
 
 
 def _recording_of_a_reservoir_env(encoder: object, seed: int, steps: int = 200) -> object:

@@ -71,6 +71,8 @@ __all__ = [
     "SpectralOutcome",
     "band_share",
     "describe_mechanism",
+    "gait_segment",
+    "lowest_bin",
     "mechanism_figure",
     "mechanism_question",
     "mechanism_reservoirs",
@@ -103,13 +105,19 @@ MECHANISM_LABELS = (
     "inconclusive",
     NOT_RUN,
 )
-#: Welch segment length (steps), as in :func:`~ermrl.analysis.power_spectrum`.
+#: Welch segment length (steps), as in :func:`~ermrl.analysis.power_spectrum`; the whole episode
+#: when the gait is slower than it resolves (:func:`gait_segment`).
 NPERSEG = 256
-MECHANISM_COLUMNS = [
+#: The columns every :data:`MECHANISM_FILE` has (:func:`read_mechanism` needs them).
+REQUIRED_COLUMNS = [
     "env_id", "signal", "weight_seed", "recorded_seed", "n_steps", "dt", "frequency_unit",
     "resolution", "gait_frequency", "band_low", "band_high", "dominant_frequency",
     "share_near_gait", "replay_error",
 ]  # fmt: skip
+#: ``lowest_bin``: the signal's power above 0 Hz is largest in the lowest non-zero frequency bin
+#: (for the joint angles without a peak: a gait slower than the resolution). Files written
+#: before it existed lack it; :func:`read_mechanism` reads it as unknown.
+MECHANISM_COLUMNS = [*REQUIRED_COLUMNS, "lowest_bin"]
 
 
 @dataclass(frozen=True)
@@ -152,8 +160,9 @@ class SpectralCriterion:
         return (
             f"the gait band is the joint angles' dominant frequency ± {self.band:.0%} of it (at "
             "least ± one frequency bin); a reservoir's share is the share of its state power "
-            "above 0 Hz inside that band (Welch spectra, 256-step Hann segments, linearly "
-            "detrended, mean over units); the evolved reservoir carries a gait-frequency "
+            f"above 0 Hz inside that band (Welch spectra, {NPERSEG}-step Hann segments, or the "
+            "whole episode as one segment when the joint angles' power is largest in the lowest "
+            f"frequency bin of {NPERSEG}-step ones, linearly detrended, mean over units); the evolved reservoir carries a gait-frequency "
             f"component its W = 0 ablation lacks when its share is at least {self.ratio:g}× the "
             "ablation's and its dominant frequency lies inside the band, on more than half of "
             "the weight seeds"
@@ -181,6 +190,41 @@ def band_share(freqs: np.ndarray, power: np.ndarray, band: Sequence[float]) -> f
     tol = 1e-9 * max(high, 1e-12)
     inside = above & (freqs >= low - tol) & (freqs <= high + tol)
     return float(total[inside].sum() / whole)
+
+
+def lowest_bin(freqs: np.ndarray, power: np.ndarray) -> bool:
+    """Whether a spectrum's power above 0 Hz is largest in its lowest non-zero frequency bin.
+
+    Such a signal varies more slowly than the spectrum resolves: a peak there cannot be told
+    from a trend (:func:`~ermrl.analysis.dominant_frequency` gives none).
+
+    Args:
+        freqs: Shape ``(F,)``, from :func:`~ermrl.analysis.power_spectrum`.
+        power: Shape ``(F, d)`` (mean over columns) or ``(F,)``.
+    """
+    mean = power.mean(axis=1) if power.ndim == 2 else np.asarray(power, dtype=float)
+    above = mean[np.asarray(freqs) > 0]
+    return bool(len(above) >= 2 and above.max() > 0 and int(np.argmax(above)) == 0)
+
+
+def gait_segment(angles: np.ndarray | None, dt: float) -> int:
+    """The Welch segment length (steps) that resolves the gait of an episode's joint angles.
+
+    :data:`NPERSEG` steps, unless the joint angles have no spectral peak with them and their power
+    is largest in the lowest non-zero bin (:func:`lowest_bin`): the gait is then slower than
+    ``1 / (NPERSEG dt)`` (Swimmer's, at dt 0.04 s, can be under 0.1 Hz), and the whole episode is
+    one segment, for a resolution of ``1 / (T dt)``.
+
+    Args:
+        angles: Shape ``(T, d)`` (``None``: no joint angles, :data:`NPERSEG`).
+        dt: Sampling interval.
+    """
+    if angles is None or len(angles) <= NPERSEG:
+        return NPERSEG
+    freqs, power = power_spectrum(angles, dt, NPERSEG)
+    if math.isfinite(dominant_frequency(freqs, power)) or not lowest_bin(freqs, power):
+        return NPERSEG
+    return len(angles)
 
 
 def reservoir_inputs(recording: DynamicsRecording, encoder: Any, action_space: Any) -> np.ndarray:
@@ -272,12 +316,13 @@ def reservoir_spectra(
         env.close()
     inputs = reservoir_inputs(recording, encoder, action_space)
     dt = recording.dt if math.isfinite(recording.dt) else 1.0
-    resolution = 1.0 / (min(NPERSEG, max(recording.n_steps, 1)) * dt)
     angles = joint_angles(recording)
+    nperseg = gait_segment(angles, dt)
+    resolution = 1.0 / (min(nperseg, max(recording.n_steps, 1)) * dt)
     freqs, joints = np.zeros(1), None
     gait = math.nan
     if angles is not None and recording.n_steps >= 4:
-        freqs, joints = power_spectrum(angles, dt, NPERSEG)
+        freqs, joints = power_spectrum(angles, dt, nperseg)
         gait = dominant_frequency(freqs, joints)
     band = criterion.gait_band(gait, resolution)
     base = {
@@ -308,7 +353,7 @@ def reservoir_spectra(
                 and recording.states.shape == states.shape
             ):
                 replay_error = float(np.max(np.abs(states - recording.states), initial=0.0))
-            freqs, power = power_spectrum(states, dt, NPERSEG)
+            freqs, power = power_spectrum(states, dt, nperseg)
             rows.append(_row(base, name, seed, freqs, power, band))
             spectra.setdefault(name, []).append(power.sum(axis=1))
     table = pd.DataFrame(rows, columns=MECHANISM_COLUMNS)
@@ -376,6 +421,7 @@ def _row(
         "weight_seed": int(seed),
         "dominant_frequency": dominant_frequency(freqs, power),
         "share_near_gait": band_share(freqs, power, band),
+        "lowest_bin": lowest_bin(freqs, power),
     }
 
 
@@ -400,9 +446,11 @@ def read_mechanism(folder: str | Path) -> pd.DataFrame | None:
         table = pd.read_csv(path)
     except (OSError, ValueError):
         return None
-    if not set(MECHANISM_COLUMNS) <= set(table.columns):
+    if not set(REQUIRED_COLUMNS) <= set(table.columns):
         return None
-    return table
+    if "lowest_bin" not in table.columns:
+        table["lowest_bin"] = pd.NA  # written before the column existed: unknown
+    return table[MECHANISM_COLUMNS]
 
 
 @dataclass(frozen=True)
@@ -460,7 +508,7 @@ def spectral_outcome(
     ablated = table[table["signal"] == ABLATED].set_index("weight_seed")
     seeds = [s for s in evolved.index if s in ablated.index]
     if not math.isfinite(gait):
-        reason = "no gait: the joint angles have no spectral peak, or the task has none"
+        reason = _no_gait_reason(table)
         return SpectralOutcome(None, len(seeds), 0, gait, band, unit, summary, reason)
     if not seeds:
         reason = f"no spectra of both {EVOLVED} and {ABLATED}"
@@ -475,6 +523,22 @@ def spectral_outcome(
         for s in seeds
     )
     return SpectralOutcome(holding > len(seeds) / 2, len(seeds), holding, gait, band, unit, summary)
+
+
+def _no_gait_reason(table: pd.DataFrame) -> str:
+    """Why a table has no gait: the joint angles' power peaks below the resolution, or nowhere."""
+    joints = table[table["signal"] == JOINTS]
+    value = joints["lowest_bin"].iloc[0] if not joints.empty and "lowest_bin" in joints else None
+    if not (isinstance(value, (bool, np.bool_)) and value):  # unknown in older files
+        return "no gait: the joint angles have no spectral peak, or the task has none"
+    first = joints.iloc[0]
+    unit = str(first["frequency_unit"])
+    return (
+        f"gait below resolution: the joint angles' power is largest in the lowest frequency bin "
+        f"({float(first['resolution']):.3g} {unit}) even with the whole "
+        f"{int(first['n_steps'])}-step episode as one segment, so a gait, if there is one, is "
+        "slower than one episode resolves"
+    )
 
 
 def _summary(table: pd.DataFrame) -> pd.DataFrame:
