@@ -101,9 +101,7 @@ def evolve_main(argv: Sequence[str] | None = None, prog: str = "ermrl evolve") -
         )
     except (ConfigError, UnknownEnvError, UnsupportedObserveError) as err:
         fail(prog, str(err))
-    request = _commands.EvolveRequest(
-        config, args.storage, study_name, command_line(prog, argv), tuple(notes), args.quiet,
-        args.progress, args.tensorboard, args.wandb, args.heartbeat_interval, args.grace_period,
-        args.max_retry, args.wait_for_running,
-    )  # fmt: skip
+    request = _commands.EvolveRequest.from_options(
+        config, args.storage, study_name, args, command=command_line(prog, argv), notes=notes
+    )
     return exit_on_failure(prog, lambda: _commands.run_evolve(request, prog))

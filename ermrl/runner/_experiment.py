@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import copy
+import dataclasses
 import difflib
 import functools
 import io
@@ -995,14 +996,10 @@ def _evolve_request(
 ) -> EvolveRequest:
     """What an evolve step runs: its configuration and the worker's options the file gives
     (``ermrl run``'s own are added when it runs)."""
-    return EvolveRequest(
-        config, exp.storage, study_name, command="", notes=tuple(notes), quiet=args.quiet,
-        progress=args.progress,
-        tensorboard=None if args.tensorboard == _TENSORBOARD_IN_PLAN else args.tensorboard,
-        wandb=args.wandb, heartbeat_interval=args.heartbeat_interval,
-        grace_period=args.grace_period, max_retry=args.max_retry,
-        wait_for_running=args.wait_for_running,
-    )  # fmt: skip
+    request = EvolveRequest.from_options(config, exp.storage, study_name, args, notes=notes)
+    if args.tensorboard == _TENSORBOARD_IN_PLAN:
+        request = dataclasses.replace(request, tensorboard=None)
+    return request
 
 
 def _test_request(

@@ -61,6 +61,28 @@ class EvolveRequest:
     max_retry: int = 3
     wait_for_running: bool = True
 
+    @classmethod
+    def from_options(
+        cls,
+        config: EvolveConfig,
+        storage: str,
+        study_name: str,
+        options: Any,
+        *,
+        command: str = "",
+        notes: tuple[str, ...] | list[str] = (),
+        tensorboard: str | None = None,
+    ) -> EvolveRequest:
+        """A request from the worker options of an evolve parser's namespace (``quiet``,
+        ``progress``, ``tensorboard`` unless given, ``wandb``, ``heartbeat_interval``,
+        ``grace_period``, ``max_retry`` and ``wait_for_running``)."""
+        return cls(
+            config, storage, study_name, command, tuple(notes), options.quiet, options.progress,
+            options.tensorboard if tensorboard is None else tensorboard, options.wandb,
+            options.heartbeat_interval, options.grace_period, options.max_retry,
+            options.wait_for_running,
+        )  # fmt: skip
+
 
 @dataclass(frozen=True)
 class TestRequest:
