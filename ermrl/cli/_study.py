@@ -236,9 +236,9 @@ def _open_study(args: argparse.Namespace, prog: str, mode: str = "read") -> Any:
 
 
 def _create(args: argparse.Namespace, prog: str) -> int:
-    from ermrl.cli._evolve import config_from_args
     from ermrl.config import ConfigError
     from ermrl.envs import UnknownEnvError, UnsupportedObserveError
+    from ermrl.runner._resolve import config_from_args
     from ermrl.search import create_or_resume_study
     from ermrl.storage import LockTimeout, StorageError
 
