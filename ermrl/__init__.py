@@ -20,6 +20,12 @@ import importlib
 from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
+from ermrl._blas import pin_blas_kernel
+
+# Before anything imports numpy: one OpenBLAS kernel on every x86-64 CPU with AVX2, so that a
+# seed's result does not depend on the machine (ermrl._blas says why and when it is not set).
+pin_blas_kernel()
+
 try:
     __version__ = version("ermrl")
 except PackageNotFoundError:  # running from a source tree that is not installed

@@ -6,8 +6,9 @@ version, the git commit of the checkout the package runs from (when it is one, w
 its files differ from that commit) and a SHA-256 of the package's own source files, which
 identifies the code wherever git is not available (an installed wheel, a copied tree).
 
-Two records were made by the same code when their ``source`` hashes are equal
-(:func:`same_code`); the commit is what a reader looks up.
+Two records were made by the same code when their ``source`` hashes are equal and, where both
+name it, numpy's BLAS kernel is the same (:func:`same_code`; :mod:`ermrl._blas`); the commit is
+what a reader looks up.
 """
 
 from __future__ import annotations
@@ -61,11 +62,14 @@ def code_identity() -> dict[str, Any]:
     """The code this process runs, as plain JSON data (computed once per process).
 
     Returns:
-        ``{"version": ..., "commit": ... | None, "dirty": bool | None, "source": sha256}``:
-        ``commit`` is ``None`` outside a git checkout; ``dirty`` says whether the package's
-        files differ from that commit (``None`` when unknown).
+        ``{"version": ..., "commit": ... | None, "dirty": bool | None, "source": sha256,
+        "blas": ...}``: ``commit`` is ``None`` outside a git checkout; ``dirty`` says whether
+        the package's files differ from that commit (``None`` when unknown); ``blas`` is the
+        kernel numpy's products run with (:func:`ermrl._blas.blas_kernel`): the same code and
+        seed give the same result under the same kernel.
     """
     from ermrl import __version__
+    from ermrl._blas import blas_kernel
 
     commit = None
     dirty = None
@@ -78,6 +82,7 @@ def code_identity() -> dict[str, Any]:
         "commit": commit,
         "dirty": dirty,
         "source": _source_hash(),
+        "blas": blas_kernel(),
     }
 
 
@@ -87,10 +92,15 @@ def code_key() -> str:
 
 
 def same_code(record: Mapping[str, Any] | None) -> bool | None:
-    """Whether a stored :func:`code_identity` is this process's code (``None``: not recorded)."""
+    """Whether a stored :func:`code_identity` is this process's code and BLAS kernel (``None``:
+    not recorded)."""
     if not isinstance(record, Mapping) or not isinstance(record.get("source"), str):
         return None
-    return record["source"] == code_identity()["source"]
+    here = code_identity()
+    blas = record.get("blas")  # records older than the BLAS field: the source alone
+    if isinstance(blas, str) and blas != here["blas"]:
+        return False
+    return record["source"] == here["source"]
 
 
 def describe_code(record: Mapping[str, Any] | None) -> str:
@@ -104,4 +114,7 @@ def describe_code(record: Mapping[str, Any] | None) -> str:
     source = record.get("source")
     if isinstance(source, str):
         text += f", source {source[:10]}"
+    blas = record.get("blas")
+    if isinstance(blas, str):
+        text += f", BLAS {blas}"
     return text

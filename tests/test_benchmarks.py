@@ -423,3 +423,17 @@ def test_the_fault_pass_runs_in_quick_mode(tmp_path: Path) -> None:
     assert "| traceback | 0 |" in proc.stdout and "| files-left | 0 |" in proc.stdout
     rows = (tmp_path / "fault_pass.csv").read_text().splitlines()
     assert len(rows) == 4 and all(row.endswith(",ok") for row in rows[1:]), rows
+
+
+@pytest.mark.slow
+def test_the_blas_benchmark_runs_in_quick_mode(tmp_path: Path) -> None:
+    """bench_blas trains one generation under the CPU's own OpenBLAS kernel and the pinned one."""
+    run_quick("bench_blas.py", "--tasks", "Pendulum-v1:positions", "--out", str(tmp_path))
+    row = json.loads((tmp_path / "blas.json").read_text())["rows"][0]
+    assert row["task"] == "Pendulum-v1:positions" and row["runs"] == 2
+    assert row["native_kernel"] and row["native_steps_per_s"] > 0 < row["pinned_steps_per_s"]
+    assert row["pinned_over_native"] == pytest.approx(
+        row["pinned_steps_per_s"] / row["native_steps_per_s"], rel=0.01
+    )
+    if row["native_kernel"].lower() == "haswell":  # one variant: the same kernel, same returns
+        assert row["same_returns"] is True

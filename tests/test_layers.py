@@ -71,6 +71,7 @@ PACKAGE_DIR = Path(__file__).resolve().parents[1] / PACKAGE
 LAYERS: tuple[tuple[str, ...], ...] = (
     (
         "ermrl",
+        "ermrl._blas",
         "ermrl._code",
         "ermrl._config_base",
         "ermrl._interrupt",
