@@ -620,7 +620,7 @@ def _mechanism_section(
     gait = (
         f"gait {spectral.gait_frequency:.3g} {spectral.unit}, band [{band}]"
         if math.isfinite(spectral.gait_frequency)
-        else "no gait"
+        else spectral.reason.partition(":")[0] or "no gait"  # or "gait below resolution"
     )
     counts = (
         f"the criterion holds on {spectral.n_holding} of {spectral.n_seeds} weight seeds"
