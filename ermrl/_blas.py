@@ -14,7 +14,8 @@ CPUs that have AVX2 and FMA (every x86-64 server CPU since 2013 does). The popul
 products then round alike on any such machine: a published run reruns bit-identically on
 another CPU. A kernel set by the user (``OPENBLAS_CORETYPE`` in the environment) is kept, and
 nothing is changed when numpy was imported before ``ermrl`` (too late: OpenBLAS has chosen) or
-on other CPUs. :func:`blas_kernel` names the kernel a process runs with; every run and trial
+on other CPUs; when numpy came first, the variable is set to the kernel OpenBLAS chose, so that
+the worker processes ermrl starts run the same one. :func:`blas_kernel` names the kernel a process runs with; every run and trial
 records it beside the code (:func:`ermrl._code.code_identity`).
 
 PyTorch's CPU wheels use MKL, whose own dispatch is not pinned here: the ``sb3`` backend's
@@ -70,6 +71,11 @@ def pin_blas_kernel(
     if env.get(_ENV):
         return env[_ENV]
     if numpy_loaded if numpy_loaded is not None else "numpy" in sys.modules:
+        # Too late for this process: its child processes (the workers) take its kernel, so that
+        # one job runs one kernel.
+        kernel = blas_kernel().split()[-1]
+        if kernel != "unknown":
+            env[_ENV] = kernel
         return None
     if (machine or platform.machine()).lower() not in ("x86_64", "amd64"):
         return None

@@ -17,6 +17,8 @@ from urllib.parse import urlsplit, urlunsplit
 
 import pytest
 
+import ermrl  # noqa: F401  (first: pins numpy's BLAS kernel before a test module loads numpy)
+
 POSTGRES_ADMIN = os.environ.get("ERMRL_TEST_POSTGRES", "postgresql://postgres@127.0.0.1:5432/test")
 MYSQL_ADMIN = os.environ.get("ERMRL_TEST_MYSQL", "mysql+pymysql://root@127.0.0.1:3306/test")
 REDIS_URL = os.environ.get("ERMRL_TEST_REDIS", "redis://127.0.0.1:6379/0")

@@ -109,7 +109,9 @@ def test_overrides_are_validated() -> None:
 
 def test_zoo_key_colon_value_overrides_are_read_like_key_equals_value() -> None:
     """rl-zoo writes `--hyperparams learning_rate:1e-4`; the first separator splits."""
-    assert parse_overrides(["learning_rate:1e-4", "n_steps=512", "policy_kwargs:{net_arch: [8]}"]) == {
+    assert parse_overrides(
+        ["learning_rate:1e-4", "n_steps=512", "policy_kwargs:{net_arch: [8]}"]
+    ) == {
         "learning_rate": pytest.approx(1e-4),
         "n_steps": 512,
         "policy_kwargs": {"net_arch": [8]},
@@ -130,7 +132,9 @@ def test_an_unknown_key_is_matched_against_the_chosen_learner_only() -> None:
     with pytest.raises(ConfigError, match=r"'buffer_size' is a setting of another learner \(sac"):
         parse_overrides(["buffer_size=100"], "ppo")
     assert parse_overrides(["buffer_size=100"], "sac") == {"buffer_size": 100}
-    with pytest.raises(ConfigError, match=r"'frame_stack' is a setting of another learner \(framestack-ppo"):
+    with pytest.raises(
+        ConfigError, match=r"'frame_stack' is a setting of another learner \(framestack-ppo"
+    ):
         parse_overrides(["frame_stack=3"], "ppo")
     assert parse_overrides(["frame_stack:3"], "framestack-ppo") == {"frame_stack": 3}
 
