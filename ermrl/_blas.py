@@ -73,9 +73,9 @@ def pin_blas_kernel(
     if numpy_loaded if numpy_loaded is not None else "numpy" in sys.modules:
         # Too late for this process: its child processes (the workers) take its kernel, so that
         # one job runs one kernel.
-        kernel = blas_kernel().split()[-1]
-        if kernel != "unknown":
-            env[_ENV] = kernel
+        parts = blas_kernel().split()
+        if len(parts) == 3 and parts[0] == "openblas":  # library, version, kernel
+            env[_ENV] = parts[2]
         return None
     if (machine or platform.machine()).lower() not in ("x86_64", "amd64"):
         return None
