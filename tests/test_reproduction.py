@@ -14,12 +14,15 @@ import pytest
 import yaml
 
 from ermrl.analysis import (
+    NOT_RUN,
     Hypothesis,
     TaskFiles,
+    VerdictError,
     VerdictRule,
     bootstrap_mean_diff_ci,
     compare_agents,
     paired_bootstrap_mean_diff_ci,
+    verdict_changes,
     write_reproduction_page,
 )
 
@@ -312,11 +315,63 @@ def test_a_bad_verdict_block_is_one_line(change: dict, message: str) -> None:
         VerdictRule.from_doc({**RULE, **change})
 
 
+def judged(*rows: tuple[str, str, str, float, str]) -> pd.DataFrame:
+    """A page's tests: (task, metric, outcome, mean_diff, note) of H1's reservoir-vs-ppo."""
+    return pd.DataFrame(
+        [
+            {"hypothesis": "paper-h1", "task": task, "question": "reservoir-vs-ppo",
+             "comparison": "res-ppo − ppo", "metric": metric, "outcome": outcome,
+             "n_candidate": 5, "n_baseline": 5, "mean_diff": diff, "p_adjusted": 0.5,
+             "seeds_needed": 40, "note": note}
+            for task, metric, outcome, diff, note in rows
+        ]
+    )  # fmt: skip
+
+
+def test_verdict_changes_names_what_moved_appeared_and_went() -> None:
+    before = judged(
+        ("CartPole-v1", "last10", "inconclusive", 10.0, ""),
+        ("CartPole-v1", "eval", "inconclusive", 1.0, ""),
+        ("Pendulum-v1", "last10", "inconclusive", 0.0, "not run yet: ppo has no finished run"),
+        ("Old-v0", "last10", "supported", 3.0, ""),
+    )
+    after = judged(
+        ("CartPole-v1", "last10", "supported", 12.0, ""),
+        ("CartPole-v1", "eval", "inconclusive", 2.0, ""),
+        ("Pendulum-v1", "last10", "inconclusive", -1.0, ""),
+        ("Hopper-v5", "last10", "contradicted", -5.0, ""),
+    )
+    changes = verdict_changes(before, after)
+    got = {(r["task"], r["metric"]): r for r in changes.to_dict("records")}
+    assert got["CartPole-v1", "last10"]["change"] == "moved"
+    assert got["CartPole-v1", "last10"]["mean_diff_before"] == 10.0
+    assert got["CartPole-v1", "last10"]["mean_diff_after"] == 12.0
+    assert got["CartPole-v1", "eval"]["change"] == "same"
+    # A comparison that could not run has no verdict: running it moves it.
+    assert got["Pendulum-v1", "last10"]["outcome_before"] == NOT_RUN
+    assert got["Pendulum-v1", "last10"]["change"] == "moved"
+    assert got["Hopper-v5", "last10"]["change"] == "new"
+    assert pd.isna(got["Hopper-v5", "last10"]["outcome_before"])
+    assert got["Old-v0", "last10"]["change"] == "gone"
+    # The later page's order, then what only the earlier one has.
+    assert list(changes["task"]) == ["CartPole-v1", "CartPole-v1", "Pendulum-v1", "Hopper-v5",
+                                     "Old-v0"]  # fmt: skip
+    with pytest.raises(VerdictError, match="before table has no column outcome"):
+        verdict_changes(before.drop(columns="outcome"), after)
+
+
 def test_the_command_reads_the_paper_files(tmp_path: Path) -> None:
+    # An earlier page: one verdict the paper files now judge otherwise, one they no longer have.
+    before = judged(
+        ("CartPole-v1", "last10", "contradicted", -1.0, ""),
+        ("Old-v0", "last10", "supported", 3.0, ""),
+    )
+    before.to_csv(tmp_path / "before.csv", index=False)
     done = subprocess.run(
         [sys.executable, "-m", "ermrl", "reproduction",
          *map(str, sorted((ROOT / "experiments" / "paper").glob("*.yaml"))),
-         "--out", str(tmp_path / "r.md")],
+         "--out", str(tmp_path / "r.md"), "--compare", str(tmp_path / "before.csv"),
+         "--changes", str(tmp_path / "changes.csv")],
         capture_output=True, text=True, cwd=ROOT, timeout=300,
     )  # fmt: skip
     assert done.returncode == 0, done.stderr
@@ -325,3 +380,34 @@ def test_the_command_reads_the_paper_files(tmp_path: Path) -> None:
         assert name in text
     assert "**Rule** (`verdict:` block of" in text
     assert (tmp_path / "r.html").exists()
+    page = pd.read_csv(tmp_path / "r.csv")
+    changes = pd.read_csv(tmp_path / "changes.csv")
+    assert len(changes) == len(page) + 1
+    assert "1 moved" in done.stdout and "1 gone" in done.stdout
+    assert f"{len(page) - 1} new" in done.stdout
+    moved = changes[changes["change"] == "moved"].iloc[0]
+    assert (moved["task"], moved["metric"], moved["outcome_before"]) == (
+        "CartPole-v1", "last10", "contradicted")  # fmt: skip
+    assert re.search(r"moved\s+paper-h1\s+CartPole-v1\s+res-ppo − ppo\s+last10\s+contradicted",
+                     done.stdout)  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--changes", "c.csv"], "--changes needs --compare BEFORE.csv"),
+        (["--compare", "missing.csv"], "cannot read missing.csv"),
+    ],
+)
+def test_compare_options_fail_in_one_line(
+    tmp_path: Path, args: list[str], message: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from ermrl.cli._reproduction import reproduction_main
+
+    with pytest.raises(SystemExit) as exit_info:
+        reproduction_main(["experiments/paper/h1_partial_observability.yaml",
+                           "--out", str(tmp_path / "r.md"), *args])  # fmt: skip
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0]
+    assert not (tmp_path / "r.md").exists()

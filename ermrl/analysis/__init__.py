@@ -132,6 +132,7 @@ from ermrl.analysis._verdicts import (
     probability_of_improvement,
     seeds_for_power,
     task_outcome,
+    verdict_changes,
 )
 from ermrl.analysis._video import (
     GL_BACKENDS,
@@ -180,6 +181,7 @@ __all__ = [
     "TaskRuns",
     "VerdictError",
     "VerdictRule",
+    "verdict_changes",
     "aggregate_question",
     "holm",
     "judge",

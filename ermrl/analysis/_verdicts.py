@@ -62,6 +62,7 @@ __all__ = [
     "not_run",
     "task_outcome",
     "holm",
+    "verdict_changes",
     "judge",
     "load_test_runs",
     "probability_of_improvement",
@@ -607,6 +608,76 @@ def excluded_effects(row: Mapping[str, Any]) -> str:
         f"effects above {max(highs):+.4g} or below {min(lows):+.4g} are excluded at "
         f"{_percent(level)}"
     )
+
+
+#: The columns that name one judged comparison on a page.
+COMPARISON_KEY = ["hypothesis", "task", "question", "comparison", "metric"]
+#: What :func:`verdict_changes` keeps of each side, besides the key.
+_CHANGE_FIELDS = ["outcome", "n_candidate", "n_baseline", "mean_diff", "p_adjusted"]
+
+
+def _outcome_or_not_run(table: pd.DataFrame) -> pd.Series:
+    notes = table["note"] if "note" in table else pd.Series("", index=table.index)
+    not_tested = notes.fillna("").astype(str).str.startswith(NOT_RUN)
+    return table["outcome"].astype(str).where(~not_tested, NOT_RUN)
+
+
+def verdict_changes(before: pd.DataFrame, after: pd.DataFrame) -> pd.DataFrame:
+    """Each judged comparison of two pages side by side, and whether its verdict moved.
+
+    Args:
+        before: The earlier page's tests (rows of :func:`judge`, or its ``reproduction.csv``).
+        after: The later page's.
+
+    Returns:
+        One row per comparison of either page (:data:`COMPARISON_KEY`), in the later page's
+        order with comparisons only the earlier page has at the end. Columns ``outcome``,
+        ``n_candidate``, ``n_baseline``, ``mean_diff`` and ``p_adjusted`` with suffixes
+        ``_before`` and ``_after`` (a comparison that was not tested reads :data:`NOT_RUN`),
+        the later page's ``seeds_needed`` (the power line) and ``change``: ``moved`` (another
+        outcome), ``same``, ``new`` (only the later page has it) or ``gone`` (only the earlier).
+
+    Raises:
+        VerdictError: a table lacks a column of the key or the outcome.
+    """
+    sides = []
+    for name, table in (("before", before), ("after", after)):
+        missing = [c for c in (*COMPARISON_KEY, "outcome") if c not in table.columns]
+        if missing:
+            raise VerdictError(f"the {name} table has no column {', '.join(missing)}")
+        side = table.copy()
+        side["outcome"] = _outcome_or_not_run(side)
+        for column in _CHANGE_FIELDS:
+            if column not in side:
+                side[column] = math.nan
+        side["order"] = range(len(side))
+        kept = [*COMPARISON_KEY, *_CHANGE_FIELDS, "order"]
+        if name == "after":
+            side["seeds_needed"] = side.get("seeds_needed", math.nan)
+            kept.append("seeds_needed")
+        sides.append(side[kept].drop_duplicates(COMPARISON_KEY))
+    merged = sides[0].merge(
+        sides[1], on=COMPARISON_KEY, how="outer", suffixes=("_before", "_after"), indicator=True
+    )
+    change = np.where(
+        merged["_merge"] == "right_only",
+        "new",
+        np.where(
+            merged["_merge"] == "left_only",
+            "gone",
+            np.where(merged["outcome_before"] == merged["outcome_after"], "same", "moved"),
+        ),
+    )
+    merged["change"] = change
+    merged["_rank"] = merged["order_after"].fillna(len(merged) + merged["order_before"])
+    merged = merged.sort_values("_rank", kind="stable").reset_index(drop=True)
+    columns = [
+        *COMPARISON_KEY,
+        *(f"{c}_{s}" for c in _CHANGE_FIELDS for s in ("before", "after")),
+        "seeds_needed",
+        "change",
+    ]
+    return merged[columns]
 
 
 def _percent(level: float) -> str:

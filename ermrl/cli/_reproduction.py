@@ -3,13 +3,18 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import textwrap
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from ermrl.cli._common import fail
 from ermrl.runner._options import ArgumentParser, HelpFormatter
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 __all__ = ["build_reproduction_parser", "reproduction_main"]
 
@@ -25,8 +30,13 @@ DESCRIPTION = textwrap.dedent(
     `ermrl run` published (the experiment's `publish:` folder), so anyone can recompute it
     from a clone.
 
-    example:
+    With --compare, it also prints which verdicts moved since an earlier page's CSV (for
+    instance one taken from git history), and --changes writes the full comparison as CSV.
+
+    examples:
       ermrl reproduction experiments/paper/*.yaml --out docs/reproduction.md
+      git show HEAD~5:docs/reproduction.csv > /tmp/before.csv
+      ermrl reproduction experiments/paper/*.yaml --compare /tmp/before.csv
     """
 )
 
@@ -43,18 +53,96 @@ def build_reproduction_parser(prog: str = "ermrl reproduction") -> ArgumentParse
         default=True,
         help="also write the HTML form beside the Markdown page",
     )
+    parser.add_argument(
+        "--compare",
+        metavar="BEFORE.csv",
+        help="an earlier page's CSV (reproduction.csv): print each verdict that moved, and "
+        "the comparisons only one page has",
+    )
+    parser.add_argument(
+        "--changes",
+        metavar="CHANGES.csv",
+        help="with --compare, write every comparison of both pages side by side to this CSV",
+    )
     return parser
+
+
+def _print_changes(changes: pd.DataFrame, before: str) -> None:
+    import pandas as pd
+
+    counts = changes["change"].value_counts()
+    summary = ", ".join(f"{counts.get(k, 0)} {k}" for k in ("moved", "new", "gone", "same"))
+    print(f"verdicts against {before}: {len(changes)} comparisons; {summary}", flush=True)
+    shown = changes[changes["change"] != "same"]
+    if shown.empty:
+        return
+    table = pd.DataFrame(
+        {
+            "change": shown["change"],
+            "hypothesis": shown["hypothesis"],
+            "task": shown["task"],
+            "comparison": shown["comparison"],
+            "metric": shown["metric"],
+            "before": shown["outcome_before"].fillna("-"),
+            "after": shown["outcome_after"].fillna("-"),
+            "seeds": [_seeds(r) for r in shown.to_dict("records")],
+            "diff": [_diffs(r) for r in shown.to_dict("records")],
+            "p_adj": [_p_pair(r) for r in shown.to_dict("records")],
+        }
+    )
+    print(table.to_string(index=False), flush=True)
+
+
+def _fmt(value: Any, spec: str) -> str:
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        return "-"
+    return "-" if math.isnan(number) else format(number, spec)
+
+
+def _seeds(row: dict[str, Any]) -> str:
+    sides = [
+        f"{_fmt(row[f'n_candidate_{s}'], '.0f')}/{_fmt(row[f'n_baseline_{s}'], '.0f')}"
+        for s in ("before", "after")
+    ]
+    return " -> ".join(sides)
+
+
+def _diffs(row: dict[str, Any]) -> str:
+    return " -> ".join(_fmt(row[f"mean_diff_{s}"], "+.4g") for s in ("before", "after"))
+
+
+def _p_pair(row: dict[str, Any]) -> str:
+    return " -> ".join(_fmt(row[f"p_adjusted_{s}"], ".2g") for s in ("before", "after"))
 
 
 def reproduction_main(argv: Sequence[str] | None = None, prog: str = "ermrl reproduction") -> int:
     """Entry point of ``ermrl reproduction``."""
-    from ermrl.analysis import VerdictError, untraceable_tasks, write_reproduction_page
+    from ermrl.analysis import (
+        VerdictError,
+        untraceable_tasks,
+        verdict_changes,
+        write_reproduction_page,
+    )
     from ermrl.cli._common import quiet_libraries
     from ermrl.runner._experiment import ExperimentError, hypothesis_of, load_experiment
 
     parser = build_reproduction_parser(prog)
     args = parser.parse_args(argv)
+    if args.changes and not args.compare:
+        fail(prog, "--changes needs --compare BEFORE.csv")
     quiet_libraries()
+    import pandas as pd
+
+    from ermrl._io import write_atomic
+
+    before = None
+    if args.compare:
+        try:
+            before = pd.read_csv(args.compare)
+        except (OSError, ValueError) as err:
+            fail(prog, f"cannot read {args.compare}: {getattr(err, 'strerror', None) or err}")
     try:
         hypotheses = [hypothesis_of(load_experiment(f), f) for f in args.files]
     except ExperimentError as err:
@@ -68,4 +156,16 @@ def reproduction_main(argv: Sequence[str] | None = None, prog: str = "ermrl repr
     print(f"wrote {md}" + (f" and {html}" if html else ""), flush=True)
     for line in untraceable_tasks(hypotheses):
         print(f"{prog}: not rendered, the tested trial is untraceable: {line}", file=sys.stderr)
+    if before is not None:
+        try:
+            changes = verdict_changes(before, pd.read_csv(md.with_suffix(".csv")))
+        except VerdictError as err:
+            fail(prog, f"{args.compare}: {err}")
+        _print_changes(changes, args.compare)
+        if args.changes:
+            try:
+                write_atomic(Path(args.changes), changes.to_csv(index=False))
+            except OSError as err:
+                fail(prog, f"cannot write {args.changes}: {err.strerror or err}")
+            print(f"wrote {args.changes}", flush=True)
     return 0
