@@ -245,6 +245,62 @@ def _load(url: str, name: str) -> optuna.Study:
     return optuna.load_study(study_name=name, storage=open_storage(url))
 
 
+def test_a_piece_of_the_test_phase_plans_only_its_runs() -> None:
+    from ermrl.runner._run import check_test_piece, plan_experiment
+
+    exp = load_experiment(ROOT / "experiments" / "paper" / "h2_locomotion.yaml")
+
+    def test_step(**piece: list) -> object:  # noqa: ANN003
+        _, steps, _ = plan_experiment(exp, tasks=["Swimmer-v5"], build_agents=False, **piece)
+        return next(s for s in steps if s.stage == "test")
+
+    whole = test_step()
+    piece = test_step(test_agents=["leaky-res-ppo", "res-ppo"], test_seeds=[15, 10])
+    # The file's order, whatever the order given; only the piece's runs are counted.
+    assert piece.argv[piece.argv.index("--agents") + 1 :][:3] == ["res-ppo", "leaky-res-ppo",
+                                                                   "--seeds"]  # fmt: skip
+    assert piece.argv[piece.argv.index("--seeds") + 1 :][:3] == ["10", "15", "--eval"]
+    assert piece.env_steps == 2 * 2 * 1_001_472 and whole.env_steps == 5 * 20 * 1_001_472
+    # The report replays the whole phase's first seed: a piece trains it again only if it
+    # holds that run.
+    assert whole.replayed == (("res-ppo", 10), ("random-res-ppo", 10))
+    assert piece.replayed == (("res-ppo", 10),)
+    assert test_step(test_seeds=[15]).replayed == ()
+    with pytest.raises(ExperimentError, match=r"--agents lstm-ppo: not in the stage's agents"):
+        test_step(test_agents=["res-ppo", "lstm-ppo"])
+    with pytest.raises(ExperimentError, match=r"--seeds 3 99: not in the stage's seeds \(10 "):
+        test_step(test_seeds=[3, 99, 10])
+    check_test_piece(["test"], ["ppo"], [])
+    for stages in (None, ["test", "report"], ["evolve"]):
+        with pytest.raises(ExperimentError, match="give --stage test alone"):
+            check_test_piece(stages, [], [10])
+
+
+def test_a_test_phase_run_in_pieces_then_whole(tmp_path: Path) -> None:
+    path = write(tmp_path, {**TINY, "test": {**TINY["test"], "seeds": [10, 11]}})
+    refused = ermrl(tmp_path, "run", str(path), "--agents", "ppo")
+    assert refused.returncode == 2 and "give --stage test alone" in refused.stderr
+    assert refused.stderr.count("\n") == 1 and not (tmp_path / "runs").exists()
+    evolved = ermrl(tmp_path, "run", str(path), "--stage", "evolve", "--progress", "none")
+    assert evolved.returncode == 0, evolved.stderr
+    piece = ermrl(tmp_path, "run", str(path), "--stage", "test", "--agents", "ppo", "--seeds",
+                  "11", "--progress", "none")  # fmt: skip
+    assert piece.returncode == 0, piece.stdout + piece.stderr
+    runs = tmp_path / "runs" / "tiny" / "Pendulum-v1" / "test" / "agents"
+    trained = sorted(p.parent.relative_to(runs).as_posix() for p in runs.rglob("result.json"))
+    assert trained == ["ppo/seed_11"]
+    # The same piece again is done; the whole file then trains the other runs and reports.
+    again = ermrl(tmp_path, "run", str(path), "--stage", "test", "--agents", "ppo", "--seeds",
+                  "11", "--dry-run")  # fmt: skip
+    assert "[done] test" in again.stdout and "1/1 runs" in again.stdout, again.stdout
+    whole = ermrl(tmp_path, "run", str(path), "--progress", "none")
+    assert whole.returncode == 0, whole.stdout + whole.stderr
+    assert "[skip] ppo seed 11" in whole.stdout, whole.stdout
+    trained = sorted(p.parent.relative_to(runs).as_posix() for p in runs.rglob("result.json"))
+    assert trained == ["ppo/seed_10", "ppo/seed_11", "res-ppo/seed_10", "res-ppo/seed_11"]
+    assert (tmp_path / "runs" / "tiny" / "Pendulum-v1" / "report" / "report.md").exists()
+
+
 def test_a_run_finishes_every_stage_then_skips_them_all(tmp_path: Path) -> None:
     path = write(tmp_path, TINY)
     done = ermrl(tmp_path, "run", str(path), "--progress", "none")

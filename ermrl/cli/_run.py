@@ -29,12 +29,16 @@ DESCRIPTION = textwrap.dedent(
     the file again skips the finished stages and resumes an interrupted one: the study and the
     run folders are the state. Workers started with --stage evolve (SLURM array tasks, say)
     share the studies; the later stages then run once, from one more `ermrl run FILE`.
+    A test phase too long for one sitting runs in pieces: --stage test with --agents and/or
+    --seeds trains only those runs, and publishes them as they finish (with `publish:`).
 
     examples:
       ermrl run experiments/paper/h2_locomotion.yaml --dry-run
       ermrl run experiments/paper/h2_locomotion.yaml --task Swimmer-v5
       ermrl run experiments/paper/h1_partial_observability.yaml --variant quick
       ermrl run experiments/paper/h3_generalization.yaml --stage evolve   # one worker
+      ermrl run experiments/paper/h2_locomotion.yaml --task Ant-v5 --stage test \\
+          --agents res-ppo leaky-res-ppo   # a piece of the test phase
     """
 )
 
@@ -62,6 +66,23 @@ def build_run_parser(prog: str = "ermrl run") -> ArgumentParser:
         choices=STAGE_CHOICES,
         default=None,
         help="only these stages (default: all, in order)",
+    )
+    parser.add_argument(
+        "--agents",
+        nargs="+",
+        default=None,
+        metavar="AGENT",
+        help="with --stage test: train only these of the test stage's agents, a piece of a "
+        "phase too long for one sitting (the rest runs later, from the same command with "
+        "other agents or none)",
+    )
+    parser.add_argument(
+        "--seeds",
+        nargs="+",
+        type=int,
+        default=None,
+        metavar="SEED",
+        help="with --stage test: train only these of the test stage's seeds",
     )
     parser.add_argument(
         "--dry-run",
@@ -122,6 +143,7 @@ def run_main(argv: Sequence[str] | None = None, prog: str = "ermrl run") -> int:
     from ermrl.runner._run import (
         StageFailed,
         StageInterrupted,
+        check_test_piece,
         choose_stages,
         plan_experiment,
         plan_lines,
@@ -139,12 +161,15 @@ def run_main(argv: Sequence[str] | None = None, prog: str = "ermrl run") -> int:
         )
     quiet_libraries()
     try:
+        check_test_piece(args.stage, args.agents or (), args.seeds or ())
         exp, steps, statuses = plan_experiment(
             load_experiment(args.file, args.variant),
             tasks=args.task,
             tensorboard=bool(args.tensorboard),
             wandb=bool(args.wandb),
             build_agents=not args.dry_run,
+            test_agents=args.agents or (),
+            test_seeds=args.seeds or (),
         )
     except (ExperimentError, StorageError) as err:
         fail(prog, str(err))

@@ -215,6 +215,10 @@ class Experiment:
             it, so the plan checks them as they will run (on either backend).
         wandb: ``ermrl run --wandb`` was given: the evolve and test commands get it, so the
             plan checks and estimates a test stage as it will run (sb3).
+        test_agents: ``ermrl run --agents``: each test stage trains only these of its agents
+            (empty: all), a piece of the phase that fits in one sitting.
+        test_seeds: ``ermrl run --seeds``: each test stage trains only these of its seeds
+            (empty: all).
     """
 
     path: Path
@@ -228,6 +232,8 @@ class Experiment:
     document: Mapping[str, Any]
     tensorboard: bool = False
     wandb: bool = False
+    test_agents: tuple[str, ...] = ()
+    test_seeds: tuple[int, ...] = ()
 
     @property
     def generalization(self) -> bool:
@@ -918,9 +924,18 @@ def _test_step(
     label = env_id or (task.env_id if task else "")
     where = f"{exp.path}: {label}: test"
     options = {k: v for k, v in _stage(exp, "test", task).items() if k != "env_ids"}
-    argv = (["--env-id", env_id] if env_id else []) + options_to_argv(parser, options, where)
-    argv += ["--storage", exp.storage, "--study-name", study_name, "--out", str(folder)]
-    args = parse_checked(parser, argv, where)
+
+    def parsed(options: Mapping[str, Any]) -> tuple[list[str], argparse.Namespace]:
+        argv = (["--env-id", env_id] if env_id else []) + options_to_argv(parser, options, where)
+        argv += ["--storage", exp.storage, "--study-name", study_name, "--out", str(folder)]
+        return argv, parse_checked(parser, argv, where)
+
+    argv, args = parsed(options)
+    all_seeds = list(args.seeds or range(5))
+    if exp.test_agents or exp.test_seeds:
+        agents = list(args.agents or [n for n, k in AGENT_KINDS.items() if k.default])
+        agents, seeds = _test_piece(exp, where, agents, all_seeds)
+        argv, args = parsed({**options, "agents": agents, "seeds": seeds})
     _with_tensorboard(exp, args)  # (a test phase logs for TensorBoard on either backend)
     if exp.wandb:  # ermrl run --wandb: W&B logs through SB3's callback
         if args.backend == "population":
@@ -956,13 +971,37 @@ def _test_step(
 
         family = config.space.family
         wanted = (evolved_agent(family), unevolved_agent(family))
-        replayed = tuple((a, min(seeds)) for a in wanted if a in agents)
+        # The report replays the first seed of the whole phase (a piece trains it only if
+        # the piece holds it).
+        replayed = tuple((a, min(all_seeds)) for a in wanted if a in agents)
+        replayed = tuple((a, s) for a, s in replayed if s in seeds)
     request = _test_request(exp, where, args, study_name, env_id)
     return Step(
         "test", label, "test-generalization" if env_id else "test", argv, total,
         estimate_seconds(parts), _test_status(folder, agents, seeds), study_name, folder,
         replayed, note, request,
     )  # fmt: skip
+
+
+def _test_piece(
+    exp: Experiment, where: str, agents: Sequence[str], seeds: Sequence[int]
+) -> tuple[list[str], list[int]]:
+    """The agents and seeds of a test stage that ``ermrl run --agents/--seeds`` keeps, in the
+    file's order; one the stage does not list is refused."""
+    for flag, wanted, listed in (
+        ("--agents", exp.test_agents, agents),
+        ("--seeds", exp.test_seeds, seeds),
+    ):
+        unknown = [str(w) for w in wanted if w not in listed]
+        if unknown:
+            raise ExperimentError(
+                f"{where}: {flag} {' '.join(unknown)}: not in the stage's "
+                f"{flag.removeprefix('--')} ({' '.join(map(str, listed))})"
+            )
+    return (
+        [a for a in agents if not exp.test_agents or a in exp.test_agents],
+        [s for s in seeds if not exp.test_seeds or s in exp.test_seeds],
+    )
 
 
 def _report_step(

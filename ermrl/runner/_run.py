@@ -64,6 +64,7 @@ __all__ = [
     "Status",
     "choose_stages",
     "plan_experiment",
+    "check_test_piece",
     "plan_lines",
     "remove_if_untouched",
     "results_lines",
@@ -183,6 +184,8 @@ def plan_experiment(
     tensorboard: bool = False,
     wandb: bool = False,
     build_agents: bool = True,
+    test_agents: Sequence[str] = (),
+    test_seeds: Sequence[int] = (),
 ) -> tuple[Experiment, list[Step], list[Status]]:
     """Every step of an experiment, checked, with its status.
 
@@ -193,6 +196,9 @@ def plan_experiment(
             backend).
         build_agents: Also build each evolution agent once (``False``: a dry run, which
             checks the options, tables and storage only).
+        test_agents: Each test stage trains only these of its agents (empty: all): a piece
+            of a phase too long for one sitting. The report waits for the whole phase.
+        test_seeds: Each test stage trains only these of its seeds (empty: all).
 
     Returns:
         ``(experiment, steps, statuses)``, the experiment with ``tensorboard`` and
@@ -205,9 +211,31 @@ def plan_experiment(
     """
     import dataclasses
 
-    exp = dataclasses.replace(exp, tensorboard=bool(tensorboard), wandb=bool(wandb))
+    exp = dataclasses.replace(
+        exp,
+        tensorboard=bool(tensorboard),
+        wandb=bool(wandb),
+        test_agents=tuple(test_agents),
+        test_seeds=tuple(test_seeds),
+    )
     steps = experiment_plan(exp, tasks=tasks, build_agents=build_agents)
     return exp, steps, [step_status(exp, step) for step in steps]
+
+
+def check_test_piece(
+    stages: Sequence[str] | None, test_agents: Sequence[str], test_seeds: Sequence[int]
+) -> None:
+    """Refuse a piece of the test phase (``--agents``, ``--seeds``) with other stages than
+    ``test``: the report of a piece would read part of the phase as the whole.
+
+    Raises:
+        ExperimentError: one line saying so.
+    """
+    if (test_agents or test_seeds) and list(stages or ()) != ["test"]:
+        raise ExperimentError(
+            "--agents and --seeds run a piece of the test phase: give --stage test alone "
+            "(the report waits for the whole phase)"
+        )
 
 
 def choose_stages(
@@ -304,6 +332,8 @@ def run_experiment(
     quiet_stages: bool = False,
     stream: TextIO | None = None,
     wandb: str | None = None,
+    test_agents: Sequence[str] = (),
+    test_seeds: Sequence[int] = (),
 ) -> list[Step]:
     """Plan an experiment and run its unfinished steps, as ``ermrl run FILE`` does.
 
@@ -319,6 +349,8 @@ def run_experiment(
         quiet: No plan and no lines of this runner (the commands still print theirs).
         quiet_stages: Also pass ``--quiet`` to each stage's command.
         stream: Where the plan and this runner's lines go (default ``sys.stdout``).
+        test_agents: Only these agents of each test stage (``ermrl run --agents``).
+        test_seeds: Only these seeds of each test stage (``ermrl run --seeds``).
 
     Returns:
         Every step of the plan (of these tasks), the chosen ones now done.
@@ -330,8 +362,14 @@ def run_experiment(
         StageInterrupted: Ctrl-C or SIGTERM during a stage.
     """
     out = stream or sys.stdout
+    check_test_piece(stages, test_agents, test_seeds)
     exp, steps, statuses = plan_experiment(
-        exp, tasks=tasks, tensorboard=bool(tensorboard), wandb=bool(wandb)
+        exp,
+        tasks=tasks,
+        tensorboard=bool(tensorboard),
+        wandb=bool(wandb),
+        test_agents=test_agents,
+        test_seeds=test_seeds,
     )
     chosen = choose_stages(steps, statuses, stages)
     if not quiet:
