@@ -696,6 +696,35 @@ def test_the_plan_counts_a_snapshots_finished_trials_as_done(
     assert _status(exp, step)[1] == 1.0 and "unreadable" in _status(exp, step)[2]
 
 
+def test_the_plan_counts_published_test_runs_as_done_but_the_replayed_ones(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """On a fresh clone the test phase's published runs are put back when it runs: the plan's
+    estimate is for the runs still to train, the report's replayed run among them."""
+    from ermrl.runner._run import step_status as _status
+
+    monkeypatch.chdir(tmp_path)
+    test = {**TINY["test"], "seeds": [10, 11]}
+    doc = {**TINY, "test": test, "publish": "published",
+           "report": {**TINY["report"], "dynamics": True}}  # fmt: skip
+    exp = load_experiment(write(tmp_path, doc))
+    (step,) = [s for s in experiment_plan(exp, build_agents=False) if s.stage == "test"]
+    assert step.replayed == (("res-ppo", 10),)
+    assert _status(exp, step) == (False, 1.0, "not started")
+    published = tmp_path / "published" / "Pendulum-v1" / "test" / "agents"
+    for agent, seed in (("ppo", 10), ("ppo", 11), ("res-ppo", 10)):
+        (published / agent / f"seed_{seed}").mkdir(parents=True)
+        (published / agent / f"seed_{seed}" / "result.json").write_text("{}")
+    done, left, text = _status(exp, step)
+    # res-ppo seed 10 is trained again for its model; res-ppo seed 11 was never published.
+    assert not done and left == pytest.approx(2 / 4)
+    assert text.startswith("2/4 runs, 2 of them published in published/Pendulum-v1/test"), text
+    local = step.folder / "agents" / "res-ppo" / "seed_11"
+    local.mkdir(parents=True)
+    (local / "result.json").write_text("{}")
+    assert _status(exp, step)[:2] == (False, pytest.approx(1 / 4))
+
+
 def test_publishing_leaves_out_files_over_the_size_limit(tmp_path: Path) -> None:
     """The published folder is for version control: a report's self-contained HTML over the
     limit stays in the results folder, said in the return value; the rest is copied."""

@@ -718,6 +718,7 @@ class Step:
         replayed: ``(agent, seed)`` runs of a test step whose saved models the report replays
             (its dynamics section); a snapshot carries no models, so these are retrained.
         note: A line the plan prints under it (a budget rounded up to whole rollouts).
+        runs: ``(agent, seed)`` runs a test step trains.
         request: What it runs, resolved from its options: the configuration objects of the
             library function that runs it (:mod:`ermrl.runner._commands`,
             :mod:`ermrl.runner._generalization``.
@@ -735,6 +736,7 @@ class Step:
     replayed: tuple[tuple[str, int], ...] = ()
     note: str = ""
     request: Any = None
+    runs: tuple[tuple[str, int], ...] = ()
 
     @property
     def command_line(self) -> str:
@@ -979,7 +981,7 @@ def _test_step(
     return Step(
         "test", label, "test-generalization" if env_id else "test", argv, total,
         estimate_seconds(parts), _test_status(folder, agents, seeds), study_name, folder,
-        replayed, note, request,
+        replayed, note, request, tuple((a, s) for a in agents for s in seeds),
     )  # fmt: skip
 
 
@@ -1711,6 +1713,35 @@ def snapshot_status(exp: Experiment, step: Step) -> tuple[float, str] | None:
     n_trials = int(argv[argv.index("--n-trials") + 1]) if "--n-trials" in argv else 0
     left = max(n_trials - done, 0) / n_trials if n_trials else 1.0
     return left, f"snapshot {path}: {done} finished trials, imported when run"
+
+
+def published_runs_status(exp: Experiment, step: Step) -> tuple[float, str] | None:
+    """For a test step on a machine that lacks some of its published finished runs: the
+    fraction of its runs left to train and what the published folder holds.
+
+    ``None``: nothing published that the run folder lacks. The runs the report replays
+    (``step.replayed``) count as left: they are trained again for their models.
+    """
+    if exp.publish is None or step.stage != "test" or step.folder is None or not step.runs:
+        return None
+    from ermrl.analysis._results import RUNS_DIR
+
+    def finished(base: Path, agent: str, seed: int) -> bool:
+        return (base / RUNS_DIR / agent / f"seed_{seed}" / "result.json").is_file()
+
+    source = exp.publish / step.label / step.stage
+    here = sum(finished(step.folder, a, s) for a, s in step.runs)
+    published = sum(
+        not finished(step.folder, a, s) and (a, s) not in step.replayed and finished(source, a, s)
+        for a, s in step.runs
+    )
+    if not published:
+        return None
+    total = len(step.runs)
+    done = here + published
+    return (total - done) / total, (
+        f"{done}/{total} runs, {published} of them published in {source}, put back when run"
+    )
 
 
 def hypothesis_of(exp: Experiment, file: str | None = None) -> Any:

@@ -41,6 +41,7 @@ from ermrl.runner._experiment import (
     import_snapshots,
     publish_finished_runs,
     publish_step,
+    published_runs_status,
     resolved_document,
     restore_finished_runs,
     snapshot_status,
@@ -160,7 +161,8 @@ def stage_argv(
 
 
 def step_status(exp: Experiment, step: Step) -> Status:
-    """A step's status; for an evolution the storage lacks, what its snapshot holds.
+    """A step's status; for an evolution the storage lacks, what its snapshot holds; for a
+    test phase, the published finished runs its folder lacks.
 
     Args:
         exp: The experiment.
@@ -174,6 +176,11 @@ def step_status(exp: Experiment, step: Step) -> Status:
         from_snapshot = snapshot_status(exp, step)
         if from_snapshot is not None:
             left, text = from_snapshot
+    elif step.stage == "test" and not done:
+        # Not done until they are put back (the run does it, then skips them).
+        from_publish = published_runs_status(exp, step)
+        if from_publish is not None:
+            left, text = from_publish
     return done, left, text
 
 
