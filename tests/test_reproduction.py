@@ -384,6 +384,7 @@ def test_the_command_reads_the_paper_files(tmp_path: Path) -> None:
     changes = pd.read_csv(tmp_path / "changes.csv")
     assert len(changes) == len(page) + 1
     assert "1 moved" in done.stdout and "1 gone" in done.stdout
+    assert re.search(r"^ *change +hypothesis .* p_adj +n80$", done.stdout, re.M), done.stdout
     assert f"{len(page) - 1} new" in done.stdout
     moved = changes[changes["change"] == "moved"].iloc[0]
     assert (moved["task"], moved["metric"], moved["outcome_before"]) == (

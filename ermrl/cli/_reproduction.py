@@ -31,7 +31,8 @@ DESCRIPTION = textwrap.dedent(
     from a clone.
 
     With --compare, it also prints which verdicts moved since an earlier page's CSV (for
-    instance one taken from git history), and --changes writes the full comparison as CSV.
+    instance one taken from git history), with the seeds per agent that would give 80% power
+    to each one still inconclusive (n80), and --changes writes the full comparison as CSV.
 
     examples:
       ermrl reproduction experiments/paper/*.yaml --out docs/reproduction.md
@@ -88,6 +89,11 @@ def _print_changes(changes: pd.DataFrame, before: str) -> None:
             "seeds": [_seeds(r) for r in shown.to_dict("records")],
             "diff": [_diffs(r) for r in shown.to_dict("records")],
             "p_adj": [_p_pair(r) for r in shown.to_dict("records")],
+            # Seeds per agent for 80% power at the observed effect, where still inconclusive.
+            "n80": [
+                _fmt(r["seeds_needed"], ".0f") if r["outcome_after"] == "inconclusive" else ""
+                for r in shown.to_dict("records")
+            ],
         }
     )
     print(table.to_string(index=False), flush=True)
