@@ -391,5 +391,7 @@ def test_report_labels_name_the_band_genes() -> None:
     from ermrl.analysis import param_label
 
     assert param_label("lr_max") == "Highest leak rate lr_max"
-    assert param_label("lr_min_ratio_1") == "Lowest / highest leak rate lr_min_ratio_1 (reservoir 1)"
+    assert (
+        param_label("lr_min_ratio_1") == "Lowest / highest leak rate lr_min_ratio_1 (reservoir 1)"
+    )
     assert param_label("lr_0") == "Leak rate lr_0 (reservoir 0)"

@@ -555,7 +555,7 @@ def test_a_run_with_a_file_too_large_to_publish_is_not_carried(
 ) -> None:
     """A run is carried whole or not at all: a result.json without its episodes would be
     a damaged run on the next machine."""
-    import ermrl.runner._experiment as experiment
+    import ermrl.runner._publish as publish
 
     monkeypatch.chdir(tmp_path)  # the file's folders are relative to the working directory
     path = write(tmp_path, {**TINY, "publish": "published"})
@@ -571,8 +571,8 @@ def test_a_run_with_a_file_too_large_to_publish_is_not_carried(
         (run / "policy.pt").write_bytes(b"model")
     (test.folder / "agents" / "ppo" / "seed_11").mkdir()  # unfinished: no result.json
     (test.folder / "config.yaml").write_text("trial: 7\n")  # written as the phase starts
-    monkeypatch.setattr(experiment, "PUBLISH_MAX_BYTES", 1000)
-    assert experiment.publish_finished_runs(exp, test) == 1
+    monkeypatch.setattr(publish, "PUBLISH_MAX_BYTES", 1000)
+    assert publish.publish_finished_runs(exp, test) == 1
     assert (tmp_path / "published" / "Pendulum-v1" / "test" / "config.yaml").read_text() == (
         "trial: 7\n"
     )
@@ -592,7 +592,7 @@ def test_a_run_trained_again_for_its_model_keeps_its_published_result(
     Pendulum), and that second value silently replaced the first."""
     import json
 
-    import ermrl.runner._experiment as experiment
+    import ermrl.runner._publish as publish
     from ermrl.test_phase._results import keep_published_record
 
     monkeypatch.chdir(tmp_path)
@@ -609,7 +609,7 @@ def test_a_run_trained_again_for_its_model_keeps_its_published_result(
         (run / "episodes.csv").write_text(f"env_step,episode_return\n200,{ret}\n")
         (run / "result.json").write_text(json.dumps({"agent": agent, "final_return": ret}))
 
-    assert experiment.restore_finished_runs(exp, test) == (1, [("res-ppo", 10)])
+    assert publish.restore_finished_runs(exp, test) == (1, [("res-ppo", 10)])
     target = test.folder / "agents" / "res-ppo" / "seed_10"
     assert not (target / "result.json").exists()  # to be trained: its model is needed
     # The new training ends; a periodic snapshot before the records are back publishes nothing
@@ -618,7 +618,7 @@ def test_a_run_trained_again_for_its_model_keeps_its_published_result(
     (target / "episodes.csv").write_text("env_step,episode_return\n200,-662.0\n")
     (target / "result.json").write_text(json.dumps({"agent": "res-ppo", "final_return": -662.0}))
     (target / "model.zip").write_bytes(b"model")
-    experiment.publish_finished_runs(exp, test)
+    publish.publish_finished_runs(exp, test)
     assert (
         json.loads((published / "res-ppo" / "seed_10" / "result.json").read_text())["final_return"]
         == -1136.0
@@ -630,7 +630,7 @@ def test_a_run_trained_again_for_its_model_keeps_its_published_result(
     assert json.loads((target / "replay-model.json").read_text())["final_return"] == -662.0
     assert not (target / "published-record").exists()
     assert keep_published_record(target) is None  # done once
-    experiment.publish_finished_runs(exp, test)
+    publish.publish_finished_runs(exp, test)
     carried = published / "res-ppo" / "seed_10"
     assert json.loads((carried / "result.json").read_text())["final_return"] == -1136.0
     assert (carried / "replay-model.json").is_file() and not (carried / "model.zip").exists()
@@ -728,7 +728,8 @@ def test_the_plan_counts_published_test_runs_as_done_but_the_replayed_ones(
 def test_publishing_leaves_out_files_over_the_size_limit(tmp_path: Path) -> None:
     """The published folder is for version control: a report's self-contained HTML over the
     limit stays in the results folder, said in the return value; the rest is copied."""
-    from ermrl.runner._experiment import Step, publish_step
+    from ermrl.runner._experiment import Step
+    from ermrl.runner._publish import publish_step
 
     exp = load_experiment(write(tmp_path, {**TINY, "publish": str(tmp_path / "published")}))
     folder = tmp_path / "out" / "report"

@@ -31,26 +31,28 @@ from ermrl.runner._commands import (
 )
 from ermrl.runner._experiment import (
     DEFAULT_SNAPSHOT_EVERY,
-    PUBLISH_MAX_BYTES,
     Experiment,
     ExperimentError,
-    PeriodicSnapshots,
     Step,
     experiment_plan,
     format_duration,
-    import_snapshots,
-    publish_finished_runs,
-    publish_step,
-    published_runs_status,
     resolved_document,
-    restore_finished_runs,
-    snapshot_status,
-    write_snapshots,
 )
 from ermrl.runner._generalization import (
     TestGeneralizationRequest,
     run_evolve_generalization,
     run_test_generalization,
+)
+from ermrl.runner._publish import (
+    PUBLISH_MAX_BYTES,
+    PeriodicSnapshots,
+    import_snapshots,
+    publish_finished_runs,
+    publish_step,
+    published_runs_status,
+    restore_finished_runs,
+    snapshot_status,
+    write_snapshots,
 )
 from ermrl.runner._requests import with_run_options
 

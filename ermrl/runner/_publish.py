@@ -1,0 +1,346 @@
+"""An experiment's plain-file state, carried between machines: study snapshots and finished runs.
+
+``ermrl run`` publishes what a later sitting on another machine needs, as plain files that a
+repository keeps (never databases or models): each evolution study as one JSON snapshot, and
+each finished test run's ``settings.json``, ``episodes.csv`` and ``result.json``. The next
+``ermrl run`` of the file imports the snapshots, puts the runs back and goes on; its plan
+already counts them (:func:`snapshot_status`, :func:`published_runs_status`).
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from ermrl.runner._experiment import (
+    Experiment,
+    ExperimentError,
+    Step,
+    _study,
+    format_duration,
+    snapshot_path,
+)
+
+__all__ = [
+    "PUBLISH_MAX_BYTES",
+    "PeriodicSnapshots",
+    "import_snapshots",
+    "publish_finished_runs",
+    "publish_step",
+    "published_runs_status",
+    "restore_finished_runs",
+    "snapshot_status",
+    "write_snapshot_files",
+    "write_snapshots",
+]
+
+
+def publish_step(
+    exp: Experiment, step: Step, max_bytes: int | None = None
+) -> tuple[list[Path], list[Path]]:
+    """Copy a finished test or report step's plain files to ``exp.publish``.
+
+    Plain files only (CSV, JSON, Markdown, HTML, PNG, YAML, TXT), never models or arrays; the
+    test folder's per-run ``result.json`` files keep their ``agents/<agent>/seed_<s>/`` layout.
+    A file over ``max_bytes`` (default :data:`PUBLISH_MAX_BYTES`) is left out: the published
+    folder is meant for version control, and the one such file a report writes is its
+    self-contained ``report.html`` (figures embedded), whose ``report.md`` and PNGs are
+    published beside it.
+
+    Returns:
+        ``(written, left_out)``: the files written, and the files too large to publish.
+    """
+    import shutil
+
+    if exp.publish is None or step.folder is None or not step.folder.exists():
+        return [], []
+    limit = PUBLISH_MAX_BYTES if max_bytes is None else max_bytes
+    dest = exp.publish / step.label / step.stage
+    written, left_out = [], []
+    for src in sorted(step.folder.rglob("*")):
+        if not src.is_file() or src.suffix.lower() not in _PLAIN or src.name.startswith("."):
+            continue
+        if src.stat().st_size > limit:
+            left_out.append(src)
+            continue
+        rel = src.relative_to(step.folder)
+        target = dest / rel
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(src, target)
+        written.append(target)
+    return written, left_out
+
+
+_PLAIN = {".csv", ".json", ".md", ".html", ".png", ".yaml", ".yml", ".txt"}
+# The largest file ``ermrl run`` publishes (1 MiB): what a repository keeps comfortably.
+PUBLISH_MAX_BYTES = 1 << 20
+
+
+# ---------------------------------------------------------------------------------------------
+# Snapshots: a study as one plain JSON file, so a run continues on another machine
+
+
+def write_snapshots(exp: Experiment, steps: Sequence[Step]) -> list[tuple[Step, Path, int]]:
+    """Write a snapshot of every evolution study that exists (and its re-evaluation study).
+
+    A study is read while workers may still write to it: what was COMPLETE stays so, and the
+    trials running at that moment are retried when the snapshot is imported.
+
+    Returns:
+        ``(step, file, trials)`` for each snapshot written.
+    """
+    from ermrl.storage import write_snapshot
+
+    out = []
+    for step in steps:
+        if step.stage != "evolve":
+            continue
+        with _study(exp.storage, step.study_name) as study:
+            if study is None:
+                continue
+            path = snapshot_path(exp, step)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            doc = write_snapshot(study, path)
+            out.append((step, path, len(doc["trials"])))
+    return out
+
+
+def import_snapshots(exp: Experiment, steps: Sequence[Step]) -> list[tuple[Step, Path, int]]:
+    """Import the snapshot of every evolution study the storage does not hold yet.
+
+    Returns:
+        ``(step, file, trials)`` for each study imported.
+
+    Raises:
+        ExperimentError: a snapshot that cannot be imported (one line).
+    """
+    from ermrl.storage import (
+        LockTimeout,
+        SnapshotError,
+        StorageError,
+        StudyExists,
+        import_snapshot,
+    )
+
+    out = []
+    for step in steps:
+        if step.stage != "evolve":
+            continue
+        path = snapshot_path(exp, step)
+        if not path.exists():
+            continue
+        with _study(exp.storage, step.study_name) as study:
+            if study is not None:
+                continue
+        try:
+            result = import_snapshot(path, exp.storage, step.study_name)
+        except (SnapshotError, StudyExists, StorageError, LockTimeout) as err:
+            raise ExperimentError(f"{path}: cannot import ({err})") from None
+        out.append((step, path, len(result.study.get_trials(deepcopy=False))))
+    return out
+
+
+def _run_folders(root: Path) -> list[Path]:
+    """The finished run folders (``agents/<agent>/seed_<s>/`` with a ``result.json``) under root."""
+    from ermrl.analysis._results import RUNS_DIR
+
+    return sorted(p.parent for p in root.glob(f"{RUNS_DIR}/*/seed_*/result.json"))
+
+
+def _copy_run(src: Path, dest: Path, limit: int) -> bool:
+    """Copy a run folder's plain files, ``result.json`` (which marks a run finished) last.
+
+    Nothing is copied (``False``) when one of them is over ``limit`` bytes: a run is carried
+    whole or not at all.
+    """
+    import shutil
+
+    files = [
+        f
+        for f in sorted(src.iterdir())
+        if f.is_file() and f.suffix.lower() in _PLAIN and not f.name.startswith(".")
+    ]
+    if any(f.stat().st_size > limit for f in files):
+        return False
+    dest.mkdir(parents=True, exist_ok=True)
+    for f in sorted(files, key=lambda f: f.name == "result.json"):
+        shutil.copyfile(f, dest / f.name)
+    return True
+
+
+def publish_finished_runs(exp: Experiment, step: Step) -> int:
+    """Publish the finished runs of a test step, finished or not, so another machine goes on.
+
+    A test phase longer than one sitting is carried like an evolution: each finished run's
+    plain files (``settings.json``, ``episodes.csv``, ``result.json``; never its model) are
+    copied to ``<publish>/<task>/test/agents/<agent>/seed_<s>/``, with the phase's
+    ``config.yaml`` (so a page of a phase still running names its selected trial), and
+    :func:`restore_finished_runs` puts them back on the next machine, where the test phase
+    skips them as it skips any finished run (after checking their settings).
+
+    Returns:
+        The number of runs published (0 without ``publish`` in the file); a run with a file
+        over :data:`PUBLISH_MAX_BYTES` is not (it is trained again elsewhere).
+    """
+    if exp.publish is None or step.stage != "test" or step.folder is None:
+        return 0
+    from ermrl.analysis._results import KEPT_RECORD_DIR
+
+    dest = exp.publish / step.label / step.stage
+    config = step.folder / "config.yaml"  # written as the phase starts: its agents, its trial
+    if config.is_file() and config.stat().st_size <= PUBLISH_MAX_BYTES:
+        import shutil
+
+        dest.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(config, dest / config.name)
+    return sum(
+        _copy_run(run, dest / run.relative_to(step.folder), PUBLISH_MAX_BYTES)
+        for run in _run_folders(step.folder)
+        # A run trained again for its model, its published records not yet put back: the
+        # published run stands.
+        if not (run / KEPT_RECORD_DIR / "result.json").is_file()
+    )
+
+
+def restore_finished_runs(exp: Experiment, step: Step) -> tuple[int, list[tuple[str, int]]]:
+    """Put a test step's published finished runs back in its folder where it lacks them.
+
+    The runs whose models the report replays (``step.replayed``) are trained again, a
+    published run having no model; their published records wait in the run folder's
+    ``published-record/`` and replace the new training's as it ends, so the published result
+    stays the result (the same settings and seed in another population layout can return
+    another value: floating-point order).
+
+    Returns:
+        ``(restored, retrained)``: the number of runs restored, and the ``(agent, seed)``
+        runs left to train again for the report's replay.
+    """
+    if exp.publish is None or step.stage != "test" or step.folder is None:
+        return 0, []
+    from ermrl.analysis._results import KEPT_RECORD_DIR
+
+    source = exp.publish / step.label / step.stage
+    if source.resolve() == step.folder.resolve():
+        return 0, []
+    restored, retrained = 0, []
+    for run in _run_folders(source):
+        rel = run.relative_to(source)
+        target = step.folder / rel
+        if (target / "result.json").exists():
+            continue
+        try:
+            key = (run.parent.name, int(run.name.removeprefix("seed_")))
+        except ValueError:
+            continue
+        if key in step.replayed:
+            # Trained again for its model; its published records are kept aside and put back
+            # as that training ends (ermrl.test_phase.keep_published_record).
+            if _copy_run(run, target / KEPT_RECORD_DIR, PUBLISH_MAX_BYTES):
+                retrained.append(key)
+            continue
+        restored += _copy_run(run, target, PUBLISH_MAX_BYTES)
+    return restored, retrained
+
+
+def write_snapshot_files(exp: Experiment, steps: Sequence[Step]) -> tuple[int, int]:
+    """Everything ``ermrl run --snapshot`` writes: the evolution snapshots and the finished test
+    runs. Returns ``(studies written, test runs published)``."""
+    studies = write_snapshots(exp, steps)
+    return len(studies), sum(publish_finished_runs(exp, step) for step in steps)
+
+
+class PeriodicSnapshots:
+    """Write :func:`write_snapshot_files` every ``every`` seconds from a background thread.
+
+    A sitting or a machine that ends (a time limit, a preemption, ``kill -9``) then loses at
+    most ``every`` seconds of finished work, as long as the published folder is kept. A
+    snapshot that fails (a locked database, a full disk) is reported on ``stream`` in one line
+    and tried again at the next tick; it never stops the run. Use it as a context manager.
+    """
+
+    def __init__(
+        self, exp: Experiment, steps: Sequence[Step], every: float, stream: Any = None
+    ) -> None:
+        import threading
+
+        self.exp, self.steps, self.every = exp, list(steps), every
+        self.stream = stream if stream is not None else sys.stderr
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, name="ermrl-snapshots", daemon=True)
+        self.written = 0
+
+    def __enter__(self) -> PeriodicSnapshots:
+        if self.exp.publish is not None and self.every > 0:
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=60)
+
+    def _loop(self) -> None:
+        while not self._stop.wait(self.every):
+            try:
+                write_snapshot_files(self.exp, self.steps)
+                self.written += 1
+            except Exception as err:  # noqa: BLE001 - a snapshot must never stop the run
+                print(
+                    f"ermrl run: snapshot skipped, tried again in {format_duration(self.every)} "
+                    f"({type(err).__name__}: {err})",
+                    file=self.stream,
+                    flush=True,
+                )
+
+
+def snapshot_status(exp: Experiment, step: Step) -> tuple[float, str] | None:
+    """For a study the storage lacks: the fraction of its budget left and what its snapshot holds.
+
+    ``None``: no snapshot. The fraction counts the snapshot's finished trials as done, so the
+    plan's "left" estimate of a run that continues from a snapshot is the part still to train.
+    """
+    import json
+
+    path = snapshot_path(exp, step)
+    if not path.exists():
+        return None
+    try:
+        trials = json.loads(path.read_text())["trials"]
+        done = sum(t.get("state") in ("COMPLETE", "PRUNED") for t in trials)
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return 1.0, f"snapshot {path} unreadable"
+    argv = step.argv
+    n_trials = int(argv[argv.index("--n-trials") + 1]) if "--n-trials" in argv else 0
+    left = max(n_trials - done, 0) / n_trials if n_trials else 1.0
+    return left, f"snapshot {path}: {done} finished trials, imported when run"
+
+
+def published_runs_status(exp: Experiment, step: Step) -> tuple[float, str] | None:
+    """For a test step on a machine that lacks some of its published finished runs: the
+    fraction of its runs left to train and what the published folder holds.
+
+    ``None``: nothing published that the run folder lacks. The runs the report replays
+    (``step.replayed``) count as left: they are trained again for their models.
+    """
+    if exp.publish is None or step.stage != "test" or step.folder is None or not step.runs:
+        return None
+    from ermrl.analysis._results import RUNS_DIR
+
+    def finished(base: Path, agent: str, seed: int) -> bool:
+        return (base / RUNS_DIR / agent / f"seed_{seed}" / "result.json").is_file()
+
+    source = exp.publish / step.label / step.stage
+    here = sum(finished(step.folder, a, s) for a, s in step.runs)
+    published = sum(
+        not finished(step.folder, a, s) and (a, s) not in step.replayed and finished(source, a, s)
+        for a, s in step.runs
+    )
+    if not published:
+        return None
+    total = len(step.runs)
+    done = here + published
+    return (total - done) / total, (
+        f"{done}/{total} runs, {published} of them published in {source}, put back when run"
+    )
