@@ -288,6 +288,8 @@ def test_each_mechanism_label_follows_the_rule_on_crafted_files(tmp_path: Path) 
         "Unrecorded-v0": ({"res-ppo": HIGH, "random-res-ppo": LOW, "leaky-res-ppo": LOW}, None),
         # no leaky-res-ppo run
         "Missing-v0": ({"res-ppo": HIGH, "random-res-ppo": LOW}, _spectra_table(0.5, 0.1, GAIT)),
+        # a task known to have no gait: its comparison is judged, with no mechanism verdict
+        "CartPole-v1": ({"res-ppo": HIGH, "random-res-ppo": LOW, "leaky-res-ppo": LOW}, None),
     }  # fmt: skip
     files = []
     for label, (values, spectra) in tasks.items():
@@ -322,10 +324,15 @@ def test_each_mechanism_label_follows_the_rule_on_crafted_files(tmp_path: Path) 
     assert "holds on 0 of 4 weight seeds" in line("NoGait-v0")
     assert "spectra not recorded yet" in line("Unrecorded-v0")
     assert line("Missing-v0").startswith("**not run yet**; `leaky-res-ppo` has no finished run")
-    # The family: Holm over the 5 tasks that ran (the missing one does not count).
+    # The family: Holm over the 6 tasks that ran (the missing one does not count).
     family = tests[(tests["question"] == "evolved-vs-leaky") & (tests["metric"] == "last10")]
     family = family.set_index("task")
-    assert family["family_size"].drop("Missing-v0").eq(5).all()
+    assert family["family_size"].drop("Missing-v0").eq(6).all()
+    assert family.at["CartPole-v1", "outcome"] == "supported"
+    assert "#### CartPole-v1: mechanism" not in text
+    summary = next(x for x in text.splitlines() if x.startswith("**Mechanism: oscillations"))
+    assert "Missing-v0" in summary and "CartPole-v1" not in summary
+    assert "evolved-vs-leaky: **supported**" in text.split("### CartPole-v1")[1]
     assert family.at["Missing-v0", "outcome"] == "not run yet"  # in the CSV too, not inconclusive
     # The summary, the glance table, the task's verdict line and the question's adoption date.
     assert (

@@ -45,6 +45,7 @@ from ermrl.analysis._mechanism import (
     reservoir_inputs,
     reservoir_spectra,
     spectral_outcome,
+    without_gait,
     write_mechanism,
 )
 from ermrl.analysis._plots import (
@@ -207,6 +208,7 @@ __all__ = [
     "reservoir_inputs",
     "reservoir_spectra",
     "spectral_outcome",
+    "without_gait",
     "write_mechanism",
     "paired_bootstrap_mean_diff_ci",
     "curves_on_grid",

@@ -83,6 +83,7 @@ __all__ = [
     "reservoir_inputs",
     "reservoir_spectra",
     "spectral_outcome",
+    "without_gait",
     "write_mechanism",
 ]
 
@@ -562,6 +563,22 @@ def _summary(table: pd.DataFrame) -> pd.DataFrame:
             }
         )
     return pd.DataFrame(rows)
+
+
+def without_gait(env_id: str) -> bool:
+    """Whether a task is known not to be locomotion (a registered task without joints, such as
+    CartPole or Pendulum): its ``res-ppo − leaky-res-ppo`` comparison is judged like any
+    other, but it gets no mechanism verdict, having no gait to oscillate at. An id gymnasium
+    does not know is not claimed either way."""
+    import gymnasium
+
+    from ermrl.analysis._dynamics import has_joints
+
+    try:
+        gymnasium.spec(env_id)
+    except Exception:  # not registered
+        return False
+    return not has_joints(env_id)
 
 
 def mechanism_question(rule: VerdictRule | None) -> Question | None:

@@ -39,6 +39,7 @@ from ermrl.analysis._mechanism import (
     mechanism_verdict,
     read_mechanism,
     spectral_outcome,
+    without_gait,
 )
 from ermrl.analysis._stats import FEW_SEEDS
 from ermrl.analysis._verdicts import (
@@ -566,7 +567,7 @@ def _task_mechanism(hyp: Hypothesis, result: TaskResult, tests: pd.DataFrame) ->
     from its judged comparison and its published ``report/dynamics/mechanism.csv``; ``None``
     without that question."""
     question = mechanism_question(hyp.rule)
-    if question is None or hyp.rule is None:
+    if question is None or hyp.rule is None or without_gait(result.label):
         return None
     rows = tests[
         (tests["hypothesis"] == hyp.name)
@@ -587,8 +588,11 @@ def _mechanism_summary(
         return
     labels = []
     for result in judged:
-        verdict, _ = _task_mechanism(hyp, result, tests)
-        labels.append(f"{result.label}: {verdict.headline}")
+        found = _task_mechanism(hyp, result, tests)
+        if found is not None:
+            labels.append(f"{result.label}: {found[0].headline}")
+    if judged and not labels and all(without_gait(r.label) for r in judged):
+        return  # no locomotion task here: the question is answered as any other
     doc.p(
         f"**Mechanism: oscillations at the gait, or leaky integration?** ({rule.primary}, per "
         f"task, from `{question.name}` and the spectra) "
