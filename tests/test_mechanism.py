@@ -29,7 +29,7 @@ from ermrl.analysis import (
     spectral_outcome,
     write_reproduction_page,
 )
-from ermrl.analysis._mechanism import MECHANISM_COLUMNS, MECHANISM_FILE
+from ermrl.analysis._mechanism import MECHANISM_COLUMNS, MECHANISM_FILE, without_gait
 
 ROOT = Path(__file__).resolve().parents[1]
 DT = 0.04  # Swimmer's
@@ -372,7 +372,12 @@ def test_the_paper_file_asks_the_mechanism_question_of_locomotion_only() -> None
     question = mechanism_question(rules["h2_locomotion.yaml"])
     assert question is not None and question.adopted == "2026-11-29"
     assert [c.label for c in question.comparisons] == ["res-ppo − leaky-res-ppo"]
-    assert mechanism_question(rules["h1_partial_observability.yaml"]) is None
+    # H1 asks the same question, on tasks without a gait: judged, with no mechanism verdict.
+    h1 = mechanism_question(rules["h1_partial_observability.yaml"])
+    assert h1 is not None and h1.name == question.name
+    assert without_gait("CartPole-v1") and without_gait("Pendulum-v1")
+    assert not any(without_gait(t) for t in ("Swimmer-v5", "HalfCheetah-v5", "Ant-v5",
+                                              "Hopper-v5", "Walker2d-v5"))  # fmt: skip
 
 
 @pytest.mark.slow
