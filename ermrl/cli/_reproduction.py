@@ -77,6 +77,7 @@ def _print_changes(changes: pd.DataFrame, before: str) -> None:
     shown = changes[changes["change"] != "same"]
     if shown.empty:
         return
+    records = shown.to_dict("records")
     table = pd.DataFrame(
         {
             "change": shown["change"],
@@ -86,13 +87,13 @@ def _print_changes(changes: pd.DataFrame, before: str) -> None:
             "metric": shown["metric"],
             "before": shown["outcome_before"].fillna("-"),
             "after": shown["outcome_after"].fillna("-"),
-            "seeds": [_seeds(r) for r in shown.to_dict("records")],
-            "diff": [_diffs(r) for r in shown.to_dict("records")],
-            "p_adj": [_p_pair(r) for r in shown.to_dict("records")],
+            "seeds": [_seeds(r) for r in records],
+            "diff": [_diffs(r) for r in records],
+            "p_adj": [_p_pair(r) for r in records],
             # Seeds per agent for 80% power at the observed effect, where still inconclusive.
             "n80": [
                 _fmt(r["seeds_needed"], ".0f") if r["outcome_after"] == "inconclusive" else ""
-                for r in shown.to_dict("records")
+                for r in records
             ],
         }
     )

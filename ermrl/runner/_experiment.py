@@ -931,10 +931,14 @@ def _test_step(
         argv += ["--storage", exp.storage, "--study-name", study_name, "--out", str(folder)]
         return argv, parse_checked(parser, argv, where)
 
+    def agents_and_seeds(args: argparse.Namespace) -> tuple[list[str], list[int]]:
+        # As the test command reads them: its default agents, seeds 0-4.
+        default = [n for n, k in AGENT_KINDS.items() if k.default]
+        return list(args.agents or default), list(args.seeds or range(5))
+
     argv, args = parsed(options)
-    all_seeds = list(args.seeds or range(5))
+    agents, all_seeds = agents_and_seeds(args)
     if exp.test_agents or exp.test_seeds:
-        agents = list(args.agents or [n for n, k in AGENT_KINDS.items() if k.default])
         agents, seeds = _test_piece(exp, where, agents, all_seeds)
         argv, args = parsed({**options, "agents": agents, "seeds": seeds})
     _with_tensorboard(exp, args)  # (a test phase logs for TensorBoard on either backend)
@@ -945,8 +949,7 @@ def _test_step(
                 "backend: population; set backend: sb3 in the file, or leave --wandb out"
             )
         args.wandb = "<ermrl run --wandb>"
-    agents = list(args.agents or [n for n, k in AGENT_KINDS.items() if k.default])
-    seeds = list(args.seeds or range(5))
+    agents, seeds = agents_and_seeds(args)
     per_run = args.training_steps
     test_env = env_id or (task.env_id if task else "")
     backend = args.backend
