@@ -18,6 +18,7 @@ own handler while they run.
 from __future__ import annotations
 
 import signal
+import sys
 import threading
 from typing import Any
 
@@ -26,11 +27,13 @@ __all__ = [
     "catch_sigint",
     "catch_sigterm",
     "interruption",
-    "raise_swallowed_sigint",
+    "raise_swallowed_signal",
     "sigint_received",
+    "swallowed_signal",
 ]
 
 _received = False
+_terminated = False
 
 
 def _handler(signum: int, frame: Any) -> None:
@@ -39,12 +42,22 @@ def _handler(signum: int, frame: Any) -> None:
     raise KeyboardInterrupt
 
 
+def _unraisable(unraisable: Any) -> None:
+    """Python's hook for an exception it must drop (one raised in a weakref callback or a
+    ``__del__``), quiet for the interruptions of these handlers: they are raised again later
+    (:func:`raise_swallowed_signal`), and the command's one line says what stopped it."""
+    if isinstance(unraisable.exc_value, KeyboardInterrupt) and (_received or _terminated):
+        return
+    sys.__unraisablehook__(unraisable)
+
+
 def catch_sigint() -> None:
     """Install the remembering SIGINT handler (main thread only) and forget earlier signals."""
     global _received
     _received = False
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGINT, _handler)
+        sys.unraisablehook = _unraisable
 
 
 def sigint_received() -> bool:
@@ -52,20 +65,37 @@ def sigint_received() -> bool:
     return _received
 
 
-def raise_swallowed_sigint() -> None:
-    """Raise ``KeyboardInterrupt`` if a SIGINT reached the handler of :func:`catch_sigint` and
-    was lost, then forget it; a training loop calls this at every step (a module-level flag: no
-    measurable cost).
+def raise_swallowed_signal() -> None:
+    """Raise :class:`Terminated` if a SIGTERM reached the handler of :func:`catch_sigterm`, else
+    ``KeyboardInterrupt`` if a SIGINT reached that of :func:`catch_sigint`, and was lost; then
+    forget it. A training loop calls this at every step (module-level flags: no measurable
+    cost), and :func:`ermrl._io.staged_folder` before it moves its output into place.
 
-    A Ctrl-C can land where Python cannot raise it: in a weakref callback of the import system
-    (``_get_module_lock``), whose exceptions are printed as "Exception ignored in" and dropped.
-    A lazy import in a training loop's first steps is such a place; without this check the
-    command would train on to the end of its budget.
+    A signal can land where Python cannot raise its exception: in a weakref callback (of the
+    import system's ``_get_module_lock``, of a ``WeakKeyDictionary`` being collected), whose
+    exceptions are printed as "Exception ignored in" and dropped. Without this check the
+    command would train on to the end of its budget, or publish a report it was told to stop
+    writing and exit 0.
     """
-    global _received
+    global _received, _terminated
+    if _terminated:
+        _terminated = _received = False
+        raise Terminated
     if _received:
         _received = False
         raise KeyboardInterrupt
+
+
+def swallowed_signal(code: int) -> int:
+    """The exit code of a command that returned ``code``: 143 (SIGTERM) or 130 (SIGINT) when it
+    returned 0 though a signal came that nothing raised again (:func:`raise_swallowed_signal`),
+    else ``code``. A command that handles the signal itself returns its own non-zero code."""
+    global _received, _terminated
+    if code != 0 or not (_received or _terminated):
+        return code
+    code = 143 if _terminated else 130
+    _received = _terminated = False
+    return code
 
 
 class Terminated(KeyboardInterrupt):
@@ -75,19 +105,28 @@ class Terminated(KeyboardInterrupt):
 
 
 def _sigterm(signum: int, frame: Any) -> None:
+    global _terminated
+    _terminated = True
     raise Terminated
 
 
 def catch_sigterm() -> None:
-    """Make SIGTERM raise :class:`Terminated` in the main thread (no-op in another thread)."""
+    """Make SIGTERM raise :class:`Terminated` in the main thread (no-op in another thread), and
+    note that it came, as :func:`catch_sigint` does, and forget earlier ones."""
+    global _terminated
+    _terminated = False
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _sigterm)
+        sys.unraisablehook = _unraisable
 
 
 def interruption(err: BaseException) -> tuple[str, int]:
     """What stopped a command, in words, and its exit code: ``("stopped by SIGTERM", 143)``
     for SIGTERM (:class:`Terminated`, or an exception with ``signum`` SIGTERM), else
-    ``("interrupted", 130)`` (Ctrl-C)."""
+    ``("interrupted", 130)`` (Ctrl-C). The signals noted so far count as handled: nothing
+    raises them again (:func:`raise_swallowed_signal`)."""
+    global _received, _terminated
+    _received = _terminated = False
     signum = getattr(err, "signum", None)
     if signum is not None and signum != signal.SIGINT:
         return f"stopped by {signal.Signals(signum).name}", 128 + int(signum)

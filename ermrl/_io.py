@@ -12,6 +12,8 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+from ermrl._interrupt import raise_swallowed_signal
+
 __all__ = ["staged_folder", "write_atomic"]
 
 
@@ -78,6 +80,7 @@ def staged_folder(path: str | Path) -> Iterator[Path]:
         raise
     try:
         yield stage
+        raise_swallowed_signal()  # a SIGTERM dropped in a callback: publish nothing
         os.chmod(stage, 0o777 & ~_umask())  # mkdtemp makes it 0o700
         if not path.exists():
             os.replace(stage, path)

@@ -7,6 +7,7 @@ import errno
 import os
 import stat
 import subprocess
+from pathlib import Path
 
 import pytest
 
@@ -667,6 +668,61 @@ def test_sigterm_during_report_or_test_is_one_line_and_leaves_no_partial_folder(
         assert not out.exists()
     else:
         assert f"finished runs are kept in {out}" in err
+
+
+@pytest.mark.parametrize("signum", ["SIGTERM", "SIGINT"])
+def test_a_signal_dropped_in_a_weakref_callback_still_stops_the_report(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture, signum: str
+) -> None:
+    """The signal lands in a weakref callback, whose exception Python prints as "Exception
+    ignored in" and drops (a report once ran to the end after a SIGTERM this way, exit 0).
+    Nothing is mocked: the callback really raises the signal while the report writes. The
+    command still stops before it publishes the report: one line, exit 143 or 130."""
+    import signal
+    import sys
+    import weakref
+
+    from ermrl.analysis import _report
+    from ermrl.cli import run_command
+
+    url = _study_with_config(tmp_path)
+    monkeypatch.chdir(tmp_path)
+    # run_command installs its handlers and Python's unraisable hook in this process: restored
+    monkeypatch.setattr(sys, "unraisablehook", sys.unraisablehook)
+    handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    real = _report._study_section
+    calls = []
+
+    def study_section_then_signal(state):  # noqa: ANN001, ANN202
+        class Owner:
+            pass
+
+        owner = Owner()
+        ref = weakref.ref(owner, lambda _: signal.raise_signal(getattr(signal, signum)))
+        del owner  # the callback runs here; Python drops its exception
+        calls.append(ref)
+        return real(state)
+
+    monkeypatch.setattr(_report, "_study_section", study_section_then_signal)
+    out = tmp_path / "out"
+    try:
+        code = run_command(
+            "report",
+            ["--study-name", "s", "--storage", url, "--out", str(out), "--no-interactive",
+             "--no-html", "--no-dynamics"],
+        )  # fmt: skip
+    finally:
+        for sig, handler in handlers.items():
+            signal.signal(sig, handler)
+    err = capsys.readouterr().err
+    assert calls, "the report did not reach its first section"
+    assert code == {"SIGTERM": 143, "SIGINT": 130}[signum], err
+    assert err.strip().splitlines() == [
+        "ermrl report: "
+        + ("stopped by SIGTERM" if signum == "SIGTERM" else "interrupted")
+        + "; no report written"
+    ], err
+    assert not out.exists() and not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
 
 
 def test_a_failed_test_phase_leaves_no_skeleton_folder(tmp_path, monkeypatch, capsys):  # noqa: ANN001

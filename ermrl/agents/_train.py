@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import threadpoolctl
 
-from ermrl._interrupt import raise_swallowed_sigint
+from ermrl._interrupt import raise_swallowed_signal
 from ermrl._progress import Progress
 from ermrl.agents._checkpoint import (
     RunCheckpoint,
@@ -204,7 +204,7 @@ def _episode_callback(result: RunResult, budget: BudgetConfig, report: ReportFn 
         mixture_episodes = 0
 
         def _on_step(self) -> bool:
-            raise_swallowed_sigint()  # a Ctrl-C that an import's callback dropped
+            raise_swallowed_signal()  # a Ctrl-C or SIGTERM that a callback dropped
             # Called on every env step: look at the infos only when an episode ended (Monitor
             # writes info["episode"] exactly then; np.count_nonzero is a cheap C call).
             if np.count_nonzero(self.locals["dones"]):

@@ -65,22 +65,28 @@ def run_command(name: str, argv: Sequence[str] | None = None, prog: str | None =
     Ctrl-C during its start-up (imports, env construction: several seconds), before the
     command's own handling takes over, is one line on stderr and exit code 130, not a
     traceback; SIGTERM is one line and exit code 143 (:func:`ermrl._interrupt.catch_sigterm`).
+    A signal whose exception was dropped (raised in a weakref callback) and that nothing raised
+    again (:func:`ermrl._interrupt.raise_swallowed_signal`) still ends with its line and code.
     A reader that closes the pipe early (``ermrl study show | head``) ends the command quietly
     with exit code 141, as SIGPIPE ends other Unix tools.
     """
-    from ermrl._interrupt import catch_sigint, catch_sigterm, interruption
+    from ermrl._interrupt import catch_sigint, catch_sigterm, interruption, swallowed_signal
 
     prog = prog or f"ermrl {name}"
     catch_sigint()  # a Ctrl-C that a library swallows during start-up is raised again later
     catch_sigterm()
     try:
-        return int(_load(COMMANDS[name][0])(argv, prog=prog))
+        code = int(_load(COMMANDS[name][0])(argv, prog=prog))
     except KeyboardInterrupt as err:
         what, code = interruption(err)
         print(f"{prog}: {what}", file=sys.stderr)
         return code
     except BrokenPipeError:
         return _closed_pipe()
+    late = swallowed_signal(code)  # a signal whose exception a weakref callback dropped
+    if late != code:
+        print(f"{prog}: {'stopped by SIGTERM' if late == 143 else 'interrupted'}", file=sys.stderr)
+    return late
 
 
 def _closed_pipe() -> int:
