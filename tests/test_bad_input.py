@@ -629,21 +629,51 @@ def _study_with_config(tmp_path):  # noqa: ANN001, ANN202
     return url
 
 
-@pytest.mark.slow  # two command start-ups (torch, gymnasium), about 10 s each
-@pytest.mark.parametrize("command", ["report", "test"])
+def _children(pid: int) -> list[int]:
+    """The child processes of ``pid`` (Linux ``/proc``)."""
+    return [
+        int(child)
+        for task in Path(f"/proc/{pid}/task").iterdir()
+        for child in (task / "children").read_text().split()
+    ]
+
+
+def _cmdline(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_text().replace("\0", " ")
+    except OSError:
+        return ""
+
+
+def _gone(pid: int) -> bool:
+    """Whether process ``pid`` has ended (a zombie not yet reaped counts as ended)."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except (FileNotFoundError, ProcessLookupError):
+        return True
+    return "\nState:\tZ" in status
+
+
+@pytest.mark.slow  # three command start-ups (torch, gymnasium), about 10 s each
+@pytest.mark.parametrize("command", ["report", "test", "population-test"])
 def test_sigterm_during_report_or_test_is_one_line_and_leaves_no_partial_folder(tmp_path, command):  # noqa: ANN001
     """SIGTERM (kill, a SLURM time limit) while the command writes: one line, exit 143, and
-    no staging folder or partial report left behind (they died silently before)."""
+    no staging folder or partial report left behind (they died silently before). A population
+    split over 2 processes stops them too: the command used to say it stopped, then wait for
+    their hours of training to end before it exited."""
     import signal
     import sys
     import time
 
     url = _study_with_config(tmp_path)
     out = tmp_path / "out"
+    pool = ["--backend", "population", "--n-procs", "2"]
     args = {
         "report": ["report", "--no-interactive", "--no-html", "--no-dynamics"],
         "test": ["test", "--agents", "ppo", "--seeds", "1", "--training-steps", "200000"],
-    }[command]
+        "population-test": ["test", "--agents", "ppo", "--seeds", "1", "2", "--training-steps",
+                            "50000000", "--progress", "none", *pool],
+    }[command]  # fmt: skip
     proc = subprocess.Popen(
         [sys.executable, "-m", "ermrl", *args, "--study-name", "s", "--storage", url,
          "--out", str(out)],
@@ -655,13 +685,24 @@ def test_sigterm_during_report_or_test_is_one_line_and_leaves_no_partial_folder(
         if command == "report"
         else (lambda: (out / "config.yaml").exists())
     )
+    workers: list[int] = []
     deadline = time.monotonic() + 120
     while proc.poll() is None and not started() and time.monotonic() < deadline:
         time.sleep(0.02)
+    if command == "population-test":  # SIGTERM once both parts train, to this process only
+        while proc.poll() is None and len(workers) < 2 and time.monotonic() < deadline:
+            workers = [c for c in _children(proc.pid) if "spawn_main" in _cmdline(c)]
+            time.sleep(0.2)
+        assert len(workers) == 2, workers
     assert proc.poll() is None, proc.communicate()[1]
     proc.send_signal(signal.SIGTERM)
-    _, err = proc.communicate(timeout=120)
+    try:
+        _, err = proc.communicate(timeout=120)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        pytest.fail(f"still running 120 s after SIGTERM:\n{proc.communicate()[1]}")
     assert proc.returncode == 143, err
+    assert all(_gone(w) for w in workers), [w for w in workers if not _gone(w)]
     assert len(err.strip().splitlines()) == 1 and "stopped by SIGTERM" in err, err
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
     if command == "report":

@@ -21,7 +21,7 @@ from ermrl.agents._normalize import (
     save_normalize_stats,
     stats_path,
 )
-from ermrl.agents._pool import pool_size, training_pool
+from ermrl.agents._pool import pool_size, stop_workers, training_pool
 from ermrl.agents._train import (
     NoEpisodeFinished,
     RunResult,
@@ -68,6 +68,7 @@ __all__ = [
     "study_wandb_callback",
     "steps_trained",
     "train_agent",
+    "stop_workers",
     "training_pool",
     "wandb_installed",
     "with_overrides",

@@ -6,6 +6,9 @@ Both the evolution (a trial's seeds, :class:`ermrl.search.SeedRunner`) and the t
 - ``spawn`` processes (no forked torch state), whose initializer imports the training stack once;
 - on Linux each process is killed when its parent dies (``PR_SET_PDEATHSIG``), so a worker killed
   with SIGKILL or by the OOM killer does not leave its training runs burning CPU for hours;
+- a pool whose ``with`` block ends with an error or an interrupt (Ctrl-C, SIGTERM) terminates
+  its processes (:func:`stop_workers`) instead of waiting for their runs to end: hours, with a
+  population's, which trained on while the command had already said it stopped;
 - :func:`pool_size` picks how many single-threaded processes finish the runs soonest.
 """
 
@@ -16,8 +19,9 @@ import os
 import signal
 import sys
 from concurrent.futures import ProcessPoolExecutor
+from types import TracebackType
 
-__all__ = ["pool_size", "training_pool"]
+__all__ = ["pool_size", "stop_workers", "training_pool"]
 
 _PR_SET_PDEATHSIG = 1  # from <linux/prctl.h>
 
@@ -76,13 +80,46 @@ def _initialize_worker(parent_pid: int) -> None:
     import ermrl.envs  # noqa: F401
 
 
+def stop_workers(pool: ProcessPoolExecutor) -> None:
+    """Cancel the pool's runs not started and terminate its processes (SIGTERM), without
+    waiting for the runs they train; the pool cannot be used afterwards.
+
+    ``concurrent.futures`` has no public way to stop a running task before Python 3.14
+    (``terminate_workers``): the processes are read from the executor's ``_processes``.
+    """
+    processes = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for process in processes:
+        if process.is_alive():
+            process.terminate()
+    for process in processes:
+        process.join(timeout=30)
+
+
+class _TrainingPool(ProcessPoolExecutor):
+    """A ``ProcessPoolExecutor`` whose ``with`` block, ended by an exception, stops its
+    processes (:func:`stop_workers`) rather than waiting for their runs."""
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> bool | None:
+        if exc_type is None:
+            return super().__exit__(exc_type, exc, tb)
+        stop_workers(self)
+        return None
+
+
 def training_pool(n_processes: int) -> ProcessPoolExecutor:
     """A pool of ``n_processes`` ``spawn`` processes for :func:`~ermrl.agents.train_agent` runs.
 
     Call it from the thread that keeps the pool (the main thread of a worker): on Linux the
-    processes die with the thread that started them.
+    processes die with the thread that started them. A ``with`` block that ends with an error
+    or an interrupt terminates them (:func:`stop_workers`).
     """
-    return ProcessPoolExecutor(
+    return _TrainingPool(
         max_workers=n_processes,
         mp_context=multiprocessing.get_context("spawn"),
         initializer=_initialize_worker,

@@ -18,7 +18,14 @@ import numpy as np
 
 from ermrl._progress import Progress, ProgressMode
 from ermrl._text import plural
-from ermrl.agents import RunResult, pool_size, steps_trained, train_agent, training_pool
+from ermrl.agents import (
+    RunResult,
+    pool_size,
+    steps_trained,
+    stop_workers,
+    train_agent,
+    training_pool,
+)
 from ermrl.config import (
     BudgetConfig,
     EncoderConfig,
@@ -348,9 +355,9 @@ class SeedRunner:
     def close(self, cancel: bool = False) -> None:
         if self._pool is not None:
             if cancel:
-                for proc in list(getattr(self._pool, "_processes", {}).values()):
-                    proc.terminate()
-            self._pool.shutdown(wait=not cancel, cancel_futures=True)
+                stop_workers(self._pool)
+            else:
+                self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
             self.n_processes = 0
 

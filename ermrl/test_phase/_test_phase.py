@@ -989,7 +989,7 @@ def _train_runs(jobs: list[_Job], n_procs: int, finished: _Finished) -> None:
     run to ``finished`` as it ends.
 
     On an error or an interrupt, the pool's runs not started are cancelled and its processes
-    terminated before the error is raised.
+    terminated before the error is raised (:func:`~ermrl.agents.training_pool`).
     """
     if n_procs == 1 or len(jobs) <= 1:
         for agent, seed, args in jobs:
@@ -999,18 +999,11 @@ def _train_runs(jobs: list[_Job], n_procs: int, finished: _Finished) -> None:
         pending: dict[Future[RunResult], tuple[AgentSpec, int]] = {
             pool.submit(_train_job, args): (agent, seed) for agent, seed, args in jobs
         }
-        try:
-            while pending:
-                ready, _ = wait(pending, return_when=FIRST_COMPLETED)
-                for future in ready:
-                    agent, seed = pending.pop(future)
-                    finished(agent, seed, future.result())
-        except BaseException:
-            for future in pending:
-                future.cancel()
-            for proc in list(getattr(pool, "_processes", {}).values()):
-                proc.terminate()
-            raise
+        while pending:
+            ready, _ = wait(pending, return_when=FIRST_COMPLETED)
+            for future in ready:
+                agent, seed = pending.pop(future)
+                finished(agent, seed, future.result())
 
 
 # The population runs' checkpoints, inside a test phase's output folder.
