@@ -276,6 +276,51 @@ def test_a_piece_of_the_test_phase_plans_only_its_runs() -> None:
             check_test_piece(stages, [], [10])
 
 
+def test_the_pieces_of_a_test_phase_add_to_its_records(tmp_path: Path) -> None:
+    """Each piece's config.yaml, command.txt and summary used to describe that piece alone, so
+    a phase run in pieces published files that listed its last piece's agents and seeds."""
+    import pandas as pd
+
+    from ermrl.config import ConfigError, EncoderConfig, PPOConfig, ReservoirParams, TaskConfig
+    from ermrl.test_phase import AgentSpec, TestSettings, run_comparison
+
+    task = TaskConfig("Pendulum-v1", "positions")
+    reservoirs = (ReservoirParams(units=10, sr=0.5, lr=0.5),)
+    ppo = PPOConfig(hyperparams={"n_steps": 128, "batch_size": 64, "n_epochs": 1})
+    meta = {"study_name": "s", "trial": 3}
+
+    def piece(agent: AgentSpec, seed: int, steps: int = 256, command: str = "") -> pd.DataFrame:
+        return run_comparison(
+            task, EncoderConfig(reservoirs=reservoirs), ppo, [agent],
+            TestSettings(training_steps=steps, seeds=(seed,), out=tmp_path),
+            metadata=meta, quiet=True, command=command or f"ermrl test {agent.name} {seed}",
+        )  # fmt: skip
+
+    piece(AgentSpec("res-ppo", reservoirs), 2)
+    summary = piece(AgentSpec("ppo", None), 1)
+    config = yaml.safe_load((tmp_path / "config.yaml").read_text())
+    # The registry's order, whatever the pieces' order; every piece's seeds.
+    assert list(config["agents"]) == ["ppo", "res-ppo"] and config["settings"]["seeds"] == [1, 2]
+    assert config["agents"]["res-ppo"][0]["sr"] == 0.5 and config["trial"] == 3
+    assert list(summary["agent"]) == ["ppo", "res-ppo"]
+    assert list(pd.read_csv(tmp_path / "summary.csv")["agent"]) == ["ppo", "res-ppo"]
+    lines = (tmp_path / "command.txt").read_text().splitlines()
+    assert lines == ["ermrl test res-ppo 2", "ermrl test ppo 1"]
+    piece(AgentSpec("ppo", None), 1)  # the same piece again: nothing new to record
+    assert (tmp_path / "command.txt").read_text().splitlines() == lines
+    # Another budget is another phase, refused while the folder holds this one's runs.
+    other = AgentSpec("random-res-ppo", (ReservoirParams(units=10),))
+    with pytest.raises(ConfigError, match="other settings"):
+        piece(other, 4, steps=512)
+    # Another selected trial: its records replace the folder's, as before pieces existed.
+    meta["trial"] = 4
+    summary = piece(other, 4, command="ermrl test other")
+    config = yaml.safe_load((tmp_path / "config.yaml").read_text())
+    assert list(config["agents"]) == ["random-res-ppo"] and config["settings"]["seeds"] == [4]
+    assert list(summary["agent"]) == ["random-res-ppo"] and config["trial"] == 4
+    assert (tmp_path / "command.txt").read_text() == "ermrl test other\n"
+
+
 def test_a_test_phase_run_in_pieces_then_whole(tmp_path: Path) -> None:
     path = write(tmp_path, {**TINY, "test": {**TINY["test"], "seeds": [10, 11]}})
     refused = ermrl(tmp_path, "run", str(path), "--agents", "ppo")

@@ -714,7 +714,7 @@ def run_comparison(
     }
     check_finished_runs(out, expected, settings.seeds, settings.overwrite)
     out.mkdir(parents=True, exist_ok=True)
-    _write_config(out, task, encoder, ppo, agents, settings, metadata, command)
+    phase_agents = _write_config(out, task, encoder, ppo, agents, settings, metadata, command)
     jobs = _plan_runs(
         out, task, encoder, ppo, agents, settings, budget, expected, metadata, stream, quiet
     )
@@ -741,7 +741,7 @@ def run_comparison(
     jobs = _train_populations(jobs, budget, settings, finished, stream, quiet, phase)
     phase.update(started=time.perf_counter(), done=0, units=len(jobs), per_run=True)
     _train_runs(jobs, settings.n_procs, finished)
-    return aggregate(out, [a.name for a in agents], title=task.label)
+    return aggregate(out, phase_agents, title=task.label)
 
 
 def _comparison_budget(settings: TestSettings) -> BudgetConfig:
@@ -769,8 +769,15 @@ def _write_config(
     settings: TestSettings,
     metadata: Mapping[str, Any] | None,
     command: str | None,
-) -> None:
-    """Write the comparison's ``config.yaml`` and ``command.txt`` (see :func:`run_comparison`)."""
+) -> list[str]:
+    """Write the comparison's ``config.yaml`` and ``command.txt`` (see :func:`run_comparison`);
+    return the agents the folder's summary lists.
+
+    A piece of a phase (``ermrl test --agents res-ppo --seeds 15 16`` into a folder that holds
+    the phase's other runs, or one task of a SLURM array) adds to the folder's records instead
+    of replacing them (:func:`_merged_config`): ``config.yaml`` lists the agents and seeds of
+    every piece, ``command.txt`` each piece's command, and the summary every agent.
+    """
     # The encoding options every reservoir agent shares; each agent's own reservoirs are under
     # `agents` (a top-level `reservoirs` read as the evolved one's, while it was the reference).
     shared_encoder = (
@@ -797,8 +804,70 @@ def _write_config(
         ),
         **dict(metadata or {}),
     }
+    line = command or shlex.join(sys.argv)
+    commands = [line]
+    merged = _merged_config(out / "config.yaml", config_doc)
+    if merged is not None:
+        config_doc = merged
+        earlier = _read_lines(out / "command.txt")
+        commands = [*earlier, line] if line not in earlier else earlier
     write_atomic(out / "config.yaml", yaml.safe_dump(config_doc, sort_keys=False))
-    write_atomic(out / "command.txt", (command or shlex.join(sys.argv)) + "\n")
+    write_atomic(out / "command.txt", "\n".join(commands) + "\n")
+    return list(config_doc["agents"])
+
+
+# Settings that may differ between the pieces of one phase: where and how a piece ran, not
+# what its runs are (those are checked run by run, check_finished_runs).
+_PIECE_SETTINGS = frozenset(
+    {"seeds", "out", "n_procs", "overwrite", "progress", "tensorboard", "wandb", "save_models"}
+)
+
+
+def _merged_config(path: Path, doc: Mapping[str, Any]) -> dict[str, Any] | None:
+    """``doc`` (a comparison's ``config.yaml``) joined with the earlier one at ``path`` when
+    both describe one phase: the same task, encoding, learner settings, budget and selected
+    trial, and the same reservoirs for an agent both list. Its agents are then those of both,
+    in the registry's order, and its seeds both's, sorted. ``None``: nothing to join (no
+    earlier file, an unreadable one, or another phase, which ``doc`` replaces).
+    """
+    try:
+        old = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError):
+        return None
+    if not isinstance(old, dict) or not isinstance(old.get("agents"), dict):
+        return None
+    doc = yaml.safe_load(yaml.safe_dump(dict(doc), sort_keys=False))  # as the file reads
+    maps = ("agents", "agent_observe", "agent_ppo")
+
+    def phase(d: Mapping[str, Any]) -> dict[str, Any]:
+        settings = {k: v for k, v in (d.get("settings") or {}).items() if k not in _PIECE_SETTINGS}
+        return {**{k: v for k, v in d.items() if k not in maps}, "settings": settings}
+
+    if phase(old) != phase(doc):
+        return None
+    for key in maps:
+        both = set(old.get(key) or {}) & set(doc.get(key) or {})
+        if any(old[key][name] != doc[key][name] for name in both):
+            return None
+    order = {name: k for k, name in enumerate(AGENT_KINDS)}
+
+    def joined(key: str) -> dict[str, Any]:
+        union = {**(old.get(key) or {}), **(doc.get(key) or {})}
+        return {n: union[n] for n in sorted(union, key=lambda n: (order.get(n, len(order)), n))}
+
+    seeds = sorted({*old["settings"].get("seeds", ()), *doc["settings"]["seeds"]})
+    merged = {**doc, "settings": {**doc["settings"], "seeds": seeds}}
+    for key in maps:
+        if key in doc or key in old:
+            merged[key] = joined(key)
+    return merged
+
+
+def _read_lines(path: Path) -> list[str]:
+    try:
+        return [ln for ln in path.read_text().splitlines() if ln.strip()]
+    except OSError:
+        return []
 
 
 def _plan_runs(
