@@ -854,6 +854,48 @@ def test_train_population_reports_the_diverged_job_and_keeps_the_others() -> Non
     assert all(isinstance(r, RunResult) for r in results[:2])
 
 
+def test_a_sigterm_dropped_in_a_weakref_callback_stops_the_population(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The handler's exception raised inside a weakref callback is dropped by Python; the
+    training loop raises it again at its next rollout instead of training to the end."""
+    import signal
+    import sys
+    import weakref
+
+    from ermrl._interrupt import Terminated, catch_sigterm, swallowed_signal
+
+    task, ppo, jobs = tiny_pendulum()
+    budget = BudgetConfig(training_steps=4096, fitness="last", n_last_episodes=1)
+    monkeypatch.setattr(sys, "unraisablehook", sys.unraisablehook)  # catch_sigterm sets it
+    handler = signal.getsignal(signal.SIGTERM)
+    collect = PopulationPPO._collect_rollout
+    rollouts = []
+
+    def collect_then_signal(self, *args: Any, **kwargs: Any) -> Any:  # noqa: ANN001
+        rollouts.append(self.num_timesteps)
+        if len(rollouts) == 1:
+
+            class Owner:
+                pass
+
+            owner = Owner()
+            ref = weakref.ref(owner, lambda _: signal.raise_signal(signal.SIGTERM))
+            del owner  # the callback runs here; Python drops its exception
+            assert ref() is None
+        return collect(self, *args, **kwargs)
+
+    monkeypatch.setattr(PopulationPPO, "_collect_rollout", collect_then_signal)
+    catch_sigterm()
+    try:
+        with pytest.raises(Terminated):
+            train_population(task, ppo, budget, jobs)
+    finally:
+        signal.signal(signal.SIGTERM, handler)
+        swallowed_signal(0)  # forget a signal left noted (when the test fails), for the next tests
+    assert len(rollouts) == 1  # stopped before its second rollout, not after 4096 steps
+
+
 # -- 5. exported agents load and act the same ---------------------------------------------------
 @pytest.mark.parametrize("normalize", [False, True], ids=["raw", "normalize"])
 def test_exported_agents_load_and_act_as_in_the_population(normalize: bool, tmp_path: Path) -> None:

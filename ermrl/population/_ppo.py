@@ -38,6 +38,7 @@ import torch
 from gymnasium import spaces
 
 from ermrl._code import code_identity, describe_code, same_code
+from ermrl._interrupt import raise_swallowed_signal
 from ermrl._io import write_atomic
 from ermrl._progress import Progress
 from ermrl.agents._train import NoEpisodeFinished, RunResult, TrainingDiverged, derive_seeds
@@ -504,6 +505,7 @@ class PopulationPPO:
         starts = np.ones((self.n_agents, self.envs.n_envs), np.float32)
         last_saved = self.num_timesteps
         while self.num_timesteps < total_timesteps and self.n_agents:
+            raise_swallowed_signal()  # a Ctrl-C or SIGTERM that a weakref callback dropped
             obs, starts, dones, rollout = self._collect_rollout(obs, starts, progress)
             if not self.n_agents:
                 break
