@@ -297,7 +297,9 @@ def test_the_pieces_of_a_test_phase_add_to_its_records(tmp_path: Path) -> None:
         )  # fmt: skip
 
     piece(AgentSpec("res-ppo", reservoirs), 2)
+    meta = {"study_name": "s", "trial": None}  # a piece of agents without the selection
     summary = piece(AgentSpec("ppo", None), 1)
+    meta = {"study_name": "s", "trial": 3}
     config = yaml.safe_load((tmp_path / "config.yaml").read_text())
     # The registry's order, whatever the pieces' order; every piece's seeds.
     assert list(config["agents"]) == ["ppo", "res-ppo"] and config["settings"]["seeds"] == [1, 2]
@@ -307,6 +309,7 @@ def test_the_pieces_of_a_test_phase_add_to_its_records(tmp_path: Path) -> None:
     lines = (tmp_path / "command.txt").read_text().splitlines()
     assert lines == ["ermrl test res-ppo 2", "ermrl test ppo 1"]
     piece(AgentSpec("ppo", None), 1)  # the same piece again: nothing new to record
+    assert yaml.safe_load((tmp_path / "config.yaml").read_text())["trial"] == 3
     assert (tmp_path / "command.txt").read_text().splitlines() == lines
     # Another budget is another phase, refused while the folder holds this one's runs.
     other = AgentSpec("random-res-ppo", (ReservoirParams(units=10),))

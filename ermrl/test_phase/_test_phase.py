@@ -826,7 +826,8 @@ _PIECE_SETTINGS = frozenset(
 def _merged_config(path: Path, doc: Mapping[str, Any]) -> dict[str, Any] | None:
     """``doc`` (a comparison's ``config.yaml``) joined with the earlier one at ``path`` when
     both describe one phase: the same task, encoding, learner settings, budget and selected
-    trial, and the same reservoirs for an agent both list. Its agents are then those of both,
+    trial (or none, in a piece whose agents use none), and the same reservoirs for an agent
+    both list. Its agents are then those of both,
     in the registry's order, and its seeds both's, sorted. ``None``: nothing to join (no
     earlier file, an unreadable one, or another phase, which ``doc`` replaces).
     """
@@ -836,29 +837,36 @@ def _merged_config(path: Path, doc: Mapping[str, Any]) -> dict[str, Any] | None:
         return None
     if not isinstance(old, dict) or not isinstance(old.get("agents"), dict):
         return None
-    doc = yaml.safe_load(yaml.safe_dump(dict(doc), sort_keys=False))  # as the file reads
+    new: dict[str, Any] = yaml.safe_load(yaml.safe_dump(dict(doc), sort_keys=False))  # as read
+    # A piece whose agents use no selected trial (ppo alone) records none: it joins the phase's
+    # selection, whichever piece came first.
+    chosen = [k for k in selection_metadata(None) if k in new or k in old]
+    if new.get("trial") is None and old.get("trial") is not None:
+        new.update({k: old.get(k) for k in chosen})
+    elif old.get("trial") is None and new.get("trial") is not None:
+        old.update({k: new.get(k) for k in chosen})
     maps = ("agents", "agent_observe", "agent_ppo")
 
     def phase(d: Mapping[str, Any]) -> dict[str, Any]:
         settings = {k: v for k, v in (d.get("settings") or {}).items() if k not in _PIECE_SETTINGS}
         return {**{k: v for k, v in d.items() if k not in maps}, "settings": settings}
 
-    if phase(old) != phase(doc):
+    if phase(old) != phase(new):
         return None
     for key in maps:
-        both = set(old.get(key) or {}) & set(doc.get(key) or {})
-        if any(old[key][name] != doc[key][name] for name in both):
+        both = set(old.get(key) or {}) & set(new.get(key) or {})
+        if any(old[key][name] != new[key][name] for name in both):
             return None
     order = {name: k for k, name in enumerate(AGENT_KINDS)}
 
     def joined(key: str) -> dict[str, Any]:
-        union = {**(old.get(key) or {}), **(doc.get(key) or {})}
+        union = {**(old.get(key) or {}), **(new.get(key) or {})}
         return {n: union[n] for n in sorted(union, key=lambda n: (order.get(n, len(order)), n))}
 
-    seeds = sorted({*old["settings"].get("seeds", ()), *doc["settings"]["seeds"]})
-    merged = {**doc, "settings": {**doc["settings"], "seeds": seeds}}
+    seeds = sorted({*old["settings"].get("seeds", ()), *new["settings"]["seeds"]})
+    merged = {**new, "settings": {**new["settings"], "seeds": seeds}}
     for key in maps:
-        if key in doc or key in old:
+        if key in new or key in old:
             merged[key] = joined(key)
     return merged
 
