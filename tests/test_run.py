@@ -684,6 +684,62 @@ def test_a_run_trained_again_for_its_model_keeps_its_published_result(
     assert (carried / "replay-model.json").is_file() and not (carried / "model.zip").exists()
 
 
+def test_a_piece_on_a_fresh_machine_adds_to_the_published_phase_records(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A phase's config.yaml and command.txt go with its published runs and come back with
+    them. Before, a piece run on a fresh machine found its run folders restored but no
+    config.yaml, so its records (the agents and seeds config.yaml lists, the summary's agents,
+    command.txt) described that piece alone: H2 Ant-v5's seeds 22-29 piece published a
+    summary without ppo and a command.txt without the earlier pieces."""
+    import json
+
+    import pandas as pd
+
+    import ermrl.runner._publish as publish
+    from ermrl.config import EncoderConfig, PPOConfig, ReservoirParams, TaskConfig
+    from ermrl.test_phase import AgentSpec, TestSettings, run_comparison
+
+    monkeypatch.chdir(tmp_path)
+    path = write(tmp_path, {**TINY, "publish": "published"})
+    exp = load_experiment(path)
+    (test,) = [s for s in experiment_plan(exp, build_agents=False) if s.stage == "test"]
+    assert test.folder is not None
+    task = TaskConfig("Pendulum-v1", "positions")
+    reservoirs = (ReservoirParams(units=10, sr=0.5, lr=0.5),)
+    ppo = PPOConfig(hyperparams={"n_steps": 128, "batch_size": 64, "n_epochs": 1})
+
+    def piece(agent: AgentSpec, seed: int) -> pd.DataFrame:
+        return run_comparison(
+            task, EncoderConfig(reservoirs=reservoirs), ppo, [agent],
+            TestSettings(training_steps=256, seeds=(seed,), out=test.folder),
+            metadata={"study_name": "s", "trial": 3}, quiet=True,
+            command=f"ermrl test {agent.name} {seed}",
+        )  # fmt: skip
+
+    piece(AgentSpec("ppo", None), 10)  # the first sitting: one piece, then a snapshot
+    assert publish.publish_finished_runs(exp, test) == 1
+    source = tmp_path / "published" / "Pendulum-v1" / "test"
+    assert (source / "command.txt").read_text() == "ermrl test ppo 10\n"
+
+    import shutil
+
+    shutil.rmtree(tmp_path / "runs")  # a fresh machine: the committed files only
+    assert publish.restore_finished_runs(exp, test) == (1, [])
+    assert (test.folder / "config.yaml").read_bytes() == (source / "config.yaml").read_bytes()
+    summary = piece(AgentSpec("res-ppo", reservoirs), 11)  # the next sitting's piece
+    assert list(summary["agent"]) == ["ppo", "res-ppo"]
+    config = yaml.safe_load((test.folder / "config.yaml").read_text())
+    assert list(config["agents"]) == ["ppo", "res-ppo"] and config["settings"]["seeds"] == [10, 11]
+    lines = (test.folder / "command.txt").read_text().splitlines()
+    assert lines == ["ermrl test ppo 10", "ermrl test res-ppo 11"]
+    # Records the folder already has are its own: a restore leaves them alone.
+    (test.folder / "command.txt").write_text("ermrl test mine\n")
+    publish.restore_finished_runs(exp, test)
+    assert (test.folder / "command.txt").read_text() == "ermrl test mine\n"
+    assert json.loads((source / "agents" / "ppo" / "seed_10" / "result.json").read_text())
+
+
 def test_the_test_phase_puts_a_kept_record_back_before_its_summary(tmp_path: Path) -> None:
     """The run trained again for its model ends with its published records back, so the
     summary, the curves and the page read the published result."""

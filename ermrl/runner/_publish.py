@@ -189,12 +189,18 @@ def publish_finished_runs(exp: Experiment, step: Step) -> int:
     from ermrl.analysis._results import KEPT_RECORD_DIR
 
     dest = exp.publish / step.label / step.stage
-    config = step.folder / "config.yaml"  # written as the phase starts: its agents, its trial
-    if config.is_file() and config.stat().st_size <= PUBLISH_MAX_BYTES:
+    # Written as the phase (or a piece of it) starts: its agents, its trial, its commands.
+    records = [
+        f
+        for f in (step.folder / name for name in _PHASE_RECORDS)
+        if f.is_file() and f.stat().st_size <= PUBLISH_MAX_BYTES
+    ]
+    if records:
         import shutil
 
         dest.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(config, dest / config.name)
+        for f in records:
+            shutil.copyfile(f, dest / f.name)
     return sum(
         _copy_run(run, dest / run.relative_to(step.folder), PUBLISH_MAX_BYTES)
         for run in _run_folders(step.folder)
@@ -224,6 +230,7 @@ def restore_finished_runs(exp: Experiment, step: Step) -> tuple[int, list[tuple[
     source = exp.publish / step.label / step.stage
     if source.resolve() == step.folder.resolve():
         return 0, []
+    _restore_phase_records(source, step.folder)
     restored, retrained = 0, []
     for run in _run_folders(source):
         rel = run.relative_to(source)
@@ -242,6 +249,28 @@ def restore_finished_runs(exp: Experiment, step: Step) -> tuple[int, list[tuple[
             continue
         restored += _copy_run(run, target, PUBLISH_MAX_BYTES)
     return restored, retrained
+
+
+# The records of a test phase beside its runs, carried with them: config.yaml (its agents,
+# seeds and selected trial) first, then command.txt (one line per piece that trained runs).
+_PHASE_RECORDS = ("config.yaml", "command.txt")
+
+
+def _restore_phase_records(source: Path, folder: Path) -> None:
+    """Put a phase's published ``config.yaml`` and ``command.txt`` back in a folder that has
+    no ``config.yaml``, so that the next piece adds to the phase's records (the test phase
+    joins a piece's records to the folder's, ``ermrl.test_phase``) instead of starting them
+    again: on a fresh machine, a piece's ``config.yaml`` and summary used to list that piece's
+    agents and seeds alone, and its ``command.txt`` its own command.
+    """
+    import shutil
+
+    if (folder / _PHASE_RECORDS[0]).exists() or not (source / _PHASE_RECORDS[0]).is_file():
+        return
+    folder.mkdir(parents=True, exist_ok=True)
+    for name in reversed(_PHASE_RECORDS):  # config.yaml, which marks them restored, last
+        if (source / name).is_file():
+            shutil.copyfile(source / name, folder / name)
 
 
 def write_snapshot_files(exp: Experiment, steps: Sequence[Step]) -> tuple[int, int]:
