@@ -195,6 +195,9 @@ def test_holm_adjusts_and_stops_where_a_test_is_kept() -> None:
     # Ranks 1-2 rejected at 0.05/4, 0.05/3; rank 3 (p 0.03 > 0.05/2) stops: it and rank 4 are
     # judged at 0.025.
     assert levels == pytest.approx([0.0125, 0.025, 0.05 / 3, 0.025])
+    # A tiny p is adjusted, not rounded away: the page printed H2 Ant-v5's 7 x 9.9e-23 as 0.
+    assert holm([9.89e-23, 0.5], 0.05)[0] == [1.978e-22, 0.5]
+    assert holm([0.03, 0.03], 0.05)[0] == [0.06, 0.06]  # not 0.060000000000000005
 
 
 @pytest.mark.parametrize(("d", "seeds"), [(1.0, 17), (0.5, 64), (0.8, 26)])

@@ -322,7 +322,9 @@ def holm(p_values: Sequence[float], alpha: float) -> tuple[list[float], list[flo
         if stop_level is None and not p[i] <= step:
             stop_level = step
         levels[i] = step if stop_level is None else stop_level
-    return [round(float(a), 15) for a in adjusted], [float(v) for v in levels]
+    # 12 significant digits: 2 x 0.03 reads 0.06, and a tiny p stays itself (15 decimals printed
+    # H2 Ant's 7 x 9.9e-23 as 0).
+    return [float(f"{a:.12g}") for a in adjusted], [float(v) for v in levels]
 
 
 def seeds_for_power(
