@@ -277,6 +277,39 @@ def test_families_pool_across_files_and_must_agree(tmp_path: Path) -> None:
         )
 
 
+def test_a_baseline_published_by_another_file_is_compared_as_it_is(tmp_path: Path) -> None:
+    """references: another experiment's published res-ppo runs enter the page under a name of
+    their own, are compared like the task's own runs, and are not counted as this phase's."""
+    from ermrl.analysis import VerdictError
+
+    _publish(tmp_path / "other" / "Up-v0", {"res-ppo": PPO})
+    other = str(tmp_path / "other" / "Up-v0" / "test")
+    rule = {**RULE, "questions": {**RULE["questions"], "vs-other": {
+        "text": "does it beat the other file's reservoir?", "compare": ["res-ppo - other-res"]}},
+        "references": {"other-res": {"agent": "res-ppo", "tests": {"Up-v0": other}}}}  # fmt: skip
+    hyp = _hypothesis(tmp_path, {"Up-v0": {"ppo": PPO, "res-ppo": CLEARLY_ABOVE}}, rule=rule)
+    md, _ = write_reproduction_page([hyp], tmp_path / "r.md")
+    row = _tests_of(md)[("Up-v0", "res-ppo − other-res", "last10")]
+    assert row[12] == "**supported**" and row[3] == "8 / 8"
+    assert float(row[4]) == pytest.approx(np.mean(CLEARLY_ABOVE) - np.mean(PPO), rel=1e-3)
+    text = md.read_text()
+    assert f"`other-res`: the published runs of `res-ppo` of `{other}`" in text
+    # 16 own runs of 1M steps; the borrowed 8 are not this test phase's.
+    assert "Test phase: 16M env steps" in text and "(the borrowed runs not counted)" in text
+    # Another budget is another setting: refused in one line.
+    record = Path(other) / "agents" / "res-ppo" / "seed_10" / "result.json"
+    record.write_text(record.read_text().replace("1000000", "300000"))
+    with pytest.raises(VerdictError, match=r"other-res \(Up-v0\): .* env_steps \[300000, "):
+        write_reproduction_page([hyp], tmp_path / "x.md")
+    missing = {
+        **rule,
+        "references": {"other-res": {"agent": "lstm-ppo", "tests": {"Up-v0": other}}},
+    }
+    hyp = _hypothesis(tmp_path / "m", {"Up-v0": {"ppo": PPO, "res-ppo": PPO}}, rule=missing)
+    with pytest.raises(VerdictError, match="no finished run of lstm-ppo in"):
+        write_reproduction_page([hyp], tmp_path / "y.md")
+
+
 def test_a_rule_written_after_the_first_result_is_flagged(tmp_path: Path) -> None:
     tasks = {"Up-v0": {"ppo": PPO, "res-ppo": CLEARLY_ABOVE}}
     early = _hypothesis(tmp_path / "a", tasks, finished="2026-11-20T10:00:00+00:00")
@@ -309,6 +342,9 @@ def test_last100_is_read_from_the_episodes_of_runs_that_predate_it(tmp_path: Pat
         ({"questions": {}}, "questions: name at least one question"),
         ({"questions": {"q": {"compare": ["res-ppo vs ppo"]}}}, "is not 'CANDIDATE - BASELINE'"),
         ({"alpah": 0.05}, "unknown key 'alpah'"),
+        ({"references": {"x": {"agent": "res-ppo"}}}, "references.x: a mapping with exactly"),
+        ({"references": {"x": {"agent": "res-ppo", "tests": ["a"]}}}, "x.tests: a mapping TASK"),
+        ({"references": {"x": {"agent": 3, "tests": {"A": "b"}}}}, "x.agent: an agent name"),
     ],
 )
 def test_a_bad_verdict_block_is_one_line(change: dict, message: str) -> None:

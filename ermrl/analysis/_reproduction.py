@@ -46,7 +46,9 @@ from ermrl.analysis._verdicts import (
     METRICS,
     NOT_RUN,
     Question,
+    Reference,
     TaskRuns,
+    VerdictError,
     VerdictRule,
     aggregate_question,
     excluded_effects,
@@ -60,6 +62,7 @@ from ermrl.analysis._verdicts import (
 __all__ = [
     "Hypothesis",
     "TaskFiles",
+    "add_reference_runs",
     "TaskResult",
     "load_test_runs",
     "task_result",
@@ -85,6 +88,8 @@ class TaskResult:
         selection: The selected reservoir(s) and how they were chosen.
         traced: Whether the tested trial is traced to a recorded selection.
         trace: What the trace found, in words (what is missing when it failed).
+        references: Baselines read from another experiment's published runs: ``{name: where
+            from}`` (see :func:`add_reference_runs`).
     """
 
     label: str
@@ -94,6 +99,7 @@ class TaskResult:
     selection: dict[str, Any] = field(default_factory=dict)
     traced: bool = True
     trace: str = ""
+    references: dict[str, str] = field(default_factory=dict)
 
     @property
     def tested(self) -> bool:
@@ -102,6 +108,51 @@ class TaskResult:
     @property
     def reference_selected(self) -> bool:
         return bool(self.selection.get("reference"))
+
+
+#: What a borrowed baseline's runs must share with the task's own runs (``result.json`` keys).
+_SAME_SETTING = ("env_id", "observe", "env_steps")
+
+
+def _setting(values: pd.Series) -> list[Any]:
+    """The distinct values of one setting of a group of runs, sorted (integers as integers)."""
+    out = {int(v) if isinstance(v, float) and v.is_integer() else v for v in values.dropna()}
+    try:
+        return sorted(out)
+    except TypeError:
+        return sorted(out, key=str)
+
+
+def add_reference_runs(result: TaskResult, ref: Reference, where: str = "verdict") -> None:
+    """Add a baseline another experiment published (:class:`~ermrl.analysis.Reference`) to a
+    task's runs, as agent ``ref.name``: its runs of ``ref.agent`` in the folder it names for
+    the task (none named: nothing is added).
+
+    Raises:
+        VerdictError: the folder has no finished run of the agent, or its runs trained on
+            another env, observation or budget than the task's own runs (one line).
+    """
+    folder = ref.tests.get(result.label)
+    if folder is None:
+        return
+    here = f"{where}: references.{ref.name} ({result.label})"
+    runs = load_test_runs(folder) if Path(folder).is_dir() else pd.DataFrame()
+    runs = runs[runs["agent"] == ref.agent] if not runs.empty else runs
+    if runs.empty:
+        raise VerdictError(f"{here}: no finished run of {ref.agent} in {folder}")
+    own = result.runs
+    for key in _SAME_SETTING:
+        if own.empty or key not in own or key not in runs:
+            continue
+        mine, theirs = _setting(own[key]), _setting(runs[key])
+        if mine and theirs and mine != theirs:
+            raise VerdictError(
+                f"{here}: {folder}'s runs have {key} {theirs}, this task's {mine}: not the same "
+                "setting"
+            )
+    runs = runs.assign(agent=ref.name)
+    result.runs = pd.concat([own, runs], ignore_index=True) if not own.empty else runs
+    result.references[ref.name] = f"`{ref.agent}` of `{folder}`"
 
 
 def _snapshot_evolution(doc: dict[str, Any] | None, n_trials: int) -> dict[str, Any]:
@@ -345,6 +396,10 @@ def write_reproduction_page(
         hyp.name: [task_result(t.folder, t.label, t.n_trials, t.snapshot) for t in hyp.tasks]
         for hyp in hypotheses
     }
+    for hyp in hypotheses:
+        for ref in hyp.rule.references if hyp.rule is not None else ():
+            for result in results[hyp.name]:
+                add_reference_runs(result, ref, hyp.file)
     rules = {h.name: h.rule for h in hypotheses if h.rule is not None}
     judged = [
         TaskRuns(hyp.name, r.label, r.runs, r.reference_selected, r.label)
@@ -364,6 +419,12 @@ def write_reproduction_page(
         "and how it differs from the paper. Every number is computed from the per-seed files "
         "published under `benchmarks/results/paper/` (a `result.json` and an `episodes.csv` "
         "per run) by `ermrl reproduction`."
+        + (
+            " A file without a claim from the paper goes beyond it: it tests what the "
+            "reproduction found and publishes under its own `publish:` folder."
+            if any(hyp.claim is None for hyp in hypotheses)
+            else ""
+        )
     )
     doc.p(
         "**How verdicts are decided.** Each experiment file states its rule in a `verdict:` "
@@ -788,6 +849,8 @@ def _task_section(
         f"{result.trace}."
     )
     doc.table(_agents_table(result.runs))
+    for name, source in result.references.items():
+        doc.p(f"`{name}`: the published runs of {source}, read as they are (not re-run).")
     if not rows.empty:
         doc.table(_tests_table(rows))
     curves = result.folder / "report" / "test" / "learning_curves.png"
@@ -803,9 +866,11 @@ def _task_section(
     if per_seed.exists():
         link = _rel(result.folder / "test", docs_dir)
         doc.p(f"Per-seed files: [{link}]({link}).")
-    if math.isfinite(float(result.runs["env_steps"].sum())):
+    own = result.runs[~result.runs["agent"].isin(result.references)]
+    if math.isfinite(float(own["env_steps"].sum())):
         doc.p(
-            f"Test phase: {int(result.runs['env_steps'].sum()) / 1e6:.4g}M env steps, "
-            f"{float(result.runs['wall_seconds'].sum()) / 3600:.2f} h of run wall time."
+            f"Test phase: {int(own['env_steps'].sum()) / 1e6:.4g}M env steps, "
+            f"{float(own['wall_seconds'].sum()) / 3600:.2f} h of run wall time"
+            + (" (the borrowed runs not counted)." if result.references else ".")
         )
     _mechanism_section(doc, hyp, result, docs_dir, tests)

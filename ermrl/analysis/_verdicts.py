@@ -54,6 +54,7 @@ __all__ = [
     "OUTCOMES",
     "Comparison",
     "Question",
+    "Reference",
     "TaskRuns",
     "VerdictRule",
     "VerdictError",
@@ -132,6 +133,25 @@ class Question:
 
 
 @dataclass(frozen=True)
+class Reference:
+    """A baseline another experiment already ran: its published runs of one agent, per task.
+
+    The runs are read from the other file's published test folders (not re-run) and enter the
+    page under ``name``, so that a question can compare against them (``res-ppo - NAME``).
+
+    Attributes:
+        name: The baseline's name in this rule's comparisons.
+        agent: The agent whose runs are read.
+        tests: ``{task label: published test folder}``, relative to the working directory (the
+            repository root, as ``publish:`` paths are).
+    """
+
+    name: str
+    agent: str
+    tests: Mapping[str, str]
+
+
+@dataclass(frozen=True)
 class VerdictRule:
     """How an experiment's verdicts are decided, as its file's ``verdict:`` block states it.
 
@@ -144,6 +164,7 @@ class VerdictRule:
             first test result it judges.
         n_resamples: Bootstrap resamples.
         power: The power the seeds-needed line targets.
+        references: Baselines read from other experiments' published runs (:class:`Reference`).
     """
 
     questions: tuple[Question, ...]
@@ -153,6 +174,7 @@ class VerdictRule:
     adopted: str | None = None
     n_resamples: int = 10_000
     power: float = 0.8
+    references: tuple[Reference, ...] = ()
 
     @classmethod
     def from_doc(cls, doc: Any, where: str = "verdict") -> VerdictRule:
@@ -163,7 +185,16 @@ class VerdictRule:
         """
         if not isinstance(doc, Mapping):
             raise VerdictError(f"{where}: a mapping is needed (alpha, correction, questions)")
-        known = {"adopted", "alpha", "correction", "primary", "questions", "power", "resamples"}
+        known = {
+            "adopted",
+            "alpha",
+            "correction",
+            "primary",
+            "questions",
+            "power",
+            "references",
+            "resamples",
+        }
         for key in doc:
             if key not in known:
                 raise VerdictError(
@@ -222,6 +253,7 @@ class VerdictRule:
             adopted,
             int(resamples),
             float(power),
+            _references(doc.get("references"), f"{where}.references"),
         )
 
     @property
@@ -246,6 +278,30 @@ class VerdictRule:
             f"any is; seeds needed: per agent, for {self.power:.0%} power of Welch's test at the "
             "adjusted level, if the observed difference and spread were the truth"
         )
+
+
+def _references(doc: Any, where: str) -> tuple[Reference, ...]:
+    """A ``references:`` block: ``{NAME: {agent: AGENT, tests: {TASK: FOLDER}}}``."""
+    if doc is None:
+        return ()
+    if not isinstance(doc, Mapping) or not doc:
+        raise VerdictError(f"{where}: a mapping NAME: {{agent: AGENT, tests: {{TASK: FOLDER}}}}")
+    out = []
+    for name, ref in doc.items():
+        here = f"{where}.{name}"
+        if not isinstance(ref, Mapping) or set(ref) != {"agent", "tests"}:
+            raise VerdictError(f"{here}: a mapping with exactly agent and tests is needed")
+        agent, tests = ref["agent"], ref["tests"]
+        if not isinstance(agent, str) or not agent:
+            raise VerdictError(f"{here}.agent: an agent name is needed, got {agent!r}")
+        if (
+            not isinstance(tests, Mapping)
+            or not tests
+            or not all(isinstance(k, str) and isinstance(v, str) for k, v in tests.items())
+        ):
+            raise VerdictError(f"{here}.tests: a mapping TASK: published test folder is needed")
+        out.append(Reference(str(name), agent, dict(tests)))
+    return tuple(out)
 
 
 def _date(value: Any, where: str) -> str | None:
