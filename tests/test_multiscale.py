@@ -327,7 +327,20 @@ def test_the_experiment_file_plans_both_tasks_at_the_paper_files_scale() -> None
         assert test[test.index("--training-steps") + 1] == test_steps
     doc = yaml.safe_load(path.read_text())
     assert "Scale" in path.read_text().split("\nname:")[0]
-    assert doc["verdict"]["questions"]["evolved-vs-leaky"]["compare"] == ["res-ppo - leaky-res-ppo"]
+    questions = doc["verdict"]["questions"]
+    assert questions["multiscale-vs-leaky"]["compare"] == ["res-ppo - leaky-res-ppo"]
+    assert questions["multiscale-vs-one-timescale"]["compare"] == [
+        "res-ppo - one-timescale-res-ppo"
+    ]
+    # The one-timescale baseline is the paper files' published res-ppo runs: the same task,
+    # observation and seeds as this file's test phase.
+    ref = doc["verdict"]["references"]["one-timescale-res-ppo"]
+    assert ref["agent"] == "res-ppo" and set(ref["tests"]) == {"Ant-v5", "Pendulum-v1"}
+    for env_id, observe in (("Ant-v5", "all"), ("Pendulum-v1", "positions")):
+        runs = sorted((ROOT / ref["tests"][env_id] / "agents" / "res-ppo").glob("seed_*"))
+        records = [json.loads((r / "result.json").read_text()) for r in runs]
+        assert sorted(r["seed"] for r in records) == [int(s) for s in seeds]
+        assert {(r["env_id"], r.get("observe", "all")) for r in records} == {(env_id, observe)}
     quick = experiment_plan(load_experiment(path, variant="quick"), build_agents=False)
     evolve = next(s for s in quick if s.stage == "evolve").argv
     assert [s.label for s in quick if s.stage == "evolve"] == ["Pendulum-v1"]

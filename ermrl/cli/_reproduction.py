@@ -35,7 +35,7 @@ DESCRIPTION = textwrap.dedent(
     to each one still inconclusive (n80), and --changes writes the full comparison as CSV.
 
     examples:
-      ermrl reproduction experiments/paper/*.yaml --out docs/reproduction.md
+      ermrl reproduction experiments/paper/*.yaml experiments/multiscale.yaml --out docs/reproduction.md
       git show HEAD~5:docs/reproduction.csv > /tmp/before.csv
       ermrl reproduction experiments/paper/*.yaml --compare /tmp/before.csv
     """
