@@ -308,6 +308,11 @@ def test_a_baseline_published_by_another_file_is_compared_as_it_is(tmp_path: Pat
     hyp = _hypothesis(tmp_path / "m", {"Up-v0": {"ppo": PPO, "res-ppo": PPO}}, rule=missing)
     with pytest.raises(VerdictError, match="no finished run of lstm-ppo in"):
         write_reproduction_page([hyp], tmp_path / "y.md")
+    # A name the task's own runs already use would mix two groups: refused.
+    clash = {**rule, "references": {"ppo": {"agent": "res-ppo", "tests": {"Up-v0": other}}}}
+    hyp = _hypothesis(tmp_path / "c", {"Up-v0": {"ppo": PPO, "res-ppo": PPO}}, rule=clash)
+    with pytest.raises(VerdictError, match="the task has runs of its own named ppo"):
+        write_reproduction_page([hyp], tmp_path / "z.md")
 
 
 def test_a_rule_written_after_the_first_result_is_flagged(tmp_path: Path) -> None:

@@ -129,8 +129,9 @@ def add_reference_runs(result: TaskResult, ref: Reference, where: str = "verdict
     the task (none named: nothing is added).
 
     Raises:
-        VerdictError: the folder has no finished run of the agent, or its runs trained on
-            another env, observation or budget than the task's own runs (one line).
+        VerdictError: the task has runs of its own under that name, the folder has no
+            finished run of the agent, or its runs trained on another env, observation or
+            budget than the task's own runs (one line).
     """
     folder = ref.tests.get(result.label)
     if folder is None:
@@ -141,6 +142,8 @@ def add_reference_runs(result: TaskResult, ref: Reference, where: str = "verdict
     if runs.empty:
         raise VerdictError(f"{here}: no finished run of {ref.agent} in {folder}")
     own = result.runs
+    if not own.empty and ref.name in set(own["agent"]):
+        raise VerdictError(f"{here}: the task has runs of its own named {ref.name}")
     for key in _SAME_SETTING:
         if own.empty or key not in own or key not in runs:
             continue
