@@ -456,3 +456,12 @@ def test_compare_options_fail_in_one_line(
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0]
     assert not (tmp_path / "r.md").exists()
+
+
+def test_a_multi_timescale_selection_shows_its_band_of_leak_rates() -> None:
+    from ermrl.analysis._reproduction import _reservoir_text
+
+    band = {"units": 100, "sr": 0.02, "lr": 0.001, "lr_max": 0.25, "input_scaling": 1.0}
+    text = _reservoir_text({"trial": 7, "selection": "re-evaluated", "reservoirs": [band]})
+    assert text == "trial #7 (re-evaluated): reservoir 0: sr 0.02, lr 0.001, lr_max 0.25, " \
+        "input_scaling 1 (100 units)"  # fmt: skip

@@ -707,7 +707,9 @@ def _reservoir_text(selection: dict[str, Any]) -> str:
     parts = []
     for i, r in enumerate(reservoirs):
         genes = ", ".join(
-            f"{k} {r[k]:.4g}" for k in ("sr", "lr", "input_scaling") if isinstance(r.get(k), float)
+            f"{k} {r[k]:.4g}"
+            for k in ("sr", "lr", "lr_max", "input_scaling")  # lr_max: a band of leak rates
+            if isinstance(r.get(k), float)
         )
         parts.append(f"reservoir {i}: {genes} ({r.get('units')} units)")
     trial = selection.get("trial")
