@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pandas as pd
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -437,3 +438,39 @@ def test_the_blas_benchmark_runs_in_quick_mode(tmp_path: Path) -> None:
     )
     if row["native_kernel"].lower() == "haswell":  # one variant: the same kernel, same returns
         assert row["same_returns"] is True
+
+
+def test_published_groups_compare_with_welch_and_bootstrap(tmp_path: Path) -> None:
+    """compare_published.py: groups from two folders, the difference and its intervals as
+    scipy's Welch test gives them, and one-line errors for a bad group."""
+    from scipy import stats
+
+    values = {"a": [10.0, 12.0, 11.0, 13.0, 9.0], "b": [1.0, 2.0, 0.0, 3.0, 1.5]}
+    for folder, agent in (("one", "a"), ("two", "b")):
+        for i, v in enumerate(values[agent]):
+            run = tmp_path / folder / "agents" / "res-ppo" / f"seed_{10 + i}"
+            run.mkdir(parents=True)
+            (run / "result.json").write_text(json.dumps(
+                {"agent": "res-ppo", "seed": 10 + i, "final_return": v, "last100_return": v,
+                 "eval_return": v}))  # fmt: skip
+            (run / "episodes.csv").write_text("env_step,episode_return\n1,0\n")
+    script = str(ROOT / "benchmarks" / "compare_published.py")
+    out = tmp_path / "cmp.csv"
+    proc = subprocess.run(
+        [sys.executable, script, f"a={tmp_path / 'one'}:res-ppo", f"b={tmp_path / 'two'}:res-ppo",
+         "--candidate", "a", "--baselines", "b", "--out", str(out)],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert "no multiple-comparison correction" in proc.stdout
+    table = pd.read_csv(out).set_index("metric")
+    assert table.loc["last10", "mean_diff"] == pytest.approx(11.0 - 1.5)
+    p = stats.ttest_ind(values["a"], values["b"], equal_var=False).pvalue
+    assert table.loc["last10", "p_value"] == pytest.approx(p)
+    assert table.loc["last10", "welch_ci_low"] > 0 and table.loc["eval", "n_candidate"] == 5
+    bad = subprocess.run(
+        [sys.executable, script, f"a={tmp_path / 'one'}:lstm-ppo", "--candidate", "a",
+         "--baselines", "a"], capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert bad.returncode == 2 and "a: no finished run of lstm-ppo in" in bad.stderr
+    assert len(bad.stderr.strip().splitlines()[-1]) < 200
