@@ -6,6 +6,7 @@ Real CLI processes on real SQLite studies with real (tiny) training; nothing is 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import re
 import resource
@@ -554,6 +555,16 @@ def test_a_snapshot_carries_an_unfinished_test_phase_to_a_fresh_machine(tmp_path
     assert (runs / "res-ppo" / "seed_10" / "replay-model.json").is_file()
     report = tmp_path / "runs" / "tiny" / "Pendulum-v1" / "report"
     assert list((report / "dynamics").glob("res-ppo_seed10_*")), sorted(report.rglob("*"))
+    # The report says the replayed policy is a retrained one, and both returns.
+    again = json.loads((runs / "res-ppo" / "seed_10" / "replay-model.json").read_text())
+    text = " ".join((report / "report.md").read_text().split())
+    assert (
+        f"`res-ppo` seed 10's model was trained again for this replay (same settings and seed; "
+        f"published runs carry no model): its training ended at a return of "
+        f"{again['final_return']:.4g}, the published run's at "
+        f"{json.loads(replayed)['final_return']:.4g}"
+    ) in text
+    assert "`random-res-ppo` seed 10's model was trained again" in text
 
 
 @pytest.mark.slow
@@ -638,7 +649,6 @@ def test_a_run_trained_again_for_its_model_keeps_its_published_result(
     machine. Its published records are kept and put back as that training ends: the same seed
     trained in another population layout returned -662 where the published run had -1136 (H1
     Pendulum), and that second value silently replaced the first."""
-    import json
 
     import ermrl.runner._publish as publish
     from ermrl.test_phase._results import keep_published_record
@@ -692,7 +702,6 @@ def test_a_piece_on_a_fresh_machine_adds_to_the_published_phase_records(
     config.yaml, so its records (the agents and seeds config.yaml lists, the summary's agents,
     command.txt) described that piece alone: H2 Ant-v5's seeds 22-29 piece published a
     summary without ppo and a command.txt without the earlier pieces."""
-    import json
 
     import pandas as pd
 
@@ -744,7 +753,6 @@ def test_the_test_phase_puts_a_kept_record_back_before_its_summary(tmp_path: Pat
     """The run trained again for its model ends with its published records back, so the
     summary, the curves and the page read the published result."""
     import io
-    import json
 
     import pandas as pd
 
@@ -780,7 +788,6 @@ def test_the_plan_counts_a_snapshots_finished_trials_as_done(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """A run that continues from a snapshot is estimated for the trials still to train only."""
-    import json
 
     from ermrl.runner._run import step_status as _status
 

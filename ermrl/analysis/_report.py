@@ -903,6 +903,9 @@ def _dynamics_section(state: _State, runs: Path) -> None:
         f"{rec.episode_return:.4g}); arrays in `dynamics/` (`.npz`: observations, actions, "
         "rewards, reservoir states)."
     )
+    retrained = _retrained_note(runs, replayed)
+    if retrained:
+        doc.p(retrained)
     rows = []
     for agent, recording in recordings.items():
         paths = write_dynamics(recording, state.out / "dynamics")
@@ -948,6 +951,35 @@ def _dynamics_section(state: _State, runs: Path) -> None:
     if evolved == "res-ppo" and rec.states.shape[1] > 0:
         _mechanism_section(state, runs, rec, doc)
     state.sections.append(doc)
+
+
+def _retrained_note(runs: Path, replayed: Sequence[tuple[str, int]]) -> str:
+    """One sentence per replayed run whose model was trained again after its records were
+    published (``replay-model.json``, written by ``ermrl run``'s restore): the replayed policy
+    is then not the published run's, and the two returns say how far they are apart."""
+    import json
+
+    from ermrl.analysis._results import read_run_result, run_dir
+    from ermrl.test_phase._results import REPLAY_MODEL_FILE
+
+    parts = []
+    for agent, seed in replayed:
+        folder = run_dir(runs, agent, seed)
+        try:
+            again = json.loads((folder / REPLAY_MODEL_FILE).read_text())
+            published = read_run_result(folder / "result.json")["final_return"]
+        except (OSError, ValueError, KeyError):
+            continue
+        new = again.get("final_return") if isinstance(again, dict) else None
+        if not isinstance(new, int | float):
+            continue
+        parts.append(
+            f"`{agent}` seed {seed}'s model was trained again for this replay (same settings "
+            f"and seed; published runs carry no model): its training ended at a return of "
+            f"{new:.4g}, the published run's at {published:.4g}, since a run repeats only up "
+            f"to floating-point order (`{REPLAY_MODEL_FILE}` in its run folder)."
+        )
+    return " ".join(parts)
 
 
 def _mechanism_section(state: _State, runs: Path, recording: Any, doc: _Doc) -> None:
