@@ -609,6 +609,24 @@ def test_a_run_killed_in_its_test_phase_has_already_published_its_finished_runs(
     assert "--snapshot-every" in bad.stderr
 
 
+@pytest.mark.slow
+def test_a_run_stopped_with_ctrl_c_snapshots_what_finished_since_the_last_tick(
+    tmp_path: Path,
+) -> None:
+    """Ctrl-C between two snapshot ticks (an hour apart here): the run writes one more
+    snapshot on its way out, so the trials finished since the last tick are not lost."""
+    doc = {**TINY, "publish": "published", "evolve": {**TINY["evolve"], "n_trials": 500}}
+    path = write(tmp_path, doc)
+    proc, log = _start(tmp_path, ["run", str(path), "--snapshot-every", "3600"], "run.log")
+    _wait_for(lambda: "[trial 1 |" in log.read_text(), 600, log, proc)
+    os.killpg(proc.pid, signal.SIGINT)
+    assert proc.wait(60) == 130, log.read_text()
+    snapshot = json.loads((tmp_path / "published" / "Pendulum-v1" / "study.json").read_text())
+    complete = [t["number"] for t in snapshot["trials"] if t["state"] == "COMPLETE"]
+    assert {0, 1} <= set(complete), log.read_text()
+    assert len(snapshot["trials"]) < 500
+
+
 def test_a_run_with_a_file_too_large_to_publish_is_not_carried(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

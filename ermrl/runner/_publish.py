@@ -284,9 +284,11 @@ class PeriodicSnapshots:
     """Write :func:`write_snapshot_files` every ``every`` seconds from a background thread.
 
     A sitting or a machine that ends (a time limit, a preemption, ``kill -9``) then loses at
-    most ``every`` seconds of finished work, as long as the published folder is kept. A
-    snapshot that fails (a locked database, a full disk) is reported on ``stream`` in one line
-    and tried again at the next tick; it never stops the run. Use it as a context manager.
+    most ``every`` seconds of finished work, as long as the published folder is kept; a run
+    that stops by itself (done, a failed stage, Ctrl-C or SIGTERM) writes one more snapshot
+    on its way out, so it loses nothing finished. A snapshot that fails (a locked database, a
+    full disk) is reported on ``stream`` in one line and tried again at the next tick; it
+    never stops the run. Use it as a context manager.
     """
 
     def __init__(
@@ -306,22 +308,25 @@ class PeriodicSnapshots:
         return self
 
     def __exit__(self, *exc: object) -> None:
+        started = self._thread.ident is not None
         self._stop.set()
         if self._thread.is_alive():
             self._thread.join(timeout=60)
+        if started:  # the last tick can be up to ``every`` seconds old: one more, last one
+            self._write("ermrl run: last snapshot skipped")
 
     def _loop(self) -> None:
         while not self._stop.wait(self.every):
-            try:
-                write_snapshot_files(self.exp, self.steps)
-                self.written += 1
-            except Exception as err:  # noqa: BLE001 - a snapshot must never stop the run
-                print(
-                    f"ermrl run: snapshot skipped, tried again in {format_duration(self.every)} "
-                    f"({type(err).__name__}: {err})",
-                    file=self.stream,
-                    flush=True,
-                )
+            self._write(
+                f"ermrl run: snapshot skipped, tried again in {format_duration(self.every)}"
+            )
+
+    def _write(self, failed: str) -> None:
+        try:
+            write_snapshot_files(self.exp, self.steps)
+            self.written += 1
+        except Exception as err:  # noqa: BLE001 - a snapshot must never stop the run
+            print(f"{failed} ({type(err).__name__}: {err})", file=self.stream, flush=True)
 
 
 def snapshot_status(exp: Experiment, step: Step) -> tuple[float, str] | None:
