@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 import subprocess
@@ -465,3 +466,28 @@ def test_a_multi_timescale_selection_shows_its_band_of_leak_rates() -> None:
     text = _reservoir_text({"trial": 7, "selection": "re-evaluated", "reservoirs": [band]})
     assert text == "trial #7 (re-evaluated): reservoir 0: sr 0.02, lr 0.001, lr_max 0.25, " \
         "input_scaling 1 (100 units)"  # fmt: skip
+
+
+def test_a_task_evolving_or_not_started_says_which(tmp_path: Path) -> None:
+    """A task with no test phase yet: "Not tested yet" once its evolution has finished trials
+    (with how many), "Not run yet" before."""
+    hyp = _hypothesis(tmp_path, {"Done-v0": {"ppo": PPO, "res-ppo": CLEARLY_ABOVE,
+                                             "random-res-ppo": PPO}})  # fmt: skip
+    files = []
+    for label, trials in (("Evolving-v0", 2), ("Fresh-v0", 0)):
+        folder = tmp_path / "pub" / label
+        folder.mkdir(parents=True)
+        snapshot = folder / "study.json"
+        done = [{"number": i, "state": "COMPLETE", "value": 1.0,
+                 "user_attrs": {"env_steps": 900_000, "wall_seconds": 60.0}}
+                for i in range(trials)]  # fmt: skip
+        snapshot.write_text(json.dumps({"trials": done, "user_attrs": {}, "related": {}}))
+        files.append(TaskFiles(label, label, folder, snapshot, 10))
+    hyp = dataclasses.replace(hyp, tasks=hyp.tasks + tuple(files))
+    md, _ = write_reproduction_page([hyp], tmp_path / "r.md")
+    text = md.read_text()
+    evolving = text.split("### Evolving-v0")[1].split("###")[0]
+    assert "**Not tested yet.** Evolution: 2/10 trials finished, 1.8M env steps" in evolving
+    assert "The test phase has not run." in evolving
+    fresh = text.split("### Fresh-v0")[1].split("###")[0]
+    assert "**Not run yet.** Evolution: 0/10 trials finished." in fresh

@@ -829,7 +829,8 @@ def _task_section(
         + "."
     )
     if not result.tested:
-        doc.p(f"**Not run yet.** {evolution_text} The test phase has not run.")
+        started = "Not tested yet" if evo["finished"] else "Not run yet"
+        doc.p(f"**{started}.** {evolution_text} The test phase has not run.")
         return
     if not result.traced:
         doc.p(
