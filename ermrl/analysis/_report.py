@@ -959,8 +959,7 @@ def _retrained_note(runs: Path, replayed: Sequence[tuple[str, int]]) -> str:
     is then not the published run's, and the two returns say how far they are apart."""
     import json
 
-    from ermrl.analysis._results import read_run_result, run_dir
-    from ermrl.test_phase._results import REPLAY_MODEL_FILE
+    from ermrl.analysis._results import REPLAY_MODEL_FILE, read_run_result, run_dir
 
     parts = []
     for agent, seed in replayed:

@@ -34,6 +34,9 @@ RUNS_DIR = "agents"
 #: records as it ends (:func:`ermrl.test_phase._results.keep_published_record`), so a result
 #: once published never changes.
 KEPT_RECORD_DIR = "published-record"
+#: Beside a run's published records: what the model trained again for the report's replay
+#: returned (written by :func:`ermrl.test_phase._results.keep_published_record`).
+REPLAY_MODEL_FILE = "replay-model.json"
 CURVE_COLUMNS = ["agent", "seed", "env_step", "episode_return"]
 GRID_COLUMNS = ["agent", "env_step", "mean", "std", "sem", "ci95", "n_seeds"]
 CONFIG_FILE = "config.yaml"

@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 
 from ermrl._io import write_atomic
-from ermrl.analysis._results import KEPT_RECORD_DIR
+from ermrl.analysis._results import KEPT_RECORD_DIR, REPLAY_MODEL_FILE
 
 __all__ = [
     "KEPT_RECORD_DIR",
@@ -24,7 +24,6 @@ __all__ = [
 ]
 
 #: What the training for the replay's model gave, written beside the kept records.
-REPLAY_MODEL_FILE = "replay-model.json"
 _RECORDS = ("settings.json", "episodes.csv", "result.json")  # result.json last: marks it finished
 #: Training episodes averaged into ``last100_return``: SB3's ``rollout/ep_rew_mean`` window,
 #: the metric the ER-MRL paper plots (``stats_window_size`` 100).
