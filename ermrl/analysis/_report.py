@@ -959,15 +959,20 @@ def _retrained_note(runs: Path, replayed: Sequence[tuple[str, int]]) -> str:
     is then not the published run's, and the two returns say how far they are apart."""
     import json
 
-    from ermrl.analysis._results import REPLAY_MODEL_FILE, read_run_result, run_dir
+    from ermrl.analysis._results import (
+        REPLAY_MODEL_FILE,
+        RESULT_FILE,
+        read_run_result,
+        run_dir,
+    )
 
     parts = []
     for agent, seed in replayed:
         folder = run_dir(runs, agent, seed)
         try:
             again = json.loads((folder / REPLAY_MODEL_FILE).read_text())
-            published = read_run_result(folder / "result.json")["final_return"]
-        except (OSError, ValueError, KeyError):
+            published = read_run_result(folder / RESULT_FILE)["final_return"]
+        except (OSError, ValueError):  # RunFolderError is a ValueError
             continue
         new = again.get("final_return") if isinstance(again, dict) else None
         if not isinstance(new, int | float):

@@ -23,7 +23,6 @@ __all__ = [
     "write_run",
 ]
 
-#: What the training for the replay's model gave, written beside the kept records.
 _RECORDS = ("settings.json", "episodes.csv", "result.json")  # result.json last: marks it finished
 #: Training episodes averaged into ``last100_return``: SB3's ``rollout/ep_rew_mean`` window,
 #: the metric the ER-MRL paper plots (``stats_window_size`` 100).
