@@ -491,3 +491,37 @@ def test_a_task_evolving_or_not_started_says_which(tmp_path: Path) -> None:
     assert "The test phase has not run." in evolving
     fresh = text.split("### Fresh-v0")[1].split("###")[0]
     assert "**Not run yet.** Evolution: 0/10 trials finished." in fresh
+
+
+def test_a_test_phase_published_in_part_gets_no_verdict_until_every_planned_run_is_in(
+    tmp_path: Path,
+) -> None:
+    """Judging the seeds that happen to have finished would let the stopping point choose the
+    result: a task short of the runs its file plans is described, not judged, and stays out of
+    the Holm family; once every planned run is in, it is judged like the others."""
+    values = {"ppo": PPO, "res-ppo": CLEARLY_ABOVE, "random-res-ppo": PPO}  # seeds 10-17
+    hyp = _hypothesis(tmp_path, {"Whole-v0": values, "Part-v0": values})
+    agents = ("ppo", "res-ppo", "random-res-ppo")
+
+    def page(seeds: range) -> tuple[str, dict, pd.DataFrame]:
+        part = dataclasses.replace(hyp.tasks[1], planned={a: tuple(seeds) for a in agents})
+        md, _ = write_reproduction_page(
+            [dataclasses.replace(hyp, tasks=(hyp.tasks[0], part))], tmp_path / "r.md"
+        )
+        return md.read_text(), _tests_of(md), pd.read_csv(md.with_suffix(".csv"))
+
+    text, rows, table = page(range(10, 20))  # 2 of 10 planned seeds still missing per agent
+    section = text.split("### Part-v0")[1]
+    assert "**Test in progress: 24 of the 30 planned runs published** (`ppo` 8/10, " \
+        "`res-ppo` 8/10, `random-res-ppo` 8/10). No verdict until every planned run is in" \
+        in section  # fmt: skip
+    assert "| res-ppo |" in section  # what is published is still shown
+    assert set(table["task"]) == {"Whole-v0"} and ("Part-v0", "res-ppo − ppo", "last10") not in rows
+    assert rows[("Whole-v0", "res-ppo − ppo", "last10")][8].endswith("(1)")  # a family of 1
+    assert "Part-v0" not in text.split("### Whole-v0")[0]  # not in the verdicts at a glance
+
+    text, rows, table = page(range(10, 18))  # every planned run published
+    assert "Test in progress" not in text
+    assert set(table["task"]) == {"Whole-v0", "Part-v0"}
+    assert rows[("Part-v0", "res-ppo − ppo", "last10")][12] == "**supported**"
+    assert rows[("Whole-v0", "res-ppo − ppo", "last10")][8].endswith("(2)")

@@ -15,7 +15,10 @@ and the seeds that would detect the observed effect. See :mod:`ermrl.analysis._v
 
 A task is rendered only when the trial its test phase tested can be traced to a recorded
 selection in the study snapshot (the re-evaluation record, the evolution's best trial, or a
-trial named by hand): an untraceable one is refused, naming what is missing.
+trial named by hand): an untraceable one is refused, naming what is missing. A task whose test
+phase is published in part (some of the runs its file plans, ``test.agents`` x ``test.seeds``)
+gets no verdict until every planned run is in: judging on the seeds that happen to have
+finished would let the stopping point choose the result.
 """
 
 from __future__ import annotations
@@ -90,6 +93,8 @@ class TaskResult:
         trace: What the trace found, in words (what is missing when it failed).
         references: Baselines read from another experiment's published runs: ``{name: where
             from}`` (see :func:`add_reference_runs`).
+        planned: The test runs the experiment file plans, ``{agent: seeds}`` (empty: no plan
+            known, the published runs are taken as the whole phase).
     """
 
     label: str
@@ -100,10 +105,30 @@ class TaskResult:
     traced: bool = True
     trace: str = ""
     references: dict[str, str] = field(default_factory=dict)
+    planned: dict[str, tuple[int, ...]] = field(default_factory=dict)
 
     @property
     def tested(self) -> bool:
         return not self.runs.empty and EVOLVED in set(self.runs["agent"])
+
+    @property
+    def missing(self) -> dict[str, tuple[int, ...]]:
+        """The planned runs not published yet, ``{agent: seeds}`` (agents with none left out)."""
+        done = (
+            set()
+            if self.runs.empty
+            else {(str(a), int(sd)) for a, sd in zip(self.runs["agent"], self.runs["seed"])}
+        )
+        out = {
+            agent: tuple(sd for sd in seeds if (agent, sd) not in done)
+            for agent, seeds in self.planned.items()
+        }
+        return {agent: seeds for agent, seeds in out.items() if seeds}
+
+    @property
+    def judged(self) -> bool:
+        """Whether the page gives the task verdicts: tested, traced, and every planned run in."""
+        return self.tested and self.traced and not self.missing
 
     @property
     def reference_selected(self) -> bool:
@@ -268,15 +293,29 @@ def _read_snapshot(snapshot: Path) -> dict[str, Any] | None:
     return json.loads(snapshot.read_text()) if snapshot.is_file() else None
 
 
-def task_result(folder: Path, label: str, n_trials: int, snapshot: Path) -> TaskResult:
-    """Read one task's published files (see :class:`TaskResult`)."""
+def task_result(
+    folder: Path,
+    label: str,
+    n_trials: int,
+    snapshot: Path,
+    planned: dict[str, tuple[int, ...]] | None = None,
+) -> TaskResult:
+    """Read one task's published files (see :class:`TaskResult`); ``planned`` is the test
+    phase its file plans, ``{agent: seeds}``."""
     test = folder / "test"
     runs = load_test_runs(test) if test.exists() else pd.DataFrame()
     snapshot_doc = _read_snapshot(snapshot)
     selection = _selection(test)
     traced, trace = (True, "") if not selection else trace_selection(selection, snapshot_doc)
     return TaskResult(
-        label, folder, runs, _snapshot_evolution(snapshot_doc, n_trials), selection, traced, trace
+        label,
+        folder,
+        runs,
+        _snapshot_evolution(snapshot_doc, n_trials),
+        selection,
+        traced,
+        trace,
+        planned=dict(planned or {}),
     )
 
 
@@ -290,6 +329,7 @@ class TaskFiles:
         folder: Its published folder (``test/`` and ``report/`` inside).
         snapshot: The evolution study's snapshot (``study.json``).
         n_trials: The evolution's budget.
+        planned: The test runs the file plans, ``{agent: seeds}`` (empty: not known).
     """
 
     label: str
@@ -297,6 +337,7 @@ class TaskFiles:
     folder: Path
     snapshot: Path
     n_trials: int
+    planned: dict[str, tuple[int, ...]] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -396,7 +437,9 @@ def write_reproduction_page(
 
     out = Path(out)
     results = {
-        hyp.name: [task_result(t.folder, t.label, t.n_trials, t.snapshot) for t in hyp.tasks]
+        hyp.name: [
+            task_result(t.folder, t.label, t.n_trials, t.snapshot, t.planned) for t in hyp.tasks
+        ]
         for hyp in hypotheses
     }
     for hyp in hypotheses:
@@ -408,7 +451,7 @@ def write_reproduction_page(
         TaskRuns(hyp.name, r.label, r.runs, r.reference_selected, r.label)
         for hyp in hypotheses
         for r in results[hyp.name]
-        if r.tested and r.traced
+        if r.judged
     ]
     tests = judge(judged, rules)
     normalize = _normalizer()
@@ -522,7 +565,7 @@ def _hypothesis_section(
     if hyp.description:
         doc.p(hyp.description.strip())
     rule = hyp.rule
-    judged = [r for r in results if r.tested and r.traced]
+    judged = [r for r in results if r.judged]
     if rule is None:
         doc.p("**No verdict rule**: the file has no `verdict:` block, so no verdict is given.")
     else:
@@ -839,6 +882,21 @@ def _task_section(
             f"{hyp.file} --task {result.label} --stage reevaluate`) or test the recorded "
             "selection."
         )
+        return
+    if result.missing:
+        planned = sum(len(seeds) for seeds in result.planned.values())
+        left = sum(len(seeds) for seeds in result.missing.values())
+        per_agent = ", ".join(
+            f"`{agent}` {len(seeds) - len(result.missing.get(agent, ()))}/{len(seeds)}"
+            for agent, seeds in result.planned.items()
+        )
+        doc.p(
+            f"**Test in progress: {planned - left} of the {planned} planned runs published** "
+            f"({per_agent}). No verdict until every planned run is in: judging the seeds that "
+            f"happen to have finished would let the stopping point choose the result. "
+            f"{evolution_text} Selected reservoir: {_reservoir_text(result.selection)}."
+        )
+        doc.table(_agents_table(result.runs))
         return
     rows = tests[(tests["hypothesis"] == hyp.name) & (tests["task"] == result.label)]
     if hyp.rule is not None and not rows.empty:

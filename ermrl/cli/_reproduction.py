@@ -26,9 +26,10 @@ DESCRIPTION = textwrap.dedent(
     reservoir, env steps and wall time, and verdicts under each file's `verdict:` rule
     (supported, contradicted or inconclusive after Holm's correction, under three metrics). A
     task whose tested trial cannot be traced to a recorded selection in its study snapshot is
-    not rendered: the page and stderr say what is missing. It reads only the plain files that
-    `ermrl run` published (the experiment's `publish:` folder), so anyone can recompute it
-    from a clone.
+    not rendered: the page and stderr say what is missing. A task whose test phase is published
+    in part (fewer runs than its file's agents x seeds) is shown but not judged until every
+    planned run is in. It reads only the plain files that `ermrl run` published (the
+    experiment's `publish:` folder), so anyone can recompute it from a clone.
 
     With --compare, it also prints which verdicts moved since an earlier page's CSV (for
     instance one taken from git history), with the seeds per agent that would give 80% power

@@ -1453,7 +1453,12 @@ def hypothesis_of(exp: Experiment, file: str | None = None) -> Any:
         n_trials = int(argv[argv.index("--n-trials") + 1]) if "--n-trials" in argv else 0
         tasks.append(
             TaskFiles(
-                test.label, source.label, base / test.label, snapshot_path(exp, source), n_trials
+                test.label,
+                source.label,
+                base / test.label,
+                snapshot_path(exp, source),
+                n_trials,
+                _planned_runs(test),
             )
         )
     description = exp.document.get("description")
@@ -1466,6 +1471,18 @@ def hypothesis_of(exp: Experiment, file: str | None = None) -> Any:
         tuple(tasks),
         verdict_rule(exp),
     )
+
+
+def _planned_runs(step: Step) -> dict[str, tuple[int, ...]]:
+    """The runs a test step plans, ``{agent: seeds}`` (empty when its command line leaves the
+    agents or the seeds to the command's defaults)."""
+    from ermrl.runner._parsers import PARSERS
+
+    args = PARSERS[step.command]().parse_args(step.argv)
+    agents, seeds = getattr(args, "agents", None), getattr(args, "seeds", None)
+    if not agents or not seeds:
+        return {}
+    return {str(agent): tuple(int(seed) for seed in seeds) for agent in agents}
 
 
 def verdict_rule(exp: Experiment) -> Any:
