@@ -114,16 +114,13 @@ class TaskResult:
     @property
     def missing(self) -> dict[str, tuple[int, ...]]:
         """The planned runs not published yet, ``{agent: seeds}`` (agents with none left out)."""
-        done = (
-            set()
-            if self.runs.empty
-            else {(str(a), int(sd)) for a, sd in zip(self.runs["agent"], self.runs["seed"])}
-        )
-        out = {
-            agent: tuple(sd for sd in seeds if (agent, sd) not in done)
-            for agent, seeds in self.planned.items()
+        done = set()
+        if not self.runs.empty:
+            done = {(str(a), int(sd)) for a, sd in zip(self.runs["agent"], self.runs["seed"])}
+        left = {
+            a: tuple(sd for sd in seeds if (a, sd) not in done) for a, seeds in self.planned.items()
         }
-        return {agent: seeds for agent, seeds in out.items() if seeds}
+        return {agent: seeds for agent, seeds in left.items() if seeds}
 
     @property
     def judged(self) -> bool:
@@ -883,11 +880,12 @@ def _task_section(
             "selection."
         )
         return
-    if result.missing:
+    missing = result.missing
+    if missing:
         planned = sum(len(seeds) for seeds in result.planned.values())
-        left = sum(len(seeds) for seeds in result.missing.values())
+        left = sum(len(seeds) for seeds in missing.values())
         per_agent = ", ".join(
-            f"`{agent}` {len(seeds) - len(result.missing.get(agent, ()))}/{len(seeds)}"
+            f"`{agent}` {len(seeds) - len(missing.get(agent, ()))}/{len(seeds)}"
             for agent, seeds in result.planned.items()
         )
         doc.p(

@@ -1474,15 +1474,11 @@ def hypothesis_of(exp: Experiment, file: str | None = None) -> Any:
 
 
 def _planned_runs(step: Step) -> dict[str, tuple[int, ...]]:
-    """The runs a test step plans, ``{agent: seeds}`` (empty when its command line leaves the
-    agents or the seeds to the command's defaults)."""
-    from ermrl.runner._parsers import PARSERS
-
-    args = PARSERS[step.command]().parse_args(step.argv)
-    agents, seeds = getattr(args, "agents", None), getattr(args, "seeds", None)
-    if not agents or not seeds:
-        return {}
-    return {str(agent): tuple(int(seed) for seed in seeds) for agent in agents}
+    """The runs a test step plans (:attr:`Step.runs`) as ``{agent: seeds}``."""
+    planned: dict[str, tuple[int, ...]] = {}
+    for agent, seed in step.runs:
+        planned[agent] = (*planned.get(agent, ()), seed)
+    return planned
 
 
 def verdict_rule(exp: Experiment) -> Any:
