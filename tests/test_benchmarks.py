@@ -453,12 +453,13 @@ def test_published_groups_compare_with_welch_and_bootstrap(tmp_path: Path) -> No
             (run / "result.json").write_text(json.dumps(
                 {"agent": "res-ppo", "seed": 10 + i, "final_return": v, "last100_return": v,
                  "eval_return": v}))  # fmt: skip
-            (run / "episodes.csv").write_text("env_step,episode_return\n1,0\n")
+            # By step 100 each run had returned v / 2 (then v): --at-step 100 reads the half.
+            (run / "episodes.csv").write_text(f"env_step,episode_return\n100,{v / 2}\n200,{v}\n")
     script = str(ROOT / "benchmarks" / "compare_published.py")
     out = tmp_path / "cmp.csv"
     proc = subprocess.run(
         [sys.executable, script, f"a={tmp_path / 'one'}:res-ppo", f"b={tmp_path / 'two'}:res-ppo",
-         "--candidate", "a", "--baselines", "b", "--out", str(out)],
+         "--candidate", "a", "--baselines", "b", "--at-step", "100", "--out", str(out)],
         capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
@@ -468,6 +469,7 @@ def test_published_groups_compare_with_welch_and_bootstrap(tmp_path: Path) -> No
     p = stats.ttest_ind(values["a"], values["b"], equal_var=False).pvalue
     assert table.loc["last10", "p_value"] == pytest.approx(p)
     assert table.loc["last10", "welch_ci_low"] > 0 and table.loc["eval", "n_candidate"] == 5
+    assert table.loc["last10@100", "mean_diff"] == pytest.approx((11.0 - 1.5) / 2)
     bad = subprocess.run(
         [sys.executable, script, f"a={tmp_path / 'one'}:lstm-ppo", "--candidate", "a",
          "--baselines", "a"], capture_output=True, text=True, timeout=300,

@@ -848,6 +848,40 @@ def load_test_runs(test_folder: str | Path) -> pd.DataFrame:
     return runs
 
 
+def returns_at_step(test_folder: str | Path, step: int, n: int = 10) -> pd.DataFrame:
+    """What a test phase's finished runs had learned by env step `step`: each run's mean return
+    over its last `n` training episodes that ended by then, from its ``episodes.csv``.
+
+    With `step` at the evolution's budget, this compares the runs where evolution judged its
+    candidates (a longer test budget can rank them otherwise).
+
+    Returns:
+        One row per run: ``agent``, ``seed`` and ``return_at_step`` (NaN for a run with no
+        episode ended by `step`).
+    """
+    from ermrl.analysis._results import (
+        EPISODES_FILE,
+        RUNS_DIR,
+        load_run_results,
+        read_episodes,
+    )
+
+    if step <= 0 or n <= 0:
+        raise ValueError(f"step and n must be positive, got step={step}, n={n}")
+    runs = load_run_results(test_folder)
+    if runs.empty:
+        return pd.DataFrame(columns=["agent", "seed", "return_at_step"])
+    values = []
+    for agent, seed in zip(runs["agent"], runs["seed"], strict=True):
+        episodes = read_episodes(
+            Path(test_folder) / RUNS_DIR / agent / f"seed_{int(seed)}" / EPISODES_FILE
+        )
+        ended = pd.to_numeric(episodes["env_step"]) <= step
+        kept = pd.to_numeric(episodes["episode_return"])[ended].dropna()
+        values.append(float(kept.tail(n).mean()) if len(kept) else math.nan)
+    return runs[["agent", "seed"]].assign(return_at_step=values).reset_index(drop=True)
+
+
 def first_result_date(test_folder: Path) -> tuple[str | None, str]:
     """When a test phase's first result existed: ``(ISO date or None, where it comes from)``.
 
