@@ -69,8 +69,8 @@ def main(argv: list[str] | None = None) -> int:
         if runs.empty:
             p.error(f"{name}: no finished run of {agent} in {folder}")
         for step in args.at_step:
-            at = returns_at_step(folder, step)
-            at = at[at["agent"] == agent].rename(columns={"return_at_step": f"last10@{step}"})
+            at = returns_at_step(folder, step, agent=agent)
+            at = at.rename(columns={"return_at_step": f"last10@{step}"})
             runs = runs.merge(at, on=["agent", "seed"], how="left")
         frames.append(runs.assign(agent=name))
     runs = pd.concat(frames, ignore_index=True)

@@ -343,18 +343,26 @@ def test_returns_at_step_reads_what_each_run_had_learned_by_then(tmp_path: Path)
     from ermrl.analysis import returns_at_step
 
     folder = tmp_path / "T-v0"
-    _publish(folder, {"ppo": [1.0, 2.0]})
+    _publish(folder, {"ppo": [1.0, 2.0], "res-ppo": [5.0]})
     # Seed 10: an episode every 10 steps, returning its end step; seed 11 starts at step 500.
     rows = "".join(f"{k},{k}\n" for k in range(10, 1001, 10))
     (folder / "test/agents/ppo/seed_10/episodes.csv").write_text("env_step,episode_return\n" + rows)
     late = "".join(f"{k},{-k}\n" for k in range(500, 1001, 100))
     (folder / "test/agents/ppo/seed_11/episodes.csv").write_text("env_step,episode_return\n" + late)
-    at = returns_at_step(folder / "test", 300).set_index("seed")["return_at_step"]
+    at = returns_at_step(folder / "test", 300, agent="ppo").set_index("seed")["return_at_step"]
     assert at[10] == pytest.approx(np.mean(np.arange(210, 301, 10)))  # 210..300: the last 10
     assert np.isnan(at[11])
-    assert returns_at_step(folder / "test", 700, n=2).set_index("seed").loc[
+    assert returns_at_step(folder / "test", 700, n=2, agent="ppo").set_index("seed").loc[
         11, "return_at_step"
     ] == (pytest.approx(-650.0))
+    # res-ppo's one episode ended at step 3 with return 5; agent= reads that agent's runs only.
+    assert (
+        returns_at_step(folder / "test", 300).set_index("agent").loc["res-ppo", "return_at_step"]
+        == 5.0
+    )
+    only = returns_at_step(folder / "test", 300, agent="ppo")
+    assert sorted(only["seed"]) == [10, 11] and set(only["agent"]) == {"ppo"}
+    assert returns_at_step(folder / "test", 300, agent="lstm-ppo").empty
     with pytest.raises(ValueError, match="step and n must be positive"):
         returns_at_step(folder / "test", 0)
 

@@ -822,12 +822,7 @@ def load_test_runs(test_folder: str | Path) -> pd.DataFrame:
     ``episodes.csv`` for runs written before it was recorded (the same definition: the mean of
     the last 100 training episodes).
     """
-    from ermrl.analysis._results import (
-        EPISODES_FILE,
-        RUNS_DIR,
-        load_run_results,
-        read_episodes,
-    )
+    from ermrl.analysis._results import EPISODES_FILE, load_run_results, read_episodes, run_dir
 
     runs = load_run_results(test_folder)
     if runs.empty:
@@ -838,9 +833,7 @@ def load_test_runs(test_folder: str | Path) -> pd.DataFrame:
     missing = runs["last100_return"].isna()
     for i in runs.index[missing]:
         agent, seed = runs.at[i, "agent"], int(runs.at[i, "seed"])
-        episodes = read_episodes(
-            Path(test_folder) / RUNS_DIR / agent / f"seed_{seed}" / EPISODES_FILE
-        )
+        episodes = read_episodes(run_dir(test_folder, agent, seed) / EPISODES_FILE)
         values = pd.to_numeric(episodes["episode_return"], errors="coerce").dropna()
         runs.at[i, "last100_return"] = float(values.tail(100).mean()) if len(values) else math.nan
     runs["last100_return"] = runs["last100_return"].astype(float)
@@ -848,9 +841,12 @@ def load_test_runs(test_folder: str | Path) -> pd.DataFrame:
     return runs
 
 
-def returns_at_step(test_folder: str | Path, step: int, n: int = 10) -> pd.DataFrame:
-    """What a test phase's finished runs had learned by env step `step`: each run's mean return
-    over its last `n` training episodes that ended by then, from its ``episodes.csv``.
+def returns_at_step(
+    test_folder: str | Path, step: int, n: int = 10, agent: str | None = None
+) -> pd.DataFrame:
+    """What a test phase's finished runs (of `agent`, or all) had learned by env step `step`:
+    each run's mean return over its last `n` training episodes that ended by then, from its
+    ``episodes.csv``.
 
     With `step` at the evolution's budget, this compares the runs where evolution judged its
     candidates (a longer test budget can rank them otherwise).
@@ -859,23 +855,18 @@ def returns_at_step(test_folder: str | Path, step: int, n: int = 10) -> pd.DataF
         One row per run: ``agent``, ``seed`` and ``return_at_step`` (NaN for a run with no
         episode ended by `step`).
     """
-    from ermrl.analysis._results import (
-        EPISODES_FILE,
-        RUNS_DIR,
-        load_run_results,
-        read_episodes,
-    )
+    from ermrl.analysis._results import EPISODES_FILE, load_run_results, read_episodes, run_dir
 
     if step <= 0 or n <= 0:
         raise ValueError(f"step and n must be positive, got step={step}, n={n}")
     runs = load_run_results(test_folder)
+    if not runs.empty and agent is not None:
+        runs = runs[runs["agent"] == agent]
     if runs.empty:
         return pd.DataFrame(columns=["agent", "seed", "return_at_step"])
     values = []
-    for agent, seed in zip(runs["agent"], runs["seed"], strict=True):
-        episodes = read_episodes(
-            Path(test_folder) / RUNS_DIR / agent / f"seed_{int(seed)}" / EPISODES_FILE
-        )
+    for name, seed in zip(runs["agent"], runs["seed"], strict=True):
+        episodes = read_episodes(run_dir(test_folder, name, int(seed)) / EPISODES_FILE)
         ended = pd.to_numeric(episodes["env_step"]) <= step
         kept = pd.to_numeric(episodes["episode_return"])[ended].dropna()
         values.append(float(kept.tail(n).mean()) if len(kept) else math.nan)
