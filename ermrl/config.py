@@ -552,7 +552,10 @@ class EvolveConfig:
     @property
     def default_study_name(self) -> str:
         task = self.problem.task
-        parts = [task.env_id, task.observe, f"{self.problem.budget.training_steps}steps"]
+        # A namespaced env id (``MyNamespace/Task-v0``) keeps its namespace with "-" for "/":
+        # a study name names folders of results, so it holds no path separator.
+        env = task.env_id.replace("/", "-")
+        parts = [env, task.observe, f"{self.problem.budget.training_steps}steps"]
         if self.space.family != _reference_family():
             parts.append(self.space.family)
         tag = getattr(self.space, "study_tag", "")  # a variant of its family (multi-timescale)

@@ -43,6 +43,7 @@ from ermrl._progress import duration
 from ermrl.analysis._style import save_figure, task_title
 from ermrl.config import LearnerSpace
 from ermrl.learners import AGENT_KINDS, evolved_agent, unevolved_agent
+from ermrl.storage import folder_for
 
 __all__ = ["ReportResult", "notebook_parameters", "write_report"]
 
@@ -86,7 +87,7 @@ def notebook_parameters(
     """
     study_name = os.environ.get(ENV_STUDY) or study_name
     storage = os.environ.get(ENV_STORAGE) or storage
-    runs = os.environ.get(ENV_RUNS) or runs or str(Path("runs") / study_name)
+    runs = os.environ.get(ENV_RUNS) or runs or str(folder_for("runs", study_name))
     print(f"study {study_name!r} in {storage}; test-phase folder: {runs}")
     return study_name, storage, runs
 
@@ -345,8 +346,8 @@ def write_report(
     from ermrl.analysis._results import check_run_folder
     from ermrl.analysis._study import open_study, study_config_or_none
 
-    out = Path(out) if out is not None else Path("reports") / study_name
-    runs_path = Path(runs) if runs is not None else Path("runs") / study_name
+    out = Path(out) if out is not None else folder_for("reports", study_name)
+    runs_path = Path(runs) if runs is not None else folder_for("runs", study_name)
     runs_given = runs is not None
     study = open_study(study_name, storage)  # first: no empty report folder for a bad study
     if runs_path.is_dir():

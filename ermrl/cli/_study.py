@@ -31,6 +31,7 @@ from ermrl.runner._options import (
     add_storage_args,
     nonneg_int,
     storage_arg,
+    study_name_arg,
 )
 from ermrl.storage._summary import (
     STATES,
@@ -149,6 +150,7 @@ def build_study_parser(prog: str = "ermrl study") -> ArgumentParser:
     )
     imp.add_argument(
         "--study-name",
+        type=study_name_arg,
         default=None,
         help="import under this name (default: the exported name; <name>.reeval follows)",
     )
@@ -280,7 +282,7 @@ def _create(args: argparse.Namespace, prog: str) -> int:
 def _list(args: argparse.Namespace, prog: str) -> int:
     import optuna
 
-    from ermrl.storage import StorageError, open_storage
+    from ermrl.storage import StorageError, open_storage, printable_name
 
     try:
         storage = open_storage(args.storage, mode="read")
@@ -299,7 +301,7 @@ def _list(args: argparse.Namespace, prog: str) -> int:
         budget = stored_budget(study)
         rows.append(
             [
-                frozen.study_name,
+                printable_name(frozen.study_name),
                 str(study.user_attrs.get("ermrl_kind", "-")),
                 f"{counts['COMPLETE'] + counts['PRUNED']}/"
                 + _budget_text(budget, worker_budgets(trials)),
@@ -453,8 +455,6 @@ def _import(args: argparse.Namespace, prog: str) -> int:
         read_snapshot,
     )
 
-    if args.study_name is not None and not args.study_name.strip():
-        fail(prog, "--study-name is empty")
     try:
         snapshot = read_snapshot(args.snapshot)
         for part in (snapshot.study, *snapshot.related.values()):

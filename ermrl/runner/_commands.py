@@ -584,7 +584,7 @@ def run_report(request: ReportRequest, prog: str = "ermrl report") -> int:
     """
     from ermrl.analysis import RunFolderError
     from ermrl.envs import UnknownEnvError
-    from ermrl.runner._stages import NothingToReport, report
+    from ermrl.runner._stages import report
     from ermrl.storage import StorageError, StudyNotFound
 
     r = request
@@ -596,7 +596,7 @@ def run_report(request: ReportRequest, prog: str = "ermrl report") -> int:
             interactive=r.interactive, html=r.html, quiet=r.quiet,
         )  # fmt: skip
     except (
-        NothingToReport,
+        ConfigError,  # nothing to report yet, a study name that names no folder
         StorageError,
         StudyNotFound,
         FileNotFoundError,

@@ -47,6 +47,7 @@ from ermrl.runner._requests import (
     TestGeneralizationRequest,
     TestRequest,
 )
+from ermrl.storage import StudyNameError, folder_for
 
 if TYPE_CHECKING:
     from ermrl._progress import ProgressMode
@@ -472,11 +473,14 @@ def load_experiment(path: str | Path, variant: str | None = None) -> Experiment:
     path = Path(path)
     base, over = _apply_variant(_read_document(path), variant, path)
     name = base.get("name")
-    if not isinstance(name, str) or not name.strip() or "/" in name:
+    if not isinstance(name, str):
         raise ExperimentError(f"{path}: name: a word is required (it names the results folder)")
-    out = _path_value(base.get("out"), "out", path) or Path("runs") / name
-    if variant is not None and "out" not in over:
-        out = out / variant
+    try:  # the name and the variant name folders: neither may lead out of its parent
+        out = _path_value(base.get("out"), "out", path) or folder_for("runs", name, "out:")
+        if variant is not None and "out" not in over:
+            out = folder_for(out, variant, "out:")
+    except StudyNameError as err:
+        raise ExperimentError(f"{path}: name: {err}") from None
     storage = base.get("storage")
     if storage is not None and (not isinstance(storage, str) or not storage.strip()):
         raise ExperimentError(

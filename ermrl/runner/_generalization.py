@@ -228,7 +228,7 @@ def _resolve_test(r: TestGeneralizationRequest, notes: list[str]) -> _Generaliza
     from ermrl.agents import check_ppo_config
     from ermrl.envs import check_env_id, observation_indices
     from ermrl.search import study_config
-    from ermrl.storage import load_study
+    from ermrl.storage import folder_for, load_study
     from ermrl.test_phase._prepare import choose_agents, plan_test_phase, with_backend
 
     study = load_study(r.study_name, r.storage)
@@ -242,7 +242,7 @@ def _resolve_test(r: TestGeneralizationRequest, notes: list[str]) -> _Generaliza
     warning = overlap_warning(r.env_id, evolution_ids, r.study_name)
     options = dataclasses.replace(r.options, agents=choose_agents(r.options, config, observe))
     task = dataclasses.replace(problem.task, env_id=r.env_id, observe=observe)
-    default_out = Path("runs") / f"{r.study_name}__{r.env_id}"
+    default_out = folder_for("runs", f"{r.study_name}__{r.env_id.replace('/', '-')}")
     ppo = with_backend(
         _test_ppo(config, r),
         options,

@@ -25,8 +25,8 @@ __all__ = [
     "nonneg_int",
     "positive_float",
     "storage_arg",
-    "MAX_STUDY_NAME_LENGTH",
     "study_name_arg",
+    "existing_study_name_arg",
     "add_storage_args",
     "add_stale_gradient_arg",
     "FOR_LEARNER_HELP",
@@ -139,28 +139,35 @@ def storage_arg(text: str) -> str:
     return text
 
 
-# Optuna's `studies.study_name` column is a VARCHAR(512): MySQL refuses a longer name with a
-# DataError (SQLite would store it, so a study could not move to a server later).
-MAX_STUDY_NAME_LENGTH = 512
-
-
 def study_name_arg(text: str) -> str:
-    """An ``argparse`` type for ``--study-name``: not blank, at most 512 characters.
-
-    An empty name would silently become the default one; a longer one does not fit Optuna's
-    database column. Checked while parsing, before any storage is opened.
+    """An ``argparse`` type for ``--study-name``: the rules of
+    [`check_study_name`][ermrl.storage.check_study_name] (not blank, at most 512 characters,
+    no path separator, no ``..``, no control character), checked before any storage is opened.
     """
+    from ermrl.storage import StudyNameError, check_study_name
+
+    try:
+        return check_study_name(text)
+    except StudyNameError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+
+
+def existing_study_name_arg(text: str) -> str:
+    """An ``argparse`` type for the ``--study-name`` of a study that is read, not created: any
+    non-blank name, so that a study another tool named can still be shown, tested or deleted
+    (its name is printed escaped, and no folder is derived from it unchecked)."""
     if not text.strip():
         raise argparse.ArgumentTypeError("the study name is empty")
-    if len(text) > MAX_STUDY_NAME_LENGTH:
-        raise argparse.ArgumentTypeError(
-            f"the study name has {len(text)} characters; Optuna stores at most "
-            f"{MAX_STUDY_NAME_LENGTH} characters"
-        )
     return text
 
 
-def add_storage_args(parser: argparse.ArgumentParser, *, study_required: bool) -> None:
+def add_storage_args(
+    parser: argparse.ArgumentParser, *, study_required: bool, creates: bool | None = None
+) -> None:
+    """``--storage`` and ``--study-name``; a command that ``creates`` a study (default: one
+    whose name is optional, ``ermrl evolve``) checks the name with `study_name_arg`, others
+    with `existing_study_name_arg`."""
+    creates = not study_required if creates is None else creates
     parser.add_argument(
         "--storage",
         type=storage_arg,
@@ -170,7 +177,7 @@ def add_storage_args(parser: argparse.ArgumentParser, *, study_required: bool) -
     )
     parser.add_argument(
         "--study-name",
-        type=study_name_arg,
+        type=study_name_arg if creates else existing_study_name_arg,
         required=study_required,
         default=None,
         help="study name"

@@ -17,6 +17,7 @@ from ermrl.storage import (
     DEFAULT_GRACE_PERIOD,
     DEFAULT_HEARTBEAT_INTERVAL,
     DEFAULT_MAX_RETRY,
+    check_study_name,
     open_storage,
     storage_lock,
 )
@@ -316,8 +317,11 @@ def create_or_resume_study(
 
     Raises:
         ConfigError: a study of that name exists with another configuration.
+        StudyNameError: ermrl does not create a study of that name (a path separator,
+            ``..``, a control character, blank or too long).
         StorageError: the storage cannot be opened.
     """
+    check_study_name(study_name)
     storage = open_storage(
         storage_url,
         heartbeat_interval=heartbeat_interval,

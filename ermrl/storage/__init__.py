@@ -12,6 +12,13 @@ from ermrl.storage._heartbeat import (
     last_seen,
 )
 from ermrl.storage._locks import LockTimeout, storage_lock
+from ermrl.storage._names import (
+    MAX_STUDY_NAME_LENGTH,
+    StudyNameError,
+    check_study_name,
+    folder_for,
+    printable_name,
+)
 from ermrl.storage._open import (
     DEFAULT_GRACE_PERIOD,
     DEFAULT_HEARTBEAT_INTERVAL,
@@ -60,6 +67,7 @@ __all__ = [
     "HeartbeatJournalStorage",
     "JournalRepair",
     "LockTimeout",
+    "MAX_STUDY_NAME_LENGTH",
     "RELATED_SUFFIXES",
     "RETRY_WINDOW_ENV",
     "RetryStaleTrial",
@@ -73,6 +81,7 @@ __all__ = [
     "StorageURL",
     "dashboard_command",
     "StudyExists",
+    "StudyNameError",
     "StudyNotFound",
     "StudySnapshot",
     "fail_stale",
@@ -100,4 +109,7 @@ __all__ = [
     "torn_tail",
     "worker_info",
     "write_snapshot",
+    "check_study_name",
+    "folder_for",
+    "printable_name",
 ]

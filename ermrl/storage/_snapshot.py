@@ -58,6 +58,7 @@ from optuna.trial import FrozenTrial, TrialState
 from ermrl._io import write_atomic
 from ermrl.storage._heartbeat import RetryStaleTrial
 from ermrl.storage._locks import storage_lock
+from ermrl.storage._names import StudyNameError, check_study_name
 from ermrl.storage._open import DEFAULT_MAX_RETRY, open_storage, study_names
 from ermrl.storage._url import StorageURL, parse_storage_url
 
@@ -384,8 +385,10 @@ def _study(doc: Any, where: str) -> StudySnapshot:
     if not isinstance(doc, dict):
         raise SnapshotError(f"{where} is not an object")
     name = _get(doc, "study_name", str, where)
-    if not name:
-        raise SnapshotError(f"{where}: 'study_name' is empty")
+    try:
+        check_study_name(name)
+    except StudyNameError as err:
+        raise SnapshotError(f"{where}: {err}") from None
     where = f"{where} {name!r}"
     raw_directions = _get(doc, "directions", list, where)
     allowed = ("MINIMIZE", "MAXIMIZE")
@@ -608,6 +611,7 @@ def import_snapshot(
 
     Raises:
         SnapshotError: the file is not a valid snapshot.
+        StudyNameError: ``study_name`` is not a name ermrl creates a study of.
         StudyExists: a study of a target name exists with other contents (nothing written).
         StorageError: the storage cannot be opened.
         LockTimeout: a study's lock could not be taken.
@@ -623,6 +627,8 @@ def import_snapshot(
     spec = storage if isinstance(storage, StorageURL) else parse_storage_url(storage)
     target = open_storage(spec)
     names = snapshot.target_names(study_name)
+    for name in names.values():  # a new name, and the siblings it renames
+        check_study_name(name)
     parts = {snapshot.study.study_name: snapshot.study, **snapshot.related}
     expected = {
         old: _expected_doc(part, names[old], snapshot, max_retry) for old, part in parts.items()

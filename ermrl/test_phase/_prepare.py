@@ -477,7 +477,7 @@ def prepare_test(study_name: str, storage: str, options: TestOptions) -> TestPha
     """
     from ermrl.agents import check_ppo_config, with_overrides
     from ermrl.search import study_config
-    from ermrl.storage import load_study
+    from ermrl.storage import folder_for, load_study
 
     study = load_study(study_name, storage)
     config = study_config(study)
@@ -492,7 +492,7 @@ def prepare_test(study_name: str, storage: str, options: TestOptions) -> TestPha
     )
     overrides = options.ppo_overrides()
     own = options.learner_settings().get(problem.ppo.learner, {})
-    default_out = Path("runs") / study_name
+    default_out = folder_for("runs", study_name)
     notes: list[str] = []
     ppo = with_backend(
         with_overrides(problem.ppo, {**overrides, **own}),
