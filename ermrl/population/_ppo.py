@@ -1,6 +1,6 @@
 """Population PPO: ``P`` agents trained in lockstep, with SB3 PPO's semantics per agent.
 
-Every agent is what :func:`ermrl.agents.train_agent` trains with ``learner: ppo``: the same
+Every agent is what [`ermrl.agents.train_agent`][ermrl.agents.train_agent] trains with ``learner: ppo``: the same
 environments, seeds, reservoir, normalization, network and PPO update (GAE with truncation
 bootstrapping, clipped objective, value loss, entropy bonus, advantage normalization, Adam with
 eps 1e-5, gradient clipping, minibatches, epochs, linear schedules, gSDE). What is shared is only
@@ -105,7 +105,7 @@ def _settings(ppo: PPOConfig) -> dict[str, Any]:
 def steps_trained(ppo: PPOConfig, steps: int) -> int:
     """The env steps each agent makes for a budget of ``steps``: whole rollouts of
     ``n_steps * n_envs``, as SB3's ``learn`` rounds up (a progress line's total); the same
-    count as :func:`ermrl.agents.steps_trained` for the sb3 backend."""
+    count as [`ermrl.agents.steps_trained`][ermrl.agents.steps_trained] for the sb3 backend."""
     from ermrl.agents._train import steps_trained as whole_rollouts
 
     return whole_rollouts(ppo, steps)
@@ -180,7 +180,7 @@ CHECKPOINT_VERSION = 1
 
 @dataclass(frozen=True)
 class Checkpoint:
-    """Where a population saves its training state, and how often (:meth:`PopulationPPO.learn`).
+    """Where a population saves its training state, and how often ([`PopulationPPO.learn`][ermrl.population.PopulationPPO.learn]).
 
     The file is an ``.npz`` (no pickle): the weights, Adam's moments and the normalization
     statistics as arrays, the rest (steps, episodes so far, random streams, dropped agents) as
@@ -201,8 +201,8 @@ class Checkpoint:
     def load(self, key: str) -> tuple[dict[str, Any], dict[str, np.ndarray]] | None:
         """``(meta, arrays)`` saved by the training ``key`` names, or ``None`` (no file, a file
         of another training, or an unreadable one: the training then starts over). ``meta``'s
-        ``code`` names the code that saved it (:func:`ermrl._code.code_identity`):
-        :meth:`PopulationPPO.learn` resumes only a checkpoint of its own code."""
+        ``code`` names the code that saved it (`ermrl._code.code_identity`):
+        [`PopulationPPO.learn`][ermrl.population.PopulationPPO.learn] resumes only a checkpoint of its own code."""
         try:
             with np.load(io.BytesIO(self.path.read_bytes()), allow_pickle=False) as data:
                 meta = json.loads(str(data["meta"]))
@@ -275,7 +275,7 @@ class PopulationPPO:
     Args:
         task: The task (all agents).
         ppo: PPO settings (all agents; ``learner`` must be ``ppo``).
-        jobs: One :class:`PopulationJob` per agent. Encoders must all be ``None`` or all share
+        jobs: One [`PopulationJob`][ermrl.population.PopulationJob] per agent. Encoders must all be ``None`` or all share
             their structure (their reservoir hyperparameters may differ).
     """
 
@@ -372,7 +372,7 @@ class PopulationPPO:
         return hashlib.sha256(text.encode()).hexdigest()
 
     def _state(self, key: str, elapsed: float) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-        """The checkpoint of this moment, ``elapsed`` seconds into the current :meth:`learn`."""
+        """The checkpoint of this moment, ``elapsed`` seconds into the current [`learn`][ermrl.population.PopulationPPO.learn]."""
         timings = {
             **self.timings,
             "env": self.envs.env_seconds,
@@ -490,10 +490,10 @@ class PopulationPPO:
         ``progress`` is told each agent's env steps as they go, and closed at the end.
 
         With ``logs``, each run's rollout and update scalars are written after each update, as
-        SB3 logs them for one run (:class:`~ermrl.population.PopulationLogs`).
+        SB3 logs them for one run ([`PopulationLogs`][ermrl.population.PopulationLogs]).
 
         With ``checkpoint``, the training first resumes from the checkpoint's file if that holds
-        this training's state (:meth:`checkpoint_key`; see :class:`Checkpoint` for what resuming
+        this training's state ([`checkpoint_key`][ermrl.population.PopulationPPO.checkpoint_key]; see [`Checkpoint`][ermrl.population.Checkpoint] for what resuming
         keeps), then saves its state there every ``checkpoint.every`` env steps per agent. The
         file is left in place at the end (the caller removes it once the results are safe).
         """
@@ -876,7 +876,7 @@ def train_population(
     """Train ``jobs`` as one population in this process; one result per job, in order.
 
     A job whose training diverged or finished no episode (with the ``last`` measure) gets the
-    exception :func:`~ermrl.agents.train_agent` would have raised, instead of a result; the other
+    exception [`train_agent`][ermrl.agents.train_agent] would have raised, instead of a result; the other
     jobs are unaffected. Each result's ``wall_seconds`` is its share of the population's wall
     time (the wall time over the number of agents) and ``timings`` the population's breakdown
     (``env``, ``reservoir``, ``policy``, ``update``, ``total`` seconds, for all agents together).
@@ -888,9 +888,9 @@ def train_population(
         jobs: The agents.
         evaluate: Run deterministic evaluation episodes (default: with the ``eval`` measure).
         model_paths: Per job, where to save the trained agent (``None``: not saved).
-        progress: Told the env steps each agent has made (see :class:`ermrl._progress.Progress`).
-        checkpoints: A folder where the training saves its state (:class:`Checkpoint`, a file
-            named by :meth:`PopulationPPO.checkpoint_key`) and from which a rerun of the same
+        progress: Told the env steps each agent has made (see `ermrl._progress.Progress`).
+        checkpoints: A folder where the training saves its state ([`Checkpoint`][ermrl.population.Checkpoint], a file
+            named by [`PopulationPPO.checkpoint_key`][ermrl.population.PopulationPPO.checkpoint_key]) and from which a rerun of the same
             training resumes; the file is removed once the results are returned. ``None``: no
             checkpoints.
         checkpoint_every: Env steps per agent between saves (default: a tenth of the budget).
@@ -944,7 +944,7 @@ def _job_result(
 ) -> RunResult | BaseException:
     """Job ``j``'s result in a trained ``population`` (with its ``wall_seconds`` share and its
     evaluation returns, ``None``: not evaluated), or the exception
-    :func:`~ermrl.agents.train_agent` would have raised for it."""
+    [`train_agent`][ermrl.agents.train_agent] would have raised for it."""
     job = population.jobs[j]
     if j in population.failed:
         return population.failed[j]

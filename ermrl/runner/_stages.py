@@ -55,7 +55,7 @@ class NothingToReport(ConfigError):
 
 @dataclass(frozen=True)
 class EvolveResult:
-    """What an evolution holds after :func:`evolve` returned.
+    """What an evolution holds after [`evolve`][ermrl.runner.evolve] returned.
 
     Attributes:
         study_name: The study.
@@ -83,7 +83,7 @@ class EvolveResult:
 
 @dataclass(frozen=True, eq=False)
 class TestResult:
-    """What :func:`test` trained and wrote.
+    """What [`test`][ermrl.runner.test] trained and wrote.
 
     Attributes:
         study_name: The evolution study.
@@ -207,8 +207,8 @@ def evolve(
     finished study does nothing and returns what the study holds.
 
     Args:
-        config: The configuration (:class:`~ermrl.config.EvolveConfig`), or an env id whose
-            configuration ``options`` give (:func:`evolve_config`).
+        config: The configuration ([`EvolveConfig`][ermrl.config.EvolveConfig]), or an env id whose
+            configuration ``options`` give ([`evolve_config`][ermrl.runner.evolve_config]).
         storage: The Optuna storage URL (``sqlite:///file.db``, ``journal:///file.log``, ...).
         study_name: The study's name (default: derived from env, mask and budget).
         quiet: No progress lines.
@@ -265,7 +265,7 @@ def _resolved_config(
     tensorboard: str | Path | None,
     options: dict[str, Any],
 ) -> tuple[EvolveConfig, str | None]:
-    """The configuration :func:`evolve` runs, checked, and the command line that runs it.
+    """The configuration [`evolve`][ermrl.runner.evolve] runs, checked, and the command line that runs it.
 
     Args:
         config: A configuration, or an env id whose configuration ``options`` give.
@@ -370,10 +370,10 @@ def test(
     Args:
         study_name: The evolution study (a single-task one).
         storage: Its storage URL.
-        options: The test phase's options (:class:`~ermrl.test_phase.TestOptions`).
+        options: The test phase's options ([`TestOptions`][ermrl.test_phase.TestOptions]).
         quiet: No progress lines.
         stream: Where progress lines go (default ``sys.stdout``).
-        **keywords: Fields of :class:`~ermrl.test_phase.TestOptions` (``training_steps``,
+        **keywords: Fields of [`TestOptions`][ermrl.test_phase.TestOptions] (``training_steps``,
             ``seeds``, ``agents``, ``out``, ``trial``, ...), on top of ``options``.
 
     Returns:
@@ -462,7 +462,7 @@ def report(
         stream: Where progress lines go (default ``sys.stdout``).
 
     Returns:
-        The paths written (:class:`~ermrl.analysis.ReportResult`): ``markdown``, ``html``,
+        The paths written ([`ReportResult`][ermrl.analysis.ReportResult]): ``markdown``, ``html``,
         ``figures`` and ``tables`` by name, and the sections left out with why.
 
     Raises:
