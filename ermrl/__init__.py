@@ -7,11 +7,11 @@ on first use so that ``import ermrl`` stays instant):
 - [`evolve`][ermrl.runner.evolve], [`test`][ermrl.runner.test], [`report`][ermrl.runner.report]: one stage each, as ``ermrl evolve``,
   ``ermrl test`` and ``ermrl report`` run it.
 
-Example:
+Examples:
     >>> import ermrl
     >>> exp = ermrl.Experiment.load("experiments/demo.yaml", variant="quick")
-    >>> result = exp.run()  # doctest: +SKIP
-    >>> result["Pendulum-v1"].summary  # doctest: +SKIP
+    >>> result = exp.run()
+    >>> result["Pendulum-v1"].summary
 """
 
 from __future__ import annotations

@@ -225,7 +225,7 @@ def parse_overrides(items: Sequence[str], learner: str | None = None) -> dict[st
     Raises:
         ConfigError: a malformed item or an unknown key.
 
-    Example:
+    Examples:
         >>> parse_overrides(["learning_rate:1e-4", "n_steps=512"])
         {'learning_rate': 0.0001, 'n_steps': 512}
     """

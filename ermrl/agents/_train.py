@@ -75,7 +75,7 @@ def steps_trained(ppo: PPOConfig, steps: int) -> int:
     rollouts of ``n_steps * n_envs`` steps and stop after the one that reaches the budget, so
     the budget rounds up to a whole number of rollouts; other learners train ``steps``.
 
-    Example:
+    Examples:
         >>> from ermrl.config import PPOConfig
         >>> steps_trained(PPOConfig(n_envs=1, hyperparams={"n_steps": 2048}), 3000)
         4096

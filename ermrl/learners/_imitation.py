@@ -30,8 +30,8 @@ executed even one action scores the expert in part, so its Monitor record
 every executed action was the learner's. `dagger_rollout` does this given
 ``episode_mixed``; `LearnerOnlyEpisodes` does it for an SB3 algorithm's env.
 
-Example::
-
+Examples:
+    ```python
     policy = ImitationPolicy(obs_dim=2, act_dim=1, hidden_sizes=(64, 64))
     optimizer = torch.optim.Adam(policy.parameters(), lr=1e-3)
     full = FullObservations(venv)
@@ -40,6 +40,7 @@ Example::
                              rng=np.random.default_rng(0), obs=obs, full_obs=full.after_reset())
     targets = scale_actions(venv.action_space, rollout.expert_actions)
     losses = bc_fit(policy, optimizer, rollout.observations, targets, epochs=5, batch_size=256)
+    ```
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@ and runs its unfinished stages, exactly as ``ermrl run FILE`` does; [`evolve`][e
 ``ermrl report`` do. The same names are exported at the package root (``ermrl.Experiment``,
 ``ermrl.evolve``, ...).
 
-Example:
+Examples:
     >>> import ermrl
     >>> exp = ermrl.Experiment.load("experiments/demo.yaml")
     >>> exp.plan()[0].stage

@@ -257,7 +257,7 @@ class Experiment:
             ExperimentError: An unreadable file, an unknown key (with the nearest valid one),
                 a wrong type or an unknown variant, in one line naming the file.
 
-        Example:
+        Examples:
             >>> import ermrl
             >>> exp = ermrl.Experiment.load("experiments/demo.yaml")
             >>> exp.name, str(exp.out)
@@ -324,9 +324,9 @@ class Experiment:
                 run again to resume.
             KeyboardInterrupt: Ctrl-C during a stage (finished trials and runs are kept).
 
-        Example:
-            >>> result = ermrl.Experiment.load("experiments/demo.yaml").run()  # doctest: +SKIP
-            >>> result["Pendulum-v1"].trial, result["Pendulum-v1"].summary  # doctest: +SKIP
+        Examples:
+            >>> result = ermrl.Experiment.load("experiments/demo.yaml").run()
+            >>> result["Pendulum-v1"].trial, result["Pendulum-v1"].summary
         """
         from ermrl.runner import run_and_collect
 

@@ -214,7 +214,7 @@ def parse_for_learner(values: Sequence[str]) -> tuple[str, dict[str, Any]]:
         ConfigError: an unregistered learner, no ``KEY=VALUE``, a malformed one or an unknown
             key (one line, starting ``--for-learner LEARNER:``).
 
-    Example:
+    Examples:
         >>> parse_for_learner(["dagger", "expert=experts/hopper", "epochs=3"])
         ('dagger', {'expert': 'experts/hopper', 'epochs': 3})
     """

@@ -88,9 +88,9 @@ class ExperimentResult:
         out: Its results folder.
         tasks: ``{task: TaskResult}``, in the plan's order.
 
-    Example:
-        >>> result = Experiment.load("experiments/demo.yaml").run()  # doctest: +SKIP
-        >>> result["Pendulum-v1"].summary[["agent", "final_return_mean"]]  # doctest: +SKIP
+    Examples:
+        >>> result = Experiment.load("experiments/demo.yaml").run()
+        >>> result["Pendulum-v1"].summary[["agent", "final_return_mean"]]
     """
 
     name: str

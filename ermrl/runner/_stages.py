@@ -147,8 +147,8 @@ def evolve_config(
         ExperimentError: An unknown option (with the nearest valid one) or a value the
             command refuses, in one line.
 
-    Example:
-        >>> config = evolve_config("CartPole-v1", n_trials=4, training_steps=2000)  # doctest: +SKIP
+    Examples:
+        >>> config = evolve_config("CartPole-v1", n_trials=4, training_steps=2000)
     """
     config, _ = _evolve_config_and_argv(env_id, storage, study_name, tensorboard, options)
     return config
@@ -233,12 +233,12 @@ def evolve(
         ermrl.storage.StorageError: The storage cannot be opened.
         KeyboardInterrupt: Ctrl-C (the running trial is closed and queued again).
 
-    Example:
+    Examples:
         >>> import ermrl
-        >>> result = ermrl.evolve(  # doctest: +SKIP
+        >>> result = ermrl.evolve(
         ...     "CartPole-v1", "sqlite:///ermrl.db", n_trials=4, n_seeds=1, training_steps=2000
         ... )
-        >>> result.best_trial, result.best_params  # doctest: +SKIP
+        >>> result.best_trial, result.best_params
     """
     from ermrl.search import create_or_resume_study, evolve_and_reevaluate
 
@@ -385,12 +385,12 @@ def test(
         ermrl.storage.StudyNotFound: No such study.
         KeyboardInterrupt: Ctrl-C (finished runs are kept).
 
-    Example:
-        >>> result = ermrl.test(  # doctest: +SKIP
+    Examples:
+        >>> result = ermrl.test(
         ...     "CartPole-v1__all__2000steps", "sqlite:///ermrl.db", training_steps=2000,
         ...     seeds=[10, 11], out="runs/cartpole-test",
         ... )
-        >>> result.summary[["agent", "final_return_mean"]]  # doctest: +SKIP
+        >>> result.summary[["agent", "final_return_mean"]]
     """
     from ermrl.analysis import load_run_results
     from ermrl.test_phase import TestOptions, prepare_test, run_comparison, run_in_folder
@@ -471,8 +471,8 @@ def report(
         ermrl.analysis.RunFolderError: A file of the test phase's folder is damaged.
         OSError: The report cannot be written (nothing is written then).
 
-    Example:
-        >>> ermrl.report("S", "sqlite:///ermrl.db", runs="runs/S").markdown  # doctest: +SKIP
+    Examples:
+        >>> ermrl.report("S", "sqlite:///ermrl.db", runs="runs/S").markdown
         PosixPath('reports/S/report.md')
     """
     from optuna.trial import TrialState

@@ -614,8 +614,8 @@ def import_snapshot(
 
     Examples:
         >>> # ermrl study export --storage sqlite:///old.db --study-name pend --out pend.json
-        >>> result = import_snapshot("pend.json", "sqlite:///new.db")  # doctest: +SKIP
-        >>> result.study.trials[-1].number  # doctest: +SKIP
+        >>> result = import_snapshot("pend.json", "sqlite:///new.db")
+        >>> result.study.trials[-1].number
         41
     """
     if not isinstance(snapshot, Snapshot):
