@@ -1,11 +1,12 @@
 """ermrl: evolve reservoirs with CMA-ES in an Optuna study, learn on top of them with PPO.
 
-The Python API mirrors the command line (names re-exported from [`ermrl.runner`][ermrl.runner], imported
-on first use so that ``import ermrl`` stays instant):
+The Python API mirrors the command line (names re-exported from [`ermrl.runner`][ermrl.runner],
+imported on first use so that ``import ermrl`` stays instant):
 
-- [`Experiment`][ermrl.runner.Experiment]: load, plan and run an experiment file, as ``ermrl run FILE`` does;
-- [`evolve`][ermrl.runner.evolve], [`test`][ermrl.runner.test], [`report`][ermrl.runner.report]: one stage each, as ``ermrl evolve``,
-  ``ermrl test`` and ``ermrl report`` run it.
+- [`Experiment`][ermrl.runner.Experiment]: load, plan and run an experiment file, as
+  ``ermrl run FILE`` does;
+- [`evolve`][ermrl.runner.evolve], [`test`][ermrl.runner.test], [`report`][ermrl.runner.report]: one
+  stage each, as ``ermrl evolve``, ``ermrl test`` and ``ermrl report`` run it.
 
 Examples:
     >>> import ermrl

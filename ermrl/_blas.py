@@ -15,8 +15,8 @@ products then round alike on any such machine: a published run reruns bit-identi
 another CPU. A kernel set by the user (``OPENBLAS_CORETYPE`` in the environment) is kept, and
 nothing is changed when numpy was imported before ``ermrl`` (too late: OpenBLAS has chosen) or
 on other CPUs; when numpy came first, the variable is set to the kernel OpenBLAS chose, so that
-the worker processes ermrl starts run the same one. `blas_kernel` names the kernel a process runs with; every run and trial
-records it beside the code (`ermrl._code.code_identity`).
+the worker processes ermrl starts run the same one. `blas_kernel` names the kernel a process runs
+with; every run and trial records it beside the code (`ermrl._code.code_identity`).
 
 PyTorch's CPU wheels use MKL, whose own dispatch is not pinned here: the ``sb3`` backend's
 results can still differ between CPUs (``MKL_CBWR`` pins it, at a speed cost not measured).

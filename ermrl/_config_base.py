@@ -1,10 +1,10 @@
 """What every layer of ermrl shares: the configuration error, the limits, ranges, agent kinds
 and tasks.
 
-The bottom of the configuration: [`ermrl.encoders`][ermrl.encoders] builds its settings and search spaces on
-it, and [`ermrl.config`][ermrl.config] (which sits above the encoders, to build a study's configuration
-from the registered ones) re-exports every name, so ``from ermrl.config import ConfigError``
-works everywhere.
+The bottom of the configuration: [`ermrl.encoders`][ermrl.encoders] builds its settings and search
+spaces on it, and [`ermrl.config`][ermrl.config] (which sits above the encoders, to build a study's
+configuration from the registered ones) re-exports every name, so
+``from ermrl.config import ConfigError`` works everywhere.
 """
 
 from __future__ import annotations
@@ -129,11 +129,12 @@ class Range:
 
 @runtime_checkable
 class SearchSpace(Protocol):
-    """What the outer loop needs of an encoder's search space ([`ReservoirSpace`][ermrl.encoders.ReservoirSpace] is one).
+    """What the outer loop needs of an encoder's search space
+    ([`ReservoirSpace`][ermrl.encoders.ReservoirSpace] is one).
 
     The search samples plain ``{name: value}`` points in `ranges`; the encoder turns a
-    point into its settings ([`ermrl.encoders.Encoder.decode`][ermrl.encoders.Encoder.decode]), so search code never
-    handles an encoder's own types.
+    point into its settings ([`ermrl.encoders.Encoder.decode`][ermrl.encoders.Encoder.decode]), so
+    search code never handles an encoder's own types.
     """
 
     @property

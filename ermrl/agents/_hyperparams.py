@@ -64,9 +64,10 @@ def parse_normalize(value: Any, where: str = "normalize") -> NormalizeConfig | N
     """Read rl-baselines3-zoo's ``normalize`` value.
 
     Args:
-        value: ``true``/``false``, ``null``, or a mapping of [`NormalizeConfig`][ermrl.config.NormalizeConfig]
-            fields (``{norm_obs: true, norm_reward: false}``). A string is read as YAML, so the
-            zoo's quoted form ``"{'norm_obs': False, 'norm_reward': True}"`` works too.
+        value: ``true``/``false``, ``null``, or a mapping of
+            [`NormalizeConfig`][ermrl.config.NormalizeConfig] fields
+            (``{norm_obs: true, norm_reward: false}``). A string is read as YAML, so the zoo's
+            quoted form ``"{'norm_obs': False, 'norm_reward': True}"`` works too.
         where: Where the value comes from, for error messages.
 
     Returns:
@@ -292,7 +293,8 @@ def resolve_ppo_config(
         table_path: Alternative YAML table (default: the learner's own).
         torch_threads: Torch threads per training process.
         learner: The learner (see [`ermrl.learners`][ermrl.learners]); its table is read.
-        backend: What trains the agents (``sb3`` or ``population``, see [`ermrl.population`][ermrl.population]).
+        backend: What trains the agents (``sb3`` or ``population``, see
+            [`ermrl.population`][ermrl.population]).
     """
     table = load_hyperparams_table(table_path, learner)
     merged: dict[str, Any] = dict(table.get("default") or {})

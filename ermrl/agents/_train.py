@@ -124,7 +124,8 @@ def make_vec_env(
         render_mode: Passed to ``gymnasium.make``.
 
     Returns:
-        A ``VecEnv`` (a [`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv] when ``encoder`` is given).
+        A ``VecEnv`` (a [`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv] when ``encoder`` is
+        given).
     """
     from stable_baselines3.common.monitor import Monitor
     from stable_baselines3.common.vec_env import DummyVecEnv
@@ -382,14 +383,16 @@ def train_agent(
     Args:
         task: Env id and observation mask.
         encoder: Reservoir encoding; ``None`` trains plain PPO on the (masked) observation.
-        ppo: The learner's settings (``ppo.learner`` names it, see [`ermrl.learners`][ermrl.learners]).
+        ppo: The learner's settings (``ppo.learner`` names it, see
+            [`ermrl.learners`][ermrl.learners]).
         budget: Training steps and fitness measure.
-        seed: Seeds the reservoir weights, the environments and the agent (see [`derive_seeds`][ermrl.agents.derive_seeds]).
+        seed: Seeds the reservoir weights, the environments and the agent (see
+            [`derive_seeds`][ermrl.agents.derive_seeds]).
         evaluate: Run deterministic evaluation episodes after training (default: when
             ``budget.fitness == "eval"``).
         model_path: Save the trained model there (``.zip``, SB3's format), its policy's
-            weights as plain tensors ([`policy_path`][ermrl.agents.policy_path], the file ermrl reads
-            back) and, with ``ppo.normalize``, the normalization statistics as JSON
+            weights as plain tensors ([`policy_path`][ermrl.agents.policy_path], the file ermrl
+            reads back) and, with ``ppo.normalize``, the normalization statistics as JSON
             ([`stats_path`][ermrl.agents.stats_path]).
         report: Called as ``report(env_step, mean_recent_return)`` ``budget.n_reports`` times
             during training (for pruning); it may raise to stop training.
@@ -439,8 +442,8 @@ def _train_with_wandb(
     callbacks: Sequence[Any],
 ) -> RunResult:
     """``run(tensorboard_log=..., callbacks=...)`` logged to Weights & Biases (see
-    [`train_agent`][ermrl.agents.train_agent]): wandb's SB3 callback after ``callbacks``, and the outcome in the W&B
-    run's summary."""
+    [`train_agent`][ermrl.agents.train_agent]): wandb's SB3 callback after ``callbacks``, and the
+    outcome in the W&B run's summary."""
     from ermrl.agents._wandb import wandb_run
 
     with wandb_run(wandb, tensorboard_log) as (wandb_callback, log_dir, session):
@@ -472,8 +475,8 @@ def _train(
     progress: Progress | None,
     checkpoint: RunCheckpoint | None,
 ) -> RunResult:
-    """[`train_agent`][ermrl.agents.train_agent] once its arguments are checked and W&B is set up: build the env and
-    the learner, resume, learn, measure the returns, evaluate, save."""
+    """[`train_agent`][ermrl.agents.train_agent] once its arguments are checked and W&B is set up:
+    build the env and the learner, resume, learn, measure the returns, evaluate, save."""
     import torch
 
     from ermrl.agents._normalize import normalize_env, save_normalize_stats, stats_path

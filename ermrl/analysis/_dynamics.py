@@ -580,9 +580,9 @@ def joint_angles(recording: DynamicsRecording) -> np.ndarray | None:
     Its spectrum is the gait: the frequency at which a locomotion policy moves its joints.
 
     Returns:
-        Shape ``(T, k)``; ``None`` when the task is not MuJoCo locomotion ([`has_joints`][ermrl.analysis.has_joints]),
-        the episode's observation holds no positions (``observe="velocities"``) or the task
-        has no known position/velocity split.
+        Shape ``(T, k)``; ``None`` when the task is not MuJoCo locomotion
+        ([`has_joints`][ermrl.analysis.has_joints]), the episode's observation holds no positions
+        (``observe="velocities"``) or the task has no known position/velocity split.
     """
     if not has_joints(recording.env_id):
         return None
@@ -603,7 +603,8 @@ def joint_angles(recording: DynamicsRecording) -> np.ndarray | None:
 
 
 def gait_frequency(recording: DynamicsRecording) -> float:
-    """Dominant frequency of the joint angles ([`joint_angles`][ermrl.analysis.joint_angles]); NaN when unknown."""
+    """Dominant frequency of the joint angles ([`joint_angles`][ermrl.analysis.joint_angles]); NaN
+    when unknown."""
     angles = joint_angles(recording)
     if angles is None or recording.n_steps < 4:
         return math.nan

@@ -2,8 +2,9 @@
 
 A generalization study (user attribute ``ermrl_kind == "evolve-generalization"``) records on each
 trial the user attributes ``task_normalized = {env_id: score}`` and ``task_returns = {env_id:
-mean return}``. Single-task studies have neither: [`task_scores_frame`][ermrl.analysis.task_scores_frame] then returns an empty
-table and [`task_scores_figure`][ermrl.analysis.task_scores_figure] says so in the figure.
+mean return}``. Single-task studies have neither:
+[`task_scores_frame`][ermrl.analysis.task_scores_frame] then returns an empty table and
+[`task_scores_figure`][ermrl.analysis.task_scores_figure] says so in the figure.
 """
 
 from __future__ import annotations

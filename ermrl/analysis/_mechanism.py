@@ -9,25 +9,27 @@ projection of the input. Two measurements tell the two apart on a task.
 **Spectra.** One recorded episode of the trained ``res-ppo`` agent
 ([`record_dynamics`][ermrl.analysis.record_dynamics]) gives the reservoir's input stream
 ``u_t = [observation_t, previous action, previous reward]`` (the encoding of
-[`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv]). The same stream drives three reservoirs, each built with
-the weights of every test seed of ``res-ppo`` ([`reservoir_spectra`][ermrl.analysis.reservoir_spectra]): the evolved one
-(``res-ppo``'s), the unevolved reference (``random-res-ppo``'s) and the evolved one with ``W = 0``
-(``leaky-res-ppo``'s: the same ``Win``, bias and leak rate). Driving all three with one stream
-isolates the reservoir from the policy. For each, and for the episode's joint angles
-([`joint_angles`][ermrl.analysis.joint_angles]): the Welch spectrum ([`power_spectrum`][ermrl.analysis.power_spectrum],
-mean over units), its dominant frequency ([`dominant_frequency`][ermrl.analysis.dominant_frequency]), and the
-share of its power above 0 Hz inside the *gait band*: the joint angles' dominant frequency (the
-gait) ± `SpectralCriterion.band` of it, at least ± one frequency bin ([`band_share`][ermrl.analysis.band_share]).
+[`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv]). The same stream drives three reservoirs, each
+built with the weights of every test seed of ``res-ppo``
+([`reservoir_spectra`][ermrl.analysis.reservoir_spectra]): the evolved one (``res-ppo``'s), the
+unevolved reference (``random-res-ppo``'s) and the evolved one with ``W = 0`` (``leaky-res-ppo``'s:
+the same ``Win``, bias and leak rate). Driving all three with one stream isolates the reservoir from
+the policy. For each, and for the episode's joint angles
+([`joint_angles`][ermrl.analysis.joint_angles]): the Welch spectrum
+([`power_spectrum`][ermrl.analysis.power_spectrum], mean over units), its dominant frequency
+([`dominant_frequency`][ermrl.analysis.dominant_frequency]), and the share of its power above 0 Hz
+inside the *gait band*: the joint angles' dominant frequency (the gait) ± `SpectralCriterion.band`
+of it, at least ± one frequency bin ([`band_share`][ermrl.analysis.band_share]).
 
-**The spectral criterion** ([`SpectralCriterion`][ermrl.analysis.SpectralCriterion]). The evolved reservoir *carries a
-gait-frequency component that its W = 0 ablation lacks* on one weight seed when its share in the
-gait band is at least `SpectralCriterion.ratio` times the ablation's and its own dominant
-frequency lies inside the band; on the task, when that holds on more than half of the weight
-seeds.
+**The spectral criterion** ([`SpectralCriterion`][ermrl.analysis.SpectralCriterion]). The evolved
+reservoir *carries a gait-frequency component that its W = 0 ablation lacks* on one weight seed when
+its share in the gait band is at least `SpectralCriterion.ratio` times the ablation's and its own
+dominant frequency lies inside the band; on the task, when that holds on more than half of the
+weight seeds.
 
-**The verdict** ([`mechanism_verdict`][ermrl.analysis.mechanism_verdict]) combines the criterion with the comparison
-``res-ppo − leaky-res-ppo`` of the verdict layer ([`judge`][ermrl.analysis.judge]: Holm over the
-page's family, both intervals):
+**The verdict** ([`mechanism_verdict`][ermrl.analysis.mechanism_verdict]) combines the criterion
+with the comparison ``res-ppo − leaky-res-ppo`` of the verdict layer
+([`judge`][ermrl.analysis.judge]: Holm over the page's family, both intervals):
 
 - *oscillatory dynamics* (supported): the ablation learns worse (the comparison is supported) and
   the evolved reservoir carries a gait-frequency component its ablation lacks;
@@ -212,9 +214,9 @@ def gait_segment(angles: np.ndarray | None, dt: float) -> int:
     """The Welch segment length (steps) that resolves the gait of an episode's joint angles.
 
     `NPERSEG` steps, unless the joint angles have no spectral peak with them and their power
-    is largest in the lowest non-zero bin ([`lowest_bin`][ermrl.analysis.lowest_bin]): the gait is then slower than
-    ``1 / (NPERSEG dt)`` (Swimmer's, at dt 0.04 s, can be under 0.1 Hz), and the whole episode is
-    one segment, for a resolution of ``1 / (T dt)``.
+    is largest in the lowest non-zero bin ([`lowest_bin`][ermrl.analysis.lowest_bin]): the gait is
+    then slower than ``1 / (NPERSEG dt)`` (Swimmer's, at dt 0.04 s, can be under 0.1 Hz), and the
+    whole episode is one segment, for a resolution of ``1 / (T dt)``.
 
     Args:
         angles: Shape ``(T, d)`` (``None``: no joint angles, `NPERSEG`).
@@ -261,7 +263,8 @@ def reservoir_inputs(recording: DynamicsRecording, encoder: Any, action_space: A
 
 @dataclass
 class ReservoirSpectra:
-    """Three reservoirs driven by one recorded input stream ([`reservoir_spectra`][ermrl.analysis.reservoir_spectra]).
+    """Three reservoirs driven by one recorded input stream
+    ([`reservoir_spectra`][ermrl.analysis.reservoir_spectra]).
 
     Attributes:
         table: One row per signal (``joint angles``, then each reservoir per weight seed):
@@ -300,7 +303,8 @@ def reservoir_spectra(
         weight_seeds: Run seeds whose weights are built (each run's reservoir seed,
             [`ermrl.agents.derive_seeds`][ermrl.agents.derive_seeds]), as in training.
         action_space: The task's action space (default: the env's).
-        criterion: Sets the gait band (default [`SpectralCriterion`][ermrl.analysis.SpectralCriterion]).
+        criterion: Sets the gait band (default
+            [`SpectralCriterion`][ermrl.analysis.SpectralCriterion]).
 
     Returns:
         The per-seed table and the mean spectra.
@@ -487,8 +491,8 @@ def spectral_outcome(
     """Apply the spectral criterion to a `MECHANISM_FILE` table.
 
     Args:
-        table: From [`reservoir_spectra`][ermrl.analysis.reservoir_spectra] or [`read_mechanism`][ermrl.analysis.read_mechanism] (``None``: not
-            recorded).
+        table: From [`reservoir_spectra`][ermrl.analysis.reservoir_spectra] or
+            [`read_mechanism`][ermrl.analysis.read_mechanism] (``None``: not recorded).
         criterion: The criterion (its ``band`` is the one the table's band was measured with).
 
     Returns:

@@ -54,8 +54,8 @@ def learning_curves_figure(
     """Learning curves per agent, mean and a band across seeds, on a common env-step grid.
 
     Args:
-        grid: Output of [`curves_on_grid`][ermrl.analysis.curves_on_grid] (columns ``agent, env_step,
-            mean, std, sem, ci95, n_seeds``).
+        grid: Output of [`curves_on_grid`][ermrl.analysis.curves_on_grid] (columns
+            ``agent, env_step, mean, std, sem, ci95, n_seeds``).
         title: Figure title (for example the env and observation mask).
         agents: Order of the agents in the legend (default: order of appearance).
         band: ``"std"`` (mean ± std), ``"ci95"`` (Student-t 95% CI of the mean), ``"sem"``
@@ -131,7 +131,8 @@ def plot_learning_curves(
         path: PNG file to write.
         title: Figure title (for example the env and observation mask).
         agents: Order of the agents in the legend.
-        band: What the shaded band shows (see [`learning_curves_figure`][ermrl.analysis.learning_curves_figure]).
+        band: What the shaded band shows (see
+            [`learning_curves_figure`][ermrl.analysis.learning_curves_figure]).
 
     Returns:
         The written path.

@@ -4,13 +4,14 @@ A run folder ``<out>/agents/<agent>/seed_<s>/`` holds ``policy.pt``, ``model.zip
 ``result.json`` and ``settings.json``; the folder's ``config.yaml`` holds the task and encoding
 options. The policy is read only from ``policy.pt`` (plain tensors, ``torch.load`` with
 ``weights_only=True``) and rebuilt from the run's PPO settings (``settings.json``, else
-``config.yaml``) and the environment's spaces ([`ermrl.agents.load_policy`][ermrl.agents.load_policy]). ``model.zip``
-is never read: SB3 unpickles it, and a crafted one runs code. A run saved before ``policy.pt``
-existed is refused; re-train it. The reservoir weights are
-re-created from the run's seed exactly as in training ([`ermrl.agents.derive_seeds`][ermrl.agents.derive_seeds]), so
-the replayed policy sees the states it was trained on. A run trained with ``normalize`` also
-has ``vecnormalize.json`` beside its model: the replay normalizes the policy's input with those
-statistics, frozen, as training's own evaluation did.
+``config.yaml``) and the environment's spaces
+([`ermrl.agents.load_policy`][ermrl.agents.load_policy]). ``model.zip`` is never read: SB3 unpickles
+it, and a crafted one runs code. A run saved before ``policy.pt`` existed is refused; re-train it.
+The reservoir weights are re-created from the run's seed exactly as in training
+([`ermrl.agents.derive_seeds`][ermrl.agents.derive_seeds]), so the replayed policy sees the states
+it was trained on. A run trained with ``normalize`` also has ``vecnormalize.json`` beside its model:
+the replay normalizes the policy's input with those statistics, frozen, as training's own evaluation
+did.
 """
 
 from __future__ import annotations

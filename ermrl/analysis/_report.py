@@ -840,7 +840,8 @@ def _intervals(frame: pd.DataFrame, prefix: str) -> list[str]:
 
 
 def _agent_table(table: pd.DataFrame, columns: Sequence[str]) -> pd.DataFrame:
-    """A [`final_returns_table`][ermrl.analysis.final_returns_table] as shown: the CI as one cell, flagged."""
+    """A [`final_returns_table`][ermrl.analysis.final_returns_table] as shown: the CI as one cell,
+    flagged."""
     from ermrl.analysis._stats import few_seeds_flag
 
     shown = pd.DataFrame(

@@ -297,8 +297,8 @@ def task_result(
     snapshot: Path,
     planned: dict[str, tuple[int, ...]] | None = None,
 ) -> TaskResult:
-    """Read one task's published files (see [`TaskResult`][ermrl.analysis.TaskResult]); ``planned`` is the test
-    phase its file plans, ``{agent: seeds}``."""
+    """Read one task's published files (see [`TaskResult`][ermrl.analysis.TaskResult]); ``planned``
+    is the test phase its file plans, ``{agent: seeds}``."""
     test = folder / "test"
     runs = load_test_runs(test) if test.exists() else pd.DataFrame()
     snapshot_doc = _read_snapshot(snapshot)

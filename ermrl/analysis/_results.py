@@ -205,10 +205,10 @@ def _finished_runs(out: str | Path) -> list[Path]:
 def check_run_folder(out: str | Path) -> None:
     """Read every file of a test-phase folder that the report and replays use, and check it.
 
-    Checks ``config.yaml`` (when present: [`load_run_config`][ermrl.analysis.load_run_config]) and, for each finished run,
-    ``result.json``, ``episodes.csv`` and ``settings.json`` (when present). Call it before
-    writing anything derived from the folder, so that a damaged file stops the command
-    cleanly.
+    Checks ``config.yaml`` (when present: [`load_run_config`][ermrl.analysis.load_run_config]) and,
+    for each finished run, ``result.json``, ``episodes.csv`` and ``settings.json`` (when present).
+    Call it before writing anything derived from the folder, so that a damaged file stops the
+    command cleanly.
 
     Raises:
         RunFolderError: a damaged file, named with its problem.
@@ -374,8 +374,9 @@ def summarize(results: pd.DataFrame, agents: Sequence[str] | None = None) -> pd.
 def load_run_config(out: str | Path) -> dict[str, Any]:
     """The ``config.yaml`` of a test-phase folder (task, encoder, agents, study, ...).
 
-    The task's env id is checked against the registry ([`ermrl.envs.check_registered_env_id`][ermrl.envs.check_registered_env_id]):
-    a ``module:Id`` there is refused, never imported, since the file may come from anyone.
+    The task's env id is checked against the registry
+    ([`ermrl.envs.check_registered_env_id`][ermrl.envs.check_registered_env_id]): a ``module:Id``
+    there is refused, never imported, since the file may come from anyone.
 
     Raises:
         FileNotFoundError: ``out`` has no ``config.yaml`` (not a test-phase folder).

@@ -282,9 +282,9 @@ def compare_agents(
         n_paired, paired_ci_low, paired_ci_high, few_seeds``, where ``mean_diff`` is
         ``mean(candidate) - mean(baseline)``, the Welch interval is Student's t with
         Welch-Satterthwaite degrees of freedom at the same coverage, the paired interval
-        ([`paired_bootstrap_mean_diff_ci`][ermrl.analysis.paired_bootstrap_mean_diff_ci]) is over the seeds both agents ran (NaN when
-        ``results`` has no ``seed`` column or fewer than 2 shared seeds), and ``few_seeds``
-        flags a group of fewer than `FEW_SEEDS` runs.
+        ([`paired_bootstrap_mean_diff_ci`][ermrl.analysis.paired_bootstrap_mean_diff_ci]) is over
+        the seeds both agents ran (NaN when ``results`` has no ``seed`` column or fewer than 2
+        shared seeds), and ``few_seeds`` flags a group of fewer than `FEW_SEEDS` runs.
     """
     if baselines is None:
         baselines = [a for a in AGENT_KINDS if a != candidate]

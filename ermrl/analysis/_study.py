@@ -107,7 +107,8 @@ def open_study(study_name: str, storage: str) -> optuna.Study:
 
 
 def study_config_or_none(study: optuna.Study) -> EvolveConfig | None:
-    """The study's [`EvolveConfig`][ermrl.config.EvolveConfig], or ``None`` when it has none readable."""
+    """The study's [`EvolveConfig`][ermrl.config.EvolveConfig], or ``None`` when it has none
+    readable."""
     from ermrl.search import study_config
 
     try:
@@ -211,8 +212,8 @@ def trials_table(study: optuna.Study) -> pd.DataFrame:
     ``value``, ``datetime_start``, ``datetime_complete``, ``duration``, ``params_<name>``,
     ``user_attrs_<name>``, ``state``), then `TRIALS_TABLE_EXTRA`: ``duration_s`` (the
     duration in seconds), ``retry_of`` (the trial a retry replaces) and the CMA-ES generation
-    columns of [`trials_frame`][ermrl.analysis.trials_frame], and last ``value`` when Optuna's column is
-    ``values_<metric>`` (a study with a metric name, as ermrl's are; earlier exports had
+    columns of [`trials_frame`][ermrl.analysis.trials_frame], and last ``value`` when Optuna's
+    column is ``values_<metric>`` (a study with a metric name, as ermrl's are; earlier exports had
     ``value``). Lists and dicts in user attributes are JSON text.
 
     Returns:
@@ -266,10 +267,10 @@ def param_ranges(
 def best_params_table(study: optuna.Study, config: EvolveConfig | None = None) -> pd.DataFrame:
     """The parameters of the trial a test phase selects, with their search ranges.
 
-    The selected trial is [`select_trial`][ermrl.search.select_trial]'s: the re-evaluated best when the
-    study records a complete, current re-evaluation, else the best evolution fitness (the noisy
-    maximum a test phase would otherwise take), so that the report names the trial the test
-    phase tests.
+    The selected trial is [`select_trial`][ermrl.search.select_trial]'s: the re-evaluated best when
+    the study records a complete, current re-evaluation, else the best evolution fitness (the noisy
+    maximum a test phase would otherwise take), so that the report names the trial the test phase
+    tests.
 
     Returns:
         Columns ``trial, selection, parameter, value, low, high, scale`` (empty without a
@@ -328,8 +329,8 @@ def generations_frame(study: optuna.Study) -> pd.DataFrame:
 
     Returns:
         Columns ``number, value, restart, generation, global_generation, popsize, regime``
-        (see [`ermrl.search.cma_generation_info`][ermrl.search.cma_generation_info]); rows without a generation are trials
-        not sampled by CMA-ES.
+        (see [`ermrl.search.cma_generation_info`][ermrl.search.cma_generation_info]); rows without a
+        generation are trials not sampled by CMA-ES.
     """
     from ermrl.search import cma_generation_info
 

@@ -2,8 +2,8 @@
 
 Figures are plain `matplotlib.figure.Figure` objects (never created through ``pyplot``), so
 plotting works without a display, never switches the global matplotlib backend, and leaks no
-open figures. [`PaperFigure`][ermrl.analysis.PaperFigure] adds ``_repr_png_`` so that a figure returned as the last
-value of a notebook cell is shown inline whatever backend the kernel uses.
+open figures. [`PaperFigure`][ermrl.analysis.PaperFigure] adds ``_repr_png_`` so that a figure
+returned as the last value of a notebook cell is shown inline whatever backend the kernel uses.
 """
 
 from __future__ import annotations
@@ -94,7 +94,8 @@ def new_figure(
     squeeze: bool = True,
     **subplot_kw: Any,
 ) -> tuple[PaperFigure, Any]:
-    """A [`PaperFigure`][ermrl.analysis.PaperFigure] with its axes, created under [`paper_style`][ermrl.analysis.paper_style].
+    """A [`PaperFigure`][ermrl.analysis.PaperFigure] with its axes, created under
+    [`paper_style`][ermrl.analysis.paper_style].
 
     Call it inside ``with paper_style():`` so that the style applies to everything drawn.
 

@@ -26,7 +26,8 @@ the outcomes and gives two aggregates with stratified bootstrap intervals (Agarw
 rliable's definitions): the interquartile mean of normalized scores of each agent, and the
 probability of improvement ``P(candidate > baseline)``.
 
-The rule itself is data: the ``verdict:`` block of an experiment file ([`VerdictRule`][ermrl.analysis.VerdictRule]).
+The rule itself is data: the ``verdict:`` block of an experiment file
+([`VerdictRule`][ermrl.analysis.VerdictRule]).
 """
 
 from __future__ import annotations
@@ -164,7 +165,8 @@ class VerdictRule:
             first test result it judges.
         n_resamples: Bootstrap resamples.
         power: The power the seeds-needed line targets.
-        references: Baselines read from other experiments' published runs ([`Reference`][ermrl.analysis.Reference]).
+        references: Baselines read from other experiments' published runs
+            ([`Reference`][ermrl.analysis.Reference]).
     """
 
     questions: tuple[Question, ...]
@@ -498,14 +500,15 @@ def combine_outcomes(outcomes: Sequence[str]) -> str:
 
 
 def not_run(row: Mapping[str, Any]) -> bool:
-    """Whether a judged comparison (a row of [`judge`][ermrl.analysis.judge]) was not tested because one of its
-    agents has no finished run on the task."""
+    """Whether a judged comparison (a row of [`judge`][ermrl.analysis.judge]) was not tested because
+    one of its agents has no finished run on the task."""
     return str(row.get("note") or "").startswith(NOT_RUN)
 
 
 def task_outcome(rows: pd.DataFrame) -> str:
-    """A question's outcome on a task from its judged comparisons (rows of [`judge`][ermrl.analysis.judge]):
-    `combine_outcomes`, or `NOT_RUN` when none of them could run."""
+    """A question's outcome on a task from its judged comparisons (rows of
+    [`judge`][ermrl.analysis.judge]): `combine_outcomes`, or `NOT_RUN` when none of them could
+    run."""
     records = rows.to_dict("records")
     if records and all(not_run(r) for r in records):
         return NOT_RUN
@@ -684,7 +687,8 @@ def verdict_changes(before: pd.DataFrame, after: pd.DataFrame) -> pd.DataFrame:
     """Each judged comparison of two pages side by side, and whether its verdict moved.
 
     Args:
-        before: The earlier page's tests (rows of [`judge`][ermrl.analysis.judge], or its ``reproduction.csv``).
+        before: The earlier page's tests (rows of [`judge`][ermrl.analysis.judge], or its
+            ``reproduction.csv``).
         after: The later page's.
 
     Returns:

@@ -143,7 +143,8 @@ def run_folder_kwargs(args: argparse.Namespace) -> dict[str, Any]:
 
     Returns:
         ``run``, ``agent``, ``seed``, ``max_steps``, ``deterministic`` and ``env_seed``, the
-        keyword arguments shared by [`ermrl.analysis.record_dynamics`][ermrl.analysis.record_dynamics] and
+        keyword arguments shared by
+        [`ermrl.analysis.record_dynamics`][ermrl.analysis.record_dynamics] and
         [`ermrl.analysis.record_video`][ermrl.analysis.record_video].
     """
     return {

@@ -1,22 +1,24 @@
 """What an encoder is: its settings, its search space, its flags and agents, and its place in the
 pipeline.
 
-An encoder module subclasses [`Encoder`][ermrl.encoders.Encoder] and [`ermrl.encoders`][ermrl.encoders] registers one instance
-(`ENCODERS`). Two places exist:
+An encoder module subclasses [`Encoder`][ermrl.encoders.Encoder] and
+[`ermrl.encoders`][ermrl.encoders] registers one instance (`ENCODERS`). Two places exist:
 
 - ``"env"``: a frozen encoder (its weights never learn, as a reservoir's) wraps the
   vectorized environment, so every learner sees its states as observations
   ([`Encoder.wrap_env`][ermrl.encoders.Encoder.wrap_env]);
 - ``"policy"``: a trainable encoder lives inside the learner's policy, where gradients reach it
-  ([`Encoder.policy_kwargs`][ermrl.encoders.Encoder.policy_kwargs] gives the policy its feature extractor).
+  ([`Encoder.policy_kwargs`][ermrl.encoders.Encoder.policy_kwargs] gives the policy its feature
+  extractor).
 
 The outer loop never handles an encoder's own types: it samples a plain ``{name: value}`` dict
-in the ranges of the encoder's space and [`Encoder.decode`][ermrl.encoders.Encoder.decode] turns it into the encoder's
-settings. The rest of ermrl reads everything else it needs of an encoder from this class: the
-``ermrl evolve`` flags (`Encoder.cli_flags`, plain data), the search space they give
-([`Encoder.space_from_args`][ermrl.encoders.Encoder.space_from_args]), the test-phase agents (`Encoder.agents`), the checks
-made before a study is written ([`Encoder.check`][ermrl.encoders.Encoder.check]), how the report describes a study's
-encoder ([`Encoder.describe`][ermrl.encoders.Encoder.describe]) and which agents may share a population
+in the ranges of the encoder's space and [`Encoder.decode`][ermrl.encoders.Encoder.decode] turns it
+into the encoder's settings. The rest of ermrl reads everything else it needs of an encoder from
+this class: the ``ermrl evolve`` flags (`Encoder.cli_flags`, plain data), the search space they give
+([`Encoder.space_from_args`][ermrl.encoders.Encoder.space_from_args]), the test-phase agents
+(`Encoder.agents`), the checks made before a study is written
+([`Encoder.check`][ermrl.encoders.Encoder.check]), how the report describes a study's encoder
+([`Encoder.describe`][ermrl.encoders.Encoder.describe]) and which agents may share a population
 ([`Encoder.layout`][ermrl.encoders.Encoder.layout]).
 """
 
@@ -48,12 +50,12 @@ class Encoder:
         name: Registry name (``--encoder NAME``).
         description: One line for ``--help`` and the docs.
         place: ``"env"`` (frozen, wraps the env) or ``"policy"`` (trainable, in the policy).
-        family: The family its reservoirs' settings hold ([`ermrl.config.EncoderConfig.family`][ermrl.config.EncoderConfig.family]),
-            stored with a study's configuration: it tells which encoder reads them back. Unique
-            in the registry.
+        family: The family its reservoirs' settings hold
+            ([`ermrl.config.EncoderConfig.family`][ermrl.config.EncoderConfig.family]), stored with
+            a study's configuration: it tells which encoder reads them back. Unique in the registry.
         config_cls: Its settings dataclass (stored in a study's configuration):
-            [`EncoderConfig`][ermrl.config.EncoderConfig] for an encoder whose settings are reservoirs
-            and the shared encoding options.
+            [`EncoderConfig`][ermrl.config.EncoderConfig] for an encoder whose settings are
+            reservoirs and the shared encoding options.
         params_cls: The settings dataclass of one of its reservoirs (an element of
             ``EncoderConfig.reservoirs``).
         space_cls: Its search space dataclass: ``ranges()`` (name -> range of every evolved
@@ -69,9 +71,8 @@ class Encoder:
         agents: Its test-phase agents (name -> [`AgentKind`][ermrl.config.AgentKind], each of this
             encoder's family): one evolved and one unevolved agent at least.
         population: Whether the population backend's batched reservoir steps its reservoirs
-            ([`ermrl.population`][ermrl.population]: it needs [`bank`][ermrl.encoders.Encoder.bank] and a bank with a
-            `stack`); otherwise its studies train
-            with the sb3 backend.
+            ([`ermrl.population`][ermrl.population]: it needs [`bank`][ermrl.encoders.Encoder.bank]
+            and a bank with a `stack`); otherwise its studies train with the sb3 backend.
     """
 
     name: ClassVar[str]
@@ -102,8 +103,8 @@ class Encoder:
     def bank(self, config: Any, input_dim: int, seed: int) -> Any:
         """The bank (`StepBank`) that steps one agent's
         reservoirs on inputs of ``input_dim`` values, its random weights from ``seed``: what
-        [`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv] wraps an env with. An encoder that wraps the
-        env in its own way ([`wrap_env`][ermrl.encoders.Encoder.wrap_env]) need not have one.
+        [`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv] wraps an env with. An encoder that wraps
+        the env in its own way ([`wrap_env`][ermrl.encoders.Encoder.wrap_env]) need not have one.
 
         Raises:
             NotImplementedError: this encoder has no bank.

@@ -14,10 +14,10 @@ features are the linear part
 C(k d + n - 1, n)`` features in all. Before the first input the history is zero, as reservoirpy's
 ``store``. There is no constant feature (the paper's ``c``): the policy's layers have biases.
 
-It gets what an echo state network gets ([`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv]): the input
-``u = [observation, previous action, previous reward * reward_scale] * input_scaling``, zero
-history at each episode start with ``reset="episode"``, the skip connection and
-``exposed_units`` (the first features of each NVAR).
+It gets what an echo state network gets ([`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv]): the
+input ``u = [observation, previous action, previous reward * reward_scale] * input_scaling``, zero
+history at each episode start with ``reset="episode"``, the skip connection and ``exposed_units``
+(the first features of each NVAR).
 
 The delay line is a linear shift register: a state of ``((k - 1) s + 1) d`` values steps as
 ``x <- [x | u] M`` with a fixed ``M`` that has one nonzero per column (1 for a shifted value,
@@ -102,8 +102,8 @@ class IntRange(Range):
     """A closed interval of integers, searched on a linear scale.
 
     The search asks it with ``trial.suggest_int`` (an ``optuna`` ``IntDistribution``), and
-    CMA-ES then searches it with margin ([`RestartCmaEsSampler`][ermrl.search.RestartCmaEsSampler]): the
-    rounding is part of the search distribution, not applied to its samples afterwards.
+    CMA-ES then searches it with margin ([`RestartCmaEsSampler`][ermrl.search.RestartCmaEsSampler]):
+    the rounding is part of the search distribution, not applied to its samples afterwards.
     """
 
     low: int
@@ -344,8 +344,8 @@ AGENTS: dict[str, dict[str, Any]] = {
 # -- the encoder ---------------------------------------------------------------------------------
 class NVAREncoder(Encoder):
     """The NVAR encoder: decoding of a trial's genes, its flags and agents, the size check made
-    before a study exists, and the env wrapper ([`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv] with an
-    `NVARBank`)."""
+    before a study exists, and the env wrapper ([`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv]
+    with an `NVARBank`)."""
 
     name = "nvar"
     description = (

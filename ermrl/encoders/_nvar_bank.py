@@ -74,9 +74,9 @@ class NVARParams:
 
     The output width depends on the input size ``d`` of the task (`nvar_width`), which these
     settings do not hold: `state_dim_for` gives it; `state_dim`, what
-    [`EncoderConfig`][ermrl.config.EncoderConfig] checks ``exposed_units`` and its unit count against,
-    is the width for ``d = 1``, the smallest any task gives. The real size is checked where ``d``
-    is known (`check_nvar_size`).
+    [`EncoderConfig`][ermrl.config.EncoderConfig] checks ``exposed_units`` and its unit count
+    against, is the width for ``d = 1``, the smallest any task gives. The real size is checked where
+    ``d`` is known (`check_nvar_size`).
 
     Attributes:
         delay: Inputs in the linear part (``k``: the current one and ``k - 1`` earlier ones).
@@ -167,12 +167,12 @@ class _Segment:
 class NVARBank(StepBank):
     """Several NVARs on the same input, fused into one state and one gather per step.
 
-    The same interface as [`ReservoirBank`][ermrl.encoders.ReservoirBank] (``buffer``, ``step_buffer``,
-    ``emitter``, ``run``), so [`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv] and the population backend
-    step it as they step an echo state network. Reservoir ``r``'s delay line holds
-    ``window_r * d`` values: first the ``delay`` slots its features read (the newest input,
-    then ``strides`` steps back, ...), then the slots in between, then (``windows``) padding that
-    stays zero.
+    The same interface as [`ReservoirBank`][ermrl.encoders.ReservoirBank] (``buffer``,
+    ``step_buffer``, ``emitter``, ``run``), so [`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv]
+    and the population backend step it as they step an echo state network. Reservoir ``r``'s delay
+    line holds ``window_r * d`` values: first the ``delay`` slots its features read (the newest
+    input, then ``strides`` steps back, ...), then the slots in between, then (``windows``) padding
+    that stays zero.
 
     Args:
         reservoirs: The NVARs' hyperparameters.

@@ -8,8 +8,8 @@ The update rule is reservoirpy's ``Reservoir`` rule, applied to ``n_envs`` state
 (`ReservoirParams.lr_max`) spaces its units' leak rates log-uniformly between two bounds.
 
 A frozen layer of recurrent trace units ([`RTUParams`][ermrl.encoders.RTUParams]) is the linear case
-``x <- W x + Win u`` with a block-rotation ``W`` (see [`rtu_weights`][ermrl.encoders.rtu_weights]); the policy then sees
-``tanh(x)``.
+``x <- W x + Win u`` with a block-rotation ``W`` (see [`rtu_weights`][ermrl.encoders.rtu_weights]);
+the policy then sees ``tanh(x)``.
 
 Several reservoirs are fused into one block-diagonal system, so one step is one matrix product
 for all reservoirs and all environments: there is no per-step reservoirpy ``Node`` call.
@@ -76,7 +76,8 @@ class ReservoirParams:
         bias_init: ``"none"``: the bias above. ``"original"``: reservoirpy 0.3's default bias,
             which the original ER-MRL code used: Bernoulli +-1 on ``input_connectivity`` of
             the units (10 of 100), zero elsewhere; needs ``bias_scaling`` 0. Left out of
-            [`to_dict`][ermrl.config.to_dict] while ``"none"``, so configs stored before it existed are unchanged.
+            [`to_dict`][ermrl.config.to_dict] while ``"none"``, so configs stored before it existed
+            are unchanged.
         ablation: What is left of the reservoir (the test phase's ablation agents);
             ``"none"``: the whole echo state network. ``"leaky"``: its recurrent weights
             removed (``W = 0``), the same ``Win``, bias and leak rate (the same seed draws
@@ -88,13 +89,14 @@ class ReservoirParams:
             [`to_dict`][ermrl.config.to_dict] while ``"none"``.
         lr_max: A multi-timescale reservoir: the largest of its units' leak rates, in
             ``[lr, 1]``. Unit ``i`` of ``n`` leaks at
-            ``lr_i = lr * (lr_max / lr) ** (i / (n - 1))`` ([`leak_rates`][ermrl.encoders.ReservoirParams.leak_rates]): log-uniformly
-            spaced from ``lr`` (unit 0) to ``lr_max`` (unit ``n - 1``), fixed by the two
-            bounds, not drawn, so the same settings give the same reservoir; each unit then
-            updates ``x_i <- (1 - lr_i) x_i + lr_i tanh(W x + Win u + b)_i``. The weights are
-            drawn as without it (the same seed gives the same ``W``, ``Win`` and bias).
-            ``None``: every unit leaks at ``lr``. Not with the ``"ema"`` ablation (one leak
-            rate). Left out of [`to_dict`][ermrl.config.to_dict] while ``None``.
+            ``lr_i = lr * (lr_max / lr) ** (i / (n - 1))``
+            ([`leak_rates`][ermrl.encoders.ReservoirParams.leak_rates]): log-uniformly spaced from
+            ``lr`` (unit 0) to ``lr_max`` (unit ``n - 1``), fixed by the two bounds, not drawn, so
+            the same settings give the same reservoir; each unit then updates
+            ``x_i <- (1 - lr_i) x_i + lr_i tanh(W x + Win u + b)_i``. The weights are drawn as
+            without it (the same seed gives the same ``W``, ``Win`` and bias). ``None``: every unit
+            leaks at ``lr``. Not with the ``"ema"`` ablation (one leak rate). Left out of
+            [`to_dict`][ermrl.config.to_dict] while ``None``.
     """
 
     units: int = 100
@@ -297,10 +299,10 @@ def reservoir_weights(params: ReservoirParams, input_dim: int, seed: int) -> Res
 
     Returns:
         Dense float64 weights, with one leak rate per unit for a multi-timescale reservoir
-        ([`ReservoirParams.leak_rates`][ermrl.encoders.ReservoirParams.leak_rates]). An ablation (`ReservoirParams.ablation`): ``"leaky"``,
-        the same weights with ``W`` zero; ``"ema"``, the linear update of ``x = [e; u]``,
-        ``e <- (1 - lr) e + lr u`` next to the current input ``u`` (``W = diag((1 - lr) I, 0)``,
-        ``Win = [lr I; I]``, no bias), shown raw.
+        ([`ReservoirParams.leak_rates`][ermrl.encoders.ReservoirParams.leak_rates]). An ablation
+        (`ReservoirParams.ablation`): ``"leaky"``, the same weights with ``W`` zero; ``"ema"``, the
+        linear update of ``x = [e; u]``, ``e <- (1 - lr) e + lr u`` next to the current input ``u``
+        (``W = diag((1 - lr) I, 0)``, ``Win = [lr I; I]``, no bias), shown raw.
     """
     if input_dim < 1:
         raise ValueError(f"input_dim must be >= 1, got {input_dim}")
@@ -350,7 +352,8 @@ def rtu_weights(params: RTUParams, input_dim: int, seed: int) -> ReservoirWeight
 
 
 def encoder_weights(params: object, input_dim: int, seed: int) -> ReservoirWeights:
-    """The weights of one reservoir of either family ([`reservoir_weights`][ermrl.encoders.reservoir_weights] or
+    """The weights of one reservoir of either family
+    ([`reservoir_weights`][ermrl.encoders.reservoir_weights] or
     [`rtu_weights`][ermrl.encoders.rtu_weights]).
 
     Raises:
@@ -370,8 +373,8 @@ def reservoir_seeds(seed: int, n_reservoirs: int) -> list[int]:
 
 
 class StepBank:
-    """What every bank of [`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv] shares: stepping whole state
-    arrays and running one sequence, through the bank's own ``buffer`` and ``step_buffer``
+    """What every bank of [`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv] shares: stepping whole
+    state arrays and running one sequence, through the bank's own ``buffer`` and ``step_buffer``
     (the ``[x | u]`` buffer and its in-place update).
 
     A bank the population backend can step for many agents at once also defines
@@ -508,7 +511,8 @@ class ReservoirBank(StepBank):
     matrix product of the buffer ``[x | u]`` (shape ``(n, N + input_dim)``) with ``M``.
 
     Args:
-        weights: One [`ReservoirWeights`][ermrl.encoders.ReservoirWeights] per reservoir, all with the same ``input_dim``.
+        weights: One [`ReservoirWeights`][ermrl.encoders.ReservoirWeights] per reservoir, all with
+            the same ``input_dim``.
         dtype: Floating type of the state and weights (float64 matches reservoirpy exactly).
     """
 
@@ -602,8 +606,9 @@ class ReservoirBank(StepBank):
         """What the policy sees of a state: ``(emit, width)``.
 
         ``emit(states)`` maps states of shape ``(..., N)`` to a new float32 array of shape
-        ``(..., width)``: [`emit`][ermrl.encoders.ReservoirBank.emit] of the first ``exposed_units`` units of each reservoir
-        (all units when ``None``, or for EMAs, whose values are the inputs').
+        ``(..., width)``: [`emit`][ermrl.encoders.ReservoirBank.emit] of the first ``exposed_units``
+        units of each reservoir (all units when ``None``, or for EMAs, whose values are the
+        inputs').
         """
         if exposed_units is None or self.raw:
             index = None

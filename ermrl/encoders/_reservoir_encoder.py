@@ -1,13 +1,13 @@
 """``reservoir``: echo state networks built with reservoirpy, frozen, wrapping the env.
 
-The reference encoder, in one module: its search space ([`ReservoirSpace`][ermrl.encoders.ReservoirSpace]: spectral
-radius, leak rate and input scaling per reservoir, log scale; or, for multi-timescale reservoirs
-(``--multiscale``), a band of leak rates in place of the one leak rate), its ``ermrl evolve`` flags
-(`CLI_FLAGS`), its test-phase agents (`AGENTS`) and the encoder itself
-([`ReservoirEncoder`][ermrl.encoders.ReservoirEncoder]). One reservoir's settings ([`ReservoirParams`][ermrl.encoders.ReservoirParams],
-reservoirpy's defaults: the unevolved reference) live with the weights they build, in
-`ermrl.encoders._reservoir`, below the env wrapper ([`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv])
-that steps them.
+The reference encoder, in one module: its search space
+([`ReservoirSpace`][ermrl.encoders.ReservoirSpace]: spectral radius, leak rate and input scaling per
+reservoir, log scale; or, for multi-timescale reservoirs (``--multiscale``), a band of leak rates in
+place of the one leak rate), its ``ermrl evolve`` flags (`CLI_FLAGS`), its test-phase agents
+(`AGENTS`) and the encoder itself ([`ReservoirEncoder`][ermrl.encoders.ReservoirEncoder]). One
+reservoir's settings ([`ReservoirParams`][ermrl.encoders.ReservoirParams], reservoirpy's defaults:
+the unevolved reference) live with the weights they build, in `ermrl.encoders._reservoir`, below the
+env wrapper ([`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv]) that steps them.
 """
 
 from __future__ import annotations

@@ -1,8 +1,9 @@
 """Build gymnasium envs the way ermrl uses them: validated id, optional observation mask.
 
-POPGym ids (``popgym-<Name>-v0``) are registered on first use, so [`check_env_id`][ermrl.envs.check_env_id],
-[`observation_split`][ermrl.envs.observation_split] and [`observation_indices`][ermrl.envs.observation_indices] here wrap those of
-`ermrl.envs._masks` to import ``popgym`` first (see `ermrl.envs._popgym`).
+POPGym ids (``popgym-<Name>-v0``) are registered on first use, so
+[`check_env_id`][ermrl.envs.check_env_id], [`observation_split`][ermrl.envs.observation_split] and
+[`observation_indices`][ermrl.envs.observation_indices] here wrap those of `ermrl.envs._masks` to
+import ``popgym`` first (see `ermrl.envs._popgym`).
 """
 
 from __future__ import annotations
@@ -184,10 +185,11 @@ def observation_indices(env_id: str, observe: ObserveMode) -> tuple[int, ...] | 
 def _split_for(env_id: str, env_kwargs: Mapping[str, Any]) -> ObservationSplit:
     """Split for ``env_id`` built with ``env_kwargs``.
 
-    Without keyword arguments this is the cached [`observation_split`][ermrl.envs.observation_split].  With them, a
-    MuJoCo env is probed again as configured (options such as
-    ``include_cfrc_ext_in_observation`` or ``exclude_current_positions_from_observation``
-    change the layout); table envs keep their table and are checked against the built space.
+    Without keyword arguments this is the cached
+    [`observation_split`][ermrl.envs.observation_split]. With them, a MuJoCo env is probed again as
+    configured (options such as ``include_cfrc_ext_in_observation`` or
+    ``exclude_current_positions_from_observation`` change the layout); table envs keep their table
+    and are checked against the built space.
 
     Args:
         env_id: A registered gymnasium id.
@@ -232,9 +234,9 @@ def make_env(
         **env_kwargs: Further keyword arguments for ``gymnasium.make``.
 
     Returns:
-        The env; for a masked mode, wrapped in [`ObservationMask`][ermrl.envs.ObservationMask] so observations have
-        shape ``(len(indices),)`` instead of ``(obs_dim,)``; for a POPGym task, wrapped so
-        observations are float32 of shape ``(flatdim,)``.
+        The env; for a masked mode, wrapped in [`ObservationMask`][ermrl.envs.ObservationMask] so
+        observations have shape ``(len(indices),)`` instead of ``(obs_dim,)``; for a POPGym task,
+        wrapped so observations are float32 of shape ``(flatdim,)``.
 
     Raises:
         ValueError: For an unknown ``observe`` value.

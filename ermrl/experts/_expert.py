@@ -91,7 +91,8 @@ def evaluate_expert(
     Args:
         expert: The expert.
         n_episodes: Episodes to run.
-        seed: Seed of the evaluation environment (see [`ermrl.agents.derive_seeds`][ermrl.agents.derive_seeds]).
+        seed: Seed of the evaluation environment (see
+            [`ermrl.agents.derive_seeds`][ermrl.agents.derive_seeds]).
         deterministic: The policy's mean action (``False`` samples).
 
     Returns:

@@ -1,9 +1,9 @@
 """Training an expert with ermrl's own inner loop, and writing its folder of plain files.
 
 `train_expert` resolves the learner's settings (its YAML table, then overrides), trains
-with [`ermrl.agents.train_agent`][ermrl.agents.train_agent] on the full observation, evaluates the deterministic
-policy, and writes the folder described in `ermrl.experts._expert`. The folder is built
-under a temporary name beside ``out`` and renamed at the end, so an interrupted run (Ctrl-C, a
+with [`ermrl.agents.train_agent`][ermrl.agents.train_agent] on the full observation, evaluates the
+deterministic policy, and writes the folder described in `ermrl.experts._expert`. The folder is
+built under a temporary name beside ``out`` and renamed at the end, so an interrupted run (Ctrl-C, a
 crash, a full disk) never leaves a half-written expert under its final name.
 """
 
@@ -189,7 +189,8 @@ def _progress_hook(
     progress: Callable[[TrainingProgress], None] | None,
     display: Progress | None,
 ) -> Callable[[int, float], None]:
-    """The ``report`` hook of [`ermrl.agents.train_agent`][ermrl.agents.train_agent], timed from now.
+    """The ``report`` hook of [`ermrl.agents.train_agent`][ermrl.agents.train_agent], timed from
+    now.
 
     Args:
         steps: The steps asked for.
@@ -297,7 +298,8 @@ def train_expert(
         algo: The learner (a name of `expert_algos`: ``sac``, ``ppo``).
         steps: Training environment steps.
         out: The expert folder (``expert.json``, ``policy.pt``, ``vecnormalize.json``).
-        seed: Seeds the environments and the agent ([`ermrl.agents.derive_seeds`][ermrl.agents.derive_seeds]).
+        seed: Seeds the environments and the agent
+            ([`ermrl.agents.derive_seeds`][ermrl.agents.derive_seeds]).
         overrides: Learner settings over the learner's table (``--ppo KEY=VALUE``).
         n_eval_episodes: Deterministic evaluation episodes after training.
         overwrite: Replace an expert already in ``out``.

@@ -5,7 +5,8 @@ An expert folder holds:
 - ``expert.json``: `ExpertInfo` (env id, algorithm, the learner settings used, steps,
   seed, wall time, the evaluation returns, library versions, observation and action shapes);
 - ``policy.pt``: the policy's ``state_dict()`` as plain tensors, read with
-  ``torch.load(..., weights_only=True)`` ([`ermrl.learners._policy_io.load_policy`][ermrl.agents.load_policy]);
+  ``torch.load(..., weights_only=True)``
+  ([`ermrl.learners._policy_io.load_policy`][ermrl.agents.load_policy]);
 - ``vecnormalize.json``: only when the settings use ``normalize``, the observation statistics
   reached at the end of training ([`ermrl.agents.normalize_stats`][ermrl.agents.normalize_stats]).
 
@@ -81,8 +82,8 @@ class ExpertInfo:
         ppo: The learner settings used (``ppo.learner == algo``).
         steps: Training steps asked for.
         env_steps: Environment steps actually taken (PPO rounds up to whole rollouts).
-        seed: The training seed ([`ermrl.agents.derive_seeds`][ermrl.agents.derive_seeds]); the recorded evaluation
-            is `evaluate_expert` with this seed.
+        seed: The training seed ([`ermrl.agents.derive_seeds`][ermrl.agents.derive_seeds]); the
+            recorded evaluation is `evaluate_expert` with this seed.
         wall_seconds: Wall-clock time of training and evaluation.
         eval_returns: Returns of the deterministic evaluation episodes, in order.
         train_returns: Returns of the last (at most 10) training episodes.

@@ -10,8 +10,8 @@ observation.
 The learner sees the env's observation as the ``VecEnv`` returns it (masked by
 ``--observe``, maybe reservoir-encoded, maybe normalized); the expert sees the raw full
 observation of the same state, read by `FullObservations` from the innermost
-``DummyVecEnv`` (``info["full_observation"]`` from [`ObservationMask`][ermrl.envs.ObservationMask] when the
-observation is masked, else the env's own observation).
+``DummyVecEnv`` (``info["full_observation"]`` from [`ObservationMask`][ermrl.envs.ObservationMask]
+when the observation is masked, else the env's own observation).
 
 DAgger (Ross, Gordon and Bagnell, 2011). Iteration ``i`` rolls out the mixture policy: at
 each step and in each env, with probability ``beta_i`` the expert's action is executed,
@@ -219,8 +219,8 @@ class FullObservations:
     """The raw full observation of the state each env of a ``VecEnv`` is in.
 
     Read from the innermost ``DummyVecEnv`` (``venv.unwrapped``): the ``full_observation`` that
-    [`ObservationMask`][ermrl.envs.ObservationMask] puts into the step's (or, after an episode ended and
-    the env reset, the reset's) info; without a mask, that ``DummyVecEnv``'s own observation,
+    [`ObservationMask`][ermrl.envs.ObservationMask] puts into the step's (or, after an episode ended
+    and the env reset, the reset's) info; without a mask, that ``DummyVecEnv``'s own observation,
     which is then the full one (the reservoir and ``VecNormalize`` wrap it from outside).
 
     Args:

@@ -1,14 +1,15 @@
 """The environments of a population: ``P`` agents x ``E`` environments each, stepped in lockstep.
 
-Each agent sees exactly what the SB3 path gives one agent (see [`ermrl.agents.train_agent`][ermrl.agents.train_agent]):
-``gym.make -> ObservationMask`` environments that auto-reset like SB3's ``DummyVecEnv`` (env ``i``
-of an agent first reset with ``env_seed + i``), then the agent's own reservoir (the rule of
-[`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv], its weights from the same initializers and seeds: an
-echo state network's or a frozen RTU layer's), then the agent's own running normalization (SB3
-``VecNormalize``'s rule). The reservoirs of
-all agents advance in one batched matrix product (NVARs: one batched gather of their delay
-lines); everything else is per agent data in arrays with a leading agent axis, so an agent can be
-dropped by slicing ([`PopulationEnvs.keep`][ermrl.population.PopulationEnvs.keep]).
+Each agent sees exactly what the SB3 path gives one agent (see
+[`ermrl.agents.train_agent`][ermrl.agents.train_agent]): ``gym.make -> ObservationMask``
+environments that auto-reset like SB3's ``DummyVecEnv`` (env ``i`` of an agent first reset with
+``env_seed + i``), then the agent's own reservoir (the rule of
+[`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv], its weights from the same initializers and
+seeds: an echo state network's or a frozen RTU layer's), then the agent's own running normalization
+(SB3 ``VecNormalize``'s rule). The reservoirs of all agents advance in one batched matrix product
+(NVARs: one batched gather of their delay lines); everything else is per agent data in arrays with a
+leading agent axis, so an agent can be dropped by slicing
+([`PopulationEnvs.keep`][ermrl.population.PopulationEnvs.keep]).
 """
 
 from __future__ import annotations
@@ -50,15 +51,16 @@ class BatchedReservoir:
 
     Agent ``p`` gets the bank [`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv] would build for
     ``encoders[p]`` and ``seeds[p]`` (its encoder's [`bank`][ermrl.encoders.Encoder.bank], in
-    the population's layout: [`population_banks`][ermrl.encoders.Encoder.population_banks]); all agents
-    must share the encoder's structure ([`encoder_structure`][ermrl.population.encoder_structure]); the hyperparameters may
-    differ. The banks' `stack` steps every agent at
+    the population's layout: [`population_banks`][ermrl.encoders.Encoder.population_banks]); all
+    agents must share the encoder's structure
+    ([`encoder_structure`][ermrl.population.encoder_structure]); the hyperparameters may differ. The
+    banks' `stack` steps every agent at
     once: for echo state networks and frozen RTU layers one stacked ``matmul`` of ``[x | u]``
     (``P x E x (N + D)``) with each agent's ``M = [W.T; Win.T]``, which numpy computes slice by
     slice, as one agent's ``ReservoirBank`` would; for NVARs one batched gather of their delay
     lines. The encodings equal ``ReservoirVecEnv``'s. Agents of other structures are refused:
-    train them as separate populations ([`train_population_parallel`][ermrl.population.train_population_parallel]
-    groups them).
+    train them as separate populations
+    ([`train_population_parallel`][ermrl.population.train_population_parallel] groups them).
     """
 
     def __init__(
@@ -332,7 +334,8 @@ class PopulationEnvs:
         return out
 
     def normalize_stats(self, p: int) -> dict[str, Any]:
-        """Agent ``p``'s statistics in [`normalize_stats`][ermrl.agents.normalize_stats]'s format."""
+        """Agent ``p``'s statistics in [`normalize_stats`][ermrl.agents.normalize_stats]'s
+        format."""
         from ermrl.agents._normalize import STATS_FORMAT
 
         n = self.normalize

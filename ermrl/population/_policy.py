@@ -5,12 +5,14 @@ so a forward pass is one stacked product per layer; these tensors are views into
 buffer (one row per agent), which the gradient clipping and Adam treat as a whole. Rollouts and
 updates run the weights through numpy (views of the torch tensors), which is several times faster
 than torch for these small products on a CPU: the update's gradient is written out by hand
-([`StackedPolicy.ppo_gradient`][ermrl.population.StackedPolicy.ppo_gradient], backpropagation through the tanh MLPs) rather than taken by
-autograd, whose per-op overhead cost more than the products (``benchmarks/bench_update.py``).
-The network is SB3's: separate policy and value MLPs (``net_arch``, default 64-64, tanh), an
-action head (diagonal Gaussian with a state-independent ``log_std``, gSDE, or categorical) and a
-value head, orthogonal initialization with SB3's gains; [`StackedPolicy.sb3_state`][ermrl.population.StackedPolicy.sb3_state] and
-[`StackedPolicy.load_sb3_state`][ermrl.population.StackedPolicy.load_sb3_state] convert one agent to and from SB3's ``state_dict``.
+([`StackedPolicy.ppo_gradient`][ermrl.population.StackedPolicy.ppo_gradient], backpropagation
+through the tanh MLPs) rather than taken by autograd, whose per-op overhead cost more than the
+products (``benchmarks/bench_update.py``). The network is SB3's: separate policy and value MLPs
+(``net_arch``, default 64-64, tanh), an action head (diagonal Gaussian with a state-independent
+``log_std``, gSDE, or categorical) and a value head, orthogonal initialization with SB3's gains;
+[`StackedPolicy.sb3_state`][ermrl.population.StackedPolicy.sb3_state] and
+[`StackedPolicy.load_sb3_state`][ermrl.population.StackedPolicy.load_sb3_state] convert one agent to
+and from SB3's ``state_dict``.
 """
 
 from __future__ import annotations
@@ -121,13 +123,14 @@ def _init_linear(
 class StackedAdam:
     """Adam over a population's flat parameter buffer: ``torch.optim.Adam``'s arithmetic, op for op.
 
-    The whole population's weights are one ``[P, N]`` tensor (see [`StackedPolicy`][ermrl.population.StackedPolicy]), so a step
-    is seven elementwise ops on it, whatever the number of layers. Adam is elementwise, so one Adam
-    over the buffer is one Adam per agent. Written out rather than ``torch.optim.Adam`` because
-    building that imports ``torch._dynamo`` (1.4 s per process) and its fused CPU kernel rounds a
-    tensor's SIMD body and scalar tail differently. Here every row's length ``N`` is a multiple of
-    `ROW_ALIGN` elements, so no agent's element ever falls in a kernel's scalar tail and an
-    agent's update does not depend on the population size. Slicing agents away is `keep`.
+    The whole population's weights are one ``[P, N]`` tensor (see
+    [`StackedPolicy`][ermrl.population.StackedPolicy]), so a step is seven elementwise ops on it,
+    whatever the number of layers. Adam is elementwise, so one Adam over the buffer is one Adam per
+    agent. Written out rather than ``torch.optim.Adam`` because building that imports
+    ``torch._dynamo`` (1.4 s per process) and its fused CPU kernel rounds a tensor's SIMD body and
+    scalar tail differently. Here every row's length ``N`` is a multiple of `ROW_ALIGN` elements, so
+    no agent's element ever falls in a kernel's scalar tail and an agent's update does not depend on
+    the population size. Slicing agents away is `keep`.
 
     Args:
         params: The flat parameters ``[P, N]`` (agent axis first), updated in place.
@@ -196,7 +199,8 @@ class StackedPolicy:
     `ROW_ALIGN`). Each entry of `params` (``pi0.w`` ``[P, in, out]``, ``pi0.b``
     ``[P, 1, out]``, ..., ``log_std``) is a view into it, so the products read the weights in place
     while per-agent gradient norms and Adam are a few ops on the whole buffer
-    ([`ppo_gradient`][ermrl.population.StackedPolicy.ppo_gradient] writes the gradient in the same layout; `StackedAdam`).
+    ([`ppo_gradient`][ermrl.population.StackedPolicy.ppo_gradient] writes the gradient in the same
+    layout; `StackedAdam`).
 
     Args:
         spec: The network.

@@ -301,8 +301,9 @@ def run_and_report(
         study_kwargs: heartbeat and retry options of the re-evaluation study.
         evaluator_factory: builds the fitness of the re-evaluation config (multi-task runs).
         wandb: ``--wandb PROJECT``: each recorded trial is logged there (``None``: not).
-        **run_kwargs: passed on to [`ermrl.search.evolve_and_reevaluate`][ermrl.search.evolve_and_reevaluate] (``evaluate``,
-            ``wait_for_running``, ``progress``, ``tensorboard``).
+        **run_kwargs: passed on to
+            [`ermrl.search.evolve_and_reevaluate`][ermrl.search.evolve_and_reevaluate]
+            (``evaluate``, ``wait_for_running``, ``progress``, ``tensorboard``).
 
     Returns:
         0 when the worker finished, ``EXIT_TERMINATED`` (143) when stopped by a signal,
@@ -410,8 +411,9 @@ def _print_summary(summary: EvolutionSummary, fitness_name: str, next_command: s
 
 def run_or_fail(prog: str, out: Path, run: Callable[[], T]) -> T | None:
     """Run a test phase in ``out`` (removed again when this call created it and it fails
-    before it holds anything but its skeleton: [`ermrl.test_phase.run_in_folder`][ermrl.test_phase.run_in_folder]); its
-    expected failures become one line.
+    before it holds anything but its skeleton:
+    [`ermrl.test_phase.run_in_folder`][ermrl.test_phase.run_in_folder]); its expected failures
+    become one line.
 
     Shared by ``ermrl test`` and ``ermrl test-generalization``.
 

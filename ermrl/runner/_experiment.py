@@ -242,7 +242,8 @@ class Experiment:
 
     @classmethod
     def load(cls, path: str | Path, variant: str | None = None) -> Experiment:
-        """Read an experiment file and apply a variant ([`load_experiment`][ermrl.runner.load_experiment]).
+        """Read an experiment file and apply a variant
+        ([`load_experiment`][ermrl.runner.load_experiment]).
 
         Args:
             path: The YAML file. Its folders (``out``, ``storage``, ``publish``) are relative
@@ -348,7 +349,8 @@ class Experiment:
             tasks: Only these tasks.
 
         Raises:
-            ExperimentError: The file no longer matches its studies (see [`plan`][ermrl.runner.Experiment.plan]).
+            ExperimentError: The file no longer matches its studies (see
+                [`plan`][ermrl.runner.Experiment.plan]).
         """
         from ermrl.runner import experiment_result
 
@@ -463,7 +465,8 @@ def load_experiment(path: str | Path, variant: str | None = None) -> Experiment:
         variant: A key of its ``variants`` (``None``: the file as written).
 
     Returns:
-        The experiment (not yet checked against the commands: see [`experiment_plan`][ermrl.runner.experiment_plan]).
+        The experiment (not yet checked against the commands: see
+        [`experiment_plan`][ermrl.runner.experiment_plan]).
 
     Raises:
         ExperimentError: unreadable file, unknown key (with the nearest valid one), wrong type,
@@ -679,7 +682,8 @@ def format_duration(seconds: float) -> str:
 
 def _rounded(ppo: Any, steps: int) -> tuple[int, str]:
     """A run's real env steps for a budget of ``steps`` (whole rollouts of an on-policy
-    learner, [`ermrl.agents.steps_trained`][ermrl.agents.steps_trained]), and the plan's note when they differ."""
+    learner, [`ermrl.agents.steps_trained`][ermrl.agents.steps_trained]), and the plan's note when
+    they differ."""
     from ermrl.agents import steps_trained
 
     real = steps_trained(ppo, steps)
@@ -1482,7 +1486,8 @@ def _planned_runs(step: Step) -> dict[str, tuple[int, ...]]:
 
 
 def verdict_rule(exp: Experiment) -> Any:
-    """The file's ``verdict:`` block as a [`VerdictRule`][ermrl.analysis.VerdictRule] (``None``: none).
+    """The file's ``verdict:`` block as a [`VerdictRule`][ermrl.analysis.VerdictRule] (``None``:
+    none).
 
     Raises:
         ExperimentError: a block that cannot be used (one line, naming the key).

@@ -201,8 +201,9 @@ FOR_LEARNER_HELP = (
 def parse_for_learner(values: Sequence[str]) -> tuple[str, dict[str, Any]]:
     """One ``--for-learner LEARNER KEY=VALUE [KEY=VALUE ...]``: the learner and its settings.
 
-    Values are read as ``--ppo`` values are ([`ermrl.agents.parse_overrides`][ermrl.agents.parse_overrides]: YAML,
-    ``1e-4`` a number, ``[64, 64]`` a list).
+    Values are read as ``--ppo`` values are
+    ([`ermrl.agents.parse_overrides`][ermrl.agents.parse_overrides]: YAML, ``1e-4`` a number,
+    ``[64, 64]`` a list).
 
     Args:
         values: The flag's words, the learner's name first.

@@ -2,9 +2,10 @@
 
 ``ermrl evolve``, ``ermrl evolve-generalization``, ``ermrl test`` and ``ermrl
 test-generalization`` parse their argv and build their configuration here; so does the plan of
-an experiment file ([`ermrl.runner.experiment_plan`][ermrl.runner.experiment_plan]), whose stages' options are parsed as
-the commands parse them. Every function raises [`ConfigError`][ermrl.config.ConfigError] (or an env
-error) on a value the configuration refuses, in one line.
+an experiment file ([`ermrl.runner.experiment_plan`][ermrl.runner.experiment_plan]), whose stages'
+options are parsed as the commands parse them. Every function raises
+[`ConfigError`][ermrl.config.ConfigError] (or an env error) on a value the configuration refuses, in
+one line.
 """
 
 from __future__ import annotations

@@ -1,11 +1,11 @@
 """Running an experiment file: its plan, what is done, and the unfinished stages in order.
 
-``ermrl run FILE`` and [`ermrl.Experiment.run`][ermrl.runner.Experiment.run] share this code. Each stage runs the
-library function its command runs (`ermrl.runner._commands`,
-`ermrl.runner._generalization`) with the configuration the plan resolved from the file's
-options, in this process, and prints the equivalent command line first, so that one stage can
-be run by hand. The study and the run folders are the state: a stage the storage or the
-folders say is done is skipped, and an interrupted one resumes.
+``ermrl run FILE`` and [`ermrl.Experiment.run`][ermrl.runner.Experiment.run] share this code. Each
+stage runs the library function its command runs (`ermrl.runner._commands`,
+`ermrl.runner._generalization`) with the configuration the plan resolved from the file's options, in
+this process, and prints the equivalent command line first, so that one stage can be run by hand.
+The study and the run folders are the state: a stage the storage or the folders say is done is
+skipped, and an interrupted one resumes.
 """
 
 from __future__ import annotations
@@ -621,8 +621,8 @@ def _run_step(
 
     Each step runs its planned configuration through the library
     (`ermrl.runner._commands`) with ``ermrl run``'s own options added as
-    [`stage_argv`][ermrl.runner.stage_argv] adds them to the printed command line (``line``, which the study or the
-    test folder keeps).
+    [`stage_argv`][ermrl.runner.stage_argv] adds them to the printed command line (``line``, which
+    the study or the test folder keeps).
     """
     prog = f"ermrl {step.command}"
     request = with_run_options(

@@ -265,7 +265,8 @@ def _resolved_config(
     tensorboard: str | Path | None,
     options: dict[str, Any],
 ) -> tuple[EvolveConfig, str | None]:
-    """The configuration [`evolve`][ermrl.runner.evolve] runs, checked, and the command line that runs it.
+    """The configuration [`evolve`][ermrl.runner.evolve] runs, checked, and the command line that
+    runs it.
 
     Args:
         config: A configuration, or an env id whose configuration ``options`` give.

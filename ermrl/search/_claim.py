@@ -3,9 +3,10 @@ result, and closing one cut short (by any signal or error: with a retry queued).
 
 ``n_trials`` is the study's total of COMPLETE, PRUNED, RUNNING and WAITING trials. A worker
 *claims* a trial (counts, then ``study.ask()``) under the storage's inter-process lock
-([`ermrl.storage.study_lock`][ermrl.storage.study_lock]), so the workers never overshoot. Before each claim, a worker
-fails the trials whose heartbeat stopped and queues a WAITING copy with the same parameters
-([`ermrl.storage.RetryStaleTrial`][ermrl.storage.RetryStaleTrial]), which the next claim picks up.
+([`ermrl.storage.study_lock`][ermrl.storage.study_lock]), so the workers never overshoot. Before
+each claim, a worker fails the trials whose heartbeat stopped and queues a WAITING copy with the
+same parameters ([`ermrl.storage.RetryStaleTrial`][ermrl.storage.RetryStaleTrial]), which the next
+claim picks up.
 """
 
 from __future__ import annotations

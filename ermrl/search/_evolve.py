@@ -1,21 +1,22 @@
 """The outer loop: an Optuna study that proposes reservoirs and records their fitness.
 
-One call of [`run_evolution`][ermrl.search.run_evolution] is one *worker*. Any number of workers (processes, machines,
-SLURM array tasks) may share a study:
+One call of [`run_evolution`][ermrl.search.run_evolution] is one *worker*. Any number of workers
+(processes, machines, SLURM array tasks) may share a study:
 
 - **Exact budget.** ``n_trials`` is the study's total of COMPLETE, PRUNED, RUNNING and WAITING
   trials. A worker *claims* a trial (counts, then ``study.ask()``) under the storage's
-  inter-process lock ([`ermrl.storage.study_lock`][ermrl.storage.study_lock]), so the workers never overshoot.
+  inter-process lock ([`ermrl.storage.study_lock`][ermrl.storage.study_lock]), so the workers never
+  overshoot.
 - **Dead workers.** RUNNING trials send heartbeats. Before each claim, a worker fails the trials
   whose heartbeat stopped (``grace_period``) and queues a WAITING copy with the same parameters
-  ([`ermrl.storage.RetryStaleTrial`][ermrl.storage.RetryStaleTrial]), which the next claim picks up. When the budget is
-  reached while other workers' trials still run, a worker waits for them, so that a trial whose
-  worker died is still retried.
+  ([`ermrl.storage.RetryStaleTrial`][ermrl.storage.RetryStaleTrial]), which the next claim picks up.
+  When the budget is reached while other workers' trials still run, a worker waits for them, so that
+  a trial whose worker died is still retried.
 - **Interruptions.** SIGTERM (SLURM time limit, preemption), Ctrl-C or an error of the program
   closes the running trials as FAIL, queues a retry of each (the reference trial first) and
-  raises ([`Interrupted`][ermrl.search.Interrupted] on SIGTERM, ``KeyboardInterrupt`` on Ctrl-C). Signals that
-  arrive while a worker talks to the storage are handled right after, so a claim or a ``tell``
-  is never cut in half.
+  raises ([`Interrupted`][ermrl.search.Interrupted] on SIGTERM, ``KeyboardInterrupt`` on Ctrl-C).
+  Signals that arrive while a worker talks to the storage are handled right after, so a claim or a
+  ``tell`` is never cut in half.
 
 Re-running the same command resumes the study.
 """
@@ -159,9 +160,10 @@ def run_evolution(
     worker goes on (a FAIL trial does not count: another one replaces it), unless its last
     ``n_trials`` trials all failed (a broken problem must not loop forever). Ctrl-C, SIGTERM or
     an error of the program marks the running trials FAIL, queues a retry of each with the same
-    parameters (the reference trial first) and re-raises (SIGTERM as [`Interrupted`][ermrl.search.Interrupted]).
-    Nothing is lost either way. A reference trial whose every run was cut short (by an older
-    ermrl, or with its retries spent) is queued again when a worker starts.
+    parameters (the reference trial first) and re-raises (SIGTERM as
+    [`Interrupted`][ermrl.search.Interrupted]). Nothing is lost either way. A reference trial whose
+    every run was cut short (by an older ermrl, or with its retries spent) is queued again when a
+    worker starts.
 
     Args:
         config: The run's configuration.
@@ -381,11 +383,13 @@ class _Worker:
         poll: The longest pause between claims while waiting for other workers.
         retry: Queues a retry of an interrupted trial (``None``: no retry).
         popsize: The CMA-ES population size to warn about (``None``: no warning is due).
-        evaluate: The fitness hook of [`run_evolution`][ermrl.search.run_evolution] (``None``: the problem's).
+        evaluate: The fitness hook of [`run_evolution`][ermrl.search.run_evolution] (``None``: the
+            problem's).
         evaluate_generation: A generation's fitness (population backend).
         wait_for_running: Wait for other workers' trials when the budget is reached.
         queued_only: Claim only queued (WAITING) trials.
-        callbacks: Called with each recorded trial (see [`run_evolution`][ermrl.search.run_evolution]).
+        callbacks: Called with each recorded trial (see
+            [`run_evolution`][ermrl.search.run_evolution]).
 
     Attributes:
         summary: What this worker did so far.

@@ -196,8 +196,9 @@ def evaluate_generalization(
 def generalization_generation(
     config: EvolveConfig, *, quiet: bool = False, stream: TextIO | None = None
 ) -> Callable[[Sequence[EncoderConfig], SeedRunner], list[FitnessResult | BaseException]]:
-    """The population backend's counterpart of [`generalization_evaluator`][ermrl.search.generalization_evaluator]: the multi-task
-    fitness of a whole generation, each task's (candidate, seed) runs trained as one population.
+    """The population backend's counterpart of
+    [`generalization_evaluator`][ermrl.search.generalization_evaluator]: the multi-task fitness of a
+    whole generation, each task's (candidate, seed) runs trained as one population.
 
     Raises:
         ConfigError: the config has no task set.
@@ -252,7 +253,8 @@ def generalization_generation(
 def generalization_evaluator(
     config: EvolveConfig, *, quiet: bool = False, stream: TextIO | None = None
 ) -> EvaluateFn:
-    """The ``evaluate`` hook of [`run_evolution`][ermrl.search.run_evolution] for a multi-task config.
+    """The ``evaluate`` hook of [`run_evolution`][ermrl.search.run_evolution] for a multi-task
+    config.
 
     Args:
         config: A config with ``generalization`` set.
@@ -375,7 +377,8 @@ def generalization_config(
         encoder: Encoding options shared by all tasks.
         budget: Training budget per (task, seed).
         seeds: Training seeds, the same on every task.
-        space: The evolved search space (the encoder's; a [`SearchSpace`][ermrl.config.SearchSpace]).
+        space: The evolved search space (the encoder's; a
+            [`SearchSpace`][ermrl.config.SearchSpace]).
         search: The sampler and trial budget.
         n_procs: Processes that train a trial's runs in parallel.
         suite: The suite name, if the tasks come from one.

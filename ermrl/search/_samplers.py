@@ -2,9 +2,10 @@
 
 Optuna >= 4.4 accepts ``CmaEsSampler(restart_strategy=...)`` but silently falls back to
 ``restart_strategy=None`` (only a ``FutureWarning`` is emitted); restarts moved to an OptunaHub
-package, which cannot be downloaded at run time here. [`RestartCmaEsSampler`][ermrl.search.RestartCmaEsSampler] therefore
-re-implements the IPOP (Auger & Hansen 2005) and BIPOP (Hansen 2009) restart strategies on top
-of `optuna.samplers.CmaEsSampler`, in the same way Optuna <= 4.3 did.
+package, which cannot be downloaded at run time here.
+[`RestartCmaEsSampler`][ermrl.search.RestartCmaEsSampler] therefore re-implements the IPOP (Auger &
+Hansen 2005) and BIPOP (Hansen 2009) restart strategies on top of `optuna.samplers.CmaEsSampler`, in
+the same way Optuna <= 4.3 did.
 
 Every piece of sampler state lives in the study storage as trial system attributes, so any
 number of worker processes sharing a storage (or a fresh sampler instance on a reloaded study)
@@ -1243,8 +1244,8 @@ def make_sampler(
             generation waits for ``popsize`` COMPLETE trials, and a study whose trials are mostly
             pruned hardly moves). TPE uses pruned trials on its own; random search ignores them.
         search_space: ``"cmaes"`` only: the fixed search space, so that CMA-ES samples from the
-            first trial on (see [`RestartCmaEsSampler`][ermrl.search.RestartCmaEsSampler]); with an integer gene, CMA-ES
-            searches with margin (rounding inside the search).
+            first trial on (see [`RestartCmaEsSampler`][ermrl.search.RestartCmaEsSampler]); with an
+            integer gene, CMA-ES searches with margin (rounding inside the search).
         x0: ``"cmaes"`` only: the start point of the first run (``None``: the box centre).
 
     Returns:
@@ -1299,7 +1300,8 @@ def cma_generation_info(study: optuna.Study) -> list[dict[str, Any]]:
     """CMA-ES run/generation of every COMPLETE trial, e.g. for a fitness-per-generation plot.
 
     Args:
-        study: A study optimized (at least partly) with [`RestartCmaEsSampler`][ermrl.search.RestartCmaEsSampler].
+        study: A study optimized (at least partly) with
+            [`RestartCmaEsSampler`][ermrl.search.RestartCmaEsSampler].
 
     Returns:
         One dict per COMPLETE trial, ordered by trial number, with keys:

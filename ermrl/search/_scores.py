@@ -8,9 +8,10 @@ so 0 is a uniformly random policy and 1 is the target. Both references come from
 by default the packaged ``ermrl/data/scores.csv``:
 
 - ``random_mean`` (R_random) is the mean **episodic** return of a uniformly random policy
-  (``env.action_space.sample()``), measured by [`measure_random_returns`][ermrl.search.measure_random_returns] /
-  ``ermrl scores``. The original ER-MRL code averaged per-step rewards instead, which made its
-  random references about 1000x too small on 1000-step tasks.
+  (``env.action_space.sample()``), measured by
+  [`measure_random_returns`][ermrl.search.measure_random_returns] / ``ermrl scores``. The original
+  ER-MRL code averaged per-step rewards instead, which made its random references about 1000x too
+  small on 1000-step tasks.
 - ``target`` (R_target, the default) is a published PPO return at 1M steps, cited per row in
   ``target_source`` (rl-baselines3-zoo ``benchmark.md``).
 - ``provisional_target`` keeps the ER-MRL code's provisional targets, cited in

@@ -55,9 +55,9 @@ def _is_integer(r: Any) -> bool:
 
 
 def search_distributions(space: SearchSpace) -> dict[str, BaseDistribution]:
-    """The fixed search space as Optuna distributions (what [`sample_params`][ermrl.search.sample_params] asks): an
-    ``IntDistribution`` for an integer gene (CMA-ES then rounds inside the search, with margin),
-    a ``FloatDistribution`` otherwise."""
+    """The fixed search space as Optuna distributions (what
+    [`sample_params`][ermrl.search.sample_params] asks): an ``IntDistribution`` for an integer gene
+    (CMA-ES then rounds inside the search, with margin), a ``FloatDistribution`` otherwise."""
     return {
         name: IntDistribution(int(r.low), int(r.high))
         if _is_integer(r)
@@ -125,9 +125,10 @@ def sample_params(trial: optuna.Trial, space: SearchSpace) -> dict[str, float]:
 def study_config(study: optuna.Study) -> EvolveConfig:
     """The configuration an ermrl study was created with.
 
-    Its env ids must be registered ones ([`check_stored_env_ids`][ermrl.search.check_stored_env_ids]): the stored
-    configuration is data that an edited database or an imported snapshot may carry, and a
-    ``module:Env`` id in it would make gymnasium import that module.
+    Its env ids must be registered ones
+    ([`check_stored_env_ids`][ermrl.search.check_stored_env_ids]): the stored configuration is data
+    that an edited database or an imported snapshot may carry, and a ``module:Env`` id in it would
+    make gymnasium import that module.
 
     Raises:
         ConfigError: the study was not created by ``ermrl evolve``, or its configuration names
@@ -144,8 +145,9 @@ def check_stored_env_ids(data: Any, source: str) -> None:
     """Check every ``env_id`` in a stored configuration against gymnasium's registry.
 
     Nothing is imported: a ``module:Env`` id is refused unless that module is imported already
-    (see [`ermrl.envs.check_registered_env_id`][ermrl.envs.check_registered_env_id]). The whole document is walked, so an env id
-    in any part of it (a task, a generalization task set) is checked.
+    (see [`ermrl.envs.check_registered_env_id`][ermrl.envs.check_registered_env_id]). The whole
+    document is walked, so an env id in any part of it (a task, a generalization task set) is
+    checked.
 
     Args:
         data: The decoded configuration (JSON-like).
@@ -302,7 +304,8 @@ def create_or_resume_study(
     Args:
         config: The run's configuration (``None``: create or load a bare study; the first
             worker that brings a configuration stores it).
-        storage_url: Where the study lives (see [`ermrl.storage.open_storage`][ermrl.storage.open_storage]).
+        storage_url: Where the study lives (see
+            [`ermrl.storage.open_storage`][ermrl.storage.open_storage]).
         study_name: The study's name.
         command: Launch command stored with the configuration (default: ``sys.argv``).
         kind: ``"evolve"`` or ``"generalization"``, stored as the ``ermrl_kind`` attribute.

@@ -79,7 +79,8 @@ class LineJournalFileBackend(JournalFileBackend):
         return self._lock
 
     def read_logs(self, log_number_from: int) -> Generator[dict[str, Any], None, None]:
-        """Optuna's reader, with a one-line [`StorageError`][ermrl.storage.StorageError] for an unreadable record."""
+        """Optuna's reader, with a one-line [`StorageError`][ermrl.storage.StorageError] for an
+        unreadable record."""
         logs: Iterator[dict[str, Any]] = super().read_logs(log_number_from)
         while True:
             try:
@@ -109,8 +110,9 @@ class PlainRedisBackend(JournalRedisBackend):
 
     Records are read in batches up to ``<prefix>:log_number``. Optuna stores each record in one
     atomic script with the counter, so a record missing below the counter was lost (or the
-    counter was changed by hand): reading stops with a one-line [`StorageError`][ermrl.storage.StorageError] instead of
-    waiting for it forever, as it does for a record that cannot be decoded, last one included.
+    counter was changed by hand): reading stops with a one-line
+    [`StorageError`][ermrl.storage.StorageError] instead of waiting for it forever, as it does for a
+    record that cannot be decoded, last one included.
 
     Args:
         url: The Redis URL, without the ``prefix`` parameter.

@@ -5,13 +5,14 @@ timestamp per running trial every ``heartbeat_interval`` seconds, and
 `optuna.storages.fail_stale_trials` marks FAIL the RUNNING trials whose last heartbeat is
 older than ``grace_period``.
 
-Journal storages (file or Redis) have no heartbeat in Optuna. [`HeartbeatJournalStorage`][ermrl.storage.HeartbeatJournalStorage]
-adds the same mechanism: the heartbeat is the trial system attribute ``ermrl:heartbeat`` (a Unix
-time), so ``fail_stale_trials`` and Optuna's heartbeat thread work on it unchanged. Clocks of the
-machines sharing a journal must agree to well within the grace period (NTP does).
+Journal storages (file or Redis) have no heartbeat in Optuna.
+[`HeartbeatJournalStorage`][ermrl.storage.HeartbeatJournalStorage] adds the same mechanism: the
+heartbeat is the trial system attribute ``ermrl:heartbeat`` (a Unix time), so ``fail_stale_trials``
+and Optuna's heartbeat thread work on it unchanged. Clocks of the machines sharing a journal must
+agree to well within the grace period (NTP does).
 
-A stale trial is retried by [`RetryStaleTrial`][ermrl.storage.RetryStaleTrial]: a WAITING copy with the same parameters,
-which the next ``study.ask()`` of any worker picks up.
+A stale trial is retried by [`RetryStaleTrial`][ermrl.storage.RetryStaleTrial]: a WAITING copy with
+the same parameters, which the next ``study.ask()`` of any worker picks up.
 """
 
 from __future__ import annotations
@@ -243,11 +244,12 @@ def fail_stale_trials(study: optuna.Study) -> list[FrozenTrial]:
     that has run longer than the grace period without ever sending one (its worker died before
     the first heartbeat; so every worker of a study must use heartbeats, or none), is marked FAIL with the user attribute ``fail_reason`` set to ``"heartbeat lost (none for G s),
     retried as trial N"``, or ``"heartbeat lost (none for G s), not retried (max_retry M
-    reached)"``, then retried by the storage's stale-trial callback ([`RetryStaleTrial`][ermrl.storage.RetryStaleTrial]).
+    reached)"``, then retried by the storage's stale-trial callback
+    ([`RetryStaleTrial`][ermrl.storage.RetryStaleTrial]).
 
     The trial number ``N`` is that of the WAITING copy the callback adds: exact when no other
-    process adds trials meanwhile, which holding [`study_lock`][ermrl.storage.study_lock] (as ermrl's
-    workers and ``ermrl study fail-stale`` do) guarantees.
+    process adds trials meanwhile, which holding [`study_lock`][ermrl.storage.study_lock] (as
+    ermrl's workers and ``ermrl study fail-stale`` do) guarantees.
 
     Args:
         study: The study (its storage must have heartbeats, else nothing is done).
@@ -302,7 +304,8 @@ def fail_stale(
     retry: RetryStaleTrial | None = None,
     dry_run: bool = False,
 ) -> list[tuple[FrozenTrial, bool]]:
-    """Mark FAIL the trials of [`find_stale_trials`][ermrl.storage.find_stale_trials], and retry them.
+    """Mark FAIL the trials of [`find_stale_trials`][ermrl.storage.find_stale_trials], and retry
+    them.
 
     Run it under [`storage_lock`][ermrl.storage.storage_lock] (``ermrl study fail-stale`` does): two
     concurrent calls on a journal storage could both retry the same trial.

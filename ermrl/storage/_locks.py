@@ -352,7 +352,8 @@ def storage_lock(
     """Hold an inter-process lock tied to a storage URL.
 
     Args:
-        url: The storage URL (see [`ermrl.storage.open_storage`][ermrl.storage.open_storage]), as a string or parsed.
+        url: The storage URL (see [`ermrl.storage.open_storage`][ermrl.storage.open_storage]), as a
+            string or parsed.
         name: Which lock (e.g. ``"schema"`` or a study name). File-based locks (SQLite, journal)
             are one per storage whatever the name; server locks are one per name.
         timeout: Seconds to wait for the lock.

@@ -16,8 +16,8 @@ Accepted URLs:
 Every storage is opened with the same guarantees: the schema is created under an inter-process
 lock (no ``table studies already exists`` when many workers start at once on a fresh file),
 SQLite waits up to 60 s for a busy database, and RUNNING trials get heartbeats (Optuna's for RDB
-storages, [`HeartbeatJournalStorage`][ermrl.storage.HeartbeatJournalStorage] for journals) so that the trial of a
-dead worker is failed and retried.
+storages, [`HeartbeatJournalStorage`][ermrl.storage.HeartbeatJournalStorage] for journals) so that
+the trial of a dead worker is failed and retried.
 """
 
 from __future__ import annotations
@@ -171,11 +171,12 @@ def open_storage(
             a study): the file must exist and nothing is created or changed next to it (no
             lock file, no schema, no journal repair: Optuna reads a journal's complete
             records). In both, a database without Optuna's tables (a 0-byte SQLite file, an
-            empty server database) is a [`StorageError`][ermrl.storage.StorageError], and is left without them.
+            empty server database) is a [`StorageError`][ermrl.storage.StorageError], and is left
+            without them.
         retry_window: Seconds a call to a server storage (PostgreSQL, MySQL, Redis) is retried
-            while the server is unreachable, before it fails with a [`StorageError`][ermrl.storage.StorageError]
-            (``None``: ``ERMRL_STORAGE_RETRY_S`` or 120; 0: no retries; see
-            `ermrl.storage._retry`). Opening is not retried.
+            while the server is unreachable, before it fails with a
+            [`StorageError`][ermrl.storage.StorageError] (``None``: ``ERMRL_STORAGE_RETRY_S`` or
+            120; 0: no retries; see `ermrl.storage._retry`). Opening is not retried.
 
     Returns:
         An Optuna storage.
@@ -477,7 +478,8 @@ def _no_sqlite_database(path: Path) -> str:
 
 
 def _registered(storage: BaseStorage) -> StorageURL | None:
-    """The URL [`open_storage`][ermrl.storage.open_storage] opened a storage from (also under Optuna's cache wrapper)."""
+    """The URL [`open_storage`][ermrl.storage.open_storage] opened a storage from (also under
+    Optuna's cache wrapper)."""
     for candidate in (storage, base_storage(storage)):
         spec = _OPENED_FROM.get(candidate)
         if spec is not None:
@@ -486,7 +488,8 @@ def _registered(storage: BaseStorage) -> StorageURL | None:
 
 
 def storage_url(storage: BaseStorage) -> str | None:
-    """The URL a storage was opened from with [`open_storage`][ermrl.storage.open_storage] (``None`` if unknown)."""
+    """The URL a storage was opened from with [`open_storage`][ermrl.storage.open_storage] (``None``
+    if unknown)."""
     spec = _registered(storage)
     if spec is not None:
         return spec.raw
@@ -496,7 +499,8 @@ def storage_url(storage: BaseStorage) -> str | None:
 
 @contextlib.contextmanager
 def study_lock(study: optuna.Study, timeout: float = LOCK_TIMEOUT_S) -> Iterator[bool]:
-    """Hold the inter-process lock of a study's storage (see [`storage_lock`][ermrl.storage.storage_lock]).
+    """Hold the inter-process lock of a study's storage (see
+    [`storage_lock`][ermrl.storage.storage_lock]).
 
     Workers hold it while they count the study's trials and ask for a new one, which makes the
     trial budget exact. Yields ``False`` (and locks nothing) for storages not opened by
@@ -529,10 +533,11 @@ def load_study(
 
     Args:
         name: The study's name.
-        storage: A storage, or a URL (string or parsed) opened with [`open_storage`][ermrl.storage.open_storage] in
-            ``mode``.
+        storage: A storage, or a URL (string or parsed) opened with
+            [`open_storage`][ermrl.storage.open_storage] in ``mode``.
         mode: ``"read"`` (default): nothing is created, a missing SQLite or journal file is a
-            [`StorageError`][ermrl.storage.StorageError]; ``"write"``: the same, for commands that change the study.
+            [`StorageError`][ermrl.storage.StorageError]; ``"write"``: the same, for commands that
+            change the study.
         **kwargs: Passed to `optuna.load_study` (e.g. ``sampler``).
 
     Raises:

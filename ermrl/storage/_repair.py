@@ -7,19 +7,19 @@ it, which glued the two into one undecodable line. A line can also be garbage fo
 (written by hand, a bad disk). Optuna reads a journal up to its first unreadable record and then
 fails, so every command fails.
 
-[`repair_journal`][ermrl.storage.repair_journal] finds every unreadable line of a journal file (anywhere, not only at
-its end) and, under the journal's own write lock (so no worker writes while it does), keeps
-every record in it and moves only what cannot be read to ``<file>.torn-<UTC time>``: records
-glued together (a newline lost) are split onto lines of their own, a record glued onto a
-partial one is kept and only the partial one is set aside. A readable record is never removed;
-every other line stays, in order. Workers call it before they use a journal
+[`repair_journal`][ermrl.storage.repair_journal] finds every unreadable line of a journal file
+(anywhere, not only at its end) and, under the journal's own write lock (so no worker writes while
+it does), keeps every record in it and moves only what cannot be read to ``<file>.torn-<UTC time>``:
+records glued together (a newline lost) are split onto lines of their own, a record glued onto a
+partial one is kept and only the partial one is set aside. A readable record is never removed; every
+other line stays, in order. Workers call it before they use a journal
 ([`open_storage`][ermrl.storage.open_storage]); ``ermrl study repair`` calls it by hand.
 
 A Redis journal numbers its records ``<prefix>:log:0``, ``:log:1``, ... up to the counter
-``<prefix>:log_number``. [`repair_redis_journal`][ermrl.storage.repair_redis_journal] moves unreadable records to the hash
-``<prefix>:torn-<UTC time>`` (field: the record's old number), renumbers the records that are
-left without gaps, and sets ``log_number`` to the last of them, in one transaction that is
-retried if a worker appends meanwhile.
+``<prefix>:log_number``. [`repair_redis_journal`][ermrl.storage.repair_redis_journal] moves
+unreadable records to the hash ``<prefix>:torn-<UTC time>`` (field: the record's old number),
+renumbers the records that are left without gaps, and sets ``log_number`` to the last of them, in
+one transaction that is retried if a worker appends meanwhile.
 
 Nothing is merged or dropped silently: what is set aside stays there, and a warning (or
 ``ermrl study repair``'s one line) says how many records and where.

@@ -6,8 +6,8 @@ trial RUNNING. Now each call to a server storage that fails on the connection (t
 down, refuses, drops or does not answer) is tried again, after 0.5 s, 1 s, 2 s, ... (at most
 5 s apart), for up to `DEFAULT_RETRY_WINDOW_S` seconds (``ERMRL_STORAGE_RETRY_S``, or
 ``open_storage(retry_window=...)``). When the storage is still unreachable after that, the call
-raises a one-line [`StorageError`][ermrl.storage.StorageError] (commands exit with it, code 2) and the
-storage's later calls fail at once instead of waiting again. A missed heartbeat is only
+raises a one-line [`StorageError`][ermrl.storage.StorageError] (commands exit with it, code 2) and
+the storage's later calls fail at once instead of waiting again. A missed heartbeat is only
 logged: the trial's next one counts.
 
 What is retried:

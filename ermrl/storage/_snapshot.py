@@ -28,14 +28,15 @@ an object). Non-finite floats are written as Python's `json` writes them (``NaN`
 the study (its re-evaluation study ``<name>.reeval``), so that importing restores them too.
 
 Nothing in a snapshot is unpickled, evaluated or imported: it is read with `json.loads`
-and every field is checked ([`read_snapshot`][ermrl.storage.read_snapshot]) before anything is written.
+and every field is checked ([`read_snapshot`][ermrl.storage.read_snapshot]) before anything is
+written.
 
-Importing ([`import_snapshot`][ermrl.storage.import_snapshot]) keeps trial numbers, states, values, times, parameters and
-their distributions, every attribute and the intermediate values, as `optuna.copy_study`
-does. A trial that was RUNNING when the snapshot was taken has no worker any more: it is
-imported as FAIL (``fail_reason`` says why) and retried as a WAITING copy with the same
-parameters ([`RetryStaleTrial`][ermrl.storage.RetryStaleTrial], as for a worker that died), which the next
-``ermrl evolve`` runs first. WAITING trials (queued parameters) stay WAITING.
+Importing ([`import_snapshot`][ermrl.storage.import_snapshot]) keeps trial numbers, states, values,
+times, parameters and their distributions, every attribute and the intermediate values, as
+`optuna.copy_study` does. A trial that was RUNNING when the snapshot was taken has no worker any
+more: it is imported as FAIL (``fail_reason`` says why) and retried as a WAITING copy with the same
+parameters ([`RetryStaleTrial`][ermrl.storage.RetryStaleTrial], as for a worker that died), which
+the next ``ermrl evolve`` runs first. WAITING trials (queued parameters) stay WAITING.
 """
 
 from __future__ import annotations
@@ -262,7 +263,8 @@ def _dumps(doc: Mapping[str, Any], indent: int | None = None) -> str:
 
 
 def write_snapshot(study: optuna.Study, path: str | os.PathLike[str]) -> dict[str, Any]:
-    """Write [`study_to_snapshot`][ermrl.storage.study_to_snapshot] to ``path`` atomically (a temporary file, renamed).
+    """Write [`study_to_snapshot`][ermrl.storage.study_to_snapshot] to ``path`` atomically (a
+    temporary file, renamed).
 
     Args:
         study: The study.
@@ -405,7 +407,8 @@ def _study(doc: Any, where: str) -> StudySnapshot:
 
 
 def parse_snapshot(doc: Any, source: str = "<snapshot>") -> Snapshot:
-    """Check a snapshot document (as [`study_to_snapshot`][ermrl.storage.study_to_snapshot] returns it).
+    """Check a snapshot document (as [`study_to_snapshot`][ermrl.storage.study_to_snapshot] returns
+    it).
 
     Args:
         doc: The decoded JSON.
@@ -453,7 +456,8 @@ def read_snapshot(path: str | os.PathLike[str]) -> Snapshot:
     """Read and check a snapshot file; nothing in it is unpickled, evaluated or imported.
 
     Args:
-        path: A file written by [`write_snapshot`][ermrl.storage.write_snapshot] (``ermrl study export --out X.json``).
+        path: A file written by [`write_snapshot`][ermrl.storage.write_snapshot]
+            (``ermrl study export --out X.json``).
 
     Returns:
         The checked snapshot.
@@ -595,7 +599,8 @@ def import_snapshot(
     is refused before anything is written.
 
     Args:
-        snapshot: A snapshot from [`read_snapshot`][ermrl.storage.read_snapshot], or the path of a snapshot file.
+        snapshot: A snapshot from [`read_snapshot`][ermrl.storage.read_snapshot], or the path of a
+            snapshot file.
         storage: The target storage URL (see [`open_storage`][ermrl.storage.open_storage]; a missing
             SQLite or journal file is created).
         study_name: Import the study under this name (default: its exported name); its
@@ -685,7 +690,8 @@ def load_snapshot(
     *,
     max_retry: int | None = DEFAULT_MAX_RETRY,
 ) -> optuna.Study:
-    """Import a snapshot file into a storage and return the study (see [`import_snapshot`][ermrl.storage.import_snapshot]).
+    """Import a snapshot file into a storage and return the study (see
+    [`import_snapshot`][ermrl.storage.import_snapshot]).
 
     Args:
         path: The snapshot file (or a snapshot from [`read_snapshot`][ermrl.storage.read_snapshot]).

@@ -1,8 +1,9 @@
 """Storage URLs, parsed once into a small frozen value.
 
-Every other module of [`ermrl.storage`][ermrl.storage] takes a [`StorageURL`][ermrl.storage.StorageURL] from
-[`parse_storage_url`][ermrl.storage.parse_storage_url] instead of taking the string apart again. This module is a leaf: it
-imports nothing else from [`ermrl.storage`][ermrl.storage], so any of them can import it.
+Every other module of [`ermrl.storage`][ermrl.storage] takes a
+[`StorageURL`][ermrl.storage.StorageURL] from [`parse_storage_url`][ermrl.storage.parse_storage_url]
+instead of taking the string apart again. This module is a leaf: it imports nothing else from
+[`ermrl.storage`][ermrl.storage], so any of them can import it.
 
 Accepted URLs:
 
@@ -52,10 +53,12 @@ class StorageError(RuntimeError):
 
 @dataclass(frozen=True)
 class StorageURL:
-    """A storage URL, taken apart once (build it with [`parse_storage_url`][ermrl.storage.parse_storage_url]).
+    """A storage URL, taken apart once (build it with
+    [`parse_storage_url`][ermrl.storage.parse_storage_url]).
 
     Attributes:
-        raw: The URL as given (what error messages and [`ermrl.storage.storage_url`][ermrl.storage.storage_url] show).
+        raw: The URL as given (what error messages and
+            [`ermrl.storage.storage_url`][ermrl.storage.storage_url] show).
         kind: ``"sqlite"``, ``"journal"``, ``"postgresql"``, ``"mysql"`` or ``"redis"``.
         url: What the backend is opened with: the SQLAlchemy URL for ``sqlite``,
             ``postgresql`` and ``mysql`` (``postgres://`` spelled ``postgresql``, a driver

@@ -1,8 +1,9 @@
 """What a test phase trains, decided before anything trains: options, agents, seeds, backend.
 
-``ermrl test``, ``ermrl test-generalization`` and [`ermrl.test`][ermrl.runner.test] share this code. The options
-are a [`TestOptions`][ermrl.test_phase.TestOptions] (the command-line options of the test commands, as plain data);
-[`prepare_test`][ermrl.test_phase.prepare_test] turns them and a study into a [`TestPhase`][ermrl.test_phase.TestPhase], every check done, which
+``ermrl test``, ``ermrl test-generalization`` and [`ermrl.test`][ermrl.runner.test] share this code.
+The options are a [`TestOptions`][ermrl.test_phase.TestOptions] (the command-line options of the
+test commands, as plain data); [`prepare_test`][ermrl.test_phase.prepare_test] turns them and a
+study into a [`TestPhase`][ermrl.test_phase.TestPhase], every check done, which
 [`run_comparison`][ermrl.test_phase.run_comparison] then trains.
 """
 
@@ -423,7 +424,8 @@ def with_backend(
 
 @dataclass(frozen=True)
 class TestPhase:
-    """A test phase of one study, every check done: what [`prepare_test`][ermrl.test_phase.prepare_test] returns.
+    """A test phase of one study, every check done: what
+    [`prepare_test`][ermrl.test_phase.prepare_test] returns.
 
     Attributes:
         study_name: The evolution study.

@@ -1,5 +1,5 @@
-"""Writing a test phase's run folders (``agents/<agent>/seed_<seed>/``); [`ermrl.analysis`][ermrl.analysis]
-reads them."""
+"""Writing a test phase's run folders (``agents/<agent>/seed_<seed>/``);
+[`ermrl.analysis`][ermrl.analysis] reads them."""
 
 from __future__ import annotations
 
@@ -50,8 +50,8 @@ def write_run(
     ``result.json`` also holds ``last100_return``, the mean of the last
     `PAPER_LAST_EPISODES` training episodes (the paper's metric, beside ``final_return``
     over the run's own ``n_last_episodes``), ``n_eval_episodes``, the code that trained it
-    (`ermrl._code.code_identity`), when it finished (``finished``, UTC), and ``phase_steps`` when the learner splits its env
-    steps into phases (``imitation-sac``).
+    (`ermrl._code.code_identity`), when it finished (``finished``, UTC), and ``phase_steps`` when
+    the learner splits its env steps into phases (``imitation-sac``).
     """
     from ermrl._code import code_identity
 

@@ -17,9 +17,10 @@ The agents are the table `AGENT_KINDS` (learner, encoder, evolved or not).
 Every (agent, seed) run is saved in its own folder as soon as it finishes, so a test phase that
 is interrupted, or split across SLURM array tasks, resumes and merges: the aggregated
 ``curves.csv``, ``summary.csv`` and ``learning_curves.png`` are rebuilt from all finished runs.
-Each run also records the settings that produced it (``settings.json``, [`run_settings`][ermrl.test_phase.run_settings]),
-so that a rerun never mixes runs made with other settings into one folder: it skips finished
-runs only when their settings are these, and refuses otherwise ([`check_finished_runs`][ermrl.test_phase.check_finished_runs]).
+Each run also records the settings that produced it (``settings.json``,
+[`run_settings`][ermrl.test_phase.run_settings]), so that a rerun never mixes runs made with other
+settings into one folder: it skips finished runs only when their settings are these, and refuses
+otherwise ([`check_finished_runs`][ermrl.test_phase.check_finished_runs]).
 """
 
 from __future__ import annotations
@@ -234,12 +235,14 @@ def study_agents(
     """The agents named in ``names`` for a study, and the evolved trial when one is needed.
 
     ``learner_settings`` gives agents of another learner than the study's their settings (see
-    [`learner_settings_for`][ermrl.test_phase.learner_settings_for]). In a study of a learner's genes, the evolved agent takes the
-    selected genes on top of ``ppo``, the comparison's settings (default: the study's).
+    [`learner_settings_for`][ermrl.test_phase.learner_settings_for]). In a study of a learner's
+    genes, the evolved agent takes the selected genes on top of ``ppo``, the comparison's settings
+    (default: the study's).
 
     Returns:
-        The agents (see [`agent_specs`][ermrl.test_phase.agent_specs]) and the [`Selection`][ermrl.test_phase.Selection] behind ``res-ppo``
-        (``None`` when no agent uses the evolved reservoirs).
+        The agents (see [`agent_specs`][ermrl.test_phase.agent_specs]) and the
+        [`Selection`][ermrl.test_phase.Selection] behind ``res-ppo`` (``None`` when no agent uses
+        the evolved reservoirs).
     """
     chosen = None
     if any(AGENT_KINDS[n].reservoirs == "evolved" for n in names if n in AGENT_KINDS):
@@ -380,7 +383,8 @@ def select_reservoirs(
 def study_reservoirs(
     study: optuna.Study, config: EvolveConfig, trial_number: int | None = None
 ) -> tuple[dict[str, float], tuple[EncoderParams, ...] | None, int]:
-    """The parameters, reservoirs and number of the trial [`select_reservoirs`][ermrl.test_phase.select_reservoirs] picks."""
+    """The parameters, reservoirs and number of the trial
+    [`select_reservoirs`][ermrl.test_phase.select_reservoirs] picks."""
     chosen = select_reservoirs(study, config, trial_number)
     return chosen.params, chosen.reservoirs, chosen.number
 
@@ -480,7 +484,8 @@ MEASUREMENT_KEYS = frozenset({"budget.fitness", "budget.n_eval_episodes"})
 
 
 def settings_diff(stored: Mapping[str, Any], expected: Mapping[str, Any]) -> list[str]:
-    """Dotted keys whose values differ between two [`run_settings`][ermrl.test_phase.run_settings] records, sorted.
+    """Dotted keys whose values differ between two [`run_settings`][ermrl.test_phase.run_settings]
+    records, sorted.
 
     `MEASUREMENT_KEYS` are left out: they do not change the training.
     """
@@ -497,7 +502,8 @@ def finished_backend(out: str | Path, learner: str) -> str | None:
     """The backend that made the finished runs of ``learner`` under ``out`` (``None``: none).
 
     Read from each run's ``settings.json`` (the first finished run of that learner whose record
-    names a known backend); records that cannot be read are left to [`check_finished_runs`][ermrl.test_phase.check_finished_runs].
+    names a known backend); records that cannot be read are left to
+    [`check_finished_runs`][ermrl.test_phase.check_finished_runs].
     """
     for path in sorted(Path(out).glob(f"{RUNS_DIR}/*/seed_*/{RUN_SETTINGS_FILE}")):
         if not (path.parent / "result.json").is_file():
@@ -529,7 +535,8 @@ def check_finished_runs(
 
     Args:
         out: The test-phase folder.
-        expected: Agent name -> its [`run_settings`][ermrl.test_phase.run_settings] for seed 0 (the seed is replaced).
+        expected: Agent name -> its [`run_settings`][ermrl.test_phase.run_settings] for seed 0 (the
+            seed is replaced).
         seeds: The seeds this call trains.
         overwrite: ``--overwrite``: the requested runs are retrained, whatever they hold.
 
@@ -579,7 +586,8 @@ def _finished_run_diff(
     shared_ppo: Mapping[str, Any],
 ) -> list[str] | None:
     """The keys in which the finished run of agent ``name`` in ``folder`` differs from
-    ``expected`` (see [`check_finished_runs`][ermrl.test_phase.check_finished_runs]), or ``None`` when it has no settings record.
+    ``expected`` (see [`check_finished_runs`][ermrl.test_phase.check_finished_runs]), or ``None``
+    when it has no settings record.
 
     The run of an agent not in ``expected`` is compared on ``shared`` (what every agent
     shares), with its own learner's settings from ``shared_ppo`` (learner name -> settings);
@@ -609,8 +617,9 @@ def _finished_run_diff(
 def _mixed_runs_error(
     out: Path, differing: list[str], unrecorded: list[str], outside: list[str]
 ) -> ConfigError:
-    """The error of [`check_finished_runs`][ermrl.test_phase.check_finished_runs]: the runs that differ (a few of them), those
-    without a settings record, and those ``--overwrite`` would not retrain."""
+    """The error of [`check_finished_runs`][ermrl.test_phase.check_finished_runs]: the runs that
+    differ (a few of them), those without a settings record, and those ``--overwrite`` would not
+    retrain."""
     problems = differing[:3] + (["..."] if len(differing) > 3 else [])
     if unrecorded:
         problems.append(
@@ -770,8 +779,9 @@ def _write_config(
     metadata: Mapping[str, Any] | None,
     command: str | None,
 ) -> list[str]:
-    """Write the comparison's ``config.yaml`` and ``command.txt`` (see [`run_comparison`][ermrl.test_phase.run_comparison]);
-    return the agents the folder's summary lists.
+    """Write the comparison's ``config.yaml`` and ``command.txt`` (see
+    [`run_comparison`][ermrl.test_phase.run_comparison]); return the agents the folder's summary
+    lists.
 
     A piece of a phase (``ermrl test --agents res-ppo --seeds 15 16`` into a folder that holds
     the phase's other runs, or one task of a SLURM array) adds to the folder's records instead
@@ -958,8 +968,9 @@ def _run_checkpoint(
 ) -> RunCheckpoint | None:
     """The run's own checkpoint in ``folder``, for an on-policy sb3 run (``None``: none asked).
 
-    ``record`` is the run's [`run_settings`][ermrl.test_phase.run_settings] with its seed: a checkpoint made with others is
-    not resumed. With ``settings.overwrite`` an existing checkpoint is removed first.
+    ``record`` is the run's [`run_settings`][ermrl.test_phase.run_settings] with its seed: a
+    checkpoint made with others is not resumed. With ``settings.overwrite`` an existing checkpoint
+    is removed first.
     """
     if settings.checkpoint_every == 0:
         return None
@@ -1041,7 +1052,8 @@ def _write_records(
         task: The comparison's task.
         agent: The run's agent.
         seed: Its seed.
-        expected: The agent's [`run_settings`][ermrl.test_phase.run_settings] (its seed is replaced by ``seed``).
+        expected: The agent's [`run_settings`][ermrl.test_phase.run_settings] (its seed is replaced
+            by ``seed``).
         result: What the run produced.
 
     Returns:
