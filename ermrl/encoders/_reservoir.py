@@ -168,7 +168,7 @@ class RTUParams:
 
     The units of Elelimy et al. (2024), with fixed random weights: each of the ``units`` complex
     units holds ``(c1, c2)``; with ``g = r cos(theta)``, ``phi = r sin(theta)`` and
-    ``gamma = sqrt(1 - r^2)``::
+    ``gamma = sqrt(1 - r^2)``:
 
         c1 <- g c1 - phi c2 + gamma (W1 u)
         c2 <- g c2 + phi c1 + gamma (W2 u)
