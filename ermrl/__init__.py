@@ -1,17 +1,18 @@
 """ermrl: evolve reservoirs with CMA-ES in an Optuna study, learn on top of them with PPO.
 
-The Python API mirrors the command line (names re-exported from :mod:`ermrl.runner`, imported
-on first use so that ``import ermrl`` stays instant):
+The Python API mirrors the command line (names re-exported from [`ermrl.runner`][ermrl.runner],
+imported on first use so that ``import ermrl`` stays instant):
 
-- :class:`Experiment`: load, plan and run an experiment file, as ``ermrl run FILE`` does;
-- :func:`evolve`, :func:`test`, :func:`report`: one stage each, as ``ermrl evolve``,
-  ``ermrl test`` and ``ermrl report`` run it.
+- [`Experiment`][ermrl.runner.Experiment]: load, plan and run an experiment file, as
+  ``ermrl run FILE`` does;
+- [`evolve`][ermrl.runner.evolve], [`test`][ermrl.runner.test], [`report`][ermrl.runner.report]: one
+  stage each, as ``ermrl evolve``, ``ermrl test`` and ``ermrl report`` run it.
 
-Example:
+Examples:
     >>> import ermrl
     >>> exp = ermrl.Experiment.load("experiments/demo.yaml", variant="quick")
-    >>> result = exp.run()  # doctest: +SKIP
-    >>> result["Pendulum-v1"].summary  # doctest: +SKIP
+    >>> result = exp.run()
+    >>> result["Pendulum-v1"].summary
 """
 
 from __future__ import annotations

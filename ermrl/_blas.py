@@ -8,15 +8,15 @@ episode return of 4.2128 on an AVX2 machine and 4.0077 on an AVX-512 one, and fi
 of 41.2 and 45.5 after 1M steps. Results are then reproducible only on the CPU model they
 were made on.
 
-:func:`pin_blas_kernel`, called when ``ermrl`` is imported, sets ``OPENBLAS_CORETYPE=Haswell``
+`pin_blas_kernel`, called when ``ermrl`` is imported, sets ``OPENBLAS_CORETYPE=Haswell``
 (OpenBLAS's documented override of its runtime choice) before numpy loads OpenBLAS, on x86-64
 CPUs that have AVX2 and FMA (every x86-64 server CPU since 2013 does). The population backend's
 products then round alike on any such machine: a published run reruns bit-identically on
 another CPU. A kernel set by the user (``OPENBLAS_CORETYPE`` in the environment) is kept, and
 nothing is changed when numpy was imported before ``ermrl`` (too late: OpenBLAS has chosen) or
 on other CPUs; when numpy came first, the variable is set to the kernel OpenBLAS chose, so that
-the worker processes ermrl starts run the same one. :func:`blas_kernel` names the kernel a process runs with; every run and trial
-records it beside the code (:func:`ermrl._code.code_identity`).
+the worker processes ermrl starts run the same one. `blas_kernel` names the kernel a process runs
+with; every run and trial records it beside the code (`ermrl._code.code_identity`).
 
 PyTorch's CPU wheels use MKL, whose own dispatch is not pinned here: the ``sb3`` backend's
 results can still differ between CPUs (``MKL_CBWR`` pins it, at a speed cost not measured).
@@ -55,7 +55,7 @@ def pin_blas_kernel(
     flags: set[str] | None = None,
     numpy_loaded: bool | None = None,
 ) -> str | None:
-    """Set ``OPENBLAS_CORETYPE`` to :data:`PINNED_KERNEL` where it is safe and still in time.
+    """Set ``OPENBLAS_CORETYPE`` to `PINNED_KERNEL` where it is safe and still in time.
 
     Args:
         environ: The environment to set it in (default ``os.environ``; child processes

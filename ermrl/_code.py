@@ -1,13 +1,13 @@
 """Which code made a result: the package version, its git commit and a hash of its source files.
 
 ``ermrl 0.1.0`` names every commit alike, so a record that should say which code produced it
-(a trial, a test-phase run, a checkpoint) stores :func:`code_identity` instead: the installed
+(a trial, a test-phase run, a checkpoint) stores `code_identity` instead: the installed
 version, the git commit of the checkout the package runs from (when it is one, with whether
 its files differ from that commit) and a SHA-256 of the package's own source files, which
 identifies the code wherever git is not available (an installed wheel, a copied tree).
 
 Two records were made by the same code when their ``source`` hashes are equal and, where both
-name it, numpy's BLAS kernel is the same (:func:`same_code`; :mod:`ermrl._blas`); the commit is
+name it, numpy's BLAS kernel is the same (`same_code`; `ermrl._blas`); the commit is
 what a reader looks up.
 """
 
@@ -65,7 +65,7 @@ def code_identity() -> dict[str, Any]:
         ``{"version": ..., "commit": ... | None, "dirty": bool | None, "source": sha256,
         "blas": ...}``: ``commit`` is ``None`` outside a git checkout; ``dirty`` says whether
         the package's files differ from that commit (``None`` when unknown); ``blas`` is the
-        kernel numpy's products run with (:func:`ermrl._blas.blas_kernel`): the same code and
+        kernel numpy's products run with (`ermrl._blas.blas_kernel`): the same code and
         seed give the same result under the same kernel.
     """
     from ermrl import __version__
@@ -92,7 +92,7 @@ def code_key() -> str:
 
 
 def same_code(record: Mapping[str, Any] | None) -> bool | None:
-    """Whether a stored :func:`code_identity` is this process's code and BLAS kernel (``None``:
+    """Whether a stored `code_identity` is this process's code and BLAS kernel (``None``:
     not recorded)."""
     if not isinstance(record, Mapping) or not isinstance(record.get("source"), str):
         return None
@@ -104,7 +104,7 @@ def same_code(record: Mapping[str, Any] | None) -> bool | None:
 
 
 def describe_code(record: Mapping[str, Any] | None) -> str:
-    """One phrase naming a stored :func:`code_identity`: ``ermrl 0.1.0 at 1a2b3c4d (modified)``."""
+    """One phrase naming a stored `code_identity`: ``ermrl 0.1.0 at 1a2b3c4d (modified)``."""
     if not isinstance(record, Mapping):
         return "unrecorded code"
     text = f"ermrl {record.get('version', '?')}"

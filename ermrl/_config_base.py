@@ -1,10 +1,10 @@
 """What every layer of ermrl shares: the configuration error, the limits, ranges, agent kinds
 and tasks.
 
-The bottom of the configuration: :mod:`ermrl.encoders` builds its settings and search spaces on
-it, and :mod:`ermrl.config` (which sits above the encoders, to build a study's configuration
-from the registered ones) re-exports every name, so ``from ermrl.config import ConfigError``
-works everywhere.
+The bottom of the configuration: [`ermrl.encoders`][ermrl.encoders] builds its settings and search
+spaces on it, and [`ermrl.config`][ermrl.config] (which sits above the encoders, to build a study's
+configuration from the registered ones) re-exports every name, so
+``from ermrl.config import ConfigError`` works everywhere.
 """
 
 from __future__ import annotations
@@ -59,11 +59,11 @@ class AgentKind:
         reservoirs: ``"none"`` (the raw observation), ``"evolved"`` (the selected trial's) or
             ``"unevolved"`` (the encoder's reference, its space's ``default_reservoirs()``:
             reservoirpy's defaults for an echo state network). In a study of a learner's genes
-            (:class:`~ermrl.config.LearnerSpace`) the agent sees the raw observation and
+            ([`LearnerSpace`][ermrl.config.LearnerSpace]) the agent sees the raw observation and
             ``"evolved"``/``"unevolved"`` are the learner's genes.
         observe: The agent's own observation mask (``None``: the test task's).
         description: One line for ``--help`` and the docs.
-        learner: Its learner (a name of :data:`ermrl.learners.LEARNERS`); ``None``: the
+        learner: Its learner (a name of `ermrl.learners.LEARNERS`); ``None``: the
             study's own learner, with the study's settings. An agent with another learner than
             the study's takes that learner's table settings for the task (and ``--ppo``).
         label: Its name in figure legends.
@@ -71,7 +71,7 @@ class AgentKind:
         color: Its matplotlib colour, the same in every figure.
         default: Trained when ``--agents`` is not given (in a study of its family).
         family: The family of a study it can be tested in: a registered encoder's
-            (:attr:`ermrl.encoders.Encoder.family`: ``"esn"`` for ``--encoder reservoir``, ...;
+            (`ermrl.encoders.Encoder.family`: ``"esn"`` for ``--encoder reservoir``, ...;
             the encoder declares its agents), or a learner's name for a study of its genes
             (``"hebbian"``); ``None``: any study.
         derive: What the agent makes of each of its reservoirs' settings (those
@@ -129,11 +129,12 @@ class Range:
 
 @runtime_checkable
 class SearchSpace(Protocol):
-    """What the outer loop needs of an encoder's search space (:class:`ReservoirSpace` is one).
+    """What the outer loop needs of an encoder's search space
+    ([`ReservoirSpace`][ermrl.encoders.ReservoirSpace] is one).
 
-    The search samples plain ``{name: value}`` points in :meth:`ranges`; the encoder turns a
-    point into its settings (:meth:`ermrl.encoders.Encoder.decode`), so search code never
-    handles an encoder's own types.
+    The search samples plain ``{name: value}`` points in `ranges`; the encoder turns a
+    point into its settings ([`ermrl.encoders.Encoder.decode`][ermrl.encoders.Encoder.decode]), so
+    search code never handles an encoder's own types.
     """
 
     @property

@@ -1,16 +1,16 @@
 """Ctrl-C during a command's start-up, remembered; SIGTERM raised like Ctrl-C.
 
-:func:`ermrl.cli.run_command` installs :func:`catch_sigint` before it imports the command (torch,
+`ermrl.cli.run_command` installs `catch_sigint` before it imports the command (torch,
 MuJoCo, the envs: seconds). The handler raises ``KeyboardInterrupt`` as Python's default one
 does, and also notes that the signal came. A library that swallows the exception during its
 start-up (a broad ``except`` around an optional import, a C extension that turns it into
 another error that is then handled) would otherwise lose the user's Ctrl-C and let the command
-run on; :class:`ermrl.search.SignalGuard` raises it again once it takes over (see
-:func:`sigint_received`).
+run on; `ermrl.search.SignalGuard` raises it again once it takes over (see
+`sigint_received`).
 
-:func:`catch_sigterm` makes SIGTERM (``kill``, a SLURM time limit) raise :class:`Terminated`,
+`catch_sigterm` makes SIGTERM (``kill``, a SLURM time limit) raise `Terminated`,
 a ``KeyboardInterrupt``, so that a command stopped by it cleans up as on Ctrl-C (temporary
-folders removed, finished runs kept) and says so in one line (:func:`interruption`), instead of
+folders removed, finished runs kept) and says so in one line (`interruption`), instead of
 dying silently. Commands that handle SIGTERM themselves (an evolution's worker) install their
 own handler while they run.
 """
@@ -45,7 +45,7 @@ def _handler(signum: int, frame: Any) -> None:
 def _unraisable(unraisable: Any) -> None:
     """Python's hook for an exception it must drop (one raised in a weakref callback or a
     ``__del__``), quiet for the interruptions of these handlers: they are raised again later
-    (:func:`raise_swallowed_signal`), and the command's one line says what stopped it."""
+    (`raise_swallowed_signal`), and the command's one line says what stopped it."""
     if isinstance(unraisable.exc_value, KeyboardInterrupt) and (_received or _terminated):
         return
     sys.__unraisablehook__(unraisable)
@@ -61,15 +61,15 @@ def catch_sigint() -> None:
 
 
 def sigint_received() -> bool:
-    """Whether a SIGINT reached the handler of :func:`catch_sigint` since it was installed."""
+    """Whether a SIGINT reached the handler of `catch_sigint` since it was installed."""
     return _received
 
 
 def raise_swallowed_signal() -> None:
-    """Raise :class:`Terminated` if a SIGTERM reached the handler of :func:`catch_sigterm`, else
-    ``KeyboardInterrupt`` if a SIGINT reached that of :func:`catch_sigint`, and was lost; then
+    """Raise `Terminated` if a SIGTERM reached the handler of `catch_sigterm`, else
+    ``KeyboardInterrupt`` if a SIGINT reached that of `catch_sigint`, and was lost; then
     forget it. A training loop calls this at every step (module-level flags: no measurable
-    cost), and :func:`ermrl._io.staged_folder` before it moves its output into place.
+    cost), and `ermrl._io.staged_folder` before it moves its output into place.
 
     A signal can land where Python cannot raise its exception: in a weakref callback (of the
     import system's ``_get_module_lock``, of a ``WeakKeyDictionary`` being collected), whose
@@ -88,7 +88,7 @@ def raise_swallowed_signal() -> None:
 
 def swallowed_signal(code: int) -> int:
     """The exit code of a command that returned ``code``: 143 (SIGTERM) or 130 (SIGINT) when it
-    returned 0 though a signal came that nothing raised again (:func:`raise_swallowed_signal`),
+    returned 0 though a signal came that nothing raised again (`raise_swallowed_signal`),
     else ``code``. A command that handles the signal itself returns its own non-zero code."""
     global _received, _terminated
     if code != 0 or not (_received or _terminated):
@@ -99,7 +99,7 @@ def swallowed_signal(code: int) -> int:
 
 
 class Terminated(KeyboardInterrupt):
-    """SIGTERM during a command (see :func:`catch_sigterm`)."""
+    """SIGTERM during a command (see `catch_sigterm`)."""
 
     signum = signal.SIGTERM
 
@@ -111,8 +111,8 @@ def _sigterm(signum: int, frame: Any) -> None:
 
 
 def catch_sigterm() -> None:
-    """Make SIGTERM raise :class:`Terminated` in the main thread (no-op in another thread), and
-    note that it came, as :func:`catch_sigint` does, and forget earlier ones."""
+    """Make SIGTERM raise `Terminated` in the main thread (no-op in another thread), and
+    note that it came, as `catch_sigint` does, and forget earlier ones."""
     global _terminated
     _terminated = False
     if threading.current_thread() is threading.main_thread():
@@ -122,9 +122,9 @@ def catch_sigterm() -> None:
 
 def interruption(err: BaseException) -> tuple[str, int]:
     """What stopped a command, in words, and its exit code: ``("stopped by SIGTERM", 143)``
-    for SIGTERM (:class:`Terminated`, or an exception with ``signum`` SIGTERM), else
+    for SIGTERM (`Terminated`, or an exception with ``signum`` SIGTERM), else
     ``("interrupted", 130)`` (Ctrl-C). The signals noted so far count as handled: nothing
-    raises them again (:func:`raise_swallowed_signal`)."""
+    raises them again (`raise_swallowed_signal`)."""
     global _received, _terminated
     _received = _terminated = False
     signum = getattr(err, "signum", None)

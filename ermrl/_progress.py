@@ -1,6 +1,6 @@
 """Progress of long work (a training run, a generation): steps done, rate and ETA.
 
-One :class:`Progress` per piece of work, in one of three modes:
+One `Progress` per piece of work, in one of three modes:
 
 - ``"lines"``: a line when a tenth of the work is done or ``interval`` seconds have passed since
   the last line, whichever comes first, and a last line at the end (logs, SLURM, pipes);
@@ -8,18 +8,18 @@ One :class:`Progress` per piece of work, in one of three modes:
   when the work ends, as the last line does in ``"lines"`` mode;
 - ``"none"``: nothing.
 
-:func:`default_mode` picks ``"bar"`` when stdout is a terminal and ``"lines"`` otherwise.
+`default_mode` picks ``"bar"`` when stdout is a terminal and ``"lines"`` otherwise.
 
-The rate counts from the first :meth:`Progress.update`, not from the object's creation:
+The rate counts from the first `Progress.update`, not from the object's creation:
 start-up (imports, env construction, spawning processes) is not work, and counting it made the
 first run's rate look ten times lower than training's. The bar is created at the first update
 for the same reason (tqdm counts its rate from the bar's creation, and ``smoothing=0`` makes it
 the average since then, as the lines show).
 
-A bar draws only in the process that created the :class:`Progress`. Work sent to worker
+A bar draws only in the process that created the `Progress`. Work sent to worker
 processes prints lines there (bars from several processes on one terminal would overwrite each
-other's rows), unless it reports to the parent: :func:`relayed_bar` gives each part of a split
-work a :class:`Progress` that sends its counts to the parent over a queue, and the parent draws
+other's rows), unless it reports to the parent: `relayed_bar` gives each part of a split
+work a `Progress` that sends its counts to the parent over a queue, and the parent draws
 one bar for them all (a population split over 2 processes shows one bar, not two streams of
 lines).
 """
@@ -247,7 +247,7 @@ def relayed_bar(progress: Progress | None, n_parts: int) -> Iterator[list[Progre
     """One bar for work split over ``n_parts`` worker processes.
 
     When ``progress`` draws a bar in this process (``"bar"`` mode, on a terminal), yields one
-    :class:`Progress` per part to send to the workers: each reports its count and messages to
+    `Progress` per part to send to the workers: each reports its count and messages to
     this process over a queue, and ``progress`` shows the count of the slowest part (the parts
     train in lockstep: the work ends with the last of them). The bar is closed on exit. In
     any other case yields ``None``: the caller labels a part per worker, which prints lines.

@@ -1,15 +1,16 @@
 """Frozen configuration dataclasses shared by every part of ermrl.
 
-A run's whole configuration is one :class:`EvolveConfig`. It is saved as a study user attribute
-(``ermrl_config``) and as ``config.yaml`` next to results, so the test phase and the analysis need
-only the study name and the storage URL.
+A run's whole configuration is one [`EvolveConfig`][ermrl.config.EvolveConfig]. It is saved as a
+study user attribute (``ermrl_config``) and as ``config.yaml`` next to results, so the test phase
+and the analysis need only the study name and the storage URL.
 
 Only what is generic lives here: tasks, learner settings, budgets, the search and the problem.
 The test-phase agents are declared by the learners and encoders that own them and listed by
-:data:`ermrl.learners.AGENT_KINDS`. Each encoder's settings, search space, flags and agents live in its module of
-:mod:`ermrl.encoders` (this module sits above it and reads its registry); the names every layer
-needs (:class:`ConfigError`, :class:`Range`, the limits, ...) come from :mod:`ermrl._config_base`.
-Both are re-exported, so ``from ermrl.config import ReservoirParams`` keeps working.
+`ermrl.learners.AGENT_KINDS`. Each encoder's settings, search space, flags and agents live in its
+module of [`ermrl.encoders`][ermrl.encoders] (this module sits above it and reads its registry); the
+names every layer needs ([`ConfigError`][ermrl.config.ConfigError], [`Range`][ermrl.config.Range],
+the limits, ...) come from `ermrl._config_base`. Both are re-exported, so
+``from ermrl.config import ReservoirParams`` keeps working.
 
 Derived values are properties, never fields filled in after parsing.
 """
@@ -166,28 +167,30 @@ class NormalizeConfig:
 
 @dataclass(frozen=True)
 class PPOConfig:
-    """An inner learner's settings (PPO's, or those of another learner of :mod:`ermrl.learners`).
+    """An inner learner's settings (PPO's, or those of another learner of
+    [`ermrl.learners`][ermrl.learners]).
 
     Attributes:
         n_envs: Environments stepped in lockstep by one agent (a ``DummyVecEnv``). PPO collects
             ``n_steps * n_envs`` transitions per update; more envs means fewer, larger updates
             for the same budget.
         hyperparams: Keyword arguments for ``PPO(...)`` on top of SB3's defaults, resolved from the
-            packaged YAML table and command-line overrides (see :mod:`ermrl.agents`).
+            packaged YAML table and command-line overrides (see [`ermrl.agents`][ermrl.agents]).
         torch_threads: ``torch.set_num_threads`` for each training process (1 is fastest for the
             small MLPs used here and avoids oversubscription when seeds run in parallel).
         device: Torch device; ermrl runs everything on the CPU by default.
         normalize: Wrap the environment in ``VecNormalize`` (rl-baselines3-zoo's ``normalize``
-            key); ``None``: no normalization. Left out of :meth:`to_dict` while ``None``, so
-            configs stored before it existed are unchanged.
+            key); ``None``: no normalization. Left out of [`to_dict`][ermrl.config.to_dict] while
+            ``None``, so configs stored before it existed are unchanged.
         learner: The inner learner that takes these settings (a name of
-            :data:`ermrl.learners.LEARNERS`; ``hyperparams`` are its algorithm's arguments).
-            Left out of :meth:`to_dict` while ``"ppo"``, so configs stored before learners were
-            plug-ins read as PPO, unchanged.
+            `ermrl.learners.LEARNERS`; ``hyperparams`` are its algorithm's arguments).
+            Left out of [`to_dict`][ermrl.config.to_dict] while ``"ppo"``, so configs stored before
+            learners were plug-ins read as PPO, unchanged.
         backend: What trains the agents: ``"sb3"`` (one Stable-Baselines3 process per agent, the
-            default) or ``"population"`` (:mod:`ermrl.population`: a whole generation's agents in
-            lockstep, PPO only). Part of a study's stored configuration, so a study never mixes
-            backends; left out of :meth:`to_dict` while ``"sb3"``.
+            default) or ``"population"`` ([`ermrl.population`][ermrl.population]: a whole
+            generation's agents in lockstep, PPO only). Part of a study's stored configuration, so a
+            study never mixes backends; left out of [`to_dict`][ermrl.config.to_dict] while
+            ``"sb3"``.
     """
 
     n_envs: int = 1
@@ -251,14 +254,15 @@ class LearnerSpace:
     """The evolved genes of an inner learner (``evolve --learner hebbian``): data, not code.
 
     Evolution then shapes the learner itself, plasticity included, and the agent sees the raw
-    (masked) observation: the study has no encoder. Each gene is a named :class:`Range`; the
-    learner turns a point into settings (:meth:`ermrl.learners.Learner.decode_genes`), so search
-    code never handles a learner's own settings. The space has a fixed dimension, so that CMA-ES
-    works; a categorical choice (the Hebbian learner's baseline) is fixed per study through the
-    learner's settings (``--ppo baseline=critic``).
+    (masked) observation: the study has no encoder. Each gene is a named
+    [`Range`][ermrl.config.Range]; the learner turns a point into settings
+    ([`ermrl.learners.Learner.decode_genes`][ermrl.learners.Learner.decode_genes]), so search code
+    never handles a learner's own settings. The space has a fixed dimension, so that CMA-ES works; a
+    categorical choice (the Hebbian learner's baseline) is fixed per study through the learner's
+    settings (``--ppo baseline=critic``).
 
     Attributes:
-        learner: The learner whose genes these are (a name of :data:`ermrl.learners.LEARNERS`).
+        learner: The learner whose genes these are (a name of `ermrl.learners.LEARNERS`).
         genes: Gene name -> search range, in order.
         reference: The unevolved genes: the study's own learner settings (the learner's table
             for the task and ``--ppo``) as gene values, what ``random-<learner>`` trains with.
@@ -393,7 +397,8 @@ class Problem:
     Attributes:
         task: The environment.
         encoder: Encoding options; its ``reservoirs`` are replaced by each candidate's.
-            ``None``: no encoder (a study of a learner's genes, :class:`LearnerSpace`).
+            ``None``: no encoder (a study of a learner's genes,
+            [`LearnerSpace`][ermrl.config.LearnerSpace]).
         ppo: Agent settings.
         budget: Training budget and fitness measure.
         seeds: Training seeds; fitness is the mean over them.
@@ -492,12 +497,13 @@ class EvolveConfig:
     Attributes:
         problem: How fitness is computed.
         space: What is searched: an encoder's space, or a learner's genes
-            (:class:`LearnerSpace`, with no encoder).
+            ([`LearnerSpace`][ermrl.config.LearnerSpace], with no encoder).
         search: How it is searched.
         n_procs: Processes that train a trial's seeds in parallel.
         generalization: The task set of a multi-task run (``evolve-generalization``); then
             ``problem`` holds the shared encoder, budget and seeds, and its ``task``/``ppo``
-            are the first task's. ``None`` (single task) is left out of :meth:`to_dict`.
+            are the first task's. ``None`` (single task) is left out of
+            [`to_dict`][ermrl.config.to_dict].
     """
 
     problem: Problem
@@ -621,10 +627,11 @@ def _field_class(cls: type, key: str) -> type | None:
 
 
 def from_dict(cls: type[_T], data: Mapping[str, Any]) -> _T:
-    """Inverse of :func:`to_dict` for the dataclasses of this module and of the encoders.
+    """Inverse of [`to_dict`][ermrl.config.to_dict] for the dataclasses of this module and of the
+    encoders.
 
     An encoder's search space and reservoir settings are read as the classes of the registered
-    encoder whose ``family`` they store (:data:`ermrl.encoders.ENCODERS`; none stored: the
+    encoder whose ``family`` they store (`ermrl.encoders.ENCODERS`; none stored: the
     reference encoder's, as echo state networks were stored); their range fields follow their
     annotations.
     """

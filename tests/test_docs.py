@@ -144,8 +144,9 @@ def test_installing_without_make_puts_the_cpu_torch_first() -> None:
 
 def test_every_docs_page_is_in_the_nav() -> None:
     config = (ROOT / "mkdocs.yml").read_text(encoding="utf-8")
-    for page in (ROOT / "docs").glob("*.md"):
-        assert f": {page.name}" in config, f"{page.name} is not in mkdocs.yml's nav"
+    for page in (ROOT / "docs").rglob("*.md"):
+        name = page.relative_to(ROOT / "docs").as_posix()
+        assert f": {name}\n" in config, f"{name} is not in mkdocs.yml's nav"
 
 
 # `--encoder {reservoir,rtu,nvar}` written in a page's prose or tables.
@@ -196,6 +197,53 @@ def test_the_learner_and_encoder_lists_of_the_experiments_page_are_the_registrie
     assert f"`--encoder {{{','.join(ENCODERS)}}}`" in page
 
 
+# A Sphinx role (:class:`X`): mkdocstrings prints it as it is; a docstring links with
+# [`X`][ermrl.package.X] instead, or writes `X` where the site does not document X.
+_SPHINX_ROLE = re.compile(r":(class|func|meth|attr|mod|data|exc|obj):`")
+
+
+def _docstrings() -> list[tuple[Path, int, str]]:
+    """Every docstring of ``ermrl/`` (modules, classes, functions and the strings under
+    attributes), as ``(file, first line, text)``."""
+    import ast
+
+    found = []
+    for path in sorted((ROOT / "ermrl").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if (
+                isinstance(node, ast.Expr)
+                and isinstance(node.value, ast.Constant)
+                and isinstance(node.value.value, str)
+            ):
+                found.append((path, node.lineno, node.value.value))
+    return found
+
+
+def _docstring_lines(pattern: re.Pattern[str]) -> list[str]:
+    """``file:line: text`` of each docstring line of ``ermrl/`` that ``pattern`` matches."""
+    hits = []
+    for path, first, text in _docstrings():
+        for offset, line in enumerate(text.splitlines()):
+            if pattern.search(line):
+                where = f"{path.relative_to(ROOT)}:{first + offset}"
+                hits.append(f"{where}: {line.strip()}")
+    return hits
+
+
+def test_docstrings_link_with_markdown_not_sphinx_roles() -> None:
+    hits = _docstring_lines(_SPHINX_ROLE)
+    assert not hits, "Sphinx roles in docstrings (mkdocstrings prints them literally):\n" + (
+        "\n".join(hits)
+    )
+
+
+def test_docstring_examples_are_examples_sections_without_doctest_directives() -> None:
+    """griffe reads ``Examples:`` as a section of code blocks; a singular ``Example:`` (or the
+    RST ``Example::``) is not one, and ``# doctest:`` directives would be printed."""
+    hits = _docstring_lines(re.compile(r"^\s*Example::?\s*$|#\s*doctest:"))
+    assert not hits, "write Examples: without doctest directives:\n" + "\n".join(hits)
+
+
 @pytest.fixture(scope="module")
 def site(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The site, built once with ``mkdocs build --strict``."""
@@ -216,7 +264,8 @@ def site(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.mark.slow
 def test_the_site_builds_strictly(site: Path) -> None:
     assert (site / "cli.html").is_file()
-    assert (site / "api.html").is_file()
+    assert (site / "api" / "index.html").is_file()
+    assert (site / "api" / "runner.html").is_file()
 
 
 @pytest.mark.slow
@@ -225,7 +274,7 @@ def test_the_site_links_work_from_disk_and_load_nothing_from_the_network(site: P
     nothing can be fetched from a CDN: every page link names an .html file that exists, and
     every script and stylesheet is local. The search index is inlined (the offline plugin)."""
     assert (site / "search" / "search_index.js").read_text(encoding="utf-8").startswith("var ")
-    for page in sorted(site.glob("*.html")):
+    for page in sorted([*site.glob("*.html"), *site.glob("api/*.html")]):
         if page.name == "404.html":  # served by a web server only, with absolute links
             continue
         text = page.read_text(encoding="utf-8")
@@ -237,6 +286,54 @@ def test_the_site_links_work_from_disk_and_load_nothing_from_the_network(site: P
                 continue
             assert not target.endswith("/"), f"{page.name} links to the folder {target}"
             assert (page.parent / target).resolve().exists(), f"{page.name}: {target} is missing"
+
+
+def _api_pages(site: Path) -> list[Path]:
+    pages = sorted((site / "api").glob("*.html"))
+    assert len(pages) >= 10, pages
+    return pages
+
+
+def _page_text(html_text: str) -> str:
+    import html as html_module
+
+    return html_module.unescape(re.sub(r"<[^>]+>", "", html_text))
+
+
+@pytest.mark.slow
+def test_the_api_pages_print_no_sphinx_roles_or_doctest_directives(site: Path) -> None:
+    for page in _api_pages(site):
+        text = _page_text(page.read_text(encoding="utf-8"))
+        roles = sorted(set(re.findall(r":(?:class|func|meth|attr|mod|data|exc|obj):`?\S*", text)))
+        assert not roles, f"api/{page.name} prints {len(roles)} Sphinx roles: {roles[:10]}"
+        assert "doctest" not in text, f"api/{page.name} prints doctest directives"
+
+
+@pytest.mark.slow
+def test_the_api_pages_show_examples_as_code_blocks(site: Path) -> None:
+    """Each Examples section is code (``<pre>``), not prose: no block quote (what Markdown makes
+    of ``>>>`` lines outside a code block), no ``>>>`` outside ``<pre>``, and every page with
+    examples shows them in a ``<pre>``."""
+    with_examples = 0
+    for page in _api_pages(site):
+        html_text = page.read_text(encoding="utf-8")
+        name = f"api/{page.name}"
+        assert "<blockquote" not in html_text, f"{name}: a block quote (a doctest read as prose?)"
+        assert '<details class="example"' not in html_text, f"{name}: an Example: admonition"
+        outside = _page_text(re.sub(r"<pre\b.*?</pre>", "", html_text, flags=re.S))
+        assert ">>>" not in outside, f"{name}: >>> outside a code block"
+        sections = html_text.split('<span class="doc-section-title">Examples:</span>')[1:]
+        for section in sections:
+            body = re.split(r'doc-section-title|<div class="doc doc-object', section, maxsplit=1)[0]
+            assert "<pre" in body, f"{name}: an Examples section without a code block"
+        blocks = [_page_text(b) for b in re.findall(r"<pre\b.*?</pre>", html_text, flags=re.S)]
+        if sections:
+            with_examples += 1
+            assert any(b.lstrip().startswith(">>>") for b in blocks), name
+    assert with_examples >= 3
+    runner = (site / "api" / "runner.html").read_text(encoding="utf-8")
+    blocks = [_page_text(b) for b in re.findall(r"<pre\b.*?</pre>", runner, flags=re.S)]
+    assert any(">>> import ermrl\n>>> exp = ermrl.Experiment.load(" in b for b in blocks)
 
 
 # Run in the page after it loaded: types a query into the search box, then records the results,

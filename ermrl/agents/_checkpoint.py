@@ -4,13 +4,13 @@ A run of an on-policy Stable-Baselines3 learner (PPO and the learners built on S
 ``OnPolicyAlgorithm``: ``lstm-ppo``, ``framestack-ppo``, ``rtu-ppo``) saves, every ``every`` env
 steps at the start of a rollout (after an update), its model with SB3's ``model.save`` (the
 policy's weights and the optimizer's state), the running normalization statistics (JSON, as
-:func:`~ermrl.agents.normalize_stats` writes them) and its episode records. A rerun of the same
-run (the same ``key``) loads them with SB3's ``set_parameters`` and trains the remaining steps
-with ``reset_num_timesteps=False``, so the learning-rate and clip schedules go on where they were.
-The environments restart from fresh episodes (seeded anew), and the learner's other state (a
+[`normalize_stats`][ermrl.agents.normalize_stats] writes them) and its episode records. A rerun of
+the same run (the same ``key``) loads them with SB3's ``set_parameters`` and trains the remaining
+steps with ``reset_num_timesteps=False``, so the learning-rate and clip schedules go on where they
+were. The environments restart from fresh episodes (seeded anew), and the learner's other state (a
 recurrent learner's hidden state, its random streams) starts afresh: a resumed run is not bit for
-bit the uninterrupted one. Off-policy learners (SAC, whose replay buffer is not saved) and
-learners that are no SB3 algorithm are not checkpointed: they restart from step 0.
+bit the uninterrupted one. Off-policy learners (SAC, whose replay buffer is not saved) and learners
+that are no SB3 algorithm are not checkpointed: they restart from step 0.
 
 A checkpoint is data someone else may have written: its model is read with ``weights_only``
 tensors and no pickled class data, and a checkpoint that cannot be read back whole (a truncated
@@ -71,7 +71,8 @@ class RunCheckpoint:
     def load(self) -> dict[str, Any] | None:
         """The saved state (with ``model``, the path of its model file), or ``None``: no
         checkpoint, one of another run (the run starts over and its saves replace it), or an
-        unreadable one, which is set aside first (:meth:`set_aside`).
+        unreadable one, which is set aside first
+        ([`set_aside`][ermrl.agents.RunCheckpoint.set_aside]).
 
         Everything is checked that can be without the model: the state file's fields and
         types, and that the model file is a zip whose tensors load with ``weights_only``."""
@@ -116,9 +117,9 @@ class RunCheckpoint:
 
     def restore(self, model: Any, normalized: Any) -> dict[str, Any] | None:
         """Load the saved state into ``model`` (weights, optimizer) and ``normalized`` (its
-        running statistics, when it is a ``VecNormalize``): the state as :meth:`load` gives
-        it, or ``None`` with both left as they were (no checkpoint, or one set aside, e.g.
-        weights of the wrong shapes for this model)."""
+        running statistics, when it is a ``VecNormalize``): the state as
+        [`load`][ermrl.agents.RunCheckpoint.load] gives it, or ``None`` with both left as they were
+        (no checkpoint, or one set aside, e.g. weights of the wrong shapes for this model)."""
         saved = self.load()
         if saved is None:
             return None

@@ -64,9 +64,10 @@ def parse_normalize(value: Any, where: str = "normalize") -> NormalizeConfig | N
     """Read rl-baselines3-zoo's ``normalize`` value.
 
     Args:
-        value: ``true``/``false``, ``null``, or a mapping of :class:`~ermrl.config.NormalizeConfig`
-            fields (``{norm_obs: true, norm_reward: false}``). A string is read as YAML, so the
-            zoo's quoted form ``"{'norm_obs': False, 'norm_reward': True}"`` works too.
+        value: ``true``/``false``, ``null``, or a mapping of
+            [`NormalizeConfig`][ermrl.config.NormalizeConfig] fields
+            (``{norm_obs: true, norm_reward: false}``). A string is read as YAML, so the zoo's
+            quoted form ``"{'norm_obs': False, 'norm_reward': True}"`` works too.
         where: Where the value comes from, for error messages.
 
     Returns:
@@ -109,7 +110,7 @@ def load_hyperparams_table(
     Args:
         path: A YAML file; ``None`` loads the learner's packaged table (``ermrl/data/ppo.yml``
             for PPO).
-        learner: The learner whose settings these are (see :mod:`ermrl.learners`).
+        learner: The learner whose settings these are (see [`ermrl.learners`][ermrl.learners]).
 
     Returns:
         The table, with a ``default`` entry (possibly empty).
@@ -225,7 +226,7 @@ def parse_overrides(items: Sequence[str], learner: str | None = None) -> dict[st
     Raises:
         ConfigError: a malformed item or an unknown key.
 
-    Example:
+    Examples:
         >>> parse_overrides(["learning_rate:1e-4", "n_steps=512"])
         {'learning_rate': 0.0001, 'n_steps': 512}
     """
@@ -282,7 +283,7 @@ def resolve_ppo_config(
 ) -> PPOConfig:
     """Resolve an env's PPO settings: SB3 defaults < table ``default`` < table[env_id] < overrides.
 
-    ``n_envs`` and ``normalize`` go to their own :class:`~ermrl.config.PPOConfig` fields; every
+    ``n_envs`` and ``normalize`` go to their own [`PPOConfig`][ermrl.config.PPOConfig] fields; every
     other key is a ``PPO(...)`` argument.
 
     Args:
@@ -291,8 +292,9 @@ def resolve_ppo_config(
         n_envs: Explicit number of environments (wins over the table).
         table_path: Alternative YAML table (default: the learner's own).
         torch_threads: Torch threads per training process.
-        learner: The learner (see :mod:`ermrl.learners`); its table is read.
-        backend: What trains the agents (``sb3`` or ``population``, see :mod:`ermrl.population`).
+        learner: The learner (see [`ermrl.learners`][ermrl.learners]); its table is read.
+        backend: What trains the agents (``sb3`` or ``population``, see
+            [`ermrl.population`][ermrl.population]).
     """
     table = load_hyperparams_table(table_path, learner)
     merged: dict[str, Any] = dict(table.get("default") or {})
@@ -314,7 +316,7 @@ def with_overrides(config: PPOConfig, overrides: Mapping[str, Any]) -> PPOConfig
 
     Args:
         config: Resolved settings (a study's, for example).
-        overrides: From :func:`parse_overrides`.
+        overrides: From [`parse_overrides`][ermrl.agents.parse_overrides].
     """
     rest = dict(overrides)
     changes: dict[str, Any] = {}

@@ -5,8 +5,8 @@ zoo wraps the env it gives PPO. Evaluation and replays wrap theirs in a frozen c
 statistics reached at the end of training, not updated (``training=False``), with raw rewards
 (``norm_reward=False``).
 
-The statistics are saved as JSON next to the model (:func:`stats_path`), never with SB3's own
-``VecNormalize.save``, which pickles the wrapper: reading a pickle can run code.
+The statistics are saved as JSON next to the model ([`stats_path`][ermrl.agents.stats_path]), never
+with SB3's own ``VecNormalize.save``, which pickles the wrapper: reading a pickle can run code.
 """
 
 from __future__ import annotations
@@ -104,7 +104,8 @@ def frozen_normalize_env(venv: Any, stats: dict[str, Any]) -> Any:
 
     Args:
         venv: The environments, built as in training (same mask, encoder and weights).
-        stats: From :func:`normalize_stats` or :func:`load_normalize_stats`.
+        stats: From [`normalize_stats`][ermrl.agents.normalize_stats] or
+            [`load_normalize_stats`][ermrl.agents.load_normalize_stats].
 
     Returns:
         A ``VecNormalize`` that normalizes observations as training ended, never updates its
@@ -162,5 +163,5 @@ def stats_path(model_path: str | Path) -> Path:
 
 
 def save_normalize_stats(venv: Any, path: str | Path) -> None:
-    """Write :func:`normalize_stats` of ``venv`` as JSON to ``path``."""
+    """Write [`normalize_stats`][ermrl.agents.normalize_stats] of ``venv`` as JSON to ``path``."""
     Path(path).write_text(json.dumps(normalize_stats(venv), indent=1) + "\n")

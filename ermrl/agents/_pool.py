@@ -1,15 +1,16 @@
 """Processes that train agents in parallel: sized to keep every core busy, never orphaned.
 
-Both the evolution (a trial's seeds, :class:`ermrl.search.SeedRunner`) and the test phase
-(agents x seeds) train in a pool made by :func:`training_pool`:
+Both the evolution (a trial's seeds, [`ermrl.search.SeedRunner`][ermrl.search.SeedRunner]) and the
+test phase (agents x seeds) train in a pool made by [`training_pool`][ermrl.agents.training_pool]:
 
 - ``spawn`` processes (no forked torch state), whose initializer imports the training stack once;
 - on Linux each process is killed when its parent dies (``PR_SET_PDEATHSIG``), so a worker killed
   with SIGKILL or by the OOM killer does not leave its training runs burning CPU for hours;
 - a pool whose ``with`` block ends with an error or an interrupt (Ctrl-C, SIGTERM) terminates
-  its processes (:func:`stop_workers`) instead of waiting for their runs to end: hours, with a
-  population's, which trained on while the command had already said it stopped;
-- :func:`pool_size` picks how many single-threaded processes finish the runs soonest.
+  its processes ([`stop_workers`][ermrl.agents.stop_workers]) instead of waiting for their runs to
+  end: hours, with a population's, which trained on while the command had already said it stopped;
+- [`pool_size`][ermrl.agents.pool_size] picks how many single-threaded processes finish the runs
+  soonest.
 """
 
 from __future__ import annotations
@@ -98,7 +99,7 @@ def stop_workers(pool: ProcessPoolExecutor) -> None:
 
 class _TrainingPool(ProcessPoolExecutor):
     """A ``ProcessPoolExecutor`` whose ``with`` block, ended by an exception, stops its
-    processes (:func:`stop_workers`) rather than waiting for their runs."""
+    processes ([`stop_workers`][ermrl.agents.stop_workers]) rather than waiting for their runs."""
 
     def __exit__(
         self,
@@ -113,11 +114,12 @@ class _TrainingPool(ProcessPoolExecutor):
 
 
 def training_pool(n_processes: int) -> ProcessPoolExecutor:
-    """A pool of ``n_processes`` ``spawn`` processes for :func:`~ermrl.agents.train_agent` runs.
+    """A pool of ``n_processes`` ``spawn`` processes for [`train_agent`][ermrl.agents.train_agent]
+    runs.
 
     Call it from the thread that keeps the pool (the main thread of a worker): on Linux the
     processes die with the thread that started them. A ``with`` block that ends with an error
-    or an interrupt terminates them (:func:`stop_workers`).
+    or an interrupt terminates them ([`stop_workers`][ermrl.agents.stop_workers]).
     """
     return _TrainingPool(
         max_workers=n_processes,

@@ -75,7 +75,7 @@ def steps_trained(ppo: PPOConfig, steps: int) -> int:
     rollouts of ``n_steps * n_envs`` steps and stop after the one that reaches the budget, so
     the budget rounds up to a whole number of rollouts; other learners train ``steps``.
 
-    Example:
+    Examples:
         >>> from ermrl.config import PPOConfig
         >>> steps_trained(PPOConfig(n_envs=1, hyperparams={"n_steps": 2048}), 3000)
         4096
@@ -124,7 +124,8 @@ def make_vec_env(
         render_mode: Passed to ``gymnasium.make``.
 
     Returns:
-        A ``VecEnv`` (a :class:`~ermrl.encoders.ReservoirVecEnv` when ``encoder`` is given).
+        A ``VecEnv`` (a [`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv] when ``encoder`` is
+        given).
     """
     from stable_baselines3.common.monitor import Monitor
     from stable_baselines3.common.vec_env import DummyVecEnv
@@ -261,7 +262,7 @@ def _evaluate(
         task: Env id and observation mask.
         encoder: The run's reservoir encoding, or ``None``.
         ppo: The learner's settings.
-        seeds: The run's seeds (:func:`derive_seeds`).
+        seeds: The run's seeds ([`derive_seeds`][ermrl.agents.derive_seeds]).
         normalized: The training env after ``normalize_env`` (a ``VecNormalize`` when
             ``ppo.normalize`` is set).
         n_eval_episodes: Episodes to run.
@@ -329,7 +330,7 @@ def _checkpoint_callback(
 
 def save_trained(model: Any, model_path: str | Path, stats: dict[str, Any] | None) -> None:
     """Write a trained agent's files: ``model_path`` (``model.zip``), its ``policy.pt`` and, with
-    normalization statistics, their JSON (:func:`~ermrl.agents.stats_path`).
+    normalization statistics, their JSON ([`stats_path`][ermrl.agents.stats_path]).
 
     ``model.zip`` is SB3's format (pickles, never read by ermrl); ``policy.pt`` holds the weights
     as plain tensors, the only file ermrl reads a policy from. The zip is written under a
@@ -382,15 +383,17 @@ def train_agent(
     Args:
         task: Env id and observation mask.
         encoder: Reservoir encoding; ``None`` trains plain PPO on the (masked) observation.
-        ppo: The learner's settings (``ppo.learner`` names it, see :mod:`ermrl.learners`).
+        ppo: The learner's settings (``ppo.learner`` names it, see
+            [`ermrl.learners`][ermrl.learners]).
         budget: Training steps and fitness measure.
-        seed: Seeds the reservoir weights, the environments and the agent (see :func:`derive_seeds`).
+        seed: Seeds the reservoir weights, the environments and the agent (see
+            [`derive_seeds`][ermrl.agents.derive_seeds]).
         evaluate: Run deterministic evaluation episodes after training (default: when
             ``budget.fitness == "eval"``).
         model_path: Save the trained model there (``.zip``, SB3's format), its policy's
-            weights as plain tensors (:func:`~ermrl.agents.policy_path`, the file ermrl reads
-            back) and, with ``ppo.normalize``, the normalization statistics as JSON
-            (:func:`~ermrl.agents.stats_path`).
+            weights as plain tensors ([`policy_path`][ermrl.agents.policy_path], the file ermrl
+            reads back) and, with ``ppo.normalize``, the normalization statistics as JSON
+            ([`stats_path`][ermrl.agents.stats_path]).
         report: Called as ``report(env_step, mean_recent_return)`` ``budget.n_reports`` times
             during training (for pruning); it may raise to stop training.
         tensorboard_log: Directory for SB3's TensorBoard logs.
@@ -404,12 +407,12 @@ def train_agent(
             do not change training (deterministic actions on their own env).
         wandb: Log the run to Weights & Biases through wandb's SB3 callback (SB3's
             TensorBoard scalars synced, the outcome in the W&B run's summary); see
-            :mod:`ermrl.agents._wandb`. Needs the ``wandb`` package.
+            `ermrl.agents._wandb`. Needs the ``wandb`` package.
         callbacks: More SB3 callbacks, called after ermrl's own.
         progress: Told the learner's env steps as training goes (a line every tenth of the
             budget or 30 s, with the rate from the first step on), and closed at the end.
         checkpoint: Resume from this checkpoint when it holds this run's state, and save the
-            run there as it trains (:mod:`ermrl.agents._checkpoint`: on-policy SB3 learners
+            run there as it trains (`ermrl.agents._checkpoint`: on-policy SB3 learners
             only; others ignore it); removed when the run ends.
 
     Returns:
@@ -439,8 +442,8 @@ def _train_with_wandb(
     callbacks: Sequence[Any],
 ) -> RunResult:
     """``run(tensorboard_log=..., callbacks=...)`` logged to Weights & Biases (see
-    :func:`train_agent`): wandb's SB3 callback after ``callbacks``, and the outcome in the W&B
-    run's summary."""
+    [`train_agent`][ermrl.agents.train_agent]): wandb's SB3 callback after ``callbacks``, and the
+    outcome in the W&B run's summary."""
     from ermrl.agents._wandb import wandb_run
 
     with wandb_run(wandb, tensorboard_log) as (wandb_callback, log_dir, session):
@@ -472,8 +475,8 @@ def _train(
     progress: Progress | None,
     checkpoint: RunCheckpoint | None,
 ) -> RunResult:
-    """:func:`train_agent` once its arguments are checked and W&B is set up: build the env and
-    the learner, resume, learn, measure the returns, evaluate, save."""
+    """[`train_agent`][ermrl.agents.train_agent] once its arguments are checked and W&B is set up:
+    build the env and the learner, resume, learn, measure the returns, evaluate, save."""
     import torch
 
     from ermrl.agents._normalize import normalize_env, save_normalize_stats, stats_path
@@ -602,7 +605,7 @@ def _with_evaluations(
     episodes: Callable[[], list[float]],
 ) -> Any:
     """``callback``, followed by the evaluations at the steps of ``eval_at`` (none: ``callback``
-    alone), each the mean return of ``episodes()`` (see :func:`_checkpoint_callback`)."""
+    alone), each the mean return of ``episodes()`` (see `_checkpoint_callback`)."""
     if not eval_at:
         return callback
 

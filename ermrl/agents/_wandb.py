@@ -1,11 +1,11 @@
 """Weights & Biases logging of one training run, through wandb's own SB3 callback.
 
-A run of :func:`~ermrl.agents.train_agent` with a :class:`WandbRun` opens one W&B run, syncs
-SB3's TensorBoard scalars into it (``sync_tensorboard``: rollout returns, losses, ...) with
-:class:`wandb.integration.sb3.WandbCallback`, and stores the run's outcome in the W&B run's
+A run of [`train_agent`][ermrl.agents.train_agent] with a [`WandbRun`][ermrl.agents.WandbRun] opens
+one W&B run, syncs SB3's TensorBoard scalars into it (``sync_tensorboard``: rollout returns, losses,
+...) with `wandb.integration.sb3.WandbCallback`, and stores the run's outcome in the W&B run's
 summary (``ermrl/last_return``, ``ermrl/eval_return``, ``ermrl/env_steps``). ``WANDB_MODE``,
-``WANDB_DIR`` and the other ``WANDB_*`` variables apply as usual (``WANDB_MODE=offline`` writes
-the runs locally for a later ``wandb sync``).
+``WANDB_DIR`` and the other ``WANDB_*`` variables apply as usual (``WANDB_MODE=offline`` writes the
+runs locally for a later ``wandb sync``).
 """
 
 from __future__ import annotations
@@ -58,8 +58,9 @@ def study_wandb_callback(
     group); each recorded trial logs its parameters and ``metric_name`` at step = its number.
 
     Returns:
-        ``(callback, finish)``: pass ``callback`` to :func:`ermrl.search.run_evolution` and call
-        ``finish()`` when the worker is done.
+        ``(callback, finish)``: pass ``callback`` to
+        [`ermrl.search.run_evolution`][ermrl.search.run_evolution] and call ``finish()`` when the
+        worker is done.
     """
     import os
     import socket

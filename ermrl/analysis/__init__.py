@@ -1,8 +1,8 @@
 """Reading results back: studies, run folders, statistics, figures, reports, dynamics, videos.
 
 Everything runs from the study storage and the test-phase folders alone, headless on the CPU.
-Figures are returned as :class:`PaperFigure` objects (shown inline by notebooks) and written
-with :func:`save_figure`.
+Figures are returned as [`PaperFigure`][ermrl.analysis.PaperFigure] objects (shown inline by
+notebooks) and written with [`save_figure`][ermrl.analysis.save_figure].
 """
 
 from ermrl.analysis._dynamics import (

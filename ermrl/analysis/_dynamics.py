@@ -124,7 +124,7 @@ class DynamicsRecording:
 
     @classmethod
     def load(cls, path: str | Path) -> DynamicsRecording:
-        """Read a recording written by :meth:`save`.
+        """Read a recording written by [`save`][ermrl.analysis.DynamicsRecording.save].
 
         Raises:
             ermrl.envs.UnknownEnvError: its env id is not a registered id (never imported).
@@ -235,7 +235,7 @@ def dominant_frequency(
     (on a short episode, that is only the spectral resolution): both give NaN.
 
     Args:
-        freqs: Shape ``(F,)``, from :func:`power_spectrum`.
+        freqs: Shape ``(F,)``, from [`power_spectrum`][ermrl.analysis.power_spectrum].
         power: Shape ``(F, d)`` or ``(F,)``.
         min_prominence_decades: Minimum prominence of a peak, in decades of power.
     """
@@ -300,7 +300,7 @@ def dynamics_figure(
     """Observations, actions and the first ``n_units`` reservoir units over time.
 
     Args:
-        recording: From :func:`record_dynamics`.
+        recording: From [`record_dynamics`][ermrl.analysis.record_dynamics].
         n_units: Reservoir units shown (the first ones).
         window_steps: Steps shown from the start of the episode (``None``: all).
         title: Figure title (default names the agent, env, mask and seed).
@@ -402,7 +402,7 @@ def spectrum_figure(recording: DynamicsRecording, *, title: str | None = None) -
     0 Hz; dashed lines mark the dominant frequencies.
 
     Args:
-        recording: From :func:`record_dynamics`.
+        recording: From [`record_dynamics`][ermrl.analysis.record_dynamics].
         title: Figure title.
 
     Returns:
@@ -580,9 +580,9 @@ def joint_angles(recording: DynamicsRecording) -> np.ndarray | None:
     Its spectrum is the gait: the frequency at which a locomotion policy moves its joints.
 
     Returns:
-        Shape ``(T, k)``; ``None`` when the task is not MuJoCo locomotion (:func:`has_joints`),
-        the episode's observation holds no positions (``observe="velocities"``) or the task
-        has no known position/velocity split.
+        Shape ``(T, k)``; ``None`` when the task is not MuJoCo locomotion
+        ([`has_joints`][ermrl.analysis.has_joints]), the episode's observation holds no positions
+        (``observe="velocities"``) or the task has no known position/velocity split.
     """
     if not has_joints(recording.env_id):
         return None
@@ -603,7 +603,8 @@ def joint_angles(recording: DynamicsRecording) -> np.ndarray | None:
 
 
 def gait_frequency(recording: DynamicsRecording) -> float:
-    """Dominant frequency of the joint angles (:func:`joint_angles`); NaN when unknown."""
+    """Dominant frequency of the joint angles ([`joint_angles`][ermrl.analysis.joint_angles]); NaN
+    when unknown."""
     angles = joint_angles(recording)
     if angles is None or recording.n_steps < 4:
         return math.nan

@@ -2,8 +2,9 @@
 
 A generalization study (user attribute ``ermrl_kind == "evolve-generalization"``) records on each
 trial the user attributes ``task_normalized = {env_id: score}`` and ``task_returns = {env_id:
-mean return}``. Single-task studies have neither: :func:`task_scores_frame` then returns an empty
-table and :func:`task_scores_figure` says so in the figure.
+mean return}``. Single-task studies have neither:
+[`task_scores_frame`][ermrl.analysis.task_scores_frame] then returns an empty table and
+[`task_scores_figure`][ermrl.analysis.task_scores_figure] says so in the figure.
 """
 
 from __future__ import annotations
@@ -80,7 +81,7 @@ def task_seed_scores(attrs: Mapping[str, Any]) -> dict[str, np.ndarray]:
     Each seed's raw return ``R`` (``task_seed_returns``) is normalized with the task's references
     as the fitness is, ``(R - R_random) / (R_target - R_random)`` (``task_random_returns``,
     ``task_target_returns``), so that the tasks share one scale and can be pooled by
-    :func:`~ermrl.analysis.aggregate_iqm`.
+    [`aggregate_iqm`][ermrl.analysis.aggregate_iqm].
 
     Args:
         attrs: The trial's user attributes (``trial.user_attrs``).
@@ -110,7 +111,7 @@ def task_scores_figure(scores: pd.DataFrame, *, title: str = "") -> PaperFigure:
     """Per-task normalized scores: the best trial's per task, and each task's over the trials.
 
     Args:
-        scores: Output of :func:`task_scores_frame`.
+        scores: Output of [`task_scores_frame`][ermrl.analysis.task_scores_frame].
         title: Figure title.
 
     Returns:

@@ -7,27 +7,29 @@ The reservoirs evolution selects can have a spectral radius near 0, where the ec
 projection of the input. Two measurements tell the two apart on a task.
 
 **Spectra.** One recorded episode of the trained ``res-ppo`` agent
-(:func:`~ermrl.analysis.record_dynamics`) gives the reservoir's input stream
+([`record_dynamics`][ermrl.analysis.record_dynamics]) gives the reservoir's input stream
 ``u_t = [observation_t, previous action, previous reward]`` (the encoding of
-:class:`~ermrl.encoders.ReservoirVecEnv`). The same stream drives three reservoirs, each built with
-the weights of every test seed of ``res-ppo`` (:func:`reservoir_spectra`): the evolved one
-(``res-ppo``'s), the unevolved reference (``random-res-ppo``'s) and the evolved one with ``W = 0``
-(``leaky-res-ppo``'s: the same ``Win``, bias and leak rate). Driving all three with one stream
-isolates the reservoir from the policy. For each, and for the episode's joint angles
-(:func:`~ermrl.analysis.joint_angles`): the Welch spectrum (:func:`~ermrl.analysis.power_spectrum`,
-mean over units), its dominant frequency (:func:`~ermrl.analysis.dominant_frequency`), and the
-share of its power above 0 Hz inside the *gait band*: the joint angles' dominant frequency (the
-gait) ± :attr:`SpectralCriterion.band` of it, at least ± one frequency bin (:func:`band_share`).
+[`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv]). The same stream drives three reservoirs, each
+built with the weights of every test seed of ``res-ppo``
+([`reservoir_spectra`][ermrl.analysis.reservoir_spectra]): the evolved one (``res-ppo``'s), the
+unevolved reference (``random-res-ppo``'s) and the evolved one with ``W = 0`` (``leaky-res-ppo``'s:
+the same ``Win``, bias and leak rate). Driving all three with one stream isolates the reservoir from
+the policy. For each, and for the episode's joint angles
+([`joint_angles`][ermrl.analysis.joint_angles]): the Welch spectrum
+([`power_spectrum`][ermrl.analysis.power_spectrum], mean over units), its dominant frequency
+([`dominant_frequency`][ermrl.analysis.dominant_frequency]), and the share of its power above 0 Hz
+inside the *gait band*: the joint angles' dominant frequency (the gait) ± `SpectralCriterion.band`
+of it, at least ± one frequency bin ([`band_share`][ermrl.analysis.band_share]).
 
-**The spectral criterion** (:class:`SpectralCriterion`). The evolved reservoir *carries a
-gait-frequency component that its W = 0 ablation lacks* on one weight seed when its share in the
-gait band is at least :attr:`SpectralCriterion.ratio` times the ablation's and its own dominant
-frequency lies inside the band; on the task, when that holds on more than half of the weight
-seeds.
+**The spectral criterion** ([`SpectralCriterion`][ermrl.analysis.SpectralCriterion]). The evolved
+reservoir *carries a gait-frequency component that its W = 0 ablation lacks* on one weight seed when
+its share in the gait band is at least `SpectralCriterion.ratio` times the ablation's and its own
+dominant frequency lies inside the band; on the task, when that holds on more than half of the
+weight seeds.
 
-**The verdict** (:func:`mechanism_verdict`) combines the criterion with the comparison
-``res-ppo − leaky-res-ppo`` of the verdict layer (:func:`~ermrl.analysis.judge`: Holm over the
-page's family, both intervals):
+**The verdict** ([`mechanism_verdict`][ermrl.analysis.mechanism_verdict]) combines the criterion
+with the comparison ``res-ppo − leaky-res-ppo`` of the verdict layer
+([`judge`][ermrl.analysis.judge]: Holm over the page's family, both intervals):
 
 - *oscillatory dynamics* (supported): the ablation learns worse (the comparison is supported) and
   the evolved reservoir carries a gait-frequency component its ablation lacks;
@@ -174,7 +176,7 @@ def band_share(freqs: np.ndarray, power: np.ndarray, band: Sequence[float]) -> f
     """Share of a spectrum's power above 0 Hz that lies inside ``band``.
 
     Args:
-        freqs: Shape ``(F,)``, from :func:`~ermrl.analysis.power_spectrum`.
+        freqs: Shape ``(F,)``, from [`power_spectrum`][ermrl.analysis.power_spectrum].
         power: Shape ``(F, d)`` (the columns are summed: the share of the total variance) or
             ``(F,)``.
         band: ``(low, high)``, inclusive.
@@ -197,10 +199,10 @@ def lowest_bin(freqs: np.ndarray, power: np.ndarray) -> bool:
     """Whether a spectrum's power above 0 Hz is largest in its lowest non-zero frequency bin.
 
     Such a signal varies more slowly than the spectrum resolves: a peak there cannot be told
-    from a trend (:func:`~ermrl.analysis.dominant_frequency` gives none).
+    from a trend ([`dominant_frequency`][ermrl.analysis.dominant_frequency] gives none).
 
     Args:
-        freqs: Shape ``(F,)``, from :func:`~ermrl.analysis.power_spectrum`.
+        freqs: Shape ``(F,)``, from [`power_spectrum`][ermrl.analysis.power_spectrum].
         power: Shape ``(F, d)`` (mean over columns) or ``(F,)``.
     """
     mean = power.mean(axis=1) if power.ndim == 2 else np.asarray(power, dtype=float)
@@ -211,13 +213,13 @@ def lowest_bin(freqs: np.ndarray, power: np.ndarray) -> bool:
 def gait_segment(angles: np.ndarray | None, dt: float) -> int:
     """The Welch segment length (steps) that resolves the gait of an episode's joint angles.
 
-    :data:`NPERSEG` steps, unless the joint angles have no spectral peak with them and their power
-    is largest in the lowest non-zero bin (:func:`lowest_bin`): the gait is then slower than
-    ``1 / (NPERSEG dt)`` (Swimmer's, at dt 0.04 s, can be under 0.1 Hz), and the whole episode is
-    one segment, for a resolution of ``1 / (T dt)``.
+    `NPERSEG` steps, unless the joint angles have no spectral peak with them and their power
+    is largest in the lowest non-zero bin ([`lowest_bin`][ermrl.analysis.lowest_bin]): the gait is
+    then slower than ``1 / (NPERSEG dt)`` (Swimmer's, at dt 0.04 s, can be under 0.1 Hz), and the
+    whole episode is one segment, for a resolution of ``1 / (T dt)``.
 
     Args:
-        angles: Shape ``(T, d)`` (``None``: no joint angles, :data:`NPERSEG`).
+        angles: Shape ``(T, d)`` (``None``: no joint angles, `NPERSEG`).
         dt: Sampling interval.
     """
     if angles is None or len(angles) <= NPERSEG:
@@ -236,7 +238,7 @@ def reservoir_inputs(recording: DynamicsRecording, encoder: Any, action_space: A
 
     Args:
         recording: An episode of a reservoir agent.
-        encoder: Its :class:`~ermrl.encoders.EncoderConfig`.
+        encoder: Its [`EncoderConfig`][ermrl.encoders.EncoderConfig].
         action_space: The task's action space (for the action's encoding).
 
     Returns:
@@ -261,11 +263,12 @@ def reservoir_inputs(recording: DynamicsRecording, encoder: Any, action_space: A
 
 @dataclass
 class ReservoirSpectra:
-    """Three reservoirs driven by one recorded input stream (:func:`reservoir_spectra`).
+    """Three reservoirs driven by one recorded input stream
+    ([`reservoir_spectra`][ermrl.analysis.reservoir_spectra]).
 
     Attributes:
         table: One row per signal (``joint angles``, then each reservoir per weight seed):
-            :data:`MECHANISM_COLUMNS` (frequencies in Hz, or cycles per step when ``dt`` is
+            `MECHANISM_COLUMNS` (frequencies in Hz, or cycles per step when ``dt`` is
             unknown).
         spectra: ``frequency`` and each signal's power spectral density (summed over its
             dimensions, mean over weight seeds).
@@ -293,14 +296,15 @@ def reservoir_spectra(
     Args:
         recording: An episode of the trained evolved agent (its states are checked against the
             replay of ``reservoirs[EVOLVED]`` at the recorded seed, when that seed is listed).
-        encoder: The agent's :class:`~ermrl.encoders.EncoderConfig` (its reservoirs are
+        encoder: The agent's [`EncoderConfig`][ermrl.encoders.EncoderConfig] (its reservoirs are
             replaced by each entry of ``reservoirs``).
         reservoirs: ``{name: reservoir settings}``, e.g. ``res-ppo``, ``random-res-ppo`` and
             ``leaky-res-ppo``.
         weight_seeds: Run seeds whose weights are built (each run's reservoir seed,
-            :func:`ermrl.agents.derive_seeds`), as in training.
+            [`ermrl.agents.derive_seeds`][ermrl.agents.derive_seeds]), as in training.
         action_space: The task's action space (default: the env's).
-        criterion: Sets the gait band (default :class:`SpectralCriterion`).
+        criterion: Sets the gait band (default
+            [`SpectralCriterion`][ermrl.analysis.SpectralCriterion]).
 
     Returns:
         The per-seed table and the mean spectra.
@@ -427,7 +431,7 @@ def _row(
 
 
 def write_mechanism(spectra: ReservoirSpectra, folder: str | Path) -> dict[str, Path]:
-    """Write :data:`MECHANISM_FILE` and :data:`MECHANISM_SPECTRA_FILE` into ``folder``."""
+    """Write `MECHANISM_FILE` and `MECHANISM_SPECTRA_FILE` into ``folder``."""
     from ermrl._io import write_atomic
 
     folder = Path(folder)
@@ -439,7 +443,7 @@ def write_mechanism(spectra: ReservoirSpectra, folder: str | Path) -> dict[str, 
 
 
 def read_mechanism(folder: str | Path) -> pd.DataFrame | None:
-    """A report's :data:`MECHANISM_FILE` (``None`` when there is none, or it is damaged)."""
+    """A report's `MECHANISM_FILE` (``None`` when there is none, or it is damaged)."""
     path = Path(folder) / MECHANISM_FILE
     if not path.is_file():
         return None
@@ -456,7 +460,7 @@ def read_mechanism(folder: str | Path) -> pd.DataFrame | None:
 
 @dataclass(frozen=True)
 class SpectralOutcome:
-    """The spectral criterion on one task (:func:`spectral_outcome`).
+    """The spectral criterion on one task ([`spectral_outcome`][ermrl.analysis.spectral_outcome]).
 
     Attributes:
         holds: ``True``/``False``; ``None`` when it cannot be judged (no gait, no spectra).
@@ -484,11 +488,11 @@ class SpectralOutcome:
 def spectral_outcome(
     table: pd.DataFrame | None, criterion: SpectralCriterion | None = None
 ) -> SpectralOutcome:
-    """Apply the spectral criterion to a :data:`MECHANISM_FILE` table.
+    """Apply the spectral criterion to a `MECHANISM_FILE` table.
 
     Args:
-        table: From :func:`reservoir_spectra` or :func:`read_mechanism` (``None``: not
-            recorded).
+        table: From [`reservoir_spectra`][ermrl.analysis.reservoir_spectra] or
+            [`read_mechanism`][ermrl.analysis.read_mechanism] (``None``: not recorded).
         criterion: The criterion (its ``band`` is the one the table's band was measured with).
 
     Returns:
@@ -591,10 +595,10 @@ def mechanism_question(rule: VerdictRule | None) -> Question | None:
 
 @dataclass(frozen=True)
 class MechanismVerdict:
-    """A task's mechanism label (:func:`mechanism_verdict`).
+    """A task's mechanism label ([`mechanism_verdict`][ermrl.analysis.mechanism_verdict]).
 
     Attributes:
-        label: One of :data:`MECHANISM_LABELS`.
+        label: One of `MECHANISM_LABELS`.
         text: Why, in words, with the comparison's effect and interval bound.
         worse_by_at_most: How much worse the ablation could learn: the larger upper end of the
             adjusted Welch and bootstrap intervals of ``res-ppo − leaky-res-ppo`` (NaN when the
@@ -620,7 +624,7 @@ def mechanism_verdict(
 
     Args:
         comparison: The judged ``res-ppo − leaky-res-ppo`` row of the primary metric (a row of
-            :func:`~ermrl.analysis.judge`); ``None`` when it was not judged.
+            [`judge`][ermrl.analysis.judge]); ``None`` when it was not judged.
         spectral: The spectral criterion on the task.
 
     Returns:
@@ -741,12 +745,12 @@ def mechanism_figure(
     """The mean spectra of the joint angles and of the three reservoirs, the gait band shaded.
 
     Args:
-        spectra: :attr:`ReservoirSpectra.spectra` (or a report's :data:`MECHANISM_SPECTRA_FILE`).
+        spectra: `ReservoirSpectra.spectra` (or a report's `MECHANISM_SPECTRA_FILE`).
         spectral: The criterion's outcome on the same table (for the band and the counts).
         title: Figure title.
 
     Returns:
-        A :class:`~ermrl.analysis.PaperFigure`; each curve is divided by its maximum above 0.
+        A [`PaperFigure`][ermrl.analysis.PaperFigure]; each curve is divided by its maximum above 0.
     """
     from ermrl.analysis._style import (
         AGENT_LABELS,

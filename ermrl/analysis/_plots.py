@@ -1,7 +1,7 @@
 """Test-phase figures: learning curves and final returns per agent (PNG, headless).
 
-Every ``*_figure`` function returns a :class:`~ermrl.analysis.PaperFigure` (shown inline by
-notebooks; write it with :func:`~ermrl.analysis.save_figure`).
+Every ``*_figure`` function returns a [`PaperFigure`][ermrl.analysis.PaperFigure] (shown inline by
+notebooks; write it with [`save_figure`][ermrl.analysis.save_figure]).
 """
 
 from __future__ import annotations
@@ -54,8 +54,8 @@ def learning_curves_figure(
     """Learning curves per agent, mean and a band across seeds, on a common env-step grid.
 
     Args:
-        grid: Output of :func:`~ermrl.analysis.curves_on_grid` (columns ``agent, env_step,
-            mean, std, sem, ci95, n_seeds``).
+        grid: Output of [`curves_on_grid`][ermrl.analysis.curves_on_grid] (columns
+            ``agent, env_step, mean, std, sem, ci95, n_seeds``).
         title: Figure title (for example the env and observation mask).
         agents: Order of the agents in the legend (default: order of appearance).
         band: ``"std"`` (mean ± std), ``"ci95"`` (Student-t 95% CI of the mean), ``"sem"``
@@ -127,11 +127,12 @@ def plot_learning_curves(
     """Plot mean ± std learning curves per agent and write them to ``path``.
 
     Args:
-        grid: Output of :func:`~ermrl.analysis.curves_on_grid`.
+        grid: Output of [`curves_on_grid`][ermrl.analysis.curves_on_grid].
         path: PNG file to write.
         title: Figure title (for example the env and observation mask).
         agents: Order of the agents in the legend.
-        band: What the shaded band shows (see :func:`learning_curves_figure`).
+        band: What the shaded band shows (see
+            [`learning_curves_figure`][ermrl.analysis.learning_curves_figure]).
 
     Returns:
         The written path.
@@ -151,7 +152,7 @@ def final_returns_figure(
     """Box plot of the runs' final returns per agent, with every seed drawn as a point.
 
     Args:
-        results: Output of :func:`~ermrl.analysis.load_run_results` (one row per run).
+        results: Output of [`load_run_results`][ermrl.analysis.load_run_results] (one row per run).
         metric: Column plotted: ``final_return`` or ``eval_return``.
         agents: Order of the boxes (default: order of appearance).
         title: Figure title.

@@ -4,13 +4,14 @@ A run folder ``<out>/agents/<agent>/seed_<s>/`` holds ``policy.pt``, ``model.zip
 ``result.json`` and ``settings.json``; the folder's ``config.yaml`` holds the task and encoding
 options. The policy is read only from ``policy.pt`` (plain tensors, ``torch.load`` with
 ``weights_only=True``) and rebuilt from the run's PPO settings (``settings.json``, else
-``config.yaml``) and the environment's spaces (:func:`ermrl.agents.load_policy`). ``model.zip``
-is never read: SB3 unpickles it, and a crafted one runs code. A run saved before ``policy.pt``
-existed is refused; re-train it. The reservoir weights are
-re-created from the run's seed exactly as in training (:func:`ermrl.agents.derive_seeds`), so
-the replayed policy sees the states it was trained on. A run trained with ``normalize`` also
-has ``vecnormalize.json`` beside its model: the replay normalizes the policy's input with those
-statistics, frozen, as training's own evaluation did.
+``config.yaml``) and the environment's spaces
+([`ermrl.agents.load_policy`][ermrl.agents.load_policy]). ``model.zip`` is never read: SB3 unpickles
+it, and a crafted one runs code. A run saved before ``policy.pt`` existed is refused; re-train it.
+The reservoir weights are re-created from the run's seed exactly as in training
+([`ermrl.agents.derive_seeds`][ermrl.agents.derive_seeds]), so the replayed policy sees the states
+it was trained on. A run trained with ``normalize`` also has ``vecnormalize.json`` beside its model:
+the replay normalizes the policy's input with those statistics, frozen, as training's own evaluation
+did.
 """
 
 from __future__ import annotations
@@ -48,7 +49,7 @@ class TrainedAgent:
         normalize_path: The run's normalization statistics (JSON), when it trained with
             ``normalize`` (``None`` otherwise).
         policy_path: The policy's weights as plain tensors (``policy.pt``).
-        ppo: The run's PPO settings as plain data (:class:`~ermrl.config.PPOConfig`'s dict).
+        ppo: The run's PPO settings as plain data ([`PPOConfig`][ermrl.config.PPOConfig]'s dict).
     """
 
     run: Path
@@ -135,7 +136,7 @@ def load_trained_agent(
         seed: The run's seed (default: the smallest seed with a saved model).
 
     Returns:
-        The agent, ready for :func:`rollout`.
+        The agent, ready for [`rollout`][ermrl.analysis.rollout].
 
     Raises:
         FileNotFoundError: no such folder, no ``config.yaml``, or no saved model for that agent
@@ -252,12 +253,12 @@ def rollout(
     weights). The episode is seeded with the run's evaluation seed unless ``env_seed`` is given.
 
     Args:
-        trained: From :func:`load_trained_agent`.
+        trained: From [`load_trained_agent`][ermrl.analysis.load_trained_agent].
         max_steps: Stop after this many steps (default: the whole episode).
         deterministic: Use the policy's mean action (``False``: sample).
         env_seed: Seed of the episode's initial state.
         render: Record RGB frames (MuJoCo needs a GL backend: see
-            :func:`~ermrl.analysis.select_gl_backend`).
+            [`select_gl_backend`][ermrl.analysis.select_gl_backend]).
         fast_render: Turn off MuJoCo's shadows and reflections (about 5x faster with a
             software renderer).
 

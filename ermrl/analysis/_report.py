@@ -54,7 +54,7 @@ ENV_RUNS = "ERMRL_RUNS"
 
 @dataclass(frozen=True)
 class ReportResult:
-    """What :func:`write_report` wrote.
+    """What [`write_report`][ermrl.analysis.write_report] wrote.
 
     Attributes:
         out: The report folder.
@@ -276,7 +276,7 @@ def _data_uri(path: Path) -> str:
 class _Progress:
     """One line per report step with its time and an ETA (silenced by ``quiet``).
 
-    Not :class:`ermrl._progress.Progress`, which counts env steps at a rate: a report's steps are
+    Not `ermrl._progress.Progress`, which counts env steps at a rate: a report's steps are
     a handful of unlike sections; the ETA is written as that module's lines write theirs.
     """
 
@@ -841,7 +841,8 @@ def _intervals(frame: pd.DataFrame, prefix: str) -> list[str]:
 
 
 def _agent_table(table: pd.DataFrame, columns: Sequence[str]) -> pd.DataFrame:
-    """A :func:`~ermrl.analysis.final_returns_table` as shown: the CI as one cell, flagged."""
+    """A [`final_returns_table`][ermrl.analysis.final_returns_table] as shown: the CI as one cell,
+    flagged."""
     from ermrl.analysis._stats import few_seeds_flag
 
     shown = pd.DataFrame(
@@ -989,7 +990,7 @@ def _retrained_note(runs: Path, replayed: Sequence[tuple[str, int]]) -> str:
 
 def _mechanism_section(state: _State, runs: Path, recording: Any, doc: _Doc) -> None:
     """Oscillations at the gait or leaky integration: the recorded episode's input stream drives
-    the evolved, the unevolved and the W = 0 reservoirs (:mod:`ermrl.analysis._mechanism`), and
+    the evolved, the unevolved and the W = 0 reservoirs (`ermrl.analysis._mechanism`), and
     ``res-ppo − leaky-res-ppo`` is judged when both ran."""
     from ermrl.analysis._mechanism import (
         ABLATED,

@@ -6,12 +6,12 @@ report's figures, the study snapshot). Every number on the page can be recompute
 files.
 
 The verdicts follow the rule each experiment file states in its ``verdict:`` block
-(:class:`~ermrl.analysis.VerdictRule`; the rule is printed on the page): per task and
+([`VerdictRule`][ermrl.analysis.VerdictRule]; the rule is printed on the page): per task and
 sub-question, *supported*, *contradicted* or *inconclusive* after Holm's correction over every
 test of that question on the page, under each metric (the mean of the last 10 training
 episodes, of the last 100 as the paper plots, and of deterministic evaluation episodes), with
 the effect, both intervals, raw and adjusted p, the effects an inconclusive test still excludes,
-and the seeds that would detect the observed effect. See :mod:`ermrl.analysis._verdicts`.
+and the seeds that would detect the observed effect. See `ermrl.analysis._verdicts`.
 
 A task is rendered only when the trial its test phase tested can be traced to a recorded
 selection in the study snapshot (the re-evaluation record, the evolution's best trial, or a
@@ -92,7 +92,7 @@ class TaskResult:
         traced: Whether the tested trial is traced to a recorded selection.
         trace: What the trace found, in words (what is missing when it failed).
         references: Baselines read from another experiment's published runs: ``{name: where
-            from}`` (see :func:`add_reference_runs`).
+            from}`` (see [`add_reference_runs`][ermrl.analysis.add_reference_runs]).
         planned: The test runs the experiment file plans, ``{agent: seeds}`` (empty: no plan
             known, the published runs are taken as the whole phase).
     """
@@ -146,7 +146,7 @@ def _setting(values: pd.Series) -> list[Any]:
 
 
 def add_reference_runs(result: TaskResult, ref: Reference, where: str = "verdict") -> None:
-    """Add a baseline another experiment published (:class:`~ermrl.analysis.Reference`) to a
+    """Add a baseline another experiment published ([`Reference`][ermrl.analysis.Reference]) to a
     task's runs, as agent ``ref.name``: its runs of ``ref.agent`` in the folder it names for
     the task (none named: nothing is added).
 
@@ -297,8 +297,8 @@ def task_result(
     snapshot: Path,
     planned: dict[str, tuple[int, ...]] | None = None,
 ) -> TaskResult:
-    """Read one task's published files (see :class:`TaskResult`); ``planned`` is the test
-    phase its file plans, ``{agent: seeds}``."""
+    """Read one task's published files (see [`TaskResult`][ermrl.analysis.TaskResult]); ``planned``
+    is the test phase its file plans, ``{agent: seeds}``."""
     test = folder / "test"
     runs = load_test_runs(test) if test.exists() else pd.DataFrame()
     snapshot_doc = _read_snapshot(snapshot)
@@ -416,14 +416,14 @@ def write_reproduction_page(
     """Write the reproduction page.
 
     Args:
-        hypotheses: One entry per experiment file (see :class:`Hypothesis`).
+        hypotheses: One entry per experiment file (see [`Hypothesis`][ermrl.analysis.Hypothesis]).
         out: The Markdown file to write (``docs/reproduction.md``); the HTML form goes beside it
             with the ``.html`` suffix. Figures are linked relative to its folder.
         html_page: Also write the HTML form.
 
     Returns:
         ``(markdown, html or None)``; every judged test is also written as CSV beside the page
-        (``.csv`` suffix; the columns of :func:`~ermrl.analysis.judge`).
+        (``.csv`` suffix; the columns of [`judge`][ermrl.analysis.judge]).
 
     Raises:
         VerdictError: experiment files that pool a question into one family disagree on its

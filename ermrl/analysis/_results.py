@@ -94,7 +94,7 @@ def _read_text(path: Path) -> str:
 
 def read_run_text(path: str | Path) -> str:
     """A run folder's text file, read as the records are: a regular file of at most
-    :data:`MAX_RUN_FILE_BYTES`, UTF-8.
+    `MAX_RUN_FILE_BYTES`, UTF-8.
 
     Raises:
         RunFolderError: missing, not a regular file, too large or not UTF-8.
@@ -205,10 +205,10 @@ def _finished_runs(out: str | Path) -> list[Path]:
 def check_run_folder(out: str | Path) -> None:
     """Read every file of a test-phase folder that the report and replays use, and check it.
 
-    Checks ``config.yaml`` (when present: :func:`load_run_config`) and, for each finished run,
-    ``result.json``, ``episodes.csv`` and ``settings.json`` (when present). Call it before
-    writing anything derived from the folder, so that a damaged file stops the command
-    cleanly.
+    Checks ``config.yaml`` (when present: [`load_run_config`][ermrl.analysis.load_run_config]) and,
+    for each finished run, ``result.json``, ``episodes.csv`` and ``settings.json`` (when present).
+    Call it before writing anything derived from the folder, so that a damaged file stops the
+    command cleanly.
 
     Raises:
         RunFolderError: a damaged file, named with its problem.
@@ -233,7 +233,7 @@ def load_run_results(out: str | Path) -> pd.DataFrame:
     """One row per finished run (those with a ``result.json``) under ``out``.
 
     Raises:
-        RunFolderError: a ``result.json`` is damaged (see :func:`read_run_result`).
+        RunFolderError: a ``result.json`` is damaged (see `read_run_result`).
     """
     return pd.DataFrame([read_run_result(path) for path in _finished_runs(out)])
 
@@ -374,8 +374,9 @@ def summarize(results: pd.DataFrame, agents: Sequence[str] | None = None) -> pd.
 def load_run_config(out: str | Path) -> dict[str, Any]:
     """The ``config.yaml`` of a test-phase folder (task, encoder, agents, study, ...).
 
-    The task's env id is checked against the registry (:func:`ermrl.envs.check_registered_env_id`):
-    a ``module:Id`` there is refused, never imported, since the file may come from anyone.
+    The task's env id is checked against the registry
+    ([`ermrl.envs.check_registered_env_id`][ermrl.envs.check_registered_env_id]): a ``module:Id``
+    there is refused, never imported, since the file may come from anyone.
 
     Raises:
         FileNotFoundError: ``out`` has no ``config.yaml`` (not a test-phase folder).

@@ -37,14 +37,14 @@ FEW_SEEDS = 5
 
 
 def few_seeds_flag(*n_seeds: int) -> str:
-    """The visible flag of an interval computed from fewer than :data:`FEW_SEEDS` seeds.
+    """The visible flag of an interval computed from fewer than `FEW_SEEDS` seeds.
 
     Args:
         n_seeds: The number of seeds (runs) of each group behind the interval.
 
     Returns:
         ``"few seeds (n=2 < 5)"`` (``n`` the smallest group), or ``""`` when every group has
-        at least :data:`FEW_SEEDS` seeds or none is given.
+        at least `FEW_SEEDS` seeds or none is given.
 
     Examples:
         >>> few_seeds_flag(2, 5)
@@ -86,7 +86,7 @@ def welch_t_test(
 ) -> WelchResult:
     """Welch's t-test (two-sided) of the difference of means of two independent samples.
 
-    Computed by :func:`scipy.stats.ttest_ind` with ``equal_var=False``, interval included.
+    Computed by `scipy.stats.ttest_ind` with ``equal_var=False``, interval included.
 
     Args:
         a: Values of the first group, shape ``(n_a,)`` (NaNs are dropped).
@@ -205,7 +205,7 @@ def final_returns_table(
     """Per-agent statistics of the runs' final returns.
 
     Args:
-        results: Output of :func:`~ermrl.analysis.load_run_results` (one row per run).
+        results: Output of [`load_run_results`][ermrl.analysis.load_run_results] (one row per run).
         agents: Order of the rows (default: order of appearance).
         metric: ``final_return`` (mean of the last training episodes) or ``eval_return``.
 
@@ -267,10 +267,10 @@ def compare_agents(
     """Test ``candidate`` against each baseline on the runs' final returns.
 
     Args:
-        results: Output of :func:`~ermrl.analysis.load_run_results`.
+        results: Output of [`load_run_results`][ermrl.analysis.load_run_results].
         candidate: The agent tested (default the evolved reservoir, ``res-ppo``).
         baselines: Agents it is compared with (missing ones are skipped; default: every other
-            agent of :data:`~ermrl.learners.AGENT_KINDS`).
+            agent of `AGENT_KINDS`).
         metric: ``final_return`` or ``eval_return``.
         confidence: Coverage of the bootstrap interval.
         n_resamples: Bootstrap resamples.
@@ -282,9 +282,9 @@ def compare_agents(
         n_paired, paired_ci_low, paired_ci_high, few_seeds``, where ``mean_diff`` is
         ``mean(candidate) - mean(baseline)``, the Welch interval is Student's t with
         Welch-Satterthwaite degrees of freedom at the same coverage, the paired interval
-        (:func:`paired_bootstrap_mean_diff_ci`) is over the seeds both agents ran (NaN when
-        ``results`` has no ``seed`` column or fewer than 2 shared seeds), and ``few_seeds``
-        flags a group of fewer than :data:`FEW_SEEDS` runs.
+        ([`paired_bootstrap_mean_diff_ci`][ermrl.analysis.paired_bootstrap_mean_diff_ci]) is over
+        the seeds both agents ran (NaN when ``results`` has no ``seed`` column or fewer than 2
+        shared seeds), and ``few_seeds`` flags a group of fewer than `FEW_SEEDS` runs.
     """
     if baselines is None:
         baselines = [a for a in AGENT_KINDS if a != candidate]
@@ -391,7 +391,7 @@ class IQMResult:
 def iqm(values: Sequence[float] | np.ndarray) -> float:
     """Interquartile mean: the mean of the middle 50% of the values (NaNs dropped).
 
-    The same as ``rliable.metrics.aggregate_iqm``: :func:`scipy.stats.trim_mean` cutting 25% at
+    The same as ``rliable.metrics.aggregate_iqm``: `scipy.stats.trim_mean` cutting 25% at
     each end of the flattened values.
 
     Args:

@@ -107,7 +107,8 @@ def open_study(study_name: str, storage: str) -> optuna.Study:
 
 
 def study_config_or_none(study: optuna.Study) -> EvolveConfig | None:
-    """The study's :class:`~ermrl.config.EvolveConfig`, or ``None`` when it has none readable."""
+    """The study's [`EvolveConfig`][ermrl.config.EvolveConfig], or ``None`` when it has none
+    readable."""
     from ermrl.search import study_config
 
     try:
@@ -207,12 +208,12 @@ def trials_table(study: optuna.Study) -> pd.DataFrame:
     """Every trial as one row, for files: Optuna's own columns, then ermrl's.
 
     The one table behind ``ermrl study export --out X.csv|.parquet`` and the report's
-    ``trials.csv``: the columns of :meth:`optuna.study.Study.trials_dataframe` (``number``,
+    ``trials.csv``: the columns of `optuna.study.Study.trials_dataframe` (``number``,
     ``value``, ``datetime_start``, ``datetime_complete``, ``duration``, ``params_<name>``,
-    ``user_attrs_<name>``, ``state``), then :data:`TRIALS_TABLE_EXTRA`: ``duration_s`` (the
+    ``user_attrs_<name>``, ``state``), then `TRIALS_TABLE_EXTRA`: ``duration_s`` (the
     duration in seconds), ``retry_of`` (the trial a retry replaces) and the CMA-ES generation
-    columns of :func:`trials_frame`, and last ``value`` when Optuna's column is
-    ``values_<metric>`` (a study with a metric name, as ermrl's are; earlier exports had
+    columns of [`trials_frame`][ermrl.analysis.trials_frame], and last ``value`` when Optuna's
+    column is ``values_<metric>`` (a study with a metric name, as ermrl's are; earlier exports had
     ``value``). Lists and dicts in user attributes are JSON text.
 
     Returns:
@@ -266,10 +267,10 @@ def param_ranges(
 def best_params_table(study: optuna.Study, config: EvolveConfig | None = None) -> pd.DataFrame:
     """The parameters of the trial a test phase selects, with their search ranges.
 
-    The selected trial is :func:`~ermrl.search.select_trial`'s: the re-evaluated best when the
-    study records a complete, current re-evaluation, else the best evolution fitness (the noisy
-    maximum a test phase would otherwise take), so that the report names the trial the test
-    phase tests.
+    The selected trial is [`select_trial`][ermrl.search.select_trial]'s: the re-evaluated best when
+    the study records a complete, current re-evaluation, else the best evolution fitness (the noisy
+    maximum a test phase would otherwise take), so that the report names the trial the test phase
+    tests.
 
     Returns:
         Columns ``trial, selection, parameter, value, low, high, scale`` (empty without a
@@ -328,8 +329,8 @@ def generations_frame(study: optuna.Study) -> pd.DataFrame:
 
     Returns:
         Columns ``number, value, restart, generation, global_generation, popsize, regime``
-        (see :func:`ermrl.search.cma_generation_info`); rows without a generation are trials
-        not sampled by CMA-ES.
+        (see [`ermrl.search.cma_generation_info`][ermrl.search.cma_generation_info]); rows without a
+        generation are trials not sampled by CMA-ES.
     """
     from ermrl.search import cma_generation_info
 
@@ -374,9 +375,9 @@ def optimization_history_figure(
     """Fitness of every COMPLETE trial against its number, with the best so far.
 
     Args:
-        frame: Output of :func:`trials_frame`.
+        frame: Output of [`trials_frame`][ermrl.analysis.trials_frame].
         title: Figure title.
-        ylabel: Y-axis label (see :func:`fitness_label`).
+        ylabel: Y-axis label (see [`fitness_label`][ermrl.analysis.fitness_label]).
 
     Returns:
         The figure.
@@ -430,7 +431,7 @@ def param_importances_figure(importances: Mapping[str, float], *, title: str = "
     """Horizontal bars of parameter importances (PED-ANOVA, normalized to sum to 1).
 
     Args:
-        importances: Output of :func:`param_importances`.
+        importances: Output of [`param_importances`][ermrl.analysis.param_importances].
         title: Figure title.
 
     Returns:
@@ -473,7 +474,7 @@ def param_slices_figure(
     """Fitness against each evolved parameter (one panel per parameter), colored by trial.
 
     Args:
-        frame: Output of :func:`trials_frame`.
+        frame: Output of [`trials_frame`][ermrl.analysis.trials_frame].
         params: Parameters to plot (for example ``("sr", "lr", "input_scaling")``).
         ranges: ``{name: (low, high, log)}`` search ranges (x limits and scale).
         title: Figure title.
@@ -560,7 +561,7 @@ def param_contour_figure(
     only the points are drawn.
 
     Args:
-        frame: Output of :func:`trials_frame`.
+        frame: Output of [`trials_frame`][ermrl.analysis.trials_frame].
         x: Parameter on the x axis.
         y: Parameter on the y axis.
         ranges: ``{name: (low, high, log)}`` search ranges.
@@ -662,7 +663,7 @@ def generations_figure(
     """Fitness of the trials of each CMA-ES generation (box and points), and the best so far.
 
     Args:
-        generations: Output of :func:`generations_frame`.
+        generations: Output of [`generations_frame`][ermrl.analysis.generations_frame].
         title: Figure title.
         ylabel: Y-axis label.
 

@@ -1,9 +1,9 @@
 """Figure style shared by every ermrl plot: headless, paper-ready, no pyplot state.
 
-Figures are plain :class:`matplotlib.figure.Figure` objects (never created through ``pyplot``), so
+Figures are plain `matplotlib.figure.Figure` objects (never created through ``pyplot``), so
 plotting works without a display, never switches the global matplotlib backend, and leaks no
-open figures. :class:`PaperFigure` adds ``_repr_png_`` so that a figure returned as the last
-value of a notebook cell is shown inline whatever backend the kernel uses.
+open figures. [`PaperFigure`][ermrl.analysis.PaperFigure] adds ``_repr_png_`` so that a figure
+returned as the last value of a notebook cell is shown inline whatever backend the kernel uses.
 """
 
 from __future__ import annotations
@@ -70,7 +70,7 @@ _OBSERVE_WORDS = {
 
 
 class PaperFigure(Figure):
-    """A :class:`~matplotlib.figure.Figure` that notebooks display inline as PNG."""
+    """A `Figure` that notebooks display inline as PNG."""
 
     def _repr_png_(self) -> bytes:
         buffer = io.BytesIO()
@@ -94,7 +94,8 @@ def new_figure(
     squeeze: bool = True,
     **subplot_kw: Any,
 ) -> tuple[PaperFigure, Any]:
-    """A :class:`PaperFigure` with its axes, created under :func:`paper_style`.
+    """A [`PaperFigure`][ermrl.analysis.PaperFigure] with its axes, created under
+    [`paper_style`][ermrl.analysis.paper_style].
 
     Call it inside ``with paper_style():`` so that the style applies to everything drawn.
 
@@ -102,8 +103,8 @@ def new_figure(
         nrows: Rows of axes.
         ncols: Columns of axes.
         figsize: Size in inches (the saved size; fonts are sized for it).
-        squeeze: As in :meth:`matplotlib.figure.Figure.subplots`.
-        **subplot_kw: More arguments for :meth:`~matplotlib.figure.Figure.subplots`
+        squeeze: As in `matplotlib.figure.Figure.subplots`.
+        **subplot_kw: More arguments for `subplots`
             (``sharex``, ``gridspec_kw``, ...).
 
     Returns:
@@ -124,7 +125,7 @@ def save_figure(fig: Figure, path: str | Path) -> Path:
 
 
 def agent_color(agent: str, index: int = 0) -> str:
-    """The agent's color (fixed for the test-phase agents, :data:`AGENT_COLORS`)."""
+    """The agent's color (fixed for the test-phase agents, `AGENT_COLORS`)."""
     return AGENT_COLORS.get(agent, _EXTRA_COLORS[index % len(_EXTRA_COLORS)])
 
 

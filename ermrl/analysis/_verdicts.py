@@ -26,7 +26,8 @@ the outcomes and gives two aggregates with stratified bootstrap intervals (Agarw
 rliable's definitions): the interquartile mean of normalized scores of each agent, and the
 probability of improvement ``P(candidate > baseline)``.
 
-The rule itself is data: the ``verdict:`` block of an experiment file (:class:`VerdictRule`).
+The rule itself is data: the ``verdict:`` block of an experiment file
+([`VerdictRule`][ermrl.analysis.VerdictRule]).
 """
 
 from __future__ import annotations
@@ -159,12 +160,13 @@ class VerdictRule:
         questions: The sub-questions, in order.
         alpha: Family-wise error rate (two-sided).
         correction: ``holm`` or ``none``.
-        primary: The metric the headline verdicts use (a key of :data:`METRICS`).
+        primary: The metric the headline verdicts use (a key of `METRICS`).
         adopted: When the rule was written (ISO date), compared on the page with the date of the
             first test result it judges.
         n_resamples: Bootstrap resamples.
         power: The power the seeds-needed line targets.
-        references: Baselines read from other experiments' published runs (:class:`Reference`).
+        references: Baselines read from other experiments' published runs
+            ([`Reference`][ermrl.analysis.Reference]).
     """
 
     questions: tuple[Question, ...]
@@ -321,7 +323,7 @@ class TaskRuns:
     Attributes:
         hypothesis: The experiment's name.
         task: The task's label.
-        runs: One row per run: ``agent``, ``seed`` and the metric columns of :data:`METRICS`.
+        runs: One row per run: ``agent``, ``seed`` and the metric columns of `METRICS`.
         reference_selected: The selection tested the unevolved reference itself (``res-ppo``
             and ``random-res-ppo`` are then the same runs: their difference is not tested).
         env_id: The env (for normalized scores; default: the label).
@@ -498,14 +500,15 @@ def combine_outcomes(outcomes: Sequence[str]) -> str:
 
 
 def not_run(row: Mapping[str, Any]) -> bool:
-    """Whether a judged comparison (a row of :func:`judge`) was not tested because one of its
-    agents has no finished run on the task."""
+    """Whether a judged comparison (a row of [`judge`][ermrl.analysis.judge]) was not tested because
+    one of its agents has no finished run on the task."""
     return str(row.get("note") or "").startswith(NOT_RUN)
 
 
 def task_outcome(rows: pd.DataFrame) -> str:
-    """A question's outcome on a task from its judged comparisons (rows of :func:`judge`):
-    :func:`combine_outcomes`, or :data:`NOT_RUN` when none of them could run."""
+    """A question's outcome on a task from its judged comparisons (rows of
+    [`judge`][ermrl.analysis.judge]): `combine_outcomes`, or `NOT_RUN` when none of them could
+    run."""
     records = rows.to_dict("records")
     if records and all(not_run(r) for r in records):
         return NOT_RUN
@@ -533,10 +536,10 @@ def judge(
         seed: Seed of the bootstraps.
 
     Returns:
-        One row per test (:data:`TEST_COLUMNS`). ``note`` explains a comparison that was not
+        One row per test (`TEST_COLUMNS`). ``note`` explains a comparison that was not
         tested (an agent without runs under that metric, or the reference selected), whose
         outcome is then ``inconclusive`` and which does not count in its family; an agent
-        without any finished run on the task makes it :data:`NOT_RUN` (outcome and note).
+        without any finished run on the task makes it `NOT_RUN` (outcome and note).
 
     Raises:
         VerdictError: two rules that pool a family disagree on its alpha or correction.
@@ -684,14 +687,15 @@ def verdict_changes(before: pd.DataFrame, after: pd.DataFrame) -> pd.DataFrame:
     """Each judged comparison of two pages side by side, and whether its verdict moved.
 
     Args:
-        before: The earlier page's tests (rows of :func:`judge`, or its ``reproduction.csv``).
+        before: The earlier page's tests (rows of [`judge`][ermrl.analysis.judge], or its
+            ``reproduction.csv``).
         after: The later page's.
 
     Returns:
-        One row per comparison of either page (:data:`COMPARISON_KEY`), in the later page's
+        One row per comparison of either page (`COMPARISON_KEY`), in the later page's
         order with comparisons only the earlier page has at the end. Columns ``outcome``,
         ``n_candidate``, ``n_baseline``, ``mean_diff`` and ``p_adjusted`` with suffixes
-        ``_before`` and ``_after`` (a comparison that was not tested reads :data:`NOT_RUN`),
+        ``_before`` and ``_after`` (a comparison that was not tested reads `NOT_RUN`),
         the later page's ``seeds_needed`` (the power line) and ``change``: ``moved`` (another
         outcome), ``same``, ``new`` (only the later page has it) or ``gone`` (only the earlier).
 
@@ -758,7 +762,7 @@ def aggregate_question(
     Args:
         tasks: The hypothesis's tasks.
         question: The question.
-        metric: A key of :data:`METRICS`.
+        metric: A key of `METRICS`.
         normalizer: ``(env_id, values) -> normalized values`` or ``None`` when a task has no
             reference scores (the IQMs are then left out, naming it).
 
@@ -816,7 +820,7 @@ def aggregate_question(
 
 
 def load_test_runs(test_folder: str | Path) -> pd.DataFrame:
-    """A test phase's finished runs with every verdict metric (:data:`METRICS`).
+    """A test phase's finished runs with every verdict metric (`METRICS`).
 
     ``last100_return`` is read from each run's ``result.json``, or computed from its
     ``episodes.csv`` for runs written before it was recorded (the same definition: the mean of

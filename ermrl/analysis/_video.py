@@ -8,10 +8,11 @@ two backends work from Debian's Mesa packages:
   ``libgl1-mesa-dri``);
 - ``osmesa``: off-screen Mesa (``libosmesa6``).
 
-:func:`select_gl_backend` tries each candidate with a tiny render in a subprocess (a failed GL
-initialization can abort a process) and keeps the first that works; ``glfw`` is a candidate only
-when a display is available. Videos are written as MP4 (H.264, through the ``ffmpeg`` binary that
-the ``imageio-ffmpeg`` wheel ships) and, optionally or when MP4 fails, as GIF.
+[`select_gl_backend`][ermrl.analysis.select_gl_backend] tries each candidate with a tiny render in a
+subprocess (a failed GL initialization can abort a process) and keeps the first that works; ``glfw``
+is a candidate only when a display is available. Videos are written as MP4 (H.264, through the
+``ffmpeg`` binary that the ``imageio-ffmpeg`` wheel ships) and, optionally or when MP4 fails, as
+GIF.
 """
 
 from __future__ import annotations
@@ -70,7 +71,7 @@ class GLBackendError(RuntimeError):
 
 @dataclass(frozen=True)
 class VideoResult:
-    """What :func:`record_video` wrote.
+    """What [`record_video`][ermrl.analysis.record_video] wrote.
 
     Attributes:
         paths: The written files (MP4 and/or GIF).
@@ -333,7 +334,8 @@ def record_video(
         gif: Also write a GIF. When the MP4 cannot be written, a GIF is written instead.
         deterministic: Use the policy's mean action.
         env_seed: Seed of the episode (default: the run's evaluation seed).
-        gl: Force a GL backend (default: :func:`select_gl_backend` picks one).
+        gl: Force a GL backend (default: [`select_gl_backend`][ermrl.analysis.select_gl_backend]
+            picks one).
         fast: No shadows or reflections (about 5x faster with Mesa's software renderer).
 
     Returns:

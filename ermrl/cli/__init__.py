@@ -64,9 +64,9 @@ def run_command(name: str, argv: Sequence[str] | None = None, prog: str | None =
 
     Ctrl-C during its start-up (imports, env construction: several seconds), before the
     command's own handling takes over, is one line on stderr and exit code 130, not a
-    traceback; SIGTERM is one line and exit code 143 (:func:`ermrl._interrupt.catch_sigterm`).
+    traceback; SIGTERM is one line and exit code 143 (`ermrl._interrupt.catch_sigterm`).
     A signal whose exception was dropped (raised in a weakref callback) and that nothing raised
-    again (:func:`ermrl._interrupt.raise_swallowed_signal`) still ends with its line and code.
+    again (`ermrl._interrupt.raise_swallowed_signal`) still ends with its line and code.
     A reader that closes the pipe early (``ermrl study show | head``) ends the command quietly
     with exit code 141, as SIGPIPE ends other Unix tools.
     """

@@ -1,7 +1,7 @@
 """Shared pieces of the command-line interface: one-line errors, exit codes, progress mode.
 
 The options' own pieces (the parser class, its types and shared flags) live below the CLI, in
-:mod:`ermrl.runner._options`, since experiment files check their stages with them; they are
+`ermrl.runner._options`, since experiment files check their stages with them; they are
 re-exported here.
 """
 
@@ -77,8 +77,8 @@ def fail(prog: str, message: str, code: int = EXIT_USAGE) -> NoReturn:
 
 
 def exit_on_failure(prog: str, run: Callable[[], T]) -> T:
-    """``run()``, whose :class:`~ermrl.runner._commands.CommandFailed` becomes its one-line
-    error on stderr and its exit code (:func:`fail`)."""
+    """``run()``, whose `CommandFailed` becomes its one-line
+    error on stderr and its exit code (`fail`)."""
     from ermrl.runner._commands import CommandFailed
 
     try:
@@ -90,7 +90,7 @@ def exit_on_failure(prog: str, run: Callable[[], T]) -> T:
 
 
 def progress_mode(args: argparse.Namespace) -> ProgressMode:
-    """``args.progress``, or the default for where stdout goes (see :func:`add_progress_arg`)."""
+    """``args.progress``, or the default for where stdout goes (see `add_progress_arg`)."""
     from ermrl._progress import default_mode
 
     value = getattr(args, "progress", None)
@@ -136,15 +136,16 @@ def add_run_folder_args(parser: argparse.ArgumentParser, *, agent_help: str, out
 
 
 def run_folder_kwargs(args: argparse.Namespace) -> dict[str, Any]:
-    """The options of :func:`add_run_folder_args` (except ``--out``) as keyword arguments.
+    """The options of `add_run_folder_args` (except ``--out``) as keyword arguments.
 
     Args:
-        args: parsed arguments of a parser given :func:`add_run_folder_args`.
+        args: parsed arguments of a parser given `add_run_folder_args`.
 
     Returns:
         ``run``, ``agent``, ``seed``, ``max_steps``, ``deterministic`` and ``env_seed``, the
-        keyword arguments shared by :func:`ermrl.analysis.record_dynamics` and
-        :func:`ermrl.analysis.record_video`.
+        keyword arguments shared by
+        [`ermrl.analysis.record_dynamics`][ermrl.analysis.record_dynamics] and
+        [`ermrl.analysis.record_video`][ermrl.analysis.record_video].
     """
     return {
         "run": args.run,

@@ -1,6 +1,6 @@
 """The CLI reference (``docs/cli.md``), rendered from the argparse parsers themselves.
 
-Every subcommand of :data:`ermrl.cli.COMMANDS` has a ``build_<name>_parser`` function beside its
+Every subcommand of `ermrl.cli.COMMANDS` has a ``build_<name>_parser`` function beside its
 ``*_main`` (``evolve-generalization``: ``build_evolve_generalization_parser``). The reference walks
 those parsers and their subparsers (``ermrl study create``, ``ermrl expert train``, ...) and lists,
 per command, its usage, its description and each option with its help, choices and default. The
@@ -52,7 +52,7 @@ def _builder_name(command: str) -> str:
 
 
 def cli_parsers() -> list[tuple[str, argparse.ArgumentParser]]:
-    """The parser of every ``ermrl`` subcommand, in the order of :data:`ermrl.cli.COMMANDS`.
+    """The parser of every ``ermrl`` subcommand, in the order of `ermrl.cli.COMMANDS`.
 
     Returns:
         ``[(command, parser), ...]``, each parser built with ``prog="ermrl COMMAND"``.
@@ -216,7 +216,7 @@ def render_cli_reference(
     """Render the CLI reference page.
 
     Args:
-        parsers: ``[(command, parser), ...]``; by default :func:`cli_parsers`.
+        parsers: ``[(command, parser), ...]``; by default `cli_parsers`.
 
     Returns:
         The Markdown text of ``docs/cli.md``.

@@ -1,6 +1,6 @@
 """``ermrl evolve`` / ``evolve_res.py``: evolve reservoirs for one task.
 
-The command's options are defined in :mod:`ermrl.runner._parsers` (experiment files check their
+The command's options are defined in `ermrl.runner._parsers` (experiment files check their
 ``evolve:`` stage with the same parser); this module parses argv, runs the evolution and turns
 its failures into one-line errors and exit codes.
 """
@@ -80,7 +80,7 @@ def check_wandb(prog: str, project: str | None) -> None:
 
 
 def run_and_report(prog: str, config: EvolveConfig, study: optuna.Study, **kwargs: Any) -> int:
-    """:func:`ermrl.runner._commands.run_and_report`, its one-line errors exiting with code 2."""
+    """`ermrl.runner._commands.run_and_report`, its one-line errors exiting with code 2."""
     return exit_on_failure(prog, lambda: _commands.run_and_report(prog, config, study, **kwargs))
 
 

@@ -1,7 +1,7 @@
 """``ermrl evolve-generalization`` / ``ermrl test-generalization``: evolve on a set of tasks, test
 on a task the reservoirs never saw.
 
-The commands' options are defined in :mod:`ermrl.runner._parsers` (experiment files check their
+The commands' options are defined in `ermrl.runner._parsers` (experiment files check their
 stages with the same parsers).
 """
 

@@ -1,6 +1,6 @@
 """``ermrl report``: figures, tables and report.md of a study and its test phase.
 
-The command's options are defined in :mod:`ermrl.runner._parsers` (experiment files check their
+The command's options are defined in `ermrl.runner._parsers` (experiment files check their
 ``report:`` stage with the same parser).
 """
 

@@ -1,7 +1,7 @@
 """``ermrl run EXPERIMENT.yaml``: a whole experiment (evolve, re-evaluate, test, report) in one file.
 
-The file composes ermrl's own commands (see :mod:`ermrl.runner`); this module only parses the
-command line, prints the plan and turns the runner's errors into one line and an exit code.
+The file composes ermrl's own commands (see [`ermrl.runner`][ermrl.runner]); this module only parses
+the command line, prints the plan and turns the runner's errors into one line and an exit code.
 """
 
 from __future__ import annotations

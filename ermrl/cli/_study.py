@@ -7,7 +7,7 @@ any job is queued, and no worker races on a fresh database.
 
 ``ermrl study export --out X.json`` writes the whole study (and its re-evaluation study) as a
 plain JSON snapshot, and ``ermrl study import --snapshot X.json`` restores it in another storage,
-so that an evolution resumes on another machine (:mod:`ermrl.storage._snapshot`).
+so that an evolution resumes on another machine (`ermrl.storage._snapshot`).
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """``ermrl test`` / ``test.py``: train the best evolved reservoir against baselines.
 
-The command's options are defined in :mod:`ermrl.runner._parsers` (experiment files check their
+The command's options are defined in `ermrl.runner._parsers` (experiment files check their
 ``test:`` stage with the same parser); this module parses argv, runs the test phase and turns
 its failures into one-line errors and exit codes.
 """
@@ -40,7 +40,7 @@ __all__ = [
 
 
 def run_or_exit(prog: str, out: Path, run: Callable[[], T]) -> T | None:
-    """:func:`ermrl.runner._commands.run_or_fail`, its one-line errors exiting with code 2
+    """`ermrl.runner._commands.run_or_fail`, its one-line errors exiting with code 2
     (a signal's code after its line)."""
     return exit_on_failure(prog, lambda: _commands.run_or_fail(prog, out, run))
 
@@ -56,7 +56,7 @@ def run_test_phase(
     *,
     then: Callable[[Any], Any] | None = None,
 ) -> Any:
-    """:func:`ermrl.runner._commands.run_test_phase` with the parsed options' ``--quiet`` and
+    """`ermrl.runner._commands.run_test_phase` with the parsed options' ``--quiet`` and
     command line, its one-line errors exiting with code 2."""
     return exit_on_failure(
         prog,

@@ -1,10 +1,10 @@
 """Encoders of observations, and the registry; the reservoir (reservoirpy-initialized echo state
 networks, batched over a ``VecEnv``) is the reference one.
 
-Each encoder is one module holding an :class:`Encoder` subclass with its settings, search space,
-``ermrl evolve`` flags and test-phase agents (see :mod:`ermrl.encoders._reservoir_encoder`); a
-line of :data:`ENCODERS` registers it. The ``--encoder`` choices and flags, the test phase's
-agents, the stored configurations and the report read this table.
+Each encoder is one module holding an [`Encoder`][ermrl.encoders.Encoder] subclass with its
+settings, search space, ``ermrl evolve`` flags and test-phase agents (see
+`ermrl.encoders._reservoir_encoder`); a line of `ENCODERS` registers it. The ``--encoder`` choices
+and flags, the test phase's agents, the stored configurations and the report read this table.
 """
 
 from collections.abc import Mapping

@@ -1,23 +1,25 @@
 """What an encoder is: its settings, its search space, its flags and agents, and its place in the
 pipeline.
 
-An encoder module subclasses :class:`Encoder` and :mod:`ermrl.encoders` registers one instance
-(:data:`~ermrl.encoders.ENCODERS`). Two places exist:
+An encoder module subclasses [`Encoder`][ermrl.encoders.Encoder] and
+[`ermrl.encoders`][ermrl.encoders] registers one instance (`ENCODERS`). Two places exist:
 
 - ``"env"``: a frozen encoder (its weights never learn, as a reservoir's) wraps the
   vectorized environment, so every learner sees its states as observations
-  (:meth:`Encoder.wrap_env`);
+  ([`Encoder.wrap_env`][ermrl.encoders.Encoder.wrap_env]);
 - ``"policy"``: a trainable encoder lives inside the learner's policy, where gradients reach it
-  (:meth:`Encoder.policy_kwargs` gives the policy its feature extractor).
+  ([`Encoder.policy_kwargs`][ermrl.encoders.Encoder.policy_kwargs] gives the policy its feature
+  extractor).
 
 The outer loop never handles an encoder's own types: it samples a plain ``{name: value}`` dict
-in the ranges of the encoder's space and :meth:`Encoder.decode` turns it into the encoder's
-settings. The rest of ermrl reads everything else it needs of an encoder from this class: the
-``ermrl evolve`` flags (:attr:`Encoder.cli_flags`, plain data), the search space they give
-(:meth:`Encoder.space_from_args`), the test-phase agents (:attr:`Encoder.agents`), the checks
-made before a study is written (:meth:`Encoder.check`), how the report describes a study's
-encoder (:meth:`Encoder.describe`) and which agents may share a population
-(:meth:`Encoder.layout`).
+in the ranges of the encoder's space and [`Encoder.decode`][ermrl.encoders.Encoder.decode] turns it
+into the encoder's settings. The rest of ermrl reads everything else it needs of an encoder from
+this class: the ``ermrl evolve`` flags (`Encoder.cli_flags`, plain data), the search space they give
+([`Encoder.space_from_args`][ermrl.encoders.Encoder.space_from_args]), the test-phase agents
+(`Encoder.agents`), the checks made before a study is written
+([`Encoder.check`][ermrl.encoders.Encoder.check]), how the report describes a study's encoder
+([`Encoder.describe`][ermrl.encoders.Encoder.describe]) and which agents may share a population
+([`Encoder.layout`][ermrl.encoders.Encoder.layout]).
 """
 
 from __future__ import annotations
@@ -48,12 +50,12 @@ class Encoder:
         name: Registry name (``--encoder NAME``).
         description: One line for ``--help`` and the docs.
         place: ``"env"`` (frozen, wraps the env) or ``"policy"`` (trainable, in the policy).
-        family: The family its reservoirs' settings hold (:attr:`ermrl.config.EncoderConfig.family`),
-            stored with a study's configuration: it tells which encoder reads them back. Unique
-            in the registry.
+        family: The family its reservoirs' settings hold
+            ([`ermrl.config.EncoderConfig.family`][ermrl.config.EncoderConfig.family]), stored with
+            a study's configuration: it tells which encoder reads them back. Unique in the registry.
         config_cls: Its settings dataclass (stored in a study's configuration):
-            :class:`~ermrl.config.EncoderConfig` for an encoder whose settings are reservoirs
-            and the shared encoding options.
+            [`EncoderConfig`][ermrl.config.EncoderConfig] for an encoder whose settings are
+            reservoirs and the shared encoding options.
         params_cls: The settings dataclass of one of its reservoirs (an element of
             ``EncoderConfig.reservoirs``).
         space_cls: Its search space dataclass: ``ranges()`` (name -> range of every evolved
@@ -61,17 +63,16 @@ class Encoder:
             ``reservoirs_from()`` and ``default_reservoirs()`` (the unevolved reference).
         cli_flags: Its own ``ermrl evolve`` flags as data: each a dict of ``add_argument``
             keywords with ``flags`` (the option strings) and ``space_field`` (the field of
-            ``space_cls`` it sets; a :class:`~ermrl.config.Range` field takes ``LOW HIGH``
+            ``space_cls`` it sets; a [`Range`][ermrl.config.Range] field takes ``LOW HIGH``
             and keeps its default's scale); ``type`` may name one of the CLI's checked types
             (``"positive_int"``, ``"positive_float"``, ``"nonneg_int"``). A flag two encoders declare (same option) becomes
             one option whose help joins theirs. ``--n-reservoirs``, ``--input-scaling-range``,
             ``--fixed-input-scaling`` and the encoding options are shared by every encoder.
-        agents: Its test-phase agents (name -> :class:`~ermrl.config.AgentKind`, each of this
+        agents: Its test-phase agents (name -> [`AgentKind`][ermrl.config.AgentKind], each of this
             encoder's family): one evolved and one unevolved agent at least.
         population: Whether the population backend's batched reservoir steps its reservoirs
-            (:mod:`ermrl.population`: it needs :meth:`bank` and a bank with a
-            :meth:`~ermrl.encoders._reservoir.StepBank.stack`); otherwise its studies train
-            with the sb3 backend.
+            ([`ermrl.population`][ermrl.population]: it needs [`bank`][ermrl.encoders.Encoder.bank]
+            and a bank with a `stack`); otherwise its studies train with the sb3 backend.
     """
 
     name: ClassVar[str]
@@ -100,10 +101,10 @@ class Encoder:
         return venv
 
     def bank(self, config: Any, input_dim: int, seed: int) -> Any:
-        """The bank (:class:`~ermrl.encoders._reservoir.StepBank`) that steps one agent's
+        """The bank (`StepBank`) that steps one agent's
         reservoirs on inputs of ``input_dim`` values, its random weights from ``seed``: what
-        :class:`~ermrl.encoders.ReservoirVecEnv` wraps an env with. An encoder that wraps the
-        env in its own way (:meth:`wrap_env`) need not have one.
+        [`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv] wraps an env with. An encoder that wraps
+        the env in its own way ([`wrap_env`][ermrl.encoders.Encoder.wrap_env]) need not have one.
 
         Raises:
             NotImplementedError: this encoder has no bank.
@@ -114,8 +115,8 @@ class Encoder:
         self, configs: Sequence[Any], seeds: Sequence[int], input_dim: int
     ) -> list[Any]:
         """The banks of the agents of one population, in one layout (their
-        :meth:`~ermrl.encoders._reservoir.StepBank.stack` steps them together); each agent's
-        own :meth:`bank` by default."""
+        `stack` steps them together); each agent's
+        own [`bank`][ermrl.encoders.Encoder.bank] by default."""
         return [self.bank(c, input_dim, s) for c, s in zip(configs, seeds)]
 
     def policy_kwargs(self, config: Any) -> dict[str, Any]:
@@ -124,7 +125,7 @@ class Encoder:
 
     def space_from_args(self, args: argparse.Namespace) -> Any:
         """The search space ``ermrl evolve``'s options give: the shared ``--n-reservoirs`` and
-        input scaling, and each of :attr:`cli_flags` into its ``space_field`` (a flag left at
+        input scaling, and each of `cli_flags` into its ``space_field`` (a flag left at
         ``None`` keeps the space's default).
 
         Raises:

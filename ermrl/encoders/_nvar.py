@@ -14,14 +14,14 @@ features are the linear part
 C(k d + n - 1, n)`` features in all. Before the first input the history is zero, as reservoirpy's
 ``store``. There is no constant feature (the paper's ``c``): the policy's layers have biases.
 
-It gets what an echo state network gets (:class:`~ermrl.encoders.ReservoirVecEnv`): the input
-``u = [observation, previous action, previous reward * reward_scale] * input_scaling``, zero
-history at each episode start with ``reset="episode"``, the skip connection and
-``exposed_units`` (the first features of each NVAR).
+It gets what an echo state network gets ([`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv]): the
+input ``u = [observation, previous action, previous reward * reward_scale] * input_scaling``, zero
+history at each episode start with ``reset="episode"``, the skip connection and ``exposed_units``
+(the first features of each NVAR).
 
 The delay line is a linear shift register: a state of ``((k - 1) s + 1) d`` values steps as
 ``x <- [x | u] M`` with a fixed ``M`` that has one nonzero per column (1 for a shifted value,
-``input_scaling`` for a new input), so :class:`NVARBank` steps it as the equivalent gather,
+``input_scaling`` for a new input), so `NVARBank` steps it as the equivalent gather,
 ``x <- [x | u][:, src] * scale``, exactly (``M`` is built on demand for inspection). The state
 holds the ``k`` slots the features read first (slot ``0, s, 2s, ...``), so the linear features
 are a slice of it whatever the strides. The emission replaces the ESN's ``tanh``: the linear
@@ -29,15 +29,15 @@ features, then each monomial as the product of its ``n`` gathered columns (preco
 arrays).
 
 The output width grows fast with the delay and the order; it also depends on the input size
-``d`` (the task's observation and action sizes), which an :class:`NVARParams` does not know.
-:func:`check_nvar_size` refuses more than :data:`NVAR_MAX_FEATURES` features in one line, and
-:meth:`NVARSpace.check_input_dim` refuses a search space whose largest corner would, before a
+``d`` (the task's observation and action sizes), which an `NVARParams` does not know.
+`check_nvar_size` refuses more than `NVAR_MAX_FEATURES` features in one line, and
+`NVARSpace.check_input_dim` refuses a search space whose largest corner would, before a
 study is created.
 
-This module is the whole encoder but its batched computation (:mod:`ermrl.encoders._nvar_bank`,
-below the env wrapper): its search space, its ``ermrl evolve`` flags (:data:`CLI_FLAGS`), its
-test-phase agents (:data:`AGENTS`) and :class:`NVAREncoder`, registered by one line of
-:data:`~ermrl.encoders.ENCODERS`.
+This module is the whole encoder but its batched computation (`ermrl.encoders._nvar_bank`,
+below the env wrapper): its search space, its ``ermrl evolve`` flags (`CLI_FLAGS`), its
+test-phase agents (`AGENTS`) and `NVAREncoder`, registered by one line of
+`ENCODERS`.
 """
 
 from __future__ import annotations
@@ -81,7 +81,7 @@ __all__ = [
 def encoder_input_dim(task: TaskConfig, encoder: EncoderConfig) -> int:
     """The size ``d`` of the input an encoder gets on ``task``: the (masked) observation, the
     encoded previous action (``feed_action``) and the previous reward (``feed_reward``), as
-    :class:`~ermrl.encoders.ReservoirVecEnv` builds it. Makes (and closes) one env."""
+    [`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv] builds it. Makes (and closes) one env."""
     from ermrl.encoders._vec_env import ActionEncoder
     from ermrl.envs import make_env
 
@@ -102,8 +102,8 @@ class IntRange(Range):
     """A closed interval of integers, searched on a linear scale.
 
     The search asks it with ``trial.suggest_int`` (an ``optuna`` ``IntDistribution``), and
-    CMA-ES then searches it with margin (:class:`~ermrl.search.RestartCmaEsSampler`): the
-    rounding is part of the search distribution, not applied to its samples afterwards.
+    CMA-ES then searches it with margin ([`RestartCmaEsSampler`][ermrl.search.RestartCmaEsSampler]):
+    the rounding is part of the search distribution, not applied to its samples afterwards.
     """
 
     low: int
@@ -144,13 +144,13 @@ class IntRange(Range):
 class NVARSpace(PerReservoirSpace):
     """The evolved search space of NVARs (``--encoder nvar``): data, not code.
 
-    The delay, the order and the strides are integer genes (:class:`IntRange`); the input scaling
+    The delay, the order and the strides are integer genes (`IntRange`); the input scaling
     is log-scale (or fixed, with ``input_scaling=None``: it is inert under observation
-    normalization, see :class:`NVARParams`). The reference point is :class:`NVARParams`'
+    normalization, see `NVARParams`). The reference point is `NVARParams`'
     defaults (delay 2, order 2, strides 1, input scaling 1: the paper's and reservoirpy's
     example). The default ranges keep the largest NVAR (delay 4, order 2) within
-    :data:`NVAR_MAX_FEATURES` for inputs of up to 15 values; a wider input (a MuJoCo task's
-    full observation) needs a narrower delay range, which :meth:`check_input_dim` says.
+    `NVAR_MAX_FEATURES` for inputs of up to 15 values; a wider input (a MuJoCo task's
+    full observation) needs a narrower delay range, which `check_input_dim` says.
 
     Attributes:
         n_reservoirs: NVARs per agent, each with its own genes (their features are
@@ -212,8 +212,8 @@ class NVARSpace(PerReservoirSpace):
 
     def center_params(self) -> dict[str, float]:
         """The centre of the box: the exact middle of each integer gene's range
-        (:attr:`IntRange.center`, halfway between two integers for an even number of values,
-        so not a point :meth:`contains` accepts: it is CMA-ES's start, never a trial's
+        (`IntRange.center`, halfway between two integers for an even number of values,
+        so not a point `contains` accepts: it is CMA-ES's start, never a trial's
         values), the geometric mean of the input scaling's bounds."""
         return {
             name: r.center if isinstance(r, IntRange) else _box_center({name: r})[name]
@@ -261,7 +261,7 @@ class NVARSpace(PerReservoirSpace):
         return (one,) * self.n_reservoirs
 
     def check_input_dim(self, input_dim: int) -> None:
-        """Refuse a space whose widest corner exceeds :data:`NVAR_MAX_FEATURES` on ``input_dim``
+        """Refuse a space whose widest corner exceeds `NVAR_MAX_FEATURES` on ``input_dim``
         inputs, before any trial exists (a study must not fail trial by trial on its size).
 
         Raises:
@@ -344,8 +344,8 @@ AGENTS: dict[str, dict[str, Any]] = {
 # -- the encoder ---------------------------------------------------------------------------------
 class NVAREncoder(Encoder):
     """The NVAR encoder: decoding of a trial's genes, its flags and agents, the size check made
-    before a study exists, and the env wrapper (:class:`~ermrl.encoders.ReservoirVecEnv` with an
-    :class:`NVARBank`)."""
+    before a study exists, and the env wrapper ([`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv]
+    with an `NVARBank`)."""
 
     name = "nvar"
     description = (
@@ -363,7 +363,7 @@ class NVAREncoder(Encoder):
 
     def check(self, task: TaskConfig, config: EncoderConfig, space: NVARSpace) -> None:
         """Refuse a space whose widest point, or a study whose reference NVAR(s), would exceed
-        :data:`NVAR_MAX_FEATURES` features on ``task``'s input (one line, before anything is
+        `NVAR_MAX_FEATURES` features on ``task``'s input (one line, before anything is
         written)."""
         input_dim = encoder_input_dim(task, config)
         space.check_input_dim(input_dim)

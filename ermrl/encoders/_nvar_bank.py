@@ -1,9 +1,9 @@
 """The NVAR's settings and batched computation (no env, no encoder): what
-:class:`~ermrl.encoders.ReservoirVecEnv` and the population backend step.
+[`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv] and the population backend step.
 
-:mod:`ermrl.encoders._nvar` describes the model (Gauthier et al. 2021, as reservoirpy 0.4's
+`ermrl.encoders._nvar` describes the model (Gauthier et al. 2021, as reservoirpy 0.4's
 ``NVAR`` node builds it) and holds the encoder; this module sits below
-:mod:`ermrl.encoders._vec_env`, which the encoder wraps the env in.
+`ermrl.encoders._vec_env`, which the encoder wraps the env in.
 """
 
 from __future__ import annotations
@@ -72,11 +72,11 @@ class NVARParams:
     normalization it sets the scale of the features the policy sees (and the balance between the
     linear part and the monomials).
 
-    The output width depends on the input size ``d`` of the task (:func:`nvar_width`), which these
-    settings do not hold: :meth:`state_dim_for` gives it; :attr:`state_dim`, what
-    :class:`~ermrl.config.EncoderConfig` checks ``exposed_units`` and its unit count against,
-    is the width for ``d = 1``, the smallest any task gives. The real size is checked where ``d``
-    is known (:func:`check_nvar_size`).
+    The output width depends on the input size ``d`` of the task (`nvar_width`), which these
+    settings do not hold: `state_dim_for` gives it; `state_dim`, what
+    [`EncoderConfig`][ermrl.config.EncoderConfig] checks ``exposed_units`` and its unit count
+    against, is the width for ``d = 1``, the smallest any task gives. The real size is checked where
+    ``d`` is known (`check_nvar_size`).
 
     Attributes:
         delay: Inputs in the linear part (``k``: the current one and ``k - 1`` earlier ones).
@@ -112,7 +112,7 @@ class NVARParams:
 
     @property
     def state_dim(self) -> int:
-        """Features for a one-dimensional input, a lower bound of :meth:`state_dim_for`."""
+        """Features for a one-dimensional input, a lower bound of `state_dim_for`."""
         return self.state_dim_for(1)
 
     def state_dim_for(self, input_dim: int) -> int:
@@ -121,7 +121,7 @@ class NVARParams:
 
 
 def check_nvar_size(reservoirs: Sequence[NVARParams], input_dim: int) -> int:
-    """Refuse NVARs with more than :data:`NVAR_MAX_FEATURES` features on ``input_dim`` inputs.
+    """Refuse NVARs with more than `NVAR_MAX_FEATURES` features on ``input_dim`` inputs.
 
     Args:
         reservoirs: One agent's NVARs.
@@ -167,12 +167,12 @@ class _Segment:
 class NVARBank(StepBank):
     """Several NVARs on the same input, fused into one state and one gather per step.
 
-    The same interface as :class:`~ermrl.encoders.ReservoirBank` (``buffer``, ``step_buffer``,
-    ``emitter``, ``run``), so :class:`~ermrl.encoders.ReservoirVecEnv` and the population backend
-    step it as they step an echo state network. Reservoir ``r``'s delay line holds
-    ``window_r * d`` values: first the ``delay`` slots its features read (the newest input,
-    then ``strides`` steps back, ...), then the slots in between, then (``windows``) padding that
-    stays zero.
+    The same interface as [`ReservoirBank`][ermrl.encoders.ReservoirBank] (``buffer``,
+    ``step_buffer``, ``emitter``, ``run``), so [`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv]
+    and the population backend step it as they step an echo state network. Reservoir ``r``'s delay
+    line holds ``window_r * d`` values: first the ``delay`` slots its features read (the newest
+    input, then ``strides`` steps back, ...), then the slots in between, then (``windows``) padding
+    that stays zero.
 
     Args:
         reservoirs: The NVARs' hyperparameters.
@@ -183,7 +183,7 @@ class NVARBank(StepBank):
             layout. ``None``: each NVAR's own window.
 
     Raises:
-        ConfigError: more than :data:`NVAR_MAX_FEATURES` features.
+        ConfigError: more than `NVAR_MAX_FEATURES` features.
     """
 
     # Features are unbounded (an RTU layer's tanh is not).
@@ -239,7 +239,7 @@ class NVARBank(StepBank):
     @classmethod
     def stack(cls, banks: Sequence[Any]) -> StackedBanks:
         """The NVARs of ``P`` agents (one layout: the same delay, order and padded windows,
-        :meth:`~ermrl.encoders._nvar.NVAREncoder.population_banks`), stepped together."""
+        `population_banks`), stepped together."""
         return _StackedNVARs(banks)
 
     @property
@@ -317,7 +317,7 @@ class NVARBank(StepBank):
 
 class _StackedNVARs(StackedBanks):
     """The NVARs of ``P`` agents: one batched gather shifts every delay line, each agent with
-    its own source columns and input scaling (as each agent's :meth:`NVARBank.step_buffer`)."""
+    its own source columns and input scaling (as each agent's `NVARBank.step_buffer`)."""
 
     per_agent = ("src", "scale")
 

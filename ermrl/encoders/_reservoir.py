@@ -5,16 +5,16 @@ The update rule is reservoirpy's ``Reservoir`` rule, applied to ``n_envs`` state
     x <- (1 - lr) * x + lr * tanh(W x + Win u + b)
 
 ``lr`` is one leak rate for every unit, or one per unit: a multi-timescale reservoir
-(:attr:`ReservoirParams.lr_max`) spaces its units' leak rates log-uniformly between two bounds.
+(`ReservoirParams.lr_max`) spaces its units' leak rates log-uniformly between two bounds.
 
-A frozen layer of recurrent trace units (:class:`RTUParams`) is the linear case
-``x <- W x + Win u`` with a block-rotation ``W`` (see :func:`rtu_weights`); the policy then sees
-``tanh(x)``.
+A frozen layer of recurrent trace units ([`RTUParams`][ermrl.encoders.RTUParams]) is the linear case
+``x <- W x + Win u`` with a block-rotation ``W`` (see [`rtu_weights`][ermrl.encoders.rtu_weights]);
+the policy then sees ``tanh(x)``.
 
 Several reservoirs are fused into one block-diagonal system, so one step is one matrix product
 for all reservoirs and all environments: there is no per-step reservoirpy ``Node`` call.
 
-An NVAR (:class:`~ermrl.encoders._nvar.NVARBank`) has no random weights: its delay line is the
+An NVAR (`NVARBank`) has no random weights: its delay line is the
 same update with a fixed 0/1 ``M``, and it emits the delayed inputs and their monomials; it
 offers the same interface (``buffer``, ``step_buffer``, ``emitter``, ``out_units``).
 """
@@ -76,7 +76,8 @@ class ReservoirParams:
         bias_init: ``"none"``: the bias above. ``"original"``: reservoirpy 0.3's default bias,
             which the original ER-MRL code used: Bernoulli +-1 on ``input_connectivity`` of
             the units (10 of 100), zero elsewhere; needs ``bias_scaling`` 0. Left out of
-            :func:`to_dict` while ``"none"``, so configs stored before it existed are unchanged.
+            [`to_dict`][ermrl.config.to_dict] while ``"none"``, so configs stored before it existed
+            are unchanged.
         ablation: What is left of the reservoir (the test phase's ablation agents);
             ``"none"``: the whole echo state network. ``"leaky"``: its recurrent weights
             removed (``W = 0``), the same ``Win``, bias and leak rate (the same seed draws
@@ -85,16 +86,17 @@ class ReservoirParams:
             moving average at the leak rate, ``e <- (1 - lr) e + lr u`` (the state is
             ``[e; u]``, two values per input, shown as it is: no weights, no tanh; ``units``,
             ``sr``, ``input_scaling`` and the connectivities are unused). Left out of
-            :func:`to_dict` while ``"none"``.
+            [`to_dict`][ermrl.config.to_dict] while ``"none"``.
         lr_max: A multi-timescale reservoir: the largest of its units' leak rates, in
             ``[lr, 1]``. Unit ``i`` of ``n`` leaks at
-            ``lr_i = lr * (lr_max / lr) ** (i / (n - 1))`` (:meth:`leak_rates`): log-uniformly
-            spaced from ``lr`` (unit 0) to ``lr_max`` (unit ``n - 1``), fixed by the two
-            bounds, not drawn, so the same settings give the same reservoir; each unit then
-            updates ``x_i <- (1 - lr_i) x_i + lr_i tanh(W x + Win u + b)_i``. The weights are
-            drawn as without it (the same seed gives the same ``W``, ``Win`` and bias).
-            ``None``: every unit leaks at ``lr``. Not with the ``"ema"`` ablation (one leak
-            rate). Left out of :func:`to_dict` while ``None``.
+            ``lr_i = lr * (lr_max / lr) ** (i / (n - 1))``
+            ([`leak_rates`][ermrl.encoders.ReservoirParams.leak_rates]): log-uniformly spaced from
+            ``lr`` (unit 0) to ``lr_max`` (unit ``n - 1``), fixed by the two bounds, not drawn, so
+            the same settings give the same reservoir; each unit then updates
+            ``x_i <- (1 - lr_i) x_i + lr_i tanh(W x + Win u + b)_i``. The weights are drawn as
+            without it (the same seed gives the same ``W``, ``Win`` and bias). ``None``: every unit
+            leaks at ``lr``. Not with the ``"ema"`` ablation (one leak rate). Left out of
+            [`to_dict`][ermrl.config.to_dict] while ``None``.
     """
 
     units: int = 100
@@ -166,7 +168,7 @@ class RTUParams:
 
     The units of Elelimy et al. (2024), with fixed random weights: each of the ``units`` complex
     units holds ``(c1, c2)``; with ``g = r cos(theta)``, ``phi = r sin(theta)`` and
-    ``gamma = sqrt(1 - r^2)``::
+    ``gamma = sqrt(1 - r^2)``:
 
         c1 <- g c1 - phi c2 + gamma (W1 u)
         c2 <- g c2 + phi c1 + gamma (W2 u)
@@ -260,7 +262,7 @@ def reservoir_node(params: ReservoirParams, input_dim: int, seed: int) -> Reserv
     for ``Win``, ``W`` and the bias from ``seed``, so the same seed gives the same ``W`` and bias
     for any ``input_dim`` (this is what "the same reservoir on another task" means in ermrl).
     A multi-timescale reservoir's node gets its units' leak rates (reservoirpy takes one per
-    unit: :meth:`ReservoirParams.leak_rates`).
+    unit: [`ReservoirParams.leak_rates`][ermrl.encoders.ReservoirParams.leak_rates]).
     """
     # reservoirpy (and scipy.stats under it) is imported here, not with this module: the CLI,
     # the configuration and a plan read this module without building a reservoir.
@@ -297,10 +299,10 @@ def reservoir_weights(params: ReservoirParams, input_dim: int, seed: int) -> Res
 
     Returns:
         Dense float64 weights, with one leak rate per unit for a multi-timescale reservoir
-        (:meth:`ReservoirParams.leak_rates`). An ablation (:attr:`ReservoirParams.ablation`): ``"leaky"``,
-        the same weights with ``W`` zero; ``"ema"``, the linear update of ``x = [e; u]``,
-        ``e <- (1 - lr) e + lr u`` next to the current input ``u`` (``W = diag((1 - lr) I, 0)``,
-        ``Win = [lr I; I]``, no bias), shown raw.
+        ([`ReservoirParams.leak_rates`][ermrl.encoders.ReservoirParams.leak_rates]). An ablation
+        (`ReservoirParams.ablation`): ``"leaky"``, the same weights with ``W`` zero; ``"ema"``, the
+        linear update of ``x = [e; u]``, ``e <- (1 - lr) e + lr u`` next to the current input ``u``
+        (``W = diag((1 - lr) I, 0)``, ``Win = [lr I; I]``, no bias), shown raw.
     """
     if input_dim < 1:
         raise ValueError(f"input_dim must be >= 1, got {input_dim}")
@@ -350,8 +352,9 @@ def rtu_weights(params: RTUParams, input_dim: int, seed: int) -> ReservoirWeight
 
 
 def encoder_weights(params: object, input_dim: int, seed: int) -> ReservoirWeights:
-    """The weights of one reservoir of either family (:func:`reservoir_weights` or
-    :func:`rtu_weights`).
+    """The weights of one reservoir of either family
+    ([`reservoir_weights`][ermrl.encoders.reservoir_weights] or
+    [`rtu_weights`][ermrl.encoders.rtu_weights]).
 
     Raises:
         TypeError: ``params`` are neither an ESN's nor an RTU layer's settings.
@@ -370,12 +373,12 @@ def reservoir_seeds(seed: int, n_reservoirs: int) -> list[int]:
 
 
 class StepBank:
-    """What every bank of :class:`~ermrl.encoders.ReservoirVecEnv` shares: stepping whole state
-    arrays and running one sequence, through the bank's own ``buffer`` and ``step_buffer``
+    """What every bank of [`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv] shares: stepping whole
+    state arrays and running one sequence, through the bank's own ``buffer`` and ``step_buffer``
     (the ``[x | u]`` buffer and its in-place update).
 
     A bank the population backend can step for many agents at once also defines
-    :meth:`stack` (:class:`ReservoirBank` and :class:`~ermrl.encoders._nvar.NVARBank` do)."""
+    `stack` ([`ReservoirBank`][ermrl.encoders.ReservoirBank] and `NVARBank` do)."""
 
     n_units: int
     dtype: np.dtype
@@ -442,10 +445,10 @@ class StepBank:
 
 class StackedBanks:
     """The banks of ``P`` agents stepped together on a ``[P, E, N + D]`` buffer ``[x | u]``
-    (:class:`~ermrl.population.BatchedReservoir`): :meth:`step` advances every row of every
-    agent; :meth:`step_agent` advances rows of one agent with that agent's own bank, which
-    computes the same values; :meth:`keep` drops agents. A subclass stacks the per-agent arrays
-    named in :attr:`per_agent` (each with a leading agent axis)."""
+    ([`BatchedReservoir`][ermrl.population.BatchedReservoir]): `step` advances every row of every
+    agent; `step_agent` advances rows of one agent with that agent's own bank, which
+    computes the same values; `keep` drops agents. A subclass stacks the per-agent arrays
+    named in `per_agent` (each with a leading agent axis)."""
 
     per_agent: tuple[str, ...] = ()
 
@@ -470,7 +473,7 @@ class StackedBanks:
 class _StackedReservoirs(StackedBanks):
     """Echo state networks or frozen RTU layers of ``P`` agents: one stacked ``matmul`` of
     ``[x | u]`` with each agent's ``M``, which numpy computes slice by slice, as each agent's
-    :meth:`ReservoirBank.step_buffer` would."""
+    [`ReservoirBank.step_buffer`][ermrl.encoders.ReservoirBank.step_buffer] would."""
 
     per_agent = ("M", "bias", "leak", "keep_rate")
 
@@ -508,7 +511,8 @@ class ReservoirBank(StepBank):
     matrix product of the buffer ``[x | u]`` (shape ``(n, N + input_dim)``) with ``M``.
 
     Args:
-        weights: One :class:`ReservoirWeights` per reservoir, all with the same ``input_dim``.
+        weights: One [`ReservoirWeights`][ermrl.encoders.ReservoirWeights] per reservoir, all with
+            the same ``input_dim``.
         dtype: Floating type of the state and weights (float64 matches reservoirpy exactly).
     """
 
@@ -602,8 +606,9 @@ class ReservoirBank(StepBank):
         """What the policy sees of a state: ``(emit, width)``.
 
         ``emit(states)`` maps states of shape ``(..., N)`` to a new float32 array of shape
-        ``(..., width)``: :meth:`emit` of the first ``exposed_units`` units of each reservoir
-        (all units when ``None``, or for EMAs, whose values are the inputs').
+        ``(..., width)``: [`emit`][ermrl.encoders.ReservoirBank.emit] of the first ``exposed_units``
+        units of each reservoir (all units when ``None``, or for EMAs, whose values are the
+        inputs').
         """
         if exposed_units is None or self.raw:
             index = None

@@ -1,13 +1,13 @@
 """``reservoir``: echo state networks built with reservoirpy, frozen, wrapping the env.
 
-The reference encoder, in one module: its search space (:class:`ReservoirSpace`: spectral
-radius, leak rate and input scaling per reservoir, log scale; or, for multi-timescale reservoirs
-(``--multiscale``), a band of leak rates in place of the one leak rate), its ``ermrl evolve`` flags
-(:data:`CLI_FLAGS`), its test-phase agents (:data:`AGENTS`) and the encoder itself
-(:class:`ReservoirEncoder`). One reservoir's settings (:class:`~ermrl.encoders.ReservoirParams`,
-reservoirpy's defaults: the unevolved reference) live with the weights they build, in
-:mod:`ermrl.encoders._reservoir`, below the env wrapper (:class:`~ermrl.encoders.ReservoirVecEnv`)
-that steps them.
+The reference encoder, in one module: its search space
+([`ReservoirSpace`][ermrl.encoders.ReservoirSpace]: spectral radius, leak rate and input scaling per
+reservoir, log scale; or, for multi-timescale reservoirs (``--multiscale``), a band of leak rates in
+place of the one leak rate), its ``ermrl evolve`` flags (`CLI_FLAGS`), its test-phase agents
+(`AGENTS`) and the encoder itself ([`ReservoirEncoder`][ermrl.encoders.ReservoirEncoder]). One
+reservoir's settings ([`ReservoirParams`][ermrl.encoders.ReservoirParams], reservoirpy's defaults:
+the unevolved reference) live with the weights they build, in `ermrl.encoders._reservoir`, below the
+env wrapper ([`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv]) that steps them.
 """
 
 from __future__ import annotations
@@ -45,7 +45,7 @@ class ReservoirSpace(PerReservoirSpace):
     ``input_scaling``; with several, ``sr_0``, ``lr_0``, ``input_scaling_0``, ``sr_1``, ...
 
     With ``multiscale``, each reservoir is a multi-timescale one
-    (:attr:`~ermrl.encoders.ReservoirParams.lr_max`: its units' leak rates spaced log-uniformly
+    (`lr_max`: its units' leak rates spaced log-uniformly
     from ``lr_min`` to ``lr_max``) and the genes ``lr_max`` and ``lr_min_ratio`` replace ``lr``:
     ``lr_min = lr_min_ratio * lr_max``, which keeps ``lr_min <= lr_max`` everywhere in the box
     that CMA-ES needs (with the default ranges ``lr_min`` reaches down to 1e-6). The genes are
@@ -63,7 +63,7 @@ class ReservoirSpace(PerReservoirSpace):
         rc_connectivity: Fixed recurrent connectivity.
         input_connectivity: Fixed input connectivity.
         bias_scaling: Fixed bias scaling.
-        bias_init: Fixed bias initialization (:attr:`ReservoirParams.bias_init`).
+        bias_init: Fixed bias initialization (`ReservoirParams.bias_init`).
         multiscale: Evolve multi-timescale reservoirs (genes ``lr_max`` and ``lr_min_ratio``
             in place of ``lr``, whose range is then unused). Left out of stored spaces while
             off, as are the two ranges below at their defaults.
@@ -256,8 +256,8 @@ CLI_FLAGS: tuple[dict[str, Any], ...] = (
 
 
 def _ablated(ablation: Ablation) -> functools.partial[ReservoirParams]:
-    """An agent's :attr:`~ermrl.config.AgentKind.derive`: a reservoir's settings with
-    ``ablation`` (:attr:`ReservoirParams.ablation`), all else kept."""
+    """An agent's `derive`: a reservoir's settings with
+    ``ablation`` (`ReservoirParams.ablation`), all else kept."""
     return functools.partial(dataclasses.replace, ablation=ablation)
 
 
@@ -310,9 +310,9 @@ AGENTS: dict[str, AgentKind] = {
 
 
 class ReservoirEncoder(Encoder):
-    """Echo state networks: :class:`ReservoirSpace` decoded into
-    :class:`~ermrl.encoders.ReservoirParams`, stepped by a
-    :class:`~ermrl.encoders.ReservoirVecEnv`."""
+    """Echo state networks: [`ReservoirSpace`][ermrl.encoders.ReservoirSpace] decoded into
+    [`ReservoirParams`][ermrl.encoders.ReservoirParams], stepped by a
+    [`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv]."""
 
     name = "reservoir"
     description = (
@@ -330,7 +330,7 @@ class ReservoirEncoder(Encoder):
 
     def bank(self, config: EncoderConfig, input_dim: int, seed: int) -> ReservoirBank:
         """One weight seed per reservoir derived from ``seed``, the weights from reservoirpy's
-        initializers (:func:`~ermrl.encoders.encoder_weights`), fused into one bank."""
+        initializers ([`encoder_weights`][ermrl.encoders.encoder_weights]), fused into one bank."""
         weights = [
             encoder_weights(p, input_dim, s)
             for p, s in zip(config.reservoirs, reservoir_seeds(seed, config.n_reservoirs))

@@ -1,14 +1,14 @@
 """``rtu``: frozen recurrent trace units, a complex-diagonal reservoir that evolution shapes.
 
-The units of Elelimy et al. (2024) with fixed random weights (:class:`~ermrl.encoders.RTUParams`):
-a linear recurrence of damped rotations, each unit with its own decay ``r`` and frequency
-``theta``. Evolution searches the ranges those are drawn from, and the input scaling
-(:class:`RTUSpace`), exactly as it searches an ESN's spectral radius and leak rate; the learner
-(PPO by default) reads ``tanh`` of the states. It wraps the env in the same
-:class:`~ermrl.encoders.ReservoirVecEnv` as the ESN (same inputs, resets and encoding options),
-with the linear update of :func:`~ermrl.encoders.rtu_weights`. This module holds its search
-space, its ``ermrl evolve`` flags (:data:`CLI_FLAGS`), its agents (:data:`AGENTS`) and the
-encoder; the layer's settings live with its weights in :mod:`ermrl.encoders._reservoir`.
+The units of Elelimy et al. (2024) with fixed random weights
+([`RTUParams`][ermrl.encoders.RTUParams]): a linear recurrence of damped rotations, each unit with
+its own decay ``r`` and frequency ``theta``. Evolution searches the ranges those are drawn from, and
+the input scaling ([`RTUSpace`][ermrl.encoders.RTUSpace]), exactly as it searches an ESN's spectral
+radius and leak rate; the learner (PPO by default) reads ``tanh`` of the states. It wraps the env in
+the same [`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv] as the ESN (same inputs, resets and
+encoding options), with the linear update of [`rtu_weights`][ermrl.encoders.rtu_weights]. This
+module holds its search space, its ``ermrl evolve`` flags (`CLI_FLAGS`), its agents (`AGENTS`) and
+the encoder; the layer's settings live with its weights in `ermrl.encoders._reservoir`.
 """
 
 from __future__ import annotations

@@ -1,11 +1,13 @@
-"""What every encoder's settings share: the encoding options (:class:`EncoderConfig`), what the
-generic code reads of one reservoir's settings (:class:`EncoderParams`) and of a search space
-(:class:`EncoderSpace`), and the per-reservoir naming of evolved parameters
-(:class:`PerReservoirSpace`).
+"""What every encoder's settings share: the encoding options
+([`EncoderConfig`][ermrl.encoders.EncoderConfig]), what the generic code reads of one reservoir's
+settings ([`EncoderParams`][ermrl.encoders.EncoderParams]) and of a search space
+([`EncoderSpace`][ermrl.encoders.EncoderSpace]), and the per-reservoir naming of evolved parameters
+([`PerReservoirSpace`][ermrl.encoders.PerReservoirSpace]).
 
-An encoder's own settings class (:class:`~ermrl.encoders.ReservoirParams`,
-:class:`~ermrl.encoders.RTUParams`, ...) and search space live in its module; nothing here names
-one, except the default reservoir of :class:`EncoderConfig` (reservoirpy's defaults).
+An encoder's own settings class ([`ReservoirParams`][ermrl.encoders.ReservoirParams],
+[`RTUParams`][ermrl.encoders.RTUParams], ...) and search space live in its module; nothing here
+names one, except the default reservoir of [`EncoderConfig`][ermrl.encoders.EncoderConfig]
+(reservoirpy's defaults).
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ class EncoderParams(Protocol):
     """What generic code reads of one reservoir's settings (one ESN, RTU layer, NVAR, ...).
 
     Attributes:
-        family: The encoder family the settings belong to (:attr:`ermrl.encoders.Encoder.family`);
+        family: The encoder family the settings belong to (`ermrl.encoders.Encoder.family`);
             stored with the settings where two encoders' settings could be confused.
         state_dim: Width of the state the policy can see (a lower bound where it depends on the
             task's input size, as an NVAR's).
@@ -51,7 +53,8 @@ class EncoderParams(Protocol):
 
 @runtime_checkable
 class EncoderSpace(SearchSpace, Protocol):
-    """What generic code reads of an encoder's search space, on top of :class:`SearchSpace`."""
+    """What generic code reads of an encoder's search space, on top of
+    [`SearchSpace`][ermrl.config.SearchSpace]."""
 
     @property
     def n_reservoirs(self) -> int: ...
@@ -126,8 +129,8 @@ class EncoderConfig:
 
     Attributes:
         reservoirs: One registered encoder's settings per reservoir (an echo state network's
-            :class:`~ermrl.encoders.ReservoirParams`, ...), all of one family; their states are
-            concatenated.
+            [`ReservoirParams`][ermrl.encoders.ReservoirParams], ...), all of one family; their
+            states are concatenated.
         skip_connection: The policy sees ``[state, observation, action, reward]``, not only the state.
         reset: ``"episode"`` zeroes a row's state when its episode ends; ``"never"`` carries it.
         exposed_units: Expose only the first N units of each reservoir to the policy (``None``: all).

@@ -114,7 +114,7 @@ class ReservoirVecEnv(VecEnvWrapper):
         seed: Seed of the reservoir weights (each reservoir gets its own derived seed).
 
     The policy observes, as float32, the exposed reservoir units (an NVAR's: its exposed
-    features, :class:`~ermrl.encoders._nvar.NVARBank`), followed, with a skip connection, by
+    features, `NVARBank`), followed, with a skip connection, by
     ``[observation, encoded previous action, scaled previous reward]``.
     """
 

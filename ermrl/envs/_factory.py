@@ -1,8 +1,9 @@
 """Build gymnasium envs the way ermrl uses them: validated id, optional observation mask.
 
-POPGym ids (``popgym-<Name>-v0``) are registered on first use, so :func:`check_env_id`,
-:func:`observation_split` and :func:`observation_indices` here wrap those of
-:mod:`ermrl.envs._masks` to import ``popgym`` first (see :mod:`ermrl.envs._popgym`).
+POPGym ids (``popgym-<Name>-v0``) are registered on first use, so
+[`check_env_id`][ermrl.envs.check_env_id], [`observation_split`][ermrl.envs.observation_split] and
+[`observation_indices`][ermrl.envs.observation_indices] here wrap those of `ermrl.envs._masks` to
+import ``popgym`` first (see `ermrl.envs._popgym`).
 """
 
 from __future__ import annotations
@@ -77,7 +78,7 @@ _filter_mujoco_warnings()
 def check_env_id(env_id: str) -> None:
     """Fail fast on an env id that gymnasium does not know, suggesting close matches.
 
-    :func:`ermrl.envs._masks.check_env_id`, after registering POPGym tasks for a ``popgym-``
+    `ermrl.envs._masks.check_env_id`, after registering POPGym tasks for a ``popgym-``
     id. Only the registry is consulted; the env is not constructed.
 
     Args:
@@ -97,10 +98,10 @@ def check_registered_env_id(env_id: object, source: str | PathLike[str]) -> str:
     someone else wrote (a run folder's ``config.yaml``, an expert's ``expert.json``) would run
     that module's code when ermrl builds the env. An id read from a file must therefore be in
     gymnasium's registry already: gymnasium's own tasks, ermrl's variants (registered when
-    :mod:`ermrl.envs` is imported) or a POPGym task (ermrl imports the ``popgym`` package
+    [`ermrl.envs`][ermrl.envs] is imported) or a POPGym task (ermrl imports the ``popgym`` package
     itself, whatever the file says). A ``module:`` prefix passes only when that module is
     imported already (importing it again runs nothing). Ids the user types on the command line
-    go through :func:`check_env_id`, which may import their module.
+    go through [`check_env_id`][ermrl.envs.check_env_id], which may import their module.
 
     Args:
         env_id: The id as read from the file.
@@ -137,7 +138,7 @@ def check_registered_env_id(env_id: object, source: str | PathLike[str]) -> str:
 def observation_split(env_id: str) -> ObservationSplit:
     """Return the position/velocity split of ``env_id``'s default observation.
 
-    :func:`ermrl.envs._masks.observation_split` (cached), refusing POPGym tasks with their own
+    `ermrl.envs._masks.observation_split` (cached), refusing POPGym tasks with their own
     message.
 
     Args:
@@ -159,7 +160,7 @@ def observation_split(env_id: str) -> ObservationSplit:
 def observation_indices(env_id: str, observe: ObserveMode) -> tuple[int, ...] | None:
     """Indices of the flat observation kept by an observation mode.
 
-    :func:`ermrl.envs._masks.observation_indices`, refusing a mask for a POPGym task with its
+    `ermrl.envs._masks.observation_indices`, refusing a mask for a POPGym task with its
     own message.
 
     Args:
@@ -184,10 +185,11 @@ def observation_indices(env_id: str, observe: ObserveMode) -> tuple[int, ...] | 
 def _split_for(env_id: str, env_kwargs: Mapping[str, Any]) -> ObservationSplit:
     """Split for ``env_id`` built with ``env_kwargs``.
 
-    Without keyword arguments this is the cached :func:`observation_split`.  With them, a
-    MuJoCo env is probed again as configured (options such as
-    ``include_cfrc_ext_in_observation`` or ``exclude_current_positions_from_observation``
-    change the layout); table envs keep their table and are checked against the built space.
+    Without keyword arguments this is the cached
+    [`observation_split`][ermrl.envs.observation_split]. With them, a MuJoCo env is probed again as
+    configured (options such as ``include_cfrc_ext_in_observation`` or
+    ``exclude_current_positions_from_observation`` change the layout); table envs keep their table
+    and are checked against the built space.
 
     Args:
         env_id: A registered gymnasium id.
@@ -221,7 +223,7 @@ def make_env(
     Everything cheap is validated first (``observe`` value, env id in the registry, a known
     split for masked modes) before the env itself is built.
 
-    A POPGym task (``popgym-<Name>-v0``, see :mod:`ermrl.envs._popgym`) takes only
+    A POPGym task (``popgym-<Name>-v0``, see `ermrl.envs._popgym`) takes only
     ``observe="all"``; its observation is flattened to a float32 vector (one-hot for each
     discrete part).
 
@@ -232,9 +234,9 @@ def make_env(
         **env_kwargs: Further keyword arguments for ``gymnasium.make``.
 
     Returns:
-        The env; for a masked mode, wrapped in :class:`ObservationMask` so observations have
-        shape ``(len(indices),)`` instead of ``(obs_dim,)``; for a POPGym task, wrapped so
-        observations are float32 of shape ``(flatdim,)``.
+        The env; for a masked mode, wrapped in [`ObservationMask`][ermrl.envs.ObservationMask] so
+        observations have shape ``(len(indices),)`` instead of ``(obs_dim,)``; for a POPGym task,
+        wrapped so observations are float32 of shape ``(flatdim,)``.
 
     Raises:
         ValueError: For an unknown ``observe`` value.

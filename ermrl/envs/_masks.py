@@ -3,11 +3,11 @@
 ``--observe {all,positions,velocities}`` keeps only one part of a flat observation vector.
 This module knows the split for each supported task and provides the wrapper that applies it:
 
-* classic-control and Box2D tasks use documented index tables (:data:`CLASSIC_SPLITS`);
+* classic-control and Box2D tasks use documented index tables (`CLASSIC_SPLITS`);
 * MuJoCo locomotion tasks (``Ant``, ``HalfCheetah``, ``Swimmer``, ``Hopper``, ``Walker2d`` in
   ``-v4`` and ``-v5``) derive the split from the simulator itself: the env is built once, and
   every ``data.qpos[i]`` / ``data.qvel[j]`` is nudged in turn while watching which entries of
-  ``_get_obs()`` move (see :func:`observation_split`).
+  ``_get_obs()`` move (see `observation_split`).
 """
 
 from __future__ import annotations
@@ -277,7 +277,7 @@ def _derive_mujoco_split(
         env_id: A registered MuJoCo env id.
         env_kwargs: Extra ``gymnasium.make`` keyword arguments that may change the layout
             (e.g. ``include_cfrc_ext_in_observation=False``).
-        strict: When True (envs outside :data:`MUJOCO_OBSERVE_ENVS`), every observation entry
+        strict: When True (envs outside `MUJOCO_OBSERVE_ENVS`), every observation entry
             must respond to exactly one of qpos/qvel; derived quantities are not allowed.
 
     Returns:
@@ -333,8 +333,8 @@ def _derive_mujoco_split(
 def observation_split(env_id: str) -> ObservationSplit:
     """Return the position/velocity split of ``env_id``'s default observation.
 
-    Classic-control/Box2D ids come from :data:`CLASSIC_SPLITS`.  MuJoCo ids are probed once
-    (see :func:`_probe_mujoco`) and cached: an observation entry that responds only to
+    Classic-control/Box2D ids come from `CLASSIC_SPLITS`.  MuJoCo ids are probed once
+    (see `_probe_mujoco`) and cached: an observation entry that responds only to
     ``qpos`` is a position, only to ``qvel`` a velocity, and anything else (Ant-v5's contact
     forces) is neither.  Other gymnasium MuJoCo envs are accepted when every entry classifies
     cleanly.
@@ -416,7 +416,7 @@ class ObservationMask(gymnasium.ObservationWrapper):
     ``observation(obs) == obs[indices]``; the new space is a ``Box`` with the kept ``low`` and
     ``high`` bounds and the original dtype. ``reset`` and ``step`` also put the unmasked
     observation, shape ``(obs_dim,)``, into ``info["full_observation"]``
-    (:data:`FULL_OBSERVATION_KEY`), so that an expert can act on the full state while a learner
+    (`FULL_OBSERVATION_KEY`), so that an expert can act on the full state while a learner
     sees the masked one (the ``bc`` and ``dagger`` learners read it).
     """
 

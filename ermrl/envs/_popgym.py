@@ -148,13 +148,13 @@ def make_popgym_env(
     argument (they render text); the CartPole and Pendulum variants take gymnasium's.
 
     Args:
-        env_id: A registered POPGym id (see :func:`register_popgym`).
+        env_id: A registered POPGym id (see `register_popgym`).
         render_mode: Passed to ``gymnasium.make`` when not ``None``.
         **env_kwargs: Further keyword arguments for ``gymnasium.make``; the ``Easy``, ``Medium``
             and ``Hard`` envs take none.
 
     Returns:
-        The env wrapped by :func:`flat_float_observation`.
+        The env wrapped by `flat_float_observation`.
 
     Raises:
         ConfigError: When the env does not accept ``render_mode`` or ``env_kwargs``.

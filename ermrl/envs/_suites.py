@@ -149,7 +149,7 @@ def get_suite(
 
     Args:
         name: Suite name, e.g. ``forward_mujoco`` or ``Ant_Swimmer``.
-        path: Optional user YAML file (see :func:`load_suites`).
+        path: Optional user YAML file (see [`load_suites`][ermrl.envs.load_suites]).
         env_version: Rewrite the suite's ids to this version (``v4``).
 
     Raises:

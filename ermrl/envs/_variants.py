@@ -6,7 +6,7 @@ Ant-v5 appends by default (Ant-v4's default, and the observation rl-baselines3-z
 results were trained on). An expert that should not depend on contact forces trains on it; the
 variant has its own id so that studies, run folders, settings tables and experts name it.
 ``--observe positions|velocities`` masks it like Ant-v5 (its split is probed as for any MuJoCo
-env). Registration happens when :mod:`ermrl.envs` is imported.
+env). Registration happens when [`ermrl.envs`][ermrl.envs] is imported.
 """
 
 from __future__ import annotations

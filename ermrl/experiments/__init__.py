@@ -1,8 +1,8 @@
-"""Deprecated: the test phase's old package name; use :mod:`ermrl.test_phase`.
+"""Deprecated: the test phase's old package name; use [`ermrl.test_phase`][ermrl.test_phase].
 
 ``import ermrl.experiments`` (and its private modules, ``ermrl.experiments._test_phase``, ...)
-still works and gives the very objects of :mod:`ermrl.test_phase`, with a
-:class:`DeprecationWarning`. It will be removed in a later release.
+still works and gives the very objects of [`ermrl.test_phase`][ermrl.test_phase], with a
+`DeprecationWarning`. It will be removed in a later release.
 """
 
 import importlib

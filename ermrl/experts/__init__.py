@@ -1,10 +1,10 @@
 """Experts for imitation (BC, DAgger): trained here, saved as plain tensors plus JSON.
 
-An expert is an SB3 policy of a learner of :mod:`ermrl.learners` (``sac`` or ``ppo``) trained
-on a task's full observation (``observe="all"``). Its folder holds ``expert.json`` (settings,
-evaluation returns, versions), ``policy.pt`` (tensors only) and, with ``normalize``,
-``vecnormalize.json``; no pickle. Learners that see a masked observation query the expert on
-the full one::
+An expert is an SB3 policy of a learner of [`ermrl.learners`][ermrl.learners] (``sac`` or ``ppo``)
+trained on a task's full observation (``observe="all"``). Its folder holds ``expert.json``
+(settings, evaluation returns, versions), ``policy.pt`` (tensors only) and, with ``normalize``,
+``vecnormalize.json``; no pickle. Learners that see a masked observation query the expert on the
+full one::
 
     from ermrl.experts import evaluate_expert, load_expert, train_expert
 

@@ -1,18 +1,18 @@
 """A trained expert: its folder of plain files, loading it without pickles, and evaluating it.
 
-Reading a folder (:class:`ExpertInfo`, :class:`Expert`, :func:`load_expert`) lives in
-:mod:`ermrl.learners._expert`, below the training loop, because imitation learners load their
+Reading a folder (`ExpertInfo`, `Expert`, `load_expert`) lives in
+`ermrl.learners._expert`, below the training loop, because imitation learners load their
 expert when they are built; it is re-exported here. Evaluating an expert runs it in the
 agents' environments, so it lives here, above them.
 
 An expert folder holds:
 
-- ``expert.json``: :class:`ExpertInfo` (env id, algorithm, the learner settings used, steps,
+- ``expert.json``: `ExpertInfo` (env id, algorithm, the learner settings used, steps,
   seed, wall time, the evaluation returns, library versions, observation and action shapes);
 - ``policy.pt``: the policy's ``state_dict()`` as plain tensors, read with
-  ``torch.load(..., weights_only=True)`` (:func:`ermrl.agents.load_policy`);
+  ``torch.load(..., weights_only=True)`` ([`ermrl.agents.load_policy`][ermrl.agents.load_policy]);
 - ``vecnormalize.json``: only when the settings use ``normalize``, the observation statistics
-  reached at the end of training (:func:`ermrl.agents.normalize_stats`).
+  reached at the end of training ([`ermrl.agents.normalize_stats`][ermrl.agents.normalize_stats]).
 
 Nothing in it is a pickle, so loading an expert someone else trained cannot run code. The
 expert always sees the task's full observation (``observe="all"``): imitation learners that see
@@ -59,7 +59,7 @@ class ExpertEvaluation:
     Attributes:
         returns: Episode returns, in order.
         lengths: Episode lengths (steps), in order.
-        seed: The seed the episodes were run with (see :func:`evaluate_expert`).
+        seed: The seed the episodes were run with (see `evaluate_expert`).
     """
 
     returns: tuple[float, ...]
@@ -91,7 +91,8 @@ def evaluate_expert(
     Args:
         expert: The expert.
         n_episodes: Episodes to run.
-        seed: Seed of the evaluation environment (see :func:`ermrl.agents.derive_seeds`).
+        seed: Seed of the evaluation environment (see
+            [`ermrl.agents.derive_seeds`][ermrl.agents.derive_seeds]).
         deterministic: The policy's mean action (``False`` samples).
 
     Returns:

@@ -1,9 +1,9 @@
 """Training an expert with ermrl's own inner loop, and writing its folder of plain files.
 
-:func:`train_expert` resolves the learner's settings (its YAML table, then overrides), trains
-with :func:`ermrl.agents.train_agent` on the full observation, evaluates the deterministic
-policy, and writes the folder described in :mod:`ermrl.experts._expert`. The folder is built
-under a temporary name beside ``out`` and renamed at the end, so an interrupted run (Ctrl-C, a
+`train_expert` resolves the learner's settings (its YAML table, then overrides), trains
+with [`ermrl.agents.train_agent`][ermrl.agents.train_agent] on the full observation, evaluates the
+deterministic policy, and writes the folder described in `ermrl.experts._expert`. The folder is
+built under a temporary name beside ``out`` and renamed at the end, so an interrupted run (Ctrl-C, a
 crash, a full disk) never leaves a half-written expert under its final name.
 """
 
@@ -47,7 +47,7 @@ class ExpertExists(FileExistsError):
 
 @dataclass(frozen=True)
 class TrainingProgress:
-    """One progress report of :func:`train_expert`.
+    """One progress report of `train_expert`.
 
     Attributes:
         steps: Environment steps done.
@@ -142,11 +142,11 @@ def _resolve_settings(
     n_eval_episodes: int,
     n_reports: int,
 ) -> tuple[PPOConfig, BudgetConfig]:
-    """Check :func:`train_expert`'s request and resolve the learner's settings and the budget.
+    """Check `train_expert`'s request and resolve the learner's settings and the budget.
 
     Args:
         env_id: The task.
-        algo: The learner (a name of :func:`~ermrl.experts.expert_algos`).
+        algo: The learner (a name of `expert_algos`).
         steps: Training environment steps.
         seed: The run's seed.
         overrides: Learner settings over the learner's table.
@@ -189,11 +189,12 @@ def _progress_hook(
     progress: Callable[[TrainingProgress], None] | None,
     display: Progress | None,
 ) -> Callable[[int, float], None]:
-    """The ``report`` hook of :func:`ermrl.agents.train_agent`, timed from now.
+    """The ``report`` hook of [`ermrl.agents.train_agent`][ermrl.agents.train_agent], timed from
+    now.
 
     Args:
         steps: The steps asked for.
-        progress: Given a :class:`TrainingProgress` at each report.
+        progress: Given a `TrainingProgress` at each report.
         display: Its note becomes the recent return.
 
     Returns:
@@ -294,10 +295,11 @@ def train_expert(
 
     Args:
         env_id: A registered gymnasium id with a flat Box observation (``Hopper-v5``, ...).
-        algo: The learner (a name of :func:`~ermrl.experts.expert_algos`: ``sac``, ``ppo``).
+        algo: The learner (a name of `expert_algos`: ``sac``, ``ppo``).
         steps: Training environment steps.
         out: The expert folder (``expert.json``, ``policy.pt``, ``vecnormalize.json``).
-        seed: Seeds the environments and the agent (:func:`ermrl.agents.derive_seeds`).
+        seed: Seeds the environments and the agent
+            ([`ermrl.agents.derive_seeds`][ermrl.agents.derive_seeds]).
         overrides: Learner settings over the learner's table (``--ppo KEY=VALUE``).
         n_eval_episodes: Deterministic evaluation episodes after training.
         overwrite: Replace an expert already in ``out``.
@@ -305,7 +307,7 @@ def train_expert(
         n_reports: Progress reports, evenly spaced over ``steps``.
         command: The command line, recorded in ``expert.json``.
         display: Told the env steps as training goes (a bar or a line every tenth, as every
-            training run shows, :class:`ermrl._progress.Progress`); its note is the recent
+            training run shows, `ermrl._progress.Progress`); its note is the recent
             return once an episode has ended.
 
     Returns:

@@ -1,10 +1,10 @@
 """Inner learners: the registry.
 
-Each learner is one module (see :mod:`ermrl.learners._ppo`, the reference) holding a
-:class:`Learner` subclass with its test-phase agents; add a line to :data:`LEARNERS` to register
-it. The CLI's ``--learner`` choices, the test phase's agents (:data:`AGENT_KINDS`: the learners'
-agents and the registered encoders' ones, each naming its learner), the report's labels and
-replays all read this table.
+Each learner is one module (see `ermrl.learners._ppo`, the reference) holding a
+[`Learner`][ermrl.learners.Learner] subclass with its test-phase agents; add a line to `LEARNERS` to
+register it. The CLI's ``--learner`` choices, the test phase's agents (`AGENT_KINDS`: the learners'
+agents and the registered encoders' ones, each naming its learner), the report's labels and replays
+all read this table.
 """
 
 from __future__ import annotations

@@ -1,14 +1,14 @@
 """What a learner is: the inner loop's algorithm, its settings, and how its agents are built.
 
-A learner module subclasses :class:`Learner`, sets its class attributes and overrides the hooks
-that differ from plain PPO; :mod:`ermrl.learners` registers one instance of it. Everything else
-(the CLI's ``--learner`` choices, the test phase's agents, the report's labels, replays) reads
-the registry, so a new learner is one module and one registry line.
+A learner module subclasses [`Learner`][ermrl.learners.Learner], sets its class attributes and
+overrides the hooks that differ from plain PPO; [`ermrl.learners`][ermrl.learners] registers one
+instance of it. Everything else (the CLI's ``--learner`` choices, the test phase's agents, the
+report's labels, replays) reads the registry, so a new learner is one module and one registry line.
 
-Settings are an :class:`~ermrl.config.PPOConfig` (``n_envs``, ``normalize``, the algorithm's
+Settings are an [`PPOConfig`][ermrl.config.PPOConfig] (``n_envs``, ``normalize``, the algorithm's
 keyword arguments in ``hyperparams``, and ``learner``: the registry name). They resolve as SB3
 defaults < the learner's YAML table (``default`` block, then the env id's block) < ``--ppo``
-overrides (:func:`ermrl.agents.resolve_ppo_config`).
+overrides ([`ermrl.agents.resolve_ppo_config`][ermrl.agents.resolve_ppo_config]).
 """
 
 from __future__ import annotations
@@ -36,17 +36,18 @@ class Learner:
             ``state`` and ``episode_start``; SB3's ``evaluate_policy`` passes them).
         shared_keys: PPO keys a learner that is not an SB3 algorithm reads too, with its own
             defaults (the Hebbian learner's ``learning_rate`` and ``gamma``).
-        checks_itself: Settings whose values :meth:`check` validates, skipped by the shared
-            PPO range checks (SAC's ``ent_coef`` may be ``"auto"``).
+        checks_itself: Settings whose values [`check`][ermrl.learners.Learner.check] validates,
+            skipped by the shared PPO range checks (SAC's ``ent_coef`` may be ``"auto"``).
         genes: The settings evolution may shape (``evolve --learner NAME``), gene name ->
             default search range; empty: the learner has no genes and a study evolves an
-            encoder for it. :meth:`decode_genes` turns genes into settings.
-        agents: The test-phase agents this learner brings (name -> :class:`~ermrl.config.AgentKind`):
-            the learner on the raw observation (``sac``), or its own evolved and default genes
-            (``hebbian``, ``random-hebbian``). Declared on the class that brings them; a subclass
-            declares its own (it never inherits them). The agents on an encoder come with the
-            encoder (:attr:`ermrl.encoders.Encoder.agents`); :data:`ermrl.learners.AGENT_KINDS`
-            lists both.
+            encoder for it. [`decode_genes`][ermrl.learners.Learner.decode_genes] turns genes into
+            settings.
+        agents: The test-phase agents this learner brings (name ->
+            [`AgentKind`][ermrl.config.AgentKind]): the learner on the raw observation (``sac``), or
+            its own evolved and default genes (``hebbian``, ``random-hebbian``). Declared on the
+            class that brings them; a subclass declares its own (it never inherits them). The agents
+            on an encoder come with the encoder (`ermrl.encoders.Encoder.agents`);
+            `ermrl.learners.AGENT_KINDS` lists both.
     """
 
     name: ClassVar[str]
@@ -122,7 +123,8 @@ class Learner:
         device: str | None = None,
         tensorboard_log: str | None = None,
     ) -> Any:
-        """A new, untrained agent on ``env`` (already wrapped by :meth:`wrap_env`)."""
+        """A new, untrained agent on ``env`` (already wrapped by
+        [`wrap_env`][ermrl.learners.Learner.wrap_env])."""
         self.check(config)
         return self.algorithm()(
             self.policy,
@@ -141,7 +143,8 @@ class Learner:
         return dict(values)
 
     def gene_values(self, config: PPOConfig) -> dict[str, float]:
-        """The genes of ``config``'s settings: the inverse of :meth:`decode_genes`."""
+        """The genes of ``config``'s settings: the inverse of
+        [`decode_genes`][ermrl.learners.Learner.decode_genes]."""
         return {name: float(self.option(config, name)) for name in self.genes}
 
     def gene_space(

@@ -4,7 +4,7 @@ BC regresses an MLP policy's mean onto the expert's actions (mean squared error 
 action space ``[-1, 1]``) on ``n_expert_transitions`` states visited by the expert itself. The
 expert (``--ppo expert=DIR``, a folder written by ``ermrl expert train``) acts on the task's
 raw full observation; the imitator sees the learner's observation (masked by ``--observe``,
-maybe reservoir-encoded). The agent is :class:`~ermrl.learners._dagger_model.ImitationAgent`;
+maybe reservoir-encoded). The agent is `ImitationAgent`;
 how env steps are counted is in that module's docstring (the expert's data collection is
 counted apart, as ``expert_env_steps``; the budget is the imitator's own steps).
 

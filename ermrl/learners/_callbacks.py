@@ -2,7 +2,7 @@
 
 Their models' ``learn(total_timesteps, callback=...)`` takes what SB3's ``learn`` takes: one
 ``BaseCallback``, a list of them, or ``None``, so that ermrl's training loop
-(:mod:`ermrl.agents`) drives every learner with the same callbacks.
+([`ermrl.agents`][ermrl.agents]) drives every learner with the same callbacks.
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ the learner's own action with probability ``1 - beta``, labels always come from 
 
 The budget (``--training-steps``) counts every env step of the rollouts, whoever acted; the
 expert's own training steps are in its ``expert.json``. The pieces are in
-:mod:`ermrl.learners._imitation`, the agent in :mod:`ermrl.learners._dagger_model`.
+`ermrl.learners._imitation`, the agent in `ermrl.learners._dagger_model`.
 """
 
 from __future__ import annotations

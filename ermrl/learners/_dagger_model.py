@@ -1,25 +1,25 @@
 """The ``bc`` and ``dagger`` agents: an MLP imitator trained from an expert, with SB3's interface.
 
-:class:`ImitationAgent` is not an SB3 algorithm; it offers what ermrl uses of one (``learn``
+`ImitationAgent` is not an SB3 algorithm; it offers what ermrl uses of one (``learn``
 with SB3 callbacks, ``predict``, ``num_timesteps``, ``save`` as a plain ``.npz``, ``policy``
 with ``state_dict``/``load_state_dict``/``set_training_mode``), so ``train_agent``,
 ``save_trained``/``load_policy``, evaluation and replays take it unchanged. The pieces
-(:func:`~ermrl.learners._imitation.dagger_rollout`, :func:`~ermrl.learners._imitation.bc_fit`,
-:func:`~ermrl.learners._imitation.beta`) live in :mod:`ermrl.learners._imitation`.
+(`dagger_rollout`, `bc_fit`,
+`beta`) live in `ermrl.learners._imitation`.
 
 How env steps are counted (``num_timesteps``, the run's ``env_steps``): every env step the
 learner's environment takes while the learner trains, whoever acted. DAgger's rollouts are all
-learner steps (the expert-executed ones included; :attr:`ImitationAgent.iterations` splits
+learner steps (the expert-executed ones included; `ImitationAgent.iterations` splits
 them). BC first runs the expert alone for ``n_expert_transitions`` steps to collect its data:
-those are counted apart, in :attr:`ImitationAgent.expert_env_steps`, not as learner steps; the
+those are counted apart, in `ImitationAgent.expert_env_steps`, not as learner steps; the
 budget's steps are then the learner's own rollouts (no learning), whose episodes are the run's
 training episodes. The expert's own training steps are in its ``expert.json``
-(:class:`~ermrl.experts.ExpertInfo`).
+(`ExpertInfo`).
 
 Which episodes are the run's training episodes (``--fitness last``, the pruning reports): only
 *learner-only* ones, in which every executed action was the imitator's. A DAgger episode in
 which the expert executed any action is hidden from the callback (its Monitor record moves to
-``info["mixture_episode"]``, :func:`~ermrl.learners._imitation.hide_mixture_episodes`), since its
+``info["mixture_episode"]``, `hide_mixture_episodes`), since its
 return scores the expert in part. With the linear schedule, learner-only episodes begin once
 ``beta`` reaches 0 (after ``beta_iterations * steps_per_iteration`` env steps); a budget that
 ends before has none, and ``--fitness last`` fails that run (``--fitness eval`` evaluates the
@@ -81,7 +81,7 @@ def load_expert_for(env: Any, path: Any, learner: str) -> Any:
 
 
 class ImitationAgent:
-    """An MLP imitator (:class:`~ermrl.learners._imitation.ImitationPolicy`) and its training.
+    """An MLP imitator (`ImitationPolicy`) and its training.
 
     Args:
         env: The learner's ``VecEnv`` (Box actions, flat Box observations).
@@ -239,7 +239,7 @@ class ImitationAgent:
 
     def _clone_expert(self, obs: np.ndarray, full_obs: np.ndarray, full: FullObservations) -> None:
         """BC's data: the expert alone for ``n_expert_transitions`` steps (rounded up to whole
-        steps of every env, counted in :attr:`expert_env_steps`), then a fit on its labels.
+        steps of every env, counted in `expert_env_steps`), then a fit on its labels.
 
         Args:
             obs: The learner's observations ``(E, obs_dim)`` after a reset.
@@ -328,9 +328,9 @@ class ImitationAgent:
         steps of every env, as SB3 does).
 
         DAgger: iterations of ``steps_per_iteration`` steps (the last one shorter), each a
-        :func:`~ermrl.learners._imitation.dagger_rollout` with ``beta_i`` then a fit on every
+        `dagger_rollout` with ``beta_i`` then a fit on every
         label gathered so far. BC (first call only): the expert's ``n_expert_transitions`` steps
-        (:attr:`expert_env_steps`), a fit, a fresh reset; then the imitator acts for the budget.
+        (`expert_env_steps`), a fit, a fresh reset; then the imitator acts for the budget.
 
         Args:
             total_timesteps: Learner env steps.

@@ -2,18 +2,19 @@
 
 An expert folder holds:
 
-- ``expert.json``: :class:`ExpertInfo` (env id, algorithm, the learner settings used, steps,
+- ``expert.json``: `ExpertInfo` (env id, algorithm, the learner settings used, steps,
   seed, wall time, the evaluation returns, library versions, observation and action shapes);
 - ``policy.pt``: the policy's ``state_dict()`` as plain tensors, read with
-  ``torch.load(..., weights_only=True)`` (:func:`ermrl.learners._policy_io.load_policy`);
+  ``torch.load(..., weights_only=True)``
+  ([`ermrl.learners._policy_io.load_policy`][ermrl.agents.load_policy]);
 - ``vecnormalize.json``: only when the settings use ``normalize``, the observation statistics
-  reached at the end of training (:func:`ermrl.agents.normalize_stats`).
+  reached at the end of training ([`ermrl.agents.normalize_stats`][ermrl.agents.normalize_stats]).
 
 Nothing in it is a pickle, so loading an expert someone else trained cannot run code. The
 expert always sees the task's full observation (``observe="all"``): imitation learners that see
-a masked observation (:mod:`ermrl.learners._dagger_model`) query it on the full one. Loading
+a masked observation (`ermrl.learners._dagger_model`) query it on the full one. Loading
 lives here, below the training loop, because those learners load their expert when they are
-built; training and evaluating experts is :mod:`ermrl.experts`'s work, which re-exports
+built; training and evaluating experts is `ermrl.experts`'s work, which re-exports
 everything here.
 """
 
@@ -77,12 +78,12 @@ class ExpertInfo:
 
     Attributes:
         env_id: The task (the expert sees its full observation).
-        algo: The learner that trained it (a name of :func:`expert_algos`).
+        algo: The learner that trained it (a name of `expert_algos`).
         ppo: The learner settings used (``ppo.learner == algo``).
         steps: Training steps asked for.
         env_steps: Environment steps actually taken (PPO rounds up to whole rollouts).
-        seed: The training seed (:func:`ermrl.agents.derive_seeds`); the recorded evaluation
-            is :func:`evaluate_expert` with this seed.
+        seed: The training seed ([`ermrl.agents.derive_seeds`][ermrl.agents.derive_seeds]); the
+            recorded evaluation is `evaluate_expert` with this seed.
         wall_seconds: Wall-clock time of training and evaluation.
         eval_returns: Returns of the deterministic evaluation episodes, in order.
         train_returns: Returns of the last (at most 10) training episodes.
@@ -150,7 +151,7 @@ class ExpertInfo:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> ExpertInfo:
-        """Read :meth:`to_dict`'s document.
+        """Read [`to_dict`][ermrl.config.to_dict]'s document.
 
         Raises:
             ValueError: it is not an expert document of this format.
@@ -182,10 +183,10 @@ class Expert:
 
     Attributes:
         path: The expert folder.
-        info: What ``expert.json`` records (:class:`ExpertInfo`).
+        info: What ``expert.json`` records (`ExpertInfo`).
         env_id: The task.
         algo: The learner that trained it.
-        normalize_stats: The observation statistics :meth:`predict` applies (``None`` without
+        normalize_stats: The observation statistics `predict` applies (``None`` without
             ``normalize``).
     """
 
@@ -271,7 +272,7 @@ def _read_info(path: Path) -> ExpertInfo:
     Raises:
         FileNotFoundError: no such folder or no ``expert.json``.
         ValueError: the document is malformed, or its env id is not a registered id
-            (:class:`ermrl.envs.UnknownEnvError`, naming the file).
+            ([`ermrl.envs.UnknownEnvError`][ermrl.envs.UnknownEnvError], naming the file).
     """
     from ermrl.envs import check_registered_env_id
 
@@ -319,14 +320,14 @@ def _full_observation_env(env_id: str) -> Any:
 
 
 def load_expert(path: str | Path) -> Expert:
-    """Load an expert folder (written by :func:`ermrl.experts.train_expert`); nothing is
+    """Load an expert folder (written by `ermrl.experts.train_expert`); nothing is
     unpickled.
 
     Args:
         path: The expert folder.
 
     Returns:
-        The expert, ready for :meth:`Expert.predict`.
+        The expert, ready for `Expert.predict`.
 
     Raises:
         FileNotFoundError: the folder or one of its files is missing.

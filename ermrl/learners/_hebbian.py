@@ -48,21 +48,21 @@ Deviations from the original beyond its bugs (all deliberate):
   on ``J_out``. A notebook head with ``learning_rate = 0.`` (which would train nothing) has been
   reported for one version of the original; it is not in the versions of ``code.ipynb`` and
   ``training_ant.ipynb`` read for ermrl, and ermrl does not copy it. The model
-(:class:`~ermrl.learners._hebbian_model.HebbianAgent`, numpy only) lives in
-:mod:`ermrl.learners._hebbian_model`, imported when an agent is built. It is not an SB3 algorithm
+(`HebbianAgent`, numpy only) lives in
+`ermrl.learners._hebbian_model`, imported when an agent is built. It is not an SB3 algorithm
 but offers what ermrl uses of one: ``learn`` (with SB3 callbacks), ``predict`` (recurrent: the
 state is ``h``), ``num_timesteps``, ``save`` (a plain ``.npz``: arrays and a JSON config, no
 pickle) and ``policy`` (``state_dict`` of CPU tensors, ``load_state_dict``,
 ``set_training_mode``), so ``train_agent``, ``save_trained``/``load_policy``, evaluation and
 replays take it unchanged.
 
-Settings (``ermrl/data/hebbian.yml``): this learner's own keys (:attr:`HebbianLearner.own_keys`)
+Settings (``ermrl/data/hebbian.yml``): this learner's own keys (`HebbianLearner.own_keys`)
 and two keys it shares with PPO, ``learning_rate`` (Adam's step on ``J_out``, default 1e-4) and
 ``gamma`` (the critic's discount). Any other PPO key is refused. Box actions follow the
 equations above (clipped, then mapped onto the action bounds); Discrete actions use a softmax
 readout ``p = softmax(J_out h)``, ``a ~ p``, with the softmax's score as eligibility,
 ``e_t = lambda e_{t-1} + (onehot(a_t) - p_t) h_t^T`` (``sigma`` unused). Other action spaces are
-refused with a one-line :class:`~ermrl.config.ConfigError`.
+refused with a one-line [`ConfigError`][ermrl.config.ConfigError].
 """
 
 from __future__ import annotations
@@ -130,9 +130,9 @@ class HebbianLearner(Learner):
     ``tau_min``/``tau_max``/``dt`` (same time unit; ms in the original), ``spectral_radius``
     (rho of ``J``), ``input_scaling`` (std of ``J_in``), ``bias_scaling`` (std of ``b``),
     ``readout_scaling`` (std of the initial ``J_out``), ``l2``, ``baseline`` (one of
-    :data:`BASELINES`), ``baseline_decay`` (of the running mean), ``critic_lr``,
+    `BASELINES`), ``baseline_decay`` (of the running mean), ``critic_lr``,
     ``critic_lambda``, ``update_every`` (0: update at each episode end; k: every k steps),
-    ``reward`` (one of :data:`REWARDS`) and ``dtype``.
+    ``reward`` (one of `REWARDS`) and ``dtype``.
     """
 
     name = "hebbian"

@@ -1,6 +1,6 @@
 """The ``hebbian`` learner's agent: a leaky-integrator network and its Hebbian readout (numpy).
 
-See :mod:`ermrl.learners._hebbian` for the rule and the settings. Shapes: ``E`` envs, ``N``
+See `ermrl.learners._hebbian` for the rule and the settings. Shapes: ``E`` envs, ``N``
 units, ``D`` observation entries, ``A`` action entries. One step of a batch of envs is one
 matrix product for the recurrence (``[h, o] @ [J, J_in]^T``) and one for the readout
 (``h @ J_out^T``).
@@ -53,7 +53,7 @@ def recurrent_weights(units: int, spectral_radius: float, seed: Any) -> np.ndarr
 
 @dataclass(frozen=True)
 class _Rule:
-    """The learning rule's constants for one :meth:`HebbianAgent.learn` (read from its settings).
+    """The learning rule's constants for one `HebbianAgent.learn` (read from its settings).
 
     With a critic, the rule is actor-critic with eligibility traces (Sutton and Barto 2018,
     13.6): the actor's trace decays by ``gamma * lambda`` and each step's TD error modulates it,
@@ -88,7 +88,7 @@ class _Rule:
 
     @classmethod
     def from_settings(cls, s: Mapping[str, Any]) -> _Rule:
-        """The constants of the learner's settings (:class:`HebbianAgent`'s ``settings``)."""
+        """The constants of the learner's settings (`HebbianAgent`'s ``settings``)."""
         baseline, gamma, trace_decay = (
             str(s["baseline"]),
             float(s["gamma"]),
@@ -171,7 +171,7 @@ class HebbianPolicy:
         return {name: torch.from_numpy(np.array(getattr(self, name))) for name in POLICY_ARRAYS}
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
-        """Take weights from :meth:`state_dict`'s output.
+        """Take weights from `state_dict`'s output.
 
         Raises:
             RuntimeError: missing or unexpected names, or a shape that differs.
@@ -209,7 +209,7 @@ class HebbianAgent:
             ``p = softmax(J_out h)``, ``a ~ p``, whose eligibility is
             ``e = lambda e + (onehot(a) - p) h^T`` (the score of the softmax; ``sigma`` is not
             used); the deterministic action is ``argmax p``.
-        settings: :meth:`~ermrl.learners._hebbian.HebbianLearner.settings`.
+        settings: [`settings`][ermrl.learners.Learner.settings].
         seed: Seeds the weights (reservoirpy's initializers) and the exploration noise.
 
     Raises:

@@ -1,37 +1,37 @@
 """Imitation from an expert: behaviour cloning and DAgger, as reusable pieces.
 
-The ``bc`` and ``dagger`` learners (:mod:`ermrl.learners._bc`, :mod:`ermrl.learners._dagger`)
+The ``bc`` and ``dagger`` learners (`ermrl.learners._bc`, `ermrl.learners._dagger`)
 are built from these functions, and so can other learners (pretraining SAC's actor): each takes
 a torch module that maps the learner's observation ``(n, obs_dim)`` to its action mean in the
 *scaled* action space ``[-1, 1]^act_dim`` (SB3's convention for SAC's actor,
-:func:`scale_actions`), and an :class:`~ermrl.experts.Expert`, which acts on the raw *full*
+`scale_actions`), and an `Expert`, which acts on the raw *full*
 observation.
 
 The learner sees the env's observation as the ``VecEnv`` returns it (masked by
 ``--observe``, maybe reservoir-encoded, maybe normalized); the expert sees the raw full
-observation of the same state, read by :class:`FullObservations` from the innermost
-``DummyVecEnv`` (``info["full_observation"]`` from :class:`~ermrl.envs.ObservationMask` when the
-observation is masked, else the env's own observation).
+observation of the same state, read by `FullObservations` from the innermost
+``DummyVecEnv`` (``info["full_observation"]`` from [`ObservationMask`][ermrl.envs.ObservationMask]
+when the observation is masked, else the env's own observation).
 
 DAgger (Ross, Gordon and Bagnell, 2011). Iteration ``i`` rolls out the mixture policy: at
 each step and in each env, with probability ``beta_i`` the expert's action is executed,
 otherwise the learner's; every visited state is labelled with the expert's action on that
 state, whoever acted. The policy is then refit on all labels gathered so far. The schedules
-(:func:`beta`): ``linear``, ``beta_i = max(0, 1 - i / K)`` (1 at ``i = 0``, 0 from ``i = K``
+(`beta`): ``linear``, ``beta_i = max(0, 1 - i / K)`` (1 at ``i = 0``, 0 from ``i = K``
 on), and ``inverse``, ``beta_i = 1 / (1 + i)``. Panjete/mujocoagents (whose DAgger this
 replaces) labelled a state with the *learner's own* action with probability ``1 - beta``; that
 trains the learner on its own outputs and is not DAgger.
 
 Training episodes are the learner's alone. A mixture rollout's episode in which the expert
 executed even one action scores the expert in part, so its Monitor record
-(``info["episode"]``) is moved to ``info["mixture_episode"]`` (:data:`MIXTURE_EPISODE_KEY`,
-:func:`hide_mixture_episodes`) before anything reads it: ermrl's training returns (the
+(``info["episode"]``) is moved to ``info["mixture_episode"]`` (`MIXTURE_EPISODE_KEY`,
+`hide_mixture_episodes`) before anything reads it: ermrl's training returns (the
 ``--fitness last`` measure, the pruning reports) count only *learner-only* episodes, in which
-every executed action was the learner's. :func:`dagger_rollout` does this given
-``episode_mixed``; :class:`LearnerOnlyEpisodes` does it for an SB3 algorithm's env.
+every executed action was the learner's. `dagger_rollout` does this given
+``episode_mixed``; `LearnerOnlyEpisodes` does it for an SB3 algorithm's env.
 
-Example::
-
+Examples:
+    ```python
     policy = ImitationPolicy(obs_dim=2, act_dim=1, hidden_sizes=(64, 64))
     optimizer = torch.optim.Adam(policy.parameters(), lr=1e-3)
     full = FullObservations(venv)
@@ -40,6 +40,7 @@ Example::
                              rng=np.random.default_rng(0), obs=obs, full_obs=full.after_reset())
     targets = scale_actions(venv.action_space, rollout.expert_actions)
     losses = bc_fit(policy, optimizer, rollout.observations, targets, epochs=5, batch_size=256)
+    ```
 """
 
 from __future__ import annotations
@@ -179,7 +180,7 @@ def bc_fit(
         policy_mean: Maps observations ``(n, obs_dim)`` to action means ``(n, act_dim)``.
         optimizer: Steps ``policy_mean``'s parameters.
         obs: The learner's observations, ``(n, obs_dim)``.
-        expert_actions: Targets in the scaled space, ``(n, act_dim)`` (:func:`scale_actions`).
+        expert_actions: Targets in the scaled space, ``(n, act_dim)`` (`scale_actions`).
         epochs: Passes over the data, ``>= 1``.
         batch_size: Minibatch size (the last minibatch of an epoch may be smaller).
         generator: Shuffles the minibatches (``None``: torch's global generator).
@@ -218,8 +219,8 @@ class FullObservations:
     """The raw full observation of the state each env of a ``VecEnv`` is in.
 
     Read from the innermost ``DummyVecEnv`` (``venv.unwrapped``): the ``full_observation`` that
-    :class:`~ermrl.envs.ObservationMask` puts into the step's (or, after an episode ended and
-    the env reset, the reset's) info; without a mask, that ``DummyVecEnv``'s own observation,
+    [`ObservationMask`][ermrl.envs.ObservationMask] puts into the step's (or, after an episode ended
+    and the env reset, the reset's) info; without a mask, that ``DummyVecEnv``'s own observation,
     which is then the full one (the reservoir and ``VecNormalize`` wrap it from outside).
 
     Args:
@@ -295,8 +296,8 @@ def hide_mixture_episodes(
 class LearnerOnlyEpisodes(VecEnvWrapper):
     """A ``VecEnv`` whose Monitor records are those of learner-only episodes.
 
-    The agent calls :meth:`expert_acts` before each step with who executes the expert's action;
-    after the step, :func:`hide_mixture_episodes` hides the record of every episode that
+    The agent calls `expert_acts` before each step with who executes the expert's action;
+    after the step, `hide_mixture_episodes` hides the record of every episode that
     ended with at least one expert action in it. A reset starts every env learner-only.
 
     Args:
@@ -419,7 +420,7 @@ def dagger_rollout(
 
     Args:
         venv: The learner's ``VecEnv`` (Box actions).
-        policy_mean: The learner: observations -> scaled action means (:class:`ImitationPolicy`).
+        policy_mean: The learner: observations -> scaled action means (`ImitationPolicy`).
         expert: Has ``predict(full_obs (E, full_dim)) -> actions (E, *action_shape)``.
         beta: Probability that the expert acts, in ``[0, 1]``.
         n_steps: Steps per env.
@@ -431,11 +432,11 @@ def dagger_rollout(
             returning ``False`` ends the rollout early.
         episode_mixed: Whether the expert has acted in each env's current episode, ``(E,)``
             bool, carried across rollouts and updated in place; when given, the Monitor record
-            of an episode the expert acted in is hidden (:func:`hide_mixture_episodes`) before
+            of an episode the expert acted in is hidden (`hide_mixture_episodes`) before
             ``on_step`` sees the infos.
 
     Returns:
-        The visited states, their labels and who acted (:class:`DaggerRollout`).
+        The visited states, their labels and who acted (`DaggerRollout`).
     """
     full = full if full is not None else FullObservations(venv)
     space = venv.action_space

@@ -2,7 +2,7 @@
 
 The phases (DAgger pretraining, a critic warm-start with the actor frozen, SAC re-anchored to
 the expert by occasional DAgger iterations) and how env steps are counted are in
-:mod:`ermrl.learners._imitation_sac_model`. Settings (``ermrl/data/imitation_sac.yml``): SAC's
+`ermrl.learners._imitation_sac_model`. Settings (``ermrl/data/imitation_sac.yml``): SAC's
 own (the ``sac`` learner's table and checks) and the own keys below; ``learning_starts`` is
 refused, ``pretrain_steps`` takes its place.
 """

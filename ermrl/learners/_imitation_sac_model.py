@@ -1,15 +1,15 @@
 """The ``imitation-sac`` agent: Stable-Baselines3 SAC seeded by imitation of an expert.
 
-:class:`ImitationSAC` is SB3's ``SAC`` with three phases, all inside ``learn`` and all counted
+`ImitationSAC` is SB3's ``SAC`` with three phases, all inside ``learn`` and all counted
 in ``num_timesteps`` (the learner's env-step budget):
 
 1. **DAgger pretraining** (the first ``pretrain_steps`` env steps; they take the place of SAC's
    ``learning_starts`` random steps). Iteration ``i`` (``steps_per_iteration`` env steps) acts
-   with the mixture policy: with probability ``beta_i`` (:func:`~ermrl.learners._imitation.beta`,
+   with the mixture policy: with probability ``beta_i`` (`beta`,
    ``beta_schedule`` over ``beta_iterations``) the expert's action, otherwise the actor's
    deterministic mean; every visited state is labelled with the expert's action on its raw full
    observation. After each iteration the actor's mean is regressed onto all labels so far
-   (:func:`~ermrl.learners._imitation.bc_fit`, ``bc_epochs`` passes, Adam at
+   (`bc_fit`, ``bc_epochs`` passes, Adam at
    ``bc_learning_rate``). The transitions go into SAC's replay buffer as usual. No SAC gradient
    step is taken.
 2. **Critic warm-start** (no env step). The actor's log standard deviation head is reset to the
@@ -31,10 +31,10 @@ in ``num_timesteps`` (the learner's env-step budget):
    SB3's 1.0, which would push the pretrained actor towards entropy and away from the expert.
 
 The expert's own training is not part of the budget: its steps are in its ``expert.json``, and
-:attr:`ImitationSAC.phase_steps` records, apart, what each phase used.
+`ImitationSAC.phase_steps` records, apart, what each phase used.
 
 Training episodes (``--fitness last``, the pruning reports) are the learner's alone: the env is
-wrapped in :class:`~ermrl.learners._imitation.LearnerOnlyEpisodes`, so an episode in which the
+wrapped in `LearnerOnlyEpisodes`, so an episode in which the
 expert executed any action (in phase 1, with ``beta_i > 0``; an episode that reaches back into
 it) is hidden from the callback (its Monitor record moves to ``info["mixture_episode"]``). The
 run's training returns are those of the actor's own episodes: its deterministic mean in

@@ -1,10 +1,10 @@
 """A learner's algorithm arguments from its settings: schedules and activations by name.
 
-:class:`~ermrl.config.PPOConfig` holds plain data read from YAML, ``--ppo`` or a study; this
+[`PPOConfig`][ermrl.config.PPOConfig] holds plain data read from YAML, ``--ppo`` or a study; this
 module turns it into the keyword arguments of the algorithm (``PPO(...)``, ``SAC(...)``): a
 ``lin_X`` string becomes a linear schedule, a ``policy_kwargs`` ``activation_fn`` name its torch
 class. Resolving the settings themselves (tables, overrides, checks) is
-:mod:`ermrl.agents`'s work.
+[`ermrl.agents`][ermrl.agents]'s work.
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ ACTIVATIONS: dict[str, type[nn.Module]] = {
 
 
 def activation_fn(name: Any, where: str = "policy_kwargs") -> type[nn.Module]:
-    """The torch module class of an activation named in ``policy_kwargs`` (:data:`ACTIVATIONS`).
+    """The torch module class of an activation named in ``policy_kwargs`` (`ACTIVATIONS`).
 
     Args:
         name: The name read from a table, ``--ppo`` or a study (``"relu"``).
@@ -64,7 +64,7 @@ def linear_schedule(initial: float) -> Callable[[float], float]:
 
 def ppo_kwargs(config: PPOConfig) -> dict[str, Any]:
     """Keyword arguments for ``PPO(...)`` from a config (``lin_X`` strings become schedules,
-    a ``policy_kwargs`` ``activation_fn`` name its class from :data:`ACTIVATIONS`)."""
+    a ``policy_kwargs`` ``activation_fn`` name its class from `ACTIVATIONS`)."""
     kwargs: dict[str, Any] = {}
     for key, value in config.hyperparams.items():
         if key in ERMRL_KEYS:

@@ -1,7 +1,8 @@
 """Reading the observation statistics of ``VecNormalize`` saved as plain JSON.
 
-Training writes them (:func:`ermrl.agents.save_normalize_stats`); anything that rebuilds an agent
-from its files, an expert included (:mod:`ermrl.learners._expert`), reads them back here.
+Training writes them ([`ermrl.agents.save_normalize_stats`][ermrl.agents.save_normalize_stats]);
+anything that rebuilds an agent from its files, an expert included (`ermrl.learners._expert`), reads
+them back here.
 """
 
 from __future__ import annotations
@@ -16,7 +17,8 @@ STATS_FORMAT = "ermrl.vecnormalize/1"
 
 
 def load_normalize_stats(path: str | Path) -> dict[str, Any]:
-    """Read statistics written by :func:`ermrl.agents.save_normalize_stats`.
+    """Read statistics written by
+    [`ermrl.agents.save_normalize_stats`][ermrl.agents.save_normalize_stats].
 
     Raises:
         ValueError: the file is not such a JSON document.

@@ -5,7 +5,7 @@ SB3's ``model.zip`` holds cloudpickled objects (``data``) and ``torch.save`` fil
 also saves every trained policy's weights as ``policy.pt``, a ``torch.save`` of the policy's
 ``state_dict()`` (names to tensors only), and reads policies back only from that file with
 ``torch.load(..., weights_only=True)``. The network is rebuilt from the run's PPO settings
-(:class:`~ermrl.config.PPOConfig`, plain JSON in the run folder) and the environment's spaces;
+([`PPOConfig`][ermrl.config.PPOConfig], plain JSON in the run folder) and the environment's spaces;
 ``model.zip`` is still written for users who want SB3's format, and ermrl never reads it.
 """
 
@@ -43,11 +43,11 @@ def save_policy(model: PPO, path: str | Path) -> None:
     """Save ``model.policy.state_dict()`` (CPU tensors only) to ``path``, atomically.
 
     The file gets the usual permissions, ``0o666`` less the umask, as every file of a run
-    folder (:func:`ermrl._io.write_atomic`).
+    folder (`ermrl._io.write_atomic`).
 
     Args:
         model: The trained model.
-        path: The file (see :func:`policy_path`).
+        path: The file (see [`policy_path`][ermrl.agents.policy_path]).
     """
     import torch
 
@@ -65,10 +65,10 @@ def load_policy(path: str | Path, ppo: PPOConfig, env: Any) -> PPO:
     ``torch.load(..., weights_only=True)`` (tensors and plain containers only).
 
     Args:
-        path: A ``policy.pt`` written by :func:`save_policy`.
+        path: A ``policy.pt`` written by [`save_policy`][ermrl.agents.save_policy].
         ppo: The run's learner settings (its ``policy_kwargs`` fix the network's shape).
         env: A VecEnv with the observation and action spaces the agent trained on (wrapped by
-            the learner's :meth:`~ermrl.learners.Learner.wrap_env`, as in training).
+            the learner's [`wrap_env`][ermrl.learners.Learner.wrap_env], as in training).
 
     Returns:
         The agent, ready for ``predict``; it is not meant to be trained further.

@@ -1,8 +1,8 @@
 """``ppo``: Stable-Baselines3 PPO with an MLP policy, the ER-MRL paper's inner learner.
 
-The reference learner: read this module and :mod:`ermrl.learners` to add another. Its settings
-table is ``ermrl/data/ppo.yml`` (rl-baselines3-zoo's tuned PPO settings for classic control,
-SB3's defaults for MuJoCo as in the paper).
+The reference learner: read this module and [`ermrl.learners`][ermrl.learners] to add another. Its
+settings table is ``ermrl/data/ppo.yml`` (rl-baselines3-zoo's tuned PPO settings for classic
+control, SB3's defaults for MuJoCo as in the paper).
 """
 
 from __future__ import annotations

@@ -2,8 +2,8 @@
 
 Elelimy et al., "Real-Time Recurrent Learning using Trace Units in Reinforcement Learning"
 (NeurIPS 2024; official JAX code: esraaelelimy/rtus). This module holds the torch side of the
-``rtu-ppo`` learner (:mod:`ermrl.learners._rtu_ppo`): the RTU layer and its RTRL step here,
-then real-time PPO's policy, rollout buffer and algorithm (:class:`RTUPPO`). It is only
+``rtu-ppo`` learner (`ermrl.learners._rtu_ppo`): the RTU layer and its RTRL step here,
+then real-time PPO's policy, rollout buffer and algorithm (`RTUPPO`). It is only
 imported when an ``rtu-ppo`` agent is built, so that importing the learner registry stays free
 of torch, as for every other learner.
 
@@ -27,7 +27,7 @@ passing an activation (the config's ``activation: tanh`` only applies to the Den
 flax ``nn.Dense(use_bias=False)`` kernels there, i.e. flax's default ``lecun_normal``: a normal
 of standard deviation ``sqrt(1/d_in) / 0.8796`` truncated at two standard deviations. The
 official ``gamma`` adds 1e-8 to ``sqrt(1 - r²)``; here ``gamma`` is exact (see
-:func:`rtu_coefficients`). The official files named here were read in the indexed fork
+`rtu_coefficients`). The official files named here were read in the indexed fork
 SakodaShintaro/rtus of esraaelelimy/rtus.
 
 **Exact RTRL.** The recurrence is diagonal (a complex scalar per unit), so the sensitivities
@@ -51,7 +51,7 @@ form ``dc/dW₁ = A`` and ``dc/dW₂ = i A`` (both start at zero and obey the sa
 ``dc¹/dW₂ = -dc²/dW₁`` and ``dc²/dW₂ = dc¹/dW₁``. A carry therefore holds ``2 n d_in + 6 n``
 numbers per row instead of ``4 n d_in + 6 n`` (half the paper's stored-trace memory).
 
-The step is a :class:`torch.autograd.Function` (:func:`rtrl_step`): its backward gives the RTU
+The step is a `torch.autograd.Function` (`rtrl_step`): its backward gives the RTU
 parameters the full RTRL gradient ``grad_c · trace`` and the input ``x`` its one-step gradient
 ``gamma (W₁ᵀ grad_c¹ + W₂ᵀ grad_c²)``; nothing flows into the carry (the paper stops the hidden
 state's gradient), so layers below the RTU learn from the current step only.
@@ -400,7 +400,7 @@ class RTU(nn.Module):
         return flat
 
     def forward(self, x: Tensor, carry: RTUCarry) -> tuple[Tensor, RTUCarry]:
-        """One step with exact RTRL gradients (:func:`rtrl_step`).
+        """One step with exact RTRL gradients (`rtrl_step`).
 
         Args:
             x: ``(B, d_in)``.
@@ -414,7 +414,7 @@ class RTU(nn.Module):
         return self.output(c), after
 
     def step_output(self, x: Tensor, carry: RTUCarry) -> Tensor:
-        """:meth:`forward`'s output and gradients without building the next carry.
+        """`forward`'s output and gradients without building the next carry.
 
         Args:
             x: ``(B, d_in)``.
@@ -723,9 +723,9 @@ class RTUPPO(OnPolicyAlgorithm):
     would use) to recompute the stored carries with the new parameters; advantages and
     returns stay those of the rollout (the official ``stale_target: true``).
 
-    Args: as :class:`stable_baselines3.PPO` (``use_sde`` and ``rollout_buffer_class`` are not
+    Args: as `stable_baselines3.PPO` (``use_sde`` and ``rollout_buffer_class`` are not
         supported), plus ``stale_gradient``. ``policy_kwargs`` go to
-        :class:`RTUActorCriticPolicy` (``d_rec``, ``d_hidden``, ``d_head``).
+        `RTUActorCriticPolicy` (``d_rec``, ``d_hidden``, ``d_head``).
     """
 
     policy_aliases = {"MlpPolicy": RTUActorCriticPolicy}

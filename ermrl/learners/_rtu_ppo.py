@@ -4,8 +4,8 @@ Elelimy et al., "Real-Time Recurrent Learning using Trace Units in Reinforcement
 (NeurIPS 2024; official JAX code esraaelelimy/rtus). The network is
 ``obs -> Dense(64) -> tanh -> linear RTU(d_rec) -> ReLU``, shared, then an actor head
 (``Dense(64) -> tanh -> action distribution``) and a critic head (``Dense(64) -> tanh -> value``).
-The RTU layer, its exact RTRL step and the algorithm (:class:`~ermrl.learners._rtu.RTUPPO`, an
-SB3 ``OnPolicyAlgorithm``) live in :mod:`ermrl.learners._rtu`, imported only when an agent is
+The RTU layer, its exact RTRL step and the algorithm (`RTUPPO`, an
+SB3 ``OnPolicyAlgorithm``) live in `ermrl.learners._rtu`, imported only when an agent is
 built: importing the learner registry stays free of torch.
 
 Real-time PPO, as in the paper:
@@ -25,7 +25,7 @@ Real-time PPO, as in the paper:
 
 **Memory: the traces are stored, not recomputed.** Each transition stores its carry in float32:
 ``2 d_rec d_in + 6 d_rec`` numbers (the ``W₂`` traces follow exactly from the ``W₁`` ones, see
-:mod:`ermrl.learners._rtu`), 25,728 numbers (~103 kB) at ``d_rec`` 192 and ``d_in`` 64, so a
+`ermrl.learners._rtu`), 25,728 numbers (~103 kB) at ``d_rec`` 192 and ``d_in`` 64, so a
 2048-step rollout holds ~211 MB of carries (the paper's layout, with all four weight traces,
 would take ~410 MB). Measured on Pendulum-v1 with the default settings, the process's peak
 resident memory grows by ~230 MB over one 2048-step rollout and its update. Recomputing the

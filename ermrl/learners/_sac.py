@@ -4,9 +4,9 @@ Its table, ``ermrl/data/sac.yml``, holds rl-baselines3-zoo's SAC settings (``lea
 10000 for the MuJoCo locomotion tasks, the zoo's tuned entries for Pendulum,
 MountainCarContinuous and LunarLanderContinuous). SAC learns from a replay buffer: with a
 reservoir, the buffer holds the encoded observations (the reservoir wraps the ``VecEnv``, and
-:class:`~ermrl.encoders.ReservoirVecEnv` also encodes ``infos[i]["terminal_observation"]``,
-which SAC stores as the last ``next_observation`` of an episode). Those are the states of the
-reservoir as it ran, which is exact for a frozen reservoir.
+[`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv] also encodes
+``infos[i]["terminal_observation"]``, which SAC stores as the last ``next_observation`` of an
+episode). Those are the states of the reservoir as it ran, which is exact for a frozen reservoir.
 """
 
 from __future__ import annotations

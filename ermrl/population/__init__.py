@@ -1,10 +1,11 @@
 """The population backend (the default; ``--backend sb3`` is the reference): many PPO agents
 trained in lockstep.
 
-:func:`train_population` trains a whole population (a CMA-ES generation's candidates x seeds, or
-a test phase's runs) in one process, with the semantics of the SB3 path per agent and several
-times its throughput; :func:`train_population_parallel` splits it over processes.
-See :mod:`ermrl.population._ppo` for what is shared and what stays per agent.
+[`train_population`][ermrl.population.train_population] trains a whole population (a CMA-ES
+generation's candidates x seeds, or a test phase's runs) in one process, with the semantics of the
+SB3 path per agent and several times its throughput;
+[`train_population_parallel`][ermrl.population.train_population_parallel] splits it over processes.
+See `ermrl.population._ppo` for what is shared and what stays per agent.
 """
 
 from ermrl.population._choice import choose_backend, population_refusal

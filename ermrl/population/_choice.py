@@ -5,8 +5,9 @@ states of any registered encoder, or on the raw observation) and the SB3 path, t
 implementation, trains whatever it does not implement: another learner, PPO settings it lacks
 (``target_kl``, some ``policy_kwargs``), a pruner (it reports no intermediate returns),
 Weights & Biases logs, and envs whose spaces it does not step (observations other than a flat
-``Box``, actions other than ``Box`` and ``Discrete``). :func:`population_refusal` says why in one
-line, which the commands print when they fall back.
+``Box``, actions other than ``Box`` and ``Discrete``).
+[`population_refusal`][ermrl.population.population_refusal] says why in one line, which the commands
+print when they fall back.
 """
 
 from __future__ import annotations
@@ -57,7 +58,7 @@ def population_refusal(
         wandb: The runs log to Weights & Biases (wandb's SB3 callback).
         encoder: The registered encoder the runs evolve (``None``: none, or not checked); one
             whose reservoirs the batched reservoir does not step
-            (:attr:`ermrl.encoders.Encoder.population`) is refused.
+            (`ermrl.encoders.Encoder.population`) is refused.
 
     Returns:
         The reason, without a hint (``None``: the population backend applies).
@@ -107,7 +108,8 @@ def choose_backend(
         tasks: The envs the runs train on.
         pruner: The study's pruner.
         wandb: The runs log to Weights & Biases.
-        encoder: The registered encoder the runs evolve (see :func:`population_refusal`).
+        encoder: The registered encoder the runs evolve (see
+            [`population_refusal`][ermrl.population.population_refusal]).
 
     Returns:
         ``(backend, why)``: ``why`` is the one-line reason an automatic choice fell back to

@@ -1,14 +1,15 @@
 """The environments of a population: ``P`` agents x ``E`` environments each, stepped in lockstep.
 
-Each agent sees exactly what the SB3 path gives one agent (see :func:`ermrl.agents.train_agent`):
-``gym.make -> ObservationMask`` environments that auto-reset like SB3's ``DummyVecEnv`` (env ``i``
-of an agent first reset with ``env_seed + i``), then the agent's own reservoir (the rule of
-:class:`~ermrl.encoders.ReservoirVecEnv`, its weights from the same initializers and seeds: an
-echo state network's or a frozen RTU layer's), then the agent's own running normalization (SB3
-``VecNormalize``'s rule). The reservoirs of
-all agents advance in one batched matrix product (NVARs: one batched gather of their delay
-lines); everything else is per agent data in arrays with a leading agent axis, so an agent can be
-dropped by slicing (:meth:`PopulationEnvs.keep`).
+Each agent sees exactly what the SB3 path gives one agent (see
+[`ermrl.agents.train_agent`][ermrl.agents.train_agent]): ``gym.make -> ObservationMask``
+environments that auto-reset like SB3's ``DummyVecEnv`` (env ``i`` of an agent first reset with
+``env_seed + i``), then the agent's own reservoir (the rule of
+[`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv], its weights from the same initializers and
+seeds: an echo state network's or a frozen RTU layer's), then the agent's own running normalization
+(SB3 ``VecNormalize``'s rule). The reservoirs of all agents advance in one batched matrix product
+(NVARs: one batched gather of their delay lines); everything else is per agent data in arrays with a
+leading agent axis, so an agent can be dropped by slicing
+([`PopulationEnvs.keep`][ermrl.population.PopulationEnvs.keep]).
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ __all__ = ["BatchedReservoir", "PopulationEnvs", "RunningStats", "encoder_struct
 def encoder_structure(encoder: EncoderConfig | None) -> Hashable:
     """What the agents of one population must share: the encoder's family, its encoding
     options and the layout of what the policy sees of each reservoir
-    (:meth:`~ermrl.encoders.Encoder.layout`: an ESN's units, an NVAR's delay and order). The
+    ([`layout`][ermrl.encoders.Encoder.layout]: an ESN's units, an NVAR's delay and order). The
     hyperparameters that only change the values (spectral radius, leak rate, input scaling, an
     NVAR's strides, ...) may differ. ``None``: the raw observation."""
     from ermrl.encoders import encoder_for
@@ -48,17 +49,18 @@ def encoder_structure(encoder: EncoderConfig | None) -> Hashable:
 class BatchedReservoir:
     """The reservoirs of ``P`` agents (each its own weights), ``E`` state rows per agent.
 
-    Agent ``p`` gets the bank :class:`~ermrl.encoders.ReservoirVecEnv` would build for
-    ``encoders[p]`` and ``seeds[p]`` (its encoder's :meth:`~ermrl.encoders.Encoder.bank`, in
-    the population's layout: :meth:`~ermrl.encoders.Encoder.population_banks`); all agents
-    must share the encoder's structure (:func:`encoder_structure`); the hyperparameters may
-    differ. The banks' :meth:`~ermrl.encoders._reservoir.StepBank.stack` steps every agent at
+    Agent ``p`` gets the bank [`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv] would build for
+    ``encoders[p]`` and ``seeds[p]`` (its encoder's [`bank`][ermrl.encoders.Encoder.bank], in
+    the population's layout: [`population_banks`][ermrl.encoders.Encoder.population_banks]); all
+    agents must share the encoder's structure
+    ([`encoder_structure`][ermrl.population.encoder_structure]); the hyperparameters may differ. The
+    banks' `stack` steps every agent at
     once: for echo state networks and frozen RTU layers one stacked ``matmul`` of ``[x | u]``
     (``P x E x (N + D)``) with each agent's ``M = [W.T; Win.T]``, which numpy computes slice by
     slice, as one agent's ``ReservoirBank`` would; for NVARs one batched gather of their delay
     lines. The encodings equal ``ReservoirVecEnv``'s. Agents of other structures are refused:
-    train them as separate populations (:func:`~ermrl.population.train_population_parallel`
-    groups them).
+    train them as separate populations
+    ([`train_population_parallel`][ermrl.population.train_population_parallel] groups them).
     """
 
     def __init__(
@@ -213,7 +215,7 @@ class RunningStats:
         }
 
     def state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(mean, var, count)``, for a checkpoint (:meth:`load_state` restores them)."""
+        """``(mean, var, count)``, for a checkpoint (`load_state` restores them)."""
         return self.mean.copy(), self.var.copy(), self.count.copy()
 
     def load_state(self, state: Sequence[np.ndarray]) -> None:
@@ -240,7 +242,7 @@ class PopulationEnvs:
         normalize: Running normalization (``None``: none).
         gamma: Discount of the reward normalization (PPO's gamma).
         frozen_stats: Evaluation: each agent's final training statistics, not updated, raw
-            rewards (as :func:`~ermrl.agents.frozen_normalize_env`).
+            rewards (as [`frozen_normalize_env`][ermrl.agents.frozen_normalize_env]).
     """
 
     def __init__(
@@ -332,7 +334,8 @@ class PopulationEnvs:
         return out
 
     def normalize_stats(self, p: int) -> dict[str, Any]:
-        """Agent ``p``'s statistics in :func:`~ermrl.agents.normalize_stats`'s format."""
+        """Agent ``p``'s statistics in [`normalize_stats`][ermrl.agents.normalize_stats]'s
+        format."""
         from ermrl.agents._normalize import STATS_FORMAT
 
         n = self.normalize

@@ -4,10 +4,11 @@ Two processes with half the agents each beat two threads (the environments step 
 an agent's result does not depend on which part it lands in (its random streams are its own), so
 the split is a plain contiguous one.
 
-Agents whose encoders differ in structure (:func:`~ermrl.population.encoder_structure`: the units,
-an NVAR's delay and order) see observations of different widths, so they cannot share one
-population; they are trained as one population per structure, one after another (an agent's
-result does not depend on the population around it either).
+Agents whose encoders differ in structure
+([`encoder_structure`][ermrl.population.encoder_structure]: the units, an NVAR's delay and order)
+see observations of different widths, so they cannot share one population; they are trained as one
+population per structure, one after another (an agent's result does not depend on the population
+around it either).
 """
 
 from __future__ import annotations
@@ -69,24 +70,26 @@ def train_population_parallel(
     checkpoint_every: int | None = None,
     tensorboard_logs: Sequence[str | Path | None] | None = None,
 ) -> list[RunResult | BaseException]:
-    """:func:`~ermrl.population.train_population` with the jobs split over ``n_procs`` processes.
+    """[`train_population`][ermrl.population.train_population] with the jobs split over ``n_procs``
+    processes.
 
     Args:
-        pool: Processes to use (e.g. from :func:`~ermrl.agents.training_pool`, kept across
+        pool: Processes to use (e.g. from [`training_pool`][ermrl.agents.training_pool], kept across
             generations); ``None`` with ``n_procs > 1``: a pool for this call only.
         n_procs: Parts the population is split into (1: this process).
         progress: The population's progress; with several parts, each part's process
             prints its own lines, labelled ``part k/n`` (lines even in ``"bar"`` mode: bars of
             several processes would overwrite each other on one terminal).
         checkpoints: A folder for each part's checkpoint (see
-            :func:`~ermrl.population.train_population`); a rerun with the same jobs, split
-            alike, resumes each part from its own.
+            [`train_population`][ermrl.population.train_population]); a rerun with the same jobs,
+            split alike, resumes each part from its own.
         checkpoint_every: Env steps per agent between saves (default: a tenth of the budget).
         tensorboard_logs: Per job, its TensorBoard folder or ``None`` (see
-            :func:`~ermrl.population.train_population`).
+            [`train_population`][ermrl.population.train_population]).
 
-    Jobs whose encoders differ in structure (:func:`group_jobs`) are trained as one population
-    per structure, one after another, each split over ``n_procs`` processes.
+    Jobs whose encoders differ in structure ([`group_jobs`][ermrl.population.group_jobs]) are
+    trained as one population per structure, one after another, each split over ``n_procs``
+    processes.
 
     Returns:
         One result or exception per job, in order.

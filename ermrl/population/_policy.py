@@ -5,12 +5,14 @@ so a forward pass is one stacked product per layer; these tensors are views into
 buffer (one row per agent), which the gradient clipping and Adam treat as a whole. Rollouts and
 updates run the weights through numpy (views of the torch tensors), which is several times faster
 than torch for these small products on a CPU: the update's gradient is written out by hand
-(:meth:`StackedPolicy.ppo_gradient`, backpropagation through the tanh MLPs) rather than taken by
-autograd, whose per-op overhead cost more than the products (``benchmarks/bench_update.py``).
-The network is SB3's: separate policy and value MLPs (``net_arch``, default 64-64, tanh), an
-action head (diagonal Gaussian with a state-independent ``log_std``, gSDE, or categorical) and a
-value head, orthogonal initialization with SB3's gains; :meth:`StackedPolicy.sb3_state` and
-:meth:`StackedPolicy.load_sb3_state` convert one agent to and from SB3's ``state_dict``.
+([`StackedPolicy.ppo_gradient`][ermrl.population.StackedPolicy.ppo_gradient], backpropagation
+through the tanh MLPs) rather than taken by autograd, whose per-op overhead cost more than the
+products (``benchmarks/bench_update.py``). The network is SB3's: separate policy and value MLPs
+(``net_arch``, default 64-64, tanh), an action head (diagonal Gaussian with a state-independent
+``log_std``, gSDE, or categorical) and a value head, orthogonal initialization with SB3's gains;
+[`StackedPolicy.sb3_state`][ermrl.population.StackedPolicy.sb3_state] and
+[`StackedPolicy.load_sb3_state`][ermrl.population.StackedPolicy.load_sb3_state] convert one agent to
+and from SB3's ``state_dict``.
 """
 
 from __future__ import annotations
@@ -121,17 +123,18 @@ def _init_linear(
 class StackedAdam:
     """Adam over a population's flat parameter buffer: ``torch.optim.Adam``'s arithmetic, op for op.
 
-    The whole population's weights are one ``[P, N]`` tensor (see :class:`StackedPolicy`), so a step
-    is seven elementwise ops on it, whatever the number of layers. Adam is elementwise, so one Adam
-    over the buffer is one Adam per agent. Written out rather than ``torch.optim.Adam`` because
-    building that imports ``torch._dynamo`` (1.4 s per process) and its fused CPU kernel rounds a
-    tensor's SIMD body and scalar tail differently. Here every row's length ``N`` is a multiple of
-    :data:`ROW_ALIGN` elements, so no agent's element ever falls in a kernel's scalar tail and an
-    agent's update does not depend on the population size. Slicing agents away is :meth:`keep`.
+    The whole population's weights are one ``[P, N]`` tensor (see
+    [`StackedPolicy`][ermrl.population.StackedPolicy]), so a step is seven elementwise ops on it,
+    whatever the number of layers. Adam is elementwise, so one Adam over the buffer is one Adam per
+    agent. Written out rather than ``torch.optim.Adam`` because building that imports
+    ``torch._dynamo`` (1.4 s per process) and its fused CPU kernel rounds a tensor's SIMD body and
+    scalar tail differently. Here every row's length ``N`` is a multiple of `ROW_ALIGN` elements, so
+    no agent's element ever falls in a kernel's scalar tail and an agent's update does not depend on
+    the population size. Slicing agents away is `keep`.
 
     Args:
         params: The flat parameters ``[P, N]`` (agent axis first), updated in place.
-        lr: Learning rate (set :attr:`lr` to change it).
+        lr: Learning rate (set `lr` to change it).
         betas: Adam's ``(beta1, beta2)``.
         eps: SB3's PPO uses 1e-5.
     """
@@ -151,7 +154,7 @@ class StackedAdam:
 
     @torch.no_grad()
     def step(self, grad: torch.Tensor) -> None:
-        """One Adam step with the gradient ``grad`` (``[P, N]``, as :attr:`params`)."""
+        """One Adam step with the gradient ``grad`` (``[P, N]``, as `params`)."""
         beta1, beta2 = self.betas
         self.steps += 1
         self.exp_avg.lerp_(grad, 1 - beta1)
@@ -191,12 +194,13 @@ class _Distribution:
 class StackedPolicy:
     """The policies of ``P`` agents as stacked torch parameters in one flat buffer.
 
-    All weights live in one contiguous tensor :attr:`flat` of shape ``[P, N]``, agent-major: row
+    All weights live in one contiguous tensor `flat` of shape ``[P, N]``, agent-major: row
     ``p`` holds agent ``p``'s weights and biases one after another (then zeros up to a multiple of
-    :data:`ROW_ALIGN`). Each entry of :attr:`params` (``pi0.w`` ``[P, in, out]``, ``pi0.b``
+    `ROW_ALIGN`). Each entry of `params` (``pi0.w`` ``[P, in, out]``, ``pi0.b``
     ``[P, 1, out]``, ..., ``log_std``) is a view into it, so the products read the weights in place
     while per-agent gradient norms and Adam are a few ops on the whole buffer
-    (:meth:`ppo_gradient` writes the gradient in the same layout; :class:`StackedAdam`).
+    ([`ppo_gradient`][ermrl.population.StackedPolicy.ppo_gradient] writes the gradient in the same
+    layout; `StackedAdam`).
 
     Args:
         spec: The network.
@@ -240,8 +244,8 @@ class StackedPolicy:
         self.loss_terms: list[dict[str, np.ndarray]] | None = None
 
     def _bind(self, flat: torch.Tensor) -> None:
-        """Make ``flat`` (``[P, row_size]``) the buffer, :attr:`params` views of it, and
-        :attr:`np` numpy views of those."""
+        """Make ``flat`` (``[P, row_size]``) the buffer, `params` views of it, and
+        `np` numpy views of those."""
         self.flat = flat
         P, offset = flat.shape[0], 0
         self.params: dict[str, torch.nn.Parameter] = {}
@@ -271,7 +275,7 @@ class StackedPolicy:
         self._bind(self.flat[index].clone())
 
     def grad_views(self, grad: np.ndarray) -> dict[str, np.ndarray]:
-        """Views of a ``[P, row_size]`` gradient buffer shaped as :attr:`params`."""
+        """Views of a ``[P, row_size]`` gradient buffer shaped as `params`."""
         P, offset, views = grad.shape[0], 0, {}
         for name, shape in self.layout.items():
             size = math.prod(shape)
@@ -345,7 +349,7 @@ class StackedPolicy:
         vf_coef: float,
         normalize_advantage: bool,
     ) -> np.ndarray:
-        """The gradient of SB3 PPO's minibatch loss for every agent, laid out as :attr:`flat`.
+        """The gradient of SB3 PPO's minibatch loss for every agent, laid out as `flat`.
 
         The loss is SB3's ``PPO.train``: clipped surrogate on the probability ratio (advantages
         normalized per minibatch), entropy bonus, value loss on optionally clipped values. Its

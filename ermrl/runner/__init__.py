@@ -1,13 +1,13 @@
 """Run experiments and their stages from Python: what ``ermrl run`` and the commands do.
 
 An experiment file (``experiments/*.yaml``) composes ermrl's commands: evolution, re-evaluation,
-the test phase and the report (see docs/experiments.md). :class:`Experiment` loads one, plans it
-and runs its unfinished stages, exactly as ``ermrl run FILE`` does; :func:`evolve`,
-:func:`test` and :func:`report` run one stage each, as ``ermrl evolve``, ``ermrl test`` and
-``ermrl report`` do. The same names are exported at the package root (``ermrl.Experiment``,
-``ermrl.evolve``, ...).
+the test phase and the report (see docs/experiments.md). [`Experiment`][ermrl.runner.Experiment]
+loads one, plans it and runs its unfinished stages, exactly as ``ermrl run FILE`` does;
+[`evolve`][ermrl.runner.evolve], [`test`][ermrl.runner.test] and [`report`][ermrl.runner.report] run
+one stage each, as ``ermrl evolve``, ``ermrl test`` and ``ermrl report`` do. The same names are
+exported at the package root (``ermrl.Experiment``, ``ermrl.evolve``, ...).
 
-Example:
+Examples:
     >>> import ermrl
     >>> exp = ermrl.Experiment.load("experiments/demo.yaml")
     >>> exp.plan()[0].stage

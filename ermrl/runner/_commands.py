@@ -4,7 +4,7 @@ Each ``run_*`` function takes the library's configuration objects, prints the li
 command prints (progress, summary, one-line errors on stderr) and returns the command's exit
 code. ``ermrl evolve``, ``ermrl test`` and ``ermrl report`` parse their argv and call them;
 ``ermrl run`` calls them with the configuration its plan resolved. A one-line error is a
-:class:`CommandFailed`, which the caller prints as ``prog: error: message``.
+`CommandFailed`, which the caller prints as ``prog: error: message``.
 """
 
 from __future__ import annotations
@@ -77,7 +77,7 @@ def quiet_libraries() -> None:
 
 
 def exit_code(prog: str, run: Callable[[], int]) -> int:
-    """``run()``'s exit code; a :class:`CommandFailed` is its line on stderr and its code."""
+    """``run()``'s exit code; a `CommandFailed` is its line on stderr and its code."""
     try:
         return run()
     except CommandFailed as err:
@@ -152,7 +152,7 @@ def study_options(request: EvolveRequest) -> dict[str, Any]:
 def run_evolve(request: EvolveRequest, prog: str = "ermrl evolve") -> int:
     """Create or resume the study and run this worker's trials, printing what ``ermrl evolve``
     prints; return its exit code. (A study on a set of tasks:
-    :func:`ermrl.runner._generalization.run_evolve_generalization`.)
+    `ermrl.runner._generalization.run_evolve_generalization`.)
 
     Raises:
         CommandFailed: The study cannot be created or written (one line, exit code 2).
@@ -301,8 +301,9 @@ def run_and_report(
         study_kwargs: heartbeat and retry options of the re-evaluation study.
         evaluator_factory: builds the fitness of the re-evaluation config (multi-task runs).
         wandb: ``--wandb PROJECT``: each recorded trial is logged there (``None``: not).
-        **run_kwargs: passed on to :func:`ermrl.search.evolve_and_reevaluate` (``evaluate``,
-            ``wait_for_running``, ``progress``, ``tensorboard``).
+        **run_kwargs: passed on to
+            [`ermrl.search.evolve_and_reevaluate`][ermrl.search.evolve_and_reevaluate]
+            (``evaluate``, ``wait_for_running``, ``progress``, ``tensorboard``).
 
     Returns:
         0 when the worker finished, ``EXIT_TERMINATED`` (143) when stopped by a signal,
@@ -410,8 +411,9 @@ def _print_summary(summary: EvolutionSummary, fitness_name: str, next_command: s
 
 def run_or_fail(prog: str, out: Path, run: Callable[[], T]) -> T | None:
     """Run a test phase in ``out`` (removed again when this call created it and it fails
-    before it holds anything but its skeleton: :func:`ermrl.test_phase.run_in_folder`); its
-    expected failures become one line.
+    before it holds anything but its skeleton:
+    [`ermrl.test_phase.run_in_folder`][ermrl.test_phase.run_in_folder]); its expected failures
+    become one line.
 
     Shared by ``ermrl test`` and ``ermrl test-generalization``.
 
@@ -512,7 +514,7 @@ def run_test_phase(
     summary; ``then`` post-processes the summary table. Returns it, or ``None`` after Ctrl-C.
 
     Raises:
-        CommandFailed: see :func:`run_or_fail`.
+        CommandFailed: see `run_or_fail`.
     """
     from ermrl.test_phase import run_comparison
 

@@ -142,7 +142,7 @@ _UniqueKeyLoader.add_constructor(
 
 
 def _read_text(path: Path) -> str:
-    """The file's text, read as UTF-8 and at most :data:`MAX_FILE_BYTES` (one-line errors)."""
+    """The file's text, read as UTF-8 and at most `MAX_FILE_BYTES` (one-line errors)."""
     try:
         with path.open("rb") as file:
             data = file.read(MAX_FILE_BYTES + 1)
@@ -243,7 +243,8 @@ class Experiment:
 
     @classmethod
     def load(cls, path: str | Path, variant: str | None = None) -> Experiment:
-        """Read an experiment file and apply a variant (:func:`load_experiment`).
+        """Read an experiment file and apply a variant
+        ([`load_experiment`][ermrl.runner.load_experiment]).
 
         Args:
             path: The YAML file. Its folders (``out``, ``storage``, ``publish``) are relative
@@ -258,7 +259,7 @@ class Experiment:
             ExperimentError: An unreadable file, an unknown key (with the nearest valid one),
                 a wrong type or an unknown variant, in one line naming the file.
 
-        Example:
+        Examples:
             >>> import ermrl
             >>> exp = ermrl.Experiment.load("experiments/demo.yaml")
             >>> exp.name, str(exp.out)
@@ -277,7 +278,7 @@ class Experiment:
                 task the file does not list runs with the file's settings.
 
         Returns:
-            One :class:`~ermrl.runner.PlanStep` per command, in the order they run.
+            One [`PlanStep`][ermrl.runner.PlanStep] per command, in the order they run.
 
         Raises:
             ExperimentError: A key or value the commands refuse, or a study that contradicts
@@ -325,9 +326,9 @@ class Experiment:
                 run again to resume.
             KeyboardInterrupt: Ctrl-C during a stage (finished trials and runs are kept).
 
-        Example:
-            >>> result = ermrl.Experiment.load("experiments/demo.yaml").run()  # doctest: +SKIP
-            >>> result["Pendulum-v1"].trial, result["Pendulum-v1"].summary  # doctest: +SKIP
+        Examples:
+            >>> result = ermrl.Experiment.load("experiments/demo.yaml").run()
+            >>> result["Pendulum-v1"].trial, result["Pendulum-v1"].summary
         """
         from ermrl.runner import run_and_collect
 
@@ -349,7 +350,8 @@ class Experiment:
             tasks: Only these tasks.
 
         Raises:
-            ExperimentError: The file no longer matches its studies (see :meth:`plan`).
+            ExperimentError: The file no longer matches its studies (see
+                [`plan`][ermrl.runner.Experiment.plan]).
         """
         from ermrl.runner import experiment_result
 
@@ -368,7 +370,7 @@ def _mapping(value: Any, where: str) -> dict[str, Any]:
 
 
 def _read_document(path: Path) -> Mapping[str, Any]:
-    """The file's mapping, its top-level keys checked (:data:`TOP_LEVEL_KEYS`).
+    """The file's mapping, its top-level keys checked (`TOP_LEVEL_KEYS`).
 
     Raises:
         ExperimentError: unreadable file, not YAML, not a mapping, or an unknown key (with the
@@ -464,7 +466,8 @@ def load_experiment(path: str | Path, variant: str | None = None) -> Experiment:
         variant: A key of its ``variants`` (``None``: the file as written).
 
     Returns:
-        The experiment (not yet checked against the commands: see :func:`experiment_plan`).
+        The experiment (not yet checked against the commands: see
+        [`experiment_plan`][ermrl.runner.experiment_plan]).
 
     Raises:
         ExperimentError: unreadable file, unknown key (with the nearest valid one), wrong type,
@@ -683,7 +686,8 @@ def format_duration(seconds: float) -> str:
 
 def _rounded(ppo: Any, steps: int) -> tuple[int, str]:
     """A run's real env steps for a budget of ``steps`` (whole rollouts of an on-policy
-    learner, :func:`ermrl.agents.steps_trained`), and the plan's note when they differ."""
+    learner, [`ermrl.agents.steps_trained`][ermrl.agents.steps_trained]), and the plan's note when
+    they differ."""
     from ermrl.agents import steps_trained
 
     real = steps_trained(ppo, steps)
@@ -723,8 +727,8 @@ class Step:
         note: A line the plan prints under it (a budget rounded up to whole rollouts).
         runs: ``(agent, seed)`` runs a test step trains.
         request: What it runs, resolved from its options: the configuration objects of the
-            library function that runs it (:mod:`ermrl.runner._commands`,
-            :mod:`ermrl.runner._generalization``.
+            library function that runs it (`ermrl.runner._commands`,
+            `ermrl.runner._generalization``.
     """
 
     stage: str
@@ -1231,7 +1235,7 @@ def _keep_study_backend(
 
 def _check_study(exp: Experiment, config: Any, study_name: str, where: str) -> None:
     """Refuse a file whose evolution contradicts the study already in the storage: its problem
-    and search space, how the search proposes candidates (:data:`_SEARCH_MUST_MATCH`), and the
+    and search space, how the search proposes candidates (`_SEARCH_MUST_MATCH`), and the
     settings of a re-evaluation already recorded."""
     from ermrl.search import REEVALUATION_ATTR, STUDY_CONFIG_ATTR, resume_conflicts
 
@@ -1261,7 +1265,7 @@ _SEARCH_MUST_MATCH = ("sampler", "sampler_seed", "restart", "popsize", "start")
 
 
 def _search_conflicts(config: Any, stored: Mapping[str, Any]) -> list[str]:
-    """Differences in :data:`_SEARCH_MUST_MATCH` between the file and the stored study (an
+    """Differences in `_SEARCH_MUST_MATCH` between the file and the stored study (an
     unset popsize is the default one, which is the same for both: the spaces match)."""
     from ermrl.config import to_dict
     from ermrl.search._evolve import default_popsize
@@ -1442,7 +1446,7 @@ def snapshot_path(exp: Experiment, step: Step) -> Path:
 
 
 def hypothesis_of(exp: Experiment, file: str | None = None) -> Any:
-    """The experiment as a :class:`~ermrl.analysis.Hypothesis` of the reproduction page."""
+    """The experiment as a [`Hypothesis`][ermrl.analysis.Hypothesis] of the reproduction page."""
     from ermrl.analysis import Hypothesis, TaskFiles
 
     steps = experiment_plan(exp, build_agents=False)
@@ -1478,7 +1482,7 @@ def hypothesis_of(exp: Experiment, file: str | None = None) -> Any:
 
 
 def _planned_runs(step: Step) -> dict[str, tuple[int, ...]]:
-    """The runs a test step plans (:attr:`Step.runs`) as ``{agent: seeds}``."""
+    """The runs a test step plans (`Step.runs`) as ``{agent: seeds}``."""
     planned: dict[str, tuple[int, ...]] = {}
     for agent, seed in step.runs:
         planned[agent] = (*planned.get(agent, ()), seed)
@@ -1486,7 +1490,8 @@ def _planned_runs(step: Step) -> dict[str, tuple[int, ...]]:
 
 
 def verdict_rule(exp: Experiment) -> Any:
-    """The file's ``verdict:`` block as a :class:`~ermrl.analysis.VerdictRule` (``None``: none).
+    """The file's ``verdict:`` block as a [`VerdictRule`][ermrl.analysis.VerdictRule] (``None``:
+    none).
 
     Raises:
         ExperimentError: a block that cannot be used (one line, naming the key).

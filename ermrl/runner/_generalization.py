@@ -1,10 +1,10 @@
 """What ``ermrl evolve-generalization`` and ``ermrl test-generalization`` run once their options
 are parsed: evolve on a set of tasks, test on a task the reservoirs never saw.
 
-:func:`ermrl.runner._resolve.generalization_config_from_args` resolves the evolution's
-options into its configuration; :func:`run_evolve_generalization` runs it (an
-:class:`~ermrl.runner._requests.EvolveRequest`, as a one-task study's) and
-:func:`run_test_generalization` runs a :class:`TestGeneralizationRequest`. ``ermrl run`` calls
+`ermrl.runner._resolve.generalization_config_from_args` resolves the evolution's
+options into its configuration; `run_evolve_generalization` runs it (an
+`EvolveRequest`, as a one-task study's) and
+`run_test_generalization` runs a `TestGeneralizationRequest`. ``ermrl run`` calls
 both with what its plan resolved; the two commands parse their argv and call the same
 functions.
 """
@@ -223,7 +223,7 @@ def _resolve_test(r: TestGeneralizationRequest, notes: list[str]) -> _Generaliza
         notes: Receives why the test trains with the backend it does.
 
     Raises:
-        The errors of :func:`setup_errors` (a bad env id, study or option).
+        The errors of `setup_errors` (a bad env id, study or option).
     """
     from ermrl.agents import check_ppo_config
     from ermrl.envs import check_env_id, observation_indices

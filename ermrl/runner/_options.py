@@ -2,9 +2,9 @@
 
 Each option of ``ermrl evolve``, ``ermrl test``, ``ermrl report`` and the generalization commands
 is also a key of an experiment file's stage, so their definitions live in the library, below the
-CLI: :mod:`ermrl.runner._parsers` builds the commands' parsers from these pieces, the CLI
+CLI: `ermrl.runner._parsers` builds the commands' parsers from these pieces, the CLI
 (``ermrl.cli``) parses argv with them, and the experiment-file plan
-(:mod:`ermrl.runner._experiment`) checks each stage's options with them.
+(`ermrl.runner._experiment`) checks each stage's options with them.
 """
 
 from __future__ import annotations
@@ -74,7 +74,7 @@ def add_progress_arg(
     """``--progress bar|lines|none``: a live bar or progress lines for each run, or none.
 
     The default (``None``) is resolved once the arguments are parsed, for where stdout goes
-    (:func:`ermrl._progress.default_mode`).
+    (`ermrl._progress.default_mode`).
 
     Args:
         parser: The command's parser.
@@ -208,8 +208,9 @@ FOR_LEARNER_HELP = (
 def parse_for_learner(values: Sequence[str]) -> tuple[str, dict[str, Any]]:
     """One ``--for-learner LEARNER KEY=VALUE [KEY=VALUE ...]``: the learner and its settings.
 
-    Values are read as ``--ppo`` values are (:func:`ermrl.agents.parse_overrides`: YAML,
-    ``1e-4`` a number, ``[64, 64]`` a list).
+    Values are read as ``--ppo`` values are
+    ([`ermrl.agents.parse_overrides`][ermrl.agents.parse_overrides]: YAML, ``1e-4`` a number,
+    ``[64, 64]`` a list).
 
     Args:
         values: The flag's words, the learner's name first.
@@ -221,7 +222,7 @@ def parse_for_learner(values: Sequence[str]) -> tuple[str, dict[str, Any]]:
         ConfigError: an unregistered learner, no ``KEY=VALUE``, a malformed one or an unknown
             key (one line, starting ``--for-learner LEARNER:``).
 
-    Example:
+    Examples:
         >>> parse_for_learner(["dagger", "expert=experts/hopper", "epochs=3"])
         ('dagger', {'expert': 'experts/hopper', 'epochs': 3})
     """

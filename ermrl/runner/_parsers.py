@@ -2,9 +2,9 @@
 
 A command's options are also the keys of its stage in an experiment file (``evolve:``,
 ``test:``, ``report:``), so these parsers are that file's schema: the CLI parses argv with them
-(``ermrl.cli``), and the experiment-file plan (:mod:`ermrl.runner._experiment`) checks each
+(``ermrl.cli``), and the experiment-file plan (`ermrl.runner._experiment`) checks each
 stage's options with the same parser and resolves them into configuration objects
-(:mod:`ermrl.runner._resolve`). :data:`PARSERS` maps each command to its parser's builder.
+(`ermrl.runner._resolve`). `PARSERS` maps each command to its parser's builder.
 """
 
 from __future__ import annotations
@@ -483,7 +483,7 @@ FLAG_TYPES: dict[str, Callable[[str], Any]] = {
 
 
 def add_encoder_args(add: Callable[..., Any]) -> None:
-    """Every registered encoder's flags (:attr:`ermrl.encoders.Encoder.cli_flags`, plain data) as
+    """Every registered encoder's flags (`ermrl.encoders.Encoder.cli_flags`, plain data) as
     options, through ``add`` (``add_argument``'s signature). A flag that several encoders
     declare alike becomes one option whose help joins theirs.
 

@@ -4,7 +4,7 @@
 repository keeps (never databases or models): each evolution study as one JSON snapshot, and
 each finished test run's ``settings.json``, ``episodes.csv`` and ``result.json``. The next
 ``ermrl run`` of the file imports the snapshots, puts the runs back and goes on; its plan
-already counts them (:func:`snapshot_status`, :func:`published_runs_status`).
+already counts them (`snapshot_status`, `published_runs_status`).
 """
 
 from __future__ import annotations
@@ -44,7 +44,7 @@ def publish_step(
 
     Plain files only (CSV, JSON, Markdown, HTML, PNG, YAML, TXT), never models or arrays; the
     test folder's per-run ``result.json`` files keep their ``agents/<agent>/seed_<s>/`` layout.
-    A file over ``max_bytes`` (default :data:`PUBLISH_MAX_BYTES`) is left out: the published
+    A file over ``max_bytes`` (default `PUBLISH_MAX_BYTES`) is left out: the published
     folder is meant for version control, and the one such file a report writes is its
     self-contained ``report.html`` (figures embedded), whose ``report.md`` and PNGs are
     published beside it.
@@ -177,12 +177,12 @@ def publish_finished_runs(exp: Experiment, step: Step) -> int:
     plain files (``settings.json``, ``episodes.csv``, ``result.json``; never its model) are
     copied to ``<publish>/<task>/test/agents/<agent>/seed_<s>/``, with the phase's
     ``config.yaml`` (so a page of a phase still running names its selected trial), and
-    :func:`restore_finished_runs` puts them back on the next machine, where the test phase
+    `restore_finished_runs` puts them back on the next machine, where the test phase
     skips them as it skips any finished run (after checking their settings).
 
     Returns:
         The number of runs published (0 without ``publish`` in the file); a run with a file
-        over :data:`PUBLISH_MAX_BYTES` is not (it is trained again elsewhere).
+        over `PUBLISH_MAX_BYTES` is not (it is trained again elsewhere).
     """
     if exp.publish is None or step.stage != "test" or step.folder is None:
         return 0
@@ -281,7 +281,7 @@ def write_snapshot_files(exp: Experiment, steps: Sequence[Step]) -> tuple[int, i
 
 
 class PeriodicSnapshots:
-    """Write :func:`write_snapshot_files` every ``every`` seconds from a background thread.
+    """Write `write_snapshot_files` every ``every`` seconds from a background thread.
 
     A sitting or a machine that ends (a time limit, a preemption, ``kill -9``) then loses at
     most ``every`` seconds of finished work, as long as the published folder is kept; a run

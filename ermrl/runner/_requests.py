@@ -1,8 +1,8 @@
 """What a stage of an experiment runs, resolved from its options: the configuration objects
-of the library function that runs it (:mod:`ermrl.runner._commands`).
+of the library function that runs it (`ermrl.runner._commands`).
 
-The plan (:func:`ermrl.runner.experiment_plan`) builds one per evolve, test and report step;
-``ermrl run`` adds its own options (:func:`with_run_options`) and runs it.
+The plan ([`ermrl.runner.experiment_plan`][ermrl.runner.experiment_plan]) builds one per evolve,
+test and report step; ``ermrl run`` adds its own options (`with_run_options`) and runs it.
 """
 
 from __future__ import annotations
@@ -138,7 +138,7 @@ class TestGeneralizationRequest:
 
 @dataclass(frozen=True)
 class ReportRequest:
-    """What ``ermrl report`` writes (the arguments of :func:`ermrl.report`)."""
+    """What ``ermrl report`` writes (the arguments of [`ermrl.report`][ermrl.runner.report])."""
 
     study_name: str
     storage: str

@@ -2,9 +2,10 @@
 
 ``ermrl evolve``, ``ermrl evolve-generalization``, ``ermrl test`` and ``ermrl
 test-generalization`` parse their argv and build their configuration here; so does the plan of
-an experiment file (:func:`ermrl.runner.experiment_plan`), whose stages' options are parsed as
-the commands parse them. Every function raises :class:`~ermrl.config.ConfigError` (or an env
-error) on a value the configuration refuses, in one line.
+an experiment file ([`ermrl.runner.experiment_plan`][ermrl.runner.experiment_plan]), whose stages'
+options are parsed as the commands parse them. Every function raises
+[`ConfigError`][ermrl.config.ConfigError] (or an env error) on a value the configuration refuses, in
+one line.
 """
 
 from __future__ import annotations
@@ -360,7 +361,7 @@ def keep_study_backend(
 
 def test_options(args: argparse.Namespace) -> TestOptions:
     """The parsed options of ``ermrl test`` or ``ermrl test-generalization`` as the library's
-    :class:`~ermrl.test_phase.TestOptions` (``--ppo`` words kept: they are read, and refused,
+    [`TestOptions`][ermrl.test_phase.TestOptions] (``--ppo`` words kept: they are read, and refused,
     where the command always read them)."""
     from ermrl.test_phase import TestOptions
 
@@ -401,7 +402,7 @@ def generalization_config_from_args(
     Args:
         args: The parsed options of ``ermrl evolve-generalization``.
         build_agent: Also build each task's agent once (see
-            :func:`ermrl.runner._resolve.config_from_args`); ``False`` checks the options only.
+            `ermrl.runner._resolve.config_from_args`); ``False`` checks the options only.
         notes: Receives the one-line reason when ``--backend`` is left out and the population
             backend does not apply to some task (the study then trains with sb3).
     """

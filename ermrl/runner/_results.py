@@ -88,9 +88,9 @@ class ExperimentResult:
         out: Its results folder.
         tasks: ``{task: TaskResult}``, in the plan's order.
 
-    Example:
-        >>> result = Experiment.load("experiments/demo.yaml").run()  # doctest: +SKIP
-        >>> result["Pendulum-v1"].summary[["agent", "final_return_mean"]]  # doctest: +SKIP
+    Examples:
+        >>> result = Experiment.load("experiments/demo.yaml").run()
+        >>> result["Pendulum-v1"].summary[["agent", "final_return_mean"]]
     """
 
     name: str
@@ -156,7 +156,7 @@ def experiment_result(exp: Experiment, steps: Sequence[Step]) -> ExperimentResul
 
     Args:
         exp: The experiment.
-        steps: Its plan (:func:`~ermrl.runner.experiment_plan`).
+        steps: Its plan ([`experiment_plan`][ermrl.runner.experiment_plan]).
 
     Raises:
         ermrl.analysis.RunFolderError: A test phase's ``config.yaml`` is damaged.
@@ -207,7 +207,7 @@ def run_and_collect(
 ) -> ExperimentResult:
     """Run an experiment's unfinished stages as ``ermrl run`` does and read back its results.
 
-    See :meth:`ermrl.Experiment.run` for the arguments.
+    See [`ermrl.Experiment.run`][ermrl.runner.Experiment.run] for the arguments.
     """
     steps = run_experiment(
         exp,

@@ -1,11 +1,11 @@
 """Running an experiment file: its plan, what is done, and the unfinished stages in order.
 
-``ermrl run FILE`` and :meth:`ermrl.Experiment.run` share this code. Each stage runs the
-library function its command runs (:mod:`ermrl.runner._commands`,
-:mod:`ermrl.runner._generalization`) with the configuration the plan resolved from the file's
-options, in this process, and prints the equivalent command line first, so that one stage can
-be run by hand. The study and the run folders are the state: a stage the storage or the
-folders say is done is skipped, and an interrupted one resumes.
+``ermrl run FILE`` and [`ermrl.Experiment.run`][ermrl.runner.Experiment.run] share this code. Each
+stage runs the library function its command runs (`ermrl.runner._commands`,
+`ermrl.runner._generalization`) with the configuration the plan resolved from the file's options, in
+this process, and prints the equivalent command line first, so that one stage can be run by hand.
+The study and the run folders are the state: a stage the storage or the folders say is done is
+skipped, and an interrupted one resumes.
 """
 
 from __future__ import annotations
@@ -199,7 +199,7 @@ def plan_experiment(
     """Every step of an experiment, checked, with its status.
 
     Args:
-        exp: The experiment (:func:`~ermrl.runner.load_experiment`).
+        exp: The experiment ([`load_experiment`][ermrl.runner.load_experiment]).
         tasks: Only these tasks (for a generalization experiment: these test tasks).
         tensorboard: The evolve and test stages will log for TensorBoard (on either
             backend).
@@ -253,7 +253,7 @@ def choose_stages(
     """The steps of these stages (``None`` or empty: all), each with its status, in order.
 
     Raises:
-        ExperimentError: A stage that is not one of :data:`STAGE_CHOICES`.
+        ExperimentError: A stage that is not one of `STAGE_CHOICES`.
     """
     unknown = [s for s in stages or () if s not in STAGE_CHOICES]
     if unknown:
@@ -270,7 +270,7 @@ def plan_lines(exp: Experiment, chosen: Sequence[tuple[Step, Status]]) -> list[s
 
     Args:
         exp: The experiment.
-        chosen: The steps to show, each with its status (:func:`choose_stages`).
+        chosen: The steps to show, each with its status (`choose_stages`).
     """
     head = f"experiment {exp.name!r}" + (f" (variant {exp.variant})" if exp.variant else "")
     lines = [
@@ -347,7 +347,7 @@ def run_experiment(
     """Plan an experiment and run its unfinished steps, as ``ermrl run FILE`` does.
 
     Args:
-        exp: The experiment (:func:`~ermrl.runner.load_experiment`).
+        exp: The experiment ([`load_experiment`][ermrl.runner.load_experiment]).
         stages: Only these stages (default: all, in order).
         tasks: Only these tasks (for a generalization experiment: these test tasks).
         progress: ``bar``, ``lines`` or ``none`` inside the evolve and test stages
@@ -418,9 +418,9 @@ def run_plan(
     before any stage wrote a thing.
 
     Args:
-        exp: The experiment, planned by :func:`plan_experiment`.
+        exp: The experiment, planned by `plan_experiment`.
         steps: All its steps (the resolved file lists them all).
-        chosen: The steps to run (:func:`choose_stages`).
+        chosen: The steps to run (`choose_stages`).
         progress: ``--progress`` of the evolve and test commands (``None``: theirs).
         tensorboard: ``--tensorboard`` folder (``None``: no logs).
         snapshot_every: Seconds between snapshots of a file with ``publish:`` (0: never).
@@ -560,7 +560,7 @@ def _run_steps(
     wandb: str | None = None,
 ) -> None:
     """Run the unfinished steps in order, each through the library function of its command
-    (:func:`_run_step`).
+    (`_run_step`).
 
     Raises:
         StageFailed: The first step whose command stopped with an error.
@@ -620,9 +620,9 @@ def _run_step(
     """Run one step, printing what its command prints; return the command's exit code.
 
     Each step runs its planned configuration through the library
-    (:mod:`ermrl.runner._commands`) with ``ermrl run``'s own options added as
-    :func:`stage_argv` adds them to the printed command line (``line``, which the study or the
-    test folder keeps).
+    (`ermrl.runner._commands`) with ``ermrl run``'s own options added as
+    [`stage_argv`][ermrl.runner.stage_argv] adds them to the printed command line (``line``, which
+    the study or the test folder keeps).
     """
     prog = f"ermrl {step.command}"
     request = with_run_options(

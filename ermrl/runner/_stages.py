@@ -55,7 +55,7 @@ class NothingToReport(ConfigError):
 
 @dataclass(frozen=True)
 class EvolveResult:
-    """What an evolution holds after :func:`evolve` returned.
+    """What an evolution holds after [`evolve`][ermrl.runner.evolve] returned.
 
     Attributes:
         study_name: The study.
@@ -83,7 +83,7 @@ class EvolveResult:
 
 @dataclass(frozen=True, eq=False)
 class TestResult:
-    """What :func:`test` trained and wrote.
+    """What [`test`][ermrl.runner.test] trained and wrote.
 
     Attributes:
         study_name: The evolution study.
@@ -147,8 +147,8 @@ def evolve_config(
         ExperimentError: An unknown option (with the nearest valid one) or a value the
             command refuses, in one line.
 
-    Example:
-        >>> config = evolve_config("CartPole-v1", n_trials=4, training_steps=2000)  # doctest: +SKIP
+    Examples:
+        >>> config = evolve_config("CartPole-v1", n_trials=4, training_steps=2000)
     """
     config, _ = _evolve_config_and_argv(env_id, storage, study_name, tensorboard, options)
     return config
@@ -207,8 +207,8 @@ def evolve(
     finished study does nothing and returns what the study holds.
 
     Args:
-        config: The configuration (:class:`~ermrl.config.EvolveConfig`), or an env id whose
-            configuration ``options`` give (:func:`evolve_config`).
+        config: The configuration ([`EvolveConfig`][ermrl.config.EvolveConfig]), or an env id whose
+            configuration ``options`` give ([`evolve_config`][ermrl.runner.evolve_config]).
         storage: The Optuna storage URL (``sqlite:///file.db``, ``journal:///file.log``, ...).
         study_name: The study's name (default: derived from env, mask and budget).
         quiet: No progress lines.
@@ -233,12 +233,12 @@ def evolve(
         ermrl.storage.StorageError: The storage cannot be opened.
         KeyboardInterrupt: Ctrl-C (the running trial is closed and queued again).
 
-    Example:
+    Examples:
         >>> import ermrl
-        >>> result = ermrl.evolve(  # doctest: +SKIP
+        >>> result = ermrl.evolve(
         ...     "CartPole-v1", "sqlite:///ermrl.db", n_trials=4, n_seeds=1, training_steps=2000
         ... )
-        >>> result.best_trial, result.best_params  # doctest: +SKIP
+        >>> result.best_trial, result.best_params
     """
     from ermrl.search import create_or_resume_study, evolve_and_reevaluate
 
@@ -265,7 +265,8 @@ def _resolved_config(
     tensorboard: str | Path | None,
     options: dict[str, Any],
 ) -> tuple[EvolveConfig, str | None]:
-    """The configuration :func:`evolve` runs, checked, and the command line that runs it.
+    """The configuration [`evolve`][ermrl.runner.evolve] runs, checked, and the command line that
+    runs it.
 
     Args:
         config: A configuration, or an env id whose configuration ``options`` give.
@@ -370,10 +371,10 @@ def test(
     Args:
         study_name: The evolution study (a single-task one).
         storage: Its storage URL.
-        options: The test phase's options (:class:`~ermrl.test_phase.TestOptions`).
+        options: The test phase's options ([`TestOptions`][ermrl.test_phase.TestOptions]).
         quiet: No progress lines.
         stream: Where progress lines go (default ``sys.stdout``).
-        **keywords: Fields of :class:`~ermrl.test_phase.TestOptions` (``training_steps``,
+        **keywords: Fields of [`TestOptions`][ermrl.test_phase.TestOptions] (``training_steps``,
             ``seeds``, ``agents``, ``out``, ``trial``, ...), on top of ``options``.
 
     Returns:
@@ -385,12 +386,12 @@ def test(
         ermrl.storage.StudyNotFound: No such study.
         KeyboardInterrupt: Ctrl-C (finished runs are kept).
 
-    Example:
-        >>> result = ermrl.test(  # doctest: +SKIP
+    Examples:
+        >>> result = ermrl.test(
         ...     "CartPole-v1__all__2000steps", "sqlite:///ermrl.db", training_steps=2000,
         ...     seeds=[10, 11], out="runs/cartpole-test",
         ... )
-        >>> result.summary[["agent", "final_return_mean"]]  # doctest: +SKIP
+        >>> result.summary[["agent", "final_return_mean"]]
     """
     from ermrl.analysis import load_run_results
     from ermrl.test_phase import TestOptions, prepare_test, run_comparison, run_in_folder
@@ -462,7 +463,7 @@ def report(
         stream: Where progress lines go (default ``sys.stdout``).
 
     Returns:
-        The paths written (:class:`~ermrl.analysis.ReportResult`): ``markdown``, ``html``,
+        The paths written ([`ReportResult`][ermrl.analysis.ReportResult]): ``markdown``, ``html``,
         ``figures`` and ``tables`` by name, and the sections left out with why.
 
     Raises:
@@ -471,8 +472,8 @@ def report(
         ermrl.analysis.RunFolderError: A file of the test phase's folder is damaged.
         OSError: The report cannot be written (nothing is written then).
 
-    Example:
-        >>> ermrl.report("S", "sqlite:///ermrl.db", runs="runs/S").markdown  # doctest: +SKIP
+    Examples:
+        >>> ermrl.report("S", "sqlite:///ermrl.db", runs="runs/S").markdown
         PosixPath('reports/S/report.md')
     """
     from optuna.trial import TrialState

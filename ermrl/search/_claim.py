@@ -3,9 +3,10 @@ result, and closing one cut short (by any signal or error: with a retry queued).
 
 ``n_trials`` is the study's total of COMPLETE, PRUNED, RUNNING and WAITING trials. A worker
 *claims* a trial (counts, then ``study.ask()``) under the storage's inter-process lock
-(:func:`ermrl.storage.study_lock`), so the workers never overshoot. Before each claim, a worker
-fails the trials whose heartbeat stopped and queues a WAITING copy with the same parameters
-(:class:`ermrl.storage.RetryStaleTrial`), which the next claim picks up.
+([`ermrl.storage.study_lock`][ermrl.storage.study_lock]), so the workers never overshoot. Before
+each claim, a worker fails the trials whose heartbeat stopped and queues a WAITING copy with the
+same parameters ([`ermrl.storage.RetryStaleTrial`][ermrl.storage.RetryStaleTrial]), which the next
+claim picks up.
 """
 
 from __future__ import annotations
@@ -58,7 +59,7 @@ def n_counted(study: optuna.Study) -> int:
 
 def cut_short(trial: FrozenTrial) -> bool:
     """Whether a FAIL trial was cut short by a signal (Ctrl-C, SIGTERM) or by an error of the
-    program (:data:`CRASHED_ATTR`) rather than failing in training: it measured nothing."""
+    program (`CRASHED_ATTR`) rather than failing in training: it measured nothing."""
     reason = str(trial.user_attrs.get("fail_reason", ""))
     crashed = bool(trial.user_attrs.get(CRASHED_ATTR))
     return crashed or reason == "interrupted" or reason.startswith("interrupted by ")

@@ -1,21 +1,22 @@
 """The outer loop: an Optuna study that proposes reservoirs and records their fitness.
 
-One call of :func:`run_evolution` is one *worker*. Any number of workers (processes, machines,
-SLURM array tasks) may share a study:
+One call of [`run_evolution`][ermrl.search.run_evolution] is one *worker*. Any number of workers
+(processes, machines, SLURM array tasks) may share a study:
 
 - **Exact budget.** ``n_trials`` is the study's total of COMPLETE, PRUNED, RUNNING and WAITING
   trials. A worker *claims* a trial (counts, then ``study.ask()``) under the storage's
-  inter-process lock (:func:`ermrl.storage.study_lock`), so the workers never overshoot.
+  inter-process lock ([`ermrl.storage.study_lock`][ermrl.storage.study_lock]), so the workers never
+  overshoot.
 - **Dead workers.** RUNNING trials send heartbeats. Before each claim, a worker fails the trials
   whose heartbeat stopped (``grace_period``) and queues a WAITING copy with the same parameters
-  (:class:`ermrl.storage.RetryStaleTrial`), which the next claim picks up. When the budget is
-  reached while other workers' trials still run, a worker waits for them, so that a trial whose
-  worker died is still retried.
+  ([`ermrl.storage.RetryStaleTrial`][ermrl.storage.RetryStaleTrial]), which the next claim picks up.
+  When the budget is reached while other workers' trials still run, a worker waits for them, so that
+  a trial whose worker died is still retried.
 - **Interruptions.** SIGTERM (SLURM time limit, preemption), Ctrl-C or an error of the program
   closes the running trials as FAIL, queues a retry of each (the reference trial first) and
-  raises (:class:`Interrupted` on SIGTERM, ``KeyboardInterrupt`` on Ctrl-C). Signals that
-  arrive while a worker talks to the storage are handled right after, so a claim or a ``tell``
-  is never cut in half.
+  raises ([`Interrupted`][ermrl.search.Interrupted] on SIGTERM, ``KeyboardInterrupt`` on Ctrl-C).
+  Signals that arrive while a worker talks to the storage are handled right after, so a claim or a
+  ``tell`` is never cut in half.
 
 Re-running the same command resumes the study.
 """
@@ -159,18 +160,19 @@ def run_evolution(
     worker goes on (a FAIL trial does not count: another one replaces it), unless its last
     ``n_trials`` trials all failed (a broken problem must not loop forever). Ctrl-C, SIGTERM or
     an error of the program marks the running trials FAIL, queues a retry of each with the same
-    parameters (the reference trial first) and re-raises (SIGTERM as :class:`Interrupted`).
-    Nothing is lost either way. A reference trial whose every run was cut short (by an older
-    ermrl, or with its retries spent) is queued again when a worker starts.
+    parameters (the reference trial first) and re-raises (SIGTERM as
+    [`Interrupted`][ermrl.search.Interrupted]). Nothing is lost either way. A reference trial whose
+    every run was cut short (by an older ermrl, or with its retries spent) is queued again when a
+    worker starts.
 
     Args:
         config: The run's configuration.
-        study: A study from :func:`create_or_resume_study`.
+        study: A study from [`create_or_resume_study`][ermrl.search.create_or_resume_study].
         quiet: No progress lines.
         stream: Where progress lines go (default ``sys.stdout``).
         evaluate: Fitness of a candidate, called as ``evaluate(encoder, runner, report)`` with
             the encoder settings decoded from the sampled point
-            (default: :func:`~ermrl.search.evaluate_encoder` on ``config.problem``; the
+            (default: [`evaluate_encoder`][ermrl.search.evaluate_encoder] on ``config.problem``; the
             generalization pipeline passes a multi-task fitness).
         wait_for_running: When the budget is reached but trials of other workers still run, wait
             for them (with heartbeats on): a trial whose worker died is then failed and retried
@@ -183,14 +185,14 @@ def run_evolution(
             (re-evaluation: a failed candidate is not replaced by a random one).
         evaluate_generation: With the population backend, the fitness of a whole generation,
             ``evaluate_generation(encoders, runner)`` -> one fitness or exception per candidate
-            (default: :func:`~ermrl.search.evaluate_encoders` on ``config.problem``, or the
+            (default: `evaluate_encoders` on ``config.problem``, or the
             multi-task fitness of a generalization config).
         progress: ``"lines"``: inside a trial (or generation), each run or population prints
             a line every tenth of its steps or 30 s with its rate and ETA; ``"bar"``: a live bar
-            instead (:mod:`ermrl._progress`; the commands' default on a terminal); ``"none"``:
+            instead (`ermrl._progress`; the commands' default on a terminal); ``"none"``:
             one line per finished trial only. ``quiet`` silences all three.
         callbacks: Called as ``callback(study, trial)`` with each trial this worker recorded
-            (COMPLETE, PRUNED or FAIL), as :meth:`optuna.study.Study.optimize` calls its
+            (COMPLETE, PRUNED or FAIL), as `optuna.study.Study.optimize` calls its
             callbacks: e.g. optuna-integration's ``WeightsAndBiasesCallback``.
         tensorboard: Each trial's runs also log training curves for TensorBoard under
             ``<tensorboard>/trial_<n>/seed_<s>`` (SB3's ``tensorboard_log``; a trial on several
@@ -362,14 +364,14 @@ def _announce(
 
 
 class _Worker:
-    """One worker of :func:`run_evolution`, in named steps.
+    """One worker of [`run_evolution`][ermrl.search.run_evolution], in named steps.
 
-    A trial is *claimed* (:meth:`claim`), *trained* (:meth:`train`, or a whole generation with
-    :meth:`train_generation`), *recorded* in the study (:meth:`record`) and *finished*: counted
-    and reported (:meth:`finish`). When the budget is reached while other workers' trials run,
-    the worker *waits* for them (:meth:`wait`). :meth:`run_trial` and :meth:`run_generation`
+    A trial is *claimed* (`claim`), *trained* (`train`, or a whole generation with
+    `train_generation`), *recorded* in the study (`record`) and *finished*: counted
+    and reported (`finish`). When the budget is reached while other workers' trials run,
+    the worker *waits* for them (`wait`). `run_trial` and `run_generation`
     chain the steps, with heartbeats on and signals deferred while the storage is written, and
-    :meth:`run` repeats them until the worker stops.
+    `run` repeats them until the worker stops.
 
     Args:
         config: The run's configuration.
@@ -381,11 +383,13 @@ class _Worker:
         poll: The longest pause between claims while waiting for other workers.
         retry: Queues a retry of an interrupted trial (``None``: no retry).
         popsize: The CMA-ES population size to warn about (``None``: no warning is due).
-        evaluate: The fitness hook of :func:`run_evolution` (``None``: the problem's).
+        evaluate: The fitness hook of [`run_evolution`][ermrl.search.run_evolution] (``None``: the
+            problem's).
         evaluate_generation: A generation's fitness (population backend).
         wait_for_running: Wait for other workers' trials when the budget is reached.
         queued_only: Claim only queued (WAITING) trials.
-        callbacks: Called with each recorded trial (see :func:`run_evolution`).
+        callbacks: Called with each recorded trial (see
+            [`run_evolution`][ermrl.search.run_evolution]).
 
     Attributes:
         summary: What this worker did so far.
@@ -470,7 +474,7 @@ class _Worker:
         """Train one claimed trial: its state, fitness (``None`` unless trained) and note.
 
         A trial that diverges or finishes no episode is FAIL, a pruned one PRUNED. Anything
-        else (a signal, a bug) closes the trial (:func:`close_interrupted`) and is re-raised.
+        else (a signal, a bug) closes the trial (`close_interrupted`) and is re-raised.
         """
         assert claim.trial is not None
         trial = claim.trial
@@ -508,7 +512,7 @@ class _Worker:
         """Train claimed trials together (population backend): a fitness or a failure each.
 
         Anything but a divergence or an episode-less run (a signal, a bug) closes every trial
-        (:func:`close_interrupted`) and is re-raised.
+        (`close_interrupted`) and is re-raised.
         """
         try:
             self.guard.check()  # a signal that arrived during the claims

@@ -5,7 +5,7 @@ per seed. Its fitness is the mean over tasks of the normalized return
 
     (R_task - R_random) / (R_target - R_random),
 
-where ``R_task`` is the task's return averaged over seeds (see :mod:`ermrl.search._scores` for
+where ``R_task`` is the task's return averaged over seeds (see `ermrl.search._scores` for
 the references). 0 means "as good as a random policy" and 1 "as good as the target".
 
 "The same reservoir" on two tasks means: the same hyperparameters (``sr``, ``lr``,
@@ -103,7 +103,7 @@ class GeneralizationFitness(FitnessResult):
     """The multi-task fitness of one candidate: the mean normalized return over tasks.
 
     Attributes:
-        tasks: One :class:`TaskOutcome` per task, in the task set's order.
+        tasks: One [`TaskOutcome`][ermrl.search.TaskOutcome] per task, in the task set's order.
     """
 
     tasks: list[TaskOutcome] = field(default_factory=list)
@@ -196,8 +196,9 @@ def evaluate_generalization(
 def generalization_generation(
     config: EvolveConfig, *, quiet: bool = False, stream: TextIO | None = None
 ) -> Callable[[Sequence[EncoderConfig], SeedRunner], list[FitnessResult | BaseException]]:
-    """The population backend's counterpart of :func:`generalization_evaluator`: the multi-task
-    fitness of a whole generation, each task's (candidate, seed) runs trained as one population.
+    """The population backend's counterpart of
+    [`generalization_evaluator`][ermrl.search.generalization_evaluator]: the multi-task fitness of a
+    whole generation, each task's (candidate, seed) runs trained as one population.
 
     Raises:
         ConfigError: the config has no task set.
@@ -252,7 +253,8 @@ def generalization_generation(
 def generalization_evaluator(
     config: EvolveConfig, *, quiet: bool = False, stream: TextIO | None = None
 ) -> EvaluateFn:
-    """The ``evaluate`` hook of :func:`~ermrl.search.run_evolution` for a multi-task config.
+    """The ``evaluate`` hook of [`run_evolution`][ermrl.search.run_evolution] for a multi-task
+    config.
 
     Args:
         config: A config with ``generalization`` set.
@@ -371,11 +373,12 @@ def generalization_config(
     one. ``generalization`` holds every task with its PPO settings and reference returns.
 
     Args:
-        tasks: From :func:`generalization_tasks`.
+        tasks: From [`generalization_tasks`][ermrl.search.generalization_tasks].
         encoder: Encoding options shared by all tasks.
         budget: Training budget per (task, seed).
         seeds: Training seeds, the same on every task.
-        space: The evolved search space (the encoder's; a :class:`~ermrl.config.SearchSpace`).
+        space: The evolved search space (the encoder's; a
+            [`SearchSpace`][ermrl.config.SearchSpace]).
         search: The sampler and trial budget.
         n_procs: Processes that train a trial's runs in parallel.
         suite: The suite name, if the tasks come from one.
@@ -440,7 +443,7 @@ def create_or_resume_generalization_study(
     command: str | None = None,
     **kwargs: Any,
 ) -> optuna.Study:
-    """:func:`~ermrl.search.create_or_resume_study` for a multi-task config.
+    """[`create_or_resume_study`][ermrl.search.create_or_resume_study] for a multi-task config.
 
     Beyond the problem and the search space, a resumed study must have the same task set,
     PPO settings per task, reference returns, target column and ``--ppo``/``--n-envs`` options

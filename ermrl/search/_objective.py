@@ -81,14 +81,15 @@ class FitnessResult:
     Attributes:
         fitness: Mean over seeds of each run's return under the problem's fitness measure.
         mode: ``last`` or ``eval``.
-        runs: One :class:`~ermrl.agents.RunResult` per seed, in seed order.
+        runs: One [`RunResult`][ermrl.agents.RunResult] per seed, in seed order.
         wall_seconds: Wall-clock time of the whole evaluation.
         dtype: Float type of the reservoir states (``None``: no reservoir). Above a spectral
             radius of about 1.5, float32 and float64 trajectories decorrelate, so a trial's
             result depends on it.
         backend: What trained the runs (``sb3`` or ``population``).
         population: Agents trained together (the population backend; 1 otherwise).
-        n_last: Training episodes the ``last`` measure averages (for :meth:`learning_curve`).
+        n_last: Training episodes the ``last`` measure averages (for
+            [`learning_curve`][ermrl.search.FitnessResult.learning_curve]).
     """
 
     fitness: float
@@ -123,8 +124,8 @@ class FitnessResult:
         """The candidate's training curve at ``n_points`` evenly spaced env steps.
 
         At each step, the mean over seeds of the mean return of each run's last
-        :attr:`n_last` training episodes ended by then (the ``last`` fitness measure, taken early). Steps at
-        which some run has ended no episode yet are left out. Stored as the trial's intermediate
+        `n_last` training episodes ended by then (the ``last`` fitness measure, taken early). Steps
+        at which some run has ended no episode yet are left out. Stored as the trial's intermediate
         values, so optuna-dashboard draws per-trial learning curves with or without a pruner.
 
         Returns:
@@ -148,10 +149,11 @@ class FitnessResult:
         return curve
 
     def totals(self) -> dict[str, Any]:
-        """The part of :meth:`user_attrs` every fitness shares: ``env_steps``, ``wall_seconds``,
-        ``steps_per_second``, ``dtype``, ``backend``, ``population`` and ``versions``. With the
-        population backend, ``wall_seconds`` is the trial's share of its generation's wall time
-        (the generation's over its number of candidates)."""
+        """The part of [`user_attrs`][ermrl.search.FitnessResult.user_attrs] every fitness shares:
+        ``env_steps``, ``wall_seconds``, ``steps_per_second``, ``dtype``, ``backend``,
+        ``population`` and ``versions``. With the population backend, ``wall_seconds`` is the
+        trial's share of its generation's wall time (the generation's over its number of
+        candidates)."""
         return {
             "env_steps": self.env_steps,
             "wall_seconds": round(self.wall_seconds, 3),
@@ -169,7 +171,7 @@ def decode_candidate(
     """What a sampled point stands for: ``(encoder, problem)`` to train.
 
     An encoder's space decodes to the encoder's settings (the problem unchanged); a learner's
-    genes (:class:`~ermrl.config.LearnerSpace`) decode to the problem with those learner
+    genes ([`LearnerSpace`][ermrl.config.LearnerSpace]) decode to the problem with those learner
     settings, and no encoder.
 
     Raises:
@@ -202,20 +204,22 @@ class SeedRunner:
 
     Worker processes are started once (``spawn``, so no forked torch state) and reused by every
     trial, which avoids paying the interpreter and import start-up per trial. The pool's size
-    comes from :func:`pool_size`: ``n_procs`` cores, and one process per run up to twice that
-    when the runs do not divide evenly among the cores (``balance=False``: exactly ``n_procs``).
+    comes from [`pool_size`][ermrl.agents.pool_size]: ``n_procs`` cores, and one process per run up
+    to twice that when the runs do not divide evenly among the cores (``balance=False``: exactly
+    ``n_procs``).
 
     Args:
         n_procs: Cores for the runs (1 runs them one after another, in this process).
-        balance: Size the pool with :func:`pool_size` (``False``: ``n_procs`` processes).
+        balance: Size the pool with [`pool_size`][ermrl.agents.pool_size] (``False``: ``n_procs``
+            processes).
         progress: ``"lines"``: each run (or population) prints a progress line every tenth
-            of its steps or 30 s (:class:`ermrl._progress.Progress`), labelled with
-            :attr:`label` (what is training: ``"trial 12"``); ``"bar"``: a live bar for runs
+            of its steps or 30 s (`ermrl._progress.Progress`), labelled with
+            `label` (what is training: ``"trial 12"``); ``"bar"``: a live bar for runs
             in this process, lines from worker processes; ``"none"``: silent.
         stream: Where the lines of runs in this process go (workers print to their stdout).
         tensorboard: Each run also logs training curves for TensorBoard (SB3's
             ``tensorboard_log``, or the same scalars from the population backend) under
-            :meth:`tensorboard_log` (``None``: no logs).
+            [`tensorboard_log`][ermrl.search.SeedRunner.tensorboard_log] (``None``: no logs).
 
     Attributes:
         label: What is training now, for the progress lines (``"trial 12"``).
@@ -254,7 +258,7 @@ class SeedRunner:
         Args:
             seed: The run's seed.
             env_id: The run's task, when the trial trains on several (``None``: one task).
-            trial: The run's trial (``None``: :attr:`trial`).
+            trial: The run's trial (``None``: `trial`).
         """
         if self.tensorboard is None:
             return None
@@ -277,7 +281,8 @@ class SeedRunner:
         )
 
     def processes_for(self, n_jobs: int) -> int:
-        """How many processes :meth:`map` uses for ``n_jobs`` runs (1: this process)."""
+        """How many processes [`map`][ermrl.search.SeedRunner.map] uses for ``n_jobs`` runs (1: this
+        process)."""
         if self.n_procs == 1 or n_jobs <= 1:
             return 1
         return pool_size(n_jobs, self.n_procs) if self.balance else min(self.n_procs, n_jobs)
@@ -308,8 +313,8 @@ class SeedRunner:
         jobs: Sequence[Any],
         tensorboard_logs: Sequence[str | None] | None = None,
     ) -> list[RunResult | BaseException]:
-        """Train ``jobs`` (:class:`~ermrl.population.PopulationJob`) as one population split
-        over ``n_procs`` processes of this runner's pool (the population backend); each job
+        """Train ``jobs`` ([`PopulationJob`][ermrl.population.PopulationJob]) as one population
+        split over ``n_procs`` processes of this runner's pool (the population backend); each job
         logs for TensorBoard in its folder of ``tensorboard_logs`` (``None``: no logs)."""
         from ermrl.population import split_jobs, steps_trained, train_population_parallel
 
@@ -332,7 +337,8 @@ class SeedRunner:
     def map(self, args: Sequence[tuple[Any, ...]], *, by_task: bool = False) -> list[RunResult]:
         """Train ``(task, encoder, ppo, budget, seed)`` runs; one result each, in order.
 
-        ``by_task``: the runs' TensorBoard folders are per task (see :meth:`tensorboard_log`).
+        ``by_task``: the runs' TensorBoard folders are per task (see
+        [`tensorboard_log`][ermrl.search.SeedRunner.tensorboard_log]).
         """
         in_process = self.start(len(args)) == 1
         jobs = [
@@ -454,8 +460,8 @@ def train_generation(
     in one population (split over the runner's processes), one task after another.
 
     With the runner's ``tensorboard`` folder, each run logs SB3's scalars where the sb3 backend
-    would log it (:meth:`SeedRunner.tensorboard_log`), under its candidate's trial number
-    (:attr:`SeedRunner.trials`).
+    would log it ([`SeedRunner.tensorboard_log`][ermrl.search.SeedRunner.tensorboard_log]), under
+    its candidate's trial number (`SeedRunner.trials`).
 
     Returns:
         ``[candidate][task][seed]``: a run, or the exception that ended it (a diverged run fails
@@ -508,7 +514,8 @@ def evaluate_encoders(
     """The fitness of each candidate of a generation, trained together (population backend).
 
     A candidate one of whose seeds diverged (or finished no episode) gets that exception instead
-    of a fitness, as :func:`evaluate_encoder` would raise it; the other candidates are unaffected.
+    of a fitness, as [`evaluate_encoder`][ermrl.search.evaluate_encoder] would raise it; the other
+    candidates are unaffected.
     """
     start = time.perf_counter()
     trained = train_generation(
@@ -547,12 +554,13 @@ def evaluate_encoder(
 ) -> FitnessResult:
     """Train one agent per seed on encoded observations; return the mean return.
 
-    The single-task case of :func:`~ermrl.search.evaluate_generalization`: both train through
-    :func:`train_runs`.
+    The single-task case of [`evaluate_generalization`][ermrl.search.evaluate_generalization]: both
+    train through `train_runs`.
 
     Args:
         encoder: The candidate's encoder settings (decoded from a sampled point by the problem's
-            encoder, see :mod:`ermrl.encoders`); ``None`` trains on the raw observation.
+            encoder, see [`ermrl.encoders`][ermrl.encoders]); ``None`` trains on the raw
+            observation.
         problem: Task, encoding options, PPO settings, budget and seeds.
         runner: Where the seeds run (default: one after another in this process).
         report: Intermediate-return callback for pruning, called as ``report(step, value)``

@@ -4,19 +4,20 @@ The best trial of an evolution is the maximum of noisy fitness values, so its fi
 upwards (the winner's curse) and its rank among close candidates is partly luck. With
 ``--reevaluate-top K``, once a study's budget is spent, its ``K`` best trials and the unevolved
 reference trial are trained again on seeds that neither evolution nor the test phase use
-(:func:`reevaluation_seeds`), optionally at another budget (``--reevaluate-steps``, e.g. the test
-budget). The runs are trials of a sibling study named ``<study>.reeval`` in the same storage,
-so they get everything evolution trials get: any number of workers share them, a dead worker's
-candidate is retried, SIGTERM and Ctrl-C lose nothing, and re-running the command resumes.
+([`reevaluation_seeds`][ermrl.search.reevaluation_seeds]), optionally at another budget
+(``--reevaluate-steps``, e.g. the test budget). The runs are trials of a sibling study named
+``<study>.reeval`` in the same storage, so they get everything evolution trials get: any number of
+workers share them, a dead worker's candidate is retried, SIGTERM and Ctrl-C lose nothing, and
+re-running the command resumes.
 
 The ranking is recorded in the evolution study's user attribute ``ermrl_reevaluation`` (plain
-JSON), which the test phase reads (:func:`select_trial`). A candidate whose run fails on the fresh
-seeds (diverges, finishes no episode, or loses its worker more often than the retries allow) is
-ranked last with its ``fail_reason``; only a run cut short by a signal (Ctrl-C, SIGTERM) is queued
-again by the next call. The ranking records what it covered (``n_complete``, ``top_k``,
-``top_trials``): once the study has grown and its best candidates are others
-(:func:`stale_ranking`), the test phase no longer uses it, and the next re-evaluation re-ranks,
-reusing the finished runs of the candidates still among the best.
+JSON), which the test phase reads ([`select_trial`][ermrl.search.select_trial]). A candidate whose
+run fails on the fresh seeds (diverges, finishes no episode, or loses its worker more often than the
+retries allow) is ranked last with its ``fail_reason``; only a run cut short by a signal (Ctrl-C,
+SIGTERM) is queued again by the next call. The ranking records what it covered (``n_complete``,
+``top_k``, ``top_trials``): once the study has grown and its best candidates are others
+([`stale_ranking`][ermrl.search.stale_ranking]), the test phase no longer uses it, and the next
+re-evaluation re-ranks, reusing the finished runs of the candidates still among the best.
 """
 
 from __future__ import annotations
@@ -184,7 +185,8 @@ def record_reevaluation(
         study: The evolution study.
         rstudy: Its re-evaluation study.
         rconfig: The re-evaluation configuration (seeds, budget).
-        candidates: Trial numbers of the current candidates (:func:`top_candidates`).
+        candidates: Trial numbers of the current candidates
+            ([`top_candidates`][ermrl.search.top_candidates]).
         top_k: The ``k`` they are the top of (``--reevaluate-top``).
 
     Returns:
@@ -278,12 +280,15 @@ def evolve_and_reevaluate(
 ) -> EvolutionSummary:
     """Run this worker's trials of ``study``, then its re-evaluation once the budget is spent.
 
-    What ``ermrl evolve`` (and ``ermrl evolve-generalization``) run: :func:`run_evolution`,
-    then :func:`reevaluate_study` when ``config.search.reevaluate_top`` is above 0.
+    What ``ermrl evolve`` (and ``ermrl evolve-generalization``) run:
+    [`run_evolution`][ermrl.search.run_evolution], then
+    [`reevaluate_study`][ermrl.search.reevaluate_study] when ``config.search.reevaluate_top`` is
+    above 0.
 
     Args:
         config: The study's configuration.
-        study: The created or resumed study (:func:`~ermrl.search.create_or_resume_study`).
+        study: The created or resumed study
+            ([`create_or_resume_study`][ermrl.search.create_or_resume_study]).
         storage_url: Its storage, where the re-evaluation study lives (``None``: no
             re-evaluation).
         quiet: No progress lines.
@@ -293,8 +298,8 @@ def evolve_and_reevaluate(
             re-evaluation study.
         wait_for_running: Wait for other workers' trials (and re-evaluation runs) at the end.
         progress: ``"bar"``, ``"lines"`` or ``"none"`` inside each trial or run.
-        **run_kwargs: Passed on to :func:`run_evolution` (``evaluate``, ``callbacks``,
-            ``tensorboard``, ...).
+        **run_kwargs: Passed on to [`run_evolution`][ermrl.search.run_evolution] (``evaluate``,
+            ``callbacks``, ``tensorboard``, ...).
 
     Returns:
         What this worker did in the evolution.
@@ -345,7 +350,7 @@ def reevaluate_study(
 ) -> dict[str, Any] | None:
     """Re-train the study's best candidates on fresh seeds and record the ranking.
 
-    Call it after :func:`~ermrl.search.run_evolution` returned; it does nothing until the
+    Call it after [`run_evolution`][ermrl.search.run_evolution] returned; it does nothing until the
     study's budget is spent with no trial running. Several workers may call it at once: they
     share the candidates through the sibling study.
 
@@ -354,18 +359,18 @@ def reevaluate_study(
         study: The evolution study.
         storage_url: Its storage (the sibling study lives there too).
         evaluator_factory: Builds the fitness of the re-evaluation config (the multi-task
-            pipeline passes :func:`~ermrl.search.generalization_evaluator`); ``None``: the
-            single-task fitness.
+            pipeline passes [`generalization_evaluator`][ermrl.search.generalization_evaluator]);
+            ``None``: the single-task fitness.
         quiet: No progress lines.
         stream: Where progress lines go.
         wait_for_running: Wait for other workers' re-evaluation runs at the end.
         heartbeat_interval: Heartbeats of the re-evaluation trials (as for evolution).
         grace_period: Seconds without heartbeat before a run is failed and retried.
         max_retry: Retries of a run whose worker died.
-        progress: Lines inside each run, as in :func:`~ermrl.search.run_evolution`.
+        progress: Lines inside each run, as in [`run_evolution`][ermrl.search.run_evolution].
 
     Returns:
-        The recorded ranking (see :func:`record_reevaluation`), or ``None`` when re-evaluation
+        The recorded ranking (see `record_reevaluation`), or ``None`` when re-evaluation
         is off, the study is not finished, or it has no COMPLETE trial.
     """
     from ermrl.search._evolve import run_evolution
@@ -439,7 +444,7 @@ def _queue_candidates(
         config: The evolution's configuration.
         study: The evolution study.
         storage_url: Its storage (the sibling study lives there too).
-        candidates: The trials to re-evaluate (:func:`top_candidates`).
+        candidates: The trials to re-evaluate ([`top_candidates`][ermrl.search.top_candidates]).
         heartbeat_interval: Heartbeats of the re-evaluation trials.
         grace_period: Seconds without heartbeat before a run is failed and retried.
         max_retry: Retries of a run whose worker died.
@@ -475,7 +480,7 @@ def _queue_candidates(
 
 
 def _say_ranking(doc: dict[str, Any], say: Callable[[str], None]) -> None:
-    """Print a recorded ranking (:func:`record_reevaluation`) and whether it is complete."""
+    """Print a recorded ranking (`record_reevaluation`) and whether it is complete."""
     from ermrl.search._progress import format_params
 
     if doc["candidates"]:
@@ -503,10 +508,11 @@ def _say_ranking(doc: dict[str, Any], say: Callable[[str], None]) -> None:
 def stale_ranking(study: optuna.Study) -> str | None:
     """Why the stored ranking no longer covers the study's best candidates, or ``None``.
 
-    The ranking is stale when the study's ``top_k`` best trials (:func:`top_candidates`) are no
-    longer the ones it ranked: trials were added since (a larger ``--n-trials``, evolution
-    resumed) and some beat a ranked candidate. A ranking recorded before ermrl kept ``top_k``
-    is compared with the top ``K`` and ``K - 1`` (the reference may be one of them).
+    The ranking is stale when the study's ``top_k`` best trials
+    ([`top_candidates`][ermrl.search.top_candidates]) are no longer the ones it ranked: trials were
+    added since (a larger ``--n-trials``, evolution resumed) and some beat a ranked candidate. A
+    ranking recorded before ermrl kept ``top_k`` is compared with the top ``K`` and ``K - 1`` (the
+    reference may be one of them).
 
     Args:
         study: An evolution study.
@@ -584,7 +590,7 @@ def select_trial(study: optuna.Study, trial_number: int | None = None) -> tuple[
 
     Without ``trial_number``: the best of a complete and current re-evaluated ranking; else the
     best evolution fitness, skipping the candidates that failed their re-evaluation. A stale
-    ranking (:func:`stale_ranking`) is not used, and the phrase says why.
+    ranking ([`stale_ranking`][ermrl.search.stale_ranking]) is not used, and the phrase says why.
 
     Args:
         study: An evolution study.

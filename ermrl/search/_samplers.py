@@ -2,9 +2,10 @@
 
 Optuna >= 4.4 accepts ``CmaEsSampler(restart_strategy=...)`` but silently falls back to
 ``restart_strategy=None`` (only a ``FutureWarning`` is emitted); restarts moved to an OptunaHub
-package, which cannot be downloaded at run time here. :class:`RestartCmaEsSampler` therefore
-re-implements the IPOP (Auger & Hansen 2005) and BIPOP (Hansen 2009) restart strategies on top
-of :class:`optuna.samplers.CmaEsSampler`, in the same way Optuna <= 4.3 did.
+package, which cannot be downloaded at run time here.
+[`RestartCmaEsSampler`][ermrl.search.RestartCmaEsSampler] therefore re-implements the IPOP (Auger &
+Hansen 2005) and BIPOP (Hansen 2009) restart strategies on top of `optuna.samplers.CmaEsSampler`, in
+the same way Optuna <= 4.3 did.
 
 Every piece of sampler state lives in the study storage as trial system attributes, so any
 number of worker processes sharing a storage (or a fresh sampler instance on a reloaded study)
@@ -25,10 +26,10 @@ continue the same CMA-ES run, generation and restart. With the default attribute
 
 * On the trial during whose sampling the optimizer was updated (``tell``), additionally:
 
-  - ``cma:state:{i}`` (str): the ``cmaes`` optimizer as plain JSON (:func:`optimizer_state`:
+  - ``cma:state:{i}`` (str): the ``cmaes`` optimizer as plain JSON (`optimizer_state`:
     every attribute, arrays as dtype, shape and base64 bytes, the random generator's state
     included), split into chunks of at most 2045 characters (as Optuna splits its pickle).
-    :func:`restore_optimizer` rebuilds it without unpickling or importing anything, and the
+    `restore_optimizer` rebuilds it without unpickling or importing anything, and the
     rebuilt optimizer continues exactly as the original.
   - ``cma:restart_state`` (dict): restart bookkeeping matching that optimizer: ``n_restarts``,
     ``regime``, ``popsize`` (current run), ``popsize0`` (first run), ``large_popsize`` (last
@@ -198,7 +199,7 @@ class _RestartState:
 class RestartCmaEsSampler(CmaEsSampler):
     """CMA-ES with IPOP / BIPOP restarts implemented locally (Auger & Hansen 2005; Hansen 2009).
 
-    Behaves like :class:`optuna.samplers.CmaEsSampler` (the ``cmaes`` backend) and additionally
+    Behaves like `optuna.samplers.CmaEsSampler` (the ``cmaes`` backend) and additionally
     restarts the optimizer whenever ``optimizer.should_stop()`` is true after an update:
 
     * ``"ipop"``: every restart starts at a uniformly random point of the search space with the
@@ -233,7 +234,7 @@ class RestartCmaEsSampler(CmaEsSampler):
             genes are rounded inside the search. ``None`` (default): on when ``search_space``
             has such a gene on a linear scale (and neither ``use_separable_cma`` nor
             ``lr_adapt``, which Optuna cannot combine with it, is asked), off otherwise.
-        **kwargs: Further keyword arguments of :class:`optuna.samplers.CmaEsSampler`
+        **kwargs: Further keyword arguments of `optuna.samplers.CmaEsSampler`
             (e.g. ``independent_sampler``, ``consider_pruned_trials``, ``use_separable_cma``,
             ``lr_adapt``). ``restart_strategy``/``inc_popsize`` are never
             forwarded, so constructing this sampler emits no deprecation warning.
@@ -429,7 +430,7 @@ class RestartCmaEsSampler(CmaEsSampler):
         """The optimizer and restart state of the current run: restored from the storage, or new.
 
         Args:
-            completed_trials: The study's completed trials (:meth:`_get_trials`).
+            completed_trials: The study's completed trials (`_get_trials`).
             trans: Search-space transform.
             direction: Study direction.
 
@@ -572,12 +573,12 @@ class RestartCmaEsSampler(CmaEsSampler):
     ) -> tuple[CmaClass | None, _RestartState | None]:
         """Load the optimizer and restart state of the latest trial that stored them.
 
-        The state is plain data (:func:`restore_optimizer`); nothing is unpickled. When the
+        The state is plain data (`restore_optimizer`); nothing is unpickled. When the
         latest stored state is an optimizer pickled by an older ermrl (``{prefix}optimizer:*``),
         it is left unread: a warning is logged and a new run starts (see
-        :meth:`_legacy_restart`). A malformed state (chunks that do not decode to an
+        `_legacy_restart`). A malformed state (chunks that do not decode to an
         optimizer, a restart state that is not one) is handled the same way, with its own
-        warning (:meth:`_malformed_restart`).
+        warning (`_malformed_restart`).
 
         Args:
             completed_trials: Completed trials, ordered by trial number.
@@ -637,7 +638,7 @@ class RestartCmaEsSampler(CmaEsSampler):
     def _malformed_restart(self, trial: FrozenTrial, raw: Any, error: Exception) -> _RestartState:
         """Restart state of the run that replaces a malformed stored CMA-ES state.
 
-        As :meth:`_legacy_restart`: the state is ignored (one warning per sampler), and a new
+        As `_legacy_restart`: the state is ignored (one warning per sampler), and a new
         run starts with a restart index one past the stored one, so that the trials of the run
         whose state was lost are never told to the new optimizer. The trials keep their values.
 
@@ -716,7 +717,7 @@ class RestartCmaEsSampler(CmaEsSampler):
             state: Restart state of the finished run.
             trans: Search-space transform.
             direction: Study direction.
-            rng: The restart's generator (see :meth:`_restart_rng`): every worker that restarts
+            rng: The restart's generator (see `_restart_rng`): every worker that restarts
                 this run draws the same popsize, step size and start point.
 
         Returns:
@@ -953,7 +954,7 @@ def optimizer_state(optimizer: CmaClass) -> dict[str, Any]:
 
     Every attribute of the optimizer is kept (mean, step size, covariance, evolution paths,
     generation, popsize, bounds, learning rates, termination history and the random
-    generator's state), so :func:`restore_optimizer` gives an optimizer that continues exactly
+    generator's state), so `restore_optimizer` gives an optimizer that continues exactly
     as this one would. Arrays are stored bit-exactly (``dtype``, ``shape`` and base64 bytes);
     non-finite floats as ``{"__float__": "inf"}``.
 
@@ -972,7 +973,7 @@ def optimizer_state(optimizer: CmaClass) -> dict[str, Any]:
 
 
 def restore_optimizer(state: Mapping[str, Any]) -> CmaClass:
-    """Rebuild an optimizer from :func:`optimizer_state`, without running any stored code.
+    """Rebuild an optimizer from `optimizer_state`, without running any stored code.
 
     The state can only name ``CMA``, ``SepCMA`` or ``CMAwM`` and hold numbers, strings, lists
     and numeric arrays; nothing is unpickled or imported.
@@ -985,7 +986,7 @@ def restore_optimizer(state: Mapping[str, Any]) -> CmaClass:
 
     Raises:
         ValueError: For a state that is not of that form, or an optimizer that is not whole and
-            usable (:func:`check_optimizer`).
+            usable (`check_optimizer`).
     """
     try:
         optimizer = _decode(dict(state))
@@ -1106,7 +1107,7 @@ def _array_attr(
 
 
 def _encode(value: Any) -> Any:
-    """One value of an optimizer's state as JSON types (see :func:`optimizer_state`)."""
+    """One value of an optimizer's state as JSON types (see `optimizer_state`)."""
     if value is None or isinstance(value, (bool, str)):
         return value
     if isinstance(value, int) and not isinstance(value, np.integer):
@@ -1136,7 +1137,7 @@ def _encode(value: Any) -> Any:
 
 
 def _decode(value: Any) -> Any:
-    """Inverse of :func:`_encode`; raises ``ValueError`` for anything else."""
+    """Inverse of `_encode`; raises ``ValueError`` for anything else."""
     if value is None or isinstance(value, (bool, int, float, str)):
         return value
     if not isinstance(value, dict):
@@ -1229,9 +1230,9 @@ def make_sampler(
     """Build the outer-loop sampler by name.
 
     Args:
-        name: ``"cmaes"`` (:class:`RestartCmaEsSampler`), ``"tpe"``
-            (:class:`optuna.samplers.TPESampler`) or ``"random"``
-            (:class:`optuna.samplers.RandomSampler`).
+        name: ``"cmaes"`` ([`RestartCmaEsSampler`][ermrl.search.RestartCmaEsSampler]), ``"tpe"``
+            (`optuna.samplers.TPESampler`) or ``"random"``
+            (`optuna.samplers.RandomSampler`).
         seed: Random seed.
         restart: CMA-ES restart strategy; only ``"none"`` is allowed for other samplers.
         popsize: Initial CMA-ES population size (``None``: ``cmaes`` default); only for
@@ -1243,8 +1244,8 @@ def make_sampler(
             generation waits for ``popsize`` COMPLETE trials, and a study whose trials are mostly
             pruned hardly moves). TPE uses pruned trials on its own; random search ignores them.
         search_space: ``"cmaes"`` only: the fixed search space, so that CMA-ES samples from the
-            first trial on (see :class:`RestartCmaEsSampler`); with an integer gene, CMA-ES
-            searches with margin (rounding inside the search).
+            first trial on (see [`RestartCmaEsSampler`][ermrl.search.RestartCmaEsSampler]); with an
+            integer gene, CMA-ES searches with margin (rounding inside the search).
         x0: ``"cmaes"`` only: the start point of the first run (``None``: the box centre).
 
     Returns:
@@ -1299,7 +1300,8 @@ def cma_generation_info(study: optuna.Study) -> list[dict[str, Any]]:
     """CMA-ES run/generation of every COMPLETE trial, e.g. for a fitness-per-generation plot.
 
     Args:
-        study: A study optimized (at least partly) with :class:`RestartCmaEsSampler`.
+        study: A study optimized (at least partly) with
+            [`RestartCmaEsSampler`][ermrl.search.RestartCmaEsSampler].
 
     Returns:
         One dict per COMPLETE trial, ordered by trial number, with keys:

@@ -8,9 +8,10 @@ so 0 is a uniformly random policy and 1 is the target. Both references come from
 by default the packaged ``ermrl/data/scores.csv``:
 
 - ``random_mean`` (R_random) is the mean **episodic** return of a uniformly random policy
-  (``env.action_space.sample()``), measured by :func:`measure_random_returns` /
-  ``ermrl scores``. The original ER-MRL code averaged per-step rewards instead, which made its
-  random references about 1000x too small on 1000-step tasks.
+  (``env.action_space.sample()``), measured by
+  [`measure_random_returns`][ermrl.search.measure_random_returns] / ``ermrl scores``. The original
+  ER-MRL code averaged per-step rewards instead, which made its random references about 1000x too
+  small on 1000-step tasks.
 - ``target`` (R_target, the default) is a published PPO return at 1M steps, cited per row in
   ``target_source`` (rl-baselines3-zoo ``benchmark.md``).
 - ``provisional_target`` keeps the ER-MRL code's provisional targets, cited in
@@ -198,7 +199,7 @@ def load_scores(path: str | os.PathLike[str] | None = None) -> dict[str, Referen
     """Read a reference table.
 
     Args:
-        path: A CSV file with the columns of :data:`SCORE_COLUMNS`; ``None`` reads the
+        path: A CSV file with the columns of `SCORE_COLUMNS`; ``None`` reads the
             packaged table.
 
     Returns:
@@ -246,7 +247,7 @@ def reference_returns(
 
     Args:
         env_id: Gymnasium id.
-        table: From :func:`load_scores`.
+        table: From [`load_scores`][ermrl.search.load_scores].
         target_column: ``target`` or ``provisional_target``.
         path: The file ``table`` was read from, for error messages (``None``: the packaged one).
 
@@ -360,8 +361,8 @@ def update_scores(
 ) -> dict[str, ReferenceScore]:
     """Write measured random scores into a table, keeping its other rows and its targets.
 
-    A row that is new to the table takes its targets from :data:`REFERENCE_TARGETS` and
-    :data:`PROVISIONAL_TARGETS` (by env family) when they are known, and stays empty otherwise.
+    A row that is new to the table takes its targets from `REFERENCE_TARGETS` and
+    `PROVISIONAL_TARGETS` (by env family) when they are known, and stays empty otherwise.
 
     Args:
         measured: New random-policy measurements.

@@ -1,4 +1,5 @@
-"""Signals in a worker: SIGTERM becomes :class:`Interrupted`, Ctrl-C ``KeyboardInterrupt``.
+"""Signals in a worker: SIGTERM becomes [`Interrupted`][ermrl.search.Interrupted], Ctrl-C
+``KeyboardInterrupt``.
 
 Signals that arrive while a worker talks to the storage are deferred and raised right after, so
 a claim or a ``tell`` is never cut in half.
@@ -36,8 +37,9 @@ class Interrupted(KeyboardInterrupt):
 
 
 class SignalGuard:
-    """SIGTERM -> :class:`Interrupted`, SIGINT -> ``KeyboardInterrupt``, deferred in critical
-    sections (claiming a trial, telling a result) and raised at the next :meth:`check`.
+    """SIGTERM -> [`Interrupted`][ermrl.search.Interrupted], SIGINT -> ``KeyboardInterrupt``,
+    deferred in critical sections (claiming a trial, telling a result) and raised at the next
+    `check`.
 
     A second signal while one is already pending is raised at once (a way out of a hung storage).
     """
@@ -99,7 +101,8 @@ class SignalGuard:
 
 @contextmanager
 def sigterm_as_interrupt() -> Iterator[None]:
-    """Turn SIGTERM (SLURM time limit, preemption, ``kill``) into :class:`Interrupted`."""
+    """Turn SIGTERM (SLURM time limit, preemption, ``kill``) into
+    [`Interrupted`][ermrl.search.Interrupted]."""
 
     def handler(signum: int, frame: Any) -> None:
         raise Interrupted(signum)

@@ -56,9 +56,9 @@ def _is_integer(r: Any) -> bool:
 
 
 def search_distributions(space: SearchSpace) -> dict[str, BaseDistribution]:
-    """The fixed search space as Optuna distributions (what :func:`sample_params` asks): an
-    ``IntDistribution`` for an integer gene (CMA-ES then rounds inside the search, with margin),
-    a ``FloatDistribution`` otherwise."""
+    """The fixed search space as Optuna distributions (what
+    [`sample_params`][ermrl.search.sample_params] asks): an ``IntDistribution`` for an integer gene
+    (CMA-ES then rounds inside the search, with margin), a ``FloatDistribution`` otherwise."""
     return {
         name: IntDistribution(int(r.low), int(r.high))
         if _is_integer(r)
@@ -126,9 +126,10 @@ def sample_params(trial: optuna.Trial, space: SearchSpace) -> dict[str, float]:
 def study_config(study: optuna.Study) -> EvolveConfig:
     """The configuration an ermrl study was created with.
 
-    Its env ids must be registered ones (:func:`check_stored_env_ids`): the stored
-    configuration is data that an edited database or an imported snapshot may carry, and a
-    ``module:Env`` id in it would make gymnasium import that module.
+    Its env ids must be registered ones
+    ([`check_stored_env_ids`][ermrl.search.check_stored_env_ids]): the stored configuration is data
+    that an edited database or an imported snapshot may carry, and a ``module:Env`` id in it would
+    make gymnasium import that module.
 
     Raises:
         ConfigError: the study was not created by ``ermrl evolve``, or its configuration names
@@ -145,8 +146,9 @@ def check_stored_env_ids(data: Any, source: str) -> None:
     """Check every ``env_id`` in a stored configuration against gymnasium's registry.
 
     Nothing is imported: a ``module:Env`` id is refused unless that module is imported already
-    (see :func:`ermrl.envs.check_registered_env_id`). The whole document is walked, so an env id
-    in any part of it (a task, a generalization task set) is checked.
+    (see [`ermrl.envs.check_registered_env_id`][ermrl.envs.check_registered_env_id]). The whole
+    document is walked, so an env id in any part of it (a task, a generalization task set) is
+    checked.
 
     Args:
         data: The decoded configuration (JSON-like).
@@ -217,7 +219,7 @@ def resume_conflicts(config: EvolveConfig, stored: dict[str, Any]) -> list[str]:
         stored: The study's ``ermrl_config`` attribute.
 
     Returns:
-        One line per difference (:func:`config_diffs`); empty when the study can resume.
+        One line per difference (`config_diffs`); empty when the study can resume.
     """
     new = to_dict(config)
     diffs = [d for key in _MUST_MATCH for d in config_diffs(new[key], stored.get(key), key)]
@@ -233,7 +235,7 @@ def refuse_other_config(study_name: str, diffs: list[str]) -> None:
 
     Args:
         study_name: The study's name.
-        diffs: From :func:`config_diffs`; the first four are named in the message.
+        diffs: From `config_diffs`; the first four are named in the message.
 
     Raises:
         ConfigError: ``diffs`` is not empty.
@@ -249,7 +251,7 @@ def refuse_other_config(study_name: str, diffs: list[str]) -> None:
 
 METRIC_NAME = "fitness"
 """The objective's name (``study.metric_names``): ``study.trials_dataframe()`` calls its column
-``value_fitness``. What it measures is :func:`metric_description`, in :data:`STUDY_METRIC_ATTR`."""
+``value_fitness``. What it measures is `metric_description`, in `STUDY_METRIC_ATTR`."""
 STUDY_METRIC_ATTR = "ermrl_metric"
 
 
@@ -257,7 +259,7 @@ def metric_description(config: EvolveConfig) -> str:
     """What a study's objective value is, in words.
 
     Stored as the study's ``ermrl_metric`` user attribute, which optuna-dashboard shows among
-    the study's user attributes (the objective itself is named :data:`METRIC_NAME`, short, as
+    the study's user attributes (the objective itself is named `METRIC_NAME`, short, as
     it names a column of ``study.trials_dataframe()``).
 
     Returns:
@@ -276,7 +278,7 @@ def metric_description(config: EvolveConfig) -> str:
 
 
 def name_metric(study: optuna.Study, config: EvolveConfig) -> None:
-    """Name the study's objective :data:`METRIC_NAME` and store :func:`metric_description` as
+    """Name the study's objective `METRIC_NAME` and store `metric_description` as
     the ``ermrl_metric`` user attribute; optuna-dashboard shows both."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
@@ -303,7 +305,8 @@ def create_or_resume_study(
     Args:
         config: The run's configuration (``None``: create or load a bare study; the first
             worker that brings a configuration stores it).
-        storage_url: Where the study lives (see :func:`ermrl.storage.open_storage`).
+        storage_url: Where the study lives (see
+            [`ermrl.storage.open_storage`][ermrl.storage.open_storage]).
         study_name: The study's name.
         command: Launch command stored with the configuration (default: ``sys.argv``).
         kind: ``"evolve"`` or ``"generalization"``, stored as the ``ermrl_kind`` attribute.

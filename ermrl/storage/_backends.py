@@ -1,13 +1,13 @@
 """Optuna's journal backends (file, Redis), made safe to share and to read when damaged.
 
-- :class:`LineJournalFileBackend`: every append starts on a line of its own, so a record another
+- `LineJournalFileBackend`: every append starts on a line of its own, so a record another
   process cut short can never glue onto a valid one; a record that cannot be read stops the
   command in one line that says how to repair the journal.
-- :class:`PlainRedisBackend`: no pickled snapshot is ever loaded or saved, and reading stops at a
+- `PlainRedisBackend`: no pickled snapshot is ever loaded or saved, and reading stops at a
   missing or unreadable record in one line, where Optuna's backend waits forever for a record
   that ``log_number`` promises but that was never stored.
 
-Both point to ``ermrl study repair`` (:mod:`ermrl.storage._repair`), which sets such records
+Both point to ``ermrl study repair`` (`ermrl.storage._repair`), which sets such records
 aside.
 """
 
@@ -79,7 +79,8 @@ class LineJournalFileBackend(JournalFileBackend):
         return self._lock
 
     def read_logs(self, log_number_from: int) -> Generator[dict[str, Any], None, None]:
-        """Optuna's reader, with a one-line :class:`StorageError` for an unreadable record."""
+        """Optuna's reader, with a one-line [`StorageError`][ermrl.storage.StorageError] for an
+        unreadable record."""
         logs: Iterator[dict[str, Any]] = super().read_logs(log_number_from)
         while True:
             try:
@@ -109,8 +110,9 @@ class PlainRedisBackend(JournalRedisBackend):
 
     Records are read in batches up to ``<prefix>:log_number``. Optuna stores each record in one
     atomic script with the counter, so a record missing below the counter was lost (or the
-    counter was changed by hand): reading stops with a one-line :class:`StorageError` instead of
-    waiting for it forever, as it does for a record that cannot be decoded, last one included.
+    counter was changed by hand): reading stops with a one-line
+    [`StorageError`][ermrl.storage.StorageError] instead of waiting for it forever, as it does for a
+    record that cannot be decoded, last one included.
 
     Args:
         url: The Redis URL, without the ``prefix`` parameter.
@@ -136,7 +138,7 @@ class PlainRedisBackend(JournalRedisBackend):
         self._redis = redis_client(self._url, self._outage.window)
 
     def _call(self, fn: Callable[..., T], *args: Any) -> T:
-        """A Redis command, retried through an outage (:mod:`ermrl.storage._retry`)."""
+        """A Redis command, retried through an outage (`ermrl.storage._retry`)."""
         return self._outage.call(redis_transient, fn, *args)
 
     def append_logs(self, logs: list[dict[str, Any]]) -> None:

@@ -2,16 +2,17 @@
 
 RDB storages (SQLite, PostgreSQL, MySQL) use Optuna's own heartbeat: a thread records a
 timestamp per running trial every ``heartbeat_interval`` seconds, and
-:func:`optuna.storages.fail_stale_trials` marks FAIL the RUNNING trials whose last heartbeat is
+`optuna.storages.fail_stale_trials` marks FAIL the RUNNING trials whose last heartbeat is
 older than ``grace_period``.
 
-Journal storages (file or Redis) have no heartbeat in Optuna. :class:`HeartbeatJournalStorage`
-adds the same mechanism: the heartbeat is the trial system attribute ``ermrl:heartbeat`` (a Unix
-time), so ``fail_stale_trials`` and Optuna's heartbeat thread work on it unchanged. Clocks of the
-machines sharing a journal must agree to well within the grace period (NTP does).
+Journal storages (file or Redis) have no heartbeat in Optuna.
+[`HeartbeatJournalStorage`][ermrl.storage.HeartbeatJournalStorage] adds the same mechanism: the
+heartbeat is the trial system attribute ``ermrl:heartbeat`` (a Unix time), so ``fail_stale_trials``
+and Optuna's heartbeat thread work on it unchanged. Clocks of the machines sharing a journal must
+agree to well within the grace period (NTP does).
 
-A stale trial is retried by :class:`RetryStaleTrial`: a WAITING copy with the same parameters,
-which the next ``study.ask()`` of any worker picks up.
+A stale trial is retried by [`RetryStaleTrial`][ermrl.storage.RetryStaleTrial]: a WAITING copy with
+the same parameters, which the next ``study.ask()`` of any worker picks up.
 """
 
 from __future__ import annotations
@@ -60,7 +61,7 @@ def _utc(moment: datetime) -> datetime:
 
 
 class HeartbeatJournalStorage(JournalStorage, BaseHeartbeat):
-    """A :class:`~optuna.storages.JournalStorage` with Optuna's heartbeat protocol.
+    """A `JournalStorage` with Optuna's heartbeat protocol.
 
     Args:
         backend: The journal backend (file or Redis).
@@ -68,7 +69,7 @@ class HeartbeatJournalStorage(JournalStorage, BaseHeartbeat):
         grace_period: Seconds without heartbeat after which a RUNNING trial is stale
             (default ``2 * heartbeat_interval``, as in Optuna).
         heartbeat_stale_trial_callback: Called with each trial failed as stale (e.g.
-            :class:`RetryStaleTrial`).
+            [`RetryStaleTrial`][ermrl.storage.RetryStaleTrial]).
     """
 
     def __init__(
@@ -115,7 +116,7 @@ class HeartbeatJournalStorage(JournalStorage, BaseHeartbeat):
 
 
 class RetryStaleTrial(RetryHeartbeatStaleTrialCallback):
-    """Optuna's :class:`~optuna.storages.RetryHeartbeatStaleTrialCallback`, made safe for CMA-ES.
+    """Optuna's `RetryHeartbeatStaleTrialCallback`, made safe for CMA-ES.
 
     The WAITING copy keeps the parameters, the user attributes and the CMA-ES generation of the
     failed trial, and records ``retry_history`` (Optuna's convention), but not the stored CMA-ES
@@ -237,17 +238,18 @@ def _stale_trial_ids(study: optuna.Study, storage: BaseHeartbeat, grace: float |
 
 
 def fail_stale_trials(study: optuna.Study) -> list[FrozenTrial]:
-    """Optuna's :func:`~optuna.storages.fail_stale_trials`, with a ``fail_reason`` on each trial.
+    """Optuna's `fail_stale_trials`, with a ``fail_reason`` on each trial.
 
     A trial whose worker stopped sending heartbeats (killed with ``kill -9``, a dead node), or
     that has run longer than the grace period without ever sending one (its worker died before
     the first heartbeat; so every worker of a study must use heartbeats, or none), is marked FAIL with the user attribute ``fail_reason`` set to ``"heartbeat lost (none for G s),
     retried as trial N"``, or ``"heartbeat lost (none for G s), not retried (max_retry M
-    reached)"``, then retried by the storage's stale-trial callback (:class:`RetryStaleTrial`).
+    reached)"``, then retried by the storage's stale-trial callback
+    ([`RetryStaleTrial`][ermrl.storage.RetryStaleTrial]).
 
     The trial number ``N`` is that of the WAITING copy the callback adds: exact when no other
-    process adds trials meanwhile, which holding :func:`~ermrl.storage.study_lock` (as ermrl's
-    workers and ``ermrl study fail-stale`` do) guarantees.
+    process adds trials meanwhile, which holding [`study_lock`][ermrl.storage.study_lock] (as
+    ermrl's workers and ``ermrl study fail-stale`` do) guarantees.
 
     Args:
         study: The study (its storage must have heartbeats, else nothing is done).
@@ -302,9 +304,10 @@ def fail_stale(
     retry: RetryStaleTrial | None = None,
     dry_run: bool = False,
 ) -> list[tuple[FrozenTrial, bool]]:
-    """Mark FAIL the trials of :func:`find_stale_trials`, and retry them.
+    """Mark FAIL the trials of [`find_stale_trials`][ermrl.storage.find_stale_trials], and retry
+    them.
 
-    Run it under :func:`~ermrl.storage.storage_lock` (``ermrl study fail-stale`` does): two
+    Run it under [`storage_lock`][ermrl.storage.storage_lock] (``ermrl study fail-stale`` does): two
     concurrent calls on a journal storage could both retry the same trial.
 
     Args:

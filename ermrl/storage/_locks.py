@@ -12,7 +12,7 @@ others for long:
   process dies; needs a local file system, as SQLite itself does);
 - journal file: a symlink lock ``<log>.ermrl.lock`` (Optuna's NFS-safe scheme; a lock left by a
   dead process, i.e. a link unchanged for 30 s, is broken, whatever it points at). Appends and
-  repairs take Optuna's own ``<log>.lock`` through :class:`JournalSymlinkLock`, which breaks a
+  repairs take Optuna's own ``<log>.lock`` through `JournalSymlinkLock`, which breaks a
   stale or dangling one the same way;
 - PostgreSQL: a session advisory lock (``pg_advisory_lock``) on its own connection;
 - MySQL / MariaDB: ``GET_LOCK`` on its own connection;
@@ -180,13 +180,13 @@ class JournalSymlinkLock(BaseJournalFileLock):
     ``stat`` of the file the link points at; when that file does not exist (a dangling link:
     left by a process that ran elsewhere, pointing at a relative path, or made by hand) it
     retries at once, forever, at full CPU. Here the link itself is checked (``lstat``): a link
-    unchanged for :data:`_JOURNAL_LOCK_GRACE_S` seconds of this process's clock (immune to clock
+    unchanged for `_JOURNAL_LOCK_GRACE_S` seconds of this process's clock (immune to clock
     skew between NFS clients) is broken, with a warning, whatever it points at. A live holder
     keeps a lock for milliseconds (one append), and every acquisition makes a new link.
 
     Args:
         path: The file the lock protects (the journal); the link is ``<path>.lock``.
-        timeout: Seconds to wait for the lock before :class:`LockTimeout`.
+        timeout: Seconds to wait for the lock before [`LockTimeout`][ermrl.storage.LockTimeout].
         target: What the link points at, made absolute (default: ``path``): a file that
             exists, so that Optuna's own stale check in plain Optuna processes can ``stat`` it.
     """
@@ -256,7 +256,7 @@ def journal_file_lock(
     path: os.PathLike[str] | str, timeout: float = LOCK_TIMEOUT_S
 ) -> Iterator[None]:
     """Hold the write lock of a journal file: Optuna's ``<path>.lock``, taken by
-    :class:`JournalSymlinkLock` (a stale or dangling link is broken after the grace period).
+    `JournalSymlinkLock` (a stale or dangling link is broken after the grace period).
 
     Args:
         path: The journal file.
@@ -275,7 +275,7 @@ _ENGINES: dict[str, Any] = {}
 def _lock_engine(spec: StorageURL) -> Any:
     """A pool-less engine: every lock gets a fresh connection, closed (and so released) after.
 
-    Connecting is bounded as for the storage (:func:`~ermrl.storage._url.connect_args`); a lock
+    Connecting is bounded as for the storage (`connect_args`); a lock
     wait is not.
     """
     engine = _ENGINES.get(spec.url)
@@ -352,7 +352,8 @@ def storage_lock(
     """Hold an inter-process lock tied to a storage URL.
 
     Args:
-        url: The storage URL (see :func:`ermrl.storage.open_storage`), as a string or parsed.
+        url: The storage URL (see [`ermrl.storage.open_storage`][ermrl.storage.open_storage]), as a
+            string or parsed.
         name: Which lock (e.g. ``"schema"`` or a study name). File-based locks (SQLite, journal)
             are one per storage whatever the name; server locks are one per name.
         timeout: Seconds to wait for the lock.

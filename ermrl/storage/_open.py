@@ -10,14 +10,14 @@ Accepted URLs:
   NFS);
 - ``redis://host:port[/db][?prefix=NAME]``: Optuna's journal over Redis (``prefix`` keeps
   several journals apart in one database). Optuna's pickled ``<prefix>:snapshot`` is never
-  loaded (a pickle can run code): the log is replayed instead (:class:`PlainRedisBackend`),
+  loaded (a pickle can run code): the log is replayed instead (`PlainRedisBackend`),
   and a missing or unreadable record stops a command in one line instead of a wait forever.
 
 Every storage is opened with the same guarantees: the schema is created under an inter-process
 lock (no ``table studies already exists`` when many workers start at once on a fresh file),
 SQLite waits up to 60 s for a busy database, and RUNNING trials get heartbeats (Optuna's for RDB
-storages, :class:`~ermrl.storage.HeartbeatJournalStorage` for journals) so that the trial of a
-dead worker is failed and retried.
+storages, [`HeartbeatJournalStorage`][ermrl.storage.HeartbeatJournalStorage] for journals) so that
+the trial of a dead worker is failed and retried.
 """
 
 from __future__ import annotations
@@ -89,7 +89,7 @@ class StudyNotFound(LookupError):
 
 def greet_redis(url: str, shown: str) -> None:
     """Fail now, in one line, when the Redis server does not answer a PING within the connect
-    bound (:data:`~ermrl.storage._url.CONNECT_TIMEOUT_S`).
+    bound (`CONNECT_TIMEOUT_S`).
 
     The storage's own client waits up to the retry window for each answer (a paused server is
     an outage to ride out), so without this a listener that never answers held a command for
@@ -128,7 +128,7 @@ def storage_kind(url: str) -> StorageKind:
 
 
 def normalize_url(url: str) -> str:
-    """The SQLAlchemy URL of an RDB storage URL (:attr:`StorageURL.url`).
+    """The SQLAlchemy URL of an RDB storage URL (`StorageURL.url`).
 
     ``postgres://`` becomes ``postgresql://``; a URL without a driver uses one that is installed:
     ``postgresql://`` psycopg2 unless psycopg 3 (SQLAlchemy 2.1's default) is there, ``mysql://``
@@ -171,11 +171,12 @@ def open_storage(
             a study): the file must exist and nothing is created or changed next to it (no
             lock file, no schema, no journal repair: Optuna reads a journal's complete
             records). In both, a database without Optuna's tables (a 0-byte SQLite file, an
-            empty server database) is a :class:`StorageError`, and is left without them.
+            empty server database) is a [`StorageError`][ermrl.storage.StorageError], and is left
+            without them.
         retry_window: Seconds a call to a server storage (PostgreSQL, MySQL, Redis) is retried
-            while the server is unreachable, before it fails with a :class:`StorageError`
-            (``None``: ``ERMRL_STORAGE_RETRY_S`` or 120; 0: no retries; see
-            :mod:`ermrl.storage._retry`). Opening is not retried.
+            while the server is unreachable, before it fails with a
+            [`StorageError`][ermrl.storage.StorageError] (``None``: ``ERMRL_STORAGE_RETRY_S`` or
+            120; 0: no retries; see `ermrl.storage._retry`). Opening is not retried.
 
     Returns:
         An Optuna storage.
@@ -282,7 +283,7 @@ def _rdb_storage(
     spec: StorageURL, engine_kwargs: dict[str, Any], heartbeat: dict[str, Any], window: float
 ) -> optuna.storages.RDBStorage:
     """Optuna's RDB storage; on a server, calls are retried through an outage
-    (:class:`RetryingRDBStorage`) and only connecting is time-bounded."""
+    (`RetryingRDBStorage`) and only connecting is time-bounded."""
     if spec.kind == "sqlite":
         return optuna.storages.RDBStorage(spec.url, engine_kwargs=engine_kwargs, **heartbeat)
     storage = RetryingRDBStorage(
@@ -358,7 +359,7 @@ def damaged_sqlite_message(path: os.PathLike[str] | str, detail: str) -> str:
 
 
 def _check_sqlite(path: os.PathLike[str] | str, *, lock: bool = True) -> bool:
-    """Fail with :func:`damaged_sqlite_message` unless SQLite's ``quick_check`` passes.
+    """Fail with `damaged_sqlite_message` unless SQLite's ``quick_check`` passes.
 
     A damaged page otherwise surfaces only when a query reads it, as a long traceback that ends
     in Optuna's misleading "invalid data in the commit". Opened read-only, so nothing is
@@ -445,7 +446,7 @@ def _quick_check(path: os.PathLike[str] | str, mode: Literal["ro", "rw"]) -> Non
 def repair_sqlite(url: str | StorageURL) -> bool:
     """Roll back the transaction a dead writer left in a SQLite database, then check it.
 
-    What every command does when it opens the database (see :func:`_check_sqlite`), by hand.
+    What every command does when it opens the database (see `_check_sqlite`), by hand.
 
     Args:
         url: A ``sqlite:///`` storage URL (string or parsed).
@@ -477,7 +478,8 @@ def _no_sqlite_database(path: Path) -> str:
 
 
 def _registered(storage: BaseStorage) -> StorageURL | None:
-    """The URL :func:`open_storage` opened a storage from (also under Optuna's cache wrapper)."""
+    """The URL [`open_storage`][ermrl.storage.open_storage] opened a storage from (also under
+    Optuna's cache wrapper)."""
     for candidate in (storage, base_storage(storage)):
         spec = _OPENED_FROM.get(candidate)
         if spec is not None:
@@ -486,7 +488,8 @@ def _registered(storage: BaseStorage) -> StorageURL | None:
 
 
 def storage_url(storage: BaseStorage) -> str | None:
-    """The URL a storage was opened from with :func:`open_storage` (``None`` if unknown)."""
+    """The URL a storage was opened from with [`open_storage`][ermrl.storage.open_storage] (``None``
+    if unknown)."""
     spec = _registered(storage)
     if spec is not None:
         return spec.raw
@@ -496,11 +499,12 @@ def storage_url(storage: BaseStorage) -> str | None:
 
 @contextlib.contextmanager
 def study_lock(study: optuna.Study, timeout: float = LOCK_TIMEOUT_S) -> Iterator[bool]:
-    """Hold the inter-process lock of a study's storage (see :func:`storage_lock`).
+    """Hold the inter-process lock of a study's storage (see
+    [`storage_lock`][ermrl.storage.storage_lock]).
 
     Workers hold it while they count the study's trials and ask for a new one, which makes the
     trial budget exact. Yields ``False`` (and locks nothing) for storages not opened by
-    :func:`open_storage`, e.g. Optuna's in-memory storage.
+    [`open_storage`][ermrl.storage.open_storage], e.g. Optuna's in-memory storage.
     """
     spec = _registered(study._storage)
     if spec is None:
@@ -529,11 +533,12 @@ def load_study(
 
     Args:
         name: The study's name.
-        storage: A storage, or a URL (string or parsed) opened with :func:`open_storage` in
-            ``mode``.
+        storage: A storage, or a URL (string or parsed) opened with
+            [`open_storage`][ermrl.storage.open_storage] in ``mode``.
         mode: ``"read"`` (default): nothing is created, a missing SQLite or journal file is a
-            :class:`StorageError`; ``"write"``: the same, for commands that change the study.
-        **kwargs: Passed to :func:`optuna.load_study` (e.g. ``sampler``).
+            [`StorageError`][ermrl.storage.StorageError]; ``"write"``: the same, for commands that
+            change the study.
+        **kwargs: Passed to `optuna.load_study` (e.g. ``sampler``).
 
     Raises:
         StorageError: the storage cannot be opened or its file does not exist.

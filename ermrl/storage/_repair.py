@@ -7,19 +7,19 @@ it, which glued the two into one undecodable line. A line can also be garbage fo
 (written by hand, a bad disk). Optuna reads a journal up to its first unreadable record and then
 fails, so every command fails.
 
-:func:`repair_journal` finds every unreadable line of a journal file (anywhere, not only at
-its end) and, under the journal's own write lock (so no worker writes while it does), keeps
-every record in it and moves only what cannot be read to ``<file>.torn-<UTC time>``: records
-glued together (a newline lost) are split onto lines of their own, a record glued onto a
-partial one is kept and only the partial one is set aside. A readable record is never removed;
-every other line stays, in order. Workers call it before they use a journal
-(:func:`~ermrl.storage.open_storage`); ``ermrl study repair`` calls it by hand.
+[`repair_journal`][ermrl.storage.repair_journal] finds every unreadable line of a journal file
+(anywhere, not only at its end) and, under the journal's own write lock (so no worker writes while
+it does), keeps every record in it and moves only what cannot be read to ``<file>.torn-<UTC time>``:
+records glued together (a newline lost) are split onto lines of their own, a record glued onto a
+partial one is kept and only the partial one is set aside. A readable record is never removed; every
+other line stays, in order. Workers call it before they use a journal
+([`open_storage`][ermrl.storage.open_storage]); ``ermrl study repair`` calls it by hand.
 
 A Redis journal numbers its records ``<prefix>:log:0``, ``:log:1``, ... up to the counter
-``<prefix>:log_number``. :func:`repair_redis_journal` moves unreadable records to the hash
-``<prefix>:torn-<UTC time>`` (field: the record's old number), renumbers the records that are
-left without gaps, and sets ``log_number`` to the last of them, in one transaction that is
-retried if a worker appends meanwhile.
+``<prefix>:log_number``. [`repair_redis_journal`][ermrl.storage.repair_redis_journal] moves
+unreadable records to the hash ``<prefix>:torn-<UTC time>`` (field: the record's old number),
+renumbers the records that are left without gaps, and sets ``log_number`` to the last of them, in
+one transaction that is retried if a worker appends meanwhile.
 
 Nothing is merged or dropped silently: what is set aside stays there, and a warning (or
 ``ermrl study repair``'s one line) says how many records and where.
@@ -78,7 +78,7 @@ def is_journal_record(value: object) -> bool:
 
 def journal_record(raw: bytes | str) -> dict[str, Any] | None:
     """The journal record encoded in ``raw``, or ``None`` when it is not one (see
-    :func:`is_journal_record`)."""
+    `is_journal_record`)."""
     try:
         value = json.loads(raw)
     except (ValueError, RecursionError):  # JSONDecodeError, UnicodeDecodeError
@@ -154,7 +154,7 @@ def check_journal(path: Path | str) -> None:
     A missing or empty file is a new journal. Otherwise the first line must be a journal
     record: a JSON object with ``op_code`` and ``worker_id``. A file that is one line without a
     newline is a journal whose first record was cut short when it begins as Optuna's records
-    do (``{"op_code":``), so that :func:`repair_journal` can set it aside.
+    do (``{"op_code":``), so that [`repair_journal`][ermrl.storage.repair_journal] can set it aside.
 
     Args:
         path: The journal file.
@@ -280,7 +280,7 @@ def _split(line: bytes) -> tuple[list[tuple[int, int]], list[tuple[int, int]]]:
 
 
 def _damage(path: Path) -> list[_Damage]:
-    """The unreadable lines of a journal file, in order, each split (see :class:`_Damage`).
+    """The unreadable lines of a journal file, in order, each split (see `_Damage`).
 
     A line is split into the records glued in it, which are kept, and what cannot be read,
     which is set aside; a line without any record is set aside whole. The records of a last
@@ -332,7 +332,7 @@ def repair_journal(path: Path | str) -> JournalRepair | None:
         What was set aside or split, or ``None`` when every record was readable.
 
     Raises:
-        StorageError: the path is not a journal file (:func:`check_journal`; left untouched).
+        StorageError: the path is not a journal file (`check_journal`; left untouched).
         OSError: the records could not be set aside (the journal is unchanged).
     """
     from ermrl.storage._locks import journal_file_lock

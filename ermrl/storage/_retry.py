@@ -4,18 +4,18 @@ A database restart (PostgreSQL or MySQL stopped for half a minute, a Redis ``CLI
 failover) used to kill every worker at its next storage call, with a traceback, and leave its
 trial RUNNING. Now each call to a server storage that fails on the connection (the server is
 down, refuses, drops or does not answer) is tried again, after 0.5 s, 1 s, 2 s, ... (at most
-5 s apart), for up to :data:`DEFAULT_RETRY_WINDOW_S` seconds (``ERMRL_STORAGE_RETRY_S``, or
+5 s apart), for up to `DEFAULT_RETRY_WINDOW_S` seconds (``ERMRL_STORAGE_RETRY_S``, or
 ``open_storage(retry_window=...)``). When the storage is still unreachable after that, the call
-raises a one-line :class:`~ermrl.storage.StorageError` (commands exit with it, code 2) and the
-storage's later calls fail at once instead of waiting again. A missed heartbeat is only
+raises a one-line [`StorageError`][ermrl.storage.StorageError] (commands exit with it, code 2) and
+the storage's later calls fail at once instead of waiting again. A missed heartbeat is only
 logged: the trial's next one counts.
 
 What is retried:
 
-- PostgreSQL and MySQL (:class:`RetryingRDBStorage`): every storage call whose database error
+- PostgreSQL and MySQL (`RetryingRDBStorage`): every storage call whose database error
   is about the connection (SQLAlchemy's ``OperationalError`` or ``InterfaceError``), each in a
   fresh transaction (Optuna's ``RDBStorage`` rolls back a failed one);
-- Redis journals (:class:`~ermrl.storage.PlainRedisBackend` and the claim lock): every Redis
+- Redis journals (`PlainRedisBackend` and the claim lock): every Redis
   command on a connection or timeout error. A paused server holds the commands it receives and
   runs them when the pause ends, so the client waits as long as the retry window for an answer
   instead of timing out after 5 s and sending a record twice.
@@ -65,7 +65,7 @@ def retry_window(value: float | None = None) -> float:
 
     Args:
         value: The window asked for (``None``: ``ERMRL_STORAGE_RETRY_S`` if set, else
-            :data:`DEFAULT_RETRY_WINDOW_S`); 0 turns retries off.
+            `DEFAULT_RETRY_WINDOW_S`); 0 turns retries off.
 
     Raises:
         StorageError: a negative or non-numeric window (one line).
@@ -157,7 +157,7 @@ def redis_client(url: str, window: float) -> Any:
 
     A paused server runs the commands it holds when the pause ends: a client that timed out and
     sent one again would store a record twice. The client itself does not retry; the caller's
-    :class:`Outage` does.
+    `Outage` does.
 
     Args:
         url: The Redis URL (without ermrl's ``prefix`` parameter).
@@ -232,7 +232,7 @@ class RetryingRDBStorage(optuna.storages.RDBStorage):
 
     Args:
         url: The SQLAlchemy URL.
-        retry_window: Seconds a failing call is retried (:func:`retry_window`).
+        retry_window: Seconds a failing call is retried (`retry_window`).
         **kwargs: Passed to ``RDBStorage`` (``engine_kwargs``, heartbeat settings).
     """
 

@@ -5,7 +5,7 @@ machines) is carried over as a *snapshot*: ``ermrl study export --out pend.json`
 sitting, commit the file, ``ermrl study import --snapshot pend.json`` on the next machine, and
 ``ermrl evolve`` resumes where it stopped. The search state goes with it: CMA-ES keeps its
 optimizer in trial system attributes as plain JSON (``cma:state:*``, see
-:mod:`ermrl.search._samplers`), and a snapshot keeps every system attribute.
+`ermrl.search._samplers`), and a snapshot keeps every system attribute.
 
 A snapshot (format ``ermrl-study-snapshot``, version 1) is one JSON object::
 
@@ -22,20 +22,21 @@ A snapshot (format ``ermrl-study-snapshot``, version 1) is one JSON object::
      "related": {"pend.reeval": {"study_name": ..., "directions": ..., "user_attrs": ...,
                                  "system_attrs": ..., "trials": [...]}}}
 
-Distributions are Optuna's own JSON (:func:`optuna.distributions.distribution_to_json`, kept as
-an object). Non-finite floats are written as Python's :mod:`json` writes them (``NaN``,
+Distributions are Optuna's own JSON (`optuna.distributions.distribution_to_json`, kept as
+an object). Non-finite floats are written as Python's `json` writes them (``NaN``,
 ``Infinity``), as Optuna stores attributes. ``related`` holds the sibling studies stored beside
 the study (its re-evaluation study ``<name>.reeval``), so that importing restores them too.
 
-Nothing in a snapshot is unpickled, evaluated or imported: it is read with :func:`json.loads`
-and every field is checked (:func:`read_snapshot`) before anything is written.
+Nothing in a snapshot is unpickled, evaluated or imported: it is read with `json.loads`
+and every field is checked ([`read_snapshot`][ermrl.storage.read_snapshot]) before anything is
+written.
 
-Importing (:func:`import_snapshot`) keeps trial numbers, states, values, times, parameters and
-their distributions, every attribute and the intermediate values, as :func:`optuna.copy_study`
-does. A trial that was RUNNING when the snapshot was taken has no worker any more: it is
-imported as FAIL (``fail_reason`` says why) and retried as a WAITING copy with the same
-parameters (:class:`~ermrl.storage.RetryStaleTrial`, as for a worker that died), which the next
-``ermrl evolve`` runs first. WAITING trials (queued parameters) stay WAITING.
+Importing ([`import_snapshot`][ermrl.storage.import_snapshot]) keeps trial numbers, states, values,
+times, parameters and their distributions, every attribute and the intermediate values, as
+`optuna.copy_study` does. A trial that was RUNNING when the snapshot was taken has no worker any
+more: it is imported as FAIL (``fail_reason`` says why) and retried as a WAITING copy with the same
+parameters ([`RetryStaleTrial`][ermrl.storage.RetryStaleTrial], as for a worker that died), which
+the next ``ermrl evolve`` runs first. WAITING trials (queued parameters) stay WAITING.
 """
 
 from __future__ import annotations
@@ -131,7 +132,7 @@ class StudySnapshot:
 
 @dataclass(frozen=True)
 class Snapshot:
-    """A checked snapshot file (see :func:`read_snapshot`).
+    """A checked snapshot file (see [`read_snapshot`][ermrl.storage.read_snapshot]).
 
     Attributes:
         study: The exported study.
@@ -164,7 +165,7 @@ class Snapshot:
 
 @dataclass(frozen=True)
 class SnapshotImport:
-    """What :func:`import_snapshot` did.
+    """What [`import_snapshot`][ermrl.storage.import_snapshot] did.
 
     Attributes:
         study: The imported (or already identical) study, loaded from the target storage.
@@ -223,11 +224,11 @@ def study_to_snapshot(study: optuna.Study, *, related: bool = True) -> dict[str,
 
     Args:
         study: The study (any storage).
-        related: Include the sibling studies of :data:`RELATED_SUFFIXES` that exist in the
+        related: Include the sibling studies of `RELATED_SUFFIXES` that exist in the
             same storage (``<name>.reeval``).
 
     Returns:
-        The snapshot (see the module docstring); :func:`json.dump` writes it as it is.
+        The snapshot (see the module docstring); `json.dump` writes it as it is.
 
     Examples:
         >>> import optuna
@@ -263,7 +264,8 @@ def _dumps(doc: Mapping[str, Any], indent: int | None = None) -> str:
 
 
 def write_snapshot(study: optuna.Study, path: str | os.PathLike[str]) -> dict[str, Any]:
-    """Write :func:`study_to_snapshot` to ``path`` atomically (a temporary file, renamed).
+    """Write [`study_to_snapshot`][ermrl.storage.study_to_snapshot] to ``path`` atomically (a
+    temporary file, renamed).
 
     Args:
         study: The study.
@@ -408,7 +410,8 @@ def _study(doc: Any, where: str) -> StudySnapshot:
 
 
 def parse_snapshot(doc: Any, source: str = "<snapshot>") -> Snapshot:
-    """Check a snapshot document (as :func:`study_to_snapshot` returns it).
+    """Check a snapshot document (as [`study_to_snapshot`][ermrl.storage.study_to_snapshot] returns
+    it).
 
     Args:
         doc: The decoded JSON.
@@ -456,7 +459,8 @@ def read_snapshot(path: str | os.PathLike[str]) -> Snapshot:
     """Read and check a snapshot file; nothing in it is unpickled, evaluated or imported.
 
     Args:
-        path: A file written by :func:`write_snapshot` (``ermrl study export --out X.json``).
+        path: A file written by [`write_snapshot`][ermrl.storage.write_snapshot]
+            (``ermrl study export --out X.json``).
 
     Returns:
         The checked snapshot.
@@ -598,8 +602,9 @@ def import_snapshot(
     is refused before anything is written.
 
     Args:
-        snapshot: A snapshot from :func:`read_snapshot`, or the path of a snapshot file.
-        storage: The target storage URL (see :func:`~ermrl.storage.open_storage`; a missing
+        snapshot: A snapshot from [`read_snapshot`][ermrl.storage.read_snapshot], or the path of a
+            snapshot file.
+        storage: The target storage URL (see [`open_storage`][ermrl.storage.open_storage]; a missing
             SQLite or journal file is created).
         study_name: Import the study under this name (default: its exported name); its
             siblings ``<old>.reeval`` become ``<new>.reeval``.
@@ -618,8 +623,8 @@ def import_snapshot(
 
     Examples:
         >>> # ermrl study export --storage sqlite:///old.db --study-name pend --out pend.json
-        >>> result = import_snapshot("pend.json", "sqlite:///new.db")  # doctest: +SKIP
-        >>> result.study.trials[-1].number  # doctest: +SKIP
+        >>> result = import_snapshot("pend.json", "sqlite:///new.db")
+        >>> result.study.trials[-1].number
         41
     """
     if not isinstance(snapshot, Snapshot):
@@ -691,10 +696,11 @@ def load_snapshot(
     *,
     max_retry: int | None = DEFAULT_MAX_RETRY,
 ) -> optuna.Study:
-    """Import a snapshot file into a storage and return the study (see :func:`import_snapshot`).
+    """Import a snapshot file into a storage and return the study (see
+    [`import_snapshot`][ermrl.storage.import_snapshot]).
 
     Args:
-        path: The snapshot file (or a snapshot from :func:`read_snapshot`).
+        path: The snapshot file (or a snapshot from [`read_snapshot`][ermrl.storage.read_snapshot]).
         storage_url: The target storage.
         study_name: A new name for the study (default: its exported name).
         max_retry: Retries of one trial at most (``None``: no limit; 0: none).

@@ -25,7 +25,7 @@ STATES = ("COMPLETE", "PRUNED", "RUNNING", "WAITING", "FAIL")
 
 
 def trial_counts(trials: Sequence[Any]) -> dict[str, int]:
-    """The number of trials in each of :data:`STATES` (0 for a state none is in)."""
+    """The number of trials in each of `STATES` (0 for a state none is in)."""
     counter = Counter(t.state.name for t in trials)
     return {state: counter.get(state, 0) for state in STATES}
 

@@ -1,8 +1,9 @@
 """Storage URLs, parsed once into a small frozen value.
 
-Every other module of :mod:`ermrl.storage` takes a :class:`StorageURL` from
-:func:`parse_storage_url` instead of taking the string apart again. This module is a leaf: it
-imports nothing else from :mod:`ermrl.storage`, so any of them can import it.
+Every other module of [`ermrl.storage`][ermrl.storage] takes a
+[`StorageURL`][ermrl.storage.StorageURL] from [`parse_storage_url`][ermrl.storage.parse_storage_url]
+instead of taking the string apart again. This module is a leaf: it imports nothing else from
+[`ermrl.storage`][ermrl.storage], so any of them can import it.
 
 Accepted URLs:
 
@@ -52,10 +53,12 @@ class StorageError(RuntimeError):
 
 @dataclass(frozen=True)
 class StorageURL:
-    """A storage URL, taken apart once (build it with :func:`parse_storage_url`).
+    """A storage URL, taken apart once (build it with
+    [`parse_storage_url`][ermrl.storage.parse_storage_url]).
 
     Attributes:
-        raw: The URL as given (what error messages and :func:`ermrl.storage.storage_url` show).
+        raw: The URL as given (what error messages and
+            [`ermrl.storage.storage_url`][ermrl.storage.storage_url] show).
         kind: ``"sqlite"``, ``"journal"``, ``"postgresql"``, ``"mysql"`` or ``"redis"``.
         url: What the backend is opened with: the SQLAlchemy URL for ``sqlite``,
             ``postgresql`` and ``mysql`` (``postgres://`` spelled ``postgresql``, a driver
@@ -241,11 +244,11 @@ def _installed(module: str) -> bool:
 def connect_args(spec: StorageURL) -> dict[str, Any]:
     """Driver arguments that bound how long connecting to a server storage may take.
 
-    PostgreSQL (libpq) and mysqlclient apply ``connect_timeout`` (:data:`CONNECT_TIMEOUT_S`) to
+    PostgreSQL (libpq) and mysqlclient apply ``connect_timeout`` (`CONNECT_TIMEOUT_S`) to
     the whole connection, handshake included. PyMySQL applies it to the TCP connection only and
     then waits for the server's greeting without a limit: against a server that never sends one
     (another service's port, a silent listener) ``mysql://`` hung for a minute or forever. Its
-    read and write timeouts bound the handshake to the same time; :func:`bound_handshake` lifts
+    read and write timeouts bound the handshake to the same time; `bound_handshake` lifts
     them once a connection is made, so a long query or lock wait is not cut short.
 
     Args:
@@ -264,7 +267,7 @@ def connect_args(spec: StorageURL) -> dict[str, Any]:
 
 
 def bound_handshake(engine: Any) -> Any:
-    """Lift PyMySQL's handshake-time read and write timeouts (:func:`connect_args`) from the
+    """Lift PyMySQL's handshake-time read and write timeouts (`connect_args`) from the
     connections of ``engine`` when they are checked out, so only connecting is bounded.
 
     PyMySQL has no public setter: it keeps the timeouts in ``_read_timeout`` and

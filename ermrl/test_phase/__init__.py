@@ -1,7 +1,7 @@
 """The test phase: the selected reservoirs trained against baselines on new seeds.
 
 This package was called ``ermrl.experiments`` before; that name still imports, with a
-:class:`DeprecationWarning` (experiment files are run by :mod:`ermrl.runner`).
+`DeprecationWarning` (experiment files are run by [`ermrl.runner`][ermrl.runner]).
 """
 
 from ermrl.test_phase._prepare import (

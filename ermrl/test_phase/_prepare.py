@@ -1,9 +1,10 @@
 """What a test phase trains, decided before anything trains: options, agents, seeds, backend.
 
-``ermrl test``, ``ermrl test-generalization`` and :func:`ermrl.test` share this code. The options
-are a :class:`TestOptions` (the command-line options of the test commands, as plain data);
-:func:`prepare_test` turns them and a study into a :class:`TestPhase`, every check done, which
-:func:`~ermrl.test_phase.run_comparison` then trains.
+``ermrl test``, ``ermrl test-generalization`` and [`ermrl.test`][ermrl.runner.test] share this code.
+The options are a [`TestOptions`][ermrl.test_phase.TestOptions] (the command-line options of the
+test commands, as plain data); [`prepare_test`][ermrl.test_phase.prepare_test] turns them and a
+study into a [`TestPhase`][ermrl.test_phase.TestPhase], every check done, which
+[`run_comparison`][ermrl.test_phase.run_comparison] then trains.
 """
 
 from __future__ import annotations
@@ -53,7 +54,7 @@ class TestOptions:
         training_steps: Env steps per run (paper: 1,000,000).
         seeds: Test seeds (``None``: 5 seeds after the largest seed evolution trained on).
         agents: Agents to train (``None``: the study's default agents; see
-            :data:`ermrl.learners.AGENT_KINDS`).
+            `ermrl.learners.AGENT_KINDS`).
         out: Output folder (``None``: ``runs/<study name>``).
         trial: Test this trial's reservoir instead of the selected one (``None``: the
             re-evaluated best, else the best evolution fitness).
@@ -220,7 +221,7 @@ def check_test_seeds(
         seeds: The test seeds.
         evolution_seeds: The study's seeds.
         reevaluation_seeds: The seeds its re-evaluation used
-            (:func:`~ermrl.search.used_reevaluation_seeds`).
+            ([`used_reevaluation_seeds`][ermrl.search.used_reevaluation_seeds]).
         study_name: Named in the message.
 
     Raises:
@@ -423,7 +424,8 @@ def with_backend(
 
 @dataclass(frozen=True)
 class TestPhase:
-    """A test phase of one study, every check done: what :func:`prepare_test` returns.
+    """A test phase of one study, every check done: what
+    [`prepare_test`][ermrl.test_phase.prepare_test] returns.
 
     Attributes:
         study_name: The evolution study.
@@ -466,7 +468,7 @@ def prepare_test(study_name: str, storage: str, options: TestOptions) -> TestPha
         options: The test phase's options.
 
     Returns:
-        The test phase, ready for :func:`~ermrl.test_phase.run_comparison`.
+        The test phase, ready for [`run_comparison`][ermrl.test_phase.run_comparison].
 
     Raises:
         ConfigError: Bad options, a study evolved on several tasks (its test is
@@ -543,7 +545,7 @@ def _removed_when_failed(out: Path) -> Iterator[None]:
 
 def _remove_skeleton(created: Sequence[Path]) -> None:
     """Remove the folders of ``created`` (``out`` first, then the parents this created) when
-    ``out`` holds no file other than :data:`_SKELETON_FILES`."""
+    ``out`` holds no file other than `_SKELETON_FILES`."""
     if not created or not created[0].is_dir():
         return
     out = created[0]

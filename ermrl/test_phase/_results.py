@@ -1,5 +1,5 @@
-"""Writing a test phase's run folders (``agents/<agent>/seed_<seed>/``); :mod:`ermrl.analysis`
-reads them."""
+"""Writing a test phase's run folders (``agents/<agent>/seed_<seed>/``);
+[`ermrl.analysis`][ermrl.analysis] reads them."""
 
 from __future__ import annotations
 
@@ -44,14 +44,14 @@ def write_run(
     Args:
         folder: The run folder.
         agent: Agent name (``ppo``, ``res-ppo``, ...).
-        result: A :class:`~ermrl.agents.RunResult`.
+        result: A [`RunResult`][ermrl.agents.RunResult].
         extra: More fields for ``result.json`` (reservoir parameters, ...).
 
     ``result.json`` also holds ``last100_return``, the mean of the last
-    :data:`PAPER_LAST_EPISODES` training episodes (the paper's metric, beside ``final_return``
+    `PAPER_LAST_EPISODES` training episodes (the paper's metric, beside ``final_return``
     over the run's own ``n_last_episodes``), ``n_eval_episodes``, the code that trained it
-    (:func:`ermrl._code.code_identity`), when it finished (``finished``, UTC), and ``phase_steps`` when the learner splits its env
-    steps into phases (``imitation-sac``).
+    (`ermrl._code.code_identity`), when it finished (``finished``, UTC), and ``phase_steps`` when
+    the learner splits its env steps into phases (``imitation-sac``).
     """
     from ermrl._code import code_identity
 
@@ -84,9 +84,9 @@ def write_run(
 def keep_published_record(folder: str | Path) -> float | None:
     """Put a run's published records back over the ones its new training wrote.
 
-    For a run folder with a :data:`KEPT_RECORD_DIR` (see ``ermrl run``'s restore): its records
+    For a run folder with a `KEPT_RECORD_DIR` (see ``ermrl run``'s restore): its records
     (``settings.json``, ``episodes.csv``, ``result.json``) replace those just written, the
-    model files stay (the report replays them), and :data:`REPLAY_MODEL_FILE` says what that
+    model files stay (the report replays them), and `REPLAY_MODEL_FILE` says what that
     model's training returned. A run is a function of its settings and seed only up to
     floating-point order: trained in another population layout its return can differ, so the
     published one is kept rather than replaced after the fact.

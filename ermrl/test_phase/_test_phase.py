@@ -7,19 +7,20 @@ Agents:
 - ``res-ppo``: PPO on the states of the best evolved reservoir(s);
 - ``random-res-ppo``: PPO on reservoirs with default, unevolved hyperparameters (what evolution adds);
 - ``leaky-res-ppo``, ``ema-ppo``: ablations of the selected reservoir (``W = 0``; moving averages
-  of its input at its leak rate), derived from it by their :attr:`AgentKind.derive`;
+  of its input at its leak rate), derived from it by their `AgentKind.derive`;
 - ``lstm-ppo``, ``framestack-ppo``: memory baselines (RecurrentPPO; PPO on stacked observations);
 - ``sac``, ``res-sac``, ``dagger``, ``res-dagger``: other learners on the raw observation and on
   the selected evolved reservoir(s) (DAgger's expert sees the full state).
 
-The agents are the table :data:`~ermrl.learners.AGENT_KINDS` (learner, encoder, evolved or not).
+The agents are the table `AGENT_KINDS` (learner, encoder, evolved or not).
 
 Every (agent, seed) run is saved in its own folder as soon as it finishes, so a test phase that
 is interrupted, or split across SLURM array tasks, resumes and merges: the aggregated
 ``curves.csv``, ``summary.csv`` and ``learning_curves.png`` are rebuilt from all finished runs.
-Each run also records the settings that produced it (``settings.json``, :func:`run_settings`),
-so that a rerun never mixes runs made with other settings into one folder: it skips finished
-runs only when their settings are these, and refuses otherwise (:func:`check_finished_runs`).
+Each run also records the settings that produced it (``settings.json``,
+[`run_settings`][ermrl.test_phase.run_settings]), so that a rerun never mixes runs made with other
+settings into one folder: it skips finished runs only when their settings are these, and refuses
+otherwise ([`check_finished_runs`][ermrl.test_phase.check_finished_runs]).
 """
 
 from __future__ import annotations
@@ -145,7 +146,7 @@ def agent_specs(
     family: str | None = None,
     evolved_ppo: PPOConfig | None = None,
 ) -> list[AgentSpec]:
-    """Build the agents named in ``names`` from :data:`AGENT_KINDS`.
+    """Build the agents named in ``names`` from `AGENT_KINDS`.
 
     Args:
         names: Agent names, in order.
@@ -234,12 +235,14 @@ def study_agents(
     """The agents named in ``names`` for a study, and the evolved trial when one is needed.
 
     ``learner_settings`` gives agents of another learner than the study's their settings (see
-    :func:`learner_settings_for`). In a study of a learner's genes, the evolved agent takes the
-    selected genes on top of ``ppo``, the comparison's settings (default: the study's).
+    [`learner_settings_for`][ermrl.test_phase.learner_settings_for]). In a study of a learner's
+    genes, the evolved agent takes the selected genes on top of ``ppo``, the comparison's settings
+    (default: the study's).
 
     Returns:
-        The agents (see :func:`agent_specs`) and the :class:`Selection` behind ``res-ppo``
-        (``None`` when no agent uses the evolved reservoirs).
+        The agents (see [`agent_specs`][ermrl.test_phase.agent_specs]) and the
+        [`Selection`][ermrl.test_phase.Selection] behind ``res-ppo`` (``None`` when no agent uses
+        the evolved reservoirs).
     """
     chosen = None
     if any(AGENT_KINDS[n].reservoirs == "evolved" for n in names if n in AGENT_KINDS):
@@ -289,7 +292,7 @@ class TestSettings:
         seeds: Seeds; each agent trains once per seed.
         out: Output folder.
         n_procs: Cores for the runs (single-threaded processes; see
-            :func:`~ermrl.agents.pool_size`).
+            [`pool_size`][ermrl.agents.pool_size]).
         evaluate: Also run deterministic evaluation episodes after training.
         n_eval_episodes: Their number.
         n_last_episodes: Training episodes averaged into a run's final return.
@@ -300,12 +303,12 @@ class TestSettings:
         wandb: Log each run to this Weights & Biases project, as run ``<agent>-seed<s>`` in
             the group named after ``out`` (needs the ``wandb`` package).
         progress: ``"lines"``: a progress line of each run every tenth of its steps or 30 s
-            (:class:`ermrl._progress.Progress`); ``"bar"``: a live bar of each run instead;
+            (`ermrl._progress.Progress`); ``"bar"``: a live bar of each run instead;
             ``"none"``: a line per finished run only.
         checkpoint_every: Runs save their training state every this many steps per run, and
             a rerun resumes them from there: population runs under ``out/checkpoints`` (see
-            :class:`~ermrl.population.Checkpoint`), on-policy sb3 runs in their run folder's
-            ``checkpoints`` (:class:`~ermrl.agents.RunCheckpoint`). ``None``: a tenth of
+            [`Checkpoint`][ermrl.population.Checkpoint]), on-policy sb3 runs in their run folder's
+            ``checkpoints`` ([`RunCheckpoint`][ermrl.agents.RunCheckpoint]). ``None``: a tenth of
             ``training_steps``; 0: no checkpoints.
     """
 
@@ -380,7 +383,8 @@ def select_reservoirs(
 def study_reservoirs(
     study: optuna.Study, config: EvolveConfig, trial_number: int | None = None
 ) -> tuple[dict[str, float], tuple[EncoderParams, ...] | None, int]:
-    """The parameters, reservoirs and number of the trial :func:`select_reservoirs` picks."""
+    """The parameters, reservoirs and number of the trial
+    [`select_reservoirs`][ermrl.test_phase.select_reservoirs] picks."""
     chosen = select_reservoirs(study, config, trial_number)
     return chosen.params, chosen.reservoirs, chosen.number
 
@@ -480,9 +484,10 @@ MEASUREMENT_KEYS = frozenset({"budget.fitness", "budget.n_eval_episodes"})
 
 
 def settings_diff(stored: Mapping[str, Any], expected: Mapping[str, Any]) -> list[str]:
-    """Dotted keys whose values differ between two :func:`run_settings` records, sorted.
+    """Dotted keys whose values differ between two [`run_settings`][ermrl.test_phase.run_settings]
+    records, sorted.
 
-    :data:`MEASUREMENT_KEYS` are left out: they do not change the training.
+    `MEASUREMENT_KEYS` are left out: they do not change the training.
     """
     a, b = _flat(dict(stored)), _flat(dict(expected))
     keys = (set(a) | set(b)) - MEASUREMENT_KEYS
@@ -497,7 +502,8 @@ def finished_backend(out: str | Path, learner: str) -> str | None:
     """The backend that made the finished runs of ``learner`` under ``out`` (``None``: none).
 
     Read from each run's ``settings.json`` (the first finished run of that learner whose record
-    names a known backend); records that cannot be read are left to :func:`check_finished_runs`.
+    names a known backend); records that cannot be read are left to
+    [`check_finished_runs`][ermrl.test_phase.check_finished_runs].
     """
     for path in sorted(Path(out).glob(f"{RUNS_DIR}/*/seed_*/{RUN_SETTINGS_FILE}")):
         if not (path.parent / "result.json").is_file():
@@ -529,7 +535,8 @@ def check_finished_runs(
 
     Args:
         out: The test-phase folder.
-        expected: Agent name -> its :func:`run_settings` for seed 0 (the seed is replaced).
+        expected: Agent name -> its [`run_settings`][ermrl.test_phase.run_settings] for seed 0 (the
+            seed is replaced).
         seeds: The seeds this call trains.
         overwrite: ``--overwrite``: the requested runs are retrained, whatever they hold.
 
@@ -579,7 +586,8 @@ def _finished_run_diff(
     shared_ppo: Mapping[str, Any],
 ) -> list[str] | None:
     """The keys in which the finished run of agent ``name`` in ``folder`` differs from
-    ``expected`` (see :func:`check_finished_runs`), or ``None`` when it has no settings record.
+    ``expected`` (see [`check_finished_runs`][ermrl.test_phase.check_finished_runs]), or ``None``
+    when it has no settings record.
 
     The run of an agent not in ``expected`` is compared on ``shared`` (what every agent
     shares), with its own learner's settings from ``shared_ppo`` (learner name -> settings);
@@ -609,8 +617,9 @@ def _finished_run_diff(
 def _mixed_runs_error(
     out: Path, differing: list[str], unrecorded: list[str], outside: list[str]
 ) -> ConfigError:
-    """The error of :func:`check_finished_runs`: the runs that differ (a few of them), those
-    without a settings record, and those ``--overwrite`` would not retrain."""
+    """The error of [`check_finished_runs`][ermrl.test_phase.check_finished_runs]: the runs that
+    differ (a few of them), those without a settings record, and those ``--overwrite`` would not
+    retrain."""
     problems = differing[:3] + (["..."] if len(differing) > 3 else [])
     if unrecorded:
         problems.append(
@@ -657,7 +666,7 @@ def check_out_folder(out: str | Path) -> None:
 
 
 def write_error_message(err: OSError, out: str | Path) -> str:
-    """One line for an ``OSError`` of :data:`WRITE_ERRNOS` met while writing results."""
+    """One line for an ``OSError`` of `WRITE_ERRNOS` met while writing results."""
     where = err.filename or out
     return (
         f"cannot write {where}: {err.strerror or err}; finished runs are kept in {out} and "
@@ -702,7 +711,7 @@ def run_comparison(
 
     Raises:
         ConfigError: ``settings.out`` holds finished runs made with other settings (see
-            :func:`check_finished_runs`); nothing is written then.
+            [`check_finished_runs`][ermrl.test_phase.check_finished_runs]); nothing is written then.
     """
     out = Path(settings.out)
     budget = _comparison_budget(settings)
@@ -770,12 +779,13 @@ def _write_config(
     metadata: Mapping[str, Any] | None,
     command: str | None,
 ) -> list[str]:
-    """Write the comparison's ``config.yaml`` and ``command.txt`` (see :func:`run_comparison`);
-    return the agents the folder's summary lists.
+    """Write the comparison's ``config.yaml`` and ``command.txt`` (see
+    [`run_comparison`][ermrl.test_phase.run_comparison]); return the agents the folder's summary
+    lists.
 
     A piece of a phase (``ermrl test --agents res-ppo --seeds 15 16`` into a folder that holds
     the phase's other runs, or one task of a SLURM array) adds to the folder's records instead
-    of replacing them (:func:`_merged_config`): ``config.yaml`` lists the agents and seeds of
+    of replacing them (`_merged_config`): ``config.yaml`` lists the agents and seeds of
     every piece, ``command.txt`` each piece's command, and the summary every agent.
     """
     # The encoding options every reservoir agent shares; each agent's own reservoirs are under
@@ -958,8 +968,9 @@ def _run_checkpoint(
 ) -> RunCheckpoint | None:
     """The run's own checkpoint in ``folder``, for an on-policy sb3 run (``None``: none asked).
 
-    ``record`` is the run's :func:`run_settings` with its seed: a checkpoint made with others is
-    not resumed. With ``settings.overwrite`` an existing checkpoint is removed first.
+    ``record`` is the run's [`run_settings`][ermrl.test_phase.run_settings] with its seed: a
+    checkpoint made with others is not resumed. With ``settings.overwrite`` an existing checkpoint
+    is removed first.
     """
     if settings.checkpoint_every == 0:
         return None
@@ -983,7 +994,7 @@ def _run_recorder(
     quiet: bool,
 ) -> _Finished:
     """What a comparison does with each finished run: write its records, copy its model to its
-    twins and write theirs (see :func:`_twin_runs`), and print one line per run.
+    twins and write theirs (see `_twin_runs`), and print one line per run.
 
     The lines count the runs out of ``total`` and give an ETA from ``phase`` (the current
     phase's start and its units done and in all; with ``phase["per_run"]``, each run counts
@@ -1041,12 +1052,13 @@ def _write_records(
         task: The comparison's task.
         agent: The run's agent.
         seed: Its seed.
-        expected: The agent's :func:`run_settings` (its seed is replaced by ``seed``).
+        expected: The agent's [`run_settings`][ermrl.test_phase.run_settings] (its seed is replaced
+            by ``seed``).
         result: What the run produced.
 
     Returns:
         The published run's final return, kept in place of this run's (see
-        :func:`~ermrl.test_phase._results.keep_published_record`), or ``None``.
+        `keep_published_record`), or ``None``.
     """
     extra = {
         "env_id": task.env_id,
@@ -1066,7 +1078,7 @@ def _train_runs(jobs: list[_Job], n_procs: int, finished: _Finished) -> None:
     run to ``finished`` as it ends.
 
     On an error or an interrupt, the pool's runs not started are cancelled and its processes
-    terminated before the error is raised (:func:`~ermrl.agents.training_pool`).
+    terminated before the error is raised ([`training_pool`][ermrl.agents.training_pool]).
     """
     if n_procs == 1 or len(jobs) <= 1:
         for agent, seed, args in jobs:
