@@ -243,7 +243,9 @@ def test_test_refuses_seeds_the_selection_used_and_writes_nothing(
     out = tmp_path / "phase"
     with pytest.raises(ermrl.ConfigError, match="test seeds already used"):
         ermrl.test(evolved.study_name, evolved.storage, training_steps=256, seeds=[0], out=out)
-    with pytest.raises(ermrl.ConfigError, match="unknown agent 'res-pop'"):
+    with pytest.raises(
+        ermrl.ConfigError, match=r"agents: invalid choice: 'res-pop' \(did you mean 'res-ppo'\?\)"
+    ):
         ermrl.TestOptions(agents=["res-pop"])
     assert not out.exists()
 

@@ -77,6 +77,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
         "ermrl._interrupt",
         "ermrl._io",
         "ermrl._progress",
+        "ermrl._schema",
         "ermrl._text",
     ),
     ("ermrl.envs",),

@@ -28,13 +28,13 @@ from ermrl.runner._options import (
     add_stale_gradient_arg,
     add_storage_args,
     nonneg_int,
-    parse_for_learner,
     positive_float,
     positive_int,
     storage_arg,
     study_name_arg,
 )
 from ermrl.runner._resolve import for_learner_names, learner_overrides
+from ermrl.test_phase import parse_for_learner
 
 __all__ = [
     "ArgumentParser",

@@ -40,6 +40,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 import yaml
 
+from ermrl._schema import keys_of, nearest, to_argv, validate
 from ermrl.config import ConfigError
 from ermrl.runner._requests import (
     EvolveRequest,
@@ -842,7 +843,7 @@ def _config_error(exp: Experiment, where: str, build: Callable[[], Any]) -> Any:
 
 
 def _single_task_steps(exp: Experiment, task: TaskLine, build_agents: bool) -> list[Step]:
-    from ermrl.runner._parsers import build_evolve_parser, build_report_parser, build_test_parser
+    from ermrl.runner._parsers import build_evolve_parser
     from ermrl.runner._resolve import config_from_args
 
     where = f"{exp.path}: {task.env_id}: evolve"
@@ -895,15 +896,7 @@ def _single_task_steps(exp: Experiment, task: TaskLine, build_agents: bool) -> l
         )
     if "test" in exp.document or exp.stages["test"]:
         steps.append(
-            _test_step(
-                exp,
-                task,
-                study_name,
-                build_test_parser(),
-                config,
-                exp.out / task.env_id / "test",
-                None,
-            )
+            _test_step(exp, task, study_name, config, exp.out / task.env_id / "test", None)
         )
     if "report" in exp.document or exp.stages["report"]:
         steps.append(
@@ -911,7 +904,6 @@ def _single_task_steps(exp: Experiment, task: TaskLine, build_agents: bool) -> l
                 exp,
                 task,
                 study_name,
-                build_report_parser(),
                 steps[-1].folder if steps[-1].stage == "test" else None,
                 exp.out / task.env_id / "report",
             )
@@ -919,52 +911,69 @@ def _single_task_steps(exp: Experiment, task: TaskLine, build_agents: bool) -> l
     return steps
 
 
+def _validated(cls: type, given: Mapping[str, Any], where: str) -> dict[str, Any]:
+    """A stage's options checked by the schema of ``cls``, as text sources are (YAML reads
+    ``1e6`` as a string)."""
+    try:
+        return validate(cls, given, where, text=True)
+    except ConfigError as err:
+        raise ExperimentError(str(err)) from None
+
+
 def _test_step(
     exp: Experiment,
     task: TaskLine | None,
     study_name: str,
-    parser: Any,
     config: Any,
     folder: Path,
     env_id: str | None,
 ) -> Step:
     from ermrl.learners import AGENT_KINDS
+    from ermrl.test_phase import TestOptions
 
     label = env_id or (task.env_id if task else "")
     where = f"{exp.path}: {label}: test"
-    options = {k: v for k, v in _stage(exp, "test", task).items() if k != "env_ids"}
-
-    def parsed(options: Mapping[str, Any]) -> tuple[list[str], argparse.Namespace]:
-        argv = (["--env-id", env_id] if env_id else []) + options_to_argv(parser, options, where)
-        argv += ["--storage", exp.storage, "--study-name", study_name, "--out", str(folder)]
-        return argv, parse_checked(parser, argv, where)
-
-    def agents_and_seeds(args: argparse.Namespace) -> tuple[list[str], list[int]]:
-        # As the test command reads them: its default agents, seeds 0-4.
-        default = [n for n, k in AGENT_KINDS.items() if k.default]
-        return list(args.agents or default), list(args.seeds or range(5))
-
-    argv, args = parsed(options)
-    agents, all_seeds = agents_and_seeds(args)
+    given = {k: v for k, v in _stage(exp, "test", task).items() if k != "env_ids"}
+    task_keys = set(keys_of(TestGeneralizationRequest)) if env_id else set()
+    test_keys = set(keys_of(TestOptions)) - {"out"}
+    for key in given:  # a key of neither: the nearest of both
+        if key not in test_keys | task_keys:
+            raise ExperimentError(
+                f"{where}: unknown key {key!r}{nearest(key, test_keys | task_keys)}"
+            )
+    values = _validated(TestOptions, {k: v for k, v in given.items() if k in test_keys}, where)
+    own = _validated(
+        TestGeneralizationRequest, {k: v for k, v in given.items() if k in task_keys}, where
+    )
+    # As the test command reads them: its default agents, seeds 0-4.
+    all_seeds = list(values.get("seeds") or range(5))
+    agents = list(values.get("agents") or [n for n, k in AGENT_KINDS.items() if k.default])
     if exp.test_agents or exp.test_seeds:
         agents, seeds = _test_piece(exp, where, agents, all_seeds)
-        argv, args = parsed({**options, "agents": agents, "seeds": seeds})
-    _with_tensorboard(exp, args)  # (a test phase logs for TensorBoard on either backend)
+        values.update(agents=agents, seeds=seeds)
+        given = {**given, "agents": agents, "seeds": seeds}
+    argv = (["--env-id", env_id] if env_id else []) + to_argv(
+        (TestOptions, TestGeneralizationRequest), given, values={**values, **own}
+    )
+    argv += ["--storage", exp.storage, "--study-name", study_name, "--out", str(folder)]
+    options = _config_error(exp, where, lambda: TestOptions(**values, out=str(folder)))
+    if exp.tensorboard:  # (a test phase logs for TensorBoard on either backend)
+        options = dataclasses.replace(options, tensorboard=_TENSORBOARD_IN_PLAN)
     if exp.wandb:  # ermrl run --wandb: W&B logs through SB3's callback
-        if args.backend == "population":
+        if options.backend == "population":
             raise ExperimentError(
                 f"{where}: --wandb logs come from the sb3 backend, and this stage sets "
                 "backend: population; set backend: sb3 in the file, or leave --wandb out"
             )
-        args.wandb = "<ermrl run --wandb>"
-    agents, seeds = agents_and_seeds(args)
-    per_run = args.training_steps
+        options = dataclasses.replace(options, wandb="<ermrl run --wandb>")
+    seeds = list(options.seeds or range(5))
+    per_run = options.training_steps
     test_env = env_id or (task.env_id if task else "")
-    backend = args.backend
+    backend = options.backend
     if backend is None:  # as the test command chooses (the env's spaces aside)
         from ermrl.population import population_refusal
 
-        refused = population_refusal(config.problem.ppo, wandb=bool(getattr(args, "wandb", None)))
+        refused = population_refusal(config.problem.ppo, wandb=bool(options.wandb))
         backend = "sb3" if refused else "population"
     # The study's learner's runs round up to whole rollouts of its settings (another learner's
     # agents train with their own tables: counted at the budget).
@@ -973,9 +982,9 @@ def _test_step(
     for agent in agents:
         learner = AGENT_KINDS[agent].learner or config.problem.ppo.learner
         agent_backend = backend if learner == config.problem.ppo.learner else "sb3"
-        rate = throughput(test_env, agent_backend, args.n_procs, learner)
-        own = rounded if learner == config.problem.ppo.learner else per_run
-        parts.append((len(seeds) * own, rate))
+        rate = throughput(test_env, agent_backend, options.n_procs, learner)
+        count = rounded if learner == config.problem.ppo.learner else per_run
+        parts.append((len(seeds) * count, rate))
     total = sum(n for n, _ in parts)
     replayed: tuple[tuple[str, int], ...] = ()
     if _stage(exp, "report", task).get("dynamics") and not env_id and seeds:
@@ -987,7 +996,10 @@ def _test_step(
         # the piece holds it).
         replayed = tuple((a, min(all_seeds)) for a in wanted if a in agents)
         replayed = tuple((a, s) for a, s in replayed if s in seeds)
-    request = _test_request(exp, where, args, study_name, env_id)
+    if env_id is None:
+        request: Any = TestRequest(study_name, exp.storage, options)
+    else:
+        request = TestGeneralizationRequest(study_name, exp.storage, env_id, options, **own)
     return Step(
         "test", label, "test-generalization" if env_id else "test", argv, total,
         estimate_seconds(parts), _test_status(folder, agents, seeds), study_name, folder,
@@ -1020,22 +1032,20 @@ def _report_step(
     exp: Experiment,
     task: TaskLine | None,
     study_name: str,
-    parser: Any,
     runs: Path | None,
     folder: Path,
     label: str | None = None,
 ) -> Step:
     name = label or (task.env_id if task else "")
     where = f"{exp.path}: {name}: report"
-    argv = options_to_argv(parser, _stage(exp, "report", task), where)
+    given = _stage(exp, "report", task)
+    values = _validated(ReportRequest, given, where)
+    argv = to_argv((ReportRequest,), given, values=values)
     argv += ["--storage", exp.storage, "--study-name", study_name, "--out", str(folder)]
     if runs is not None:
         argv += ["--runs", str(runs)]
-    args = parse_checked(parser, argv, where)
-    request = ReportRequest(
-        study_name, exp.storage, runs=args.runs, out=args.out, band=args.band,
-        dynamics=args.dynamics, interactive=args.interactive, html=args.html, quiet=args.quiet,
-    )  # fmt: skip
+        values["runs"] = str(runs)
+    request = ReportRequest(study_name, exp.storage, **{**values, "out": str(folder)})
     return Step(
         "report", name, "report", argv, 0, 30.0, _report_status(folder, runs), study_name, folder,
         request=request,
@@ -1053,30 +1063,11 @@ def _evolve_request(
     return request
 
 
-def _test_request(
-    exp: Experiment, where: str, args: argparse.Namespace, study_name: str, env_id: str | None
-) -> TestRequest | TestGeneralizationRequest:
-    """What a test step runs: the test phase's options the file gives (``ermrl run``'s own
-    ``--tensorboard``, ``--wandb``, ``--progress`` and ``--quiet`` are added when it runs); a
-    generalization test on ``env_id`` also takes the test task's own options."""
-    from ermrl.runner._resolve import test_options
-
-    options = _config_error(exp, where, lambda: test_options(args))
-    if env_id is None:
-        return TestRequest(study_name, exp.storage, options, quiet=args.quiet)
-    return TestGeneralizationRequest(
-        study_name, exp.storage, env_id, options, observe=args.observe, n_envs=args.n_envs,
-        hyperparams=args.hyperparams, scores=args.scores, quiet=args.quiet,
-    )  # fmt: skip
-
-
 def _generalization_plan(
     exp: Experiment, only: Sequence[str] | None, build_agents: bool
 ) -> list[Step]:
     """The steps of a generalization file: evolve (and re-evaluate) on the task set, then test
     (and report) on each test task (``only``: these test tasks)."""
-    from ermrl.runner._parsers import build_report_parser, build_test_generalization_parser
-
     steps, config, study_name = _generalization_evolve_steps(exp, build_agents)
     env_ids = exp.stages["test"].get("env_ids") or []
     if isinstance(env_ids, str):
@@ -1086,18 +1077,15 @@ def _generalization_plan(
     if only:
         # Test tasks the file does not name run with the file's test settings.
         env_ids = list(dict.fromkeys(only))
-    test_parser = build_test_generalization_parser()
-    report_parser = build_report_parser()
     for env_id in env_ids:
         folder = exp.out / "test" / env_id
-        steps.append(_test_step(exp, None, study_name, test_parser, config, folder, env_id))
+        steps.append(_test_step(exp, None, study_name, config, folder, env_id))
         if "report" in exp.document or exp.stages["report"]:
             steps.append(
                 _report_step(
                     exp,
                     None,
                     study_name,
-                    report_parser,
                     folder,
                     exp.out / "report" / env_id,
                     label=env_id,

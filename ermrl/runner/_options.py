@@ -11,9 +11,11 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any, NoReturn
 
+from ermrl._config_base import ConfigError
+from ermrl._schema import Spec, fields_of
 from ermrl.storage import DEFAULT_STORAGE
 
 __all__ = [
@@ -29,8 +31,7 @@ __all__ = [
     "existing_study_name_arg",
     "add_storage_args",
     "add_stale_gradient_arg",
-    "FOR_LEARNER_HELP",
-    "parse_for_learner",
+    "add_schema_args",
     "ForLearnerAction",
     "add_for_learner_arg",
 ]
@@ -187,67 +188,14 @@ def add_storage_args(
 
 def add_stale_gradient_arg(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
     """``--stale-gradient/--no-stale-gradient``: the rtu-ppo learner's ``stale_gradient``."""
+    from ermrl.test_phase._prepare import STALE_GRADIENT_HELP
+
     parser.add_argument(
         "--stale-gradient",
         action=argparse.BooleanOptionalAction,
         default=None,
-        help="rtu-ppo only: keep each stored RTU carry as it was collected (the default, the "
-        "paper's stale gradient), or re-scan the rollout with the new parameters after each "
-        "epoch (--no-stale-gradient, about half as fast)",
+        help=STALE_GRADIENT_HELP,
     )
-
-
-FOR_LEARNER_HELP = (
-    "settings of one learner only, on top of its table and --ppo: the first word names the "
-    "learner, the rest are KEY=VALUE as in --ppo (values read as YAML). Repeatable; a later "
-    "flag wins per key. Use it for what other learners refuse, e.g. the dagger learner's "
-    "expert: --for-learner dagger expert=experts/hopper steps_per_iteration=500"
-)
-
-
-def parse_for_learner(values: Sequence[str]) -> tuple[str, dict[str, Any]]:
-    """One ``--for-learner LEARNER KEY=VALUE [KEY=VALUE ...]``: the learner and its settings.
-
-    Values are read as ``--ppo`` values are
-    ([`ermrl.agents.parse_overrides`][ermrl.agents.parse_overrides]: YAML, ``1e-4`` a number,
-    ``[64, 64]`` a list).
-
-    Args:
-        values: The flag's words, the learner's name first.
-
-    Returns:
-        The learner's name and its settings.
-
-    Raises:
-        ConfigError: an unregistered learner, no ``KEY=VALUE``, a malformed one or an unknown
-            key (one line, starting ``--for-learner LEARNER:``).
-
-    Examples:
-        >>> parse_for_learner(["dagger", "expert=experts/hopper", "epochs=3"])
-        ('dagger', {'expert': 'experts/hopper', 'epochs': 3})
-    """
-    from ermrl.agents import parse_overrides
-    from ermrl.config import ConfigError
-    from ermrl.learners import learner_names
-
-    name, *items = values
-    where = f"--for-learner {name}"
-    if name not in learner_names():
-        raise ConfigError(
-            f"{where}: unknown learner {name!r}; choose from {', '.join(learner_names())}"
-        )
-    if not items:
-        raise ConfigError(f"{where}: give at least one KEY=VALUE after the learner's name")
-    settings: dict[str, Any] = {}
-    for item in items:
-        key, sep, _ = item.replace(":", "=", 1).partition("=")
-        if not sep or not key.strip():
-            raise ConfigError(f"{where}: {item!r} is not KEY=VALUE (or KEY:VALUE)")
-        try:
-            settings.update(parse_overrides([item], name))
-        except ConfigError as err:
-            raise ConfigError(f"{where}: {str(err).removeprefix('--ppo: ')}") from None
-    return name, settings
 
 
 class ForLearnerAction(argparse.Action):
@@ -260,7 +208,7 @@ class ForLearnerAction(argparse.Action):
         values: str | Sequence[Any] | None,
         option_string: str | None = None,
     ) -> None:
-        from ermrl.config import ConfigError
+        from ermrl.test_phase import parse_for_learner
 
         words = [values] if isinstance(values, str) else list(values or [])
         try:
@@ -272,6 +220,8 @@ class ForLearnerAction(argparse.Action):
 
 def add_for_learner_arg(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
     """``--for-learner LEARNER KEY=VALUE [KEY=VALUE ...]``: settings of one learner only."""
+    from ermrl.test_phase._prepare import FOR_LEARNER_HELP
+
     parser.add_argument(
         "--for-learner",
         action=ForLearnerAction,
@@ -280,3 +230,58 @@ def add_for_learner_arg(parser: argparse.ArgumentParser | argparse._ArgumentGrou
         metavar=("LEARNER", "KEY=VALUE"),
         help=FOR_LEARNER_HELP,
     )
+
+
+def _text_type(spec: Spec) -> Callable[[str], Any]:
+    """An ``argparse`` type that reads a word as the schema reads a text value."""
+
+    def parse(text: str) -> Any:
+        try:
+            return spec.from_text(text)
+        except ConfigError as err:
+            raise argparse.ArgumentTypeError(str(err)) from None
+
+    parse.__name__ = spec.kind
+    return parse
+
+
+def add_schema_args(
+    parser: argparse.ArgumentParser | argparse._ArgumentGroup,
+    cls: type,
+    names: Sequence[str],
+    helps: Mapping[str, str] | None = None,
+) -> None:
+    """The options of fields ``names`` of configuration ``cls``, generated from its schema
+    (`ermrl._schema`): flag, type, choices, default and help, each field's value under its
+    own name.
+
+    Args:
+        parser: The command's parser (or one of its groups).
+        cls: A configuration dataclass whose fields carry options.
+        names: The fields to add, in this order.
+        helps: Help texts of this command that differ from the field's.
+    """
+    specs = {spec.name: spec for spec in fields_of(cls)}
+    for name in names:
+        spec = specs[name]
+        kw: dict[str, Any] = {"dest": spec.name, "help": (helps or {}).get(name, spec.help)}
+        if spec.option.metavar is not None:
+            kw["metavar"] = spec.option.metavar
+        if spec.kind == "bool":
+            negatable = spec.option.negatable
+            kw["action"] = argparse.BooleanOptionalAction if negatable else "store_true"
+            if negatable:
+                kw["default"] = spec.default
+        elif spec.kind == "words":
+            kw.update(nargs="+", default=[])
+        elif spec.kind == "mapping":
+            kw.update(action=ForLearnerAction, nargs="+", default=[])
+        else:
+            kw["default"] = spec.default
+            if spec.kind in ("int", "float"):
+                kw["type"] = _text_type(spec)
+            if spec.choices is not None:
+                kw["choices"] = spec.choices
+            if spec.many:
+                kw["nargs"] = "+"
+        parser.add_argument(spec.flag, **kw)

@@ -16,18 +16,20 @@ from typing import Any
 
 from ermrl.config import FITNESS_MODES, PRUNERS, RESET_MODES, STARTS, Range
 from ermrl.encoders import ENCODERS, flag_dest, reference_encoder
-from ermrl.learners import AGENT_KINDS, LEARNERS
+from ermrl.learners import LEARNERS
 from ermrl.runner._options import (
     ArgumentParser,
     HelpFormatter,
     add_for_learner_arg,
     add_progress_arg,
+    add_schema_args,
     add_stale_gradient_arg,
     add_storage_args,
     nonneg_int,
     positive_float,
     positive_int,
 )
+from ermrl.runner._requests import ReportRequest, TestGeneralizationRequest
 
 __all__ = [
     "PARSERS",
@@ -540,127 +542,35 @@ TEST_DESCRIPTION = textwrap.dedent(
 )
 
 
-def add_test_args(
-    parser: argparse.ArgumentParser, *, out_help: str, trial_help: str, ppo_help: str
-) -> None:
-    """Add the test-phase options shared by ``ermrl test`` and ``ermrl test-generalization``.
+# The test phase's options, in the order the test commands show them (TestOptions' fields).
+TEST_ARGS = (
+    "training_steps", "seeds", "agents", "out", "trial", "n_procs", "evaluate",
+    "n_eval_episodes", "ppo", "stale_gradient", "for_learner", "backend", "save_models",
+    "overwrite", "checkpoint_every",
+)  # fmt: skip
 
-    Adds, in this order: ``--training-steps``, ``--seeds``, ``--agents``, ``--out``, ``--trial``,
-    ``--n-procs``, ``--eval/--no-eval``, ``--n-eval-episodes``, ``--ppo``,
-    ``--stale-gradient/--no-stale-gradient``, ``--for-learner``, ``--backend``,
-    ``--save-models/--no-save-models`` and ``--overwrite``.
+
+def add_test_args(parser: argparse.ArgumentParser, helps: dict[str, str] | None = None) -> None:
+    """Add the test-phase options shared by ``ermrl test`` and ``ermrl test-generalization``,
+    generated from [`TestOptions`][ermrl.test_phase.TestOptions] (`TEST_ARGS`).
 
     Args:
         parser: the command's parser.
-        out_help: help of ``--out`` (each command has its own default folder).
-        trial_help: help of ``--trial`` (one reservoir or several).
-        ppo_help: help of ``--ppo`` (the PPO settings the overrides go on top of).
+        helps: help texts of this command that differ from the field's (``out``, ``trial``,
+            ``ppo``: each command has its own default folder and reservoirs).
     """
-    parser.add_argument(
-        "--training-steps",
-        type=positive_int,
-        default=1_000_000,
-        help="env steps per run (paper: 1000000)",
-    )
-    parser.add_argument(
-        "--seeds",
-        nargs="+",
-        type=nonneg_int,
-        default=None,
-        help="test seeds (default: 5 seeds after the largest seed evolution trained on)",
-    )
-    parser.add_argument(
-        "--agents",
-        nargs="+",
-        choices=tuple(AGENT_KINDS),
-        default=None,
-        help="agents to train (default: "
-        + ", ".join(n for n, k in AGENT_KINDS.items() if k.default)
-        + "; ppo-full only when the mask hides something, since on the full observation it "
-        "would repeat ppo): "
-        + "; ".join(f"{name}: {kind.description}" for name, kind in AGENT_KINDS.items()),
-    )
-    parser.add_argument("--out", default=None, help=out_help)
-    parser.add_argument("--trial", type=nonneg_int, default=None, help=trial_help)
-    parser.add_argument(
-        "--n-procs",
-        type=positive_int,
-        default=1,
-        help="cores for the runs, trained in parallel single-threaded processes",
-    )
-    parser.add_argument(
-        "--eval",
-        action=argparse.BooleanOptionalAction,
-        default=False,
-        help="also run deterministic evaluation episodes after training",
-    )
-    parser.add_argument(
-        "--n-eval-episodes", type=positive_int, default=10, help="evaluation episodes with --eval"
-    )
-    parser.add_argument("--ppo", nargs="+", default=[], metavar="KEY=VALUE", help=ppo_help)
-    add_stale_gradient_arg(parser)
-    add_for_learner_arg(parser)
-    _add_test_run_args(parser)
+    from ermrl.test_phase import TestOptions
 
-
-def _add_test_run_args(parser: argparse.ArgumentParser) -> None:
-    """How the test phase trains and keeps its runs: backend, saved models, overwriting and
-    checkpoints."""
-    parser.add_argument(
-        "--backend",
-        choices=("population", "sb3"),
-        default=None,
-        help="what trains the agents of the study's learner: population (all seeds of an agent "
-        "trained in lockstep, PPO only) or sb3 (the reference implementation: one "
-        "Stable-Baselines3 process per run). Default: the study's backend when it was evolved "
-        "with sb3, else population where it applies (not with --wandb, nor into an --out "
-        "whose finished runs were made with sb3), else sb3, with one line saying why. Agents "
-        "with another learner always train with sb3",
-    )
-    parser.add_argument(
-        "--save-models",
-        action=argparse.BooleanOptionalAction,
-        default=True,
-        help="save each trained model as model.zip",
-    )
-    parser.add_argument(
-        "--overwrite",
-        action="store_true",
-        help="retrain the asked-for runs that already have results (a rerun into an --out "
-        "whose runs were made with other settings is refused without it)",
-    )
-    parser.add_argument(
-        "--checkpoint-every",
-        type=nonneg_int,
-        default=None,
-        metavar="STEPS",
-        help="runs save their training state every STEPS steps per run, and a rerun after a "
-        "kill or crash resumes them from there (weights, optimizer, normalization, episodes so "
-        "far; the environments restart from fresh episodes): population runs in "
-        "OUT/checkpoints, runs of on-policy sb3 learners (ppo, lstm-ppo, framestack-ppo, "
-        "rtu-ppo) in their run folder; other learners restart. Default: a tenth of "
-        "--training-steps; 0: no checkpoints",
-    )
+    add_schema_args(parser, TestOptions, TEST_ARGS, helps)
 
 
 def build_test_parser(prog: str = "ermrl test") -> ArgumentParser:
+    from ermrl.test_phase import TestOptions
+
     parser = ArgumentParser(prog=prog, description=TEST_DESCRIPTION, formatter_class=HelpFormatter)
     add_storage_args(parser, study_required=True)
-    add_test_args(
-        parser,
-        out_help="output folder (default: runs/<study name>)",
-        trial_help="test this trial's reservoir instead of the best one",
-        ppo_help="PPO overrides on top of the study's, e.g. --ppo learning_rate=1e-4",
-    )
-    add_tensorboard_arg(parser)
-    parser.add_argument(
-        "--wandb",
-        default=None,
-        metavar="PROJECT",
-        help="also log each run to the Weights & Biases project PROJECT (wandb's SB3 callback; "
-        "the runs of one test folder form a group; WANDB_MODE=offline logs locally; "
-        "needs: pip install 'ermrl[wandb]')",
-    )
+    add_test_args(parser)
+    add_schema_args(parser, TestOptions, ("tensorboard", "wandb"))
     add_progress_arg(parser, inside="", finished="run")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
     return parser
@@ -668,14 +578,9 @@ def build_test_parser(prog: str = "ermrl test") -> ArgumentParser:
 
 def add_tensorboard_arg(parser: argparse.ArgumentParser) -> None:
     """``--tensorboard DIR`` of the test-phase commands (on either backend)."""
-    parser.add_argument(
-        "--tensorboard",
-        default=None,
-        metavar="DIR",
-        help="also log training curves for TensorBoard under DIR/<agent>/seed_<s>: the scalars "
-        "SB3's PPO logs (returns, losses, fps), on either backend (needs: pip install "
-        "tensorboard)",
-    )
+    from ermrl.test_phase import TestOptions
+
+    add_schema_args(parser, TestOptions, ("tensorboard",))
 
 
 # -- report ---------------------------------------------------------------------------------------
@@ -697,41 +602,16 @@ REPORT_DESCRIPTION = textwrap.dedent(
 )
 
 
+# The report's options, in the order ermrl report shows them (ReportRequest's fields).
+REPORT_ARGS = ("runs", "out", "band", "dynamics", "interactive", "html")
+
+
 def build_report_parser(prog: str = "ermrl report") -> ArgumentParser:
     parser = ArgumentParser(
         prog=prog, description=REPORT_DESCRIPTION, formatter_class=HelpFormatter
     )
     add_storage_args(parser, study_required=True)
-    parser.add_argument(
-        "--runs",
-        default=None,
-        help="test-phase folder (--out of ermrl test; default: runs/<study name> if it exists)",
-    )
-    parser.add_argument("--out", default=None, help="report folder (default: reports/<study name>)")
-    parser.add_argument(
-        "--band",
-        choices=("ci95", "std", "sem", "none"),
-        default="ci95",
-        help="learning-curve band across seeds: Student-t 95%% CI of the mean, std or s.e.m.",
-    )
-    parser.add_argument(
-        "--dynamics",
-        action=argparse.BooleanOptionalAction,
-        default=True,
-        help="record one res-ppo episode for the reservoir-dynamics section",
-    )
-    parser.add_argument(
-        "--interactive",
-        action=argparse.BooleanOptionalAction,
-        default=True,
-        help="also write interactive plotly HTML figures of the search",
-    )
-    parser.add_argument(
-        "--html",
-        action=argparse.BooleanOptionalAction,
-        default=True,
-        help="also write report.html next to report.md",
-    )
+    add_schema_args(parser, ReportRequest, REPORT_ARGS)
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
     return parser
 
@@ -833,6 +713,10 @@ def build_evolve_generalization_parser(
     return parser
 
 
+# A generalization test task's own options (TestGeneralizationRequest's), after the test's.
+TEST_TASK_ARGS = ("n_envs", "hyperparams", "scores")
+
+
 def build_test_generalization_parser(prog: str = "ermrl test-generalization") -> ArgumentParser:
     parser = ArgumentParser(
         prog=prog, description=TEST_GENERALIZATION_DESCRIPTION, formatter_class=HelpFormatter
@@ -841,37 +725,17 @@ def build_test_generalization_parser(prog: str = "ermrl test-generalization") ->
     parser.add_argument(
         "--env-id", required=True, help="the test task, e.g. HalfCheetah-v5 (one outside the set)"
     )
-    parser.add_argument(
-        "--observe",
-        choices=("all", "positions", "velocities"),
-        default=None,
-        help="observation mask of the test task (default: the study's)",
-    )
+    add_schema_args(parser, TestGeneralizationRequest, ("observe",))
     add_test_args(
         parser,
-        out_help="output folder (default: runs/<study name>__<env id>)",
-        trial_help="test this trial's reservoirs instead of the best ones",
-        ppo_help="PPO overrides on top of the table's and the study's, "
-        "e.g. --ppo learning_rate=1e-4",
+        {
+            "out": "output folder (default: runs/<study name>__<env id>)",
+            "trial": "test this trial's reservoirs instead of the best ones",
+            "ppo": "PPO overrides on top of the table's and the study's, "
+            "e.g. --ppo learning_rate=1e-4",
+        },
     )
-    parser.add_argument(
-        "--n-envs",
-        type=positive_int,
-        default=None,
-        help="environments per agent (default: the study's --n-envs, else the PPO table's)",
-    )
-    parser.add_argument(
-        "--hyperparams",
-        default=None,
-        metavar="YAML",
-        help="PPO table keyed by env id (default: the study's, else ermrl/data/ppo.yml)",
-    )
-    parser.add_argument(
-        "--scores",
-        default=None,
-        metavar="CSV",
-        help="reference table for the normalized returns (default: the study's)",
-    )
+    add_schema_args(parser, TestGeneralizationRequest, TEST_TASK_ARGS)
     add_tensorboard_arg(parser)
     add_progress_arg(parser, inside="", finished="run")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")

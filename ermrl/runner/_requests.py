@@ -9,10 +9,13 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal
+
+from ermrl._config_base import ObserveMode
+from ermrl._schema import option
 
 if TYPE_CHECKING:
-    from ermrl._config_base import ObserveMode
     from ermrl._progress import ProgressMode
     from ermrl.config import EvolveConfig
     from ermrl.test_phase import TestOptions
@@ -128,26 +131,41 @@ class TestGeneralizationRequest:
     storage: str
     env_id: str
     options: TestOptions
-    observe: ObserveMode | None = None
-    n_envs: int | None = None
-    hyperparams: str | None = None
-    scores: str | None = None
+    observe: ObserveMode | None = option(
+        None, "observation mask of the test task (default: the study's)"
+    )
+    n_envs: int | None = option(
+        None, "environments per agent (default: the study's --n-envs, else the PPO table's)", low=1
+    )
+    hyperparams: str | None = option(
+        None, "PPO table keyed by env id (default: the study's, else ermrl/data/ppo.yml)",
+        metavar="YAML",
+    )  # fmt: skip
+    scores: str | None = option(
+        None, "reference table for the normalized returns (default: the study's)", metavar="CSV"
+    )
     quiet: bool = False
     command: str | None = None
 
 
 @dataclass(frozen=True)
 class ReportRequest:
-    """What ``ermrl report`` writes (the arguments of [`ermrl.report`][ermrl.runner.report])."""
+    """What ``ermrl report`` writes (the arguments of [`ermrl.report`][ermrl.runner.report]):
+    one definition for the command's options, an experiment file's ``report:`` stage and the
+    function's keywords."""
 
     study_name: str
     storage: str
-    runs: str | None = None
-    out: str | None = None
-    band: str = "ci95"
-    dynamics: bool = True
-    interactive: bool = True
-    html: bool = True
+    runs: str | Path | None = option(
+        None, "test-phase folder (--out of ermrl test; default: runs/<study name> if it exists)"
+    )
+    out: str | Path | None = option(None, "report folder (default: reports/<study name>)")
+    band: Literal["ci95", "std", "sem", "none"] = option(
+        "ci95", "learning-curve band across seeds: Student-t 95%% CI of the mean, std or s.e.m."
+    )
+    dynamics: bool = option(True, "record one res-ppo episode for the reservoir-dynamics section")
+    interactive: bool = option(True, "also write interactive plotly HTML figures of the search")
+    html: bool = option(True, "also write report.html next to report.md")
     quiet: bool = False
 
 

@@ -361,34 +361,19 @@ def keep_study_backend(
 
 def test_options(args: argparse.Namespace) -> TestOptions:
     """The parsed options of ``ermrl test`` or ``ermrl test-generalization`` as the library's
-    [`TestOptions`][ermrl.test_phase.TestOptions] (``--ppo`` words kept: they are read, and refused,
-    where the command always read them)."""
+    [`TestOptions`][ermrl.test_phase.TestOptions]: its fields, each parsed under its own name
+    (``--ppo`` words kept: they are read, and refused, where the command always read them)."""
+    from ermrl._schema import fields_of
     from ermrl.test_phase import TestOptions
 
+    values = {
+        s.name: getattr(args, s.name) for s in fields_of(TestOptions) if hasattr(args, s.name)
+    }
     for_learner: dict[str, dict[str, Any]] = {}
-    for name, settings in getattr(args, "for_learner", None) or []:
+    for name, settings in values.get("for_learner") or []:
         for_learner[name] = {**for_learner.get(name, {}), **settings}
-    tensorboard = getattr(args, "tensorboard", None)
-    return TestOptions(
-        training_steps=args.training_steps,
-        seeds=args.seeds,
-        agents=args.agents,
-        out=args.out,
-        trial=args.trial,
-        n_procs=args.n_procs,
-        evaluate=args.eval,
-        n_eval_episodes=args.n_eval_episodes,
-        ppo=tuple(args.ppo),
-        stale_gradient=getattr(args, "stale_gradient", None),
-        for_learner=for_learner,
-        backend=args.backend,
-        save_models=args.save_models,
-        overwrite=args.overwrite,
-        checkpoint_every=args.checkpoint_every,
-        tensorboard=tensorboard,
-        wandb=getattr(args, "wandb", None),
-        progress=_progress_mode(args),
-    )
+    values.update(for_learner=for_learner, ppo=tuple(values["ppo"]), progress=_progress_mode(args))
+    return TestOptions(**values)
 
 
 # -- a study on a set of tasks (ermrl evolve-generalization) ------------------------------------

@@ -15,11 +15,12 @@ import json
 import os
 import shutil
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, TypeVar
 
-from ermrl._progress import PROGRESS_MODES, ProgressMode
+from ermrl._progress import ProgressMode
+from ermrl._schema import option, validate
 from ermrl.config import ConfigError
 from ermrl.learners import AGENT_KINDS, default_agents
 
@@ -37,7 +38,9 @@ __all__ = [
     "TestPlan",
     "agent_learners",
     "check_test_seeds",
+    "check_for_learner",
     "choose_agents",
+    "parse_for_learner",
     "plan_test_phase",
     "prepare_test",
     "run_in_folder",
@@ -46,15 +49,62 @@ __all__ = [
 ]
 
 
+def _agents_help() -> str:
+    return (
+        "agents to train (default: "
+        + ", ".join(n for n, k in AGENT_KINDS.items() if k.default)
+        + "; ppo-full only when the mask hides something, since on the full observation it "
+        "would repeat ppo): "
+        + "; ".join(f"{name}: {kind.description}" for name, kind in AGENT_KINDS.items())
+    )
+
+
+_BACKEND_HELP = (
+    "what trains the agents of the study's learner: population (all seeds of an agent "
+    "trained in lockstep, PPO only) or sb3 (the reference implementation: one "
+    "Stable-Baselines3 process per run). Default: the study's backend when it was evolved "
+    "with sb3, else population where it applies (not with --wandb, nor into an --out "
+    "whose finished runs were made with sb3), else sb3, with one line saying why. Agents "
+    "with another learner always train with sb3"
+)
+_CHECKPOINT_HELP = (
+    "runs save their training state every STEPS steps per run, and a rerun after a "
+    "kill or crash resumes them from there (weights, optimizer, normalization, episodes so "
+    "far; the environments restart from fresh episodes): population runs in "
+    "OUT/checkpoints, runs of on-policy sb3 learners (ppo, lstm-ppo, framestack-ppo, "
+    "rtu-ppo) in their run folder; other learners restart. Default: a tenth of "
+    "--training-steps; 0: no checkpoints"
+)
+STALE_GRADIENT_HELP = (
+    "rtu-ppo only: keep each stored RTU carry as it was collected (the default, the "
+    "paper's stale gradient), or re-scan the rollout with the new parameters after each "
+    "epoch (--no-stale-gradient, about half as fast)"
+)
+FOR_LEARNER_HELP = (
+    "settings of one learner only, on top of its table and --ppo: the first word names the "
+    "learner, the rest are KEY=VALUE as in --ppo (values read as YAML). Repeatable; a later "
+    "flag wins per key. Use it for what other learners refuse, e.g. the dagger learner's "
+    "expert: --for-learner dagger expert=experts/hopper steps_per_iteration=500"
+)
+TENSORBOARD_HELP = (
+    "also log training curves for TensorBoard under DIR/<agent>/seed_<s>: the scalars "
+    "SB3's PPO logs (returns, losses, fps), on either backend (needs: pip install "
+    "tensorboard)"
+)
+
+
 @dataclass(frozen=True)
 class TestOptions:
-    """The options of a test phase: those of ``ermrl test``, as plain data.
+    """The options of a test phase: one definition for ``ermrl test`` (its options are
+    generated from these fields), an experiment file's ``test:`` stage and
+    [`ermrl.test`][ermrl.runner.test]'s keywords, checked by the same code
+    (`ermrl._schema.validate`).
 
     Attributes:
         training_steps: Env steps per run (paper: 1,000,000).
         seeds: Test seeds (``None``: 5 seeds after the largest seed evolution trained on).
         agents: Agents to train (``None``: the study's default agents; see
-            `ermrl.learners.AGENT_KINDS`).
+            [`AGENT_KINDS`][ermrl.learners.AGENT_KINDS]).
         out: Output folder (``None``: ``runs/<study name>``).
         trial: Test this trial's reservoir instead of the selected one (``None``: the
             re-evaluated best, else the best evolution fitness).
@@ -79,39 +129,63 @@ class TestOptions:
 
     __test__ = False  # not a pytest test class
 
-    training_steps: int = 1_000_000
-    seeds: Sequence[int] | None = None
-    agents: Sequence[str] | None = None
-    out: str | Path | None = None
-    trial: int | None = None
-    n_procs: int = 1
-    evaluate: bool = False
-    n_eval_episodes: int = 10
-    ppo: Mapping[str, Any] | Sequence[str] = ()
-    stale_gradient: bool | None = None
-    for_learner: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
-    backend: Literal["population", "sb3"] | None = None
-    save_models: bool = True
-    overwrite: bool = False
-    checkpoint_every: int | None = None
-    tensorboard: str | Path | None = None
-    wandb: str | None = None
-    progress: ProgressMode = "none"
+    training_steps: int = option(1_000_000, "env steps per run (paper: 1000000)", low=1)
+    seeds: Sequence[int] | None = option(
+        None, "test seeds (default: 5 seeds after the largest seed evolution trained on)", low=0
+    )
+    agents: Sequence[str] | None = option(None, _agents_help, choices=lambda: tuple(AGENT_KINDS))
+    out: str | Path | None = option(None, "output folder (default: runs/<study name>)")
+    trial: int | None = option(None, "test this trial's reservoir instead of the best one", low=0)
+    n_procs: int = option(
+        1, "cores for the runs, trained in parallel single-threaded processes", low=1
+    )
+    evaluate: bool = option(
+        False, "also run deterministic evaluation episodes after training", flag="--eval",
+        key="eval",
+    )  # fmt: skip
+    n_eval_episodes: int = option(10, "evaluation episodes with --eval", low=1)
+    ppo: Mapping[str, Any] | Sequence[str] = option(
+        (), "PPO overrides on top of the study's, e.g. --ppo learning_rate=1e-4",
+        metavar="KEY=VALUE", words=True,
+    )  # fmt: skip
+    stale_gradient: bool | None = option(None, STALE_GRADIENT_HELP)
+    for_learner: Mapping[str, Mapping[str, Any]] = option(
+        {}, FOR_LEARNER_HELP, metavar=("LEARNER", "KEY=VALUE"), check=lambda v: check_for_learner(v)
+    )
+    backend: Literal["population", "sb3"] | None = option(None, _BACKEND_HELP)
+    save_models: bool = option(True, "save each trained model as model.zip")
+    overwrite: bool = option(
+        False, "retrain the asked-for runs that already have results (a rerun into an --out "
+        "whose runs were made with other settings is refused without it)", negatable=False,
+    )  # fmt: skip
+    checkpoint_every: int | None = option(None, _CHECKPOINT_HELP, metavar="STEPS", low=0)
+    tensorboard: str | Path | None = option(None, TENSORBOARD_HELP, metavar="DIR")
+    wandb: str | None = option(
+        None, "also log each run to the Weights & Biases project PROJECT (wandb's SB3 "
+        "callback; the runs of one test folder form a group; WANDB_MODE=offline logs "
+        "locally; needs: pip install 'ermrl[wandb]')", metavar="PROJECT",
+    )  # fmt: skip
+    progress: ProgressMode = option("none", cli=False)
+
+    @classmethod
+    def from_options(cls, where: str = "", *, text: bool = False, **values: Any) -> TestOptions:
+        """The options, every value checked first (`ermrl._schema.validate`).
+
+        Args:
+            where: Names the options in errors (``"ermrl.test"``).
+            text: Strings are read as the command line reads its words.
+            **values: Fields.
+
+        Raises:
+            ConfigError: An unknown field (with the nearest valid one) or a bad value, in one
+                line.
+        """
+        return cls(**validate(cls, values, where, text=text))
 
     def __post_init__(self) -> None:
-        for name in ("training_steps", "n_procs", "n_eval_episodes"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ConfigError(f"{name} must be a positive integer, got {value!r}")
-        unknown = [a for a in self.agents or () if a not in AGENT_KINDS]
-        if unknown:
-            raise ConfigError(f"unknown agent {unknown[0]!r}; choose from {', '.join(AGENT_KINDS)}")
-        if self.backend not in (None, "population", "sb3"):
-            raise ConfigError(f"backend must be population or sb3, got {self.backend!r}")
-        if self.progress not in PROGRESS_MODES:
-            raise ConfigError(
-                f"progress must be one of {', '.join(PROGRESS_MODES)}, got {self.progress!r}"
-            )
+        values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        for name, value in validate(type(self), values, "TestOptions").items():
+            object.__setattr__(self, name, value)  # lists as tuples
 
     def ppo_overrides(self, learner: str | None = None) -> dict[str, Any]:
         """``ppo`` as a checked mapping (values read as ``--ppo`` reads them).
@@ -139,6 +213,69 @@ class TestOptions:
         for name, settings in self.for_learner.items():
             out[name] = {**out.get(name, {}), **settings}
         return out
+
+
+def parse_for_learner(values: Sequence[str]) -> tuple[str, dict[str, Any]]:
+    """One ``--for-learner LEARNER KEY=VALUE [KEY=VALUE ...]``: the learner and its settings.
+
+    Values are read as ``--ppo`` values are
+    ([`ermrl.agents.parse_overrides`][ermrl.agents.parse_overrides]: YAML, ``1e-4`` a number,
+    ``[64, 64]`` a list).
+
+    Args:
+        values: The flag's words, the learner's name first.
+
+    Returns:
+        The learner's name and its settings.
+
+    Raises:
+        ConfigError: an unregistered learner, no ``KEY=VALUE``, a malformed one or an unknown
+            key (one line, starting ``--for-learner LEARNER:``).
+
+    Examples:
+        >>> parse_for_learner(["dagger", "expert=experts/hopper", "epochs=3"])
+        ('dagger', {'expert': 'experts/hopper', 'epochs': 3})
+    """
+    from ermrl.agents import parse_overrides
+    from ermrl.learners import learner_names
+
+    name, *items = values
+    where = f"--for-learner {name}"
+    if name not in learner_names():
+        raise ConfigError(
+            f"{where}: unknown learner {name!r}; choose from {', '.join(learner_names())}"
+        )
+    if not items:
+        raise ConfigError(f"{where}: give at least one KEY=VALUE after the learner's name")
+    settings: dict[str, Any] = {}
+    for item in items:
+        key, sep, _ = item.replace(":", "=", 1).partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"{where}: {item!r} is not KEY=VALUE (or KEY:VALUE)")
+        try:
+            settings.update(parse_overrides([item], name))
+        except ConfigError as err:
+            raise ConfigError(f"{where}: {str(err).removeprefix('--ppo: ')}") from None
+    return name, settings
+
+
+def check_for_learner(value: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
+    """``for_learner`` as [`parse_for_learner`][ermrl.test_phase.parse_for_learner] reads each
+    ``--for-learner`` flag: a registered learner, and settings it accepts.
+
+    Raises:
+        ConfigError: An unregistered learner, a learner without settings, or a setting it
+            does not know (one line).
+    """
+    from ermrl._schema import _pairs
+
+    out: dict[str, dict[str, Any]] = {}
+    for name, settings in value.items():
+        if not isinstance(settings, Mapping):
+            raise ConfigError(f"{name}: a mapping {{KEY: VALUE}} of its settings is expected")
+        learner, parsed = parse_for_learner([str(name), *_pairs(settings.items())])
+        out[learner] = {**out.get(learner, {}), **parsed}
+    return out
 
 
 def select_seeds(seeds: Sequence[int], task_id: str | None) -> tuple[int, ...]:
