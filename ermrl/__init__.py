@@ -5,7 +5,10 @@ on first use so that ``import ermrl`` stays instant):
 
 - :class:`Experiment`: load, plan and run an experiment file, as ``ermrl run FILE`` does;
 - :func:`evolve`, :func:`test`, :func:`report`: one stage each, as ``ermrl evolve``,
-  ``ermrl test`` and ``ermrl report`` run it.
+  ``ermrl test`` and ``ermrl report`` run it;
+- ``Evolution`` (an Optuna study that trials are added to), its selected ``Candidate`` (the
+  encoder, which trains a learner in front of it) and the ``Model`` that returns (SB3's
+  ``predict``; ``save`` and ``load`` without pickle).
 
 Example:
     >>> import ermrl
@@ -35,12 +38,15 @@ except PackageNotFoundError:  # running from a source tree that is not installed
 # them, not even for type checkers: the package root is the bottom layer every module may import
 # (tests/test_layers.py), and an arrow from it to the runner would close a cycle.
 _LAZY = {
+    "Candidate": "ermrl.runner",
     "ConfigError": "ermrl.config",
     "EvolveConfig": "ermrl.config",
+    "Evolution": "ermrl.runner",
     "EvolveResult": "ermrl.runner",
     "Experiment": "ermrl.runner",
     "ExperimentError": "ermrl.runner",
     "ExperimentResult": "ermrl.runner",
+    "Model": "ermrl.agents",
     "PlanStep": "ermrl.runner",
     "ReportResult": "ermrl.analysis",
     "StageFailed": "ermrl.runner",
@@ -53,12 +59,15 @@ _LAZY = {
 }
 
 __all__ = [
+    "Candidate",
     "ConfigError",
     "EvolveConfig",
+    "Evolution",
     "EvolveResult",
     "Experiment",
     "ExperimentError",
     "ExperimentResult",
+    "Model",
     "PlanStep",
     "ReportResult",
     "StageFailed",
