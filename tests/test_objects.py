@@ -63,10 +63,14 @@ def test_bad_inputs_raise_the_projects_error_in_one_line(
     with pytest.raises(ermrl.ConfigError, match="has no trial 99"):
         evolution.selected(trial=99)
     candidate = evolution.selected()
-    for steps, seed in ((0, 0), ("256", 0), (256, -1)):
+    for steps, seed, message in (
+        (0, 0, "total_timesteps must be an integer >= 1, got 0"),
+        ("256", 0, "total_timesteps must be an integer >= 1, got '256'"),
+        (256, -1, "seed must be an integer >= 0, got -1"),
+    ):
         with pytest.raises(ermrl.ConfigError) as err:
             candidate.learn(steps, seed=seed)  # type: ignore[arg-type]
-        assert "\n" not in str(err.value)
+        assert str(err.value) == message
 
 
 def test_the_candidate_is_the_selected_trial_and_builds_its_encoder(

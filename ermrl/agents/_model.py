@@ -234,9 +234,9 @@ def train_model(
     from ermrl.agents._normalize import normalize_stats
     from ermrl.agents._train import train_agent
 
-    for name, value in (("total_timesteps", total_timesteps), ("seed", seed)):
-        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-            raise ConfigError(f"{name} must be an integer >= 0, got {value!r}")
+    for name, value, low in (("total_timesteps", total_timesteps, 1), ("seed", seed, 0)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < low:
+            raise ConfigError(f"{name} must be an integer >= {low}, got {value!r}")
     # "eval" with evaluate=False: no measure is needed, so no episode has to end.
     budget = BudgetConfig(training_steps=total_timesteps, fitness="eval", n_reports=0)
     kept: dict[str, Any] = {}
