@@ -107,9 +107,10 @@ class Evolution:
         configuration asks (``reevaluate_top``), as ``ermrl evolve`` does.
 
         Args:
-            n_trials: Trials to add (finished trials of every process, counted when the call
-                starts; the queued reference trial is one of them). ``None``: run until the
-                configuration's ``n_trials`` is reached.
+            n_trials: Trials to add: the study ends with the trials it had finished or
+                running when the call started, plus ``n_trials`` (a queued reference trial is
+                one of them). Calls that overlap in several processes share their trials rather
+                than adding them up. ``None``: until the configuration's ``n_trials``.
             **keywords: Keyword arguments of :func:`~ermrl.runner.evolve` (``quiet``,
                 ``progress``, ``stream``, ``tensorboard``, ``wait_for_running``, ...).
 
