@@ -6,7 +6,11 @@ imported on first use so that ``import ermrl`` stays instant):
 - [`Experiment`][ermrl.runner.Experiment]: load, plan and run an experiment file, as
   ``ermrl run FILE`` does;
 - [`evolve`][ermrl.runner.evolve], [`test`][ermrl.runner.test], [`report`][ermrl.runner.report]: one
-  stage each, as ``ermrl evolve``, ``ermrl test`` and ``ermrl report`` run it.
+  stage each, as ``ermrl evolve``, ``ermrl test`` and ``ermrl report`` run it;
+- [`Evolution`][ermrl.runner.Evolution] (an Optuna study that trials are added to), its selected
+  [`Candidate`][ermrl.runner.Candidate] (the encoder, which trains a learner in front of it) and
+  the [`Model`][ermrl.agents.Model] that returns (SB3's ``predict``; ``save`` and ``load``
+  without pickle).
 
 Examples:
     >>> import ermrl
@@ -36,12 +40,15 @@ except PackageNotFoundError:  # running from a source tree that is not installed
 # them, not even for type checkers: the package root is the bottom layer every module may import
 # (tests/test_layers.py), and an arrow from it to the runner would close a cycle.
 _LAZY = {
+    "Candidate": "ermrl.runner",
     "ConfigError": "ermrl.config",
     "EvolveConfig": "ermrl.config",
+    "Evolution": "ermrl.runner",
     "EvolveResult": "ermrl.runner",
     "Experiment": "ermrl.runner",
     "ExperimentError": "ermrl.runner",
     "ExperimentResult": "ermrl.runner",
+    "Model": "ermrl.agents",
     "PlanStep": "ermrl.runner",
     "ReportResult": "ermrl.analysis",
     "StageFailed": "ermrl.runner",
@@ -54,12 +61,15 @@ _LAZY = {
 }
 
 __all__ = [
+    "Candidate",
     "ConfigError",
     "EvolveConfig",
+    "Evolution",
     "EvolveResult",
     "Experiment",
     "ExperimentError",
     "ExperimentResult",
+    "Model",
     "PlanStep",
     "ReportResult",
     "StageFailed",

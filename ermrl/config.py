@@ -115,7 +115,7 @@ __all__ = [
     "to_dict",
 ]
 
-# The encoders' families when this module was imported (:func:`ermrl.encoders.encoder_families`
+# The encoders' families when this module was imported ([`encoder_families`][ermrl.encoders.encoder_families]
 # reads the registry as it is now).
 FAMILIES: tuple[str, ...] = encoder_families()
 

@@ -155,6 +155,7 @@ def test_evolve_returns_the_studys_best_and_the_trial_a_test_selects(
     evolved: ermrl.EvolveResult,
 ) -> None:
     study = load_study(evolved.study_name, evolved.storage)
+    assert isinstance(evolved.study, optuna.Study) and evolved.study.study_name == study.study_name
     assert evolved.study_name == "Pendulum-v1__positions__256steps"
     assert (
         evolved.n_trials == 3 == len(study.get_trials(states=(optuna.trial.TrialState.COMPLETE,)))
@@ -219,6 +220,13 @@ def test_test_trains_the_selected_trial_and_holds_what_it_wrote(
     assert runs == [("ppo", 10), ("ppo", 11), ("res-ppo", 10), ("res-ppo", 11)]
     assert all(math.isfinite(v) for v in tested.returns["final_return"])
     assert list(tested.summary["agent"]) == ["ppo", "res-ppo"]
+    # The evolved agent against the others, as the report's comparison table.
+    (row,) = tested.comparisons.itertuples(index=False)
+    assert (row.candidate, row.baseline, row.n_candidate, row.n_baseline) == (
+        "res-ppo", "ppo", 2, 2,
+    )  # fmt: skip
+    means = tested.returns.groupby("agent")["final_return"].mean()
+    assert row.mean_diff == pytest.approx(means["res-ppo"] - means["ppo"])
     assert set(tested.files) == {
         "summary.csv", "curves.csv", "learning_curves.png", "config.yaml", "command.txt"
     }  # fmt: skip

@@ -4,7 +4,8 @@ The analysis notebooks (01-04) import only from ermrl.analysis. CI executes each
 against the tiny study and test-phase folder of tests/_analysis_data.py, pointing the notebooks'
 first cell at them through the environment variables ERMRL_STUDY_NAME, ERMRL_STORAGE and
 ERMRL_RUNS. The From-Python notebook (05) runs the demo's `quick` variant through the API at the
-package root; CI executes it as it is, in a temporary folder. A failing cell fails the test.
+package root, and the objects notebook (06) evolves, trains, saves and reloads a model through
+the object API; CI executes both as they are, in a temporary folder. A failing cell fails the test.
 """
 
 from __future__ import annotations
@@ -29,12 +30,14 @@ EXPECTED = [
     "03_reservoir_dynamics.ipynb",
     "04_generalization.ipynb",
     "05_from_python.ipynb",
+    "06_object_api.ipynb",
 ]
-# The notebooks that analyse a study and its test phase (05 runs an experiment instead).
-NOTEBOOKS = [p for p in ALL_NOTEBOOKS if p.name != "05_from_python.ipynb"]
+# The notebooks that analyse a study and its test phase (05 and 06 run the API instead).
+NOTEBOOKS = [p for p in ALL_NOTEBOOKS if p.name not in EXPECTED[4:]]
 FROM_PYTHON = ROOT / "notebooks" / "05_from_python.ipynb"
 # What the From-Python notebook may import: the API at the package root, the analysis, pyplot.
 FROM_PYTHON_IMPORTS = {"ermrl", "ermrl.analysis", "matplotlib.pyplot"}
+OBJECTS = ROOT / "notebooks" / "06_object_api.ipynb"
 
 
 def _nbformat() -> ModuleType:
@@ -48,7 +51,7 @@ def _nbformat() -> ModuleType:
     return nbformat
 
 
-def test_the_five_notebooks_exist() -> None:
+def test_the_six_notebooks_exist() -> None:
     assert [p.name for p in ALL_NOTEBOOKS] == EXPECTED
 
 
@@ -146,9 +149,14 @@ def test_notebook_executes(
     assert tiny.study_name in first
 
 
-def test_the_from_python_notebook_is_stripped_and_imports_the_api() -> None:
+@pytest.mark.parametrize(
+    ("path", "allowed"),
+    [(FROM_PYTHON, FROM_PYTHON_IMPORTS), (OBJECTS, {"ermrl"})],
+    ids=["05", "06"],
+)
+def test_the_api_notebooks_are_stripped_and_import_the_api(path: Path, allowed: set[str]) -> None:
     nbformat = _nbformat()
-    nb = nbformat.read(FROM_PYTHON, as_version=4)
+    nb = nbformat.read(path, as_version=4)
     imported = set()
     for cell in (c for c in nb.cells if c.cell_type == "code"):
         assert cell.outputs == [] and cell.execution_count is None, "commit notebooks stripped"
@@ -157,7 +165,7 @@ def test_the_from_python_notebook_is_stripped_and_imports_the_api() -> None:
                 imported |= {alias.name for alias in node.names}
             if isinstance(node, ast.ImportFrom):
                 imported.add(str(node.module))
-    assert imported == FROM_PYTHON_IMPORTS
+    assert imported == allowed
 
 
 def test_the_from_python_notebook_runs_the_demos_quick_variant() -> None:
@@ -195,3 +203,24 @@ def test_the_from_python_notebook_executes(tmp_path: Path) -> None:
     assert (summary / "summary.csv").is_file()
     first = "".join(o.get("text", "") for o in nb.cells[0].outputs)
     assert "experiment 'demo' (variant quick)" in first
+
+
+@pytest.mark.slow
+def test_the_objects_notebook_evolves_trains_saves_and_reloads_a_model(tmp_path: Path) -> None:
+    """As it is, in an empty folder, in about a minute on 2 cores."""
+    nbformat = _nbformat()
+    from nbclient import NotebookClient
+
+    nb = nbformat.read(OBJECTS, as_version=4)
+    client = NotebookClient(
+        nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(tmp_path)}}
+    )
+    client.execute()  # raises CellExecutionError, with the failing cell, if any cell fails
+    outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.outputs]
+    assert not [o for o in outputs if o.output_type == "error"]
+    text = "".join(o.get("text", "") for o in outputs)
+    assert "Study 'CartPole-v1__all__20000steps', trials so far: 1" in text
+    assert "7 trials; best fitness" in text
+    assert "same returns as the trained model: True" in text
+    saved = tmp_path / "runs" / "cartpole-model"
+    assert sorted(p.name for p in saved.iterdir()) == ["model.json", "policy.pt"]

@@ -13,6 +13,7 @@ from ermrl.agents._hyperparams import (
     resolve_ppo_config,
     with_overrides,
 )
+from ermrl.agents._model import MODEL_FORMAT, Model, train_model
 from ermrl.agents._normalize import (
     frozen_normalize_env,
     load_normalize_stats,
@@ -37,6 +38,8 @@ from ermrl.learners._policy_io import POLICY_FILE, load_policy, policy_path, sav
 
 __all__ = [
     "ACTIVATIONS",
+    "MODEL_FORMAT",
+    "Model",
     "POLICY_FILE",
     "NoEpisodeFinished",
     "RunCheckpoint",
@@ -69,6 +72,7 @@ __all__ = [
     "steps_trained",
     "train_agent",
     "stop_workers",
+    "train_model",
     "training_pool",
     "wandb_installed",
     "with_overrides",

@@ -108,10 +108,10 @@ MECHANISM_LABELS = (
     "inconclusive",
     NOT_RUN,
 )
-#: Welch segment length (steps), as in :func:`~ermrl.analysis.power_spectrum`; the whole episode
-#: when the gait is slower than it resolves (:func:`gait_segment`).
+#: Welch segment length (steps), as in [`power_spectrum`][ermrl.analysis.power_spectrum]; the whole episode
+#: when the gait is slower than it resolves (`gait_segment`).
 NPERSEG = 256
-#: The columns every :data:`MECHANISM_FILE` has (:func:`read_mechanism` needs them).
+#: The columns every `MECHANISM_FILE` has (`read_mechanism` needs them).
 REQUIRED_COLUMNS = [
     "env_id", "signal", "weight_seed", "recorded_seed", "n_steps", "dt", "frequency_unit",
     "resolution", "gait_frequency", "band_low", "band_high", "dominant_frequency",
@@ -119,7 +119,7 @@ REQUIRED_COLUMNS = [
 ]  # fmt: skip
 #: ``lowest_bin``: the signal's power above 0 Hz is largest in the lowest non-zero frequency bin
 #: (for the joint angles without a peak: a gait slower than the resolution). Files written
-#: before it existed lack it; :func:`read_mechanism` reads it as unknown.
+#: before it existed lack it; `read_mechanism` reads it as unknown.
 MECHANISM_COLUMNS = [*REQUIRED_COLUMNS, "lowest_bin"]
 
 

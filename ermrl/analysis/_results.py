@@ -31,11 +31,11 @@ __all__ = [
 RUNS_DIR = "agents"
 #: A run folder's subfolder holding the published records of a run trained again only for the
 #: model the report replays (a published run carries no model): they replace the new training's
-#: records as it ends (:func:`ermrl.test_phase._results.keep_published_record`), so a result
+#: records as it ends ([`keep_published_record`][ermrl.test_phase._results.keep_published_record]), so a result
 #: once published never changes.
 KEPT_RECORD_DIR = "published-record"
 #: Beside a run's published records: what the model trained again for the report's replay
-#: returned (written by :func:`ermrl.test_phase._results.keep_published_record`).
+#: returned (written by [`keep_published_record`][ermrl.test_phase._results.keep_published_record]).
 REPLAY_MODEL_FILE = "replay-model.json"
 CURVE_COLUMNS = ["agent", "seed", "env_step", "episode_return"]
 GRID_COLUMNS = ["agent", "env_step", "mean", "std", "sem", "ci95", "n_seeds"]

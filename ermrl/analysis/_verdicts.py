@@ -85,7 +85,7 @@ OUTCOMES = ("supported", "contradicted", "inconclusive")
 #: A question's status on a task none of whose comparisons could run (not an outcome).
 NOT_RUN = "not run yet"
 CORRECTIONS = ("holm", "none")
-#: Seeds searched by :func:`seeds_for_power` before it gives up.
+#: Seeds searched by `seeds_for_power` before it gives up.
 MAX_POWER_SEEDS = 10_000
 
 
@@ -673,7 +673,7 @@ def excluded_effects(row: Mapping[str, Any]) -> str:
 
 #: The columns that name one judged comparison on a page.
 COMPARISON_KEY = ["hypothesis", "task", "question", "comparison", "metric"]
-#: What :func:`verdict_changes` keeps of each side, besides the key.
+#: What `verdict_changes` keeps of each side, besides the key.
 _CHANGE_FIELDS = ["outcome", "n_candidate", "n_baseline", "mean_diff", "p_adjusted"]
 
 

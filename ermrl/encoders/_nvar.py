@@ -312,7 +312,7 @@ CLI_FLAGS: tuple[dict[str, Any], ...] = (
     _int_range_flag("strides", (1, 4), "the steps between delayed inputs"),
 )
 
-# Test-phase agents of ``--encoder nvar`` studies, as :class:`~ermrl.config.AgentKind` fields.
+# Test-phase agents of ``--encoder nvar`` studies, as [`AgentKind`][ermrl.config.AgentKind] fields.
 AGENTS: dict[str, dict[str, Any]] = {
     "nvar-res-ppo": {
         "reservoirs": "evolved",

@@ -21,6 +21,7 @@ from ermrl.runner._experiment import (
     experiment_plan,
     load_experiment,
 )
+from ermrl.runner._objects import Candidate, Evolution
 from ermrl.runner._results import ExperimentResult, PlanStep, TaskResult
 
 # What Experiment's methods call (they reach it through this package: _results builds on them).
@@ -46,6 +47,8 @@ from ermrl.runner._stages import (
 )
 
 __all__ = [
+    "Candidate",
+    "Evolution",
     "EvolveResult",
     "Experiment",
     "ExperimentError",

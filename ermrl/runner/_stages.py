@@ -42,7 +42,7 @@ __all__ = [
 ]
 
 # Options of ``ermrl evolve`` that are not part of the configuration: arguments of
-# :func:`evolve` itself, or of the command line only.
+# `evolve` itself, or of the command line only.
 _NOT_CONFIG = {
     "env_id", "storage", "study_name", "quiet", "help", "progress", "tensorboard", "wandb",
     "heartbeat_interval", "grace_period", "max_retry", "wait_for_running",
@@ -62,7 +62,8 @@ class EvolveResult:
         storage: Its storage URL.
         n_trials: Finished trials in the study (COMPLETE or PRUNED), every worker's.
         best_trial: The number of the trial with the best fitness (``None``: none completed).
-        best_params: Its parameters (``sr_0``, ``lr_0``, ``input_scaling_0``, ...).
+        best_params: Its parameters (``sr``, ``lr``, ``input_scaling`` with one reservoir;
+            ``sr_0``, ``lr_0``, ... with several).
         best_fitness: Its fitness, the mean return over the evolution's seeds.
         selected_trial: The trial the test phase selects: the re-evaluated best when a
             current ranking exists, else the best fitness (``None``: none completed).
@@ -79,6 +80,13 @@ class EvolveResult:
     selected_trial: int | None
     selection: str | None
     worker: EvolutionSummary
+
+    @property
+    def study(self) -> optuna.Study:
+        """The ``optuna.Study``, loaded from the storage."""
+        from ermrl.storage import load_study
+
+        return load_study(self.study_name, self.storage)
 
 
 @dataclass(frozen=True, eq=False)
@@ -97,6 +105,10 @@ class TestResult:
             ``n_episodes``, ...), read back from the folder.
         summary: One row per agent: mean, std and IQM of the final returns
             (``summary.csv``).
+        comparisons: The evolved agent against each other agent on the final returns, one
+            row per other agent (``candidate``, ``baseline``, ``mean_diff``, bootstrap and
+            Welch intervals, ``p_value``, ...: the report's comparison table,
+            [`compare_agents`][ermrl.analysis.compare_agents]); empty without the evolved agent.
         files: ``{name: path}`` of the files written at the folder's top (``summary.csv``,
             ``curves.csv``, ``learning_curves.png``, ``config.yaml``, ``command.txt``).
         notes: Why the agents train with their backend, when none was asked for.
@@ -113,6 +125,7 @@ class TestResult:
     seeds: tuple[int, ...]
     returns: pd.DataFrame = field(repr=False)
     summary: pd.DataFrame = field(repr=False)
+    comparisons: pd.DataFrame = field(repr=False)
     files: dict[str, Path] = field(default_factory=dict)
     notes: tuple[str, ...] = ()
 
@@ -393,7 +406,8 @@ def test(
         ... )
         >>> result.summary[["agent", "final_return_mean"]]
     """
-    from ermrl.analysis import load_run_results
+    from ermrl.analysis import compare_agents, load_run_results
+    from ermrl.learners import AGENT_KINDS
     from ermrl.test_phase import TestOptions, prepare_test, run_comparison, run_in_folder
 
     options = dataclasses.replace(options or TestOptions(), **keywords)
@@ -416,6 +430,10 @@ def test(
     )
     names = ("summary.csv", "curves.csv", "learning_curves.png", "config.yaml", "command.txt")
     chosen = plan.chosen
+    returns = load_run_results(plan.out)
+    # The evolved agent against every other one (no rows without it), as the report compares.
+    evolved = [a for a in plan.agent_names if AGENT_KINDS[a].reservoirs == "evolved"][:1]
+    others = [a for a in plan.agent_names if evolved and a != evolved[0]]
     return TestResult(
         study_name=study_name,
         out=plan.out,
@@ -424,8 +442,9 @@ def test(
         selection=None if chosen is None else chosen.how,
         agents=plan.agent_names,
         seeds=plan.seeds,
-        returns=load_run_results(plan.out),
+        returns=returns,
         summary=summary,
+        comparisons=compare_agents(returns, "".join(evolved), others),
         files={n: plan.out / n for n in names if (plan.out / n).is_file()},
         notes=phase.notes,
     )

@@ -374,7 +374,7 @@ class SeedRunner:
         self.close(cancel=exc[0] is not None)
 
 
-# The fitness hooks of :func:`ermrl.search.run_evolution`: one candidate
+# The fitness hooks of [`run_evolution`][ermrl.search.run_evolution]: one candidate
 # (``evaluate(encoder, runner, report)``), or a whole generation with the population backend.
 EvaluateFn = Callable[[EncoderConfig, SeedRunner, ReportFn | None], FitnessResult]
 EvaluateGenerationFn = Callable[

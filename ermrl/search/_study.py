@@ -43,7 +43,7 @@ __all__ = [
 STUDY_CONFIG_ATTR = "ermrl_config"
 STUDY_COMMAND_ATTR = "ermrl_command"
 STUDY_KIND_ATTR = "ermrl_kind"
-#: The code that created the study (:func:`ermrl._code.code_identity`); each trial records the
+#: The code that created the study ([`code_identity`][ermrl._code.code_identity]); each trial records the
 #: code that trained it under the same name.
 CODE_ATTR = "ermrl_code"
 # Parts of the configuration that define the fitness landscape: a resumed study must match them.
