@@ -590,7 +590,7 @@ def run_report(request: ReportRequest, prog: str = "ermrl report") -> int:
     from ermrl.storage import StorageError, StudyNotFound
 
     r = request
-    if r.runs is not None and not Path(r.runs).is_dir():
+    if r.runs is not None and not Path(r.runs).is_dir():  # the flag's name; report() says runs
         raise CommandFailed(f"--runs {r.runs}: no such folder (the --out of ermrl test)")
     try:
         result = report(

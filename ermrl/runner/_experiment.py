@@ -474,6 +474,14 @@ def load_experiment(path: str | Path, variant: str | None = None) -> Experiment:
         ExperimentError: unreadable file, unknown key (with the nearest valid one), wrong type,
             unknown variant.
     """
+    if not isinstance(path, (str, Path)):
+        raise ExperimentError(
+            f"an experiment is a YAML file's path, got {type(path).__name__} {path!r}"
+        )
+    if variant is not None and not isinstance(variant, str):
+        raise ExperimentError(
+            f"{path}: variant is a name, got {type(variant).__name__} {variant!r}"
+        )
     path = Path(path)
     base, over = _apply_variant(_read_document(path), variant, path)
     name = base.get("name")

@@ -49,6 +49,35 @@ _NOT_CONFIG = {
 }  # fmt: skip
 
 
+def shown(value: Any) -> str:
+    """A value and its type, for a one-line refusal (``int 42``)."""
+    return f"{type(value).__name__} {value!r}"
+
+
+def check_call(where: str, storage: Any, study_name: Any, *, name_optional: bool = False) -> None:
+    """Refuse, in one line, a storage or a study name that is not one, before anything is
+    opened (the library's functions are called with Python values no parser has seen).
+
+    Raises:
+        ConfigError: ``storage`` is not a supported storage URL, or ``study_name`` not a name.
+    """
+    from ermrl.storage import StorageError, storage_kind
+
+    if not isinstance(storage, str):
+        raise ConfigError(
+            f"{where}: storage is a storage URL (sqlite:///file.db, postgresql://..., "
+            f"journal:///file.log), got {shown(storage)}"
+        )
+    try:
+        storage_kind(storage)
+    except StorageError as err:
+        raise ConfigError(f"{where}: storage: {err}") from None
+    if study_name is None and name_optional:
+        return
+    if not isinstance(study_name, str) or not study_name.strip():
+        raise ConfigError(f"{where}: study_name is a study's name, got {shown(study_name)}")
+
+
 class NothingToReport(ConfigError):
     """A study with no completed trial: a report would have nothing to show."""
 
@@ -253,8 +282,15 @@ def evolve(
         ... )
         >>> result.best_trial, result.best_params
     """
+    from ermrl.config import EvolveConfig
     from ermrl.search import create_or_resume_study, evolve_and_reevaluate
 
+    check_call("ermrl.evolve", storage, study_name, name_optional=True)
+    if not isinstance(config, (str, EvolveConfig)):
+        raise ConfigError(
+            f"ermrl.evolve: config is an env id (such as 'Pendulum-v1') or an EvolveConfig, "
+            f"got {shown(config)}"
+        )
     config, command = _resolved_config(config, storage, study_name, tensorboard, options)
     name = study_name or config.default_study_name
     study_kwargs: dict[str, Any] = {
@@ -406,11 +442,19 @@ def test(
         ... )
         >>> result.summary[["agent", "final_return_mean"]]
     """
+    from ermrl._schema import validate
     from ermrl.analysis import compare_agents, load_run_results
     from ermrl.learners import AGENT_KINDS
     from ermrl.test_phase import TestOptions, prepare_test, run_comparison, run_in_folder
 
-    options = dataclasses.replace(options or TestOptions(), **keywords)
+    check_call("ermrl.test", storage, study_name)
+    if options is not None and not isinstance(options, TestOptions):
+        raise ConfigError(
+            f"ermrl.test: options is a TestOptions (or give its fields as keywords), "
+            f"got {shown(options)}"
+        )
+    checked = validate(TestOptions, keywords, "ermrl.test")
+    options = dataclasses.replace(options or TestOptions(), **checked)
     phase = prepare_test(study_name, storage, options)
     plan = phase.plan
     if plan.warning:
@@ -497,9 +541,18 @@ def report(
     """
     from optuna.trial import TrialState
 
+    from ermrl._schema import validate
     from ermrl.analysis import write_report
+    from ermrl.runner._requests import ReportRequest
     from ermrl.storage import load_study
 
+    check_call("ermrl.report", storage, study_name)
+    values = dict(runs=runs, out=out, band=band, dynamics=dynamics, interactive=interactive)
+    validate(ReportRequest, {**values, "html": html}, "ermrl.report")
+    if runs is not None and not Path(runs).is_dir():
+        raise ConfigError(f"runs {runs}: no such folder (the out of the test phase)")
+    if out is not None and Path(out).exists() and not Path(out).is_dir():
+        raise ConfigError(f"out {out}: a file, not a folder; choose another report folder")
     study = load_study(study_name, storage)
     if not study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)):
         states = [t.state.name for t in study.get_trials(deepcopy=False)]
