@@ -56,6 +56,7 @@ from the set. Dynamic imports (``importlib.import_module`` with a computed name)
 from __future__ import annotations
 
 import ast
+import functools
 import graphlib
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -152,16 +153,33 @@ def _is_type_checking(test: ast.expr) -> bool:
     )
 
 
+@functools.cache
+def reexports(package: str) -> dict[str, str]:
+    """``{name: defining module}`` of the names a package's ``__init__`` imports from its own
+    modules (empty for a module that is not a package)."""
+    path = module_path(package)
+    if path.name != "__init__.py":
+        return {}
+    found = {}
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and (node.module or "").startswith(package + "."):
+            found.update({alias.asname or alias.name: node.module for alias in node.names})
+    return found
+
+
 def _imports_of(name: str, path: Path, modules: dict[str, Path]) -> list[Import]:
     """All imports of ermrl modules in one module, resolved to module names."""
     is_package = path.name == "__init__.py"
     found: list[Import] = []
 
     def resolve(base: str, names: list[str]) -> set[str]:
-        # ``from base import x``: x is a submodule when one exists, else a name defined in base.
-        targets = {f"{base}.{n}" for n in names if f"{base}.{n}" in modules}
-        if len(targets) < len(names):
-            targets.add(base)
+        # ``from base import x``: x is a submodule when one exists; a name a package re-exports
+        # from one of its modules is that module (``from ermrl.runner import plan_steps`` in a
+        # runner module depends on the module that defines it); else a name defined in base.
+        targets = set()
+        for n in names:
+            target = f"{base}.{n}"
+            targets.add(target if target in modules else reexports(base).get(n, base))
         return targets
 
     def visit(node: ast.AST, kind: str) -> None:
@@ -357,7 +375,7 @@ def test_parser_resolves_imports(tmp_path: Path) -> None:
         ("ermrl.search._objective", "module"),
         ("ermrl.search", "module"),  # ``helper`` is a name defined in ermrl.search
         ("ermrl.agents._train", "module"),
-        ("ermrl.analysis", "type-checking"),
+        ("ermrl.analysis._results", "type-checking"),  # re-exported by ermrl.analysis
         ("ermrl.cli", "function"),
     }
 

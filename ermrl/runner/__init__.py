@@ -15,19 +15,14 @@ Examples:
 """
 
 from ermrl.runner._experiment import (
-    Experiment,
     ExperimentError,
+    ExperimentFile,
     Step,
     experiment_plan,
     load_experiment,
 )
 from ermrl.runner._objects import Candidate, Evolution
-from ermrl.runner._results import ExperimentResult, PlanStep, TaskResult
-
-# What Experiment's methods call (they reach it through this package: _results builds on them).
-from ermrl.runner._results import experiment_result as experiment_result
-from ermrl.runner._results import plan_steps as plan_steps
-from ermrl.runner._results import run_and_collect as run_and_collect
+from ermrl.runner._results import Experiment, ExperimentResult, PlanStep, TaskResult
 from ermrl.runner._run import (
     StageFailed,
     StageInterrupted,
@@ -52,6 +47,7 @@ __all__ = [
     "EvolveResult",
     "Experiment",
     "ExperimentError",
+    "ExperimentFile",
     "ExperimentResult",
     "NothingToReport",
     "PlanStep",

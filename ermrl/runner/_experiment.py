@@ -36,7 +36,7 @@ import math
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TextIO
+from typing import TYPE_CHECKING, Any
 
 import yaml
 
@@ -51,16 +51,11 @@ from ermrl.runner._requests import (
 from ermrl.storage import StudyNameError, folder_for
 
 if TYPE_CHECKING:
-    from ermrl._progress import ProgressMode
     from ermrl.config import EvolveConfig
 
-    # Through the package (the rule of tests/test_layers.py: a unit's modules may read its
-    # __init__): _results builds on this module.
-    from ermrl.runner import ExperimentResult, PlanStep
-
 __all__ = [
-    "Experiment",
     "ExperimentError",
+    "ExperimentFile",
     "Step",
     "TOP_LEVEL_KEYS",
     "estimate_seconds",
@@ -199,8 +194,9 @@ class TaskLine:
 
 
 @dataclass(frozen=True)
-class Experiment:
-    """A parsed experiment file (variant applied).
+class ExperimentFile:
+    """A parsed experiment file (variant applied): what the plan reads. Its Python face,
+    [`Experiment`][ermrl.runner.Experiment], adds ``plan``, ``run`` and ``result``.
 
     Attributes:
         path: The file.
@@ -241,122 +237,6 @@ class Experiment:
         """Whether evolution runs on a task set (``suite`` or ``env_ids`` in ``evolve``)."""
         evolve = self.stages.get("evolve", {})
         return "suite" in evolve or "env_ids" in evolve
-
-    @classmethod
-    def load(cls, path: str | Path, variant: str | None = None) -> Experiment:
-        """Read an experiment file and apply a variant
-        ([`load_experiment`][ermrl.runner.load_experiment]).
-
-        Args:
-            path: The YAML file. Its folders (``out``, ``storage``, ``publish``) are relative
-                to the working directory, as for ``ermrl run``.
-            variant: A key of its ``variants`` (e.g. ``"quick"``); its results go to
-                ``<out>/<variant>``. ``None``: the file as written.
-
-        Returns:
-            The experiment.
-
-        Raises:
-            ExperimentError: An unreadable file, an unknown key (with the nearest valid one),
-                a wrong type or an unknown variant, in one line naming the file.
-
-        Examples:
-            >>> import ermrl
-            >>> exp = ermrl.Experiment.load("experiments/demo.yaml")
-            >>> exp.name, str(exp.out)
-            ('demo', 'runs/demo')
-        """
-        return load_experiment(path, variant)
-
-    def plan(self, tasks: Sequence[str] | None = None) -> list[PlanStep]:
-        """Every step ``run`` would take, checked, with what is done (nothing is written).
-
-        The same plan as ``ermrl run FILE --dry-run``: each stage's options are parsed by its
-        command's own parser, and a study already in the storage must match the file.
-
-        Args:
-            tasks: Only these tasks (for a generalization experiment: these test tasks); a
-                task the file does not list runs with the file's settings.
-
-        Returns:
-            One [`PlanStep`][ermrl.runner.PlanStep] per command, in the order they run.
-
-        Raises:
-            ExperimentError: A key or value the commands refuse, or a study that contradicts
-                the file (one line).
-        """
-        from ermrl.runner import plan_steps
-
-        return plan_steps(self, tasks)
-
-    def run(
-        self,
-        stages: Sequence[str] | None = None,
-        tasks: Sequence[str] | None = None,
-        progress: ProgressMode = "none",
-        quiet: bool = True,
-        *,
-        tensorboard: str | Path | None = None,
-        snapshot_every: float = DEFAULT_SNAPSHOT_EVERY,
-        stream: TextIO | None = None,
-    ) -> ExperimentResult:
-        """Run the unfinished stages, exactly as ``ermrl run FILE`` does, and return the results.
-
-        Finished stages are skipped and an interrupted one resumes (the study and the run
-        folders are the state). Each stage runs its ``ermrl`` command in this process; with
-        ``quiet=False`` the plan and each stage's equivalent command line are printed.
-
-        Args:
-            stages: Only these stages (``evolve``, ``reevaluate``, ``test``, ``report``;
-                default: all, in order).
-            tasks: Only these tasks (for a generalization experiment: these test tasks).
-            progress: ``"bar"``, ``"lines"`` or ``"none"`` inside the evolve and test stages.
-            quiet: No plan, no stage lines, and ``--quiet`` for every stage's command.
-            tensorboard: Also log training curves for TensorBoard under this folder (the
-                evolve and test stages then train with the sb3 backend).
-            snapshot_every: With ``publish:`` in the file, write the snapshot every this many
-                seconds while it runs (0: never).
-            stream: Where the plan and the stage lines go (default ``sys.stdout``).
-
-        Returns:
-            The results per task: study, selected trial, test summary, report.
-
-        Raises:
-            ExperimentError: The file cannot run (one line), or its folder cannot be written.
-            StageFailed: A stage's command stopped with an error (its own line is on stderr);
-                run again to resume.
-            KeyboardInterrupt: Ctrl-C during a stage (finished trials and runs are kept).
-
-        Examples:
-            >>> result = ermrl.Experiment.load("experiments/demo.yaml").run()
-            >>> result["Pendulum-v1"].trial, result["Pendulum-v1"].summary
-        """
-        from ermrl.runner import run_and_collect
-
-        return run_and_collect(
-            self,
-            stages=stages,
-            tasks=tasks,
-            progress=progress,
-            quiet=quiet,
-            tensorboard=tensorboard,
-            snapshot_every=snapshot_every,
-            stream=stream,
-        )
-
-    def result(self, tasks: Sequence[str] | None = None) -> ExperimentResult:
-        """What the experiment's results folder holds now, without running anything.
-
-        Args:
-            tasks: Only these tasks.
-
-        Raises:
-            ExperimentError: The file no longer matches its studies (see
-                [`plan`][ermrl.runner.Experiment.plan]).
-        """
-        from ermrl.runner import experiment_result
-
-        return experiment_result(self, experiment_plan(self, tasks=tasks, build_agents=False))
 
 
 def _mapping(value: Any, where: str) -> dict[str, Any]:
@@ -459,7 +339,7 @@ def _check_task_list(
         raise ExperimentError(f"{path}: test.env_ids: name the unseen tasks to test on")
 
 
-def load_experiment(path: str | Path, variant: str | None = None) -> Experiment:
+def load_experiment(path: str | Path, variant: str | None = None) -> ExperimentFile:
     """Read an experiment file and apply a variant.
 
     Args:
@@ -509,7 +389,7 @@ def load_experiment(path: str | Path, variant: str | None = None) -> Experiment:
             )
     tasks = _tasks(base.get("tasks"), path)
     _check_task_list(tasks, stages, base, path)
-    return Experiment(
+    return ExperimentFile(
         path=path,
         name=name,
         variant=variant,
@@ -761,7 +641,7 @@ class Step:
         return shlex.join(["ermrl", self.command, *self.argv])
 
 
-def _stage(exp: Experiment, stage: str, task: TaskLine | None) -> dict[str, Any]:
+def _stage(exp: ExperimentFile, stage: str, task: TaskLine | None) -> dict[str, Any]:
     options = dict(exp.stages.get(stage, {}))
     if task is not None and stage in task.overrides:
         options = _merge(options, task.overrides[stage])
@@ -773,14 +653,14 @@ def _stage(exp: Experiment, stage: str, task: TaskLine | None) -> dict[str, Any]
     return options
 
 
-def _reevaluate_argv(exp: Experiment, task: TaskLine | None) -> list[str]:
+def _reevaluate_argv(exp: ExperimentFile, task: TaskLine | None) -> list[str]:
     options = _stage(exp, "reevaluate", task)
     mapped = {REEVALUATE_KEYS[k]: v for k, v in options.items()}
     return [w for k, v in mapped.items() for w in (f"--{k.replace('_', '-')}", _word(v))]
 
 
 def experiment_plan(
-    exp: Experiment, *, tasks: Sequence[str] | None = None, build_agents: bool = True
+    exp: ExperimentFile, *, tasks: Sequence[str] | None = None, build_agents: bool = True
 ) -> list[Step]:
     """Every command of the experiment, checked by the commands' own parsers and configuration.
 
@@ -815,7 +695,7 @@ def experiment_plan(
 
 
 def _evolve_parts(
-    exp: Experiment, task: TaskLine | None, parser: Any, where: str
+    exp: ExperimentFile, task: TaskLine | None, parser: Any, where: str
 ) -> tuple[list[str], argparse.Namespace]:
     options = _stage(exp, "evolve", task)
     argv = ([] if task is None else ["--env-id", task.env_id]) + options_to_argv(
@@ -833,7 +713,7 @@ def _evolve_parts(
 _TENSORBOARD_IN_PLAN = "<ermrl run --tensorboard>"
 
 
-def _with_tensorboard(exp: Experiment, args: argparse.Namespace) -> None:
+def _with_tensorboard(exp: ExperimentFile, args: argparse.Namespace) -> None:
     """Give the parsed options of an evolve or test stage the ``--tensorboard`` that ``ermrl
     run --tensorboard`` will add, so the plan chooses, checks and estimates its backend as the
     command will."""
@@ -841,7 +721,7 @@ def _with_tensorboard(exp: Experiment, args: argparse.Namespace) -> None:
         args.tensorboard = _TENSORBOARD_IN_PLAN
 
 
-def _config_error(exp: Experiment, where: str, build: Callable[[], Any]) -> Any:
+def _config_error(exp: ExperimentFile, where: str, build: Callable[[], Any]) -> Any:
     from ermrl.envs import UnknownEnvError, UnsupportedObserveError
 
     try:
@@ -850,7 +730,7 @@ def _config_error(exp: Experiment, where: str, build: Callable[[], Any]) -> Any:
         raise ExperimentError(f"{where}: {err}") from None
 
 
-def _single_task_steps(exp: Experiment, task: TaskLine, build_agents: bool) -> list[Step]:
+def _single_task_steps(exp: ExperimentFile, task: TaskLine, build_agents: bool) -> list[Step]:
     from ermrl.runner._parsers import build_evolve_parser
     from ermrl.runner._resolve import config_from_args
 
@@ -929,7 +809,7 @@ def _validated(cls: type, given: Mapping[str, Any], where: str) -> dict[str, Any
 
 
 def _test_step(
-    exp: Experiment,
+    exp: ExperimentFile,
     task: TaskLine | None,
     study_name: str,
     config: Any,
@@ -1016,7 +896,7 @@ def _test_step(
 
 
 def _test_piece(
-    exp: Experiment, where: str, agents: Sequence[str], seeds: Sequence[int]
+    exp: ExperimentFile, where: str, agents: Sequence[str], seeds: Sequence[int]
 ) -> tuple[list[str], list[int]]:
     """The agents and seeds of a test stage that ``ermrl run --agents/--seeds`` keeps, in the
     file's order; one the stage does not list is refused."""
@@ -1037,7 +917,7 @@ def _test_piece(
 
 
 def _report_step(
-    exp: Experiment,
+    exp: ExperimentFile,
     task: TaskLine | None,
     study_name: str,
     runs: Path | None,
@@ -1061,7 +941,7 @@ def _report_step(
 
 
 def _evolve_request(
-    exp: Experiment, args: argparse.Namespace, config: Any, study_name: str, notes: list[str]
+    exp: ExperimentFile, args: argparse.Namespace, config: Any, study_name: str, notes: list[str]
 ) -> EvolveRequest:
     """What an evolve step runs: its configuration and the worker's options the file gives
     (``ermrl run``'s own are added when it runs)."""
@@ -1072,7 +952,7 @@ def _evolve_request(
 
 
 def _generalization_plan(
-    exp: Experiment, only: Sequence[str] | None, build_agents: bool
+    exp: ExperimentFile, only: Sequence[str] | None, build_agents: bool
 ) -> list[Step]:
     """The steps of a generalization file: evolve (and re-evaluate) on the task set, then test
     (and report) on each test task (``only``: these test tasks)."""
@@ -1103,7 +983,7 @@ def _generalization_plan(
 
 
 def _generalization_evolve_steps(
-    exp: Experiment, build_agents: bool
+    exp: ExperimentFile, build_agents: bool
 ) -> tuple[list[Step], EvolveConfig, str]:
     """A generalization file's evolve (and re-evaluate) steps, its configuration and study."""
     from ermrl.runner._parsers import build_evolve_generalization_parser
@@ -1206,7 +1086,7 @@ def _study(storage: str, study_name: str) -> Iterator[Any]:
 
 
 def _keep_study_backend(
-    exp: Experiment,
+    exp: ExperimentFile,
     where: str,
     args: argparse.Namespace,
     config: Any,
@@ -1229,7 +1109,7 @@ def _keep_study_backend(
     )
 
 
-def _check_study(exp: Experiment, config: Any, study_name: str, where: str) -> None:
+def _check_study(exp: ExperimentFile, config: Any, study_name: str, where: str) -> None:
     """Refuse a file whose evolution contradicts the study already in the storage: its problem
     and search space, how the search proposes candidates (`_SEARCH_MUST_MATCH`), and the
     settings of a re-evaluation already recorded."""
@@ -1387,7 +1267,7 @@ def _report_status(folder: Path, runs: Path | None) -> Callable[[], tuple[bool, 
     return status
 
 
-def resolved_document(exp: Experiment, steps: Sequence[Step]) -> dict[str, Any]:
+def resolved_document(exp: ExperimentFile, steps: Sequence[Step]) -> dict[str, Any]:
     """The experiment with every default filled in: each command's full options, as run."""
     commands: list[dict[str, Any]] = []
     for step in steps:
@@ -1436,12 +1316,12 @@ def _plain(value: Any) -> Any:
     return str(value)
 
 
-def snapshot_path(exp: Experiment, step: Step) -> Path:
+def snapshot_path(exp: ExperimentFile, step: Step) -> Path:
     """Where an evolution step's study snapshot lives: ``<publish or out>/<task>/study.json``."""
     return (exp.publish or exp.out) / step.label / "study.json"
 
 
-def hypothesis_of(exp: Experiment, file: str | None = None) -> Any:
+def hypothesis_of(exp: ExperimentFile, file: str | None = None) -> Any:
     """The experiment as a [`Hypothesis`][ermrl.analysis.Hypothesis] of the reproduction page."""
     from ermrl.analysis import Hypothesis, TaskFiles
 
@@ -1485,7 +1365,7 @@ def _planned_runs(step: Step) -> dict[str, tuple[int, ...]]:
     return planned
 
 
-def verdict_rule(exp: Experiment) -> Any:
+def verdict_rule(exp: ExperimentFile) -> Any:
     """The file's ``verdict:`` block as a [`VerdictRule`][ermrl.analysis.VerdictRule] (``None``:
     none).
 

@@ -15,8 +15,8 @@ from pathlib import Path
 from typing import Any
 
 from ermrl.runner._experiment import (
-    Experiment,
     ExperimentError,
+    ExperimentFile,
     Step,
     _study,
     format_duration,
@@ -38,7 +38,7 @@ __all__ = [
 
 
 def publish_step(
-    exp: Experiment, step: Step, max_bytes: int | None = None
+    exp: ExperimentFile, step: Step, max_bytes: int | None = None
 ) -> tuple[list[Path], list[Path]]:
     """Copy a finished test or report step's plain files to ``exp.publish``.
 
@@ -82,7 +82,7 @@ PUBLISH_MAX_BYTES = 1 << 20
 # Snapshots: a study as one plain JSON file, so a run continues on another machine
 
 
-def write_snapshots(exp: Experiment, steps: Sequence[Step]) -> list[tuple[Step, Path, int]]:
+def write_snapshots(exp: ExperimentFile, steps: Sequence[Step]) -> list[tuple[Step, Path, int]]:
     """Write a snapshot of every evolution study that exists (and its re-evaluation study).
 
     A study is read while workers may still write to it: what was COMPLETE stays so, and the
@@ -107,7 +107,7 @@ def write_snapshots(exp: Experiment, steps: Sequence[Step]) -> list[tuple[Step, 
     return out
 
 
-def import_snapshots(exp: Experiment, steps: Sequence[Step]) -> list[tuple[Step, Path, int]]:
+def import_snapshots(exp: ExperimentFile, steps: Sequence[Step]) -> list[tuple[Step, Path, int]]:
     """Import the snapshot of every evolution study the storage does not hold yet.
 
     Returns:
@@ -170,7 +170,7 @@ def _copy_run(src: Path, dest: Path, limit: int) -> bool:
     return True
 
 
-def publish_finished_runs(exp: Experiment, step: Step) -> int:
+def publish_finished_runs(exp: ExperimentFile, step: Step) -> int:
     """Publish the finished runs of a test step, finished or not, so another machine goes on.
 
     A test phase longer than one sitting is carried like an evolution: each finished run's
@@ -210,7 +210,7 @@ def publish_finished_runs(exp: Experiment, step: Step) -> int:
     )
 
 
-def restore_finished_runs(exp: Experiment, step: Step) -> tuple[int, list[tuple[str, int]]]:
+def restore_finished_runs(exp: ExperimentFile, step: Step) -> tuple[int, list[tuple[str, int]]]:
     """Put a test step's published finished runs back in its folder where it lacks them.
 
     The runs whose models the report replays (``step.replayed``) are trained again, a
@@ -273,7 +273,7 @@ def _restore_phase_records(source: Path, folder: Path) -> None:
             shutil.copyfile(source / name, folder / name)
 
 
-def write_snapshot_files(exp: Experiment, steps: Sequence[Step]) -> tuple[int, int]:
+def write_snapshot_files(exp: ExperimentFile, steps: Sequence[Step]) -> tuple[int, int]:
     """Everything ``ermrl run --snapshot`` writes: the evolution snapshots and the finished test
     runs. Returns ``(studies written, test runs published)``."""
     studies = write_snapshots(exp, steps)
@@ -292,7 +292,7 @@ class PeriodicSnapshots:
     """
 
     def __init__(
-        self, exp: Experiment, steps: Sequence[Step], every: float, stream: Any = None
+        self, exp: ExperimentFile, steps: Sequence[Step], every: float, stream: Any = None
     ) -> None:
         import threading
 
@@ -329,7 +329,7 @@ class PeriodicSnapshots:
             print(f"{failed} ({type(err).__name__}: {err})", file=self.stream, flush=True)
 
 
-def snapshot_status(exp: Experiment, step: Step) -> tuple[float, str] | None:
+def snapshot_status(exp: ExperimentFile, step: Step) -> tuple[float, str] | None:
     """For a study the storage lacks: the fraction of its budget left and what its snapshot holds.
 
     ``None``: no snapshot. The fraction counts the snapshot's finished trials as done, so the
@@ -351,7 +351,7 @@ def snapshot_status(exp: Experiment, step: Step) -> tuple[float, str] | None:
     return left, f"snapshot {path}: {done} finished trials, imported when run"
 
 
-def published_runs_status(exp: Experiment, step: Step) -> tuple[float, str] | None:
+def published_runs_status(exp: ExperimentFile, step: Step) -> tuple[float, str] | None:
     """For a test step on a machine that lacks some of its published finished runs: the
     fraction of its runs left to train and what the published folder holds.
 

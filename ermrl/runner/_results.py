@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
-from ermrl.runner._experiment import Experiment, Step, experiment_plan
+from ermrl.runner._experiment import ExperimentFile, Step, experiment_plan, load_experiment
 from ermrl.runner._run import DEFAULT_SNAPSHOT_EVERY, run_experiment, step_status
 
 if TYPE_CHECKING:
@@ -17,12 +18,11 @@ if TYPE_CHECKING:
     from ermrl._progress import ProgressMode
 
 __all__ = [
+    "Experiment",
     "ExperimentResult",
     "PlanStep",
     "TaskResult",
     "experiment_result",
-    "plan_steps",
-    "run_and_collect",
 ]
 
 
@@ -121,37 +121,7 @@ class ExperimentResult:
         return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame(columns=["task"])
 
 
-def plan_steps(exp: Experiment, tasks: Sequence[str] | None = None) -> list[PlanStep]:
-    """The plan of an experiment, checked as ``ermrl run --dry-run`` checks it.
-
-    Args:
-        exp: The experiment.
-        tasks: Only these tasks (for a generalization experiment: these test tasks).
-
-    Raises:
-        ExperimentError: A key or value the commands refuse, or a study that contradicts the
-            file (one line).
-    """
-    out = []
-    for step in experiment_plan(exp, tasks=tasks, build_agents=False):
-        done, _, text = step_status(exp, step)
-        out.append(
-            PlanStep(
-                stage=step.stage,
-                task=step.label,
-                command=step.command_line,
-                env_steps=step.env_steps,
-                seconds=step.seconds,
-                done=done,
-                status=text,
-                study_name=step.study_name,
-                folder=step.folder,
-            )
-        )
-    return out
-
-
-def experiment_result(exp: Experiment, steps: Sequence[Step]) -> ExperimentResult:
+def experiment_result(exp: ExperimentFile, steps: Sequence[Step]) -> ExperimentResult:
     """The results the steps of an experiment wrote so far, task by task.
 
     Args:
@@ -194,30 +164,140 @@ def experiment_result(exp: Experiment, steps: Sequence[Step]) -> ExperimentResul
     return ExperimentResult(name=exp.name, out=exp.out, tasks=tasks)
 
 
-def run_and_collect(
-    exp: Experiment,
-    *,
-    stages: Sequence[str] | None = None,
-    tasks: Sequence[str] | None = None,
-    progress: ProgressMode = "none",
-    quiet: bool = True,
-    tensorboard: str | Path | None = None,
-    snapshot_every: float = DEFAULT_SNAPSHOT_EVERY,
-    stream: TextIO | None = None,
-) -> ExperimentResult:
-    """Run an experiment's unfinished stages as ``ermrl run`` does and read back its results.
+@dataclass(frozen=True)
+class Experiment(ExperimentFile):
+    """An experiment file (variant applied), to plan, run and read back from Python.
 
-    See [`ermrl.Experiment.run`][ermrl.runner.Experiment.run] for the arguments.
+    Its fields are those of the parsed file ([`ExperimentFile`][ermrl.runner.ExperimentFile]:
+    ``name``, ``out``, ``storage``, ``stages``, ...); the plan and the stages read those, and
+    this class only adds what a Python caller does with them.
     """
-    steps = run_experiment(
-        exp,
-        stages=stages,
-        tasks=tasks,
-        progress=progress,
-        tensorboard=None if tensorboard is None else str(tensorboard),
-        snapshot_every=snapshot_every,
-        quiet=quiet,
-        quiet_stages=quiet,
-        stream=stream or sys.stdout,
-    )
-    return experiment_result(exp, steps)
+
+    @classmethod
+    def load(cls, path: str | Path, variant: str | None = None) -> Experiment:
+        """Read an experiment file and apply a variant
+        ([`load_experiment`][ermrl.runner.load_experiment]).
+
+        Args:
+            path: The YAML file. Its folders (``out``, ``storage``, ``publish``) are relative
+                to the working directory, as for ``ermrl run``.
+            variant: A key of its ``variants`` (e.g. ``"quick"``); its results go to
+                ``<out>/<variant>``. ``None``: the file as written.
+
+        Returns:
+            The experiment.
+
+        Raises:
+            ExperimentError: An unreadable file, an unknown key (with the nearest valid one),
+                a wrong type or an unknown variant, in one line naming the file.
+
+        Examples:
+            >>> import ermrl
+            >>> exp = ermrl.Experiment.load("experiments/demo.yaml")
+            >>> exp.name, str(exp.out)
+            ('demo', 'runs/demo')
+        """
+        file = load_experiment(path, variant)
+        return cls(**{f.name: getattr(file, f.name) for f in dataclasses.fields(file)})
+
+    def plan(self, tasks: Sequence[str] | None = None) -> list[PlanStep]:
+        """Every step ``run`` would take, checked, with what is done (nothing is written).
+
+        The same plan as ``ermrl run FILE --dry-run``: each stage's options are parsed by its
+        command's own parser, and a study already in the storage must match the file.
+
+        Args:
+            tasks: Only these tasks (for a generalization experiment: these test tasks); a
+                task the file does not list runs with the file's settings.
+
+        Returns:
+            One [`PlanStep`][ermrl.runner.PlanStep] per command, in the order they run.
+
+        Raises:
+            ExperimentError: A key or value the commands refuse, or a study that contradicts
+                the file (one line).
+        """
+        out = []
+        for step in experiment_plan(self, tasks=tasks, build_agents=False):
+            done, _, text = step_status(self, step)
+            out.append(
+                PlanStep(
+                    stage=step.stage,
+                    task=step.label,
+                    command=step.command_line,
+                    env_steps=step.env_steps,
+                    seconds=step.seconds,
+                    done=done,
+                    status=text,
+                    study_name=step.study_name,
+                    folder=step.folder,
+                )
+            )
+        return out
+
+    def run(
+        self,
+        stages: Sequence[str] | None = None,
+        tasks: Sequence[str] | None = None,
+        progress: ProgressMode = "none",
+        quiet: bool = True,
+        *,
+        tensorboard: str | Path | None = None,
+        snapshot_every: float = DEFAULT_SNAPSHOT_EVERY,
+        stream: TextIO | None = None,
+    ) -> ExperimentResult:
+        """Run the unfinished stages, exactly as ``ermrl run FILE`` does, and return the results.
+
+        Finished stages are skipped and an interrupted one resumes (the study and the run
+        folders are the state). Each stage runs its ``ermrl`` command in this process; with
+        ``quiet=False`` the plan and each stage's equivalent command line are printed.
+
+        Args:
+            stages: Only these stages (``evolve``, ``reevaluate``, ``test``, ``report``;
+                default: all, in order).
+            tasks: Only these tasks (for a generalization experiment: these test tasks).
+            progress: ``"bar"``, ``"lines"`` or ``"none"`` inside the evolve and test stages.
+            quiet: No plan, no stage lines, and ``--quiet`` for every stage's command.
+            tensorboard: Also log training curves for TensorBoard under this folder (the
+                evolve and test stages then train with the sb3 backend).
+            snapshot_every: With ``publish:`` in the file, write the snapshot every this many
+                seconds while it runs (0: never).
+            stream: Where the plan and the stage lines go (default ``sys.stdout``).
+
+        Returns:
+            The results per task: study, selected trial, test summary, report.
+
+        Raises:
+            ExperimentError: The file cannot run (one line), or its folder cannot be written.
+            StageFailed: A stage's command stopped with an error (its own line is on stderr);
+                run again to resume.
+            KeyboardInterrupt: Ctrl-C during a stage (finished trials and runs are kept).
+
+        Examples:
+            >>> result = ermrl.Experiment.load("experiments/demo.yaml").run()
+            >>> result["Pendulum-v1"].trial, result["Pendulum-v1"].summary
+        """
+        steps = run_experiment(
+            self,
+            stages=stages,
+            tasks=tasks,
+            progress=progress,
+            tensorboard=None if tensorboard is None else str(tensorboard),
+            snapshot_every=snapshot_every,
+            quiet=quiet,
+            quiet_stages=quiet,
+            stream=stream or sys.stdout,
+        )
+        return experiment_result(self, steps)
+
+    def result(self, tasks: Sequence[str] | None = None) -> ExperimentResult:
+        """What the experiment's results folder holds now, without running anything.
+
+        Args:
+            tasks: Only these tasks.
+
+        Raises:
+            ExperimentError: The file no longer matches its studies (see
+                [`plan`][ermrl.runner.Experiment.plan]).
+        """
+        return experiment_result(self, experiment_plan(self, tasks=tasks, build_agents=False))

@@ -31,8 +31,8 @@ from ermrl.runner._commands import (
 )
 from ermrl.runner._experiment import (
     DEFAULT_SNAPSHOT_EVERY,
-    Experiment,
     ExperimentError,
+    ExperimentFile,
     Step,
     experiment_plan,
     format_duration,
@@ -162,7 +162,7 @@ def stage_argv(
     return argv
 
 
-def step_status(exp: Experiment, step: Step) -> Status:
+def step_status(exp: ExperimentFile, step: Step) -> Status:
     """A step's status; for an evolution the storage lacks, what its snapshot holds; for a
     test phase, the published finished runs its folder lacks.
 
@@ -187,7 +187,7 @@ def step_status(exp: Experiment, step: Step) -> Status:
 
 
 def plan_experiment(
-    exp: Experiment,
+    exp: ExperimentFile,
     *,
     tasks: Sequence[str] | None = None,
     tensorboard: bool = False,
@@ -195,7 +195,7 @@ def plan_experiment(
     build_agents: bool = True,
     test_agents: Sequence[str] = (),
     test_seeds: Sequence[int] = (),
-) -> tuple[Experiment, list[Step], list[Status]]:
+) -> tuple[ExperimentFile, list[Step], list[Status]]:
     """Every step of an experiment, checked, with its status.
 
     Args:
@@ -264,7 +264,7 @@ def choose_stages(
     return [(s, st) for s, st in zip(steps, statuses) if s.stage in keep]
 
 
-def plan_lines(exp: Experiment, chosen: Sequence[tuple[Step, Status]]) -> list[str]:
+def plan_lines(exp: ExperimentFile, chosen: Sequence[tuple[Step, Status]]) -> list[str]:
     """The plan as ``ermrl run`` prints it: each command, its env steps, estimated wall time
     and status, then the totals.
 
@@ -305,7 +305,7 @@ def plan_lines(exp: Experiment, chosen: Sequence[tuple[Step, Status]]) -> list[s
 
 
 def write_snapshot_files_verbose(
-    exp: Experiment, steps: Sequence[Step], stream: TextIO | None = None
+    exp: ExperimentFile, steps: Sequence[Step], stream: TextIO | None = None
 ) -> None:
     """Write what ``ermrl run --snapshot`` writes, one line per file on ``stream``: each
     evolution study as ``study.json`` and each test step's finished runs.
@@ -330,7 +330,7 @@ def write_snapshot_files_verbose(
 
 
 def run_experiment(
-    exp: Experiment,
+    exp: ExperimentFile,
     *,
     stages: Sequence[str] | None = None,
     tasks: Sequence[str] | None = None,
@@ -400,7 +400,7 @@ def run_experiment(
 
 
 def run_plan(
-    exp: Experiment,
+    exp: ExperimentFile,
     steps: Sequence[Step],
     chosen: Sequence[tuple[Step, object]],
     *,
@@ -481,7 +481,7 @@ def remove_if_untouched(created: Sequence[Path]) -> None:
 
 
 def _write_and_run(
-    exp: Experiment,
+    exp: ExperimentFile,
     steps: Sequence[Step],
     chosen: Sequence[Step],
     *,
@@ -523,7 +523,7 @@ def _write_and_run(
         )
 
 
-def _bring_back(exp: Experiment, steps: Sequence[Step], stream: TextIO) -> None:
+def _bring_back(exp: ExperimentFile, steps: Sequence[Step], stream: TextIO) -> None:
     """Import the published study snapshots the storage lacks and restore the published
     finished test runs the run folders lack, one line each."""
     for step, path, n in import_snapshots(exp, steps):
@@ -550,7 +550,7 @@ def _bring_back(exp: Experiment, steps: Sequence[Step], stream: TextIO) -> None:
 
 
 def _run_steps(
-    exp: Experiment,
+    exp: ExperimentFile,
     chosen: Sequence[Step],
     progress: str | None,
     tensorboard: str | None,
