@@ -1212,6 +1212,197 @@ def failed_run_stage_test(ctx: Ctx) -> None:
 # -- the case table --------------------------------------------------------------------------------
 
 
+# -- 13-19. round four: study names, deep YAML, snapshot edits, symlink loops, publish, Python --
+
+
+ESCAPING = "../../x/ü y"
+TERMINAL = "a\nb\x1b[31mred"
+
+
+def study_name(kind: str) -> Callable[[Ctx], None]:
+    """A study name that leads out of runs/ or holds terminal escapes: refused at creation and
+    import; a study Optuna itself named so is listed escaped, and no folder is built from it."""
+
+    def run(ctx: Ctx) -> None:
+        name = ESCAPING if kind.startswith("escaping") else TERMINAL
+        if kind.endswith("-evolve"):
+            unnamed = EVOLVE[: EVOLVE.index("--study-name")] + EVOLVE[EVOLVE.index("--progress") :]
+            proc = ctx.cli("evolve", *unnamed, "--storage", "sqlite:///s.db", "--study-name",
+                           name, "--n-trials", "1")  # fmt: skip
+            ctx.expect(proc, 2, "study name")
+            if (ctx.folder / "s.db").exists():
+                ctx.other.append("evolve created the storage of a refused name")
+            return
+        import optuna
+
+        ctx.seeds.copy("runs", ctx.folder)
+        optuna.logging.set_verbosity(optuna.logging.WARNING)
+        url = f"sqlite:///{ctx.folder / 's.db'}"
+        optuna.copy_study(from_study_name="s", from_storage=url, to_storage=url,
+                          to_study_name=name)  # fmt: skip
+        listed = ctx.cli("study", "list", "--storage", "sqlite:///s.db")
+        ctx.expect(listed, 0)
+        if "\x1b" in listed.out + listed.err:
+            ctx.other.append("study list printed a terminal escape raw")
+        work = ctx.folder / "a" / "b"
+        work.mkdir(parents=True)
+        before = listing(ctx.folder)
+        for command in ("test", "report"):
+            extra = ["--training-steps", "128", "--seeds", "20"] if command == "test" else []
+            done = subprocess.run(
+                [sys.executable, "-m", "ermrl", command, "--storage", url,
+                 "--study-name", name, *extra], cwd=work, env=ctx.env(), capture_output=True,
+                text=True, timeout=ctx.timeout, check=False,
+            )  # fmt: skip
+            proc = Proc([command], done.returncode, done.stdout, done.stderr, 0.0)
+            ctx.procs.append(proc)
+            ctx.expect(proc, 2, "--out")
+        after = listing(ctx.folder)
+        ctx.left += [f"test/report: {p}" for p in after if p not in before and p != "a/b"]
+
+    return run
+
+
+DEEP = "a: " + "[" * 600 + "]" * 600 + "\n"
+
+
+def deep_yaml(command: str) -> Callable[[Ctx], None]:
+    """YAML nested 600 deep, wherever ermrl reads YAML: one line, exit 2."""
+
+    def run(ctx: Ctx) -> None:
+        (ctx.folder / "d.yaml").write_text(DEEP)
+        base = ["--storage", "sqlite:///s.db", "--n-trials", "1"]
+        args = {
+            "run": ["run", "d.yaml", "--dry-run"],
+            "hyperparams": ["evolve", *EVOLVE, *base, "--hyperparams", "d.yaml"],
+            "ppo": ["evolve", *EVOLVE[: EVOLVE.index("--ppo")], *base,
+                    "--ppo", "policy_kwargs=" + "[" * 600 + "]" * 600],
+            "suites-file": ["evolve-generalization", "--suites-file", "d.yaml", "--suite", "x",
+                            *base],
+        }[command]  # fmt: skip
+        ctx.expect(ctx.cli(*args, storage="sqlite:///s.db"), 2)
+
+    return run
+
+
+def snapshot_edit(kind: str) -> Callable[[Ctx], None]:
+    """A hand-edited snapshot that would import a study ermrl misreads: refused in one line."""
+
+    def run(ctx: Ctx) -> None:
+        ctx.seeds.copy("sqlite", ctx.folder)
+        proc = ctx.cli("study", "export", "--storage", "sqlite:///s.db", "--study-name", "s",
+                       "--out", "s.json")  # fmt: skip
+        doc = json.loads((ctx.folder / "s.json").read_text())
+        if kind == "minimize":
+            doc["directions"] = ["MINIMIZE"]
+        elif kind == "infinity":
+            done = [t for t in doc["trials"] if t.get("values")]
+            done[0]["values"] = [float("inf")]
+        else:
+            doc["study_name"] = "x" * 3000
+        (ctx.folder / "s.json").write_text(json.dumps(doc))
+        proc = ctx.cli("study", "import", "--storage", "sqlite:///t.db", "--snapshot", "s.json",
+                       storage="sqlite:///t.db")  # fmt: skip
+        ctx.expect(proc, 2)
+        if (ctx.folder / "t.db").exists() and sqlite_rows(ctx.folder / "t.db",
+                                                          "SELECT COUNT(*) FROM studies")[0][0]:
+            ctx.other.append("the edited snapshot was imported")  # fmt: skip
+
+    return run
+
+
+def symlink_loop(command: str) -> Callable[[Ctx], None]:
+    """An output folder that is a symbolic link to itself: one line, exit 2."""
+
+    def run(ctx: Ctx) -> None:
+        ctx.seeds.copy("runs", ctx.folder)
+        (ctx.folder / "loop").symlink_to("loop")
+        common = ["--storage", "sqlite:///s.db", "--study-name", "s"]
+        args = {
+            "test": ["test", *common, "--training-steps", "128", "--seeds", "20", "--out", "loop"],
+            "report": ["report", *common, "--runs", "runs/s", "--out", "loop", "--no-dynamics"],
+            "export": ["study", "export", *common, "--out", "loop"],
+        }[command]
+        ctx.expect(ctx.cli(*args, storage="sqlite:///s.db"), 2)
+
+    return run
+
+
+def publish_fault(kind: str) -> Callable[[Ctx], None]:
+    """The experiment's publish folder is read-only or full: one line, the experiment goes on,
+    no partial file under a final name, and a rerun publishes once the folder is writable."""
+
+    def run(ctx: Ctx) -> None:
+        import yaml
+
+        ctx.seeds.copy("experiment", ctx.folder)
+        doc = {**EXPERIMENT, "publish": "pub"}
+        (ctx.folder / "exp.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
+        pub = ctx.folder / "pub"
+        free = 0 if kind == "full" else 64
+        with tmpfs(pub, 256, free):
+            if kind == "read-only":
+                subprocess.run(["mount", "-o", "remount,ro", str(pub)], check=True)
+            proc = ctx.cli("run", "exp.yaml", "--quiet", storage="ermrl.db", check_files=False)
+            ctx.expect(proc, 0, one_line=False)
+            if not (ctx.folder / "runs/tiny/CartPole-v1/test/summary.csv").is_file():
+                ctx.other.append("the test stage did not run after the failed publish")
+            for path in pub.rglob("*"):
+                if path.is_file() and path.name.endswith((".png", ".csv", ".json")):
+                    try:
+                        if path.suffix == ".json":
+                            json.loads(path.read_text())
+                        elif path.suffix == ".png" and not path.read_bytes().endswith(
+                            b"IEND\xaeB`\x82"):
+                            ctx.other.append(f"partial {path.relative_to(pub)}")
+                    except (ValueError, OSError):
+                        ctx.other.append(f"partial {path.relative_to(pub)}")
+        proc = ctx.cli("run", "exp.yaml", "--quiet", storage="ermrl.db")  # pub is a folder now
+        ctx.expect(proc, 0, one_line=False)
+        if not any(pub.rglob("summary.csv")):
+            ctx.other.append("the rerun did not publish")
+
+    return run
+
+
+PY_CALLS = {
+    "test-seeds-string": "ermrl.test('s', URL, seeds='10')",
+    "test-misspelled": "ermrl.test('s', URL, training_step=100)",
+    "test-options-dict": "ermrl.test('s', URL, options={})",
+    "test-storage-number": "ermrl.test('s', 5)",
+    "evolve-number": "ermrl.evolve(42, URL)",
+    "evolve-storage-none": "ermrl.evolve('CartPole-v1', storage=None)",
+    "evolve-misspelled": "ermrl.evolve('CartPole-v1', URL, n_trails=3)",
+    "evolve-escaping-name": f"ermrl.evolve('CartPole-v1', URL, {ESCAPING!r})",
+    "experiment-number": "ermrl.Experiment.load(5)",
+    "report-out-file": "ermrl.report('s', URL, out='s.db')",
+    "report-runs-missing": "ermrl.report('s', URL, runs='runs/nosuch')",
+    "report-band": "ermrl.report('s', URL, band='ci9')",
+}
+
+
+def python_call(kind: str) -> Callable[[Ctx], None]:
+    """A bad call of the Python API: a one-line ermrl.ConfigError, never an internal error."""
+
+    def run(ctx: Ctx) -> None:
+        ctx.seeds.copy("sqlite", ctx.folder)
+        code = (
+            "import sys, ermrl\nURL = 'sqlite:///s.db'\ntry:\n    "
+            + PY_CALLS[kind]
+            + "\nexcept ermrl.ConfigError as err:\n    print(err, file=sys.stderr)\n"
+            "    raise SystemExit(2 if len(str(err).splitlines()) == 1 else 3)\n"
+        )
+        before = listing(ctx.folder)
+        done = subprocess.run([sys.executable, "-c", code], cwd=ctx.folder, env=ctx.env(),
+                              capture_output=True, text=True, timeout=ctx.timeout, check=False)  # fmt: skip
+        proc = Proc([f"python:{kind}"], done.returncode, done.stdout, done.stderr, 0.0)
+        ctx.procs.append(proc)
+        ctx.expect(proc, 2)
+        ctx.note_left(before, "sqlite:///s.db", proc.args[0])
+
+    return run
+
+
 def cases() -> list[Case]:
     table = [
         *(Case("1-hot-journal", a, hot_journal(a)) for a in ("show", "evolve", "repair")),
@@ -1261,6 +1452,13 @@ def cases() -> list[Case]:
         *(Case("12-memory-url", u.removeprefix("sqlite:///"), memory_url(u)) for u in MEMORY_URLS),
         Case("12-failed-command", "test-no-episode", failed_test_phase),
         Case("12-failed-command", "run-stage-test-first", failed_run_stage_test),
+        *(Case("13-study-name", k, study_name(k))
+          for k in ("escaping-evolve", "terminal-evolve", "escaping-shared", "terminal-shared")),
+        *(Case("14-deep-yaml", c, deep_yaml(c)) for c in ("run", "hyperparams", "ppo", "suites-file")),
+        *(Case("15-snapshot-edit", k, snapshot_edit(k)) for k in ("minimize", "infinity", "long-name")),
+        *(Case("16-symlink-loop", c, symlink_loop(c)) for c in ("test", "report", "export")),
+        *(Case("17-publish", k, publish_fault(k), ("root",), 300) for k in ("read-only", "full")),
+        *(Case("18-python-api", k, python_call(k)) for k in PY_CALLS),
     ]  # fmt: skip
     return table
 
