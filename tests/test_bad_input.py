@@ -229,6 +229,22 @@ def test_test_out_is_a_file(study_url, tmp_path, capsys):  # noqa: ANN001
     assert "is a file" in err
 
 
+@pytest.mark.parametrize("under", ["", "sub"])
+def test_test_out_on_a_symlink_loop(study_url, tmp_path, capsys, under):  # noqa: ANN001
+    """``ln -s loop loop; ermrl test --out loop`` (or ``loop/sub``) used to stop with a
+    FileExistsError traceback; ``report``, ``export`` and ``evolve`` already said it in one line.
+    Nothing is written, and the link stays as it was."""
+    from ermrl.cli._test import test_main
+
+    loop = tmp_path / "loop"
+    loop.symlink_to("loop")
+    before = sorted(p.name for p in tmp_path.iterdir())
+    err = _refused(test_main, _test_argv(study_url, loop / under if under else loop), capsys)
+    assert f"{loop} is a symbolic link that cannot be followed (Too many levels" in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
+    assert os.readlink(loop) == "loop"
+
+
 def test_test_out_read_only(study_url, tmp_path, capsys):  # noqa: ANN001
     from ermrl.cli._test import test_main
 

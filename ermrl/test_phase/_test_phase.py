@@ -652,12 +652,20 @@ def check_out_folder(out: str | Path) -> None:
         out: The test phase's ``--out``; it may not exist yet.
 
     Raises:
-        ConfigError: ``out`` (or the nearest part of it that exists) is not a folder, or is
-            not writable.
+        ConfigError: ``out`` (or the nearest part of it that exists) is not a folder, is
+            not writable, or is a symbolic link that leads nowhere (a loop, a missing target).
     """
     out = Path(out)
     existing = out
     while not existing.exists() and existing.parent != existing:
+        if existing.is_symlink():  # its name exists: it could not be created
+            try:
+                existing.stat()
+            except OSError as err:
+                raise ConfigError(
+                    f"--out {out}: {existing} is a symbolic link that cannot be followed "
+                    f"({err.strerror or err})"
+                ) from None
         existing = existing.parent
     if not existing.is_dir():
         raise ConfigError(f"--out {out}: {existing} is a file, not a folder")
