@@ -911,10 +911,12 @@ def test_a_publish_folder_read_only_or_full_is_one_line_and_the_next_run_publish
         done = ermrl(tmp_path, "run", str(path), "--progress", "none")
         assert done.returncode == 0 and "Traceback" not in done.stderr, done.stderr
         lines = [line for line in done.stderr.splitlines() if line.startswith("not published")]
-        assert [line.split(" results")[0] for line in lines] == [
-            f"not published: the {stage}" for stage in ("evolve", "test", "report")
+        assert [line.split(" to ")[0] for line in lines] == [
+            f"not published: the {what} of Pendulum-v1"
+            for what in ("study snapshot", "test", "report")
         ], done.stderr
-        assert "(Read-only file system); they stay in runs/tiny" in lines[0]
+        assert "(Read-only file system); kept in sqlite:///runs/tiny/ermrl.db" in lines[0]
+        assert lines[1].endswith("kept in runs/tiny, the next run publishes it")
         assert (out / "test" / "summary.csv").exists() and (out / "report" / "report.md").exists()
 
         def remount(*options: str) -> None:

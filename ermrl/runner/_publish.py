@@ -114,9 +114,12 @@ def publish_results(exp: Experiment, step: Step, stream: Any, finished: bool = T
                     flush=True,
                 )
     except OSError as err:
+        what, kept = (
+            ("study snapshot", exp.storage) if step.stage == "evolve" else (step.stage, exp.out)
+        )
         print(
-            f"not published: the {step.stage} results of {step.label} to {exp.publish} "
-            f"({err.strerror or err}); they stay in {exp.out}, the next run publishes them",
+            f"not published: the {what} of {step.label} to {exp.publish} "
+            f"({err.strerror or err}); kept in {kept}, the next run publishes it",
             file=sys.stderr,
             flush=True,
         )
