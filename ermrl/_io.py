@@ -1,4 +1,5 @@
-"""Writing files atomically: readers (other SLURM tasks, a live view) never see half a file."""
+"""Reading YAML with a depth limit, and writing files atomically: readers (other SLURM tasks,
+a live view) never see half a file."""
 
 from __future__ import annotations
 
@@ -11,10 +12,54 @@ import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
+
+import yaml
 
 from ermrl._interrupt import raise_swallowed_signal
 
-__all__ = ["staged_folder", "write_atomic"]
+__all__ = ["MAX_YAML_DEPTH", "load_yaml", "staged_folder", "write_atomic"]
+
+#: The deepest nesting of lists and mappings a YAML document may have (settings need a few).
+MAX_YAML_DEPTH = 50
+
+
+def load_yaml(text: str, loader: type[yaml.SafeLoader] = yaml.SafeLoader) -> Any:
+    """Read a YAML document with a safe loader, refusing one nested too deeply.
+
+    PyYAML reads nested lists and mappings recursively: ``[[[...]]]`` 500 deep stops it with
+    a `RecursionError`. Every YAML that ermrl reads (experiment files, hyperparameter and
+    suite files, ``--ppo`` values) comes through here, so the limit is checked once, on the
+    parser's events, before anything is built.
+
+    Args:
+        text: The document.
+        loader: `yaml.SafeLoader` or a subclass of it.
+
+    Returns:
+        The document's value.
+
+    Raises:
+        yaml.YAMLError: not valid YAML, or lists and mappings nested deeper than
+            `MAX_YAML_DEPTH` (one line, with the line it happens on).
+
+    Examples:
+        >>> load_yaml("a: [1, {b: 2}]")
+        {'a': [1, {'b': 2}]}
+    """
+    depth = 0
+    for event in yaml.parse(text, Loader=loader):
+        if isinstance(event, (yaml.SequenceStartEvent, yaml.MappingStartEvent)):
+            depth += 1
+            if depth > MAX_YAML_DEPTH:
+                at = event.start_mark  # its line and column, without PyYAML's snippet
+                raise yaml.MarkedYAMLError(
+                    problem=f"lists and mappings nested deeper than {MAX_YAML_DEPTH} levels",
+                    problem_mark=yaml.Mark(at.name, at.index, at.line, at.column, None, None),
+                )
+        elif isinstance(event, (yaml.SequenceEndEvent, yaml.MappingEndEvent)):
+            depth -= 1
+    return yaml.load(text, Loader=loader)  # noqa: S506 (a safe loader)
 
 
 def write_atomic(path: str | Path, data: str | bytes) -> None:

@@ -142,6 +142,46 @@ def test_malformed_suites_file_is_one_line(tmp_path, capsys):  # noqa: ANN001
     assert not (tmp_path / "s.db").exists()
 
 
+# -- deeply nested YAML ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("reader", ["run", "hyperparams", "ppo", "suites"])
+def test_deeply_nested_yaml_is_one_line(tmp_path, capsys, reader):  # noqa: ANN001
+    """``[[[...]]]`` 500 deep used to stop every YAML reader with a RecursionError traceback;
+    each reads through ``ermrl._io.load_yaml``, which refuses nesting past its limit."""
+    from ermrl.cli._run import run_main
+
+    deep = tmp_path / "d.yaml"
+    deep.write_text("a: " + "[" * 500 + "]" * 500 + "\n")
+    argv = {
+        "run": (run_main, [str(deep), "--dry-run"]),
+        "hyperparams": (evolve_main, _evolve(tmp_path, "--hyperparams", str(deep))),
+        "ppo": (evolve_main, _evolve(tmp_path, "--ppo", "policy_kwargs=" + "[" * 600 + "]" * 600)),
+        "suites": (
+            evolve_generalization_main,
+            [*_generalization(tmp_path, "--suites-file", str(deep))[3:], "--suite", "a"],
+        ),
+    }
+    main, args = argv[reader]
+    err = _refused(main, args, capsys)
+    assert "nested deeper than 50 levels" in err and "line 1" in err, err
+    assert not (tmp_path / "s.db").exists()
+
+
+def test_every_yaml_reader_goes_through_load_yaml() -> None:
+    """The depth limit is checked in one place: no other module calls PyYAML's loaders."""
+    import re
+
+    root = Path(__file__).resolve().parents[1] / "ermrl"
+    calls = re.compile(r"yaml\.(safe_load|load|full_load|unsafe_load|load_all|safe_load_all)\(")
+    found = [
+        str(path.relative_to(root))
+        for path in root.rglob("*.py")
+        if path.name != "_io.py" and calls.search(path.read_text())
+    ]
+    assert found == []
+
+
 # -- test phase -----------------------------------------------------------------------------------
 
 
@@ -187,6 +227,22 @@ def test_test_out_is_a_file(study_url, tmp_path, capsys):  # noqa: ANN001
     assert out.read_text() == "mine\n"
     err = _refused(test_main, _test_argv(study_url, out / "sub"), capsys)
     assert "is a file" in err
+
+
+@pytest.mark.parametrize("under", ["", "sub"])
+def test_test_out_on_a_symlink_loop(study_url, tmp_path, capsys, under):  # noqa: ANN001
+    """``ln -s loop loop; ermrl test --out loop`` (or ``loop/sub``) used to stop with a
+    FileExistsError traceback; ``report``, ``export`` and ``evolve`` already said it in one line.
+    Nothing is written, and the link stays as it was."""
+    from ermrl.cli._test import test_main
+
+    loop = tmp_path / "loop"
+    loop.symlink_to("loop")
+    before = sorted(p.name for p in tmp_path.iterdir())
+    err = _refused(test_main, _test_argv(study_url, loop / under if under else loop), capsys)
+    assert f"{loop} is a symbolic link that cannot be followed (Too many levels" in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
+    assert os.readlink(loop) == "loop"
 
 
 def test_test_out_read_only(study_url, tmp_path, capsys):  # noqa: ANN001

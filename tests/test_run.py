@@ -895,6 +895,54 @@ def test_publishing_leaves_out_files_over_the_size_limit(tmp_path: Path) -> None
     assert (dest / "report.html").exists() and left_out == []
 
 
+def test_a_publish_folder_read_only_or_full_is_one_line_and_the_next_run_publishes(
+    tmp_path: Path,
+) -> None:
+    """Publishing copies results that exist locally: a read-only or full published folder (real
+    tmpfs mounts) is one line per step, the experiment goes on to its test and report, no
+    published file is ever partial (each is renamed into place whole), and a rerun publishes.
+    It used to stop with an OSError traceback after the evolution, on every rerun, and a
+    nearly full disk left a truncated ``learning_curves.png`` under its final name."""
+    from tests.test_bad_input import _tmpfs
+
+    path = write(tmp_path, {**TINY, "publish": "published"})
+    out = tmp_path / "runs" / "tiny" / "Pendulum-v1"
+    with _tmpfs(tmp_path / "published", "ro", "size=1m") as published:
+        done = ermrl(tmp_path, "run", str(path), "--progress", "none")
+        assert done.returncode == 0 and "Traceback" not in done.stderr, done.stderr
+        lines = [line for line in done.stderr.splitlines() if line.startswith("not published")]
+        assert [line.split(" to ")[0] for line in lines] == [
+            f"not published: the {what} of Pendulum-v1"
+            for what in ("study snapshot", "test", "report")
+        ], done.stderr
+        assert "(Read-only file system); kept in sqlite:///runs/tiny/ermrl.db" in lines[0]
+        assert lines[1].endswith("kept in runs/tiny, the next run publishes it")
+        assert (out / "test" / "summary.csv").exists() and (out / "report" / "report.md").exists()
+
+        def remount(*options: str) -> None:
+            mount = ["mount", "-o", ",".join(("remount", *options)), str(published)]
+            subprocess.run(mount, check=True)
+
+        remount("rw", "size=128k")  # room for the snapshot and part of the rest
+        again = ermrl(tmp_path, "run", str(path), "--progress", "none")
+        assert again.returncode == 0 and "Traceback" not in again.stderr, again.stderr
+        assert "(No space left on device)" in again.stderr, again.stderr
+        copies = [f for f in published.rglob("*") if f.is_file()]
+        assert copies and not [f for f in copies if f.name.startswith(".")], copies
+        for copy in copies:  # each whole: the snapshot, or a copy of its local file
+            rel = copy.relative_to(published / "Pendulum-v1")
+            if rel.name == "study.json":
+                assert len(json.loads(copy.read_text())["trials"]) == 3
+            else:
+                assert copy.read_bytes() == (out / rel).read_bytes(), rel
+
+        remount("size=16m")
+        last = ermrl(tmp_path, "run", str(path), "--progress", "none")
+        assert last.returncode == 0 and "not published" not in last.stderr, last.stderr
+        for name in ("test/summary.csv", "test/learning_curves.png", "report/report.md"):
+            assert (published / "Pendulum-v1" / name).read_bytes() == (out / name).read_bytes()
+
+
 # -- files that are not plain short YAML, and settings that are not folders ------------------
 
 

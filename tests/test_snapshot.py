@@ -358,6 +358,10 @@ def _break(doc: dict[str, Any], how: str) -> str | dict[str, Any]:
         trial["number"] = 5
     elif how == "bad date":
         trial["datetime_start"] = "yesterday"
+    elif how == "minimize":  # resumed, the "best" trial would be the worst
+        doc["directions"] = ["MINIMIZE"]
+    elif how == "infinite value":  # imported, it would be the best, shown as "fitness -"
+        trial["values"] = [math.inf]
     return doc
 
 
@@ -376,6 +380,8 @@ BROKEN = (
     ("complete without values", "values should be set"),
     ("gap in numbers", "must be numbered 0, 1"),
     ("bad date", "datetime_start"),
+    ("minimize", "'directions' is ['MINIMIZE']; ermrl's studies maximize"),
+    ("infinite value", "trial 1: 'values' must be finite, got [inf]"),
 )
 
 

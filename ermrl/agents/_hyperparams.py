@@ -13,6 +13,7 @@ from typing import Any
 import yaml
 from stable_baselines3 import PPO, SAC
 
+from ermrl._io import load_yaml
 from ermrl.config import (
     ConfigError,
     EncoderConfig,
@@ -78,7 +79,7 @@ def parse_normalize(value: Any, where: str = "normalize") -> NormalizeConfig | N
     """
     if isinstance(value, str):
         try:
-            value = yaml.safe_load(value)
+            value = load_yaml(value)
         except yaml.YAMLError:
             pass  # reported below as not a mapping
     if value is None or value is False:
@@ -127,7 +128,7 @@ def load_hyperparams_table(
         except UnicodeDecodeError:
             raise ConfigError(f"hyperparameter file {path} is not a text (UTF-8) file") from None
     try:
-        table = yaml.safe_load(text) or {}
+        table = load_yaml(text) or {}
     except yaml.YAMLError as err:  # malformed, or a tag such as !!python/object (refused)
         raise ConfigError(
             f"hyperparameter file {path} is not valid plain YAML: {_one_line(err)}"
@@ -237,9 +238,11 @@ def parse_overrides(items: Sequence[str], learner: str | None = None) -> dict[st
             raise ConfigError(f"PPO override {item!r} is not KEY=VALUE (or KEY:VALUE)")
         key, raw = split
         try:
-            out[key] = _coerce(yaml.safe_load(raw))
+            out[key] = _coerce(load_yaml(raw))
         except yaml.YAMLError as err:
-            raise ConfigError(f"PPO override {item!r}: cannot parse value") from err
+            raise ConfigError(
+                f"PPO override {key!r}: cannot parse value ({_one_line(err)})"
+            ) from None
     if learner is None:
         _check_keys(out, "--ppo")
     else:

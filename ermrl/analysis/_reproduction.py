@@ -31,8 +31,8 @@ from pathlib import Path
 from typing import Any
 
 import pandas as pd
-import yaml
 
+from ermrl._io import load_yaml
 from ermrl.analysis._mechanism import (
     ABLATED,
     MECHANISM_FILE,
@@ -275,7 +275,7 @@ def _selection(test: Path) -> dict[str, Any]:
     config = test / "config.yaml"
     if not config.exists():
         return {}
-    doc = yaml.safe_load(config.read_text()) or {}
+    doc = load_yaml(config.read_text()) or {}
     agents = doc.get("agents") or {}
     return {
         "trial": doc.get("trial"),

@@ -386,6 +386,7 @@ def load_run_config(out: str | Path) -> dict[str, Any]:
     """
     import yaml
 
+    from ermrl._io import load_yaml
     from ermrl.envs import check_registered_env_id
 
     path = Path(out) / CONFIG_FILE
@@ -394,7 +395,7 @@ def load_run_config(out: str | Path) -> dict[str, Any]:
             f"{path} not found: {out} is not a test-phase folder (made by `ermrl test --out`)"
         )
     try:
-        config = yaml.safe_load(_read_text(path))
+        config = load_yaml(_read_text(path))
     except yaml.YAMLError as err:
         where = getattr(err, "problem_mark", None)
         line = f" at line {where.line + 1}" if where is not None else ""

@@ -20,6 +20,7 @@ from typing import Any
 import yaml
 
 from ermrl._config_base import ConfigError
+from ermrl._io import load_yaml
 
 __all__ = [
     "Suite",
@@ -109,7 +110,7 @@ def load_suites(path: str | os.PathLike[str] | None = None) -> dict[str, Suite]:
         ConfigError: the file cannot be read or is malformed.
     """
     text = resources.files("ermrl").joinpath("data/suites.yml").read_text()
-    suites = _parse(yaml.safe_load(text), "packaged")
+    suites = _parse(load_yaml(text), "packaged")
     if path is not None:
         try:
             user_text = Path(path).read_text()
@@ -118,7 +119,7 @@ def load_suites(path: str | os.PathLike[str] | None = None) -> dict[str, Suite]:
         except UnicodeDecodeError:
             raise ConfigError(f"suite file {path} is not a text (UTF-8) file") from None
         try:
-            user = yaml.safe_load(user_text)
+            user = load_yaml(user_text)
         except yaml.YAMLError as err:
             # PyYAML's message spans several lines (the offending line and a caret).
             message = " ".join(str(err).split())

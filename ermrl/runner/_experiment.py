@@ -40,6 +40,7 @@ from typing import TYPE_CHECKING, Any
 
 import yaml
 
+from ermrl._io import load_yaml
 from ermrl._schema import keys_of, nearest, to_argv, validate
 from ermrl.config import ConfigError
 from ermrl.runner._requests import (
@@ -259,7 +260,7 @@ def _read_document(path: Path) -> Mapping[str, Any]:
     """
     text = _read_text(path)
     try:
-        doc = yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 (a safe loader)
+        doc = load_yaml(text, _UniqueKeyLoader)
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None)
         where = f" line {mark.line + 1}" if mark is not None else ""
@@ -540,7 +541,7 @@ def _throughput_table() -> dict[str, Any]:
     from importlib import resources
 
     text = resources.files("ermrl.data").joinpath("throughput.yml").read_text()
-    return dict(yaml.safe_load(text))
+    return dict(load_yaml(text))
 
 
 def throughput(env_id: str, backend: str, n_procs: int, learner: str = "ppo") -> float:

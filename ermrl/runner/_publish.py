@@ -5,6 +5,12 @@ repository keeps (never databases or models): each evolution study as one JSON s
 each finished test run's ``settings.json``, ``episodes.csv`` and ``result.json``. The next
 ``ermrl run`` of the file imports the snapshots, puts the runs back and goes on; its plan
 already counts them (`snapshot_status`, `published_runs_status`).
+
+Every published file is written to a temporary name and renamed (`ermrl._io.write_atomic`),
+so a reader of the folder never sees half a file. Publishing copies results that stay in the
+experiment's own folders: a published folder that cannot be written (read-only, full) is one
+line saying what was not published (`publish_results`), the experiment goes on, and the next
+run of the file publishes again.
 """
 
 from __future__ import annotations
@@ -14,6 +20,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from ermrl._io import write_atomic
 from ermrl.runner._experiment import (
     ExperimentError,
     ExperimentFile,
@@ -28,6 +35,7 @@ __all__ = [
     "PeriodicSnapshots",
     "import_snapshots",
     "publish_finished_runs",
+    "publish_results",
     "publish_step",
     "published_runs_status",
     "restore_finished_runs",
@@ -51,9 +59,10 @@ def publish_step(
 
     Returns:
         ``(written, left_out)``: the files written, and the files too large to publish.
-    """
-    import shutil
 
+    Raises:
+        OSError: a file cannot be written; the files already published stay whole.
+    """
     if exp.publish is None or step.folder is None or not step.folder.exists():
         return [], []
     limit = PUBLISH_MAX_BYTES if max_bytes is None else max_bytes
@@ -67,10 +76,53 @@ def publish_step(
             continue
         rel = src.relative_to(step.folder)
         target = dest / rel
-        target.parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(src, target)
+        _copy(src, target)
         written.append(target)
     return written, left_out
+
+
+def _copy(src: Path, dest: Path) -> None:
+    """Copy a file under a temporary name renamed to ``dest``, unless ``dest`` is the same."""
+    data = src.read_bytes()
+    if not (dest.is_file() and dest.read_bytes() == data):
+        write_atomic(dest, data)
+
+
+def publish_results(exp: Experiment, step: Step, stream: Any, finished: bool = True) -> None:
+    """Publish what a step leaves; what was not published is one line, never an error.
+
+    A finished evolution writes its study snapshot (`write_snapshots`), a finished test or
+    report step its plain files (`publish_step`), and a test step that stopped its finished
+    runs (`publish_finished_runs`, ``finished=False``). A file too large to publish is one
+    line on ``stream``; a published folder that cannot be written (read-only, full) is one
+    line on stderr: the results stay in ``exp.out`` and the next run of the file publishes
+    them (a finished step publishes again when a run skips it).
+    """
+    if exp.publish is None:
+        return
+    try:
+        if not finished:
+            publish_finished_runs(exp, step)
+        elif step.stage == "evolve":
+            write_snapshots(exp, [step])
+        elif step.stage in ("test", "report"):
+            for path in publish_step(exp, step)[1]:
+                print(
+                    f"not published: {path} ({path.stat().st_size / 2**20:.1f} MiB, over "
+                    f"{PUBLISH_MAX_BYTES / 2**20:.0f} MiB); it stays in {exp.out}",
+                    file=stream,
+                    flush=True,
+                )
+    except OSError as err:
+        what, kept = (
+            ("study snapshot", exp.storage) if step.stage == "evolve" else (step.stage, exp.out)
+        )
+        print(
+            f"not published: the {what} of {step.label} to {exp.publish} "
+            f"({err.strerror or err}); kept in {kept}, the next run publishes it",
+            file=sys.stderr,
+            flush=True,
+        )
 
 
 _PLAIN = {".csv", ".json", ".md", ".html", ".png", ".yaml", ".yml", ".txt"}
@@ -155,8 +207,6 @@ def _copy_run(src: Path, dest: Path, limit: int) -> bool:
     Nothing is copied (``False``) when one of them is over ``limit`` bytes: a run is carried
     whole or not at all.
     """
-    import shutil
-
     files = [
         f
         for f in sorted(src.iterdir())
@@ -164,9 +214,8 @@ def _copy_run(src: Path, dest: Path, limit: int) -> bool:
     ]
     if any(f.stat().st_size > limit for f in files):
         return False
-    dest.mkdir(parents=True, exist_ok=True)
     for f in sorted(files, key=lambda f: f.name == "result.json"):
-        shutil.copyfile(f, dest / f.name)
+        _copy(f, dest / f.name)
     return True
 
 
@@ -195,12 +244,8 @@ def publish_finished_runs(exp: ExperimentFile, step: Step) -> int:
         for f in (step.folder / name for name in _PHASE_RECORDS)
         if f.is_file() and f.stat().st_size <= PUBLISH_MAX_BYTES
     ]
-    if records:
-        import shutil
-
-        dest.mkdir(parents=True, exist_ok=True)
-        for f in records:
-            shutil.copyfile(f, dest / f.name)
+    for f in records:
+        _copy(f, dest / f.name)
     return sum(
         _copy_run(run, dest / run.relative_to(step.folder), PUBLISH_MAX_BYTES)
         for run in _run_folders(step.folder)
@@ -263,14 +308,11 @@ def _restore_phase_records(source: Path, folder: Path) -> None:
     again: on a fresh machine, a piece's ``config.yaml`` and summary used to list that piece's
     agents and seeds alone, and its ``command.txt`` its own command.
     """
-    import shutil
-
     if (folder / _PHASE_RECORDS[0]).exists() or not (source / _PHASE_RECORDS[0]).is_file():
         return
-    folder.mkdir(parents=True, exist_ok=True)
     for name in reversed(_PHASE_RECORDS):  # config.yaml, which marks them restored, last
         if (source / name).is_file():
-            shutil.copyfile(source / name, folder / name)
+            _copy(source / name, folder / name)
 
 
 def write_snapshot_files(exp: ExperimentFile, steps: Sequence[Step]) -> tuple[int, int]:

@@ -44,11 +44,10 @@ from ermrl.runner._generalization import (
     run_test_generalization,
 )
 from ermrl.runner._publish import (
-    PUBLISH_MAX_BYTES,
     PeriodicSnapshots,
     import_snapshots,
     publish_finished_runs,
-    publish_step,
+    publish_results,
     published_runs_status,
     restore_finished_runs,
     snapshot_status,
@@ -577,6 +576,7 @@ def _run_steps(
                     file=stream,
                     flush=True,
                 )
+            publish_results(exp, step, stream)  # again: an earlier run's may have failed
             continue
         argv = stage_argv(step, progress, tensorboard, quiet=quiet_stages, wandb=wandb)
         line = shlex.join(["ermrl", step.command, *argv])
@@ -587,23 +587,13 @@ def _run_steps(
         except SystemExit as err:
             code = err.code if isinstance(err.code, int) else 1
         except KeyboardInterrupt as err:
-            publish_finished_runs(exp, step)
+            publish_results(exp, step, stream, finished=False)
             signum = getattr(err, "signum", None) or signal.SIGINT
             raise StageInterrupted(step.stage, step.label, int(signum)) from err
         if code != 0:
-            publish_finished_runs(exp, step)
+            publish_results(exp, step, stream, finished=False)
             raise StageFailed(step.stage, step.label, code)
-        if exp.publish is not None and step.stage in ("test", "report"):
-            _, left_out = publish_step(exp, step)
-            for path in left_out:
-                print(
-                    f"not published: {path} ({path.stat().st_size / 2**20:.1f} MiB, over "
-                    f"{PUBLISH_MAX_BYTES / 2**20:.0f} MiB); it stays in {exp.out}",
-                    file=stream,
-                    flush=True,
-                )
-        if exp.publish is not None and step.stage == "evolve":
-            write_snapshots(exp, [step])
+        publish_results(exp, step, stream)
     if not quiet:
         for line in results_lines(skipped):
             print(line, file=stream, flush=True)

@@ -29,7 +29,9 @@ the study (its re-evaluation study ``<name>.reeval``), so that importing restore
 
 Nothing in a snapshot is unpickled, evaluated or imported: it is read with `json.loads`
 and every field is checked ([`read_snapshot`][ermrl.storage.read_snapshot]) before anything is
-written.
+written. A hand-edited snapshot is refused where ermrl would not have written it: a study that
+does not maximize (every ermrl study maximizes its fitness), or a trial value that is not
+finite (an ``Infinity`` would become the best trial).
 
 Importing ([`import_snapshot`][ermrl.storage.import_snapshot]) keeps trial numbers, states, values,
 times, parameters and their distributions, every attribute and the intermediate values, as
@@ -43,6 +45,7 @@ from __future__ import annotations
 
 import copy
 import json
+import math
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -349,6 +352,8 @@ def _trial(doc: Any, index: int, n_objectives: int, where: str) -> FrozenTrial:
         if not isinstance(raw_values, list) or len(raw_values) != n_objectives:
             raise SnapshotError(f"{where}: 'values' must be null or {n_objectives} number(s)")
         values = [_number(v, f"{where}, values") for v in raw_values]
+        if not all(math.isfinite(v) for v in values):  # NaN, or an Infinity that would be best
+            raise SnapshotError(f"{where}: 'values' must be finite, got {raw_values!r:.80}")
     params = _get(doc, "params", dict, where)
     raw_dists = _get(doc, "distributions", dict, where)
     distributions = {
@@ -393,10 +398,12 @@ def _study(doc: Any, where: str) -> StudySnapshot:
         raise SnapshotError(f"{where}: {err}") from None
     where = f"{where} {name!r}"
     raw_directions = _get(doc, "directions", list, where)
-    allowed = ("MINIMIZE", "MAXIMIZE")
-    if not raw_directions or any(d not in allowed for d in raw_directions):
-        raise SnapshotError(f"{where}: 'directions' must be a non-empty list of {allowed}")
-    directions = tuple(StudyDirection[d] for d in raw_directions)
+    if raw_directions != [StudyDirection.MAXIMIZE.name]:  # what every ermrl study is
+        raise SnapshotError(
+            f"{where}: 'directions' is {raw_directions!r:.80}; ermrl's studies maximize "
+            "their fitness (['MAXIMIZE'])"
+        )
+    directions = (StudyDirection.MAXIMIZE,)
     trials = tuple(
         _trial(t, i, len(directions), where) for i, t in enumerate(_get(doc, "trials", list, where))
     )
@@ -418,7 +425,8 @@ def parse_snapshot(doc: Any, source: str = "<snapshot>") -> Snapshot:
         source: Where it came from, for messages.
 
     Raises:
-        SnapshotError: unknown format or version, a missing or ill-typed field, a distribution
+        SnapshotError: unknown format or version, a missing or ill-typed field, a direction
+            other than ``MAXIMIZE``, a trial value that is not finite, a distribution
             Optuna cannot read, a trial Optuna would refuse (a parameter outside its
             distribution, a COMPLETE trial without values, ...).
     """

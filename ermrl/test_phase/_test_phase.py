@@ -43,7 +43,7 @@ import optuna
 import pandas as pd
 import yaml
 
-from ermrl._io import write_atomic
+from ermrl._io import load_yaml, write_atomic
 from ermrl._progress import Progress, ProgressMode, duration
 from ermrl._text import plural
 from ermrl.agents import (
@@ -652,12 +652,20 @@ def check_out_folder(out: str | Path) -> None:
         out: The test phase's ``--out``; it may not exist yet.
 
     Raises:
-        ConfigError: ``out`` (or the nearest part of it that exists) is not a folder, or is
-            not writable.
+        ConfigError: ``out`` (or the nearest part of it that exists) is not a folder, is
+            not writable, or is a symbolic link that leads nowhere (a loop, a missing target).
     """
     out = Path(out)
     existing = out
     while not existing.exists() and existing.parent != existing:
+        if existing.is_symlink():  # its name exists: it could not be created
+            try:
+                existing.stat()
+            except OSError as err:
+                raise ConfigError(
+                    f"--out {out}: {existing} is a symbolic link that cannot be followed "
+                    f"({err.strerror or err})"
+                ) from None
         existing = existing.parent
     if not existing.is_dir():
         raise ConfigError(f"--out {out}: {existing} is a file, not a folder")
@@ -842,12 +850,12 @@ def _merged_config(path: Path, doc: Mapping[str, Any]) -> dict[str, Any] | None:
     earlier file, an unreadable one, or another phase, which ``doc`` replaces).
     """
     try:
-        old = yaml.safe_load(path.read_text())
+        old = load_yaml(path.read_text())
     except (OSError, yaml.YAMLError):
         return None
     if not isinstance(old, dict) or not isinstance(old.get("agents"), dict):
         return None
-    new: dict[str, Any] = yaml.safe_load(yaml.safe_dump(dict(doc), sort_keys=False))  # as read
+    new: dict[str, Any] = load_yaml(yaml.safe_dump(dict(doc), sort_keys=False))  # as read
     # A piece whose agents use no selected trial (ppo alone) records none: it joins the phase's
     # selection, whichever piece came first.
     chosen = [k for k in selection_metadata(None) if k in new or k in old]
