@@ -88,7 +88,7 @@ def _copy(src: Path, dest: Path) -> None:
         write_atomic(dest, data)
 
 
-def publish_results(exp: Experiment, step: Step, stream: Any, finished: bool = True) -> None:
+def publish_results(exp: ExperimentFile, step: Step, stream: Any, finished: bool = True) -> None:
     """Publish what a step leaves; what was not published is one line, never an error.
 
     A finished evolution writes its study snapshot (`write_snapshots`), a finished test or
