@@ -25,6 +25,7 @@ from ermrl.storage import (
     printable_name,
     write_snapshot,
 )
+from tests.test_bad_input import _refused
 
 ESCAPES = "../../x/ü y"
 TERMINAL = "a\nb\x1b[31mred"
@@ -76,15 +77,6 @@ def test_printable_name_escapes_control_and_format_characters() -> None:
 def test_no_folder_is_built_outside_its_base(name: str) -> None:
     with pytest.raises(StudyNameError, match="--out"):
         folder_for("runs", name)
-
-
-def _refused(main, argv, capsys) -> str:  # noqa: ANN001
-    with pytest.raises(SystemExit) as exc:
-        main(argv)
-    assert exc.value.code == 2
-    err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1, err
-    return err
 
 
 @pytest.mark.parametrize(("name", "reason"), [(ESCAPES, "path separator"), (TERMINAL, "U+000A")])
