@@ -104,7 +104,7 @@ class TestOptions:
         training_steps: Env steps per run (paper: 1,000,000).
         seeds: Test seeds (``None``: 5 seeds after the largest seed evolution trained on).
         agents: Agents to train (``None``: the study's default agents; see
-            [`AGENT_KINDS`][ermrl.learners.AGENT_KINDS]).
+            `ermrl.learners.AGENT_KINDS`).
         out: Output folder (``None``: ``runs/<study name>``).
         trial: Test this trial's reservoir instead of the selected one (``None``: the
             re-evaluated best, else the best evolution fitness).
