@@ -54,9 +54,13 @@ def postgres_url() -> Iterator[str]:
     name = f"ermrl_test_{uuid.uuid4().hex[:12]}"
     with admin.cursor() as cur:
         cur.execute(f"CREATE DATABASE {name}")
+    admin.close()
     try:
         yield _with_database(POSTGRES_ADMIN, name)
     finally:
+        # A connection of its own: a test may have restarted the server meanwhile.
+        admin = psycopg2.connect(POSTGRES_ADMIN, connect_timeout=10)
+        admin.autocommit = True
         with admin.cursor() as cur:
             cur.execute(f"DROP DATABASE IF EXISTS {name} WITH (FORCE)")
         admin.close()

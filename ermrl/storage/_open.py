@@ -513,7 +513,9 @@ def study_lock(study: optuna.Study, timeout: float = LOCK_TIMEOUT_S) -> Iterator
             yield False
             return
         spec = parse_storage_url(url)
-    with storage_lock(spec, study.study_name, timeout=timeout):
+    outage = getattr(base_storage(study._storage), "_outage", None)  # RetryingRDBStorage's
+    window = outage.window if outage is not None else None
+    with storage_lock(spec, study.study_name, timeout=timeout, retry_window=window):
         yield True
 
 
