@@ -476,6 +476,36 @@ def test_sigterm_closes_the_trial_queues_it_again_and_exits(tmp_path: Path) -> N
     assert study.get_trials()[2].params == trials[1].params
 
 
+@pytest.mark.parametrize("signame", ["SIGTERM", "SIGINT"])
+def test_a_signal_in_a_generation_names_every_trial_it_closed(tmp_path: Path, signame: str) -> None:
+    """The population backend trains a generation at once and a signal closes all its trials;
+    the last line named only one ("trial #6 was closed" when 7 were)."""
+    import dataclasses
+
+    from ermrl.runner._commands import _ctrl_c_message, interrupted_message
+
+    config = tiny_config(n_trials=3, sampler="random", sampler_seed=0)
+    ppo = dataclasses.replace(config.problem.ppo, backend="population")
+    config = dataclasses.replace(config, problem=dataclasses.replace(config.problem, ppo=ppo))
+    study = create_or_resume_study(config, f"sqlite:///{tmp_path}/s.db", "s")
+
+    def generation(encoders, runner):  # noqa: ANN001, ANN202
+        os.kill(os.getpid(), getattr(signal, signame))
+        time.sleep(10)
+
+    with pytest.raises(KeyboardInterrupt) as caught:
+        run_evolution(config, study, quiet=True, evaluate_generation=generation)
+    message = (
+        interrupted_message(caught.value)
+        if isinstance(caught.value, Interrupted)
+        else _ctrl_c_message(caught.value)
+    )
+    assert message.endswith(
+        "; the 3 running trials #0, #1, #2 were closed as FAIL and queued again"
+    ), message
+    assert [t.state for t in study.get_trials()] == [TrialState.FAIL] * 3 + [TrialState.WAITING] * 3
+
+
 @pytest.mark.parametrize("cause", ["SIGINT", "SIGTERM", "crash"])
 def test_any_interruption_of_the_reference_trial_queues_it_again(
     tmp_path: Path, cause: str

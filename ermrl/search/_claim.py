@@ -228,9 +228,15 @@ def close_interrupted(
             pass  # already closed by another worker as stale
         queued = "" if retry_of is None else f"; queued again (retry of #{retry_of})"
         say(f"[trial {trial.number}] closed as FAIL ({reason}){queued}")
+    # Every trial closed for this error (a generation's: one call each), shared by the errors
+    # raised for it, so that the command's last line counts them all.
+    closed: list[tuple[int, bool]] = getattr(err, "closed_trials", [])
+    closed.append((trial.number, retry_of is not None))
+    err.closed_trials = closed  # type: ignore[attr-defined]
     if isinstance(err, KeyboardInterrupt):  # Interrupted (SIGTERM) or Ctrl-C
         err.trial_number, err.requeued = trial.number, retry_of is not None  # type: ignore[attr-defined]
     if signum is not None and not isinstance(err, KeyboardInterrupt):
         error = guard.error() or Interrupted(signum)
         error.trial_number, error.requeued = trial.number, retry_of is not None  # type: ignore[attr-defined]
+        error.closed_trials = closed  # type: ignore[union-attr]
         raise error from err
