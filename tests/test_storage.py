@@ -554,6 +554,63 @@ def test_a_reference_trial_every_run_cut_short_is_queued_again(tmp_path: Path) -
     assert len(study.get_trials()) == 3
 
 
+OTHER_CODE = {"version": "0.0.1", "commit": "0123456789ab", "dirty": False, "source": "f" * 64}
+
+
+def test_workers_of_other_code_are_told_everywhere_in_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A newer worker joins a study: the older one was not told, ``study show`` and the report
+    did not say that the trials mix code versions, and the newer one's warning took 2 lines."""
+    url = f"sqlite:///{tmp_path}/s.db"
+    config = tiny_config(n_trials=3, sampler="random", sampler_seed=0)
+    study = create_or_resume_study(config, url, "s")  # the older worker: this code
+    distributions = {"sr": FloatDistribution(0.01, 10.0, log=True)}
+    study.add_trial(  # a trial of a newer worker, on other code
+        create_trial(params={"sr": 1.0}, distributions=distributions, value=-1.0,
+                     user_attrs={"ermrl_code": OTHER_CODE})
+    )  # fmt: skip
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        run_evolution(config, study, quiet=True, evaluate=stub_fitness())
+    told = [w for w in caught if "mix code versions" in str(w.message)]
+    assert len(told) == 1, [str(w.message) for w in caught]  # once, not at every claim
+    assert "holds trials of ermrl 0.0.1 at 0123456789" in str(told[0].message)
+    text = warnings.formatwarning(told[0].message, told[0].category, told[0].filename,
+                                  told[0].lineno, told[0].line)  # fmt: skip
+    assert text.count("\n") == 1, text
+
+    # The newer worker joining a study created by other code: one line too.
+    study.set_user_attr("ermrl_code", OTHER_CODE)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        create_or_resume_study(config, url, "s")
+    (joined,) = [w for w in caught if "mix code versions" in str(w.message)]
+    text = warnings.formatwarning(joined.message, joined.category, joined.filename,
+                                  joined.lineno, joined.line)  # fmt: skip
+    assert "was created by ermrl 0.0.1" in text and text.count("\n") == 1, text
+
+    assert study_main(["show", "--storage", url, "--study-name", "s"]) == 0
+    out = capsys.readouterr().out
+    (line,) = [line for line in out.splitlines() if line.startswith("code: ")]
+    assert line.startswith("code: trials come from 2 code versions"), out
+    assert "ermrl 0.0.1 at 0123456789, source ffffffffff (1 trial)" in line
+    assert study_main(["show", "--storage", url, "--study-name", "s", "--json"]) == 0
+    code = json.loads(capsys.readouterr().out)["code"]
+    assert [entry["trials"] for entry in code] == [2, 1]
+    assert code[1]["commit"] == "0123456789ab"
+
+    from ermrl.analysis import write_report
+
+    report = write_report(
+        "s", url, runs=tmp_path / "none", out=tmp_path / "r", interactive=False, html_page=False
+    )
+    assert [w.split(":")[0] for w in report.warnings] == [
+        "trials come from 2 code versions, so their results may not compare"
+    ]
+    assert "**Warning:** trials come from 2 code versions" in report.markdown.read_text()
+
+
 def test_popsize_smaller_than_workers_warns(tmp_path: Path) -> None:
     config = tiny_config(n_trials=1, popsize=4)
     assert cma_popsize(config) == 4

@@ -622,6 +622,8 @@ def run_report(request: ReportRequest, prog: str = "ermrl report") -> int:
         what, code = interruption(err)
         print(f"{prog}: {what}; no report written", file=sys.stderr)
         return code
+    for warning in result.warnings:  # also with --quiet: the results may not compare
+        print(f"{prog}: warning: {warning}", file=sys.stderr, flush=True)
     if not r.quiet:
         for note in result.notes:
             print(f"left out: {note}")

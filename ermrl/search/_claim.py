@@ -238,5 +238,5 @@ def close_interrupted(
     if signum is not None and not isinstance(err, KeyboardInterrupt):
         error = guard.error() or Interrupted(signum)
         error.trial_number, error.requeued = trial.number, retry_of is not None  # type: ignore[attr-defined]
-        error.closed_trials = closed  # type: ignore[union-attr]
+        error.closed_trials = closed  # type: ignore[attr-defined]
         raise error from err
