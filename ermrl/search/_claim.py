@@ -27,7 +27,7 @@ from ermrl.config import SearchSpace
 from ermrl.search._objective import FitnessResult, SeedRunner
 from ermrl.search._samplers import RestartCmaEsSampler
 from ermrl.search._signals import Interrupted, SignalGuard
-from ermrl.search._study import REFERENCE_ATTR, sample_params
+from ermrl.search._study import REFERENCE_ATTR, sample_params, warn_other_code
 from ermrl.storage import RetryStaleTrial, fail_stale_trials, study_lock, worker_info
 from ermrl.storage._heartbeat import base_storage
 
@@ -121,6 +121,7 @@ def claim_trial(
         if stale_check:
             fail_stale_trials(study)
         trials = study.get_trials(deepcopy=False, states=COUNTED)
+        warn_other_code(study, trials)  # another worker's code, new or old: say so, once
         waiting = any(t.state == TrialState.WAITING for t in trials)
         running = sum(t.state == TrialState.RUNNING for t in trials)
         if (len(trials) >= n_trials or queued_only) and not waiting:
@@ -134,6 +135,7 @@ def claim_trial(
         for key, value in worker_info().items():
             trial.set_user_attr(f"worker_{key}", value)
         trial.set_user_attr("worker_n_trials", n_trials)  # this worker's budget (study show)
+        trial.set_user_attr("ermrl_code", code_identity())  # seen by the others' next claims
         retry_of = trial.user_attrs.get("retry_of") if waiting else None
     return Claim(trial, params, running + 1, retry_of)
 
