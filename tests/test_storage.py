@@ -447,6 +447,42 @@ def test_waiting_worker_sees_another_workers_trial_end_within_a_second(tmp_path:
     assert 1.0 <= elapsed < 3.0, f"the waiting worker exited {elapsed:.2f} s after the start"
 
 
+def test_a_sigterm_dropped_before_the_wait_stops_the_waiting_worker(tmp_path: Path) -> None:
+    """SIGTERM at a command's start-up, whose exception a weakref callback dropped, was noted
+    but only a training loop raised it again: a worker with nothing to train waited for the
+    others' trials (here until the other trial was stale, then ran its retry) and exited 0."""
+    import sys
+    import weakref
+
+    from ermrl._interrupt import catch_sigterm
+
+    url = f"sqlite:///{tmp_path}/s.db"
+    config = tiny_config(n_trials=1, sampler="random", sampler_seed=0)
+    study = create_or_resume_study(config, url, "s", heartbeat_interval=1, grace_period=2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        _running_trial(study)  # the other worker's trial: the budget is spent
+
+    def in_a_callback(_: object) -> None:
+        os.kill(os.getpid(), signal.SIGTERM)
+        for _ in range(100):  # the handler runs here, and its exception is dropped
+            pass
+
+    handler, hook = signal.getsignal(signal.SIGTERM), sys.unraisablehook
+    try:
+        catch_sigterm()  # as every command does at its start
+        thing = type("Thing", (), {})()
+        ref = weakref.ref(thing, in_a_callback)
+        del thing, ref  # the signal lands in the callback
+        with pytest.raises(Interrupted) as caught:
+            run_evolution(config, study, quiet=True, evaluate=stub_fitness())
+    finally:
+        signal.signal(signal.SIGTERM, handler)
+        sys.unraisablehook = hook
+    assert caught.value.trial_number is None  # between trials: nothing was running
+    assert [t.state for t in study.get_trials()] == [TrialState.RUNNING]
+
+
 def test_sigterm_closes_the_trial_queues_it_again_and_exits(tmp_path: Path) -> None:
     url = f"sqlite:///{tmp_path}/s.db"
     config = tiny_config(n_trials=3, sampler="random", sampler_seed=0)
@@ -504,6 +540,55 @@ def test_a_signal_in_a_generation_names_every_trial_it_closed(tmp_path: Path, si
         "; the 3 running trials #0, #1, #2 were closed as FAIL and queued again"
     ), message
     assert [t.state for t in study.get_trials()] == [TrialState.FAIL] * 3 + [TrialState.WAITING] * 3
+
+
+@pytest.mark.parametrize("signame", ["SIGTERM", "SIGINT"])
+def test_a_signal_dropped_in_a_weakref_callback_still_stops_the_training(
+    tmp_path: Path, signame: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A signal whose exception Python drops ("Exception ignored in ... WeakKeyDictionary
+    ... remove") let a generation train to its end (42 s after SIGTERM, measured), then said
+    that no trial was running; its training loop now raises it again at its next step."""
+    import dataclasses
+    import weakref
+
+    from ermrl._interrupt import raise_swallowed_signal
+    from ermrl.runner._commands import _ctrl_c_message, interrupted_message
+
+    config = tiny_config(n_trials=2, sampler="random", sampler_seed=0)
+    ppo = dataclasses.replace(config.problem.ppo, backend="population")
+    config = dataclasses.replace(config, problem=dataclasses.replace(config.problem, ppo=ppo))
+    study = create_or_resume_study(config, f"sqlite:///{tmp_path}/s.db", "s")
+
+    def in_a_callback(_: object) -> None:
+        os.kill(os.getpid(), getattr(signal, signame))
+        for _ in range(100):  # the handler runs here, and its exception is dropped
+            pass
+
+    def generation(encoders, runner):  # noqa: ANN001, ANN202
+        thing = type("Thing", (), {})()
+        ref = weakref.ref(thing, in_a_callback)
+        del thing, ref  # the callback runs now
+        for _ in range(100):  # a training loop: 10 s
+            raise_swallowed_signal()
+            time.sleep(0.1)
+        return [FitnessResult(fitness=0.0, mode="last", runs=[], wall_seconds=1.0)] * len(encoders)
+
+    start = time.monotonic()
+    with pytest.raises(KeyboardInterrupt) as caught:
+        run_evolution(config, study, quiet=True, evaluate_generation=generation)
+    assert time.monotonic() - start < 5
+    assert isinstance(caught.value, Interrupted) == (signame == "SIGTERM")
+    message = (
+        interrupted_message(caught.value)
+        if isinstance(caught.value, Interrupted)
+        else _ctrl_c_message(caught.value)
+    )
+    assert "the 2 running trials #0, #1 were closed as FAIL and queued again" in message
+    reason = "interrupted" if signame == "SIGINT" else "interrupted by SIGTERM"
+    trials = study.get_trials()
+    assert [t.user_attrs.get("fail_reason") for t in trials[:2]] == [reason] * 2
+    assert "Exception ignored" not in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("cause", ["SIGINT", "SIGTERM", "crash"])

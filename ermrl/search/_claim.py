@@ -210,8 +210,10 @@ def close_interrupted(
             guard.wait(2.0)
         runner.close(cancel=True)
         heartbeat.join()
-        signum = err.signum if isinstance(err, Interrupted) else guard.pending
-        if isinstance(err, KeyboardInterrupt) and not isinstance(err, Interrupted):
+        # Interrupted (the guard's SIGTERM), Terminated (a SIGTERM a training loop raised again
+        # after a callback dropped it: `ermrl._interrupt`), or Ctrl-C.
+        signum = getattr(err, "signum", None) or guard.pending
+        if isinstance(err, KeyboardInterrupt) and getattr(err, "signum", None) is None:
             signum = signal.SIGINT
         if signum is None:
             reason = repr(err)
@@ -237,7 +239,12 @@ def close_interrupted(
     err.closed_trials = closed  # type: ignore[attr-defined]
     if isinstance(err, KeyboardInterrupt):  # Interrupted (SIGTERM) or Ctrl-C
         err.trial_number, err.requeued = trial.number, retry_of is not None  # type: ignore[attr-defined]
-    if signum is not None and not isinstance(err, KeyboardInterrupt):
+    # A signal raised as another error (a broken pool, a SIGTERM raised again as Terminated)
+    # becomes the guard's own (Interrupted for SIGTERM); Ctrl-C stays a KeyboardInterrupt.
+    plain = isinstance(err, Interrupted) or (
+        isinstance(err, KeyboardInterrupt) and signum == signal.SIGINT
+    )
+    if signum is not None and not plain:
         error = guard.error() or Interrupted(signum)
         error.trial_number, error.requeued = trial.number, retry_of is not None  # type: ignore[attr-defined]
         error.closed_trials = closed  # type: ignore[attr-defined]
