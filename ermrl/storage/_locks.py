@@ -313,7 +313,8 @@ def _server_lock(
     by ``give(connection)``.
 
     Taking it is retried as the storage's calls are (`ermrl.storage._retry`): a server that
-    restarts or has no connection left is waited for, up to the retry window. A lock is tied to
+    restarts or has no connection left is waited for, up to the retry window (0: not retried,
+    the driver's error is raised, as when a storage is opened). A lock is tied to
     its connection, so a connection that dies while the lock is held (a server restart) takes
     the lock with it: releasing it then only logs a warning, and the connection is dropped.
 
@@ -334,7 +335,8 @@ def _server_lock(
             raise
         return conn
 
-    conn = Outage(spec.raw, retry_window(window)).call(rdb_transient, locked)
+    window = retry_window(window)
+    conn = Outage(spec.raw, window).call(rdb_transient, locked) if window > 0 else locked()
     try:
         yield
     finally:

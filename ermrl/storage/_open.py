@@ -275,7 +275,8 @@ def _open(spec: StorageURL, heartbeat: dict[str, Any], mode: str, window: float)
         _wait_for_whole_schema(spec, engine_kwargs)
         return _rdb_storage(spec, engine_kwargs, heartbeat, window)
     # Many workers starting at once on a fresh database race on CREATE TABLE: one at a time.
-    with storage_lock(spec, "schema"):
+    # Opening is not retried: a server down when a command starts fails at once.
+    with storage_lock(spec, "schema", retry_window=0):
         return _rdb_storage(spec, engine_kwargs, heartbeat, window)
 
 
