@@ -1,8 +1,9 @@
 """A real PostgreSQL restart under a worker that holds the claim lock.
 
 The server is stopped and started again (``pg_ctlcluster``), so this file runs alone on its
-xdist worker (``--dist loadfile``) and is marked ``slow``; other tests that use the server at
-that moment see an outage of a few seconds, which their storage calls ride out. It is skipped
+xdist worker (``--dist loadfile``) and is marked ``slow``. Tests beside it (other xdist workers)
+wait to connect while it is down (``POSTGRES_RESTART_MARK``, see ``conftest.py``), and the
+storage calls of one already running ride out the 3 s outage. It is skipped
 where the cluster cannot be controlled (not root, no ``pg_ctlcluster``), and the server is
 always started again.
 """
@@ -21,6 +22,7 @@ import pytest
 from optuna.trial import TrialState
 
 from ermrl.storage import open_storage
+from tests.conftest import POSTGRES_RESTART_MARK
 
 pytestmark = [pytest.mark.slow, pytest.mark.services]
 
@@ -69,11 +71,13 @@ def test_a_worker_holding_the_claim_lock_survives_a_postgres_restart(postgres_ur
     try:
         assert worker.stdout is not None
         worker.stdout.readline()  # the first claim is under way: the lock is held
+        POSTGRES_RESTART_MARK.touch()  # the tests beside this one wait before they connect
         try:
             _cluster("stop")
             time.sleep(3)
         finally:
             _cluster("start")
+            POSTGRES_RESTART_MARK.unlink(missing_ok=True)
         out, err = worker.communicate(timeout=90)
     finally:
         if worker.poll() is None:
