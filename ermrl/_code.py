@@ -16,11 +16,18 @@ from __future__ import annotations
 import functools
 import hashlib
 import subprocess
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
-__all__ = ["code_identity", "code_key", "describe_code", "same_code"]
+__all__ = [
+    "code_identity",
+    "code_key",
+    "code_versions",
+    "describe_code",
+    "mixed_code",
+    "same_code",
+]
 
 _PACKAGE = Path(__file__).resolve().parent
 # What decides a result: the package's Python files and the data files it reads (PPO tables,
@@ -118,3 +125,36 @@ def describe_code(record: Mapping[str, Any] | None) -> str:
     if isinstance(blas, str):
         text += f", BLAS {blas}"
     return text
+
+
+def code_versions(records: Iterable[Any]) -> list[tuple[dict[str, Any], int]]:
+    """The distinct `code_identity` records among ``records`` (e.g. a study's trials'), each
+    with how many records name it, most first; records without a source hash are skipped.
+
+    Two records are one version when their source and BLAS kernel are (`same_code`'s rule).
+    """
+    found: dict[tuple[Any, Any], tuple[dict[str, Any], int]] = {}
+    for record in records:
+        if isinstance(record, Mapping) and isinstance(record.get("source"), str):
+            key = (record["source"], record.get("blas"))
+            first, n = found.get(key, (dict(record), 0))
+            found[key] = (first, n + 1)
+    return sorted(found.values(), key=lambda version: -version[1])
+
+
+def mixed_code(versions: Iterable[tuple[Mapping[str, Any], int]]) -> str | None:
+    """One line when trials come from more than one code version (``None``: one or none).
+
+    Args:
+        versions: `code_versions` of the trials.
+    """
+    versions = list(versions)
+    if len(versions) < 2:
+        return None
+    listed = "; ".join(
+        f"{describe_code(record)} ({n} trial{'s' if n != 1 else ''})" for record, n in versions
+    )
+    return (
+        f"trials come from {len(versions)} code versions, so their results may not compare: "
+        f"{listed}"
+    )

@@ -26,7 +26,10 @@ __all__ = [
     "Terminated",
     "catch_sigint",
     "catch_sigterm",
+    "forget_signals",
     "interruption",
+    "note_signal",
+    "noted_signal",
     "raise_swallowed_signal",
     "sigint_received",
     "swallowed_signal",
@@ -58,6 +61,31 @@ def catch_sigint() -> None:
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGINT, _handler)
         sys.unraisablehook = _unraisable
+
+
+def note_signal(signum: int) -> None:
+    """Note a SIGINT or SIGTERM that another handler received (`ermrl.search.SignalGuard`'s),
+    as `catch_sigint` and `catch_sigterm` do, so that a loop's `raise_swallowed_signal`
+    raises it when the handler's exception was dropped in a weakref callback, and the dropped
+    exception is not printed."""
+    global _received, _terminated
+    if signum == signal.SIGTERM:
+        _terminated = True
+    else:
+        _received = True
+    if threading.current_thread() is threading.main_thread():
+        sys.unraisablehook = _unraisable
+
+
+def forget_signals() -> None:
+    """Forget the signals noted so far: an exception that carries them is being handled."""
+    global _received, _terminated
+    _received = _terminated = False
+
+
+def noted_signal() -> int | None:
+    """The signal noted and not raised again yet: SIGTERM before SIGINT (``None``: none)."""
+    return signal.SIGTERM if _terminated else signal.SIGINT if _received else None
 
 
 def sigint_received() -> bool:

@@ -10,6 +10,8 @@ Server addresses can be changed with ``ERMRL_TEST_POSTGRES``, ``ERMRL_TEST_MYSQL
 from __future__ import annotations
 
 import os
+import tempfile
+import time
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
@@ -41,9 +43,22 @@ def _with_database(url: str, name: str) -> str:
     return urlunsplit(parts._replace(path=f"/{name}"))
 
 
+# Exists while a test (tests/test_storage_restart.py) has the PostgreSQL server stopped: the
+# tests beside it, in other xdist workers, wait for it to be back before they connect.
+POSTGRES_RESTART_MARK = Path(tempfile.gettempdir()) / "ermrl-test-postgres-restart"
+
+
+def wait_for_postgres_restart(limit: float = 60.0) -> None:
+    """Wait (up to ``limit`` s) while another test restarts the PostgreSQL server."""
+    deadline = time.monotonic() + limit
+    while POSTGRES_RESTART_MARK.exists() and time.monotonic() < deadline:
+        time.sleep(0.2)
+
+
 @pytest.fixture
 def postgres_url() -> Iterator[str]:
     """A fresh, empty PostgreSQL database (dropped after the test)."""
+    wait_for_postgres_restart()
     try:
         import psycopg2
 
@@ -54,9 +69,14 @@ def postgres_url() -> Iterator[str]:
     name = f"ermrl_test_{uuid.uuid4().hex[:12]}"
     with admin.cursor() as cur:
         cur.execute(f"CREATE DATABASE {name}")
+    admin.close()
     try:
         yield _with_database(POSTGRES_ADMIN, name)
     finally:
+        # A connection of its own: a test may have restarted the server meanwhile.
+        wait_for_postgres_restart()
+        admin = psycopg2.connect(POSTGRES_ADMIN, connect_timeout=10)
+        admin.autocommit = True
         with admin.cursor() as cur:
             cur.execute(f"DROP DATABASE IF EXISTS {name} WITH (FORCE)")
         admin.close()

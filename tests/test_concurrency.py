@@ -248,6 +248,24 @@ def test_sigterm_mid_trial_with_a_process_pool_exits_fast_and_loses_nothing(
     assert any(t.user_attrs.get("retry_of") == trial.number for t in final)
 
 
+def test_a_worker_exits_within_a_second_or_so_of_sigterm(tmp_path: Path) -> None:
+    """Its trial was closed and its line printed within 0.2 s of SIGTERM, but the process
+    took 3 to 4 s more to exit (Python's last garbage collection) where the docs said "a
+    second or two"; now 0.4 to 1.4 s (2 busy cores)."""
+    url = f"sqlite:///{tmp_path}/s.db"
+    args = ["--study-name", "t", "--n-trials", "1", "--training-steps", "100000"]
+    worker = start_cli_worker(url, tmp_path / "w.log", *args)
+    wait_running(url, "t", worker.pid)
+    time.sleep(1.0)  # training
+    sent = time.monotonic()
+    os.killpg(worker.pid, signal.SIGTERM)
+    code = worker.wait(30)
+    took = time.monotonic() - sent
+    log = (tmp_path / "w.log").read_text()
+    assert code == 143 and "stopped by SIGTERM; the running trial #0" in log, log
+    assert took < 2.5, f"exit took {took:.1f} s"
+
+
 def assert_cma_first_points(trials: list[optuna.trial.FrozenTrial], n_workers: int) -> None:
     """Every trial was sampled (or, for the reference, told) by CMA-ES; each worker's first
     point differs from the others'."""

@@ -20,7 +20,7 @@ import redis
 from optuna.trial import TrialState
 
 from ermrl.cli._study import study_main
-from ermrl.storage import StorageError, open_storage, repair_journal, torn_tail
+from ermrl.storage import StorageError, open_storage, repair_journal, repair_sqlite, torn_tail
 
 optuna.logging.set_verbosity(optuna.logging.WARNING)
 
@@ -617,3 +617,38 @@ def test_evolve_on_a_full_disk_under_its_journal(
             assert "finished trials are kept" in err
         else:
             assert "was not created" in err
+
+
+# A live writer in its commit: it holds SQLite's EXCLUSIVE lock and its journal for 2 s.
+_LIVE_WRITER = """
+import sqlite3, sys, time
+con = sqlite3.connect(sys.argv[1], isolation_level=None)
+con.execute("BEGIN EXCLUSIVE")
+con.execute("INSERT INTO study_user_attributes (study_id, key, value_json) VALUES (1, 'k', '1')")
+print("writing", flush=True)
+time.sleep(2)
+con.execute("COMMIT")
+"""
+
+
+def test_a_live_writers_journal_is_not_rolled_back(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Two ``ermrl run`` of one file at once: one said "rolled back the transaction a writer
+    left unfinished" after waiting for the other's commit, though no writer died."""
+    path = tmp_path / "s.db"
+    optuna.create_study(study_name="s", storage=f"sqlite:///{path}")
+    writer = subprocess.Popen(
+        [sys.executable, "-c", _LIVE_WRITER, str(path)], stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert writer.stdout is not None and writer.stdout.readline() == "writing\n"
+        assert Path(f"{path}-journal").stat().st_size > 0
+        with caplog.at_level("WARNING", logger="ermrl.storage"):
+            assert repair_sqlite(f"sqlite:///{path}") is False
+    finally:
+        writer.wait(timeout=30)
+    assert writer.returncode == 0
+    assert "rolled back" not in caplog.text
+    study = optuna.load_study(study_name="s", storage=f"sqlite:///{path}")
+    assert study.user_attrs == {"k": 1}  # the writer's transaction is kept

@@ -447,6 +447,42 @@ def test_waiting_worker_sees_another_workers_trial_end_within_a_second(tmp_path:
     assert 1.0 <= elapsed < 3.0, f"the waiting worker exited {elapsed:.2f} s after the start"
 
 
+def test_a_sigterm_dropped_before_the_wait_stops_the_waiting_worker(tmp_path: Path) -> None:
+    """SIGTERM at a command's start-up, whose exception a weakref callback dropped, was noted
+    but only a training loop raised it again: a worker with nothing to train waited for the
+    others' trials (here until the other trial was stale, then ran its retry) and exited 0."""
+    import sys
+    import weakref
+
+    from ermrl._interrupt import catch_sigterm
+
+    url = f"sqlite:///{tmp_path}/s.db"
+    config = tiny_config(n_trials=1, sampler="random", sampler_seed=0)
+    study = create_or_resume_study(config, url, "s", heartbeat_interval=1, grace_period=2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        _running_trial(study)  # the other worker's trial: the budget is spent
+
+    def in_a_callback(_: object) -> None:
+        os.kill(os.getpid(), signal.SIGTERM)
+        for _ in range(100):  # the handler runs here, and its exception is dropped
+            pass
+
+    handler, hook = signal.getsignal(signal.SIGTERM), sys.unraisablehook
+    try:
+        catch_sigterm()  # as every command does at its start
+        thing = type("Thing", (), {})()
+        ref = weakref.ref(thing, in_a_callback)
+        del thing, ref  # the signal lands in the callback
+        with pytest.raises(Interrupted) as caught:
+            run_evolution(config, study, quiet=True, evaluate=stub_fitness())
+    finally:
+        signal.signal(signal.SIGTERM, handler)
+        sys.unraisablehook = hook
+    assert caught.value.trial_number is None  # between trials: nothing was running
+    assert [t.state for t in study.get_trials()] == [TrialState.RUNNING]
+
+
 def test_sigterm_closes_the_trial_queues_it_again_and_exits(tmp_path: Path) -> None:
     url = f"sqlite:///{tmp_path}/s.db"
     config = tiny_config(n_trials=3, sampler="random", sampler_seed=0)
@@ -474,6 +510,85 @@ def test_sigterm_closes_the_trial_queues_it_again_and_exits(tmp_path: Path) -> N
     states = [t.state for t in study.get_trials()]
     assert states.count(TrialState.COMPLETE) == 3 and states.count(TrialState.FAIL) == 1
     assert study.get_trials()[2].params == trials[1].params
+
+
+@pytest.mark.parametrize("signame", ["SIGTERM", "SIGINT"])
+def test_a_signal_in_a_generation_names_every_trial_it_closed(tmp_path: Path, signame: str) -> None:
+    """The population backend trains a generation at once and a signal closes all its trials;
+    the last line named only one ("trial #6 was closed" when 7 were)."""
+    import dataclasses
+
+    from ermrl.runner._commands import _ctrl_c_message, interrupted_message
+
+    config = tiny_config(n_trials=3, sampler="random", sampler_seed=0)
+    ppo = dataclasses.replace(config.problem.ppo, backend="population")
+    config = dataclasses.replace(config, problem=dataclasses.replace(config.problem, ppo=ppo))
+    study = create_or_resume_study(config, f"sqlite:///{tmp_path}/s.db", "s")
+
+    def generation(encoders, runner):  # noqa: ANN001, ANN202
+        os.kill(os.getpid(), getattr(signal, signame))
+        time.sleep(10)
+
+    with pytest.raises(KeyboardInterrupt) as caught:
+        run_evolution(config, study, quiet=True, evaluate_generation=generation)
+    message = (
+        interrupted_message(caught.value)
+        if isinstance(caught.value, Interrupted)
+        else _ctrl_c_message(caught.value)
+    )
+    assert message.endswith(
+        "; the 3 running trials #0, #1, #2 were closed as FAIL and queued again"
+    ), message
+    assert [t.state for t in study.get_trials()] == [TrialState.FAIL] * 3 + [TrialState.WAITING] * 3
+
+
+@pytest.mark.parametrize("signame", ["SIGTERM", "SIGINT"])
+def test_a_signal_dropped_in_a_weakref_callback_still_stops_the_training(
+    tmp_path: Path, signame: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A signal whose exception Python drops ("Exception ignored in ... WeakKeyDictionary
+    ... remove") let a generation train to its end (42 s after SIGTERM, measured), then said
+    that no trial was running; its training loop now raises it again at its next step."""
+    import dataclasses
+    import weakref
+
+    from ermrl._interrupt import raise_swallowed_signal
+    from ermrl.runner._commands import _ctrl_c_message, interrupted_message
+
+    config = tiny_config(n_trials=2, sampler="random", sampler_seed=0)
+    ppo = dataclasses.replace(config.problem.ppo, backend="population")
+    config = dataclasses.replace(config, problem=dataclasses.replace(config.problem, ppo=ppo))
+    study = create_or_resume_study(config, f"sqlite:///{tmp_path}/s.db", "s")
+
+    def in_a_callback(_: object) -> None:
+        os.kill(os.getpid(), getattr(signal, signame))
+        for _ in range(100):  # the handler runs here, and its exception is dropped
+            pass
+
+    def generation(encoders, runner):  # noqa: ANN001, ANN202
+        thing = type("Thing", (), {})()
+        ref = weakref.ref(thing, in_a_callback)
+        del thing, ref  # the callback runs now
+        for _ in range(100):  # a training loop: 10 s
+            raise_swallowed_signal()
+            time.sleep(0.1)
+        return [FitnessResult(fitness=0.0, mode="last", runs=[], wall_seconds=1.0)] * len(encoders)
+
+    start = time.monotonic()
+    with pytest.raises(KeyboardInterrupt) as caught:
+        run_evolution(config, study, quiet=True, evaluate_generation=generation)
+    assert time.monotonic() - start < 5
+    assert isinstance(caught.value, Interrupted) == (signame == "SIGTERM")
+    message = (
+        interrupted_message(caught.value)
+        if isinstance(caught.value, Interrupted)
+        else _ctrl_c_message(caught.value)
+    )
+    assert "the 2 running trials #0, #1 were closed as FAIL and queued again" in message
+    reason = "interrupted" if signame == "SIGINT" else "interrupted by SIGTERM"
+    trials = study.get_trials()
+    assert [t.user_attrs.get("fail_reason") for t in trials[:2]] == [reason] * 2
+    assert "Exception ignored" not in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("cause", ["SIGINT", "SIGTERM", "crash"])
@@ -522,6 +637,63 @@ def test_a_reference_trial_every_run_cut_short_is_queued_again(tmp_path: Path) -
     assert complete[0].user_attrs["retry_of"] == 0 and len(complete) == 2
     run_evolution(config, study, stream=out, evaluate=stub_fitness())  # nothing queued twice
     assert len(study.get_trials()) == 3
+
+
+OTHER_CODE = {"version": "0.0.1", "commit": "0123456789ab", "dirty": False, "source": "f" * 64}
+
+
+def test_workers_of_other_code_are_told_everywhere_in_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A newer worker joins a study: the older one was not told, ``study show`` and the report
+    did not say that the trials mix code versions, and the newer one's warning took 2 lines."""
+    url = f"sqlite:///{tmp_path}/s.db"
+    config = tiny_config(n_trials=3, sampler="random", sampler_seed=0)
+    study = create_or_resume_study(config, url, "s")  # the older worker: this code
+    distributions = {"sr": FloatDistribution(0.01, 10.0, log=True)}
+    study.add_trial(  # a trial of a newer worker, on other code
+        create_trial(params={"sr": 1.0}, distributions=distributions, value=-1.0,
+                     user_attrs={"ermrl_code": OTHER_CODE})
+    )  # fmt: skip
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        run_evolution(config, study, quiet=True, evaluate=stub_fitness())
+    told = [w for w in caught if "mix code versions" in str(w.message)]
+    assert len(told) == 1, [str(w.message) for w in caught]  # once, not at every claim
+    assert "holds trials of ermrl 0.0.1 at 0123456789" in str(told[0].message)
+    text = warnings.formatwarning(told[0].message, told[0].category, told[0].filename,
+                                  told[0].lineno, told[0].line)  # fmt: skip
+    assert text.count("\n") == 1, text
+
+    # The newer worker joining a study created by other code: one line too.
+    study.set_user_attr("ermrl_code", OTHER_CODE)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        create_or_resume_study(config, url, "s")
+    (joined,) = [w for w in caught if "mix code versions" in str(w.message)]
+    text = warnings.formatwarning(joined.message, joined.category, joined.filename,
+                                  joined.lineno, joined.line)  # fmt: skip
+    assert "was created by ermrl 0.0.1" in text and text.count("\n") == 1, text
+
+    assert study_main(["show", "--storage", url, "--study-name", "s"]) == 0
+    out = capsys.readouterr().out
+    (line,) = [line for line in out.splitlines() if line.startswith("code: ")]
+    assert line.startswith("code: trials come from 2 code versions"), out
+    assert "ermrl 0.0.1 at 0123456789, source ffffffffff (1 trial)" in line
+    assert study_main(["show", "--storage", url, "--study-name", "s", "--json"]) == 0
+    code = json.loads(capsys.readouterr().out)["code"]
+    assert [entry["trials"] for entry in code] == [2, 1]
+    assert code[1]["commit"] == "0123456789ab"
+
+    from ermrl.analysis import write_report
+
+    report = write_report(
+        "s", url, runs=tmp_path / "none", out=tmp_path / "r", interactive=False, html_page=False
+    )
+    assert [w.split(":")[0] for w in report.warnings] == [
+        "trials come from 2 code versions, so their results may not compare"
+    ]
+    assert "**Warning:** trials come from 2 code versions" in report.markdown.read_text()
 
 
 def test_popsize_smaller_than_workers_warns(tmp_path: Path) -> None:

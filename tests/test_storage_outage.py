@@ -7,6 +7,7 @@ import contextlib
 import socket
 import threading
 import time
+import uuid
 from collections.abc import Callable, Iterator
 from urllib.parse import urlsplit, urlunsplit
 
@@ -15,8 +16,9 @@ import pytest
 import sqlalchemy
 from optuna.trial import TrialState
 
+import ermrl.storage._locks as locks_module
 import ermrl.storage._url as url_module
-from ermrl.storage import StorageError, open_storage
+from ermrl.storage import StorageError, open_storage, storage_lock
 
 
 @pytest.fixture
@@ -225,3 +227,87 @@ def test_a_bad_retry_window_is_one_line(value: str, monkeypatch: pytest.MonkeyPa
     monkeypatch.setenv("ERMRL_STORAGE_RETRY_S", value)
     with pytest.raises(StorageError, match="ERMRL_STORAGE_RETRY_S|retry window"):
         open_storage("postgresql://nobody@127.0.0.1:1/none")
+
+
+# -- the claim lock of a server storage -----------------------------------------------------------
+
+
+def _advisory_holders(admin: object, url: str) -> list[int]:
+    """The server processes that hold an advisory lock in the database of ``url``."""
+    with admin.cursor() as cur:  # type: ignore[attr-defined]
+        cur.execute(
+            "SELECT pid FROM pg_locks l JOIN pg_database d ON d.oid = l.database "
+            "WHERE l.locktype = 'advisory' AND l.granted AND d.datname = %s",
+            (urlsplit(url).path.lstrip("/"),),
+        )
+        return [row[0] for row in cur.fetchall()]
+
+
+@pytest.fixture
+def pg_admin(postgres_url: str) -> Iterator[object]:
+    import psycopg2
+
+    admin = psycopg2.connect(postgres_url)
+    admin.autocommit = True
+    try:
+        yield admin
+    finally:
+        admin.close()
+
+
+@pytest.mark.timeout(60)
+def test_a_lock_whose_connection_died_is_released_without_an_error(
+    postgres_url: str, pg_admin: object, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A server restart drops the connection that holds the claim lock; releasing it raised
+    ``OperationalError ... SELECT pg_advisory_unlock`` and killed the worker, its trial left
+    RUNNING. The lock is gone with its connection: release logs it, the next lock is taken."""
+    with caplog.at_level("WARNING", logger="ermrl.storage"):
+        with storage_lock(postgres_url, "s"):
+            (holder,) = _advisory_holders(pg_admin, postgres_url)
+            with pg_admin.cursor() as cur:  # type: ignore[attr-defined]
+                cur.execute("SELECT pg_terminate_backend(%s)", (holder,))
+    assert "was lost with its connection" in caplog.text
+    with storage_lock(postgres_url, "s", retry_window=10):
+        assert len(_advisory_holders(pg_admin, postgres_url)) == 1
+
+
+def test_a_lock_reuses_its_connection(postgres_url: str, pg_admin: object) -> None:
+    """Every lock opened a connection of its own: a busy study used up the server's."""
+    holders = []
+    for _ in range(3):
+        with storage_lock(postgres_url, "s"):
+            holders += _advisory_holders(pg_admin, postgres_url)
+    assert len(holders) == 3 and len(set(holders)) == 1
+
+
+@pytest.mark.timeout(60)
+def test_taking_a_lock_waits_while_the_server_has_no_connection_left(
+    postgres_url: str, pg_admin: object, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Out of connections (here: the role's limit, 0 for 1.5 s), a lock's connect failed with a
+    traceback at once; it is now retried with the storage's backoff."""
+    role = f"ermrl_lock_{uuid.uuid4().hex[:8]}"
+    with pg_admin.cursor() as cur:  # type: ignore[attr-defined]
+        cur.execute(f"CREATE ROLE {role} LOGIN CONNECTION LIMIT 0")
+    parts = urlsplit(postgres_url)
+    url = urlunsplit(parts._replace(netloc=f"{role}@{parts.hostname}:{parts.port or 5432}"))
+
+    def allow() -> None:
+        time.sleep(1.5)
+        with pg_admin.cursor() as cur:  # type: ignore[attr-defined]
+            cur.execute(f"ALTER ROLE {role} CONNECTION LIMIT -1")
+
+    thread = threading.Thread(target=allow)
+    try:
+        thread.start()
+        start = time.monotonic()
+        monkeypatch.setenv("ERMRL_STORAGE_RETRY_S", "30")
+        with storage_lock(url, "s"):
+            assert time.monotonic() - start > 1
+    finally:
+        thread.join()
+        for key in [k for k in locks_module._ENGINES if role in k]:
+            locks_module._ENGINES.pop(key).dispose()
+        with pg_admin.cursor() as cur:  # type: ignore[attr-defined]
+            cur.execute(f"DROP ROLE {role}")

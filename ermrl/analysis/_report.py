@@ -38,6 +38,7 @@ import pandas as pd
 from markdown.extensions import Extension
 from markdown.treeprocessors import Treeprocessor
 
+from ermrl._code import code_versions, describe_code, mixed_code
 from ermrl._io import staged_folder
 from ermrl._progress import duration
 from ermrl.analysis._style import save_figure, task_title
@@ -63,6 +64,8 @@ class ReportResult:
         figures: ``{name: path}`` of every PNG.
         tables: ``{name: path}`` of every CSV.
         notes: Sections left out, with the reason (no test-phase folder, single-task study...).
+        warnings: What a reader must know about the results, one line each (trials of several
+            code versions).
     """
 
     out: Path
@@ -71,6 +74,7 @@ class ReportResult:
     figures: dict[str, Path] = field(default_factory=dict)
     tables: dict[str, Path] = field(default_factory=dict)
     notes: tuple[str, ...] = ()
+    warnings: tuple[str, ...] = ()
 
 
 def notebook_parameters(
@@ -420,6 +424,7 @@ def write_report(
         figures={name: moved(path) for name, path in state.figures.items()},
         tables={name: moved(path) for name, path in state.tables.items()},
         notes=tuple(state.notes),
+        warnings=tuple(state.warnings),
     )
 
 
@@ -429,6 +434,7 @@ class _State:
     study: Any
     storage: str
     notes: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
     figures: dict[str, Path] = field(default_factory=dict)
     tables: dict[str, Path] = field(default_factory=dict)
     sections: list[_Doc] = field(default_factory=list)
@@ -526,7 +532,16 @@ def _study_section(state: _State) -> None:
         rows.append(("Command", f"`{overview.command}`"))
     if overview.version:
         rows.append(("ermrl version", overview.version))
+    versions = code_versions(
+        t.user_attrs.get("ermrl_code") for t in study.get_trials(deepcopy=False)
+    )
+    mixed = mixed_code(versions)
+    if len(versions) == 1:
+        rows.append(("Code", describe_code(versions[0][0])))
     doc.table(pd.DataFrame(rows, columns=["", "value"]))
+    if mixed is not None:
+        state.warnings.append(mixed)
+        doc.p(f"**Warning:** {mixed}.")
     doc.h(3, "Trials by state")
     doc.table(pd.DataFrame([overview.counts]))
     doc.h(3, "Best parameters")

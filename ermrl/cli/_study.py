@@ -22,6 +22,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from ermrl._code import describe_code, mixed_code
 from ermrl._io import write_atomic
 from ermrl._text import plural
 from ermrl.cli._common import fail, quiet_libraries
@@ -316,6 +317,17 @@ def _list(args: argparse.Namespace, prog: str) -> int:
     return 0
 
 
+def _code_line(code: list[dict[str, Any]]) -> str:
+    """The code versions of a study's trials in one line (`study_summary`'s ``code``)."""
+    versions = [(record, record["trials"]) for record in code]
+    mixed = mixed_code(versions)
+    if mixed is not None:
+        return f"code: {mixed}"
+    if not versions:
+        return "code: not recorded"
+    return f"code: {describe_code(versions[0][0])} (every trial)"
+
+
 def _show(args: argparse.Namespace, prog: str) -> int:
     study = _open_study(args, prog)
     info = study_summary(study)
@@ -345,6 +357,7 @@ def _show(args: argparse.Namespace, prog: str) -> int:
             f"budgets differ: workers ran with --n-trials {used or '-'}; "
             f"the study's configuration says {stored}"
         )
+    print(_code_line(info["code"]))
     best = info["best"]
     if best is None:
         print("best: none yet")

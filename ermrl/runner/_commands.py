@@ -218,10 +218,26 @@ def interrupted_message(err: Interrupted) -> str:
     signame = err.args[0]
     if err.trial_number is None:
         return f"stopped by {signame} between trials; no trial of this worker was running"
-    requeued = " and queued again" if err.requeued else " (its retries are spent; not queued again)"
-    return (
-        f"stopped by {signame}; the running trial #{err.trial_number} was closed as FAIL{requeued}"
+    return f"stopped by {signame}; {_closed_trials(err)}"
+
+
+def _closed_trials(err: BaseException) -> str:
+    """The trials a signal closed (a generation's with the population backend), in words."""
+    closed = getattr(err, "closed_trials", None) or [
+        (getattr(err, "trial_number", None), getattr(err, "requeued", False))
+    ]
+    if len(closed) == 1:
+        number, requeued = closed[0]
+        again = " and queued again" if requeued else " (its retries are spent; not queued again)"
+        return f"the running trial #{number} was closed as FAIL{again}"
+    numbers = ", ".join(f"#{n}" for n, _ in sorted(closed))
+    n_requeued = sum(1 for _, requeued in closed if requeued)
+    again = (
+        " and queued again"
+        if n_requeued == len(closed)
+        else f" ({n_requeued} queued again; the others' retries are spent)"
     )
+    return f"the {len(closed)} running trials {numbers} were closed as FAIL{again}"
 
 
 def study_write_failure(err: OSError, storage: str) -> str | None:
@@ -354,18 +370,9 @@ def run_and_report(
 
 def _ctrl_c_message(err: KeyboardInterrupt) -> str:
     """What Ctrl-C did to this worker's trial, in words (after ``prog: ``)."""
-    number = getattr(err, "trial_number", None)
-    requeued = (
-        " and queued again"
-        if getattr(err, "requeued", False)
-        else " (its retries are spent; not queued again)"
-    )
-    closed = (
-        "between trials; no trial of this worker was running"
-        if number is None
-        else f"; the running trial #{number} was closed as FAIL{requeued}"
-    )
-    return f"interrupted{' ' if number is None else ''}{closed}"
+    if getattr(err, "trial_number", None) is None:
+        return "interrupted between trials; no trial of this worker was running"
+    return f"interrupted; {_closed_trials(err)}"
 
 
 def _database_write_failure(err: BaseException, where: str) -> str:
@@ -615,6 +622,8 @@ def run_report(request: ReportRequest, prog: str = "ermrl report") -> int:
         what, code = interruption(err)
         print(f"{prog}: {what}; no report written", file=sys.stderr)
         return code
+    for warning in result.warnings:  # also with --quiet: the results may not compare
+        print(f"{prog}: warning: {warning}", file=sys.stderr, flush=True)
     if not r.quiet:
         for note in result.notes:
             print(f"left out: {note}")

@@ -27,7 +27,7 @@ from ermrl.config import SearchSpace
 from ermrl.search._objective import FitnessResult, SeedRunner
 from ermrl.search._samplers import RestartCmaEsSampler
 from ermrl.search._signals import Interrupted, SignalGuard
-from ermrl.search._study import REFERENCE_ATTR, sample_params
+from ermrl.search._study import REFERENCE_ATTR, sample_params, warn_other_code
 from ermrl.storage import RetryStaleTrial, fail_stale_trials, study_lock, worker_info
 from ermrl.storage._heartbeat import base_storage
 
@@ -121,6 +121,7 @@ def claim_trial(
         if stale_check:
             fail_stale_trials(study)
         trials = study.get_trials(deepcopy=False, states=COUNTED)
+        warn_other_code(study, trials)  # another worker's code, new or old: say so, once
         waiting = any(t.state == TrialState.WAITING for t in trials)
         running = sum(t.state == TrialState.RUNNING for t in trials)
         if (len(trials) >= n_trials or queued_only) and not waiting:
@@ -134,6 +135,7 @@ def claim_trial(
         for key, value in worker_info().items():
             trial.set_user_attr(f"worker_{key}", value)
         trial.set_user_attr("worker_n_trials", n_trials)  # this worker's budget (study show)
+        trial.set_user_attr("ermrl_code", code_identity())  # seen by the others' next claims
         retry_of = trial.user_attrs.get("retry_of") if waiting else None
     return Claim(trial, params, running + 1, retry_of)
 
@@ -208,8 +210,10 @@ def close_interrupted(
             guard.wait(2.0)
         runner.close(cancel=True)
         heartbeat.join()
-        signum = err.signum if isinstance(err, Interrupted) else guard.pending
-        if isinstance(err, KeyboardInterrupt) and not isinstance(err, Interrupted):
+        # Interrupted (the guard's SIGTERM), Terminated (a SIGTERM a training loop raised again
+        # after a callback dropped it: `ermrl._interrupt`), or Ctrl-C.
+        signum = getattr(err, "signum", None) or guard.pending
+        if isinstance(err, KeyboardInterrupt) and getattr(err, "signum", None) is None:
             signum = signal.SIGINT
         if signum is None:
             reason = repr(err)
@@ -228,9 +232,20 @@ def close_interrupted(
             pass  # already closed by another worker as stale
         queued = "" if retry_of is None else f"; queued again (retry of #{retry_of})"
         say(f"[trial {trial.number}] closed as FAIL ({reason}){queued}")
+    # Every trial closed for this error (a generation's: one call each), shared by the errors
+    # raised for it, so that the command's last line counts them all.
+    closed: list[tuple[int, bool]] = getattr(err, "closed_trials", [])
+    closed.append((trial.number, retry_of is not None))
+    err.closed_trials = closed  # type: ignore[attr-defined]
     if isinstance(err, KeyboardInterrupt):  # Interrupted (SIGTERM) or Ctrl-C
         err.trial_number, err.requeued = trial.number, retry_of is not None  # type: ignore[attr-defined]
-    if signum is not None and not isinstance(err, KeyboardInterrupt):
+    # A signal raised as another error (a broken pool, a SIGTERM raised again as Terminated)
+    # becomes the guard's own (Interrupted for SIGTERM); Ctrl-C stays a KeyboardInterrupt.
+    plain = isinstance(err, Interrupted) or (
+        isinstance(err, KeyboardInterrupt) and signum == signal.SIGINT
+    )
+    if signum is not None and not plain:
         error = guard.error() or Interrupted(signum)
         error.trial_number, error.requeued = trial.number, retry_of is not None  # type: ignore[attr-defined]
+        error.closed_trials = closed  # type: ignore[attr-defined]
         raise error from err

@@ -14,7 +14,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
-from ermrl._interrupt import sigint_received
+from ermrl._interrupt import forget_signals, note_signal, noted_signal
 
 __all__ = ["Interrupted", "SignalGuard", "sigterm_as_interrupt"]
 
@@ -52,6 +52,9 @@ class SignalGuard:
         second = self.pending is not None
         if not second:
             self.pending = signum
+        # Also noted where a training loop looks (`raise_swallowed_signal`): raised in a weakref
+        # callback, the exception is dropped, and the loop would train on to its end.
+        note_signal(signum)
         if self._depth == 0 or second:
             self.check()
 
@@ -90,10 +93,14 @@ class SignalGuard:
             return
         previous = {s: signal.signal(s, self._handler) for s in (signal.SIGTERM, signal.SIGINT)}
         try:
-            if sigint_received():  # a Ctrl-C of the start-up that a library swallowed
-                self.pending = signal.SIGINT
+            noted = noted_signal()  # a signal of the start-up that a library swallowed
+            if noted is not None:
+                self.pending = noted
                 self.check()
             yield
+        except BaseException:
+            forget_signals()  # the exception on its way carries them: never raised twice
+            raise
         finally:
             for sig, handler in previous.items():
                 signal.signal(sig, handler)

@@ -5,12 +5,15 @@ from __future__ import annotations
 
 import sys
 import warnings
+import weakref
+from collections.abc import Sequence
 from typing import Any
 
 import optuna
 from optuna.distributions import BaseDistribution, FloatDistribution, IntDistribution
+from optuna.trial import FrozenTrial
 
-from ermrl._code import code_identity, describe_code, same_code
+from ermrl._code import code_identity, code_versions, describe_code, same_code
 from ermrl.config import ConfigError, EvolveConfig, SearchConfig, SearchSpace, to_dict
 from ermrl.search._pruning import make_pruner
 from ermrl.storage import (
@@ -23,6 +26,7 @@ from ermrl.storage import (
 )
 
 __all__ = [
+    "CodeVersionWarning",
     "REFERENCE_ATTR",
     "STUDY_COMMAND_ATTR",
     "STUDY_CONFIG_ATTR",
@@ -38,6 +42,7 @@ __all__ = [
     "sample_params",
     "search_distributions",
     "study_config",
+    "warn_other_code",
 ]
 
 STUDY_CONFIG_ATTR = "ermrl_config"
@@ -368,18 +373,48 @@ def create_or_resume_study(
     return study
 
 
-def warn_other_code(study: optuna.Study) -> None:
-    """Say in one line when this worker's code is not the code that created the study.
+class CodeVersionWarning(UserWarning):
+    """Workers of different code share a study (see `warn_other_code`)."""
 
-    The study goes on (its trials record each its own code, ``ermrl_code``), but a reader of
-    its results should know that they mix code versions.
+
+# The code versions each study object was warned about already (once per process each).
+_WARNED: weakref.WeakKeyDictionary[optuna.Study, set[str]] = weakref.WeakKeyDictionary()
+
+
+def warn_other_code(study: optuna.Study, trials: Sequence[FrozenTrial] | None = None) -> None:
+    """Say in one line, once per other code version, when this worker's code is not the code
+    that created the study or that ran some of ``trials``.
+
+    Every worker warns, the older as well as the newer: a worker checks the study's creator
+    when it joins and the trials at every claim. The study goes on: upgrading a cluster
+    mid-study must not stop its workers, and each trial records its own code (user attribute
+    ``ermrl_code``), which ``ermrl study show`` and ``ermrl report`` count.
+
+    Args:
+        study: The study.
+        trials: Trials whose code to compare (``ermrl_code``, set when they are claimed);
+            ``None``: the study's own (``ermrl_code`` of the study, none for an older ermrl).
     """
-    stored = study.user_attrs.get(CODE_ATTR)
-    if same_code(stored) is not False and stored is not None:
-        return
-    warnings.warn(
-        f"study {study.study_name!r} was created by {describe_code(stored)}; this worker runs "
-        f"{describe_code(code_identity())}: its trials will mix code versions (each trial "
-        "records its own, user attribute ermrl_code)",
-        stacklevel=2,
-    )
+    others: list[tuple[Any, str]] = []
+    if trials is None:
+        stored = study.user_attrs.get(CODE_ATTR)
+        if same_code(stored) is not True:  # other code, or none recorded (an older ermrl)
+            others.append((stored, "was created by"))
+    else:
+        records = code_versions(t.user_attrs.get(CODE_ATTR) for t in trials)
+        others += [(r, "holds trials of") for r, _ in records if same_code(r) is False]
+    warned = _WARNED.setdefault(study, set())
+    for record, what in others:
+        other = describe_code(record)
+        if other in warned:
+            continue
+        warned.add(other)
+        # warn_explicit without a source line: one line on stderr, not two.
+        warnings.warn_explicit(
+            f"study {study.study_name!r} {what} {other}; this worker runs "
+            f"{describe_code(code_identity())}: its trials mix code versions (each trial records "
+            "its own, user attribute ermrl_code)",
+            CodeVersionWarning,
+            "ermrl",
+            0,
+        )

@@ -14,9 +14,15 @@ others for long:
   dead process, i.e. a link unchanged for 30 s, is broken, whatever it points at). Appends and
   repairs take Optuna's own ``<log>.lock`` through `JournalSymlinkLock`, which breaks a
   stale or dangling one the same way;
-- PostgreSQL: a session advisory lock (``pg_advisory_lock``) on its own connection;
-- MySQL / MariaDB: ``GET_LOCK`` on its own connection;
+- PostgreSQL: a session advisory lock (``pg_advisory_lock``);
+- MySQL / MariaDB: ``GET_LOCK``;
 - Redis: a ``redis-py`` lock with a 120 s expiry.
+
+A PostgreSQL or MySQL lock lives on a connection of its own, reused from lock to lock (one per
+process), and dies with it: a worker that is killed, or whose connection the server drops (a
+restart), holds it no longer. Taking one is retried through an outage as the storage's calls
+are (`ermrl.storage._retry`); releasing one that its connection took along only logs a
+warning. The claim made under it goes on: its storage calls are retried too.
 """
 
 from __future__ import annotations
@@ -28,7 +34,7 @@ import logging
 import os
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -273,66 +279,127 @@ _ENGINES: dict[str, Any] = {}
 
 
 def _lock_engine(spec: StorageURL) -> Any:
-    """A pool-less engine: every lock gets a fresh connection, closed (and so released) after.
+    """The engine of a server's locks: one pooled connection per process, reused by every lock.
 
-    Connecting is bounded as for the storage (`connect_args`); a lock
+    SQLAlchemy's ``pool_pre_ping`` replaces a pooled connection that died (a server restart)
+    before a lock uses it; a nested lock gets a connection of its own (pool overflow), closed
+    when it is returned. Connecting is bounded as for the storage (`connect_args`); a lock
     wait is not.
     """
     engine = _ENGINES.get(spec.url)
     if engine is None:
         import sqlalchemy
-        from sqlalchemy.pool import NullPool
 
         engine = sqlalchemy.create_engine(
-            spec.url, poolclass=NullPool, connect_args=connect_args(spec)
+            spec.url,
+            pool_size=1,
+            max_overflow=-1,
+            pool_pre_ping=True,
+            connect_args=connect_args(spec),
         )
         _ENGINES[spec.url] = bound_handshake(engine)
     return engine
 
 
 @contextlib.contextmanager
-def _pg_lock(spec: StorageURL, name: str, timeout: float) -> Iterator[None]:
+def _server_lock(
+    spec: StorageURL,
+    name: str,
+    take: Callable[[Any], None],
+    give: Callable[[Any], None],
+    window: float | None,
+) -> Iterator[None]:
+    """Hold a lock of a PostgreSQL or MySQL server, taken by ``take(connection)`` and released
+    by ``give(connection)``.
+
+    Taking it is retried as the storage's calls are (`ermrl.storage._retry`): a server that
+    restarts or has no connection left is waited for, up to the retry window (0: not retried,
+    the driver's error is raised, as when a storage is opened). A lock is tied to
+    its connection, so a connection that dies while the lock is held (a server restart) takes
+    the lock with it: releasing it then only logs a warning, and the connection is dropped.
+
+    Raises:
+        LockTimeout: the lock was not obtained in time.
+        StorageError: the server stayed unreachable for the whole retry window (one line).
+    """
+    import sqlalchemy
+
+    from ermrl.storage._retry import Outage, rdb_transient, retry_window
+
+    def locked() -> Any:
+        conn = _lock_engine(spec).connect()
+        try:
+            take(conn)
+        except BaseException:
+            conn.close()
+            raise
+        return conn
+
+    window = retry_window(window)
+    conn = Outage(spec.raw, window).call(rdb_transient, locked) if window > 0 else locked()
+    try:
+        yield
+    finally:
+        try:
+            give(conn)
+        except sqlalchemy.exc.DBAPIError as err:
+            _log.warning("lock %r of %s was lost with its connection (%s)", name, spec, err.orig)
+            conn.invalidate()  # never back in the pool, whatever it still holds
+        finally:
+            conn.close()
+
+
+def _pg_lock(spec: StorageURL, name: str, timeout: float, window: float | None) -> Any:
     import sqlalchemy
 
     key = _pg_key(name)
-    with _lock_engine(spec).connect() as conn:
+
+    def take(conn: Any) -> None:
         conn.execute(sqlalchemy.text(f"SET lock_timeout = {int(timeout * 1000)}"))
         try:
             conn.execute(sqlalchemy.text("SELECT pg_advisory_lock(:k)"), {"k": key})
         except sqlalchemy.exc.OperationalError as err:
+            if getattr(err.orig, "pgcode", None) != "55P03":  # lock_not_available
+                raise  # the connection failed: taking the lock is retried
             raise LockTimeout(f"could not take advisory lock {name!r}: {err.orig}") from err
         conn.commit()
-        try:
-            yield
-        finally:
-            conn.execute(sqlalchemy.text("SELECT pg_advisory_unlock(:k)"), {"k": key})
-            conn.commit()
+
+    def give(conn: Any) -> None:
+        conn.execute(sqlalchemy.text("SELECT pg_advisory_unlock(:k)"), {"k": key})
+        conn.commit()
+
+    return _server_lock(spec, name, take, give, window)
 
 
-@contextlib.contextmanager
-def _mysql_lock(spec: StorageURL, name: str, timeout: float) -> Iterator[None]:
+def _mysql_lock(spec: StorageURL, name: str, timeout: float, window: float | None) -> Any:
     import sqlalchemy
 
     key = lock_key(name)
-    with _lock_engine(spec).connect() as conn:
+
+    def take(conn: Any) -> None:
         got = conn.execute(
             sqlalchemy.text("SELECT GET_LOCK(:n, :t)"), {"n": key, "t": int(timeout)}
         ).scalar()
+        conn.commit()
         if got != 1:
             raise LockTimeout(f"could not take MySQL lock {name!r} within {timeout:.0f} s")
-        try:
-            yield
-        finally:
-            conn.execute(sqlalchemy.text("SELECT RELEASE_LOCK(:n)"), {"n": key})
+
+    def give(conn: Any) -> None:
+        conn.execute(sqlalchemy.text("SELECT RELEASE_LOCK(:n)"), {"n": key})
+        conn.commit()
+
+    return _server_lock(spec, name, take, give, window)
 
 
 @contextlib.contextmanager
-def _redis_lock(spec: StorageURL, name: str, timeout: float) -> Iterator[None]:
+def _redis_lock(
+    spec: StorageURL, name: str, timeout: float, retry_s: float | None
+) -> Iterator[None]:
     import redis
 
     from ermrl.storage._retry import Outage, redis_client, redis_transient, retry_window
 
-    window = retry_window()
+    window = retry_window(retry_s)
     outage = Outage(spec.raw, window)
     client = redis_client(spec.url, window)
     lock = client.lock(lock_key(f"{spec.prefix}:{name}"), timeout=120, blocking_timeout=timeout)
@@ -347,7 +414,10 @@ def _redis_lock(spec: StorageURL, name: str, timeout: float) -> Iterator[None]:
 
 @contextlib.contextmanager
 def storage_lock(
-    url: str | StorageURL, name: str = "storage", timeout: float = LOCK_TIMEOUT_S
+    url: str | StorageURL,
+    name: str = "storage",
+    timeout: float = LOCK_TIMEOUT_S,
+    retry_window: float | None = None,
 ) -> Iterator[None]:
     """Hold an inter-process lock tied to a storage URL.
 
@@ -357,20 +427,23 @@ def storage_lock(
         name: Which lock (e.g. ``"schema"`` or a study name). File-based locks (SQLite, journal)
             are one per storage whatever the name; server locks are one per name.
         timeout: Seconds to wait for the lock.
+        retry_window: Seconds taking a server's lock is retried while the server is
+            unreachable (``None``: ``ERMRL_STORAGE_RETRY_S`` or 120; see
+            `ermrl.storage._retry`).
 
     Raises:
-        StorageError: the URL is malformed.
+        StorageError: the URL is malformed, or the server stayed unreachable.
         LockTimeout: the lock was not obtained in time.
     """
     spec = url if isinstance(url, StorageURL) else parse_storage_url(url)
     if spec.kind == "redis":
-        with _redis_lock(spec, name, timeout):
+        with _redis_lock(spec, name, timeout, retry_window):
             yield
     elif spec.kind == "postgresql":
-        with _pg_lock(spec, name, timeout):
+        with _pg_lock(spec, name, timeout, retry_window):
             yield
     elif spec.kind == "mysql":
-        with _mysql_lock(spec, name, timeout):
+        with _mysql_lock(spec, name, timeout, retry_window):
             yield
     else:  # a file next to the SQLite database or the journal
         assert spec.path is not None, spec

@@ -275,7 +275,8 @@ def _open(spec: StorageURL, heartbeat: dict[str, Any], mode: str, window: float)
         _wait_for_whole_schema(spec, engine_kwargs)
         return _rdb_storage(spec, engine_kwargs, heartbeat, window)
     # Many workers starting at once on a fresh database race on CREATE TABLE: one at a time.
-    with storage_lock(spec, "schema"):
+    # Opening is not retried: a server down when a command starts fails at once.
+    with storage_lock(spec, "schema", retry_window=0):
         return _rdb_storage(spec, engine_kwargs, heartbeat, window)
 
 
@@ -368,7 +369,8 @@ def _check_sqlite(path: os.PathLike[str] | str, *, lock: bool = True) -> bool:
     SQLite does on its next open (a read-only one fails on "attempt to write a readonly
     database"). The check then opens the file read-write (never creating it), under ermrl's
     lock on the database (``<db>.lock``, when ``lock`` or when it exists already), so the
-    interrupted transaction is rolled back before anything reads.
+    interrupted transaction is rolled back before anything reads. The journal of a live writer
+    (another worker in a transaction) is not hot and is left to it (`_roll_back_hot_journal`).
 
     Args:
         path: The database file (missing or empty: nothing to check).
@@ -390,8 +392,8 @@ def _check_sqlite(path: os.PathLike[str] | str, *, lock: bool = True) -> bool:
         return False
     lock_file = f"{path}.lock"
     with sqlite_file_lock(lock_file) if lock or os.path.exists(lock_file) else _no_lock():
+        rolled_back = _roll_back_hot_journal(path)
         _quick_check(path, "rw")
-    rolled_back = not _nonempty(journal)
     if rolled_back:
         _log.warning(
             "SQLite database %s: rolled back the transaction a writer left unfinished (%s)",
@@ -399,6 +401,40 @@ def _check_sqlite(path: os.PathLike[str] | str, *, lock: bool = True) -> bool:
             journal,
         )
     return rolled_back
+
+
+def _roll_back_hot_journal(path: os.PathLike[str] | str) -> bool:
+    """Roll back the journal of a writer that died, as SQLite does; whether one was.
+
+    A live writer's journal is not *hot*: the writer holds SQLite's RESERVED lock on the
+    database (an EXCLUSIVE one while it commits) until its journal is gone. ``BEGIN
+    IMMEDIATE``, which does not wait here, takes that lock only when no process holds it, and
+    first rolls back a hot journal. A writer that committed between the look at its journal and
+    this lock (its journal gone, the database's change counter up) rolled nothing back either.
+    Any other error is left to `_quick_check`, which says what is wrong.
+    """
+    import sqlite3
+    from urllib.parse import quote
+
+    before = _change_counter(path)
+    uri = f"file:{quote(os.path.abspath(path))}?mode=rw"
+    try:
+        conn = sqlite3.connect(uri, uri=True, timeout=0, isolation_level=None)
+        try:
+            conn.execute("BEGIN IMMEDIATE")
+            conn.execute("ROLLBACK")
+        finally:
+            conn.close()
+    except sqlite3.DatabaseError:
+        return False  # busy: a live writer holds it (or an error _quick_check reports)
+    return not _nonempty(f"{path}-journal") and _change_counter(path) <= before
+
+
+def _change_counter(path: os.PathLike[str] | str) -> int:
+    """SQLite's file change counter (header bytes 24-27), which every commit increments."""
+    with open(path, "rb") as f:
+        f.seek(24)
+        return int.from_bytes(f.read(4), "big")
 
 
 def _nonempty(path: str) -> bool:
@@ -513,7 +549,9 @@ def study_lock(study: optuna.Study, timeout: float = LOCK_TIMEOUT_S) -> Iterator
             yield False
             return
         spec = parse_storage_url(url)
-    with storage_lock(spec, study.study_name, timeout=timeout):
+    outage = getattr(base_storage(study._storage), "_outage", None)  # RetryingRDBStorage's
+    window = outage.window if outage is not None else None
+    with storage_lock(spec, study.study_name, timeout=timeout, retry_window=window):
         yield True
 
 

@@ -1,5 +1,5 @@
 """What a study holds, as plain data: its trials per state, its budget, its best trial, its
-workers and its running trials (what ``ermrl study list`` and ``ermrl study show`` print)."""
+workers, the code versions of its trials and its running trials (what ``ermrl study list`` and ``ermrl study show`` print)."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ from collections import Counter
 from collections.abc import Sequence
 from typing import Any
 
+from ermrl._code import code_versions
 from ermrl.storage._heartbeat import last_seen
 
 __all__ = [
@@ -67,7 +68,8 @@ def worker_label(trial: Any) -> str:
 def study_summary(study: Any) -> dict[str, Any]:
     """The study in plain data (the JSON of ``ermrl study show --json``): its kind, task,
     budget and each worker's, trials per state, retries, best trial, workers and running
-    trials with the seconds since their heartbeat."""
+    trials with the seconds since their heartbeat, and the code versions its trials ran
+    (``code``: each `ermrl._code.code_identity` record with its number of ``trials``)."""
     trials = study.get_trials(deepcopy=False)
     best = best_trial_or_none(study)
     now = time.time()
@@ -94,6 +96,10 @@ def study_summary(study: Any) -> dict[str, Any]:
             "worker": worker_label(best),
         },
         "workers": dict(workers.most_common()),
+        "code": [
+            {**record, "trials": n}
+            for record, n in code_versions(t.user_attrs.get("ermrl_code") for t in trials)
+        ],
         "running": [
             {
                 "number": t.number,
