@@ -136,7 +136,7 @@ def _tests_of(md: Path) -> dict[tuple[str, str, str], list[str]]:
         if line.startswith("### "):
             task = line[4:].split(" ")[0]
         cells = [c.strip() for c in line.strip("|").split("|")]
-        if len(cells) == 15 and cells[1].startswith("res-ppo −"):
+        if len(cells) == 16 and cells[1].startswith("res-ppo −"):
             rows[(task, cells[1], cells[2])] = cells
     return rows
 
@@ -174,7 +174,7 @@ def test_each_label_follows_the_rule_on_crafted_per_seed_files(tmp_path: Path) -
         assert float(cells[8].split(" ")[0]) == pytest.approx(adjusted[task], rel=1e-3)
     noise = rows[("Noise-v0", "res-ppo − ppo", "last10")]
     assert noise[13].startswith("effects above +") and "are excluded at 95%" in noise[13]
-    assert noise[14].isdigit() and int(noise[14]) > 8  # more seeds than it has would be needed
+    assert noise[15].isdigit() and int(noise[15]) > 8  # more seeds than it has would be needed
     # The other metrics are judged too: last100 (here final_return - 1) keeps the labels.
     assert rows[("Up-v0", "res-ppo − ppo", "last100")][12] == "**supported**"
     text = md.read_text()
@@ -186,6 +186,43 @@ def test_each_label_follows_the_rule_on_crafted_per_seed_files(tmp_path: Path) -
     assert dict(zip(primary["task"], primary["outcome"], strict=True)) == {
         "Up-v0": "supported", "Down-v0": "contradicted", "Noise-v0": "inconclusive"}  # fmt: skip
     assert primary["p_adjusted"].tolist() == pytest.approx([adjusted[t] for t in primary["task"]])
+
+
+def test_equivalence_is_said_only_when_both_one_sided_tests_reject(tmp_path: Path) -> None:
+    """On made-up data: the same returns are equivalent within a wide margin, not within a
+    narrow one; the TOST p is scipy's two one-sided Welch tests at the adjusted level; a
+    margin set after the results is flagged on the page."""
+    from scipy import stats
+
+    near = [v + 1.0 for v in PPO]
+    rule = {**RULE, "equivalence": {"adopted": "2026-12-02",
+                                    "margins": {"Wide-v0": 20.0, "Narrow-v0": 1.0}}}  # fmt: skip
+    tasks = {"Wide-v0": {"ppo": PPO, "res-ppo": near, "random-res-ppo": PPO},
+             "Narrow-v0": {"ppo": PPO, "res-ppo": near, "random-res-ppo": PPO},
+             "None-v0": {"ppo": PPO, "res-ppo": near, "random-res-ppo": PPO}}  # fmt: skip
+    hyp = _hypothesis(tmp_path, tasks, rule=rule, finished="2026-11-30T10:00:00+00:00")
+    md, _ = write_reproduction_page([hyp], tmp_path / "r.md", html_page=False)
+    table = pd.read_csv(md.with_suffix(".csv")).fillna({"equivalence": ""})
+    rows = table[(table["metric"] == "last10") & (table["comparison"] == "res-ppo − ppo")]
+    rows = rows.set_index("task")
+    assert rows["outcome"].eq("inconclusive").all()
+    assert rows.at["Wide-v0", "equivalence"] == "equivalent"
+    assert rows.at["Narrow-v0", "equivalence"] == "not shown either way"
+    assert rows.at["None-v0", "equivalence"] == "" and np.isnan(rows.at["None-v0", "margin"])
+    for task, margin in (("Wide-v0", 20.0), ("Narrow-v0", 1.0)):
+        a, b = np.array(near), np.array(PPO)
+        p = max(stats.ttest_ind(a + margin, b, equal_var=False, alternative="greater").pvalue,
+                stats.ttest_ind(a - margin, b, equal_var=False, alternative="less").pvalue)
+        assert rows.at[task, "tost_p"] == pytest.approx(p)
+        inside = -margin < rows.at[task, "equiv_low"] and rows.at[task, "equiv_high"] < margin
+        assert inside == (p <= rows.at[task, "level"]) == (task == "Wide-v0")
+    text = md.read_text()
+    assert "equivalent within ±20 (TOST p" in text
+    assert "equivalence within ±1 not shown either way (TOST p" in text
+    assert "**Flag: the equivalence margins were set after the data.** Margins adopted 2026-12-02" in text
+    with pytest.raises(VerdictError, match=r"equivalence.margins.A-v0: a positive number"):
+        VerdictRule.from_doc({**RULE, "equivalence": {"adopted": "2026-12-02",
+                                                      "margins": {"A-v0": 0}}})  # fmt: skip
 
 
 def test_holm_adjusts_and_stops_where_a_test_is_kept() -> None:

@@ -86,6 +86,7 @@ from ermrl.analysis._results import (
 from ermrl.analysis._stats import (
     FEW_SEEDS,
     IQMResult,
+    TOSTResult,
     WelchResult,
     aggregate_iqm,
     bootstrap_mean_diff_ci,
@@ -95,6 +96,7 @@ from ermrl.analysis._stats import (
     iqm,
     paired_bootstrap_mean_diff_ci,
     welch_t_test,
+    welch_tost,
 )
 from ermrl.analysis._study import (
     TRIALS_TABLE_EXTRA,
@@ -129,6 +131,7 @@ from ermrl.analysis._verdicts import (
     VerdictError,
     VerdictRule,
     aggregate_question,
+    equivalence_outcome,
     holm,
     judge,
     load_test_runs,
@@ -163,6 +166,7 @@ __all__ = [
     "StudyOverview",
     "TrainedAgent",
     "VideoResult",
+    "TOSTResult",
     "WelchResult",
     "aggregate_iqm",
     "available_runs",
@@ -190,6 +194,7 @@ __all__ = [
     "VerdictRule",
     "verdict_changes",
     "aggregate_question",
+    "equivalence_outcome",
     "holm",
     "judge",
     "probability_of_improvement",
@@ -269,6 +274,7 @@ __all__ = [
     "trials_table",
     "TRIALS_TABLE_EXTRA",
     "welch_t_test",
+    "welch_tost",
     "write_dynamics",
     "write_gif",
     "write_interactive_evolution",

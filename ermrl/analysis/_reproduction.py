@@ -54,6 +54,7 @@ from ermrl.analysis._verdicts import (
     VerdictError,
     VerdictRule,
     aggregate_question,
+    equivalence_text,
     excluded_effects,
     first_result_date,
     judge,
@@ -583,6 +584,13 @@ def _hypothesis_section(
                 f"Rule adopted {rule.adopted or 'on an unrecorded date'}; first test result "
                 f"{first or 'not yet'}" + (f" (dated by {source})" if first else "") + "."
             )
+        if rule.margins and rule.margins_adopted and first and rule.margins_adopted > first:
+            doc.p(
+                f"**Flag: the equivalence margins were set after the data.** Margins adopted "
+                f"{rule.margins_adopted}, a rule of their own added to the file after its test "
+                f"results existed (first {first}): read every *equivalent* and *not shown either "
+                "way* on this file as a re-analysis, not as a test fixed in advance."
+            )
         _questions_block(doc, hyp, rule, judged, tests, normalize, glance)
     for result, files in zip(results, hyp.tasks, strict=True):
         _task_section(doc, hyp, result, tests, docs_dir, files.evolved_on)
@@ -826,6 +834,9 @@ def _tests_table(rows: pd.DataFrame) -> pd.DataFrame:
                 "what it rules out": excluded_effects(row)
                 if tested and row["outcome"] == "inconclusive"
                 else row["note"],
+                "equivalence (two one-sided tests)": (equivalence_text(row) or "–")
+                if tested
+                else "–",
                 "seeds for 80% power": (
                     "–"
                     if not tested

@@ -55,12 +55,16 @@ __all__ = [
     "OUTCOMES",
     "Comparison",
     "Question",
+    "EQUIVALENT",
+    "NOT_SHOWN",
     "Reference",
     "TaskRuns",
     "VerdictRule",
     "VerdictError",
     "aggregate_question",
     "combine_outcomes",
+    "equivalence_outcome",
+    "equivalence_text",
     "not_run",
     "task_outcome",
     "holm",
@@ -167,6 +171,11 @@ class VerdictRule:
         power: The power the seeds-needed line targets.
         references: Baselines read from other experiments' published runs
             ([`Reference`][ermrl.analysis.Reference]).
+        margins: The equivalence margin of each task, ``((task, margin), ...)`` in the task's
+            return units (the ``equivalence:`` block): a comparison is *equivalent within
+            ±margin* only when two one-sided tests at its adjusted level reject both
+            ``diff <= -margin`` and ``diff >= margin`` (see `equivalence_outcome`).
+        margins_adopted: When the margins were written (ISO date), a rule of their own.
     """
 
     questions: tuple[Question, ...]
@@ -177,6 +186,12 @@ class VerdictRule:
     n_resamples: int = 10_000
     power: float = 0.8
     references: tuple[Reference, ...] = ()
+    margins: tuple[tuple[str, float], ...] = ()
+    margins_adopted: str | None = None
+
+    def margin(self, task: str) -> float | None:
+        """The equivalence margin of a task (``None``: the rule states none)."""
+        return dict(self.margins).get(task)
 
     @classmethod
     def from_doc(cls, doc: Any, where: str = "verdict") -> VerdictRule:
@@ -191,6 +206,7 @@ class VerdictRule:
             "adopted",
             "alpha",
             "correction",
+            "equivalence",
             "primary",
             "questions",
             "power",
@@ -256,6 +272,7 @@ class VerdictRule:
             int(resamples),
             float(power),
             _references(doc.get("references"), f"{where}.references"),
+            *_margins(doc.get("equivalence"), f"{where}.equivalence"),
         )
 
     @property
@@ -279,7 +296,40 @@ class VerdictRule:
             "a question is supported on a task when all its comparisons are, contradicted when "
             f"any is; seeds needed: per agent, for {self.power:.0%} power of Welch's test at the "
             "adjusted level, if the observed difference and spread were the truth"
+            + self._describe_margins()
         )
+
+    def _describe_margins(self) -> str:
+        if not self.margins:
+            return ""
+        margins = ", ".join(f"{task} ±{value:g}" for task, value in self.margins)
+        return (
+            f"; equivalence (a rule of its own, adopted {self.margins_adopted}): a comparison is "
+            f"*equivalent within ±δ* (δ per task: {margins}, in the task's return) when two "
+            "one-sided Welch tests at its adjusted level α' reject both a difference of −δ or "
+            "less and one of +δ or more, and the percentile bootstrap agrees (both 1 − 2α' "
+            "intervals lie inside ±δ); otherwise equivalence is *not shown either way*, and the "
+            "page gives the largest difference the intervals still allow"
+        )
+
+
+def _margins(doc: Any, where: str) -> tuple[tuple[tuple[str, float], ...], str | None]:
+    """An ``equivalence:`` block: ``{adopted: DATE, margins: {TASK: MARGIN}}``."""
+    if doc is None:
+        return (), None
+    if not isinstance(doc, Mapping) or set(doc) != {"adopted", "margins"}:
+        raise VerdictError(f"{where}: a mapping with exactly adopted and margins is needed")
+    adopted = _date(doc["adopted"], f"{where}.adopted")
+    margins = doc["margins"]
+    if not isinstance(margins, Mapping) or not margins:
+        raise VerdictError(f"{where}.margins: a mapping TASK: margin (in the task's units)")
+    out = []
+    for task, value in margins.items():
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+        if not ok or not math.isfinite(value) or value <= 0:
+            raise VerdictError(f"{where}.margins.{task}: a positive number is needed, got {value!r}")
+        out.append((str(task), float(value)))
+    return tuple(out), adopted
 
 
 def _references(doc: Any, where: str) -> tuple[Reference, ...]:
@@ -520,7 +570,13 @@ TEST_COLUMNS = [
     "n_candidate", "n_baseline", "mean_diff", "welch_low", "welch_high", "boot_low",
     "boot_high", "p_value", "family_size", "p_adjusted", "level", "adj_welch_low",
     "adj_welch_high", "adj_boot_low", "adj_boot_high", "outcome", "seeds_needed", "note",
+    "margin", "tost_p", "equiv_low", "equiv_high", "equivalence",
 ]  # fmt: skip
+#: A comparison's ``equivalence`` when its rule states a margin for the task: both ``1 - 2α'``
+#: intervals (α' its adjusted level) lie inside ``±margin``.
+EQUIVALENT = "equivalent"
+#: Neither equivalence within the margin nor a difference is shown.
+NOT_SHOWN = "not shown either way"
 
 
 def judge(
@@ -597,7 +653,7 @@ def _raw_test(
         hypothesis=task.hypothesis, task=task.task, question=question.name,
         comparison=comp.label, candidate=comp.candidate, baseline=comp.baseline, metric=metric,
         n_candidate=len(a), n_baseline=len(b), outcome="inconclusive", seeds_needed=None,
-        note="", family_size=0,
+        note="", family_size=0, equivalence="",
     )  # fmt: skip
     same_runs = {comp.candidate, comp.baseline} == {"res-ppo", "random-res-ppo"}
     if task.reference_selected and same_runs:
@@ -656,6 +712,85 @@ def _adjust(
     ]  # fmt: skip
     table.loc[i, "outcome"] = outcome
     table.at[i, "seeds_needed"] = seeds
+    margin = rule.margin(str(row["task"]))
+    if margin is not None:
+        found = equivalence_outcome(a, b, margin, level, outcome, rule.n_resamples, seed)
+        table.loc[i, ["margin", "tost_p", "equiv_low", "equiv_high"]] = [
+            margin, found["tost_p"], found["equiv_low"], found["equiv_high"],
+        ]  # fmt: skip
+        table.loc[i, "equivalence"] = found["equivalence"]
+
+
+def equivalence_outcome(
+    a: np.ndarray,
+    b: np.ndarray,
+    margin: float,
+    level: float,
+    outcome: str,
+    n_resamples: int = 10_000,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """The equivalence test of ``mean(a) - mean(b)`` within ``±margin`` at level ``level``.
+
+    Two one-sided Welch tests ([`welch_tost`][ermrl.analysis.welch_tost]) at ``level`` (the
+    comparison's Holm-adjusted level), with the percentile bootstrap's ``1 - 2 level`` interval
+    required inside ``±margin`` too, as the three outcomes require both intervals.
+
+    Args:
+        a: The candidate's values.
+        b: The baseline's values.
+        margin: The task's margin (> 0).
+        level: The comparison's adjusted level.
+        outcome: The comparison's outcome (supported, contradicted or inconclusive).
+
+    Returns:
+        ``tost_p``, ``equiv_low`` and ``equiv_high`` (the outer ends of the two ``1 - 2 level``
+        intervals) and ``equivalence``: `EQUIVALENT`, `NOT_SHOWN` (an inconclusive comparison
+        not shown equivalent) or ``""`` (a difference shown, not equivalent).
+
+    Examples:
+        >>> import numpy as np
+        >>> a, b = np.array([10.0, 11, 9, 10, 10.5, 9.5]), np.array([10.2, 9.8, 10, 10.4, 9.6, 10])
+        >>> equivalence_outcome(a, b, 2.0, 0.05, "inconclusive", 2000)["equivalence"]
+        'equivalent'
+        >>> equivalence_outcome(a, b, 0.1, 0.05, "inconclusive", 2000)["equivalence"]
+        'not shown either way'
+    """
+    from ermrl.analysis._stats import welch_tost
+
+    tost = welch_tost(a, b, margin, level)
+    low, high = bootstrap_mean_diff_ci(
+        a, b, confidence=1 - 2 * level, n_resamples=n_resamples, seed=seed
+    )
+    lows, highs = [tost.ci_low, low], [tost.ci_high, high]
+    finite = all(math.isfinite(v) for v in (*lows, *highs))
+    inside = finite and tost.p_value <= level and -margin < min(lows) and max(highs) < margin
+    label = EQUIVALENT if inside else ("" if outcome in ("supported", "contradicted") else NOT_SHOWN)
+    return {
+        "tost_p": tost.p_value,
+        "equiv_low": min(lows) if finite else math.nan,
+        "equiv_high": max(highs) if finite else math.nan,
+        "equivalence": label,
+    }
+
+
+def equivalence_text(row: Mapping[str, Any]) -> str:
+    """A judged comparison's equivalence in words (``""`` without a margin or an answer)."""
+    label = row.get("equivalence")
+    if not isinstance(label, str) or not label:
+        return ""
+    margin = float(row["margin"])
+    level = _percent(1 - 2 * float(row["level"]))
+    if label == EQUIVALENT:
+        return (
+            f"equivalent within ±{margin:g} (TOST p {float(row['tost_p']):.3g}; {level} "
+            f"intervals within [{float(row['equiv_low']):+.4g}, {float(row['equiv_high']):+.4g}])"
+        )
+    bound = max(abs(float(row["equiv_low"])), abs(float(row["equiv_high"])))
+    return (
+        f"equivalence within ±{margin:g} not shown either way (TOST p "
+        f"{float(row['tost_p']):.3g}; the {level} intervals reach {bound:.4g})"
+    )
 
 
 def excluded_effects(row: Mapping[str, Any]) -> str:
