@@ -295,9 +295,43 @@ def test_a_selected_reference_is_not_tested_against_itself(tmp_path: Path) -> No
                       reference=True)  # fmt: skip
     md, _ = write_reproduction_page([hyp], tmp_path / "r.md")
     row = _tests_of(md)[("Ref-v0", "res-ppo − random-res-ppo", "last10")]
-    assert row[12] == "**inconclusive**" and row[4] == "–"
+    assert row[12] == "**not tested**" and row[4] == "–"
     assert "selection chose the unevolved reference itself" in row[13]
     assert _tests_of(md)[("Ref-v0", "res-ppo − ppo", "last10")][8].endswith("(1)")
+
+
+def test_runs_two_files_share_are_tested_once(tmp_path: Path) -> None:
+    """A second file whose selection is the reference, and whose runs are the first file's (the
+    same per-seed returns, found from the data): its tests on those runs are not made again, so
+    each counts once in its family, and a baseline that is its own candidate is not tested."""
+    first = _hypothesis(tmp_path / "a", {"Pen-v0": {"ppo": PPO, "res-ppo": OVERLAPPING,
+                                                   "random-res-ppo": OVERLAPPING}},
+                        reference=True)  # fmt: skip
+    other = str(tmp_path / "a" / "pub" / "Pen-v0" / "test")
+    rule = {**RULE, "questions": {**RULE["questions"], "vs-other": {
+        "text": "does it beat the other file's reservoir?", "compare": ["res-ppo - other-res"]}},
+        "references": {"other-res": {"agent": "res-ppo", "tests": {"Pen-v0": other}}}}  # fmt: skip
+    # The second file re-ran the same setting: 6 of its 8 seeds are the first file's runs.
+    again = [v + (0.5 if i < 2 else 0.0) for i, v in enumerate(OVERLAPPING)]
+    second = _hypothesis(tmp_path / "b", {"Pen-v0": {"ppo": PPO, "res-ppo": again,
+                                                    "random-res-ppo": again}},
+                         rule=rule, reference=True)  # fmt: skip
+    second = Hypothesis("h2", "h2.yaml", None, None, second.tasks, second.rule)
+    md, _ = write_reproduction_page([first, second], tmp_path / "r.md", html_page=False)
+    table = pd.read_csv(md.with_suffix(".csv"))
+    rows = table[table["metric"] == "last10"].set_index(["hypothesis", "comparison"])
+    assert rows.at[("h", "res-ppo − ppo"), "outcome"] == "inconclusive"
+    assert rows.at[("h", "res-ppo − ppo"), "family_size"] == 1  # counted once
+    copy = rows.loc[("h2", "res-ppo − ppo")]
+    assert copy["outcome"] == "not tested"
+    assert "the same runs as h Pen-v0's `res-ppo − ppo`" in copy["note"]
+    assert "`res-ppo` on seeds 12–17" in copy["note"] and "the selection is the" in copy["note"]
+    itself = rows.loc[("h2", "res-ppo − other-res")]
+    assert itself["outcome"] == "not tested"
+    assert "are the same runs on seeds 12–17 (6 of 8)" in itself["note"]
+    text = md.read_text()
+    assert "**Shared runs**" in text and "h Pen-v0 `ppo` and h2 Pen-v0 `ppo` on seeds 10–17" in text
+    assert "| h2 | does res-ppo beat ppo? | Pen-v0: not tested |" in text
 
 
 def test_families_pool_across_files_and_must_agree(tmp_path: Path) -> None:

@@ -48,6 +48,7 @@ from ermrl.analysis._stats import FEW_SEEDS
 from ermrl.analysis._verdicts import (
     METRICS,
     NOT_RUN,
+    NOT_TESTED,
     Question,
     Reference,
     TaskRuns,
@@ -60,6 +61,7 @@ from ermrl.analysis._verdicts import (
     judge,
     load_test_runs,
     not_run,
+    shared_runs,
     task_outcome,
 )
 
@@ -510,6 +512,18 @@ def write_reproduction_page(
     )
     if glance:
         doc.table(pd.DataFrame(glance))
+    borrowed = {
+        (hyp.name, r.label, name) for hyp in hypotheses for r in results[hyp.name]
+        for name in r.references
+    }  # fmt: skip
+    shared = _shared_text(judged, borrowed)
+    if shared:
+        doc.p(
+            "**Shared runs** (found from the data: the same seed with the same final and "
+            "last-100 returns to the last digit). Where a comparison's two sides are the same "
+            "runs, or an earlier test on the page compares the same runs, it is not tested "
+            "again and counts once in its family: " + "; ".join(shared) + "."
+        )
     if refused:
         doc.p(
             "**Not rendered** (the tested trial cannot be traced to a recorded selection): "
@@ -528,10 +542,35 @@ def write_reproduction_page(
     return out, html_path
 
 
+def _shared_text(tasks: Sequence[TaskRuns], borrowed: set[tuple[str, str, str]]) -> list[str]:
+    """Each pair of groups of runs of two experiment files that are the same runs, in words
+    (a baseline a file declares it borrows, `references`, left out: the page names it)."""
+    out = []
+    for (k, agent), others in shared_runs(tasks).items():
+        for (j, other), seeds in others.items():
+            one, two = tasks[k], tasks[j]
+            if j <= k or one.hypothesis == two.hypothesis:
+                continue
+            if {(one.hypothesis, one.task, agent), (two.hypothesis, two.task, other)} & borrowed:
+                continue
+            n = int((one.runs["agent"] == agent).sum())
+            out.append(
+                f"{one.hypothesis} {one.task} `{agent}` and {two.hypothesis} {two.task} "
+                f"`{other}` on seeds {_span(seeds)} ({len(seeds)} of {n})"
+            )
+    return out
+
+
+def _span(seeds: Sequence[int]) -> str:
+    if len(seeds) > 2 and seeds[-1] - seeds[0] == len(seeds) - 1:
+        return f"{seeds[0]}–{seeds[-1]}"
+    return ", ".join(map(str, seeds))
+
+
 def _counts(outcomes: Sequence[str]) -> str:
     parts = [
         f"{outcomes.count(o)} {o}"
-        for o in ("supported", "contradicted", "inconclusive", NOT_RUN)
+        for o in ("supported", "contradicted", "inconclusive", NOT_TESTED, NOT_RUN)
         if outcomes.count(o)
     ]
     return ", ".join(parts) if parts else "–"
@@ -606,6 +645,12 @@ def _questions_block(
     glance: list[dict[str, Any]],
 ) -> None:
     runs = [TaskRuns(hyp.name, r.label, r.runs, r.reference_selected, r.label) for r in judged]
+    mine = tests[(tests["hypothesis"] == hyp.name) & (tests["outcome"] == NOT_TESTED)]
+    untested = {
+        (str(r["task"]), str(r["comparison"])): "shared runs, not tested"
+        for r in mine.to_dict("records")
+        if "same runs" in str(r["note"])
+    }
     items = []
     aggregate_rows = []
     for question in rule.questions:
@@ -637,7 +682,12 @@ def _questions_block(
             continue  # no aggregate of a question none of whose comparisons ran
         for metric in rule.metrics:
             for row in aggregate_question(
-                runs, question, metric, normalize, n_resamples=rule.n_resamples
+                runs,
+                question,
+                metric,
+                normalize,
+                n_resamples=rule.n_resamples,
+                untested=untested,
             ):
                 aggregate_rows.append(
                     {

@@ -73,6 +73,7 @@ __all__ = [
     "load_test_runs",
     "probability_of_improvement",
     "seeds_for_power",
+    "shared_runs",
 ]
 
 #: The metrics a verdict can rest on: name -> (result.json column, what it is).
@@ -88,6 +89,10 @@ METRICS: dict[str, tuple[str, str]] = {
 OUTCOMES = ("supported", "contradicted", "inconclusive")
 #: A question's status on a task none of whose comparisons could run (not an outcome).
 NOT_RUN = "not run yet"
+#: A comparison the page does not test (the selection is the reference, its two sides are the
+#: same runs, or another test on the page already made it on the same runs): not an outcome,
+#: and outside its family.
+NOT_TESTED = "not tested"
 CORRECTIONS = ("holm", "none")
 #: Seeds searched by `seeds_for_power` before it gives up.
 MAX_POWER_SEEDS = 10_000
@@ -327,7 +332,9 @@ def _margins(doc: Any, where: str) -> tuple[tuple[tuple[str, float], ...], str |
     for task, value in margins.items():
         ok = isinstance(value, (int, float)) and not isinstance(value, bool)
         if not ok or not math.isfinite(value) or value <= 0:
-            raise VerdictError(f"{where}.margins.{task}: a positive number is needed, got {value!r}")
+            raise VerdictError(
+                f"{where}.margins.{task}: a positive number is needed, got {value!r}"
+            )
         out.append((str(task), float(value)))
     return tuple(out), adopted
 
@@ -562,7 +569,9 @@ def task_outcome(rows: pd.DataFrame) -> str:
     records = rows.to_dict("records")
     if records and all(not_run(r) for r in records):
         return NOT_RUN
-    return combine_outcomes([str(r["outcome"]) for r in records])
+    if records and all(str(r["outcome"]) == NOT_TESTED for r in records):
+        return NOT_TESTED
+    return combine_outcomes([str(r["outcome"]) for r in records if r["outcome"] != NOT_TESTED])
 
 
 TEST_COLUMNS = [
@@ -601,15 +610,33 @@ def judge(
         VerdictError: two rules that pool a family disagree on its alpha or correction.
     """
     rows: list[dict[str, Any]] = []
-    for task in tasks:
+    shared = shared_runs(tasks)
+    made: list[tuple[int, Comparison]] = []  # the tests made so far, in the page's order
+    for k, task in enumerate(tasks):
         rule = rules.get(task.hypothesis)
         if rule is None:
             continue
+        comparisons = [comp for question in rule.questions for comp in question.comparisons]
+        untested = {
+            comp: why for comp in comparisons if (why := _same_runs(tasks, k, comp, shared, made))
+        }
+        reference = {"res-ppo", "random-res-ppo"}
+        made += [
+            (k, comp)
+            for comp in comparisons
+            if comp not in untested
+            and not (task.reference_selected and {comp.candidate, comp.baseline} == reference)
+        ]
         for metric in rule.metrics:
             column = METRICS[metric][0]
             for question in rule.questions:
                 for comp in question.comparisons:
-                    rows.append(_raw_test(task, rule, question, comp, metric, column, seed))
+                    row = _raw_test(task, rule, question, comp, metric, column, seed)
+                    if comp in untested and not row["note"]:
+                        row["note"] = untested[comp]
+                    if str(row["note"]).startswith(NOT_TESTED):
+                        row["outcome"] = NOT_TESTED
+                    rows.append(row)
     table = pd.DataFrame(rows, columns=TEST_COLUMNS)
     if table.empty:
         return table
@@ -635,6 +662,105 @@ def judge(
         for i, adj, level in zip(index, adjusted, levels, strict=True):
             _adjust(table, i, tasks, rules, adj, level, len(index), seed)
     return table
+
+
+def shared_runs(
+    tasks: Sequence[TaskRuns],
+) -> dict[tuple[int, str], dict[tuple[int, str], list[int]]]:
+    """Which groups of runs on a page are the same runs, found from the data.
+
+    A group is one agent's runs on one task (``(index in tasks, agent)``). Two groups share a
+    run when they have a seed with the same final and last-100 returns to the last digit (runs
+    trained apart do not agree in every digit of both; runs of one setting, seed and code do):
+    the reference's runs read by two files, a baseline borrowed from another file, a file that
+    re-ran another's setting.
+
+    Returns:
+        ``{group: {other group: shared seeds}}``, both ways, for groups of different tasks or
+        agents that share at least one seed.
+    """
+    prints: dict[tuple[int, str], dict[int, tuple[float, float]]] = {}
+    for k, task in enumerate(tasks):
+        runs = task.runs
+        if runs.empty or not {"agent", "seed", "final_return"} <= set(runs.columns):
+            continue
+        last100 = runs["last100_return"] if "last100_return" in runs else math.nan
+        frame = runs.assign(_last100=last100)
+        for agent, group in frame.groupby("agent", sort=False):
+            values = {
+                int(sd): (float(f), float(h))
+                for sd, f, h in zip(group["seed"], group["final_return"], group["_last100"])
+                if math.isfinite(float(f))
+            }
+            prints[(k, str(agent))] = values
+    out: dict[tuple[int, str], dict[tuple[int, str], list[int]]] = {}
+    keys = list(prints)
+    for i, one in enumerate(keys):
+        for two in keys[i + 1 :]:
+            env_one, env_two = (
+                (tasks[one[0]].env_id or tasks[one[0]].task),
+                (tasks[two[0]].env_id or tasks[two[0]].task),
+            )
+            if env_one != env_two:
+                continue
+            a, b = prints[one], prints[two]
+            seeds = sorted(sd for sd in a if sd in b and _same(a[sd], b[sd]))
+            if seeds:
+                out.setdefault(one, {})[two] = seeds
+                out.setdefault(two, {})[one] = seeds
+    return out
+
+
+def _same(one: tuple[float, float], two: tuple[float, float]) -> bool:
+    return all(x == y or (math.isnan(x) and math.isnan(y)) for x, y in zip(one, two, strict=True))
+
+
+def _seed_span(seeds: Sequence[int]) -> str:
+    """``15–29`` for a run of consecutive seeds, else the list."""
+    if len(seeds) > 2 and seeds[-1] - seeds[0] == len(seeds) - 1:
+        return f"{seeds[0]}–{seeds[-1]}"
+    return ", ".join(map(str, seeds))
+
+
+def _same_runs(
+    tasks: Sequence[TaskRuns],
+    k: int,
+    comp: Comparison,
+    shared: Mapping[tuple[int, str], Mapping[tuple[int, str], list[int]]],
+    made: Sequence[tuple[int, Comparison]],
+) -> str:
+    """Why a comparison is not tested because of shared runs (``""``: it is tested).
+
+    Its two sides are the same runs (the same reservoir compared with itself), or an earlier test
+    on the page compares the same runs on both sides: that test stands for both, counted once
+    in its family.
+    """
+    task = tasks[k]
+    cand, base = (k, comp.candidate), (k, comp.baseline)
+    n = int((task.runs["agent"] == comp.candidate).sum()) if not task.runs.empty else 0
+    selected = (
+        "the selection is the unevolved reference (its evolved reservoir is the reference's), "
+        if task.reference_selected and comp.candidate == "res-ppo"
+        else ""
+    )
+    itself = shared.get(cand, {}).get(base)
+    if itself:
+        return (
+            f"{NOT_TESTED}: {selected}`{comp.candidate}` and `{comp.baseline}` are the same runs "
+            f"on seeds {_seed_span(itself)} ({len(itself)} of {n}): the same reservoir compared "
+            "with itself"
+        )
+    for j, other in made:
+        one = shared.get(cand, {}).get((j, other.candidate))
+        two = shared.get(base, {}).get((j, other.baseline))
+        if one and two and j != k:
+            where = tasks[j]
+            return (
+                f"{NOT_TESTED}: {selected}the same runs as {where.hypothesis} {where.task}'s "
+                f"`{other.label}` (`{comp.candidate}` on seeds {_seed_span(one)}, "
+                f"`{comp.baseline}` on seeds {_seed_span(two)}): tested once, there"
+            )
+    return ""
 
 
 def _raw_test(
@@ -765,7 +891,9 @@ def equivalence_outcome(
     lows, highs = [tost.ci_low, low], [tost.ci_high, high]
     finite = all(math.isfinite(v) for v in (*lows, *highs))
     inside = finite and tost.p_value <= level and -margin < min(lows) and max(highs) < margin
-    label = EQUIVALENT if inside else ("" if outcome in ("supported", "contradicted") else NOT_SHOWN)
+    label = (
+        EQUIVALENT if inside else ("" if outcome in ("supported", "contradicted") else NOT_SHOWN)
+    )
     return {
         "tost_p": tost.p_value,
         "equiv_low": min(lows) if finite else math.nan,
@@ -890,6 +1018,7 @@ def aggregate_question(
     *,
     n_resamples: int = 10_000,
     seed: int = 0,
+    untested: Mapping[tuple[str, str], str] | None = None,
 ) -> list[dict[str, Any]]:
     """A question's aggregates over tasks: the probability of improvement of each comparison
     and the IQM of each agent's normalized scores, with stratified bootstrap 95% intervals.
@@ -900,6 +1029,8 @@ def aggregate_question(
         metric: A key of `METRICS`.
         normalizer: ``(env_id, values) -> normalized values`` or ``None`` when a task has no
             reference scores (the IQMs are then left out, naming it).
+        untested: ``{(task, comparison label): why}`` of comparisons the page does not test
+            (shared runs, [`judge`][ermrl.analysis.judge]'s `NOT_TESTED`): left out, naming why.
 
     Returns:
         One row per comparison: ``comparison, n_tasks, poi, poi_low, poi_high, poi_outcome``
@@ -916,6 +1047,9 @@ def aggregate_question(
             same = {comp.candidate, comp.baseline} == {"res-ppo", "random-res-ppo"}
             if task.reference_selected and same:
                 skipped.append(f"{task.task} (reference selected)")
+                continue
+            if untested and (task.task, comp.label) in untested:
+                skipped.append(f"{task.task} ({untested[(task.task, comp.label)]})")
                 continue
             a = _values(task.runs, comp.candidate, column)
             b = _values(task.runs, comp.baseline, column)
