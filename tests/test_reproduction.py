@@ -211,15 +211,20 @@ def test_equivalence_is_said_only_when_both_one_sided_tests_reject(tmp_path: Pat
     assert rows.at["None-v0", "equivalence"] == "" and np.isnan(rows.at["None-v0", "margin"])
     for task, margin in (("Wide-v0", 20.0), ("Narrow-v0", 1.0)):
         a, b = np.array(near), np.array(PPO)
-        p = max(stats.ttest_ind(a + margin, b, equal_var=False, alternative="greater").pvalue,
-                stats.ttest_ind(a - margin, b, equal_var=False, alternative="less").pvalue)
+        p = max(
+            stats.ttest_ind(a + margin, b, equal_var=False, alternative="greater").pvalue,
+            stats.ttest_ind(a - margin, b, equal_var=False, alternative="less").pvalue,
+        )
         assert rows.at[task, "tost_p"] == pytest.approx(p)
         inside = -margin < rows.at[task, "equiv_low"] and rows.at[task, "equiv_high"] < margin
         assert inside == (p <= rows.at[task, "level"]) == (task == "Wide-v0")
     text = md.read_text()
     assert "equivalent within ±20 (TOST p" in text
     assert "equivalence within ±1 not shown either way (TOST p" in text
-    assert "**Flag: the equivalence margins were set after the data.** Margins adopted 2026-12-02" in text
+    assert (
+        "**Flag: the equivalence margins were set after the data.** Margins adopted 2026-12-02"
+        in text
+    )
     with pytest.raises(VerdictError, match=r"equivalence.margins.A-v0: a positive number"):
         VerdictRule.from_doc({**RULE, "equivalence": {"adopted": "2026-12-02",
                                                       "margins": {"A-v0": 0}}})  # fmt: skip
