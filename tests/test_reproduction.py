@@ -336,7 +336,9 @@ def test_runs_two_files_share_are_tested_once(tmp_path: Path) -> None:
     assert "are the same runs on seeds 12–17 (6 of 8)" in itself["note"]
     text = md.read_text()
     assert "**Shared runs**" in text and "h Pen-v0 `ppo` and h2 Pen-v0 `ppo` on seeds 10–17" in text
-    assert "| h2 | does res-ppo beat ppo? | Pen-v0: not tested |" in text
+    assert (
+        "| h2 | does res-ppo beat ppo? | not tested on its one task | Pen-v0: not tested |" in text
+    )
 
 
 def test_families_pool_across_files_and_must_agree(tmp_path: Path) -> None:
@@ -630,3 +632,48 @@ def test_a_test_phase_published_in_part_gets_no_verdict_until_every_planned_run_
     assert set(table["task"]) == {"Whole-v0", "Part-v0"}
     assert rows[("Part-v0", "res-ppo − ppo", "last10")][12] == "**supported**"
     assert rows[("Whole-v0", "res-ppo − ppo", "last10")][8].endswith("(2)")
+
+
+def test_the_readme_results_table_is_the_pages() -> None:
+    """README.md's and docs/getting-started.md's results are the table `ermrl reproduction
+    --summary-in` writes from docs/reproduction.csv, not typed: regenerate the page with
+    --summary-in README.md docs/getting-started.md when this fails."""
+    from ermrl.analysis import read_summary, results_summary
+    from ermrl.runner._experiment import hypothesis_of, load_experiment
+
+    files = [*sorted((ROOT / "experiments" / "paper").glob("*.yaml")),
+             ROOT / "experiments" / "multiscale.yaml"]  # fmt: skip
+    hypotheses = [hypothesis_of(load_experiment(f), str(f.relative_to(ROOT))) for f in files]
+    expected = results_summary(pd.read_csv(ROOT / "docs" / "reproduction.csv"), hypotheses)
+    for name in ("README.md", "docs/getting-started.md"):
+        assert read_summary(ROOT / name) == expected, f"{name}'s results table is not the page's"
+
+
+def test_the_results_table_marks_metrics_that_disagree(tmp_path: Path) -> None:
+    from ermrl.analysis import question_answer, read_summary, results_summary, write_summary
+
+    tasks = {"Up-v0": {"ppo": PPO, "res-ppo": CLEARLY_ABOVE, "random-res-ppo": PPO},
+             "Noise-v0": {"ppo": PPO, "res-ppo": OVERLAPPING, "random-res-ppo": PPO}}  # fmt: skip
+    hyp = _hypothesis(tmp_path, tasks)
+    md, _ = write_reproduction_page([hyp], tmp_path / "r.md", html_page=False)
+    table = pd.read_csv(md.with_suffix(".csv"))
+    # Make eval disagree on Up-v0, as a file could: the mark must show it.
+    flip = (table["task"] == "Up-v0") & (table["metric"] == "eval")
+    table.loc[flip, "outcome"] = "inconclusive"
+    summary = results_summary(table, [hyp])
+    assert (
+        "| h | does res-ppo beat ppo? | mixed: supported on 1 of 2 tasks, inconclusive on 1 |"
+        in summary
+    )
+    assert "Up-v0: supported [eval: inconclusive]; Noise-v0: inconclusive |" in summary
+    readme = tmp_path / "README.md"
+    readme.write_text("intro\n<!-- reproduction:start -->\nold\n<!-- reproduction:end -->\nend\n")
+    assert write_summary(readme, summary) and read_summary(readme) == summary
+    assert readme.read_text().startswith("intro\n") and readme.read_text().endswith("end\n")
+    assert not write_summary(readme, summary)  # unchanged
+    (tmp_path / "bare.md").write_text("no markers\n")
+    with pytest.raises(VerdictError, match="no <!-- reproduction:start -->"):
+        write_summary(tmp_path / "bare.md", summary)
+    assert question_answer(["contradicted"] * 3) == "contradicted on all 3 tasks"
+    # The glance table answers each sub-question in one line by the same rule.
+    assert "| mixed: supported on 1 of 2 tasks, inconclusive on 1 |" in md.read_text()

@@ -71,10 +71,14 @@ __all__ = [
     "add_reference_runs",
     "TaskResult",
     "load_test_runs",
+    "question_answer",
+    "read_summary",
+    "results_summary",
     "task_result",
     "trace_selection",
     "untraceable_tasks",
     "write_reproduction_page",
+    "write_summary",
 ]
 
 EVOLVED = "res-ppo"
@@ -489,7 +493,7 @@ def write_reproduction_page(
         "not adjusted) describe the tasks together. Every verdict is given under three "
         "metrics: the mean return of the last 10 training episodes (`last10`), of the last 100 "
         "(`last100`, SB3's `rollout/ep_rew_mean`, the metric the paper plots) and of 10 "
-        "deterministic evaluation episodes after training (`eval`; recorded from seed 15 on). "
+        f"deterministic evaluation episodes after training (`eval`; {_eval_coverage(judged)}). "
         f"A group of fewer than {FEW_SEEDS} seeds is flagged."
     )
     glance: list[dict[str, Any]] = []
@@ -540,6 +544,181 @@ def write_reproduction_page(
         html_path = out.with_suffix(".html")
         write_atomic(html_path, doc.html("ermrl: reproduction of ER-MRL"))
     return out, html_path
+
+
+#: The aggregate's probability of improvement, in words: unadjusted, so descriptive only.
+_DESCRIPTIVE = {
+    "supported": "interval above 1/2",
+    "contradicted": "interval below 1/2",
+    "inconclusive": "interval across 1/2",
+}
+#: The markers between which `write_summary` writes the results table into a file.
+SUMMARY_START = "<!-- reproduction:start -->"
+SUMMARY_END = "<!-- reproduction:end -->"
+
+
+def _eval_coverage(tasks: Sequence[TaskRuns]) -> str:
+    """Which seeds of the judged groups of runs have evaluation episodes, computed: ``recorded
+    on every seed of N groups, on seeds 15–29 of M (...), on none of K (...)``."""
+    spans: dict[str, list[str]] = {}
+    for task in tasks:
+        runs = task.runs
+        if runs.empty or "eval_return" not in runs:
+            continue
+        for agent, group in runs.groupby("agent", sort=False):
+            seeds = sorted(int(sd) for sd in group["seed"])
+            has = sorted(
+                int(sd)
+                for sd, v in zip(group["seed"], pd.to_numeric(group["eval_return"]), strict=True)
+                if math.isfinite(float(v))
+            )
+            key = "every seed" if has == seeds else (f"seeds {_span(has)}" if has else "no seed")
+            spans.setdefault(key, []).append(f"{task.hypothesis} {task.task} {agent}")
+    if not spans:
+        return "not recorded"
+    parts = []
+    order = sorted(spans, key=lambda k: -len(spans[k]))
+    for key in order:
+        groups = spans[key]
+        listed = "" if key == order[0] else f": {', '.join(groups)}"
+        parts.append(f"on {key} of {len(groups)} group(s) of runs (agent, task){listed}")
+    return "recorded " + "; ".join(parts)
+
+
+def question_answer(outcomes: Sequence[str]) -> str:
+    """A sub-question's one-line answer over a hypothesis's tasks, from each task's outcome
+    under the rule: one word when every tested task agrees, else ``mixed`` with the counts.
+
+    Examples:
+        >>> question_answer(["supported", "supported"])
+        'supported on all 2 tasks'
+        >>> question_answer(["supported", "inconclusive", "inconclusive"])
+        'mixed: supported on 1 of 3 tasks, inconclusive on 2'
+        >>> question_answer(["inconclusive", "not tested"])
+        'inconclusive on the 1 task tested (1 not tested)'
+    """
+    tested = [o for o in outcomes if o in ("supported", "contradicted", "inconclusive")]
+    others = [o for o in outcomes if o not in tested]
+    rest = f" ({_counts(others)})" if others else ""
+    if not tested:
+        if len(set(others)) == 1:
+            n = len(others)
+            return f"{others[0]} on " + (f"all {n} tasks" if n > 1 else "its one task")
+        return _counts(others) or "no task"
+    n = len(tested)
+    if len(set(tested)) == 1:
+        if others:
+            where = f"the {n} task{'s' if n > 1 else ''} tested"
+        else:
+            where = f"all {n} tasks" if n > 1 else "its one task"
+        return f"{tested[0]} on {where}{rest}"
+    kinds = [o for o in ("supported", "contradicted", "inconclusive") if o in tested]
+    first, *more = kinds
+    text = f"mixed: {first} on {tested.count(first)} of {n} tasks" + "".join(
+        f", {o} on {tested.count(o)}" for o in more
+    )
+    return text + rest
+
+
+def results_summary(tests: pd.DataFrame, hypotheses: Sequence[Hypothesis]) -> str:
+    """The results table that README.md and docs/getting-started.md show, from the page's tests
+    (its CSV) and the experiment files' rules: per hypothesis and sub-question, the answer and
+    each task's outcome under the primary metric, with the other metrics' where they differ and
+    equivalence where it is shown.
+
+    Args:
+        tests: The page's tests ([`judge`][ermrl.analysis.judge]'s rows, or
+            ``docs/reproduction.csv`` read back).
+        hypotheses: The page's experiment files, in its order.
+
+    Returns:
+        Markdown: one table and the line that says where it comes from.
+    """
+    if tests.empty:
+        return "No test has been judged yet.\n"
+    tests = tests.copy()
+    column = tests["equivalence"] if "equivalence" in tests else pd.Series("", index=tests.index)
+    tests["equivalence"] = column.astype(object).where(column.notna(), "")
+    lines = []
+    primaries = set()
+    for hyp in hypotheses:
+        rule = hyp.rule
+        if rule is None:
+            continue
+        primaries.add(rule.primary)
+        for question in rule.questions:
+            rows = tests[(tests["hypothesis"] == hyp.name) & (tests["question"] == question.name)]
+            if rows.empty:
+                continue
+            cells, primary = [], []
+            for task, group in rows.groupby("task", sort=False):
+                first = group[group["metric"] == rule.primary]
+                outcome = task_outcome(first)
+                primary.append(outcome)
+                text = f"{task}: {outcome}"
+                marks = [str(e) for e in first["equivalence"] if e]
+                if outcome == "inconclusive" and marks and all(m == "equivalent" for m in marks):
+                    margin = float(first["margin"].iloc[0])
+                    text += f" (equivalent within ±{margin:g})"
+                differ = []
+                for metric in rule.metrics[1:]:
+                    other = task_outcome(group[group["metric"] == metric])
+                    if other != outcome:
+                        differ.append(f"{metric}: {other}")
+                if differ:
+                    text += " [" + "; ".join(differ) + "]"
+                cells.append(text)
+            lines.append(
+                f"| {hyp.name} | {question.text} | {question_answer(primary)} | "
+                + "; ".join(cells)
+                + " |"
+            )
+    metric = "/".join(sorted(primaries)) or "last10"
+    head = [
+        f"| experiment | sub-question | answer ({metric}) | per task ({metric}; [other metrics "
+        "where they differ]) |",
+        "|---|---|---|---|",
+    ]
+    source = (
+        "Written by `ermrl reproduction` from its tests (`docs/reproduction.csv`): "
+        "supported, contradicted or inconclusive by each file's `verdict:` rule, Holm-corrected "
+        "over the page; *not tested* where the selection is the reference or the runs are "
+        "another test's; equivalence only where two one-sided tests show it within the "
+        "task's margin (set after the data)."
+    )
+    return "\n".join([*head, *lines]) + "\n\n" + source + "\n"
+
+
+def write_summary(path: str | Path, summary: str) -> bool:
+    """Write `results_summary` between `SUMMARY_START` and `SUMMARY_END` in a file.
+
+    Returns:
+        Whether the file changed.
+
+    Raises:
+        VerdictError: the file lacks the markers, in that order (one line).
+    """
+    from ermrl._io import write_atomic
+
+    path = Path(path)
+    text = path.read_text()
+    start, end = text.find(SUMMARY_START), text.find(SUMMARY_END)
+    if start < 0 or end < start:
+        raise VerdictError(f"{path}: no {SUMMARY_START} ... {SUMMARY_END} markers to write into")
+    new = text[: start + len(SUMMARY_START)] + "\n" + summary + text[end:]
+    if new == text:
+        return False
+    write_atomic(path, new)
+    return True
+
+
+def read_summary(path: str | Path) -> str | None:
+    """What a file holds between `SUMMARY_START` and `SUMMARY_END` (``None`` without them)."""
+    text = Path(path).read_text()
+    start, end = text.find(SUMMARY_START), text.find(SUMMARY_END)
+    if start < 0 or end < start:
+        return None
+    return text[start + len(SUMMARY_START) + 1 : end]
 
 
 def _shared_text(tasks: Sequence[TaskRuns], borrowed: set[tuple[str, str, str]]) -> list[str]:
@@ -671,6 +850,7 @@ def _questions_block(
             {
                 "hypothesis": hyp.name,
                 "sub-question": question.text,
+                f"answer ({rule.primary})": question_answer(list(primary.values())),
                 f"per task ({rule.primary})": per_task.replace("**", ""),
                 **{
                     m: _counts(list(_question_outcomes(tests, hyp.name, question, m).values()))
@@ -697,7 +877,9 @@ def _questions_block(
                         "tasks": row["n_tasks"],
                         "P(candidate > baseline)": _num(row["poi"]),
                         "95% CI": _ci(row["poi_low"], row["poi_high"]),
-                        "aggregate": row["poi_outcome"] if row["n_tasks"] else "–",
+                        "descriptive (not adjusted)": _DESCRIPTIVE[row["poi_outcome"]]
+                        if row["n_tasks"]
+                        else "–",
                         "IQM candidate [95% CI]": (
                             f"{_num(row['iqm_candidate'])} {_ci(row['iqm_candidate_low'], row['iqm_candidate_high'])}"
                             if math.isfinite(row["iqm_candidate"])
@@ -718,8 +900,10 @@ def _questions_block(
         doc.p(
             "Aggregates over the tasks (rliable's definitions; scores normalized as "
             "(R − R_random) / (R_target − R_random) with ermrl's reference table, "
-            "`ermrl/data/scores.csv`; the probability of improvement is supported when its "
-            "95% interval lies above 1/2, contradicted below):"
+            "`ermrl/data/scores.csv`). They are descriptive: not adjusted for multiple "
+            "comparisons and not part of the rule, so they say where the probability of "
+            "improvement's 95% interval lies (above 1/2, below it, or across it), not "
+            "supported or contradicted:"
         )
         doc.table(pd.DataFrame(aggregate_rows))
 
