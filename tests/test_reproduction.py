@@ -677,3 +677,39 @@ def test_the_results_table_marks_metrics_that_disagree(tmp_path: Path) -> None:
     assert question_answer(["contradicted"] * 3) == "contradicted on all 3 tasks"
     # The glance table answers each sub-question in one line by the same rule.
     assert "| mixed: supported on 1 of 2 tasks, inconclusive on 1 |" in md.read_text()
+
+
+def test_the_verdicts_on_the_seeds_run_after_the_rule_flag_what_changes(tmp_path: Path) -> None:
+    """Seeds 10-13 finished before the rule (2026-11-28), 14-17 after: the sensitivity check
+    judges 14-17 alone and flags the outcome the early seeds carried."""
+    early, late = [200.0, 201.0, 199.0, 200.0], [100.0, 95.0, 105.0, 98.0]
+    hyp = _hypothesis(tmp_path, {"Up-v0": {"ppo": PPO, "res-ppo": early + late}})
+    for result in (tmp_path / "pub" / "Up-v0" / "test" / "agents").glob("*/seed_*/result.json"):
+        record = json.loads(result.read_text())
+        record["finished"] = "2026-11-20T10:00:00" if record["seed"] < 14 else "2026-12-01T10:00:00"
+        result.write_text(json.dumps(record))
+    md, _ = write_reproduction_page([hyp], tmp_path / "r.md", html_page=False)
+    text = md.read_text()
+    section = text.split("### Sensitivity: the seeds run after each rule")[1].split("\n## ")[0]
+    assert "h Up-v0: 14–17" in section
+    assert (
+        "| h | Up-v0 | res-ppo − ppo | last10 | supported (8 / 8) | inconclusive (4 / 4) |"
+        in section
+    )
+
+
+def test_groups_of_different_seeds_are_judged_again_on_the_seeds_both_have(
+    tmp_path: Path,
+) -> None:
+    rule = {**RULE, "questions": {"vs-lstm": {"text": "does it beat the LSTM?",
+                                              "compare": ["res-ppo - lstm-ppo"]}}}  # fmt: skip
+    res = [101.0, 96.0, 104.0, 150.0, 147.0, 153.0, 149.0, 151.0]
+    hyp = _hypothesis(tmp_path, {"Up-v0": {"res-ppo": res, "lstm-ppo": PPO[:3]}}, rule=rule)
+    md, _ = write_reproduction_page([hyp], tmp_path / "r.md", html_page=False)
+    section = md.read_text().split("### Sensitivity: the seeds both groups have")[1]
+    section = section.split("\n## ")[0]
+    assert "3 comparison(s) set groups of different seeds" in section
+    assert (
+        "| h | Up-v0 | res-ppo − lstm-ppo | last10 | supported (8 / 3) | inconclusive (3 / 3) |"
+        in section
+    )

@@ -168,6 +168,7 @@ def add_reference_runs(result: TaskResult, ref: Reference, where: str = "verdict
     here = f"{where}: references.{ref.name} ({result.label})"
     runs = load_test_runs(folder) if Path(folder).is_dir() else pd.DataFrame()
     runs = runs[runs["agent"] == ref.agent] if not runs.empty else runs
+    runs = _run_dates(runs, Path(folder)) if not runs.empty else runs
     if runs.empty:
         raise VerdictError(f"{here}: no finished run of {ref.agent} in {folder}")
     own = result.runs
@@ -307,7 +308,7 @@ def task_result(
     """Read one task's published files (see [`TaskResult`][ermrl.analysis.TaskResult]); ``planned``
     is the test phase its file plans, ``{agent: seeds}``."""
     test = folder / "test"
-    runs = load_test_runs(test) if test.exists() else pd.DataFrame()
+    runs = _run_dates(load_test_runs(test), test) if test.exists() else pd.DataFrame()
     snapshot_doc = _read_snapshot(snapshot)
     selection = _selection(test)
     traced, trace = (True, "") if not selection else trace_selection(selection, snapshot_doc)
@@ -459,6 +460,15 @@ def write_reproduction_page(
     ]
     tests = judge(judged, rules)
     normalize = _normalizer()
+    borrowed = {
+        (hyp.name, r.label, name) for hyp in hypotheses for r in results[hyp.name]
+        for name in r.references
+    }  # fmt: skip
+    after = [
+        t for t in (_after_rule(t, rules[t.hypothesis], borrowed) for t in judged) if t is not None
+    ]
+    sensitivity = judge(after, rules) if after else pd.DataFrame()
+    common = judge(judged, rules, common_seeds=True) if judged else pd.DataFrame()
 
     doc = _Doc()
     doc.h(1, "Reproducing *Evolving Reservoirs for Meta Reinforcement Learning*")
@@ -510,16 +520,14 @@ def write_reproduction_page(
     ]
     doc.h(2, "Verdicts at a glance")
     doc.p(
-        "Per sub-question: the outcome on each task under each hypothesis's primary metric, "
-        "then the counts under the other metrics. The sections below give every effect, "
-        "interval and p-value."
+        "Per sub-question: a one-line answer over the tasks (one outcome when every tested "
+        "task has it, else *mixed* with the counts), the outcome on each task under each "
+        "hypothesis's primary metric, then the counts under the other metrics. *Not tested* "
+        "is no outcome: the selection is the reference, or the runs are another test's. The "
+        "sections below give every effect, interval, p-value and equivalence test."
     )
     if glance:
         doc.table(pd.DataFrame(glance))
-    borrowed = {
-        (hyp.name, r.label, name) for hyp in hypotheses for r in results[hyp.name]
-        for name in r.references
-    }  # fmt: skip
     shared = _shared_text(judged, borrowed)
     if shared:
         doc.p(
@@ -528,6 +536,8 @@ def write_reproduction_page(
             "runs, or an earlier test on the page compares the same runs, it is not tested "
             "again and counts once in its family: " + "; ".join(shared) + "."
         )
+    _sensitivity_block(doc, tests, sensitivity, after)
+    _common_seeds_block(doc, tests, common)
     if refused:
         doc.p(
             "**Not rendered** (the tested trial cannot be traced to a recorded selection): "
@@ -555,6 +565,163 @@ _DESCRIPTIVE = {
 #: The markers between which `write_summary` writes the results table into a file.
 SUMMARY_START = "<!-- reproduction:start -->"
 SUMMARY_END = "<!-- reproduction:end -->"
+
+
+def _run_dates(runs: pd.DataFrame, test_folder: Path) -> pd.DataFrame:
+    """``runs`` with a ``dated`` column: the day each run finished (``result.json``'s
+    ``finished``), or for a run written before that was recorded, the day of the commit that
+    added its ``result.json`` (one ``git log`` of the folder; unknown outside a repository)."""
+    import subprocess
+
+    if runs.empty:
+        return runs
+    finished = runs["finished"] if "finished" in runs else pd.Series(None, index=runs.index)
+    dated = pd.Series(
+        [str(v)[:10] if isinstance(v, str) and v else None for v in finished],
+        index=runs.index,
+        dtype=object,
+    )
+    if dated.isna().any():
+        added: dict[tuple[str, int], str] = {}
+        try:
+            done = subprocess.run(
+                ["git", "log", "--diff-filter=A", "--name-only", "--format=@%cs", "--", "agents"],
+                cwd=test_folder, capture_output=True, text=True, timeout=60, check=False,
+            )  # fmt: skip
+            day = None
+            for line in done.stdout.splitlines() if done.returncode == 0 else []:
+                if line.startswith("@"):
+                    day = line[1:]
+                elif line.endswith("/result.json") and day:
+                    parts = line.split("/")
+                    agent, seed = parts[-3], parts[-2].removeprefix("seed_")
+                    if seed.isdigit():
+                        added[(agent, int(seed))] = min(day, added.get((agent, int(seed)), day))
+        except (OSError, subprocess.SubprocessError):
+            pass
+        fill = [
+            added.get((str(a), int(sd))) for a, sd in zip(runs["agent"], runs["seed"], strict=True)
+        ]
+        dated = dated.where(dated.notna(), pd.Series(fill, index=runs.index))
+    return runs.assign(dated=dated)
+
+
+def _after_rule(
+    task: TaskRuns, rule: VerdictRule, borrowed: set[tuple[str, str, str]]
+) -> TaskRuns | None:
+    """The task's runs on the seeds all of whose runs were made on or after the rule's adoption
+    date (`_run_dates`: ``finished``, or the commit that published the run); ``None`` when the
+    rule has no date."""
+    runs = task.runs
+    if rule.adopted is None or runs.empty or "dated" not in runs:
+        return None
+    late = runs["dated"].notna() & (runs["dated"].astype(str) >= rule.adopted)
+    # A baseline borrowed from another file (references) was run for that file's rule.
+    own = ~runs["agent"].map(lambda a: (task.hypothesis, task.task, str(a)) in borrowed)
+    early = set(runs.loc[own & ~late, "seed"])
+    kept = runs[~runs["seed"].isin(early)]
+    return TaskRuns(task.hypothesis, task.task, kept, task.reference_selected, task.env_id)
+
+
+def _sensitivity_block(
+    doc: Any, tests: pd.DataFrame, sensitivity: pd.DataFrame, after: Sequence[TaskRuns]
+) -> None:
+    """The verdicts again on the seeds run after each rule, and the outcomes that change."""
+    if sensitivity.empty or tests.empty:
+        return
+    seeds = []
+    for task in after:
+        kept = sorted({int(sd) for sd in task.runs["seed"]}) if not task.runs.empty else []
+        seeds.append(f"{task.hypothesis} {task.task}: {_span(kept) if kept else 'none'}")
+    key = ["hypothesis", "task", "question", "comparison", "metric"]
+    both = tests.merge(sensitivity, on=key, suffixes=("", "_after"))
+    checked = both["outcome_after"].isin(["supported", "contradicted", "inconclusive"])
+    unchecked = both[~checked & (both["outcome"] != both["outcome_after"])]
+    both = both[checked]
+    moved = both[both["outcome"] != both["outcome_after"]]
+    doc.h(3, "Sensitivity: the seeds run after each rule")
+    doc.p(
+        "Every rule above was written after some of its test results existed. The same "
+        "verdicts, by the same rule and Holm families, on only the seeds all of whose runs on "
+        "a task were made on or after the rule's adoption date (each run's `result.json` "
+        "`finished`, or for runs that predate that field the commit that published them; "
+        "baselines borrowed from another file not counted): "
+        + "; ".join(seeds)
+        + ". "
+        + (
+            f"{len(unchecked)} comparison(s) cannot be checked this way (a side has no run "
+            "after the rule, or the comparison is not tested). "
+            if len(unchecked)
+            else ""
+        )
+        + (
+            f"**{len(moved)} of the {len(both)} others change outcome** (a flag, not a "
+            "verdict: fewer seeds give less power):"
+            if len(moved)
+            else f"No outcome of the {len(both)} others changes."
+        )
+    )
+    if len(moved):
+        doc.table(_moved_table(moved, "after the rule"))
+
+
+def _moved_table(moved: pd.DataFrame, label: str) -> pd.DataFrame:
+    """Rows of a merged (``_after``-suffixed) pair of test tables whose outcome moved."""
+    return pd.DataFrame(
+        {
+            "hypothesis": moved["hypothesis"],
+            "task": moved["task"],
+            "comparison": moved["comparison"],
+            "metric": moved["metric"],
+            "all seeds": [
+                f"{o} ({int(a)} / {int(b)})"
+                for o, a, b in zip(
+                    moved["outcome"], moved["n_candidate"], moved["n_baseline"], strict=True
+                )
+            ],
+            label: [
+                f"{o} ({int(a)} / {int(b)})"
+                for o, a, b in zip(
+                    moved["outcome_after"],
+                    moved["n_candidate_after"],
+                    moved["n_baseline_after"],
+                    strict=True,
+                )
+            ],
+            "effect": [_signed(v) if math.isfinite(v) else "–" for v in moved["mean_diff_after"]],
+            "Holm p": [_num(v) for v in moved["p_adjusted_after"]],
+        }
+    )
+
+
+def _common_seeds_block(doc: Any, tests: pd.DataFrame, common: pd.DataFrame) -> None:
+    """The comparisons whose two groups have different seeds, judged on the seeds both have."""
+    if common.empty or tests.empty:
+        return
+    key = ["hypothesis", "task", "question", "comparison", "metric"]
+    both = tests.merge(common, on=key, suffixes=("", "_after"))
+    differ = (both["n_candidate"] != both["n_candidate_after"]) | (
+        both["n_baseline"] != both["n_baseline_after"]
+    )
+    both = both[differ & both["outcome"].isin(["supported", "contradicted", "inconclusive"])]
+    if both.empty:
+        return
+    checked = both["outcome_after"].isin(["supported", "contradicted", "inconclusive"])
+    moved = both[checked & (both["outcome"] != both["outcome_after"])]
+    doc.h(3, "Sensitivity: the seeds both groups have")
+    doc.p(
+        f"{len(both)} comparison(s) set groups of different seeds against each other (an agent "
+        "trained on fewer seeds, or evaluation episodes recorded on some seeds only). The same "
+        "verdicts on the seeds both groups of each comparison have, by the same rule and "
+        "families: "
+        + (
+            f"**{len(moved)} change outcome** (a flag, not a verdict):"
+            if len(moved)
+            else "no outcome changes."
+        )
+    )
+    if len(moved):
+        doc.table(_moved_table(moved, "common seeds"))
 
 
 def _eval_coverage(tasks: Sequence[TaskRuns]) -> str:

@@ -402,6 +402,17 @@ def _values(runs: pd.DataFrame, agent: str, column: str) -> pd.Series:
     return values[np.isfinite(values.to_numpy(dtype=float))]
 
 
+def _pair(
+    runs: pd.DataFrame, candidate: str, baseline: str, column: str, common: bool
+) -> tuple[pd.Series, pd.Series]:
+    """Both agents' values (on the seeds both have, with ``common``)."""
+    a, b = _values(runs, candidate, column), _values(runs, baseline, column)
+    if common:
+        both = [sd for sd in a.index if sd in set(b.index)]
+        a, b = a.loc[both], b.loc[both]
+    return a, b
+
+
 def _ran(runs: pd.DataFrame, agent: str) -> bool:
     return not runs.empty and "agent" in runs and bool((runs["agent"] == agent).any())
 
@@ -589,7 +600,11 @@ NOT_SHOWN = "not shown either way"
 
 
 def judge(
-    tasks: Sequence[TaskRuns], rules: Mapping[str, VerdictRule], seed: int = 0
+    tasks: Sequence[TaskRuns],
+    rules: Mapping[str, VerdictRule],
+    seed: int = 0,
+    *,
+    common_seeds: bool = False,
 ) -> pd.DataFrame:
     """Every comparison of every question on every task, under every metric, judged.
 
@@ -599,6 +614,8 @@ def judge(
             name form one family across hypotheses; their rules must then agree on alpha and
             correction.
         seed: Seed of the bootstraps.
+        common_seeds: Compare each pair of agents on the seeds both have a value on only (a
+            sensitivity check of comparisons whose groups have different seeds).
 
     Returns:
         One row per test (`TEST_COLUMNS`). ``note`` explains a comparison that was not
@@ -631,7 +648,7 @@ def judge(
             column = METRICS[metric][0]
             for question in rule.questions:
                 for comp in question.comparisons:
-                    row = _raw_test(task, rule, question, comp, metric, column, seed)
+                    row = _raw_test(task, rule, question, comp, metric, column, seed, common_seeds)
                     if comp in untested and not row["note"]:
                         row["note"] = untested[comp]
                     if str(row["note"]).startswith(NOT_TESTED):
@@ -660,7 +677,7 @@ def judge(
         else:
             adjusted, levels = list(p), [alpha] * len(p)
         for i, adj, level in zip(index, adjusted, levels, strict=True):
-            _adjust(table, i, tasks, rules, adj, level, len(index), seed)
+            _adjust(table, i, tasks, rules, adj, level, len(index), seed, common_seeds)
     return table
 
 
@@ -771,9 +788,9 @@ def _raw_test(
     metric: str,
     column: str,
     seed: int,
+    common: bool = False,
 ) -> dict[str, Any]:
-    a = _values(task.runs, comp.candidate, column)
-    b = _values(task.runs, comp.baseline, column)
+    a, b = _pair(task.runs, comp.candidate, comp.baseline, column, common)
     row: dict[str, Any] = {c: math.nan for c in TEST_COLUMNS}
     row.update(
         hypothesis=task.hypothesis, task=task.task, question=question.name,
@@ -815,13 +832,14 @@ def _adjust(
     level: float,
     family_size: int,
     seed: int,
+    common: bool = False,
 ) -> None:
     row = table.loc[i]
     rule = rules[row["hypothesis"]]
     task = next(t for t in tasks if t.hypothesis == row["hypothesis"] and t.task == row["task"])
     column = METRICS[row["metric"]][0]
-    a = _values(task.runs, row["candidate"], column).to_numpy()
-    b = _values(task.runs, row["baseline"], column).to_numpy()
+    one, two = _pair(task.runs, row["candidate"], row["baseline"], column, common)
+    a, b = one.to_numpy(), two.to_numpy()
     confidence = 1 - level
     welch = welch_t_test(a, b, confidence=confidence)
     low, high = bootstrap_mean_diff_ci(
