@@ -340,8 +340,8 @@ class SearchConfig:
         pruner: ``none``, ``median`` or ``halving``; prunes on intermediate training returns.
         n_trials: Total trials of the study, all workers together.
         start: Where CMA-ES starts: ``center`` (the centre of the log-scaled box, as the
-            ER-MRL paper's code did; the default, which did at least as well as ``reference``
-            in the science benchmark once the reference competes as a trial) or ``reference``
+            ER-MRL paper's code did; the default, which was not worse than ``reference`` in
+            the science benchmark's runs once the reference competes as a trial) or ``reference``
             (the unevolved reference reservoir, reservoirpy's defaults sr = lr = input_scaling
             = 1, clipped into the box; better for a handful of trials).
         reference_trial: Queue the unevolved reference reservoir as the study's first trial, so

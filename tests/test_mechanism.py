@@ -217,6 +217,7 @@ RULE = {
         "evolved-vs-leaky": {"text": "does the evolved reservoir beat W = 0?",
                              "compare": ["res-ppo - leaky-res-ppo"], "adopted": "2026-11-30"},
     },
+    "equivalence": {"adopted": "2026-12-02", "margins": {"Leaky-v0": 5.0, "Same-v0": 20.0}},
 }  # fmt: skip
 LOW = [100.0, 95.0, 105.0, 98.0, 102.0, 101.0, 99.0, 97.0]
 HIGH = [150.0, 147.0, 153.0, 149.0, 151.0, 152.0, 148.0, 150.0]
@@ -275,9 +276,14 @@ def test_each_mechanism_label_follows_the_rule_on_crafted_files(tmp_path: Path) 
         # the ablation learns worse, and the evolved reservoir carries the gait (0.5 vs 0.1)
         "Osc-v0": ({"res-ppo": HIGH, "random-res-ppo": LOW, "leaky-res-ppo": LOW},
                    _spectra_table(0.5, 0.1, GAIT)),
-        # not shown worse: its bound is the upper end of the adjusted intervals
+        # not shown worse, and not shown equivalent within its margin (±5): not shown either
+        # way, its bound the upper end of the adjusted intervals
         "Leaky-v0": ({"res-ppo": SPREAD, "random-res-ppo": LOW, "leaky-res-ppo": LOW},
                      _spectra_table(0.5, 0.1, GAIT)),
+        # the same returns: equivalent within its margin (±20), leaky integration suffices
+        "Same-v0": ({"res-ppo": LOW, "random-res-ppo": BELOW,
+                     "leaky-res-ppo": [v + 0.5 for v in LOW]},
+                    _spectra_table(0.5, 0.1, GAIT)),
         # the ablation learns better
         "Better-v0": ({"res-ppo": BELOW, "random-res-ppo": LOW, "leaky-res-ppo": LOW},
                       _spectra_table(0.1, 0.1, math.nan)),
@@ -314,9 +320,16 @@ def test_each_mechanism_label_follows_the_rule_on_crafted_files(tmp_path: Path) 
     assert line("Osc-v0").startswith("oscillatory dynamics: **supported**; the W = 0 ablation")
     assert "the criterion holds on 4 of 4 weight seeds" in line("Osc-v0")
     leaky = line("Leaky-v0")
-    assert leaky.startswith("leaky integration suffices: **supported**; the ablation is not shown")
-    assert f"could learn at most {bound('Leaky-v0'):.4g} worse" in leaky
-    assert f"an effect larger than {bound('Leaky-v0'):+.4g} is excluded at" in leaky
+    assert leaky.startswith("**not shown either way**; the ablation is not shown to learn worse")
+    assert "equivalence within ±5 not shown either way (TOST p" in leaky
+    assert f"it could learn up to {bound('Leaky-v0'):.4g} worse" in leaky
+    same = line("Same-v0")
+    assert same.startswith("leaky integration suffices: **supported**; the ablation learns as well")
+    assert "equivalent within ±20 (TOST p" in same
+    row = tests[(tests["task"] == "Same-v0") & (tests["question"] == "evolved-vs-leaky")
+                & (tests["metric"] == "last10")].iloc[0]  # fmt: skip
+    assert row["equivalence"] == "equivalent" and row["outcome"] == "inconclusive"
+    assert -20 < row["equiv_low"] < row["equiv_high"] < 20 and row["tost_p"] <= row["level"]
     better = line("Better-v0")
     assert better.startswith("leaky integration suffices: **supported**; the ablation learns bett")
     assert f"by at least {-bound('Better-v0'):.4g}" in better
@@ -327,7 +340,7 @@ def test_each_mechanism_label_follows_the_rule_on_crafted_files(tmp_path: Path) 
     # The family: Holm over the 6 tasks that ran (the missing one does not count).
     family = tests[(tests["question"] == "evolved-vs-leaky") & (tests["metric"] == "last10")]
     family = family.set_index("task")
-    assert family["family_size"].drop("Missing-v0").eq(6).all()
+    assert family["family_size"].drop("Missing-v0").eq(7).all()
     assert family.at["CartPole-v1", "outcome"] == "supported"
     assert "#### CartPole-v1: mechanism" not in text
     summary = next(x for x in text.splitlines() if x.startswith("**Mechanism: oscillations"))
@@ -336,8 +349,9 @@ def test_each_mechanism_label_follows_the_rule_on_crafted_files(tmp_path: Path) 
     assert family.at["Missing-v0", "outcome"] == "not run yet"  # in the CSV too, not inconclusive
     # The summary, the glance table, the task's verdict line and the question's adoption date.
     assert (
-        "Osc-v0: oscillatory dynamics: **supported**; Leaky-v0: leaky integration suffices: "
-        "**supported**; Better-v0: leaky integration suffices: **supported**; NoGait-v0: "
+        "Osc-v0: oscillatory dynamics: **supported**; Leaky-v0: **not shown either way**; "
+        "Same-v0: leaky integration suffices: **supported**; Better-v0: leaky integration "
+        "suffices: **supported**; NoGait-v0: "
         "**inconclusive**; Unrecorded-v0: **inconclusive**; Missing-v0: **not run yet**"
     ) in text
     assert "evolved-vs-leaky: **not run yet**" in text.split("### Missing-v0")[1]

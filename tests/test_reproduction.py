@@ -136,7 +136,7 @@ def _tests_of(md: Path) -> dict[tuple[str, str, str], list[str]]:
         if line.startswith("### "):
             task = line[4:].split(" ")[0]
         cells = [c.strip() for c in line.strip("|").split("|")]
-        if len(cells) == 15 and cells[1].startswith("res-ppo −"):
+        if len(cells) == 16 and cells[1].startswith("res-ppo −"):
             rows[(task, cells[1], cells[2])] = cells
     return rows
 
@@ -174,7 +174,7 @@ def test_each_label_follows_the_rule_on_crafted_per_seed_files(tmp_path: Path) -
         assert float(cells[8].split(" ")[0]) == pytest.approx(adjusted[task], rel=1e-3)
     noise = rows[("Noise-v0", "res-ppo − ppo", "last10")]
     assert noise[13].startswith("effects above +") and "are excluded at 95%" in noise[13]
-    assert noise[14].isdigit() and int(noise[14]) > 8  # more seeds than it has would be needed
+    assert noise[15].isdigit() and int(noise[15]) > 8  # more seeds than it has would be needed
     # The other metrics are judged too: last100 (here final_return - 1) keeps the labels.
     assert rows[("Up-v0", "res-ppo − ppo", "last100")][12] == "**supported**"
     text = md.read_text()
@@ -186,6 +186,48 @@ def test_each_label_follows_the_rule_on_crafted_per_seed_files(tmp_path: Path) -
     assert dict(zip(primary["task"], primary["outcome"], strict=True)) == {
         "Up-v0": "supported", "Down-v0": "contradicted", "Noise-v0": "inconclusive"}  # fmt: skip
     assert primary["p_adjusted"].tolist() == pytest.approx([adjusted[t] for t in primary["task"]])
+
+
+def test_equivalence_is_said_only_when_both_one_sided_tests_reject(tmp_path: Path) -> None:
+    """On made-up data: the same returns are equivalent within a wide margin, not within a
+    narrow one; the TOST p is scipy's two one-sided Welch tests at the adjusted level; a
+    margin set after the results is flagged on the page."""
+    from scipy import stats
+
+    near = [v + 1.0 for v in PPO]
+    rule = {**RULE, "equivalence": {"adopted": "2026-12-02",
+                                    "margins": {"Wide-v0": 20.0, "Narrow-v0": 1.0}}}  # fmt: skip
+    tasks = {"Wide-v0": {"ppo": PPO, "res-ppo": near, "random-res-ppo": PPO},
+             "Narrow-v0": {"ppo": PPO, "res-ppo": near, "random-res-ppo": PPO},
+             "None-v0": {"ppo": PPO, "res-ppo": near, "random-res-ppo": PPO}}  # fmt: skip
+    hyp = _hypothesis(tmp_path, tasks, rule=rule, finished="2026-11-30T10:00:00+00:00")
+    md, _ = write_reproduction_page([hyp], tmp_path / "r.md", html_page=False)
+    table = pd.read_csv(md.with_suffix(".csv")).fillna({"equivalence": ""})
+    rows = table[(table["metric"] == "last10") & (table["comparison"] == "res-ppo − ppo")]
+    rows = rows.set_index("task")
+    assert rows["outcome"].eq("inconclusive").all()
+    assert rows.at["Wide-v0", "equivalence"] == "equivalent"
+    assert rows.at["Narrow-v0", "equivalence"] == "not shown either way"
+    assert rows.at["None-v0", "equivalence"] == "" and np.isnan(rows.at["None-v0", "margin"])
+    for task, margin in (("Wide-v0", 20.0), ("Narrow-v0", 1.0)):
+        a, b = np.array(near), np.array(PPO)
+        p = max(
+            stats.ttest_ind(a + margin, b, equal_var=False, alternative="greater").pvalue,
+            stats.ttest_ind(a - margin, b, equal_var=False, alternative="less").pvalue,
+        )
+        assert rows.at[task, "tost_p"] == pytest.approx(p)
+        inside = -margin < rows.at[task, "equiv_low"] and rows.at[task, "equiv_high"] < margin
+        assert inside == (p <= rows.at[task, "level"]) == (task == "Wide-v0")
+    text = md.read_text()
+    assert "equivalent within ±20 (TOST p" in text
+    assert "equivalence within ±1 not shown either way (TOST p" in text
+    assert (
+        "**Flag: the equivalence margins were set after the data.** Margins adopted 2026-12-02"
+        in text
+    )
+    with pytest.raises(VerdictError, match=r"equivalence.margins.A-v0: a positive number"):
+        VerdictRule.from_doc({**RULE, "equivalence": {"adopted": "2026-12-02",
+                                                      "margins": {"A-v0": 0}}})  # fmt: skip
 
 
 def test_holm_adjusts_and_stops_where_a_test_is_kept() -> None:
@@ -258,9 +300,45 @@ def test_a_selected_reference_is_not_tested_against_itself(tmp_path: Path) -> No
                       reference=True)  # fmt: skip
     md, _ = write_reproduction_page([hyp], tmp_path / "r.md")
     row = _tests_of(md)[("Ref-v0", "res-ppo − random-res-ppo", "last10")]
-    assert row[12] == "**inconclusive**" and row[4] == "–"
+    assert row[12] == "**not tested**" and row[4] == "–"
     assert "selection chose the unevolved reference itself" in row[13]
     assert _tests_of(md)[("Ref-v0", "res-ppo − ppo", "last10")][8].endswith("(1)")
+
+
+def test_runs_two_files_share_are_tested_once(tmp_path: Path) -> None:
+    """A second file whose selection is the reference, and whose runs are the first file's (the
+    same per-seed returns, found from the data): its tests on those runs are not made again, so
+    each counts once in its family, and a baseline that is its own candidate is not tested."""
+    first = _hypothesis(tmp_path / "a", {"Pen-v0": {"ppo": PPO, "res-ppo": OVERLAPPING,
+                                                   "random-res-ppo": OVERLAPPING}},
+                        reference=True)  # fmt: skip
+    other = str(tmp_path / "a" / "pub" / "Pen-v0" / "test")
+    rule = {**RULE, "questions": {**RULE["questions"], "vs-other": {
+        "text": "does it beat the other file's reservoir?", "compare": ["res-ppo - other-res"]}},
+        "references": {"other-res": {"agent": "res-ppo", "tests": {"Pen-v0": other}}}}  # fmt: skip
+    # The second file re-ran the same setting: 6 of its 8 seeds are the first file's runs.
+    again = [v + (0.5 if i < 2 else 0.0) for i, v in enumerate(OVERLAPPING)]
+    second = _hypothesis(tmp_path / "b", {"Pen-v0": {"ppo": PPO, "res-ppo": again,
+                                                    "random-res-ppo": again}},
+                         rule=rule, reference=True)  # fmt: skip
+    second = Hypothesis("h2", "h2.yaml", None, None, second.tasks, second.rule)
+    md, _ = write_reproduction_page([first, second], tmp_path / "r.md", html_page=False)
+    table = pd.read_csv(md.with_suffix(".csv"))
+    rows = table[table["metric"] == "last10"].set_index(["hypothesis", "comparison"])
+    assert rows.at[("h", "res-ppo − ppo"), "outcome"] == "inconclusive"
+    assert rows.at[("h", "res-ppo − ppo"), "family_size"] == 1  # counted once
+    copy = rows.loc[("h2", "res-ppo − ppo")]
+    assert copy["outcome"] == "not tested"
+    assert "the same runs as h Pen-v0's `res-ppo − ppo`" in copy["note"]
+    assert "`res-ppo` on seeds 12–17" in copy["note"] and "the selection is the" in copy["note"]
+    itself = rows.loc[("h2", "res-ppo − other-res")]
+    assert itself["outcome"] == "not tested"
+    assert "are the same runs on seeds 12–17 (6 of 8)" in itself["note"]
+    text = md.read_text()
+    assert "**Shared runs**" in text and "h Pen-v0 `ppo` and h2 Pen-v0 `ppo` on seeds 10–17" in text
+    assert (
+        "| h2 | does res-ppo beat ppo? | not tested on its one task | Pen-v0: not tested |" in text
+    )
 
 
 def test_families_pool_across_files_and_must_agree(tmp_path: Path) -> None:
@@ -554,3 +632,84 @@ def test_a_test_phase_published_in_part_gets_no_verdict_until_every_planned_run_
     assert set(table["task"]) == {"Whole-v0", "Part-v0"}
     assert rows[("Part-v0", "res-ppo − ppo", "last10")][12] == "**supported**"
     assert rows[("Whole-v0", "res-ppo − ppo", "last10")][8].endswith("(2)")
+
+
+def test_the_readme_results_table_is_the_pages() -> None:
+    """README.md's and docs/getting-started.md's results are the table `ermrl reproduction
+    --summary-in` writes from docs/reproduction.csv, not typed: regenerate the page with
+    --summary-in README.md docs/getting-started.md when this fails."""
+    from ermrl.analysis import read_summary, results_summary
+    from ermrl.runner._experiment import hypothesis_of, load_experiment
+
+    files = [*sorted((ROOT / "experiments" / "paper").glob("*.yaml")),
+             ROOT / "experiments" / "multiscale.yaml"]  # fmt: skip
+    hypotheses = [hypothesis_of(load_experiment(f), str(f.relative_to(ROOT))) for f in files]
+    expected = results_summary(pd.read_csv(ROOT / "docs" / "reproduction.csv"), hypotheses)
+    for name in ("README.md", "docs/getting-started.md"):
+        assert read_summary(ROOT / name) == expected, f"{name}'s results table is not the page's"
+
+
+def test_the_results_table_marks_metrics_that_disagree(tmp_path: Path) -> None:
+    from ermrl.analysis import question_answer, read_summary, results_summary, write_summary
+
+    tasks = {"Up-v0": {"ppo": PPO, "res-ppo": CLEARLY_ABOVE, "random-res-ppo": PPO},
+             "Noise-v0": {"ppo": PPO, "res-ppo": OVERLAPPING, "random-res-ppo": PPO}}  # fmt: skip
+    hyp = _hypothesis(tmp_path, tasks)
+    md, _ = write_reproduction_page([hyp], tmp_path / "r.md", html_page=False)
+    table = pd.read_csv(md.with_suffix(".csv"))
+    # Make eval disagree on Up-v0, as a file could: the mark must show it.
+    flip = (table["task"] == "Up-v0") & (table["metric"] == "eval")
+    table.loc[flip, "outcome"] = "inconclusive"
+    summary = results_summary(table, [hyp])
+    assert (
+        "| h | does res-ppo beat ppo? | mixed: supported on 1 of 2 tasks, inconclusive on 1 |"
+        in summary
+    )
+    assert "Up-v0: supported [eval: inconclusive]; Noise-v0: inconclusive |" in summary
+    readme = tmp_path / "README.md"
+    readme.write_text("intro\n<!-- reproduction:start -->\nold\n<!-- reproduction:end -->\nend\n")
+    assert write_summary(readme, summary) and read_summary(readme) == summary
+    assert readme.read_text().startswith("intro\n") and readme.read_text().endswith("end\n")
+    assert not write_summary(readme, summary)  # unchanged
+    (tmp_path / "bare.md").write_text("no markers\n")
+    with pytest.raises(VerdictError, match="no <!-- reproduction:start -->"):
+        write_summary(tmp_path / "bare.md", summary)
+    assert question_answer(["contradicted"] * 3) == "contradicted on all 3 tasks"
+    # The glance table answers each sub-question in one line by the same rule.
+    assert "| mixed: supported on 1 of 2 tasks, inconclusive on 1 |" in md.read_text()
+
+
+def test_the_verdicts_on_the_seeds_run_after_the_rule_flag_what_changes(tmp_path: Path) -> None:
+    """Seeds 10-13 finished before the rule (2026-11-28), 14-17 after: the sensitivity check
+    judges 14-17 alone and flags the outcome the early seeds carried."""
+    early, late = [200.0, 201.0, 199.0, 200.0], [100.0, 95.0, 105.0, 98.0]
+    hyp = _hypothesis(tmp_path, {"Up-v0": {"ppo": PPO, "res-ppo": early + late}})
+    for result in (tmp_path / "pub" / "Up-v0" / "test" / "agents").glob("*/seed_*/result.json"):
+        record = json.loads(result.read_text())
+        record["finished"] = "2026-11-20T10:00:00" if record["seed"] < 14 else "2026-12-01T10:00:00"
+        result.write_text(json.dumps(record))
+    md, _ = write_reproduction_page([hyp], tmp_path / "r.md", html_page=False)
+    text = md.read_text()
+    section = text.split("### Sensitivity: the seeds run after each rule")[1].split("\n## ")[0]
+    assert "h Up-v0: 14–17" in section
+    assert (
+        "| h | Up-v0 | res-ppo − ppo | last10 | supported (8 / 8) | inconclusive (4 / 4) |"
+        in section
+    )
+
+
+def test_groups_of_different_seeds_are_judged_again_on_the_seeds_both_have(
+    tmp_path: Path,
+) -> None:
+    rule = {**RULE, "questions": {"vs-lstm": {"text": "does it beat the LSTM?",
+                                              "compare": ["res-ppo - lstm-ppo"]}}}  # fmt: skip
+    res = [101.0, 96.0, 104.0, 150.0, 147.0, 153.0, 149.0, 151.0]
+    hyp = _hypothesis(tmp_path, {"Up-v0": {"res-ppo": res, "lstm-ppo": PPO[:3]}}, rule=rule)
+    md, _ = write_reproduction_page([hyp], tmp_path / "r.md", html_page=False)
+    section = md.read_text().split("### Sensitivity: the seeds both groups have")[1]
+    section = section.split("\n## ")[0]
+    assert "3 comparison(s) set groups of different seeds" in section
+    assert (
+        "| h | Up-v0 | res-ppo − lstm-ppo | last10 | supported (8 / 3) | inconclusive (3 / 3) |"
+        in section
+    )

@@ -33,9 +33,13 @@ with the comparison ``res-ppo − leaky-res-ppo`` of the verdict layer
 
 - *oscillatory dynamics* (supported): the ablation learns worse (the comparison is supported) and
   the evolved reservoir carries a gait-frequency component its ablation lacks;
-- *leaky integration suffices* (supported): the ablation is not shown to learn worse (the
-  comparison is inconclusive or contradicted); the verdict says how much worse it could still be
-  (the larger upper end of the adjusted Welch and bootstrap intervals);
+- *leaky integration suffices* (supported): the ablation learns better (the comparison is
+  contradicted), or as well: the comparison is equivalent within the task's margin (two
+  one-sided tests at its adjusted level, the rule's ``equivalence:`` block;
+  [`equivalence_outcome`][ermrl.analysis.equivalence_outcome]);
+- *not shown either way*: the ablation is neither shown to learn worse nor shown equivalent
+  (or the rule states no margin for the task); the verdict says how much worse it could still
+  be (the larger upper end of the adjusted Welch and bootstrap intervals);
 - *inconclusive*: the ablation learns worse, but the spectra show no gait-frequency component it
   lacks, or have not been recorded, or the task has no gait; or the comparison could not be
   tested (fewer than 2 runs);
@@ -60,7 +64,16 @@ from ermrl.analysis._dynamics import (
     joint_angles,
     power_spectrum,
 )
-from ermrl.analysis._verdicts import NOT_RUN, Comparison, Question, VerdictRule, not_run
+from ermrl.analysis._verdicts import (
+    EQUIVALENT,
+    NOT_RUN,
+    NOT_SHOWN,
+    Comparison,
+    Question,
+    VerdictRule,
+    equivalence_text,
+    not_run,
+)
 
 __all__ = [
     "ABLATED",
@@ -105,6 +118,7 @@ MECHANISM_SPECTRA_FILE = "mechanism_spectra.csv"
 MECHANISM_LABELS = (
     "oscillatory dynamics",
     "leaky integration suffices",
+    NOT_SHOWN,
     "inconclusive",
     NOT_RUN,
 )
@@ -676,11 +690,25 @@ def mechanism_verdict(
             f"the ablation learns better ({effect}): by at least {-bound:.4g}, both adjusted "
             "intervals lying below 0"
         )
-    else:
+    elif comparison.get("equivalence") == EQUIVALENT:
         worse = (
-            f"the ablation is not shown to learn worse ({effect}): it could learn at most "
-            f"{bound:.4g} worse than the evolved reservoir (an effect larger than {bound:+.4g} "
-            f"is excluded at {level})"
+            f"the ablation learns as well as the evolved reservoir: {equivalence_text(comparison)}"
+            f" ({effect})"
+        )
+    else:
+        margin = comparison.get("margin")
+        stated = isinstance(margin, (int, float)) and math.isfinite(float(margin))
+        why = (
+            equivalence_text(comparison)
+            if stated
+            else "no equivalence margin is stated for the task, so equivalence cannot be shown"
+        )
+        return MechanismVerdict(
+            NOT_SHOWN,
+            f"the ablation is not shown to learn worse ({effect}), and not shown to learn as well: "
+            f"{why}; it could learn up to {bound:.4g} worse than the evolved reservoir; "
+            f"spectra: {spectra}",
+            bound,
         )
     return MechanismVerdict("leaky integration suffices", f"{worse}; spectra: {spectra}", bound)
 
@@ -808,9 +836,11 @@ def describe_mechanism(criterion: SpectralCriterion | None = None) -> str:
         f"seed; {criterion.describe()}. *Oscillatory dynamics* is supported when "
         f"`{EVOLVED} − {ABLATED}` is supported (the ablation learns worse) and the evolved "
         "reservoir carries that component; *leaky integration suffices* is supported when the "
-        "comparison is inconclusive or contradicted (the ablation is not shown to learn worse), "
-        "and the page gives how much worse it could still learn (the larger upper end of the "
-        "adjusted intervals); *inconclusive* when the ablation learns worse but the spectra "
+        "ablation learns better (the comparison is contradicted) or as well (equivalent within "
+        "the task's margin: two one-sided tests at the adjusted level); *not shown either way* "
+        "when it is neither shown to learn worse nor shown equivalent, and the page gives how "
+        "much worse it could still learn (the larger upper end of the adjusted intervals); "
+        "*inconclusive* when the ablation learns worse but the spectra "
         "show no such component (or are not recorded, or the task has no gait); *not run yet* "
         f"without finished `{ABLATED}` runs"
     )

@@ -48,17 +48,20 @@ from ermrl.analysis._stats import FEW_SEEDS
 from ermrl.analysis._verdicts import (
     METRICS,
     NOT_RUN,
+    NOT_TESTED,
     Question,
     Reference,
     TaskRuns,
     VerdictError,
     VerdictRule,
     aggregate_question,
+    equivalence_text,
     excluded_effects,
     first_result_date,
     judge,
     load_test_runs,
     not_run,
+    shared_runs,
     task_outcome,
 )
 
@@ -68,10 +71,14 @@ __all__ = [
     "add_reference_runs",
     "TaskResult",
     "load_test_runs",
+    "question_answer",
+    "read_summary",
+    "results_summary",
     "task_result",
     "trace_selection",
     "untraceable_tasks",
     "write_reproduction_page",
+    "write_summary",
 ]
 
 EVOLVED = "res-ppo"
@@ -161,6 +168,7 @@ def add_reference_runs(result: TaskResult, ref: Reference, where: str = "verdict
     here = f"{where}: references.{ref.name} ({result.label})"
     runs = load_test_runs(folder) if Path(folder).is_dir() else pd.DataFrame()
     runs = runs[runs["agent"] == ref.agent] if not runs.empty else runs
+    runs = _run_dates(runs, Path(folder)) if not runs.empty else runs
     if runs.empty:
         raise VerdictError(f"{here}: no finished run of {ref.agent} in {folder}")
     own = result.runs
@@ -300,7 +308,7 @@ def task_result(
     """Read one task's published files (see [`TaskResult`][ermrl.analysis.TaskResult]); ``planned``
     is the test phase its file plans, ``{agent: seeds}``."""
     test = folder / "test"
-    runs = load_test_runs(test) if test.exists() else pd.DataFrame()
+    runs = _run_dates(load_test_runs(test), test) if test.exists() else pd.DataFrame()
     snapshot_doc = _read_snapshot(snapshot)
     selection = _selection(test)
     traced, trace = (True, "") if not selection else trace_selection(selection, snapshot_doc)
@@ -452,6 +460,15 @@ def write_reproduction_page(
     ]
     tests = judge(judged, rules)
     normalize = _normalizer()
+    borrowed = {
+        (hyp.name, r.label, name) for hyp in hypotheses for r in results[hyp.name]
+        for name in r.references
+    }  # fmt: skip
+    after = [
+        t for t in (_after_rule(t, rules[t.hypothesis], borrowed) for t in judged) if t is not None
+    ]
+    sensitivity = judge(after, rules) if after else pd.DataFrame()
+    common = judge(judged, rules, common_seeds=True) if judged else pd.DataFrame()
 
     doc = _Doc()
     doc.h(1, "Reproducing *Evolving Reservoirs for Meta Reinforcement Learning*")
@@ -486,7 +503,7 @@ def write_reproduction_page(
         "not adjusted) describe the tasks together. Every verdict is given under three "
         "metrics: the mean return of the last 10 training episodes (`last10`), of the last 100 "
         "(`last100`, SB3's `rollout/ep_rew_mean`, the metric the paper plots) and of 10 "
-        "deterministic evaluation episodes after training (`eval`; recorded from seed 15 on). "
+        f"deterministic evaluation episodes after training (`eval`; {_eval_coverage(judged)}). "
         f"A group of fewer than {FEW_SEEDS} seeds is flagged."
     )
     glance: list[dict[str, Any]] = []
@@ -503,12 +520,24 @@ def write_reproduction_page(
     ]
     doc.h(2, "Verdicts at a glance")
     doc.p(
-        "Per sub-question: the outcome on each task under each hypothesis's primary metric, "
-        "then the counts under the other metrics. The sections below give every effect, "
-        "interval and p-value."
+        "Per sub-question: a one-line answer over the tasks (one outcome when every tested "
+        "task has it, else *mixed* with the counts), the outcome on each task under each "
+        "hypothesis's primary metric, then the counts under the other metrics. *Not tested* "
+        "is no outcome: the selection is the reference, or the runs are another test's. The "
+        "sections below give every effect, interval, p-value and equivalence test."
     )
     if glance:
         doc.table(pd.DataFrame(glance))
+    shared = _shared_text(judged, borrowed)
+    if shared:
+        doc.p(
+            "**Shared runs** (found from the data: the same seed with the same final and "
+            "last-100 returns to the last digit). Where a comparison's two sides are the same "
+            "runs, or an earlier test on the page compares the same runs, it is not tested "
+            "again and counts once in its family: " + "; ".join(shared) + "."
+        )
+    _sensitivity_block(doc, tests, sensitivity, after)
+    _common_seeds_block(doc, tests, common)
     if refused:
         doc.p(
             "**Not rendered** (the tested trial cannot be traced to a recorded selection): "
@@ -527,10 +556,367 @@ def write_reproduction_page(
     return out, html_path
 
 
+#: The aggregate's probability of improvement, in words: unadjusted, so descriptive only.
+_DESCRIPTIVE = {
+    "supported": "interval above 1/2",
+    "contradicted": "interval below 1/2",
+    "inconclusive": "interval across 1/2",
+}
+#: The markers between which `write_summary` writes the results table into a file.
+SUMMARY_START = "<!-- reproduction:start -->"
+SUMMARY_END = "<!-- reproduction:end -->"
+
+
+def _run_dates(runs: pd.DataFrame, test_folder: Path) -> pd.DataFrame:
+    """``runs`` with a ``dated`` column: the day each run finished (``result.json``'s
+    ``finished``), or for a run written before that was recorded, the day of the commit that
+    added its ``result.json`` (one ``git log`` of the folder; unknown outside a repository)."""
+    import subprocess
+
+    if runs.empty:
+        return runs
+    finished = runs["finished"] if "finished" in runs else pd.Series(None, index=runs.index)
+    dated = pd.Series(
+        [str(v)[:10] if isinstance(v, str) and v else None for v in finished],
+        index=runs.index,
+        dtype=object,
+    )
+    if dated.isna().any():
+        added: dict[tuple[str, int], str] = {}
+        try:
+            done = subprocess.run(
+                ["git", "log", "--diff-filter=A", "--name-only", "--format=@%cs", "--", "agents"],
+                cwd=test_folder, capture_output=True, text=True, timeout=60, check=False,
+            )  # fmt: skip
+            day = None
+            for line in done.stdout.splitlines() if done.returncode == 0 else []:
+                if line.startswith("@"):
+                    day = line[1:]
+                elif line.endswith("/result.json") and day:
+                    parts = line.split("/")
+                    agent, seed = parts[-3], parts[-2].removeprefix("seed_")
+                    if seed.isdigit():
+                        added[(agent, int(seed))] = min(day, added.get((agent, int(seed)), day))
+        except (OSError, subprocess.SubprocessError):
+            pass
+        fill = [
+            added.get((str(a), int(sd))) for a, sd in zip(runs["agent"], runs["seed"], strict=True)
+        ]
+        dated = dated.where(dated.notna(), pd.Series(fill, index=runs.index))
+    return runs.assign(dated=dated)
+
+
+def _after_rule(
+    task: TaskRuns, rule: VerdictRule, borrowed: set[tuple[str, str, str]]
+) -> TaskRuns | None:
+    """The task's runs on the seeds all of whose runs were made on or after the rule's adoption
+    date (`_run_dates`: ``finished``, or the commit that published the run); ``None`` when the
+    rule has no date."""
+    runs = task.runs
+    if rule.adopted is None or runs.empty or "dated" not in runs:
+        return None
+    late = runs["dated"].notna() & (runs["dated"].astype(str) >= rule.adopted)
+    # A baseline borrowed from another file (references) was run for that file's rule.
+    own = ~runs["agent"].map(lambda a: (task.hypothesis, task.task, str(a)) in borrowed)
+    early = set(runs.loc[own & ~late, "seed"])
+    kept = runs[~runs["seed"].isin(early)]
+    return TaskRuns(task.hypothesis, task.task, kept, task.reference_selected, task.env_id)
+
+
+def _sensitivity_block(
+    doc: Any, tests: pd.DataFrame, sensitivity: pd.DataFrame, after: Sequence[TaskRuns]
+) -> None:
+    """The verdicts again on the seeds run after each rule, and the outcomes that change."""
+    if sensitivity.empty or tests.empty:
+        return
+    seeds = []
+    for task in after:
+        kept = sorted({int(sd) for sd in task.runs["seed"]}) if not task.runs.empty else []
+        seeds.append(f"{task.hypothesis} {task.task}: {_span(kept) if kept else 'none'}")
+    key = ["hypothesis", "task", "question", "comparison", "metric"]
+    both = tests.merge(sensitivity, on=key, suffixes=("", "_after"))
+    checked = both["outcome_after"].isin(["supported", "contradicted", "inconclusive"])
+    unchecked = both[~checked & (both["outcome"] != both["outcome_after"])]
+    both = both[checked]
+    moved = both[both["outcome"] != both["outcome_after"]]
+    doc.h(3, "Sensitivity: the seeds run after each rule")
+    doc.p(
+        "Every rule above was written after some of its test results existed. The same "
+        "verdicts, by the same rule and Holm families, on only the seeds all of whose runs on "
+        "a task were made on or after the rule's adoption date (each run's `result.json` "
+        "`finished`, or for runs that predate that field the commit that published them; "
+        "baselines borrowed from another file not counted): "
+        + "; ".join(seeds)
+        + ". "
+        + (
+            f"{len(unchecked)} comparison(s) cannot be checked this way (a side has no run "
+            "after the rule, or the comparison is not tested). "
+            if len(unchecked)
+            else ""
+        )
+        + (
+            f"**{len(moved)} of the {len(both)} others change outcome** (a flag, not a "
+            "verdict: fewer seeds give less power):"
+            if len(moved)
+            else f"No outcome of the {len(both)} others changes."
+        )
+    )
+    if len(moved):
+        doc.table(_moved_table(moved, "after the rule"))
+
+
+def _moved_table(moved: pd.DataFrame, label: str) -> pd.DataFrame:
+    """Rows of a merged (``_after``-suffixed) pair of test tables whose outcome moved."""
+    return pd.DataFrame(
+        {
+            "hypothesis": moved["hypothesis"],
+            "task": moved["task"],
+            "comparison": moved["comparison"],
+            "metric": moved["metric"],
+            "all seeds": [
+                f"{o} ({int(a)} / {int(b)})"
+                for o, a, b in zip(
+                    moved["outcome"], moved["n_candidate"], moved["n_baseline"], strict=True
+                )
+            ],
+            label: [
+                f"{o} ({int(a)} / {int(b)})"
+                for o, a, b in zip(
+                    moved["outcome_after"],
+                    moved["n_candidate_after"],
+                    moved["n_baseline_after"],
+                    strict=True,
+                )
+            ],
+            "effect": [_signed(v) if math.isfinite(v) else "–" for v in moved["mean_diff_after"]],
+            "Holm p": [_num(v) for v in moved["p_adjusted_after"]],
+        }
+    )
+
+
+def _common_seeds_block(doc: Any, tests: pd.DataFrame, common: pd.DataFrame) -> None:
+    """The comparisons whose two groups have different seeds, judged on the seeds both have."""
+    if common.empty or tests.empty:
+        return
+    key = ["hypothesis", "task", "question", "comparison", "metric"]
+    both = tests.merge(common, on=key, suffixes=("", "_after"))
+    differ = (both["n_candidate"] != both["n_candidate_after"]) | (
+        both["n_baseline"] != both["n_baseline_after"]
+    )
+    both = both[differ & both["outcome"].isin(["supported", "contradicted", "inconclusive"])]
+    if both.empty:
+        return
+    checked = both["outcome_after"].isin(["supported", "contradicted", "inconclusive"])
+    moved = both[checked & (both["outcome"] != both["outcome_after"])]
+    doc.h(3, "Sensitivity: the seeds both groups have")
+    doc.p(
+        f"{len(both)} comparison(s) set groups of different seeds against each other (an agent "
+        "trained on fewer seeds, or evaluation episodes recorded on some seeds only). The same "
+        "verdicts on the seeds both groups of each comparison have, by the same rule and "
+        "families: "
+        + (
+            f"**{len(moved)} change outcome** (a flag, not a verdict):"
+            if len(moved)
+            else "no outcome changes."
+        )
+    )
+    if len(moved):
+        doc.table(_moved_table(moved, "common seeds"))
+
+
+def _eval_coverage(tasks: Sequence[TaskRuns]) -> str:
+    """Which seeds of the judged groups of runs have evaluation episodes, computed: ``recorded
+    on every seed of N groups, on seeds 15–29 of M (...), on none of K (...)``."""
+    spans: dict[str, list[str]] = {}
+    for task in tasks:
+        runs = task.runs
+        if runs.empty or "eval_return" not in runs:
+            continue
+        for agent, group in runs.groupby("agent", sort=False):
+            seeds = sorted(int(sd) for sd in group["seed"])
+            has = sorted(
+                int(sd)
+                for sd, v in zip(group["seed"], pd.to_numeric(group["eval_return"]), strict=True)
+                if math.isfinite(float(v))
+            )
+            key = "every seed" if has == seeds else (f"seeds {_span(has)}" if has else "no seed")
+            spans.setdefault(key, []).append(f"{task.hypothesis} {task.task} {agent}")
+    if not spans:
+        return "not recorded"
+    parts = []
+    order = sorted(spans, key=lambda k: -len(spans[k]))
+    for key in order:
+        groups = spans[key]
+        listed = "" if key == order[0] else f": {', '.join(groups)}"
+        parts.append(f"on {key} of {len(groups)} group(s) of runs (agent, task){listed}")
+    return "recorded " + "; ".join(parts)
+
+
+def question_answer(outcomes: Sequence[str]) -> str:
+    """A sub-question's one-line answer over a hypothesis's tasks, from each task's outcome
+    under the rule: one word when every tested task agrees, else ``mixed`` with the counts.
+
+    Examples:
+        >>> question_answer(["supported", "supported"])
+        'supported on all 2 tasks'
+        >>> question_answer(["supported", "inconclusive", "inconclusive"])
+        'mixed: supported on 1 of 3 tasks, inconclusive on 2'
+        >>> question_answer(["inconclusive", "not tested"])
+        'inconclusive on the 1 task tested (1 not tested)'
+    """
+    tested = [o for o in outcomes if o in ("supported", "contradicted", "inconclusive")]
+    others = [o for o in outcomes if o not in tested]
+    rest = f" ({_counts(others)})" if others else ""
+    if not tested:
+        if len(set(others)) == 1:
+            n = len(others)
+            return f"{others[0]} on " + (f"all {n} tasks" if n > 1 else "its one task")
+        return _counts(others) or "no task"
+    n = len(tested)
+    if len(set(tested)) == 1:
+        if others:
+            where = f"the {n} task{'s' if n > 1 else ''} tested"
+        else:
+            where = f"all {n} tasks" if n > 1 else "its one task"
+        return f"{tested[0]} on {where}{rest}"
+    kinds = [o for o in ("supported", "contradicted", "inconclusive") if o in tested]
+    first, *more = kinds
+    text = f"mixed: {first} on {tested.count(first)} of {n} tasks" + "".join(
+        f", {o} on {tested.count(o)}" for o in more
+    )
+    return text + rest
+
+
+def results_summary(tests: pd.DataFrame, hypotheses: Sequence[Hypothesis]) -> str:
+    """The results table that README.md and docs/getting-started.md show, from the page's tests
+    (its CSV) and the experiment files' rules: per hypothesis and sub-question, the answer and
+    each task's outcome under the primary metric, with the other metrics' where they differ and
+    equivalence where it is shown.
+
+    Args:
+        tests: The page's tests ([`judge`][ermrl.analysis.judge]'s rows, or
+            ``docs/reproduction.csv`` read back).
+        hypotheses: The page's experiment files, in its order.
+
+    Returns:
+        Markdown: one table and the line that says where it comes from.
+    """
+    if tests.empty:
+        return "No test has been judged yet.\n"
+    tests = tests.copy()
+    column = tests["equivalence"] if "equivalence" in tests else pd.Series("", index=tests.index)
+    tests["equivalence"] = column.astype(object).where(column.notna(), "")
+    lines = []
+    primaries = set()
+    for hyp in hypotheses:
+        rule = hyp.rule
+        if rule is None:
+            continue
+        primaries.add(rule.primary)
+        for question in rule.questions:
+            rows = tests[(tests["hypothesis"] == hyp.name) & (tests["question"] == question.name)]
+            if rows.empty:
+                continue
+            cells, primary = [], []
+            for task, group in rows.groupby("task", sort=False):
+                first = group[group["metric"] == rule.primary]
+                outcome = task_outcome(first)
+                primary.append(outcome)
+                text = f"{task}: {outcome}"
+                marks = [str(e) for e in first["equivalence"] if e]
+                if outcome == "inconclusive" and marks and all(m == "equivalent" for m in marks):
+                    margin = float(first["margin"].iloc[0])
+                    text += f" (equivalent within ±{margin:g})"
+                differ = []
+                for metric in rule.metrics[1:]:
+                    other = task_outcome(group[group["metric"] == metric])
+                    if other != outcome:
+                        differ.append(f"{metric}: {other}")
+                if differ:
+                    text += " [" + "; ".join(differ) + "]"
+                cells.append(text)
+            lines.append(
+                f"| {hyp.name} | {question.text} | {question_answer(primary)} | "
+                + "; ".join(cells)
+                + " |"
+            )
+    metric = "/".join(sorted(primaries)) or "last10"
+    head = [
+        f"| experiment | sub-question | answer ({metric}) | per task ({metric}; [other metrics "
+        "where they differ]) |",
+        "|---|---|---|---|",
+    ]
+    source = (
+        "Written by `ermrl reproduction` from its tests (`docs/reproduction.csv`): "
+        "supported, contradicted or inconclusive by each file's `verdict:` rule, Holm-corrected "
+        "over the page; *not tested* where the selection is the reference or the runs are "
+        "another test's; equivalence only where two one-sided tests show it within the "
+        "task's margin (set after the data)."
+    )
+    return "\n".join([*head, *lines]) + "\n\n" + source + "\n"
+
+
+def write_summary(path: str | Path, summary: str) -> bool:
+    """Write `results_summary` between `SUMMARY_START` and `SUMMARY_END` in a file.
+
+    Returns:
+        Whether the file changed.
+
+    Raises:
+        VerdictError: the file lacks the markers, in that order (one line).
+    """
+    from ermrl._io import write_atomic
+
+    path = Path(path)
+    text = path.read_text()
+    start, end = text.find(SUMMARY_START), text.find(SUMMARY_END)
+    if start < 0 or end < start:
+        raise VerdictError(f"{path}: no {SUMMARY_START} ... {SUMMARY_END} markers to write into")
+    new = text[: start + len(SUMMARY_START)] + "\n" + summary + text[end:]
+    if new == text:
+        return False
+    write_atomic(path, new)
+    return True
+
+
+def read_summary(path: str | Path) -> str | None:
+    """What a file holds between `SUMMARY_START` and `SUMMARY_END` (``None`` without them)."""
+    text = Path(path).read_text()
+    start, end = text.find(SUMMARY_START), text.find(SUMMARY_END)
+    if start < 0 or end < start:
+        return None
+    return text[start + len(SUMMARY_START) + 1 : end]
+
+
+def _shared_text(tasks: Sequence[TaskRuns], borrowed: set[tuple[str, str, str]]) -> list[str]:
+    """Each pair of groups of runs of two experiment files that are the same runs, in words
+    (a baseline a file declares it borrows, `references`, left out: the page names it)."""
+    out = []
+    for (k, agent), others in shared_runs(tasks).items():
+        for (j, other), seeds in others.items():
+            one, two = tasks[k], tasks[j]
+            if j <= k or one.hypothesis == two.hypothesis:
+                continue
+            if {(one.hypothesis, one.task, agent), (two.hypothesis, two.task, other)} & borrowed:
+                continue
+            n = int((one.runs["agent"] == agent).sum())
+            out.append(
+                f"{one.hypothesis} {one.task} `{agent}` and {two.hypothesis} {two.task} "
+                f"`{other}` on seeds {_span(seeds)} ({len(seeds)} of {n})"
+            )
+    return out
+
+
+def _span(seeds: Sequence[int]) -> str:
+    if len(seeds) > 2 and seeds[-1] - seeds[0] == len(seeds) - 1:
+        return f"{seeds[0]}–{seeds[-1]}"
+    return ", ".join(map(str, seeds))
+
+
 def _counts(outcomes: Sequence[str]) -> str:
     parts = [
         f"{outcomes.count(o)} {o}"
-        for o in ("supported", "contradicted", "inconclusive", NOT_RUN)
+        for o in ("supported", "contradicted", "inconclusive", NOT_TESTED, NOT_RUN)
         if outcomes.count(o)
     ]
     return ", ".join(parts) if parts else "–"
@@ -583,6 +969,13 @@ def _hypothesis_section(
                 f"Rule adopted {rule.adopted or 'on an unrecorded date'}; first test result "
                 f"{first or 'not yet'}" + (f" (dated by {source})" if first else "") + "."
             )
+        if rule.margins and rule.margins_adopted and first and rule.margins_adopted > first:
+            doc.p(
+                f"**Flag: the equivalence margins were set after the data.** Margins adopted "
+                f"{rule.margins_adopted}, a rule of their own added to the file after its test "
+                f"results existed (first {first}): read every *equivalent* and *not shown either "
+                "way* on this file as a re-analysis, not as a test fixed in advance."
+            )
         _questions_block(doc, hyp, rule, judged, tests, normalize, glance)
     for result, files in zip(results, hyp.tasks, strict=True):
         _task_section(doc, hyp, result, tests, docs_dir, files.evolved_on)
@@ -598,6 +991,12 @@ def _questions_block(
     glance: list[dict[str, Any]],
 ) -> None:
     runs = [TaskRuns(hyp.name, r.label, r.runs, r.reference_selected, r.label) for r in judged]
+    mine = tests[(tests["hypothesis"] == hyp.name) & (tests["outcome"] == NOT_TESTED)]
+    untested = {
+        (str(r["task"]), str(r["comparison"])): "shared runs, not tested"
+        for r in mine.to_dict("records")
+        if "same runs" in str(r["note"])
+    }
     items = []
     aggregate_rows = []
     for question in rule.questions:
@@ -618,6 +1017,7 @@ def _questions_block(
             {
                 "hypothesis": hyp.name,
                 "sub-question": question.text,
+                f"answer ({rule.primary})": question_answer(list(primary.values())),
                 f"per task ({rule.primary})": per_task.replace("**", ""),
                 **{
                     m: _counts(list(_question_outcomes(tests, hyp.name, question, m).values()))
@@ -629,7 +1029,12 @@ def _questions_block(
             continue  # no aggregate of a question none of whose comparisons ran
         for metric in rule.metrics:
             for row in aggregate_question(
-                runs, question, metric, normalize, n_resamples=rule.n_resamples
+                runs,
+                question,
+                metric,
+                normalize,
+                n_resamples=rule.n_resamples,
+                untested=untested,
             ):
                 aggregate_rows.append(
                     {
@@ -639,7 +1044,9 @@ def _questions_block(
                         "tasks": row["n_tasks"],
                         "P(candidate > baseline)": _num(row["poi"]),
                         "95% CI": _ci(row["poi_low"], row["poi_high"]),
-                        "aggregate": row["poi_outcome"] if row["n_tasks"] else "–",
+                        "descriptive (not adjusted)": _DESCRIPTIVE[row["poi_outcome"]]
+                        if row["n_tasks"]
+                        else "–",
                         "IQM candidate [95% CI]": (
                             f"{_num(row['iqm_candidate'])} {_ci(row['iqm_candidate_low'], row['iqm_candidate_high'])}"
                             if math.isfinite(row["iqm_candidate"])
@@ -660,8 +1067,10 @@ def _questions_block(
         doc.p(
             "Aggregates over the tasks (rliable's definitions; scores normalized as "
             "(R − R_random) / (R_target − R_random) with ermrl's reference table, "
-            "`ermrl/data/scores.csv`; the probability of improvement is supported when its "
-            "95% interval lies above 1/2, contradicted below):"
+            "`ermrl/data/scores.csv`). They are descriptive: not adjusted for multiple "
+            "comparisons and not part of the rule, so they say where the probability of "
+            "improvement's 95% interval lies (above 1/2, below it, or across it), not "
+            "supported or contradicted:"
         )
         doc.table(pd.DataFrame(aggregate_rows))
 
@@ -826,6 +1235,9 @@ def _tests_table(rows: pd.DataFrame) -> pd.DataFrame:
                 "what it rules out": excluded_effects(row)
                 if tested and row["outcome"] == "inconclusive"
                 else row["note"],
+                "equivalence (two one-sided tests)": (equivalence_text(row) or "–")
+                if tested
+                else "–",
                 "seeds for 80% power": (
                     "–"
                     if not tested

@@ -17,6 +17,7 @@ from ermrl.learners import AGENT_KINDS, EVOLVED_AGENT
 __all__ = [
     "FEW_SEEDS",
     "IQMResult",
+    "TOSTResult",
     "WelchResult",
     "aggregate_iqm",
     "bootstrap_mean_diff_ci",
@@ -26,6 +27,7 @@ __all__ = [
     "iqm",
     "paired_bootstrap_mean_diff_ci",
     "welch_t_test",
+    "welch_tost",
 ]
 
 METRICS = ("final_return", "eval_return")
@@ -121,6 +123,68 @@ def welch_t_test(
     return WelchResult(
         float(result.statistic), float(dof), float(result.pvalue), float(ci.low), float(ci.high)
     )
+
+
+@dataclass(frozen=True)
+class TOSTResult:
+    """Two one-sided Welch tests of ``|mean(a) - mean(b)| < margin`` (an equivalence test).
+
+    Attributes:
+        p_value: The larger of the two one-sided p-values (of ``H0: diff <= -margin`` and of
+            ``H0: diff >= margin``); equivalence is shown at level α when it is at most α.
+        ci_low: Lower end of Welch's ``1 - 2α`` interval of the difference (the interval the
+            test at level α checks against ``±margin``).
+        ci_high: Upper end of that interval.
+    """
+
+    p_value: float
+    ci_low: float
+    ci_high: float
+
+
+def welch_tost(
+    a: Sequence[float] | np.ndarray,
+    b: Sequence[float] | np.ndarray,
+    margin: float,
+    alpha: float = 0.05,
+) -> TOSTResult:
+    """Schuirmann's two one-sided tests, each a Welch t test (scipy), of equivalence within
+    ``±margin``.
+
+    At level α, equivalence is shown exactly when Welch's ``1 - 2α`` interval of ``mean(a) -
+    mean(b)`` lies inside ``(-margin, margin)``.
+
+    Args:
+        a: Values of the first group (NaNs are dropped).
+        b: Values of the second group.
+        margin: The equivalence margin, in the values' units (> 0).
+        alpha: The level of each one-sided test.
+
+    Returns:
+        The TOST p-value and the ``1 - 2α`` interval (NaN when Welch's test is undefined).
+
+    Examples:
+        >>> same = welch_tost([1.0, 2.0, 3.0, 2.0], [2.0, 1.0, 3.0, 2.0], margin=2.0)
+        >>> same.p_value < 0.05
+        True
+        >>> welch_tost([1.0, 2.0, 3.0, 2.0], [2.0, 1.0, 3.0, 2.0], margin=0.1).p_value > 0.05
+        True
+    """
+    from scipy import stats
+
+    if not margin > 0:
+        raise ValueError(f"an equivalence margin must be positive, got {margin!r}")
+    x = _clean(a)
+    y = _clean(b)
+    interval = welch_t_test(x, y, confidence=1 - 2 * alpha)
+    if not math.isfinite(interval.p_value):
+        return TOSTResult(math.nan, math.nan, math.nan)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Precision loss", category=RuntimeWarning)
+        above = stats.ttest_ind(x + margin, y, equal_var=False, alternative="greater")
+        below = stats.ttest_ind(x - margin, y, equal_var=False, alternative="less")
+    p = max(float(above.pvalue), float(below.pvalue))
+    return TOSTResult(p, interval.ci_low, interval.ci_high)
 
 
 def bootstrap_mean_diff_ci(

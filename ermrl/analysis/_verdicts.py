@@ -55,12 +55,16 @@ __all__ = [
     "OUTCOMES",
     "Comparison",
     "Question",
+    "EQUIVALENT",
+    "NOT_SHOWN",
     "Reference",
     "TaskRuns",
     "VerdictRule",
     "VerdictError",
     "aggregate_question",
     "combine_outcomes",
+    "equivalence_outcome",
+    "equivalence_text",
     "not_run",
     "task_outcome",
     "holm",
@@ -69,6 +73,7 @@ __all__ = [
     "load_test_runs",
     "probability_of_improvement",
     "seeds_for_power",
+    "shared_runs",
 ]
 
 #: The metrics a verdict can rest on: name -> (result.json column, what it is).
@@ -84,6 +89,10 @@ METRICS: dict[str, tuple[str, str]] = {
 OUTCOMES = ("supported", "contradicted", "inconclusive")
 #: A question's status on a task none of whose comparisons could run (not an outcome).
 NOT_RUN = "not run yet"
+#: A comparison the page does not test (the selection is the reference, its two sides are the
+#: same runs, or another test on the page already made it on the same runs): not an outcome,
+#: and outside its family.
+NOT_TESTED = "not tested"
 CORRECTIONS = ("holm", "none")
 #: Seeds searched by `seeds_for_power` before it gives up.
 MAX_POWER_SEEDS = 10_000
@@ -167,6 +176,11 @@ class VerdictRule:
         power: The power the seeds-needed line targets.
         references: Baselines read from other experiments' published runs
             ([`Reference`][ermrl.analysis.Reference]).
+        margins: The equivalence margin of each task, ``((task, margin), ...)`` in the task's
+            return units (the ``equivalence:`` block): a comparison is *equivalent within
+            ±margin* only when two one-sided tests at its adjusted level reject both
+            ``diff <= -margin`` and ``diff >= margin`` (see `equivalence_outcome`).
+        margins_adopted: When the margins were written (ISO date), a rule of their own.
     """
 
     questions: tuple[Question, ...]
@@ -177,6 +191,12 @@ class VerdictRule:
     n_resamples: int = 10_000
     power: float = 0.8
     references: tuple[Reference, ...] = ()
+    margins: tuple[tuple[str, float], ...] = ()
+    margins_adopted: str | None = None
+
+    def margin(self, task: str) -> float | None:
+        """The equivalence margin of a task (``None``: the rule states none)."""
+        return dict(self.margins).get(task)
 
     @classmethod
     def from_doc(cls, doc: Any, where: str = "verdict") -> VerdictRule:
@@ -191,6 +211,7 @@ class VerdictRule:
             "adopted",
             "alpha",
             "correction",
+            "equivalence",
             "primary",
             "questions",
             "power",
@@ -256,6 +277,7 @@ class VerdictRule:
             int(resamples),
             float(power),
             _references(doc.get("references"), f"{where}.references"),
+            *_margins(doc.get("equivalence"), f"{where}.equivalence"),
         )
 
     @property
@@ -279,7 +301,42 @@ class VerdictRule:
             "a question is supported on a task when all its comparisons are, contradicted when "
             f"any is; seeds needed: per agent, for {self.power:.0%} power of Welch's test at the "
             "adjusted level, if the observed difference and spread were the truth"
+            + self._describe_margins()
         )
+
+    def _describe_margins(self) -> str:
+        if not self.margins:
+            return ""
+        margins = ", ".join(f"{task} ±{value:g}" for task, value in self.margins)
+        return (
+            f"; equivalence (a rule of its own, adopted {self.margins_adopted}): a comparison is "
+            f"*equivalent within ±δ* (δ per task: {margins}, in the task's return) when two "
+            "one-sided Welch tests at its adjusted level α' reject both a difference of −δ or "
+            "less and one of +δ or more, and the percentile bootstrap agrees (both 1 − 2α' "
+            "intervals lie inside ±δ); otherwise equivalence is *not shown either way*, and the "
+            "page gives the largest difference the intervals still allow"
+        )
+
+
+def _margins(doc: Any, where: str) -> tuple[tuple[tuple[str, float], ...], str | None]:
+    """An ``equivalence:`` block: ``{adopted: DATE, margins: {TASK: MARGIN}}``."""
+    if doc is None:
+        return (), None
+    if not isinstance(doc, Mapping) or set(doc) != {"adopted", "margins"}:
+        raise VerdictError(f"{where}: a mapping with exactly adopted and margins is needed")
+    adopted = _date(doc["adopted"], f"{where}.adopted")
+    margins = doc["margins"]
+    if not isinstance(margins, Mapping) or not margins:
+        raise VerdictError(f"{where}.margins: a mapping TASK: margin (in the task's units)")
+    out = []
+    for task, value in margins.items():
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+        if not ok or not math.isfinite(value) or value <= 0:
+            raise VerdictError(
+                f"{where}.margins.{task}: a positive number is needed, got {value!r}"
+            )
+        out.append((str(task), float(value)))
+    return tuple(out), adopted
 
 
 def _references(doc: Any, where: str) -> tuple[Reference, ...]:
@@ -343,6 +400,17 @@ def _values(runs: pd.DataFrame, agent: str, column: str) -> pd.Series:
     values = pd.to_numeric(rows[column], errors="coerce")
     values.index = rows["seed"].to_numpy() if "seed" in rows else values.index
     return values[np.isfinite(values.to_numpy(dtype=float))]
+
+
+def _pair(
+    runs: pd.DataFrame, candidate: str, baseline: str, column: str, common: bool
+) -> tuple[pd.Series, pd.Series]:
+    """Both agents' values (on the seeds both have, with ``common``)."""
+    a, b = _values(runs, candidate, column), _values(runs, baseline, column)
+    if common:
+        both = [sd for sd in a.index if sd in set(b.index)]
+        a, b = a.loc[both], b.loc[both]
+    return a, b
 
 
 def _ran(runs: pd.DataFrame, agent: str) -> bool:
@@ -512,7 +580,9 @@ def task_outcome(rows: pd.DataFrame) -> str:
     records = rows.to_dict("records")
     if records and all(not_run(r) for r in records):
         return NOT_RUN
-    return combine_outcomes([str(r["outcome"]) for r in records])
+    if records and all(str(r["outcome"]) == NOT_TESTED for r in records):
+        return NOT_TESTED
+    return combine_outcomes([str(r["outcome"]) for r in records if r["outcome"] != NOT_TESTED])
 
 
 TEST_COLUMNS = [
@@ -520,11 +590,21 @@ TEST_COLUMNS = [
     "n_candidate", "n_baseline", "mean_diff", "welch_low", "welch_high", "boot_low",
     "boot_high", "p_value", "family_size", "p_adjusted", "level", "adj_welch_low",
     "adj_welch_high", "adj_boot_low", "adj_boot_high", "outcome", "seeds_needed", "note",
+    "margin", "tost_p", "equiv_low", "equiv_high", "equivalence",
 ]  # fmt: skip
+#: A comparison's ``equivalence`` when its rule states a margin for the task: both ``1 - 2α'``
+#: intervals (α' its adjusted level) lie inside ``±margin``.
+EQUIVALENT = "equivalent"
+#: Neither equivalence within the margin nor a difference is shown.
+NOT_SHOWN = "not shown either way"
 
 
 def judge(
-    tasks: Sequence[TaskRuns], rules: Mapping[str, VerdictRule], seed: int = 0
+    tasks: Sequence[TaskRuns],
+    rules: Mapping[str, VerdictRule],
+    seed: int = 0,
+    *,
+    common_seeds: bool = False,
 ) -> pd.DataFrame:
     """Every comparison of every question on every task, under every metric, judged.
 
@@ -534,6 +614,8 @@ def judge(
             name form one family across hypotheses; their rules must then agree on alpha and
             correction.
         seed: Seed of the bootstraps.
+        common_seeds: Compare each pair of agents on the seeds both have a value on only (a
+            sensitivity check of comparisons whose groups have different seeds).
 
     Returns:
         One row per test (`TEST_COLUMNS`). ``note`` explains a comparison that was not
@@ -545,15 +627,33 @@ def judge(
         VerdictError: two rules that pool a family disagree on its alpha or correction.
     """
     rows: list[dict[str, Any]] = []
-    for task in tasks:
+    shared = shared_runs(tasks)
+    made: list[tuple[int, Comparison]] = []  # the tests made so far, in the page's order
+    for k, task in enumerate(tasks):
         rule = rules.get(task.hypothesis)
         if rule is None:
             continue
+        comparisons = [comp for question in rule.questions for comp in question.comparisons]
+        untested = {
+            comp: why for comp in comparisons if (why := _same_runs(tasks, k, comp, shared, made))
+        }
+        reference = {"res-ppo", "random-res-ppo"}
+        made += [
+            (k, comp)
+            for comp in comparisons
+            if comp not in untested
+            and not (task.reference_selected and {comp.candidate, comp.baseline} == reference)
+        ]
         for metric in rule.metrics:
             column = METRICS[metric][0]
             for question in rule.questions:
                 for comp in question.comparisons:
-                    rows.append(_raw_test(task, rule, question, comp, metric, column, seed))
+                    row = _raw_test(task, rule, question, comp, metric, column, seed, common_seeds)
+                    if comp in untested and not row["note"]:
+                        row["note"] = untested[comp]
+                    if str(row["note"]).startswith(NOT_TESTED):
+                        row["outcome"] = NOT_TESTED
+                    rows.append(row)
     table = pd.DataFrame(rows, columns=TEST_COLUMNS)
     if table.empty:
         return table
@@ -577,8 +677,107 @@ def judge(
         else:
             adjusted, levels = list(p), [alpha] * len(p)
         for i, adj, level in zip(index, adjusted, levels, strict=True):
-            _adjust(table, i, tasks, rules, adj, level, len(index), seed)
+            _adjust(table, i, tasks, rules, adj, level, len(index), seed, common_seeds)
     return table
+
+
+def shared_runs(
+    tasks: Sequence[TaskRuns],
+) -> dict[tuple[int, str], dict[tuple[int, str], list[int]]]:
+    """Which groups of runs on a page are the same runs, found from the data.
+
+    A group is one agent's runs on one task (``(index in tasks, agent)``). Two groups share a
+    run when they have a seed with the same final and last-100 returns to the last digit (runs
+    trained apart do not agree in every digit of both; runs of one setting, seed and code do):
+    the reference's runs read by two files, a baseline borrowed from another file, a file that
+    re-ran another's setting.
+
+    Returns:
+        ``{group: {other group: shared seeds}}``, both ways, for groups of different tasks or
+        agents that share at least one seed.
+    """
+    prints: dict[tuple[int, str], dict[int, tuple[float, float]]] = {}
+    for k, task in enumerate(tasks):
+        runs = task.runs
+        if runs.empty or not {"agent", "seed", "final_return"} <= set(runs.columns):
+            continue
+        last100 = runs["last100_return"] if "last100_return" in runs else math.nan
+        frame = runs.assign(_last100=last100)
+        for agent, group in frame.groupby("agent", sort=False):
+            values = {
+                int(sd): (float(f), float(h))
+                for sd, f, h in zip(group["seed"], group["final_return"], group["_last100"])
+                if math.isfinite(float(f))
+            }
+            prints[(k, str(agent))] = values
+    out: dict[tuple[int, str], dict[tuple[int, str], list[int]]] = {}
+    keys = list(prints)
+    for i, one in enumerate(keys):
+        for two in keys[i + 1 :]:
+            env_one, env_two = (
+                (tasks[one[0]].env_id or tasks[one[0]].task),
+                (tasks[two[0]].env_id or tasks[two[0]].task),
+            )
+            if env_one != env_two:
+                continue
+            a, b = prints[one], prints[two]
+            seeds = sorted(sd for sd in a if sd in b and _same(a[sd], b[sd]))
+            if seeds:
+                out.setdefault(one, {})[two] = seeds
+                out.setdefault(two, {})[one] = seeds
+    return out
+
+
+def _same(one: tuple[float, float], two: tuple[float, float]) -> bool:
+    return all(x == y or (math.isnan(x) and math.isnan(y)) for x, y in zip(one, two, strict=True))
+
+
+def _seed_span(seeds: Sequence[int]) -> str:
+    """``15–29`` for a run of consecutive seeds, else the list."""
+    if len(seeds) > 2 and seeds[-1] - seeds[0] == len(seeds) - 1:
+        return f"{seeds[0]}–{seeds[-1]}"
+    return ", ".join(map(str, seeds))
+
+
+def _same_runs(
+    tasks: Sequence[TaskRuns],
+    k: int,
+    comp: Comparison,
+    shared: Mapping[tuple[int, str], Mapping[tuple[int, str], list[int]]],
+    made: Sequence[tuple[int, Comparison]],
+) -> str:
+    """Why a comparison is not tested because of shared runs (``""``: it is tested).
+
+    Its two sides are the same runs (the same reservoir compared with itself), or an earlier test
+    on the page compares the same runs on both sides: that test stands for both, counted once
+    in its family.
+    """
+    task = tasks[k]
+    cand, base = (k, comp.candidate), (k, comp.baseline)
+    n = int((task.runs["agent"] == comp.candidate).sum()) if not task.runs.empty else 0
+    selected = (
+        "the selection is the unevolved reference (its evolved reservoir is the reference's), "
+        if task.reference_selected and comp.candidate == "res-ppo"
+        else ""
+    )
+    itself = shared.get(cand, {}).get(base)
+    if itself:
+        return (
+            f"{NOT_TESTED}: {selected}`{comp.candidate}` and `{comp.baseline}` are the same runs "
+            f"on seeds {_seed_span(itself)} ({len(itself)} of {n}): the same reservoir compared "
+            "with itself"
+        )
+    for j, other in made:
+        one = shared.get(cand, {}).get((j, other.candidate))
+        two = shared.get(base, {}).get((j, other.baseline))
+        if one and two and j != k:
+            where = tasks[j]
+            return (
+                f"{NOT_TESTED}: {selected}the same runs as {where.hypothesis} {where.task}'s "
+                f"`{other.label}` (`{comp.candidate}` on seeds {_seed_span(one)}, "
+                f"`{comp.baseline}` on seeds {_seed_span(two)}): tested once, there"
+            )
+    return ""
 
 
 def _raw_test(
@@ -589,15 +788,15 @@ def _raw_test(
     metric: str,
     column: str,
     seed: int,
+    common: bool = False,
 ) -> dict[str, Any]:
-    a = _values(task.runs, comp.candidate, column)
-    b = _values(task.runs, comp.baseline, column)
+    a, b = _pair(task.runs, comp.candidate, comp.baseline, column, common)
     row: dict[str, Any] = {c: math.nan for c in TEST_COLUMNS}
     row.update(
         hypothesis=task.hypothesis, task=task.task, question=question.name,
         comparison=comp.label, candidate=comp.candidate, baseline=comp.baseline, metric=metric,
         n_candidate=len(a), n_baseline=len(b), outcome="inconclusive", seeds_needed=None,
-        note="", family_size=0,
+        note="", family_size=0, equivalence="",
     )  # fmt: skip
     same_runs = {comp.candidate, comp.baseline} == {"res-ppo", "random-res-ppo"}
     if task.reference_selected and same_runs:
@@ -633,13 +832,14 @@ def _adjust(
     level: float,
     family_size: int,
     seed: int,
+    common: bool = False,
 ) -> None:
     row = table.loc[i]
     rule = rules[row["hypothesis"]]
     task = next(t for t in tasks if t.hypothesis == row["hypothesis"] and t.task == row["task"])
     column = METRICS[row["metric"]][0]
-    a = _values(task.runs, row["candidate"], column).to_numpy()
-    b = _values(task.runs, row["baseline"], column).to_numpy()
+    one, two = _pair(task.runs, row["candidate"], row["baseline"], column, common)
+    a, b = one.to_numpy(), two.to_numpy()
     confidence = 1 - level
     welch = welch_t_test(a, b, confidence=confidence)
     low, high = bootstrap_mean_diff_ci(
@@ -656,6 +856,87 @@ def _adjust(
     ]  # fmt: skip
     table.loc[i, "outcome"] = outcome
     table.at[i, "seeds_needed"] = seeds
+    margin = rule.margin(str(row["task"]))
+    if margin is not None:
+        found = equivalence_outcome(a, b, margin, level, outcome, rule.n_resamples, seed)
+        table.loc[i, ["margin", "tost_p", "equiv_low", "equiv_high"]] = [
+            margin, found["tost_p"], found["equiv_low"], found["equiv_high"],
+        ]  # fmt: skip
+        table.loc[i, "equivalence"] = found["equivalence"]
+
+
+def equivalence_outcome(
+    a: np.ndarray,
+    b: np.ndarray,
+    margin: float,
+    level: float,
+    outcome: str,
+    n_resamples: int = 10_000,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """The equivalence test of ``mean(a) - mean(b)`` within ``±margin`` at level ``level``.
+
+    Two one-sided Welch tests ([`welch_tost`][ermrl.analysis.welch_tost]) at ``level`` (the
+    comparison's Holm-adjusted level), with the percentile bootstrap's ``1 - 2 level`` interval
+    required inside ``±margin`` too, as the three outcomes require both intervals.
+
+    Args:
+        a: The candidate's values.
+        b: The baseline's values.
+        margin: The task's margin (> 0).
+        level: The comparison's adjusted level.
+        outcome: The comparison's outcome (supported, contradicted or inconclusive).
+
+    Returns:
+        ``tost_p``, ``equiv_low`` and ``equiv_high`` (the outer ends of the two ``1 - 2 level``
+        intervals) and ``equivalence``: `EQUIVALENT`, `NOT_SHOWN` (an inconclusive comparison
+        not shown equivalent) or ``""`` (a difference shown, not equivalent).
+
+    Examples:
+        >>> import numpy as np
+        >>> a, b = np.array([10.0, 11, 9, 10, 10.5, 9.5]), np.array([10.2, 9.8, 10, 10.4, 9.6, 10])
+        >>> equivalence_outcome(a, b, 2.0, 0.05, "inconclusive", 2000)["equivalence"]
+        'equivalent'
+        >>> equivalence_outcome(a, b, 0.1, 0.05, "inconclusive", 2000)["equivalence"]
+        'not shown either way'
+    """
+    from ermrl.analysis._stats import welch_tost
+
+    tost = welch_tost(a, b, margin, level)
+    low, high = bootstrap_mean_diff_ci(
+        a, b, confidence=1 - 2 * level, n_resamples=n_resamples, seed=seed
+    )
+    lows, highs = [tost.ci_low, low], [tost.ci_high, high]
+    finite = all(math.isfinite(v) for v in (*lows, *highs))
+    inside = finite and tost.p_value <= level and -margin < min(lows) and max(highs) < margin
+    label = (
+        EQUIVALENT if inside else ("" if outcome in ("supported", "contradicted") else NOT_SHOWN)
+    )
+    return {
+        "tost_p": tost.p_value,
+        "equiv_low": min(lows) if finite else math.nan,
+        "equiv_high": max(highs) if finite else math.nan,
+        "equivalence": label,
+    }
+
+
+def equivalence_text(row: Mapping[str, Any]) -> str:
+    """A judged comparison's equivalence in words (``""`` without a margin or an answer)."""
+    label = row.get("equivalence")
+    if not isinstance(label, str) or not label:
+        return ""
+    margin = float(row["margin"])
+    level = _percent(1 - 2 * float(row["level"]))
+    if label == EQUIVALENT:
+        return (
+            f"equivalent within ±{margin:g} (TOST p {float(row['tost_p']):.3g}; {level} "
+            f"intervals within [{float(row['equiv_low']):+.4g}, {float(row['equiv_high']):+.4g}])"
+        )
+    bound = max(abs(float(row["equiv_low"])), abs(float(row["equiv_high"])))
+    return (
+        f"equivalence within ±{margin:g} not shown either way (TOST p "
+        f"{float(row['tost_p']):.3g}; the {level} intervals reach {bound:.4g})"
+    )
 
 
 def excluded_effects(row: Mapping[str, Any]) -> str:
@@ -755,6 +1036,7 @@ def aggregate_question(
     *,
     n_resamples: int = 10_000,
     seed: int = 0,
+    untested: Mapping[tuple[str, str], str] | None = None,
 ) -> list[dict[str, Any]]:
     """A question's aggregates over tasks: the probability of improvement of each comparison
     and the IQM of each agent's normalized scores, with stratified bootstrap 95% intervals.
@@ -765,6 +1047,8 @@ def aggregate_question(
         metric: A key of `METRICS`.
         normalizer: ``(env_id, values) -> normalized values`` or ``None`` when a task has no
             reference scores (the IQMs are then left out, naming it).
+        untested: ``{(task, comparison label): why}`` of comparisons the page does not test
+            (shared runs, [`judge`][ermrl.analysis.judge]'s `NOT_TESTED`): left out, naming why.
 
     Returns:
         One row per comparison: ``comparison, n_tasks, poi, poi_low, poi_high, poi_outcome``
@@ -781,6 +1065,9 @@ def aggregate_question(
             same = {comp.candidate, comp.baseline} == {"res-ppo", "random-res-ppo"}
             if task.reference_selected and same:
                 skipped.append(f"{task.task} (reference selected)")
+                continue
+            if untested and (task.task, comp.label) in untested:
+                skipped.append(f"{task.task} ({untested[(task.task, comp.label)]})")
                 continue
             a = _values(task.runs, comp.candidate, column)
             b = _values(task.runs, comp.baseline, column)

@@ -31,12 +31,17 @@ DESCRIPTION = textwrap.dedent(
     planned run is in. It reads only the plain files that `ermrl run` published (the
     experiment's `publish:` folder), so anyone can recompute it from a clone.
 
+    With --summary-in, it writes the results table (per sub-question and task, the outcome
+    under the primary metric, the other metrics where they differ) into README files between
+    their <!-- reproduction:start --> and <!-- reproduction:end --> lines.
+
     With --compare, it also prints which verdicts moved since an earlier page's CSV (for
     instance one taken from git history), with the seeds per agent that would give 80% power
     to each one still inconclusive (n80), and --changes writes the full comparison as CSV.
 
     examples:
-      ermrl reproduction experiments/paper/*.yaml experiments/multiscale.yaml --out docs/reproduction.md
+      ermrl reproduction experiments/paper/*.yaml experiments/multiscale.yaml --out docs/reproduction.md \\
+          --summary-in README.md docs/getting-started.md
       git show HEAD~5:docs/reproduction.csv > /tmp/before.csv
       ermrl reproduction experiments/paper/*.yaml --compare /tmp/before.csv
     """
@@ -54,6 +59,15 @@ def build_reproduction_parser(prog: str = "ermrl reproduction") -> ArgumentParse
         action=argparse.BooleanOptionalAction,
         default=True,
         help="also write the HTML form beside the Markdown page",
+    )
+    parser.add_argument(
+        "--summary-in",
+        nargs="+",
+        default=[],
+        metavar="FILE",
+        help="also write the page's results table into each FILE (README.md, "
+        "docs/getting-started.md), between its <!-- reproduction:start --> and "
+        "<!-- reproduction:end --> lines",
     )
     parser.add_argument(
         "--compare",
@@ -162,6 +176,20 @@ def reproduction_main(argv: Sequence[str] | None = None, prog: str = "ermrl repr
     except VerdictError as err:
         fail(prog, str(err))
     print(f"wrote {md}" + (f" and {html}" if html else ""), flush=True)
+    if args.summary_in:
+        from ermrl.analysis import results_summary, write_summary
+
+        summary = results_summary(pd.read_csv(md.with_suffix(".csv")), hypotheses)
+        for target in args.summary_in:
+            try:
+                changed = write_summary(target, summary)
+            except OSError as err:
+                fail(prog, f"cannot write {target}: {err.strerror or err}")
+            except VerdictError as err:
+                fail(prog, str(err))
+            print(
+                f"{'wrote' if changed else 'unchanged'}: the results table in {target}", flush=True
+            )
     for line in untraceable_tasks(hypotheses):
         print(f"{prog}: not rendered, the tested trial is untraceable: {line}", file=sys.stderr)
     if before is not None:
