@@ -177,6 +177,39 @@ def test_a_toy_encoder_is_a_choice_with_its_flags_agents_and_space(toy: ToyEncod
         space_from_args(back)
 
 
+def test_a_toy_encoders_settings_reach_files_and_python_from_its_declaration(
+    toy: ToyEncoder, tmp_path: Path
+) -> None:
+    import yaml
+
+    from ermrl.runner import evolve_config
+    from ermrl.runner._experiment import experiment_plan, load_experiment
+
+    # Python: the keywords are the settings' names, checked by their declared types.
+    config = evolve_config("CartPole-v1", encoder="toy", toy_width=4, toy_scale_range=[0.5, 2])
+    assert config.space == ToySpace(width=4, scale=Range(0.5, 2.0))
+    with pytest.raises(ConfigError, match="toy_width: must be positive, got 0"):
+        evolve_config("CartPole-v1", encoder="toy", toy_width=0)
+    with pytest.raises(ConfigError, match="unknown key 'toy_widht' .did you mean 'toy_width'"):
+        evolve_config("CartPole-v1", encoder="toy", toy_widht=4)
+    # An experiment file: the same keys, and the plan shows the command's flags.
+    doc = {
+        "name": "toy",
+        "tasks": ["CartPole-v1"],
+        "storage": f"sqlite:///{tmp_path}/toy.db",
+        "evolve": {"encoder": "toy", "toy_width": "4", "toy_scale_range": [0.5, 2], "n_trials": 2},
+    }
+    (tmp_path / "toy.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
+    (step,) = experiment_plan(load_experiment(tmp_path / "toy.yaml"), build_agents=False)[:1]
+    assert "--encoder toy --toy-width 4 --toy-scale-range 0.5 2 " in step.command_line
+    assert step.request.config.space == ToySpace(width=4, scale=Range(0.5, 2.0))
+    (tmp_path / "bad.yaml").write_text(
+        yaml.safe_dump({**doc, "evolve": {"encoder": "toy", "toy_widht": 4}})
+    )
+    with pytest.raises(ConfigError, match="evolve: unknown key 'toy_widht' .did you mean"):
+        experiment_plan(load_experiment(tmp_path / "bad.yaml"), build_agents=False)
+
+
 def test_a_toy_encoder_added_in_one_place_is_evolved_stored_and_tested(
     toy: ToyEncoder, tmp_path: Path
 ) -> None:

@@ -16,6 +16,7 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from ermrl._schema import words_of
 from ermrl.config import (
     BudgetConfig,
     ConfigError,
@@ -67,7 +68,7 @@ def _progress_mode(args: argparse.Namespace) -> ProgressMode:
 
 def for_learner_names(args: argparse.Namespace) -> tuple[str, ...]:
     """The learners named by ``--for-learner`` flags, in order, each once."""
-    given = getattr(args, "for_learner", None) or []
+    given = _learner_items(getattr(args, "for_learner", None))
     return tuple(dict.fromkeys(name for name, _ in given))
 
 
@@ -81,9 +82,15 @@ def learner_overrides(args: argparse.Namespace) -> dict[str, dict[str, Any]]:
     stale = getattr(args, "stale_gradient", None)
     if stale is not None:
         out["rtu-ppo"] = {"stale_gradient": stale}
-    for name, settings in getattr(args, "for_learner", None) or []:
+    for name, settings in _learner_items(getattr(args, "for_learner", None)):
         out[name] = {**out.get(name, {}), **settings}
     return out
+
+
+def _learner_items(given: Any) -> list[tuple[str, Mapping[str, Any]]]:
+    """``--for-learner``'s ``(learner, settings)`` pairs, as parsed (a list) or validated (a
+    mapping)."""
+    return list(given.items()) if isinstance(given, Mapping) else list(given or [])
 
 
 def parse_gene_ranges(items: Sequence[str], genes: Mapping[str, Range]) -> dict[str, Range]:
@@ -116,15 +123,23 @@ def parse_gene_ranges(items: Sequence[str], genes: Mapping[str, Range]) -> dict[
 def learner_space_from_args(args: argparse.Namespace, ppo: PPOConfig) -> LearnerSpace:
     """The gene space of a learner with genes; the encoder's flags are refused."""
     from ermrl.learners import get_learner
+    from ermrl.runner._evolve_options import encoder_settings
 
-    for dest, (flag, default) in getattr(args, "encoder_flags", {}).items():
-        if getattr(args, dest, default) != default:
+    for name, (flag, default) in encoder_settings(args).items():
+        value = getattr(args, name, default)
+        if _listed(value) != _listed(default):
             raise ConfigError(
                 f"{flag} sets an evolved encoder; --learner {ppo.learner} has none (evolution "
                 "shapes its genes: see --gene)"
             )
     learner = get_learner(ppo.learner)
-    return learner.gene_space(ppo, parse_gene_ranges(getattr(args, "gene", []), learner.genes))
+    genes = words_of(getattr(args, "gene", None))
+    return learner.gene_space(ppo, parse_gene_ranges(genes, learner.genes))
+
+
+def _listed(value: Any) -> Any:
+    """A pair as a list (a parsed one is a list, a validated one a tuple)."""
+    return list(value) if isinstance(value, tuple) else value
 
 
 def space_from_args(args: argparse.Namespace) -> EncoderSpace:
@@ -138,7 +153,8 @@ def space_from_args(args: argparse.Namespace) -> EncoderSpace:
     for other in ENCODERS.values():
         for flag in other.cli_flags:
             dest = flag_dest(flag)
-            if dest not in own and getattr(args, dest, None) not in (None, flag.get("default")):
+            value = _listed(getattr(args, dest, None))
+            if dest not in own and value not in (None, _listed(flag.get("default"))):
                 takers = [  # every encoder that declares the flag (--units: two of them)
                     e.name for e in ENCODERS.values() if dest in map(flag_dest, e.cli_flags)
                 ]
@@ -238,7 +254,7 @@ def config_from_args(
     learner = getattr(args, "learner", "ppo")
     ppo = resolve_ppo_config(
         args.env_id,
-        {**parse_overrides(args.ppo, learner), **learner_flags(args, learner)},
+        {**parse_overrides(words_of(args.ppo), learner), **learner_flags(args, learner)},
         n_envs=args.n_envs,
         table_path=args.hyperparams,
         torch_threads=args.torch_threads,
@@ -260,7 +276,7 @@ def config_from_args(
     if not evolves_encoder:
         space, encoder = learner_space_from_args(args, ppo), None
     else:
-        if getattr(args, "gene", []):
+        if getattr(args, "gene", None):
             raise ConfigError(f"--gene evolves a learner's genes; learner {learner!r} has none")
         space = space_from_args(args)
         encoder = encoder_from_args(args, space)
@@ -354,9 +370,16 @@ def keep_study_backend(
     kept = stored_backend(storage, study_name)
     if kept is None or kept == config.problem.ppo.backend:
         return args, config
-    args = argparse.Namespace(**{**vars(args), "backend": kept})
+    args = _replaced(args, backend=kept)
     notes[:] = [f"study {study_name!r} was created with it (a study never mixes backends)"]
     return args, build(args)
+
+
+def _replaced(args: Any, **changes: Any) -> Any:
+    """The options (parsed, or a dataclass of them) with ``changes``."""
+    if dataclasses.is_dataclass(args) and not isinstance(args, type):
+        return dataclasses.replace(args, **changes)
+    return argparse.Namespace(**{**vars(args), **changes})
 
 
 def test_options(args: argparse.Namespace) -> TestOptions:
@@ -397,7 +420,10 @@ def generalization_config_from_args(
 
     env_ids, suite = _suite_env_ids(args)
     _refuse_learner_genes(args.learner)
-    overrides = {**parse_overrides(args.ppo, args.learner), **learner_flags(args, args.learner)}
+    overrides = {
+        **parse_overrides(words_of(args.ppo), args.learner),
+        **learner_flags(args, args.learner),
+    }
     tasks = generalization_tasks(
         env_ids,
         observe=args.observe,
