@@ -23,6 +23,7 @@ import pytest
 from gymnasium import spaces
 from stable_baselines3.common.vec_env import VecEnvWrapper
 
+from ermrl._schema import option
 from ermrl.config import AgentKind, ConfigError, Range
 from ermrl.encoders import ENCODERS, EncoderConfig, PerReservoirSpace
 from ermrl.encoders._base import Encoder
@@ -98,6 +99,18 @@ class _Projection(VecEnvWrapper):
         return self._encode(obs), rewards, dones, infos
 
 
+@dataclass(frozen=True)
+class ToySettings:
+    """The toy's ``ermrl evolve`` settings: declared once, they reach the CLI, experiment
+    files and Python."""
+
+    toy_width: int | None = option(None, "--encoder toy: outputs per projection (default 6)", low=1)
+    toy_scale_range: tuple[float, float] = option(
+        (0.1, 10.0), "--encoder toy: range of the projection's scale (log scale)",
+        metavar=("LOW", "HIGH"), above=0,
+    )  # fmt: skip
+
+
 class ToyEncoder(Encoder):
     name = "toy"
     description = "a fixed random projection tanh(scale * W u) (evolved scale); wraps the env"
@@ -105,24 +118,8 @@ class ToyEncoder(Encoder):
     config_cls = EncoderConfig
     params_cls: ClassVar[type] = ToyParams
     space_cls: ClassVar[type] = ToySpace
-    cli_flags: ClassVar[tuple[Mapping[str, Any], ...]] = (
-        {
-            "flags": ("--toy-width",),
-            "type": "positive_int",
-            "default": None,
-            "space_field": "width",
-            "help": "--encoder toy: outputs per projection (default 6)",
-        },
-        {
-            "flags": ("--toy-scale-range",),
-            "nargs": 2,
-            "type": "positive_float",
-            "default": [0.1, 10.0],
-            "metavar": ("LOW", "HIGH"),
-            "space_field": "scale",
-            "help": "--encoder toy: range of the projection's scale (log scale)",
-        },
-    )
+    settings: ClassVar[type | None] = ToySettings
+    space_fields: ClassVar[Mapping[str, str]] = {"toy_width": "width", "toy_scale_range": "scale"}
     agents: ClassVar[Mapping[str, AgentKind]] = {
         "toy-ppo": AgentKind(
             "evolved", None, "PPO on the evolved projection", None, "Toy-PPO", family="toy"

@@ -4,23 +4,24 @@ and ``ermrl study create`` generate their options from these fields, an experime
 keywords (`ermrl._schema`).
 
 The fields are those of the problem (task, learner, reservoirs), the search and the workers.
-Each registered encoder's settings (`ermrl.encoders.Encoder.cli_flags`) become fields of the
+Each registered encoder's settings (`ermrl.encoders.Encoder.settings`) become fields of the
 ``reservoirs`` section: an encoder added to the registry has its settings on the command
 line, in experiment files and in Python without further code. So the options are a dataclass
-built from the registry ([`evolve_options`][ermrl.runner._evolve_options.evolve_options]),
+built from the registry (`evolve_options`),
 again when the registry changes.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import typing
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, Literal
 
-from ermrl._schema import fields_of, option
+from ermrl._schema import Option, fields_of, option
 from ermrl.config import FITNESS_MODES, PRUNERS, RESET_MODES, STARTS, Range
-from ermrl.encoders import ENCODERS, flag_dest, reference_encoder
+from ermrl.encoders import ENCODERS, reference_encoder
 from ermrl.learners import LEARNERS
 from ermrl.storage import DEFAULT_STORAGE
 
@@ -129,7 +130,7 @@ def _problem(multi_task: bool) -> list[_Field]:
             3, "agents (seeds) per trial; fitness is their mean", low=1, group=INNER)),
         ("seed", int, option(
             0, "first training seed; a trial uses seed .. seed+n_seeds-1", low=0, group=INNER)),
-        ("fitness", Literal[FITNESS_MODES], option(  # type: ignore[valid-type]
+        ("fitness", Literal[FITNESS_MODES], option(
             "last", "'last': mean return of the last --n-last-episodes training episodes "
             "(paper); 'eval': mean return of --n-eval-episodes deterministic episodes after "
             "training", group=INNER)),
@@ -182,7 +183,7 @@ def _reservoirs_tail() -> list[_Field]:
         ("skip_connection", bool, option(
             False, "the policy also sees [observation, previous action, previous reward]",
             group=RESERVOIRS)),
-        ("reset", Literal[RESET_MODES], option(  # type: ignore[valid-type]
+        ("reset", Literal[RESET_MODES], option(
             "episode", "reset reservoir states at each episode, or carry them across episodes",
             group=RESERVOIRS)),
         ("exposed_units", int | None, option(
@@ -200,63 +201,36 @@ def _reservoirs_tail() -> list[_Field]:
     ]  # fmt: skip
 
 
-# The types an encoder's flag data may name: (type, the option's keywords).
-_FLAG_TYPES: dict[Any, tuple[type, dict[str, Any]]] = {
-    "positive_int": (int, {"low": 1}),
-    "nonneg_int": (int, {"low": 0}),
-    "positive_float": (float, {"above": 0}),
-    int: (int, {}),
-    float: (float, {}),
-    str: (str, {}),
-}
-
-
-def _encoder_field(flag: Mapping[str, Any]) -> tuple[str, Any, dict[str, Any]]:
-    """One flag of an encoder's `cli_flags` (``add_argument``'s keywords, as data) as a
-    field: its name, type hint and [`option`][ermrl._schema.option] keywords."""
-    default = flag.get("default")
-    kw: dict[str, Any] = {"help": flag.get("help", ""), "group": RESERVOIRS}
-    if flag["flags"][0] != "--" + flag_dest(flag).replace("_", "-"):
-        kw["flag"] = flag["flags"][0]
-    if "metavar" in flag:
-        kw["metavar"] = flag["metavar"]
-    if "action" in flag or isinstance(default, bool):  # a BooleanOptionalAction
-        hint: Any = bool
-    elif "choices" in flag:
-        hint = str
-        kw["choices"] = tuple(flag["choices"])
-    else:
-        hint, extra = _FLAG_TYPES[flag.get("type", str)]
-        kw.update(extra)
-    if flag.get("nargs") == 2:
-        hint = tuple[hint, hint]
-        default = None if default is None else tuple(default)
-    if default is None:
-        hint = hint | None
-    return flag_dest(flag), hint, {"default": default, **kw}
-
-
 def encoder_fields() -> list[_Field]:
-    """Every registered encoder's settings as fields; a setting that several encoders
-    declare alike is one field whose help joins theirs.
+    """Every registered encoder's settings (`ermrl.encoders.Encoder.settings`) as fields of
+    the ``reservoirs`` section; a setting that several encoders declare alike is one field
+    whose help joins theirs.
 
     Raises:
         ValueError: Two encoders declare one setting differently (other than its help).
     """
-    merged: dict[str, tuple[str, Any, dict[str, Any]]] = {}
+    merged: dict[str, tuple[Any, Any, Option]] = {}
     for encoder in ENCODERS.values():
-        for flag in encoder.cli_flags:
-            name, hint, kw = _encoder_field(flag)
-            known = merged.get(name)
+        if encoder.settings is None:
+            continue
+        hints = typing.get_type_hints(encoder.settings)
+        for f in dataclasses.fields(encoder.settings):
+            opt = dataclasses.replace(f.metadata["option"], group=RESERVOIRS)
+            known = merged.get(f.name)
             if known is None:
-                merged[name] = (name, hint, kw)
+                merged[f.name] = (hints[f.name], f.default, opt)
                 continue
-            same = {k: v for k, v in known[2].items() if k != "help"}
-            if (known[1], same) != (hint, {k: v for k, v in kw.items() if k != "help"}):
-                raise ValueError(f"encoders declare {flag['flags'][0]} differently")
-            if kw["help"] and kw["help"] not in known[2]["help"]:
-                known[2]["help"] = "; ".join(h for h in (known[2]["help"], kw["help"]) if h)
-    return [(name, hint, option(**kw)) for name, hint, kw in merged.values()]
+            hint, default, first = known
+            alike = (hint, default) == (hints[f.name], f.default)
+            if not alike or dataclasses.replace(first, help=opt.help) != opt:
+                raise ValueError(f"encoders declare the setting {f.name} differently")
+            if opt.help and opt.help not in str(first.help):
+                helps = "; ".join(str(h) for h in (first.help, opt.help) if h)
+                merged[f.name] = (hint, default, dataclasses.replace(first, help=helps))
+    return [
+        (name, hint, dataclasses.field(default=default, metadata={"option": opt}))
+        for name, (hint, default, opt) in merged.items()
+    ]
 
 
 def _search() -> list[_Field]:
@@ -272,10 +246,10 @@ def _search() -> list[_Field]:
             "none", "CMA-ES restart strategy (larger populations on restart)", group=OUTER)),
         ("popsize", int | None, option(
             None, "CMA-ES population size (default: 4 + 3 ln(dim))", low=1, group=OUTER)),
-        ("pruner", Literal[PRUNERS], option(  # type: ignore[valid-type]
+        ("pruner", Literal[PRUNERS], option(
             "none", "stop unpromising trials early from intermediate training returns",
             group=OUTER)),
-        ("cma_start", Literal[STARTS], option(  # type: ignore[valid-type]
+        ("cma_start", Literal[STARTS], option(
             "center", "first CMA-ES mean: 'center' = the centre of the log-scaled box, as in "
             "the ER-MRL paper's code (with the reference trial competing, it did at least as "
             "well in benchmarks/bench_science.py); 'reference' = the unevolved reservoir "
@@ -322,7 +296,7 @@ def _logging() -> list[_Field]:
     from ermrl._progress import PROGRESS_MODES
 
     return [
-        ("progress", Literal[PROGRESS_MODES] | None, option(  # type: ignore[valid-type]
+        ("progress", Literal[PROGRESS_MODES] | None, option(
             None, "progress inside each trial (the command line's own --progress)", cli=False)),
         ("tensorboard", str | Path | None, option(
             None, "also log each trial's training curves for TensorBoard under "
@@ -352,7 +326,7 @@ def evolve_options(*, multi_task: bool = False) -> type:
 
     Returns:
         ``EvolveOptions`` (or ``GeneralizationOptions``): every field has a default, and its
-        attributes are those that [`config_from_args`][ermrl.runner._resolve.config_from_args]
+        attributes are those that `ermrl.runner._resolve.config_from_args`
         reads.
 
     Examples:
@@ -360,7 +334,7 @@ def evolve_options(*, multi_task: bool = False) -> type:
         >>> options.n_trials, options.encoder
         (4, 'reservoir')
     """
-    key = (multi_task, *((name, id(e)) for name, e in ENCODERS.items()))
+    key = (multi_task, *ENCODERS.items())  # (the encoders themselves: an id may be reused)
     built = _BUILT.get(key)
     if built is None:
         genes: list[_Field] = [] if multi_task else [("gene", Sequence[str] | Mapping[str, Any] | None, option(

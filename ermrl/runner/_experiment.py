@@ -28,10 +28,9 @@ from __future__ import annotations
 import contextlib
 import copy
 import dataclasses
-import difflib
 import functools
 import math
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -168,11 +167,6 @@ def _path_value(value: Any, key: str, path: Path) -> Path | None:
 # Loading
 
 
-def _nearest(word: str, choices: Iterable[str]) -> str:
-    match = difflib.get_close_matches(word, list(choices), n=1, cutoff=0.5)
-    return f" (did you mean {match[0]!r}?)" if match else f" (valid: {', '.join(sorted(choices))})"
-
-
 def _merge(base: Any, over: Any) -> Any:
     """``over`` merged into ``base`` key by key (mappings), else ``over``."""
     if isinstance(base, Mapping) and isinstance(over, Mapping):
@@ -267,9 +261,7 @@ def _read_document(path: Path) -> Mapping[str, Any]:
         raise ExperimentError(f"{path}: an experiment file is a mapping (name:, evolve:, ...)")
     for key in doc:
         if key not in TOP_LEVEL_KEYS:
-            raise ExperimentError(
-                f"{path}: unknown key {key!r}{_nearest(str(key), TOP_LEVEL_KEYS)}"
-            )
+            raise ExperimentError(f"{path}: unknown key {key!r}{nearest(str(key), TOP_LEVEL_KEYS)}")
     return doc
 
 
@@ -302,7 +294,7 @@ def _apply_variant(
         if key not in TOP_LEVEL_KEYS or key in ("variants", "name"):
             valid = [k for k in TOP_LEVEL_KEYS if k not in ("variants", "name")]
             raise ExperimentError(
-                f"{path}: variants.{variant}: unknown key {key!r}{_nearest(str(key), valid)}"
+                f"{path}: variants.{variant}: unknown key {key!r}{nearest(str(key), valid)}"
             )
     return _merge(base, over), over
 
@@ -383,7 +375,7 @@ def load_experiment(path: str | Path, variant: str | None = None) -> ExperimentF
     for key in stages["reevaluate"]:
         if key not in REEVALUATE_KEYS:
             raise ExperimentError(
-                f"{path}: reevaluate: unknown key {key!r}{_nearest(key, REEVALUATE_KEYS)}"
+                f"{path}: reevaluate: unknown key {key!r}{nearest(key, REEVALUATE_KEYS)}"
             )
     tasks = _tasks(base.get("tasks"), path)
     _check_task_list(tasks, stages, base, path)
@@ -417,7 +409,7 @@ def _tasks(value: Any, path: Path) -> tuple[TaskLine, ...]:
         for key in entry:
             if key not in ("evolve", "reevaluate", "test", "report"):
                 raise ExperimentError(
-                    f"{path}: tasks.{env_id}: unknown key {key!r}{_nearest(key, STAGES)}"
+                    f"{path}: tasks.{env_id}: unknown key {key!r}{nearest(key, STAGES)}"
                 )
         out.append(
             TaskLine(

@@ -25,15 +25,12 @@ __all__ = [
     "add_progress_arg",
     "positive_int",
     "nonneg_int",
-    "positive_float",
     "storage_arg",
     "study_name_arg",
     "existing_study_name_arg",
     "add_storage_args",
-    "add_stale_gradient_arg",
     "add_schema_args",
     "ForLearnerAction",
-    "add_for_learner_arg",
 ]
 
 # The exit code of bad input (ermrl.runner._commands.EXIT_USAGE, as argparse's own).
@@ -116,16 +113,6 @@ def nonneg_int(text: str) -> int:
     return value
 
 
-def positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError as err:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from err
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"must be positive, got {text}")
-    return value
-
-
 def storage_arg(text: str) -> str:
     """An ``argparse`` type for ``--storage``: a supported URL, not an in-memory database.
 
@@ -186,18 +173,6 @@ def add_storage_args(
     )
 
 
-def add_stale_gradient_arg(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
-    """``--stale-gradient/--no-stale-gradient``: the rtu-ppo learner's ``stale_gradient``."""
-    from ermrl.test_phase._prepare import STALE_GRADIENT_HELP
-
-    parser.add_argument(
-        "--stale-gradient",
-        action=argparse.BooleanOptionalAction,
-        default=None,
-        help=STALE_GRADIENT_HELP,
-    )
-
-
 class ForLearnerAction(argparse.Action):
     """Appends each ``--for-learner`` as ``(learner, settings)``, checked while parsing."""
 
@@ -216,20 +191,6 @@ class ForLearnerAction(argparse.Action):
         except ConfigError as err:
             raise argparse.ArgumentError(None, str(err)) from None
         setattr(namespace, self.dest, [*(getattr(namespace, self.dest, None) or []), parsed])
-
-
-def add_for_learner_arg(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
-    """``--for-learner LEARNER KEY=VALUE [KEY=VALUE ...]``: settings of one learner only."""
-    from ermrl.test_phase._prepare import FOR_LEARNER_HELP
-
-    parser.add_argument(
-        "--for-learner",
-        action=ForLearnerAction,
-        nargs="+",
-        default=[],
-        metavar=("LEARNER", "KEY=VALUE"),
-        help=FOR_LEARNER_HELP,
-    )
 
 
 def _text_type(spec: Spec) -> Callable[[str], Any]:

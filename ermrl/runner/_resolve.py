@@ -10,7 +10,7 @@ one line.
 
 from __future__ import annotations
 
-import argparse
+import copy
 import dataclasses
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -32,11 +32,16 @@ from ermrl.config import (
     SearchSpaceConfig,
     TaskConfig,
 )
-from ermrl.encoders import ENCODERS, flag_dest, get_encoder, reference_encoder
+from ermrl.encoders import ENCODERS, get_encoder, reference_encoder
 
 if TYPE_CHECKING:
     from ermrl._progress import ProgressMode
     from ermrl.test_phase import TestOptions
+
+# The options of a command: parsed from its argv (an ``argparse.Namespace``), or validated from
+# a file or a call (an options dataclass, `ermrl.runner._evolve_options`); both are read by
+# attribute.
+Options = Any
 
 __all__ = [
     "budget_from_args",
@@ -58,7 +63,7 @@ __all__ = [
 ]
 
 
-def _progress_mode(args: argparse.Namespace) -> ProgressMode:
+def _progress_mode(args: Options) -> ProgressMode:
     """``args.progress``, or the default for where stdout goes."""
     from ermrl._progress import default_mode
 
@@ -66,13 +71,13 @@ def _progress_mode(args: argparse.Namespace) -> ProgressMode:
     return default_mode() if value is None else value
 
 
-def for_learner_names(args: argparse.Namespace) -> tuple[str, ...]:
+def for_learner_names(args: Options) -> tuple[str, ...]:
     """The learners named by ``--for-learner`` flags, in order, each once."""
     given = _learner_items(getattr(args, "for_learner", None))
     return tuple(dict.fromkeys(name for name, _ in given))
 
 
-def learner_overrides(args: argparse.Namespace) -> dict[str, dict[str, Any]]:
+def learner_overrides(args: Options) -> dict[str, dict[str, Any]]:
     """Settings given by learner-specific flags, keyed by the learner they apply to.
 
     ``--stale-gradient`` (rtu-ppo's ``stale_gradient``) first, then each ``--for-learner`` in
@@ -120,7 +125,7 @@ def parse_gene_ranges(items: Sequence[str], genes: Mapping[str, Range]) -> dict[
     return out
 
 
-def learner_space_from_args(args: argparse.Namespace, ppo: PPOConfig) -> LearnerSpace:
+def learner_space_from_args(args: Options, ppo: PPOConfig) -> LearnerSpace:
     """The gene space of a learner with genes; the encoder's flags are refused."""
     from ermrl.learners import get_learner
     from ermrl.runner._evolve_options import encoder_settings
@@ -142,31 +147,32 @@ def _listed(value: Any) -> Any:
     return list(value) if isinstance(value, tuple) else value
 
 
-def space_from_args(args: argparse.Namespace) -> EncoderSpace:
+def space_from_args(args: Options) -> EncoderSpace:
     """The search space of the chosen encoder (``--encoder``) from its flags.
 
     Raises:
         ConfigError: a flag of another encoder only, or a bad value.
     """
     encoder = get_encoder(getattr(args, "encoder", reference_encoder().name))
-    own = {flag_dest(f) for f in encoder.cli_flags}
+    own = {s.name for s in encoder.setting_specs()}
     for other in ENCODERS.values():
-        for flag in other.cli_flags:
-            dest = flag_dest(flag)
-            value = _listed(getattr(args, dest, None))
-            if dest not in own and value not in (None, _listed(flag.get("default"))):
-                takers = [  # every encoder that declares the flag (--units: two of them)
-                    e.name for e in ENCODERS.values() if dest in map(flag_dest, e.cli_flags)
+        for spec in other.setting_specs():
+            value = _listed(getattr(args, spec.name, None))
+            if spec.name not in own and value not in (None, _listed(spec.default)):
+                takers = [  # every encoder that declares the setting (--units: two of them)
+                    e.name
+                    for e in ENCODERS.values()
+                    if spec.name in {s.name for s in e.setting_specs()}
                 ]
                 raise ConfigError(
-                    f"{flag['flags'][0]} applies to --encoder {' or '.join(takers)}, not to "
+                    f"{spec.flag} applies to --encoder {' or '.join(takers)}, not to "
                     f"--encoder {encoder.name}"
                 )
     space: EncoderSpace = encoder.space_from_args(args)
     return space
 
 
-def encoder_from_args(args: argparse.Namespace, space: EncoderSpace) -> EncoderConfig:
+def encoder_from_args(args: Options, space: EncoderSpace) -> EncoderConfig:
     return EncoderConfig(
         reservoirs=space.default_reservoirs(),
         skip_connection=args.skip_connection,
@@ -179,7 +185,7 @@ def encoder_from_args(args: argparse.Namespace, space: EncoderSpace) -> EncoderC
     )
 
 
-def budget_from_args(args: argparse.Namespace) -> BudgetConfig:
+def budget_from_args(args: Options) -> BudgetConfig:
     return BudgetConfig(
         training_steps=args.training_steps,
         fitness=args.fitness,
@@ -189,7 +195,7 @@ def budget_from_args(args: argparse.Namespace) -> BudgetConfig:
     )
 
 
-def search_from_args(args: argparse.Namespace) -> SearchConfig:
+def search_from_args(args: Options) -> SearchConfig:
     return SearchConfig(
         sampler=args.sampler,
         sampler_seed=args.sampler_seed,
@@ -213,7 +219,7 @@ def validate_task(env_id: str, observe: str) -> None:
     observation_indices(env_id, observe)  # type: ignore[arg-type]
 
 
-def learner_flags(args: argparse.Namespace, learner: str) -> dict[str, Any]:
+def learner_flags(args: Options, learner: str) -> dict[str, Any]:
     """The learner-specific flags' settings for ``learner``, the study's learner.
 
     Raises:
@@ -234,7 +240,7 @@ def learner_flags(args: argparse.Namespace, learner: str) -> dict[str, Any]:
 
 
 def config_from_args(
-    args: argparse.Namespace, *, build_agent: bool = True, notes: list[str] | None = None
+    args: Options, *, build_agent: bool = True, notes: list[str] | None = None
 ) -> EvolveConfig:
     """Build and validate the run's configuration (raises ConfigError / env errors).
 
@@ -310,7 +316,7 @@ def config_from_args(
     return config
 
 
-def check_tensorboard(args: argparse.Namespace) -> None:
+def check_tensorboard(args: Options) -> None:
     """``--tensorboard`` needs the tensorboard package (on either backend).
 
     Raises:
@@ -344,13 +350,13 @@ def stored_backend(storage: str, study_name: str) -> str | None:
 
 
 def keep_study_backend(
-    args: argparse.Namespace,
+    args: Options,
     config: EvolveConfig,
     storage: str,
     study_name: str,
-    build: Callable[[argparse.Namespace], EvolveConfig],
+    build: Callable[[Options], EvolveConfig],
     notes: list[str],
-) -> tuple[argparse.Namespace, EvolveConfig]:
+) -> tuple[Options, EvolveConfig]:
     """A resumed study keeps the backend it was created with when ``--backend`` is left out.
 
     Args:
@@ -375,14 +381,17 @@ def keep_study_backend(
     return args, build(args)
 
 
-def _replaced(args: Any, **changes: Any) -> Any:
+def _replaced(args: Options, **changes: Any) -> Options:
     """The options (parsed, or a dataclass of them) with ``changes``."""
     if dataclasses.is_dataclass(args) and not isinstance(args, type):
         return dataclasses.replace(args, **changes)
-    return argparse.Namespace(**{**vars(args), **changes})
+    out = copy.copy(args)
+    for name, value in changes.items():
+        setattr(out, name, value)
+    return out
 
 
-def test_options(args: argparse.Namespace) -> TestOptions:
+def test_options(args: Options) -> TestOptions:
     """The parsed options of ``ermrl test`` or ``ermrl test-generalization`` as the library's
     [`TestOptions`][ermrl.test_phase.TestOptions]: its fields, each parsed under its own name
     (``--ppo`` words kept: they are read, and refused, where the command always read them)."""
@@ -403,7 +412,7 @@ def test_options(args: argparse.Namespace) -> TestOptions:
 
 
 def generalization_config_from_args(
-    args: argparse.Namespace, *, build_agent: bool = True, notes: list[str] | None = None
+    args: Options, *, build_agent: bool = True, notes: list[str] | None = None
 ) -> EvolveConfig:
     """Build and validate a multi-task configuration (raises ConfigError / env errors).
 
@@ -462,7 +471,7 @@ def generalization_config_from_args(
     return config
 
 
-def _suite_env_ids(args: argparse.Namespace) -> tuple[Sequence[str], str | None]:
+def _suite_env_ids(args: Options) -> tuple[Sequence[str], str | None]:
     """The evolution tasks' env ids and the suite they come from (``None``: ``--env-ids``).
 
     Raises:
@@ -494,7 +503,7 @@ def _refuse_learner_genes(learner: str) -> None:
 
 
 def _one_backend(
-    tasks: Sequence[GeneralizationTask], args: argparse.Namespace, notes: list[str] | None
+    tasks: Sequence[GeneralizationTask], args: Options, notes: list[str] | None
 ) -> tuple[GeneralizationTask, ...]:
     """The tasks with one backend for all: population where it applies to every task, else sb3.
 
