@@ -33,7 +33,9 @@ from typing import Any, Literal
 
 from ermrl._config_base import ConfigError
 
-__all__ = ["Option", "Spec", "fields_of", "keys_of", "nearest", "option", "to_argv", "validate"]
+__all__ = [
+    "Option", "Spec", "fields_of", "keys_of", "nearest", "option", "to_argv", "validate", "words_of",
+]  # fmt: skip
 
 _MISSING = dataclasses.MISSING
 
@@ -48,6 +50,7 @@ class Option:
         metavar: The placeholder of its values in the help.
         choices: The valid values, or a function that lists them (a registry).
         low: The smallest valid number.
+        above: A number the value must exceed (``0``: positive).
         negatable: A boolean's ``--no-`` form (``False``: the flag alone switches it on).
         words: ``KEY=VALUE`` words on the command line; a mapping in a file or a call.
         cli: Whether the command line has it.
@@ -56,6 +59,10 @@ class Option:
         key: Its key in an experiment file, when not the field's name (``eval`` for the
             field ``evaluate``: an experiment file spells options as their flags); both are
             accepted.
+        group: The title of the help section the command line lists it in.
+        const: The value of the flag given alone (``--fixed-input-scaling [VALUE]``); in a
+            file or a call, ``true`` stands for it and ``false`` for nothing.
+        required: The command line requires it.
     """
 
     help: str | Callable[[], str] = ""
@@ -63,11 +70,15 @@ class Option:
     metavar: str | tuple[str, ...] | None = None
     choices: tuple[str, ...] | Callable[[], Iterable[str]] | None = None
     low: float | None = None
+    above: float | None = None
     negatable: bool = True
     words: bool = False
     cli: bool = True
     check: Callable[[Any], Any] | None = None
     key: str | None = None
+    group: str | None = None
+    const: Any = None
+    required: bool = False
 
 
 def option(default: Any = _MISSING, help: str | Callable[[], str] = "", **kw: Any) -> Any:  # noqa: A002
@@ -108,6 +119,8 @@ class Spec:
         optional: ``None`` is valid (the default decides).
         default: The field's default.
         option: What the command line shows.
+        count: How many values a list holds, when fixed (``tuple[float, float]``: 2, as
+            ``LOW HIGH``).
     """
 
     name: str
@@ -116,6 +129,7 @@ class Spec:
     optional: bool
     default: Any
     option: Option
+    count: int | None = None
 
     @property
     def flag(self) -> str:
@@ -160,10 +174,12 @@ class Spec:
         return self._choice(text)
 
     def _checked(self, value: float, text: str) -> Any:
-        low = self.option.low
+        low, above = self.option.low, self.option.above
         if low is not None and value < low:
             bound = "positive" if low == 1 and self.kind == "int" else f">= {low:g}"
             raise ConfigError(f"must be {bound}, got {text}")
+        if above is not None and not value > above:
+            raise ConfigError(f"must be {'positive' if above == 0 else f'> {above:g}'}, got {text}")
         return value
 
     def _choice(self, value: str) -> str:
@@ -184,6 +200,8 @@ class Spec:
             if self.optional:
                 return None
             raise ConfigError("a value is required, got nothing (null)")
+        if self.option.const is not None and isinstance(value, bool):
+            return self.option.const if value else None
         if self.kind == "words":
             return self._words(value)
         if self.kind == "mapping":
@@ -200,6 +218,8 @@ class Spec:
                 )
             if not value:
                 raise ConfigError("an empty list")
+            if self.count is not None and len(value) != self.count:
+                raise ConfigError(f"{self.count} values are expected, got {len(value)}")
             return tuple(self._one(v, text=text) for v in value)
         return self._one(value, text=text)
 
@@ -265,6 +285,16 @@ def _kind(hint: Any) -> tuple[str, bool, bool]:
     return names[hint], False, False
 
 
+def _count(hint: Any) -> int | None:
+    """The length of a fixed-length tuple hint (``tuple[float, float]``: 2), else ``None``."""
+    if typing.get_origin(hint) in (typing.Union, types.UnionType):
+        hint = next(a for a in typing.get_args(hint) if a is not type(None))
+    args = typing.get_args(hint)
+    if typing.get_origin(hint) is tuple and args and Ellipsis not in args:
+        return len(args)
+    return None
+
+
 def fields_of(cls: type) -> tuple[Spec, ...]:
     """The [`Spec`][ermrl._schema.Spec] of each field of a configuration with options, in order."""
     cached = _SPECS.get(cls)
@@ -284,7 +314,8 @@ def fields_of(cls: type) -> tuple[Spec, ...]:
                    if typing.get_origin(h) is Literal]  # fmt: skip
         if opt.choices is None and literal:
             opt = dataclasses.replace(opt, choices=typing.get_args(literal[0]))
-        specs.append(Spec(f.name, kind, many, optional or default is None, default, opt))
+        count = _count(hints[f.name])
+        specs.append(Spec(f.name, kind, many, optional or default is None, default, opt, count))
     _SPECS[cls] = result = tuple(specs)
     return result
 
@@ -348,6 +379,14 @@ def _pairs(items: Iterable[tuple[Any, Any]]) -> list[str]:
     return [f"{k}={_word(v)}" for k, v in items]
 
 
+def words_of(value: Mapping[str, Any] | Sequence[str] | None) -> list[str]:
+    """``KEY=VALUE`` words of a ``words`` field, whether given as words or as a mapping (each
+    value written as the command line would be given it)."""
+    if value is None:
+        return []
+    return _pairs(value.items()) if isinstance(value, Mapping) else list(value)
+
+
 def to_argv(
     classes: type | Sequence[type],
     given: Mapping[str, Any],
@@ -369,7 +408,9 @@ def to_argv(
         value = given[key] if values is None else values[spec.name]
         if value is None:
             continue
-        if spec.kind == "bool":
+        if spec.option.const is not None and isinstance(given[key], bool):
+            argv += [spec.flag] if given[key] else []
+        elif spec.kind == "bool":
             if spec.option.negatable:
                 argv.append(spec.flag if value else "--no-" + spec.flag[2:])
             elif value:

@@ -42,6 +42,14 @@ CASES: list[tuple[str, Any, str]] = [
      "storage:"),
     ("evolve misspelled option", lambda u: ermrl.evolve("CartPole-v1", u, n_trails=3),
      "did you mean 'n_trials'"),
+    ("evolve trials as a string", lambda u: ermrl.evolve("CartPole-v1", u, n_trials="4"),
+     "evolve CartPole-v1: n_trials: a number is expected, got str '4'"),
+    ("evolve half a seed", lambda u: ermrl.evolve("CartPole-v1", u, n_seeds=1.5),
+     "n_seeds: an integer is expected, got 1.5"),
+    ("evolve a range of one", lambda u: ermrl.evolve("CartPole-v1", u, sr_range=[1.0]),
+     "sr_range: 2 values are expected, got 1"),
+    ("evolve observe typo", lambda u: ermrl.evolve("CartPole-v1", u, observe="position"),
+     "did you mean 'positions'"),
     ("experiment from a number", lambda u: ermrl.Experiment.load(5), "a YAML file's path"),
     ("report band typo", lambda u: ermrl.report("S", u, band="ci9"), "did you mean 'ci95'"),
     ("report runs missing", lambda u: ermrl.report("S", u, runs="runs/nosuch"), "no such folder"),
@@ -66,6 +74,21 @@ def test_report_refuses_a_file_as_its_folder(folder: Path) -> None:
     with pytest.raises(ermrl.ConfigError, match="a file, not a folder"):
         ermrl.report("S", _url(folder), out=report)
     assert report.read_text() == "mine" and sorted(folder.iterdir()) == [report]
+
+
+def test_evolve_keywords_are_checked_by_the_schema_and_whole_numbers_pass() -> None:
+    from ermrl.runner import evolve_config
+
+    config = evolve_config(
+        "CartPole-v1", n_trials=4.0, training_steps=1e4, fixed_input_scaling=True,
+        ppo={"n_steps": 128}, sr_range=(0.1, 2),
+    )  # fmt: skip
+    assert config.search.n_trials == 4 and config.problem.budget.training_steps == 10_000
+    assert config.space.input_scaling is None and config.space.fixed_input_scaling == 1.0
+    assert (config.space.sr.low, config.space.sr.high) == (0.1, 2.0)
+    assert config.problem.ppo.hyperparams["n_steps"] == 128
+    with pytest.raises(ermrl.ConfigError, match="evolve CartPole-v1: reference_trial: true or"):
+        evolve_config("CartPole-v1", reference_trial="no")  # not a text source
 
 
 def test_test_options_take_the_same_checks_as_keywords() -> None:

@@ -23,6 +23,7 @@ import pytest
 from gymnasium import spaces
 from stable_baselines3.common.vec_env import VecEnvWrapper
 
+from ermrl._schema import option
 from ermrl.config import AgentKind, ConfigError, Range
 from ermrl.encoders import ENCODERS, EncoderConfig, PerReservoirSpace
 from ermrl.encoders._base import Encoder
@@ -98,6 +99,18 @@ class _Projection(VecEnvWrapper):
         return self._encode(obs), rewards, dones, infos
 
 
+@dataclass(frozen=True)
+class ToySettings:
+    """The toy's ``ermrl evolve`` settings: declared once, they reach the CLI, experiment
+    files and Python."""
+
+    toy_width: int | None = option(None, "--encoder toy: outputs per projection (default 6)", low=1)
+    toy_scale_range: tuple[float, float] = option(
+        (0.1, 10.0), "--encoder toy: range of the projection's scale (log scale)",
+        metavar=("LOW", "HIGH"), above=0,
+    )  # fmt: skip
+
+
 class ToyEncoder(Encoder):
     name = "toy"
     description = "a fixed random projection tanh(scale * W u) (evolved scale); wraps the env"
@@ -105,24 +118,8 @@ class ToyEncoder(Encoder):
     config_cls = EncoderConfig
     params_cls: ClassVar[type] = ToyParams
     space_cls: ClassVar[type] = ToySpace
-    cli_flags: ClassVar[tuple[Mapping[str, Any], ...]] = (
-        {
-            "flags": ("--toy-width",),
-            "type": "positive_int",
-            "default": None,
-            "space_field": "width",
-            "help": "--encoder toy: outputs per projection (default 6)",
-        },
-        {
-            "flags": ("--toy-scale-range",),
-            "nargs": 2,
-            "type": "positive_float",
-            "default": [0.1, 10.0],
-            "metavar": ("LOW", "HIGH"),
-            "space_field": "scale",
-            "help": "--encoder toy: range of the projection's scale (log scale)",
-        },
-    )
+    settings: ClassVar[type | None] = ToySettings
+    space_fields: ClassVar[Mapping[str, str]] = {"toy_width": "width", "toy_scale_range": "scale"}
     agents: ClassVar[Mapping[str, AgentKind]] = {
         "toy-ppo": AgentKind(
             "evolved", None, "PPO on the evolved projection", None, "Toy-PPO", family="toy"
@@ -175,6 +172,39 @@ def test_a_toy_encoder_is_a_choice_with_its_flags_agents_and_space(toy: ToyEncod
     back = parser.parse_args(["--env-id", "CartPole-v1", "--toy-width", "3"])
     with pytest.raises(ConfigError, match="--toy-width applies to --encoder toy"):
         space_from_args(back)
+
+
+def test_a_toy_encoders_settings_reach_files_and_python_from_its_declaration(
+    toy: ToyEncoder, tmp_path: Path
+) -> None:
+    import yaml
+
+    from ermrl.runner import evolve_config
+    from ermrl.runner._experiment import experiment_plan, load_experiment
+
+    # Python: the keywords are the settings' names, checked by their declared types.
+    config = evolve_config("CartPole-v1", encoder="toy", toy_width=4, toy_scale_range=[0.5, 2])
+    assert config.space == ToySpace(width=4, scale=Range(0.5, 2.0))
+    with pytest.raises(ConfigError, match="toy_width: must be positive, got 0"):
+        evolve_config("CartPole-v1", encoder="toy", toy_width=0)
+    with pytest.raises(ConfigError, match="unknown key 'toy_widht' .did you mean 'toy_width'"):
+        evolve_config("CartPole-v1", encoder="toy", toy_widht=4)
+    # An experiment file: the same keys, and the plan shows the command's flags.
+    doc = {
+        "name": "toy",
+        "tasks": ["CartPole-v1"],
+        "storage": f"sqlite:///{tmp_path}/toy.db",
+        "evolve": {"encoder": "toy", "toy_width": "4", "toy_scale_range": [0.5, 2], "n_trials": 2},
+    }
+    (tmp_path / "toy.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
+    (step,) = experiment_plan(load_experiment(tmp_path / "toy.yaml"), build_agents=False)[:1]
+    assert "--encoder toy --toy-width 4 --toy-scale-range 0.5 2 " in step.command_line
+    assert step.request.config.space == ToySpace(width=4, scale=Range(0.5, 2.0))
+    (tmp_path / "bad.yaml").write_text(
+        yaml.safe_dump({**doc, "evolve": {"encoder": "toy", "toy_widht": 4}})
+    )
+    with pytest.raises(ConfigError, match="evolve: unknown key 'toy_widht' .did you mean"):
+        experiment_plan(load_experiment(tmp_path / "bad.yaml"), build_agents=False)
 
 
 def test_a_toy_encoder_added_in_one_place_is_evolved_stored_and_tested(

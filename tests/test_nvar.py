@@ -3,6 +3,7 @@ against reservoirpy's ``NVAR`` node, the SB3 and population paths, and integer g
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import subprocess
@@ -31,12 +32,12 @@ from ermrl.config import (
 from ermrl.encoders import ReservoirVecEnv
 from ermrl.encoders._nvar import (
     AGENTS,
-    CLI_FLAGS,
     NVAR_MAX_FEATURES,
     IntRange,
     NVARBank,
     NVAREncoder,
     NVARParams,
+    NVARSettings,
     NVARSpace,
     check_nvar_size,
     encoder_input_dim,
@@ -529,12 +530,12 @@ def test_the_agents_and_flags_are_ready_to_register() -> None:
         kind = AgentKind(**fields)
         assert kind.family == "nvar" and name.endswith("nvar-res-ppo")
     assert {a["reservoirs"] for a in AGENTS.values()} == {"evolved", "unevolved"}
-    space_fields = {f["space_field"] for f in CLI_FLAGS}
-    assert space_fields == {"delay", "order", "strides"}
+    settings = dataclasses.fields(NVARSettings)
+    assert {f.name for f in settings} == {"delay_range", "order_range", "strides_range"}
     defaults = NVARSpace()
-    for flag in CLI_FLAGS:
-        low, high = flag["default"]
-        assert getattr(defaults, flag["space_field"]) == IntRange(low, high)
+    for setting in settings:
+        low, high = setting.default
+        assert getattr(defaults, setting.name.removesuffix("_range")) == IntRange(low, high)
     encoder = NVAREncoder()
     assert encoder.name == "nvar" and encoder.family == "nvar" and encoder.space_cls is NVARSpace
     assert encoder.accepts(nvar_encoder(NVARParams()))

@@ -22,12 +22,8 @@ import pytest
 import yaml
 from optuna.trial import TrialState
 
-from ermrl.runner._experiment import (
-    ExperimentError,
-    experiment_plan,
-    load_experiment,
-    options_to_argv,
-)
+from ermrl.config import ConfigError
+from ermrl.runner._experiment import ExperimentError, experiment_plan, load_experiment
 from ermrl.storage import open_storage
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -179,7 +175,8 @@ def test_a_variant_goes_to_its_own_folder_and_storage(tmp_path: Path) -> None:
             {"evolve": {**TINY["evolve"], "n_trails": 4}},
             "unknown key 'n_trails' (did you mean 'n_trials'?)",
         ),
-        ({"evolve": {**TINY["evolve"], "n_trials": 0}}, "n-trials"),
+        ({"evolve": {**TINY["evolve"], "n_trials": 0}}, "n_trials: must be positive, got 0"),
+        ({"evolve": {**TINY["evolve"], "sr_rnage": [1, 2]}}, "(did you mean 'sr_range'?)"),
         ({"evolve": {**TINY["evolve"], "sampler": "annealing"}}, "invalid choice: 'annealing'"),
         ({"evolve": {**TINY["evolve"], "units": 20000}}, "units must be in [1, 10000]"),
         ({"test": {**TINY["test"], "agents": ["res-pop"]}}, "res-pop"),
@@ -232,33 +229,35 @@ def test_a_file_that_contradicts_the_stored_study_is_refused(tmp_path: Path) -> 
 
 
 def test_options_become_the_commands_own_flags() -> None:
+    from ermrl._schema import to_argv, validate
     from ermrl.cli._evolve import build_evolve_parser
+    from ermrl.runner._evolve_options import evolve_options
 
-    parser = build_evolve_parser()
-    argv = options_to_argv(
-        parser,
-        {
-            "observe": "positions",
-            "n_trials": 5,
-            "fixed_input_scaling": True,
-            "reference_trial": False,
-            "sr_range": [0.01, 10],
-            "ppo": {"learning_rate": 1.0e-4, "n_steps": 64},
-            "quiet": True,
-        },
-        "here",
-    )
+    cls = evolve_options()
+    given = {
+        "observe": "positions",
+        "n_trials": 5,
+        "fixed_input_scaling": True,
+        "reference_trial": False,
+        "sr_range": [0.01, 10],
+        "ppo": {"learning_rate": 1.0e-4, "n_steps": 64},
+    }
+    values = validate(cls, given, "here", text=True)
+    argv = to_argv(cls, given, values)
     assert argv == [
         "--observe", "positions", "--n-trials", "5", "--fixed-input-scaling",
         "--no-reference-trial", "--sr-range", "0.01", "10",
-        "--ppo", "learning_rate=0.0001", "n_steps=64", "--quiet",
+        "--ppo", "learning_rate=0.0001", "n_steps=64",
     ]  # fmt: skip
-    args = parser.parse_args(["--env-id", "Pendulum-v1", *argv])
+    args = build_evolve_parser().parse_args(["--env-id", "Pendulum-v1", *argv])
     assert isinstance(args, argparse.Namespace) and args.fixed_input_scaling == 1.0
-    with pytest.raises(ExperimentError, match="true or false"):
-        options_to_argv(parser, {"quiet": "no"}, "here")
-    with pytest.raises(ExperimentError, match="one value, got a list"):
-        options_to_argv(parser, {"n_trials": [1, 2]}, "here")
+    assert values["fixed_input_scaling"] == 1.0 and values["sr_range"] == (0.01, 10.0)
+    with pytest.raises(ConfigError, match="here: reference_trial: true or false"):
+        validate(cls, {"reference_trial": 3}, "here", text=True)
+    with pytest.raises(ConfigError, match="here: n_trials: a number is expected, got list"):
+        validate(cls, {"n_trials": [1, 2]}, "here", text=True)
+    with pytest.raises(ConfigError, match="here: sr_range: 2 values are expected, got 3"):
+        validate(cls, {"sr_range": [1, 2, 3]}, "here", text=True)
 
 
 def _load(url: str, name: str) -> optuna.Study:

@@ -11,7 +11,7 @@ from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
 from ermrl._config_base import AgentKind, ConfigError
-from ermrl.encoders._base import Encoder, flag_dest
+from ermrl.encoders._base import Encoder
 from ermrl.encoders._nvar import NVAREncoder
 from ermrl.encoders._reservoir import (
     BIAS_INITS,
@@ -120,7 +120,6 @@ __all__ = [
     "encoder_for",
     "encoder_of_family",
     "encoder_weights",
-    "flag_dest",
     "get_encoder",
     "reference_encoder",
     "rtu_weights",

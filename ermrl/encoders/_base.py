@@ -14,7 +14,7 @@ An encoder module subclasses [`Encoder`][ermrl.encoders.Encoder] and
 The outer loop never handles an encoder's own types: it samples a plain ``{name: value}`` dict
 in the ranges of the encoder's space and [`Encoder.decode`][ermrl.encoders.Encoder.decode] turns it
 into the encoder's settings. The rest of ermrl reads everything else it needs of an encoder from
-this class: the ``ermrl evolve`` flags (`Encoder.cli_flags`, plain data), the search space they give
+this class: the ``ermrl evolve`` settings (`Encoder.settings`, schema fields), the search space they give
 ([`Encoder.space_from_args`][ermrl.encoders.Encoder.space_from_args]), the test-phase agents
 (`Encoder.agents`), the checks made before a study is written
 ([`Encoder.check`][ermrl.encoders.Encoder.check]), how the report describes a study's encoder
@@ -24,23 +24,17 @@ this class: the ``ermrl evolve`` flags (`Encoder.cli_flags`, plain data), the se
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 from collections.abc import Hashable, Mapping, Sequence
 from typing import TYPE_CHECKING, Any, ClassVar, Literal
 
 from ermrl._config_base import AgentKind, Range, TaskConfig
+from ermrl._schema import Spec, fields_of
 
 if TYPE_CHECKING:
     from ermrl.encoders._settings import EncoderConfig
 
-__all__ = ["Encoder", "flag_dest"]
-
-
-def flag_dest(flag: Mapping[str, Any]) -> str:
-    """The ``argparse`` destination of a flag given as data (its ``dest``, else its first long
-    option without dashes)."""
-    return str(flag.get("dest") or flag["flags"][0].lstrip("-").replace("-", "_"))
+__all__ = ["Encoder"]
 
 
 class Encoder:
@@ -61,13 +55,17 @@ class Encoder:
         space_cls: Its search space dataclass: ``ranges()`` (name -> range of every evolved
             parameter), ``reference_params()``, ``contains()``, ``center_params()``,
             ``reservoirs_from()`` and ``default_reservoirs()`` (the unevolved reference).
-        cli_flags: Its own ``ermrl evolve`` flags as data: each a dict of ``add_argument``
-            keywords with ``flags`` (the option strings) and ``space_field`` (the field of
-            ``space_cls`` it sets; a [`Range`][ermrl.config.Range] field takes ``LOW HIGH``
-            and keeps its default's scale); ``type`` may name one of the CLI's checked types
-            (``"positive_int"``, ``"positive_float"``, ``"nonneg_int"``). A flag two encoders declare (same option) becomes
-            one option whose help joins theirs. ``--n-reservoirs``, ``--input-scaling-range``,
-            ``--fixed-input-scaling`` and the encoding options are shared by every encoder.
+        settings: Its own ``ermrl evolve`` settings: a frozen dataclass whose fields carry
+            their option (`ermrl._schema.option`: help, bounds, metavar), which
+            become options of ``ermrl evolve``, keys of an experiment file's ``evolve:`` and
+            keywords of [`ermrl.evolve`][ermrl.runner.evolve]. Each sets the ``space_cls``
+            field of its name (``<name>_range``: the [`Range`][ermrl.config.Range] ``<name>``,
+            as ``LOW HIGH`` on its default's scale), or the one `space_fields` names. A setting
+            two encoders declare alike is one option whose help joins theirs.
+            ``--n-reservoirs``, ``--input-scaling-range``, ``--fixed-input-scaling`` and the
+            encoding options are shared by every encoder.
+        space_fields: Settings whose ``space_cls`` field is not named after them (setting ->
+            field).
         agents: Its test-phase agents (name -> [`AgentKind`][ermrl.config.AgentKind], each of this
             encoder's family): one evolved and one unevolved agent at least.
         population: Whether the population backend's batched reservoir steps its reservoirs
@@ -82,7 +80,8 @@ class Encoder:
     config_cls: ClassVar[type]
     params_cls: ClassVar[type]
     space_cls: ClassVar[type]
-    cli_flags: ClassVar[tuple[Mapping[str, Any], ...]] = ()
+    settings: ClassVar[type | None] = None
+    space_fields: ClassVar[Mapping[str, str]] = {}
     agents: ClassVar[Mapping[str, AgentKind]] = {}
     population: ClassVar[bool] = False
 
@@ -123,10 +122,15 @@ class Encoder:
         """``policy_kwargs`` entries that put the encoder in the policy (``place == "policy"``)."""
         return {}
 
-    def space_from_args(self, args: argparse.Namespace) -> Any:
-        """The search space ``ermrl evolve``'s options give: the shared ``--n-reservoirs`` and
-        input scaling, and each of `cli_flags` into its ``space_field`` (a flag left at
-        ``None`` keeps the space's default).
+    def setting_specs(self) -> tuple[Spec, ...]:
+        """Its `settings`' fields, as the schema reads them."""
+        return () if self.settings is None else fields_of(self.settings)
+
+    def space_from_args(self, args: Any) -> Any:
+        """The search space that the options of ``ermrl evolve`` give (parsed, or the
+        validated options of a file or a call): the shared ``n_reservoirs`` and input scaling,
+        and each of its `settings` into its space field (one left at ``None`` keeps the
+        space's default).
 
         Raises:
             ConfigError: a bad value (the space's own checks).
@@ -140,10 +144,10 @@ class Encoder:
             low, high = args.input_scaling_range
             kwargs["input_scaling"] = None if fixed is not None else Range(float(low), float(high))
             kwargs["fixed_input_scaling"] = 1.0 if fixed is None else fixed
-        for flag in self.cli_flags:
-            name = flag.get("space_field")
-            value = getattr(args, flag_dest(flag), None)
-            if name is None or value is None:
+        for spec in self.setting_specs():
+            name = self.space_fields.get(spec.name, spec.name.removesuffix("_range"))
+            value = getattr(args, spec.name, None)
+            if value is None:
                 continue
             default = fields[name].default
             if isinstance(default, Range):  # LOW HIGH, on the default's scale (and type)

@@ -35,7 +35,7 @@ The output width grows fast with the delay and the order; it also depends on the
 study is created.
 
 This module is the whole encoder but its batched computation (`ermrl.encoders._nvar_bank`,
-below the env wrapper): its search space, its ``ermrl evolve`` flags (`CLI_FLAGS`), its
+below the env wrapper): its search space, its ``ermrl evolve`` settings (`NVARSettings`), its
 test-phase agents (`AGENTS`) and `NVAREncoder`, registered by one line of
 `ENCODERS`.
 """
@@ -49,6 +49,7 @@ from typing import Any, ClassVar, Literal, cast
 import numpy as np
 
 from ermrl._config_base import AgentKind, ConfigError, Range, TaskConfig, _box_center
+from ermrl._schema import option
 from ermrl.encoders._base import Encoder
 from ermrl.encoders._nvar_bank import (
     NVAR_MAX_FEATURES,
@@ -64,7 +65,7 @@ from ermrl.encoders._settings import EncoderConfig, PerReservoirSpace
 
 __all__ = [
     "AGENTS",
-    "CLI_FLAGS",
+    "NVARSettings",
     "NVAR_MAX_FEATURES",
     "NVAR_MAX_WINDOW",
     "IntRange",
@@ -287,30 +288,28 @@ class NVARSpace(PerReservoirSpace):
             )
 
 
-# -- plain data for the registry: CLI flags and test-phase agents --------------------------------
+# -- for the registry: settings and test-phase agents --------------------------------
 
 
-# ``ermrl evolve`` flags of ``--encoder nvar`` (argparse ``add_argument`` keywords as data). The
-# shared ``--n-reservoirs``, ``--input-scaling-range`` and ``--fixed-input-scaling`` apply too.
-def _int_range_flag(field: str, default: tuple[int, int], help: str) -> dict[str, Any]:
-    """The ``--<field>-range LOW HIGH`` flag of an integer gene."""
-    return {
-        "flags": (f"--{field}-range",),
-        "dest": f"{field}_range",
-        "nargs": 2,
-        "type": int,
-        "default": default,
-        "metavar": ("LOW", "HIGH"),
-        "space_field": field,
-        "help": f"--encoder nvar: range of the {field}, {help} (integers)",
-    }
+def _int_range(field: str, default: tuple[int, int], help: str) -> Any:
+    """The ``<field>_range`` setting (``--<field>-range LOW HIGH``) of an integer gene."""
+    text = f"--encoder nvar: range of the {field}, {help} (integers)"
+    return option(default, text, metavar=("LOW", "HIGH"))
 
 
-CLI_FLAGS: tuple[dict[str, Any], ...] = (
-    _int_range_flag("delay", (1, 4), "the inputs in the linear part"),
-    _int_range_flag("order", (1, 2), "the degree of the monomials"),
-    _int_range_flag("strides", (1, 4), "the steps between delayed inputs"),
-)
+@dataclass(frozen=True)
+class NVARSettings:
+    """The ``ermrl evolve`` settings of ``--encoder nvar`` (`ermrl._schema` fields), each the
+    range of the `NVARSpace` field of its name less ``_range``.
+    The shared ``--n-reservoirs``, ``--input-scaling-range`` and ``--fixed-input-scaling``
+    apply too."""
+
+    delay_range: tuple[int, int] = _int_range("delay", (1, 4), "the inputs in the linear part")
+    order_range: tuple[int, int] = _int_range("order", (1, 2), "the degree of the monomials")
+    strides_range: tuple[int, int] = _int_range(
+        "strides", (1, 4), "the steps between delayed inputs"
+    )
+
 
 # Test-phase agents of ``--encoder nvar`` studies, as [`AgentKind`][ermrl.config.AgentKind] fields.
 AGENTS: dict[str, dict[str, Any]] = {
@@ -357,7 +356,7 @@ class NVAREncoder(Encoder):
     config_cls = EncoderConfig
     params_cls: ClassVar[type] = NVARParams
     space_cls: ClassVar[type] = NVARSpace
-    cli_flags: ClassVar[tuple[Mapping[str, Any], ...]] = CLI_FLAGS
+    settings: ClassVar[type | None] = NVARSettings
     agents: ClassVar[Mapping[str, AgentKind]] = {n: AgentKind(**f) for n, f in AGENTS.items()}
     population = True
 

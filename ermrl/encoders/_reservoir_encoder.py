@@ -3,7 +3,7 @@
 The reference encoder, in one module: its search space
 ([`ReservoirSpace`][ermrl.encoders.ReservoirSpace]: spectral radius, leak rate and input scaling per
 reservoir, log scale; or, for multi-timescale reservoirs (``--multiscale``), a band of leak rates in
-place of the one leak rate), its ``ermrl evolve`` flags (`CLI_FLAGS`), its test-phase agents
+place of the one leak rate), its ``ermrl evolve`` settings (`ReservoirSettings`), its test-phase agents
 (`AGENTS`) and the encoder itself ([`ReservoirEncoder`][ermrl.encoders.ReservoirEncoder]). One
 reservoir's settings ([`ReservoirParams`][ermrl.encoders.ReservoirParams], reservoirpy's defaults:
 the unevolved reference) live with the weights they build, in `ermrl.encoders._reservoir`, below the
@@ -12,7 +12,6 @@ env wrapper ([`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv]) that steps the
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import functools
 from collections.abc import Hashable, Mapping
@@ -20,9 +19,9 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 from ermrl._config_base import MAX_UNITS, AgentKind, ConfigError, Range, _check_units
-from ermrl.encoders._base import Encoder, flag_dest
+from ermrl._schema import option
+from ermrl.encoders._base import Encoder
 from ermrl.encoders._reservoir import (
-    BIAS_INITS,
     Ablation,
     BiasInit,
     ReservoirBank,
@@ -32,7 +31,9 @@ from ermrl.encoders._reservoir import (
 )
 from ermrl.encoders._settings import EncoderConfig, PerReservoirSpace
 
-__all__ = ["AGENTS", "CLI_FLAGS", "ReservoirEncoder", "ReservoirParams", "ReservoirSpace"]
+__all__ = [
+    "AGENTS", "ReservoirEncoder", "ReservoirParams", "ReservoirSettings", "ReservoirSpace",
+]  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -176,83 +177,49 @@ class ReservoirSpace(PerReservoirSpace):
         return (one,) * self.n_reservoirs
 
 
-def _log_range_flag(name: str, default: tuple[float, float], help: str) -> dict[str, Any]:
-    """The ``--<name>-range LOW HIGH`` flag of a log-scale parameter."""
-    return {
-        "flags": (f"--{name.replace('_', '-')}-range",),
-        "nargs": 2,
-        "type": "positive_float",
-        "default": list(default),
-        "metavar": ("LOW", "HIGH"),
-        "space_field": name,
-        "help": help,
-    }
+_PAIR = ("LOW", "HIGH")
 
 
-# ``ermrl evolve`` flags of ``--encoder reservoir`` (``add_argument`` keywords as data).
-CLI_FLAGS: tuple[dict[str, Any], ...] = (
-    {
-        "flags": ("--units",),
-        "type": "positive_int",
-        "default": None,
-        "space_field": "units",
-        "help": "--encoder reservoir: units per reservoir, fixed (default 100)",
-    },
-    _log_range_flag("sr", (1e-4, 1e2), "spectral radius range (log scale)"),
-    _log_range_flag(
-        "lr", (1e-2, 1.0), "leak rate range (log scale, within (0, 1]; not with --multiscale)"
-    ),
-    {
-        "flags": ("--multiscale",),
-        "action": argparse.BooleanOptionalAction,
-        "default": False,
-        "space_field": "multiscale",
-        "help": "--encoder reservoir: multi-timescale reservoirs: each unit its own leak rate, "
+@dataclass(frozen=True)
+class ReservoirSettings:
+    """The ``ermrl evolve`` settings of ``--encoder reservoir`` (`ermrl._schema` fields): each
+    sets the [`ReservoirSpace`][ermrl.encoders.ReservoirSpace] field of its name, a
+    ``<name>_range`` the range ``<name>``, on its default's scale."""
+
+    units: int | None = option(
+        None, "--encoder reservoir: units per reservoir, fixed (default 100)", low=1
+    )
+    sr_range: tuple[float, float] = option(
+        (1e-4, 1e2), "spectral radius range (log scale)", metavar=_PAIR, above=0
+    )
+    lr_range: tuple[float, float] = option(
+        (1e-2, 1.0), "leak rate range (log scale, within (0, 1]; not with --multiscale)",
+        metavar=_PAIR, above=0,
+    )  # fmt: skip
+    multiscale: bool = option(
+        False, "--encoder reservoir: multi-timescale reservoirs: each unit its own leak rate, "
         "spaced log-uniformly from lr_min (the first unit) to lr_max (the last); evolves "
         "lr_max and lr_min_ratio = lr_min / lr_max in place of lr (reference: both 1, the "
         "plain echo state network)",
-    },
-    _log_range_flag(
-        "lr_max",
-        (1e-3, 1.0),
-        "--multiscale: range of the largest leak rate (log scale, within (0, 1])",
-    ),
-    _log_range_flag(
-        "lr_min_ratio",
-        (1e-3, 1.0),
-        "--multiscale: range of lr_min / lr_max (log scale, within (0, 1])",
-    ),
-    {
-        "flags": ("--rc-connectivity",),
-        "type": "positive_float",
-        "default": 0.1,
-        "space_field": "rc_connectivity",
-        "help": "recurrent connectivity",
-    },
-    {
-        "flags": ("--input-connectivity",),
-        "type": "positive_float",
-        "default": 0.1,
-        "space_field": "input_connectivity",
-        "help": "input connectivity",
-    },
-    {
-        "flags": ("--bias-scaling",),
-        "type": float,
-        "default": 0.0,
-        "space_field": "bias_scaling",
-        "help": "dense Bernoulli bias: every unit +-scale (0: no bias, reservoirpy 0.4's default)",
-    },
-    {
-        "flags": ("--bias-init",),
-        "choices": BIAS_INITS,
-        "default": "none",
-        "space_field": "bias_init",
-        "help": "'original': reservoirpy 0.3's default bias, which the ER-MRL code had: +-1 on "
+    )  # fmt: skip
+    lr_max_range: tuple[float, float] = option(
+        (1e-3, 1.0), "--multiscale: range of the largest leak rate (log scale, within (0, 1])",
+        metavar=_PAIR, above=0,
+    )  # fmt: skip
+    lr_min_ratio_range: tuple[float, float] = option(
+        (1e-3, 1.0), "--multiscale: range of lr_min / lr_max (log scale, within (0, 1])",
+        metavar=_PAIR, above=0,
+    )  # fmt: skip
+    rc_connectivity: float = option(0.1, "recurrent connectivity", above=0)
+    input_connectivity: float = option(0.1, "input connectivity", above=0)
+    bias_scaling: float = option(
+        0.0, "dense Bernoulli bias: every unit +-scale (0: no bias, reservoirpy 0.4's default)"
+    )
+    bias_init: BiasInit = option(
+        "none", "'original': reservoirpy 0.3's default bias, which the ER-MRL code had: +-1 on "
         "--input-connectivity of the units (10%%), zero elsewhere (needs --bias-scaling 0); "
         "'none': the bias of --bias-scaling",
-    },
-)
+    )  # fmt: skip
 
 
 def _ablated(ablation: Ablation) -> functools.partial[ReservoirParams]:
@@ -324,7 +291,7 @@ class ReservoirEncoder(Encoder):
     config_cls = EncoderConfig
     params_cls: ClassVar[type] = ReservoirParams
     space_cls: ClassVar[type] = ReservoirSpace
-    cli_flags: ClassVar[tuple[Mapping[str, Any], ...]] = CLI_FLAGS
+    settings: ClassVar[type | None] = ReservoirSettings
     agents: ClassVar[Mapping[str, AgentKind]] = AGENTS
     population = True
 
@@ -337,7 +304,7 @@ class ReservoirEncoder(Encoder):
         ]
         return ReservoirBank(weights, dtype=config.dtype)
 
-    def space_from_args(self, args: argparse.Namespace) -> Any:
+    def space_from_args(self, args: Any) -> Any:
         """The search space of the flags; the leak-rate flags of the other mode are refused.
 
         Raises:
@@ -348,11 +315,11 @@ class ReservoirEncoder(Encoder):
         if isinstance(space, ReservoirSpace):
             unused = ("lr",) if space.multiscale else ("lr_max", "lr_min_ratio")
             for name in unused:
-                default = next(f for f in self.cli_flags if flag_dest(f) == f"{name}_range")
-                given = getattr(args, f"{name}_range", None)
-                if given is not None and list(given) != list(default["default"]):
+                spec = next(s for s in self.setting_specs() if s.name == f"{name}_range")
+                given = getattr(args, spec.name, None)
+                if given is not None and list(given) != list(spec.default):
                     mode = "with" if space.multiscale else "without"
-                    raise ConfigError(f"{default['flags'][0]} is unused {mode} --multiscale")
+                    raise ConfigError(f"{spec.flag} is unused {mode} --multiscale")
         return space
 
     def describe(self, space: Any) -> str:

@@ -7,7 +7,7 @@ the input scaling ([`RTUSpace`][ermrl.encoders.RTUSpace]), exactly as it searche
 radius and leak rate; the learner (PPO by default) reads ``tanh`` of the states. It wraps the env in
 the same [`ReservoirVecEnv`][ermrl.encoders.ReservoirVecEnv] as the ESN (same inputs, resets and
 encoding options), with the linear update of [`rtu_weights`][ermrl.encoders.rtu_weights]. This
-module holds its search space, its ``ermrl evolve`` flags (`CLI_FLAGS`), its agents (`AGENTS`) and
+module holds its search space, its ``ermrl evolve`` settings (`RTUSettings`), its agents (`AGENTS`) and
 the encoder; the layer's settings live with its weights in `ermrl.encoders._reservoir`.
 """
 
@@ -16,14 +16,15 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, ClassVar, Literal
+from typing import ClassVar, Literal
 
 from ermrl._config_base import MAX_UNITS, AgentKind, ConfigError, Range
+from ermrl._schema import option
 from ermrl.encoders._reservoir import RTUParams
 from ermrl.encoders._reservoir_encoder import ReservoirEncoder
 from ermrl.encoders._settings import PerReservoirSpace
 
-__all__ = ["AGENTS", "CLI_FLAGS", "RTUEncoder", "RTUParams", "RTUSpace"]
+__all__ = ["AGENTS", "RTUEncoder", "RTUParams", "RTUSettings", "RTUSpace"]
 
 
 @dataclass(frozen=True)
@@ -115,36 +116,25 @@ class RTUSpace(PerReservoirSpace):
         return (one,) * self.n_reservoirs
 
 
-# ``ermrl evolve`` flags of ``--encoder rtu`` (``add_argument`` keywords as data).
-CLI_FLAGS: tuple[dict[str, Any], ...] = (
-    {
-        "flags": ("--units",),
-        "type": "positive_int",
-        "default": None,
-        "space_field": "units",
-        "help": "--encoder rtu: complex units per layer, each showing the policy 2 values "
-        "(default 50)",
-    },
-    {
-        "flags": ("--r-max-range",),
-        "nargs": 2,
-        "type": float,
-        "default": [0.05, 1.0],
-        "metavar": ("LOW", "HIGH"),
-        "space_field": "r_max",
-        "help": "--encoder rtu: range of the largest decay rate r_max (linear, within (0, 1])",
-    },
-    {
-        "flags": ("--theta-max-range",),
-        "nargs": 2,
-        "type": "positive_float",
-        "default": [1e-2, 2 * math.pi],
-        "metavar": ("LOW", "HIGH"),
-        "space_field": "theta_max",
-        "help": "--encoder rtu: range of the largest rotation frequency theta_max (log scale, "
-        "radians per step)",
-    },
-)
+@dataclass(frozen=True)
+class RTUSettings:
+    """The ``ermrl evolve`` settings of ``--encoder rtu`` (`ermrl._schema` fields): each sets
+    the [`RTUSpace`][ermrl.encoders.RTUSpace] field of its name, a ``<name>_range`` the range
+    ``<name>``."""
+
+    units: int | None = option(
+        None, "--encoder rtu: complex units per layer, each showing the policy 2 values "
+        "(default 50)", low=1,
+    )  # fmt: skip
+    r_max_range: tuple[float, float] = option(
+        (0.05, 1.0), "--encoder rtu: range of the largest decay rate r_max (linear, within "
+        "(0, 1])", metavar=("LOW", "HIGH"),
+    )  # fmt: skip
+    theta_max_range: tuple[float, float] = option(
+        (1e-2, 2 * math.pi), "--encoder rtu: range of the largest rotation frequency theta_max "
+        "(log scale, radians per step)", metavar=("LOW", "HIGH"), above=0,
+    )  # fmt: skip
+
 
 # Test-phase agents of ``--encoder rtu`` studies.
 AGENTS: dict[str, AgentKind] = {
@@ -172,5 +162,5 @@ class RTUEncoder(ReservoirEncoder):
     family = "rtu"
     params_cls: ClassVar[type] = RTUParams
     space_cls: ClassVar[type] = RTUSpace
-    cli_flags: ClassVar[tuple[Mapping[str, Any], ...]] = CLI_FLAGS
+    settings: ClassVar[type | None] = RTUSettings
     agents: ClassVar[Mapping[str, AgentKind]] = AGENTS

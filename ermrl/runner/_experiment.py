@@ -1,8 +1,8 @@
 """A whole experiment in one YAML file: evolution, re-evaluation, test phase and report.
 
 An experiment file composes ermrl's own commands; it never copies their logic. Each stage is a
-mapping whose keys are the options of the command that runs it, spelled as their ``argparse``
-destinations (``n_trials`` for ``--n-trials``, ``fixed_input_scaling: true`` for a flag), so
+mapping whose keys are the options of the command that runs it, spelled as the fields of their
+schema (``n_trials`` for ``--n-trials``, ``fixed_input_scaling: true`` for a flag), so
 everything a command accepts an experiment accepts, and a key no command knows is refused with
 the nearest valid one. The stages:
 
@@ -25,15 +25,12 @@ say so, and running the file again resumes the first unfinished stage.
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import copy
 import dataclasses
-import difflib
 import functools
-import io
 import math
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -171,11 +168,6 @@ def _path_value(value: Any, key: str, path: Path) -> Path | None:
 # Loading
 
 
-def _nearest(word: str, choices: Iterable[str]) -> str:
-    match = difflib.get_close_matches(word, list(choices), n=1, cutoff=0.5)
-    return f" (did you mean {match[0]!r}?)" if match else f" (valid: {', '.join(sorted(choices))})"
-
-
 def _merge(base: Any, over: Any) -> Any:
     """``over`` merged into ``base`` key by key (mappings), else ``over``."""
     if isinstance(base, Mapping) and isinstance(over, Mapping):
@@ -270,9 +262,7 @@ def _read_document(path: Path) -> Mapping[str, Any]:
         raise ExperimentError(f"{path}: an experiment file is a mapping (name:, evolve:, ...)")
     for key in doc:
         if key not in TOP_LEVEL_KEYS:
-            raise ExperimentError(
-                f"{path}: unknown key {key!r}{_nearest(str(key), TOP_LEVEL_KEYS)}"
-            )
+            raise ExperimentError(f"{path}: unknown key {key!r}{nearest(str(key), TOP_LEVEL_KEYS)}")
     return doc
 
 
@@ -305,7 +295,7 @@ def _apply_variant(
         if key not in TOP_LEVEL_KEYS or key in ("variants", "name"):
             valid = [k for k in TOP_LEVEL_KEYS if k not in ("variants", "name")]
             raise ExperimentError(
-                f"{path}: variants.{variant}: unknown key {key!r}{_nearest(str(key), valid)}"
+                f"{path}: variants.{variant}: unknown key {key!r}{nearest(str(key), valid)}"
             )
     return _merge(base, over), over
 
@@ -386,7 +376,7 @@ def load_experiment(path: str | Path, variant: str | None = None) -> ExperimentF
     for key in stages["reevaluate"]:
         if key not in REEVALUATE_KEYS:
             raise ExperimentError(
-                f"{path}: reevaluate: unknown key {key!r}{_nearest(key, REEVALUATE_KEYS)}"
+                f"{path}: reevaluate: unknown key {key!r}{nearest(key, REEVALUATE_KEYS)}"
             )
     tasks = _tasks(base.get("tasks"), path)
     _check_task_list(tasks, stages, base, path)
@@ -420,7 +410,7 @@ def _tasks(value: Any, path: Path) -> tuple[TaskLine, ...]:
         for key in entry:
             if key not in ("evolve", "reevaluate", "test", "report"):
                 raise ExperimentError(
-                    f"{path}: tasks.{env_id}: unknown key {key!r}{_nearest(key, STAGES)}"
+                    f"{path}: tasks.{env_id}: unknown key {key!r}{nearest(key, STAGES)}"
                 )
         out.append(
             TaskLine(
@@ -431,104 +421,6 @@ def _tasks(value: Any, path: Path) -> tuple[TaskLine, ...]:
     if len(set(ids)) != len(ids):
         raise ExperimentError(f"{path}: tasks: each task once, got {ids}")
     return tuple(out)
-
-
-# ---------------------------------------------------------------------------------------------
-# Options -> argv, checked by the commands' own parsers
-
-
-def _options(parser: argparse.ArgumentParser) -> dict[str, argparse.Action]:
-    return {a.dest: a for a in parser._actions if a.option_strings and a.dest != "help"}
-
-
-def _flag(action: argparse.Action) -> str:
-    longs = [s for s in action.option_strings if s.startswith("--") and not s.startswith("--no-")]
-    return longs[0] if longs else action.option_strings[0]
-
-
-def _word(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, float):
-        return repr(value)
-    if isinstance(value, (Mapping, list)):
-        return yaml.safe_dump(value, default_flow_style=True, width=10**6).strip()
-    return str(value)
-
-
-def options_to_argv(
-    parser: argparse.ArgumentParser, options: Mapping[str, Any], where: str
-) -> list[str]:
-    """The command-line words that give a command these options.
-
-    Args:
-        parser: The command's parser.
-        options: ``{dest: value}``; ``true``/``false`` for flags, lists for several values,
-            mappings for ``KEY=VALUE`` options (``ppo: {learning_rate: 1.0e-4}``) and
-            ``{learner: {KEY: VALUE}}`` for ``--for-learner``.
-        where: Names the options in errors (``file: evolve``).
-
-    Raises:
-        ExperimentError: an unknown key (with the nearest valid one) or a value of the wrong
-            shape.
-    """
-    known = _options(parser)
-    argv: list[str] = []
-    for key, value in options.items():
-        action = known.get(key)
-        if action is None:
-            raise ExperimentError(f"{where}: unknown key {key!r}{_nearest(key, list(known))}")
-        flag = _flag(action)
-        if isinstance(action, argparse.BooleanOptionalAction) or action.nargs == 0:
-            if not isinstance(value, bool):
-                raise ExperimentError(f"{where}: {key}: true or false, got {value!r}")
-            if isinstance(action, argparse.BooleanOptionalAction):
-                argv.append(flag if value else "--no-" + flag[2:])
-            elif value:
-                argv.append(flag)
-            continue
-        if value is None:
-            continue
-        if action.nargs == "?" and isinstance(value, bool):
-            if value:
-                argv.append(flag)
-            continue
-        if key == "for_learner":
-            if not isinstance(value, Mapping):
-                raise ExperimentError(f"{where}: for_learner: {{LEARNER: {{KEY: VALUE}}}}")
-            for learner, settings in value.items():
-                pairs = _mapping(settings, f"{where}: for_learner.{learner}")
-                argv += [flag, str(learner), *(f"{k}={_word(v)}" for k, v in pairs.items())]
-            continue
-        many = action.nargs in ("+", "*") or (isinstance(action.nargs, int) and action.nargs > 1)
-        if isinstance(value, Mapping):
-            if not many:
-                raise ExperimentError(f"{where}: {key}: one value, got a mapping")
-            argv += [flag, *(f"{k}={_word(v)}" for k, v in value.items())]
-        elif isinstance(value, list):
-            if not many:
-                raise ExperimentError(f"{where}: {key}: one value, got a list")
-            if not value:
-                raise ExperimentError(f"{where}: {key}: an empty list")
-            argv += [flag, *map(_word, value)]
-        else:
-            argv += [flag, _word(value)]
-    return argv
-
-
-def parse_checked(
-    parser: argparse.ArgumentParser, argv: list[str], where: str
-) -> argparse.Namespace:
-    """Parse ``argv`` as the command would, turning its one-line error into an ExperimentError."""
-    err = io.StringIO()
-    try:
-        with contextlib.redirect_stderr(err):
-            return parser.parse_args(argv)
-    except SystemExit:
-        text = err.getvalue().strip().splitlines()
-        message = text[-1] if text else "invalid options"
-        message = message.split(": error: ", 1)[-1].removesuffix(" (see --help)")
-        raise ExperimentError(f"{where}: {message}") from None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -654,12 +546,6 @@ def _stage(exp: ExperimentFile, stage: str, task: TaskLine | None) -> dict[str, 
     return options
 
 
-def _reevaluate_argv(exp: ExperimentFile, task: TaskLine | None) -> list[str]:
-    options = _stage(exp, "reevaluate", task)
-    mapped = {REEVALUATE_KEYS[k]: v for k, v in options.items()}
-    return [w for k, v in mapped.items() for w in (f"--{k.replace('_', '-')}", _word(v))]
-
-
 def experiment_plan(
     exp: ExperimentFile, *, tasks: Sequence[str] | None = None, build_agents: bool = True
 ) -> list[Step]:
@@ -695,31 +581,40 @@ def experiment_plan(
     return steps
 
 
-def _evolve_parts(
-    exp: ExperimentFile, task: TaskLine | None, parser: Any, where: str
-) -> tuple[list[str], argparse.Namespace]:
-    options = _stage(exp, "evolve", task)
-    argv = ([] if task is None else ["--env-id", task.env_id]) + options_to_argv(
-        parser, options, where
-    )
-    argv += _reevaluate_argv(exp, task)
-    argv += ["--storage", exp.storage]
-    args = parse_checked(parser, argv, where)
-    _with_tensorboard(exp, args)
-    return argv, args
+def _evolve_parts(exp: ExperimentFile, task: TaskLine | None, where: str) -> tuple[list[str], Any]:
+    """The ``evolve`` (and ``reevaluate``) stage of ``task`` (``None``: the task set), validated
+    by the evolve options' schema: the command line that shows it and the options.
+
+    Raises:
+        ExperimentError: An unknown key (with the nearest valid one) or a bad value.
+    """
+    from ermrl.runner._evolve_options import evolve_options
+
+    cls = evolve_options(multi_task=task is None)
+    given = _stage(exp, "evolve", task)
+    values = _validated(cls, given, where)
+    again = {REEVALUATE_KEYS[k]: v for k, v in _stage(exp, "reevaluate", task).items()}
+    values_again = _validated(cls, again, f"{exp.path}: reevaluate")
+    if task is None:
+        tasks = [k for k in ("env_ids", "suite") if values.get(k) is not None]
+        if len(tasks) != 1:
+            raise ExperimentError(
+                f"{where}: the task set is env_ids or suite, "
+                + ("not both" if tasks else "and the stage has neither")
+            )
+    own = {} if task is None else {"env_id": task.env_id}
+    options = cls(**own, **values, **values_again, storage=exp.storage)
+    if exp.tensorboard:  # as ermrl run --tensorboard will add it
+        options = dataclasses.replace(options, tensorboard=_TENSORBOARD_IN_PLAN)
+    argv = ([] if task is None else ["--env-id", task.env_id]) + to_argv(cls, given, values)
+    argv += to_argv(cls, again, values_again) + ["--storage", exp.storage]
+    return argv, options
 
 
-# What stands for ``ermrl run --tensorboard DIR`` in the parsed options the plan checks (the
-# stage's own directory is added when it runs, by ``ermrl run``).
+# What stands for ``ermrl run --tensorboard DIR`` in the options the plan checks (the stage's
+# own directory is added when it runs, by ``ermrl run``), so that the plan chooses, checks and
+# estimates its backend as the command will.
 _TENSORBOARD_IN_PLAN = "<ermrl run --tensorboard>"
-
-
-def _with_tensorboard(exp: ExperimentFile, args: argparse.Namespace) -> None:
-    """Give the parsed options of an evolve or test stage the ``--tensorboard`` that ``ermrl
-    run --tensorboard`` will add, so the plan chooses, checks and estimates its backend as the
-    command will."""
-    if exp.tensorboard:
-        args.tensorboard = _TENSORBOARD_IN_PLAN
 
 
 def _config_error(exp: ExperimentFile, where: str, build: Callable[[], Any]) -> Any:
@@ -732,11 +627,10 @@ def _config_error(exp: ExperimentFile, where: str, build: Callable[[], Any]) -> 
 
 
 def _single_task_steps(exp: ExperimentFile, task: TaskLine, build_agents: bool) -> list[Step]:
-    from ermrl.runner._parsers import build_evolve_parser
     from ermrl.runner._resolve import config_from_args
 
     where = f"{exp.path}: {task.env_id}: evolve"
-    argv, args = _evolve_parts(exp, task, build_evolve_parser(), where)
+    argv, args = _evolve_parts(exp, task, where)
     notes: list[str] = []
     config = _config_error(
         exp, where, lambda: config_from_args(args, build_agent=build_agents, notes=notes)
@@ -942,7 +836,7 @@ def _report_step(
 
 
 def _evolve_request(
-    exp: ExperimentFile, args: argparse.Namespace, config: Any, study_name: str, notes: list[str]
+    exp: ExperimentFile, args: Any, config: Any, study_name: str, notes: list[str]
 ) -> EvolveRequest:
     """What an evolve step runs: its configuration and the worker's options the file gives
     (``ermrl run``'s own are added when it runs)."""
@@ -987,12 +881,11 @@ def _generalization_evolve_steps(
     exp: ExperimentFile, build_agents: bool
 ) -> tuple[list[Step], EvolveConfig, str]:
     """A generalization file's evolve (and re-evaluate) steps, its configuration and study."""
-    from ermrl.runner._parsers import build_evolve_generalization_parser
     from ermrl.runner._resolve import generalization_config_from_args
     from ermrl.search import generalization_study_name
 
     where = f"{exp.path}: evolve"
-    argv, args = _evolve_parts(exp, None, build_evolve_generalization_parser(), where)
+    argv, args = _evolve_parts(exp, None, where)
     notes: list[str] = []
     config = _config_error(
         exp,
@@ -1089,10 +982,10 @@ def _study(storage: str, study_name: str) -> Iterator[Any]:
 def _keep_study_backend(
     exp: ExperimentFile,
     where: str,
-    args: argparse.Namespace,
+    args: Any,
     config: Any,
     study_name: str,
-    build: Callable[[argparse.Namespace], Any],
+    build: Callable[[Any], Any],
     notes: list[str] | None = None,
 ) -> Any:
     """The configuration with the backend the study was created with, when the file sets no

@@ -25,15 +25,12 @@ __all__ = [
     "add_progress_arg",
     "positive_int",
     "nonneg_int",
-    "positive_float",
     "storage_arg",
     "study_name_arg",
     "existing_study_name_arg",
     "add_storage_args",
-    "add_stale_gradient_arg",
     "add_schema_args",
     "ForLearnerAction",
-    "add_for_learner_arg",
 ]
 
 # The exit code of bad input (ermrl.runner._commands.EXIT_USAGE, as argparse's own).
@@ -116,16 +113,6 @@ def nonneg_int(text: str) -> int:
     return value
 
 
-def positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError as err:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from err
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"must be positive, got {text}")
-    return value
-
-
 def storage_arg(text: str) -> str:
     """An ``argparse`` type for ``--storage``: a supported URL, not an in-memory database.
 
@@ -186,18 +173,6 @@ def add_storage_args(
     )
 
 
-def add_stale_gradient_arg(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
-    """``--stale-gradient/--no-stale-gradient``: the rtu-ppo learner's ``stale_gradient``."""
-    from ermrl.test_phase._prepare import STALE_GRADIENT_HELP
-
-    parser.add_argument(
-        "--stale-gradient",
-        action=argparse.BooleanOptionalAction,
-        default=None,
-        help=STALE_GRADIENT_HELP,
-    )
-
-
 class ForLearnerAction(argparse.Action):
     """Appends each ``--for-learner`` as ``(learner, settings)``, checked while parsing."""
 
@@ -218,20 +193,6 @@ class ForLearnerAction(argparse.Action):
         setattr(namespace, self.dest, [*(getattr(namespace, self.dest, None) or []), parsed])
 
 
-def add_for_learner_arg(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
-    """``--for-learner LEARNER KEY=VALUE [KEY=VALUE ...]``: settings of one learner only."""
-    from ermrl.test_phase._prepare import FOR_LEARNER_HELP
-
-    parser.add_argument(
-        "--for-learner",
-        action=ForLearnerAction,
-        nargs="+",
-        default=[],
-        metavar=("LEARNER", "KEY=VALUE"),
-        help=FOR_LEARNER_HELP,
-    )
-
-
 def _text_type(spec: Spec) -> Callable[[str], Any]:
     """An ``argparse`` type that reads a word as the schema reads a text value."""
 
@@ -245,6 +206,18 @@ def _text_type(spec: Spec) -> Callable[[str], Any]:
     return parse
 
 
+def _container(
+    parser: argparse.ArgumentParser | argparse._ArgumentGroup, title: str | None
+) -> argparse.ArgumentParser | argparse._ArgumentGroup:
+    """The group of ``parser`` titled ``title`` (made on first use), or ``parser`` itself."""
+    if title is None or not isinstance(parser, argparse.ArgumentParser):
+        return parser
+    for group in parser._action_groups:
+        if group.title == title:
+            return group
+    return parser.add_argument_group(title)
+
+
 def add_schema_args(
     parser: argparse.ArgumentParser | argparse._ArgumentGroup,
     cls: type,
@@ -252,11 +225,11 @@ def add_schema_args(
     helps: Mapping[str, str] | None = None,
 ) -> None:
     """The options of fields ``names`` of configuration ``cls``, generated from its schema
-    (`ermrl._schema`): flag, type, choices, default and help, each field's value under its
-    own name.
+    (`ermrl._schema`): flag, type, choices, default, help and help section, each field's value
+    under its own name.
 
     Args:
-        parser: The command's parser (or one of its groups).
+        parser: The command's parser (or one of its groups: then every option goes in it).
         cls: A configuration dataclass whose fields carry options.
         names: The fields to add, in this order.
         helps: Help texts of this command that differ from the field's.
@@ -264,24 +237,29 @@ def add_schema_args(
     specs = {spec.name: spec for spec in fields_of(cls)}
     for name in names:
         spec = specs[name]
+        opt = spec.option
         kw: dict[str, Any] = {"dest": spec.name, "help": (helps or {}).get(name, spec.help)}
-        if spec.option.metavar is not None:
-            kw["metavar"] = spec.option.metavar
+        if opt.metavar is not None:
+            kw["metavar"] = opt.metavar
+        if opt.required:
+            kw["required"] = True
         if spec.kind == "bool":
-            negatable = spec.option.negatable
-            kw["action"] = argparse.BooleanOptionalAction if negatable else "store_true"
-            if negatable:
+            kw["action"] = argparse.BooleanOptionalAction if opt.negatable else "store_true"
+            if opt.negatable:
                 kw["default"] = spec.default
         elif spec.kind == "words":
             kw.update(nargs="+", default=[])
         elif spec.kind == "mapping":
             kw.update(action=ForLearnerAction, nargs="+", default=[])
         else:
-            kw["default"] = spec.default
+            default = spec.default
+            kw["default"] = list(default) if isinstance(default, tuple) else default
             if spec.kind in ("int", "float"):
                 kw["type"] = _text_type(spec)
             if spec.choices is not None:
                 kw["choices"] = spec.choices
             if spec.many:
-                kw["nargs"] = "+"
-        parser.add_argument(spec.flag, **kw)
+                kw["nargs"] = spec.count or "+"
+            elif opt.const is not None:
+                kw.update(nargs="?", const=opt.const)
+        _container(parser, opt.group).add_argument(spec.flag, **kw)

@@ -10,12 +10,13 @@ one line.
 
 from __future__ import annotations
 
-import argparse
+import copy
 import dataclasses
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from ermrl._schema import words_of
 from ermrl.config import (
     BudgetConfig,
     ConfigError,
@@ -31,11 +32,16 @@ from ermrl.config import (
     SearchSpaceConfig,
     TaskConfig,
 )
-from ermrl.encoders import ENCODERS, flag_dest, get_encoder, reference_encoder
+from ermrl.encoders import ENCODERS, get_encoder, reference_encoder
 
 if TYPE_CHECKING:
     from ermrl._progress import ProgressMode
     from ermrl.test_phase import TestOptions
+
+# The options of a command: parsed from its argv (an ``argparse.Namespace``), or validated from
+# a file or a call (an options dataclass, `ermrl.runner._evolve_options`); both are read by
+# attribute.
+Options = Any
 
 __all__ = [
     "budget_from_args",
@@ -57,7 +63,7 @@ __all__ = [
 ]
 
 
-def _progress_mode(args: argparse.Namespace) -> ProgressMode:
+def _progress_mode(args: Options) -> ProgressMode:
     """``args.progress``, or the default for where stdout goes."""
     from ermrl._progress import default_mode
 
@@ -65,13 +71,13 @@ def _progress_mode(args: argparse.Namespace) -> ProgressMode:
     return default_mode() if value is None else value
 
 
-def for_learner_names(args: argparse.Namespace) -> tuple[str, ...]:
+def for_learner_names(args: Options) -> tuple[str, ...]:
     """The learners named by ``--for-learner`` flags, in order, each once."""
-    given = getattr(args, "for_learner", None) or []
+    given = _learner_items(getattr(args, "for_learner", None))
     return tuple(dict.fromkeys(name for name, _ in given))
 
 
-def learner_overrides(args: argparse.Namespace) -> dict[str, dict[str, Any]]:
+def learner_overrides(args: Options) -> dict[str, dict[str, Any]]:
     """Settings given by learner-specific flags, keyed by the learner they apply to.
 
     ``--stale-gradient`` (rtu-ppo's ``stale_gradient``) first, then each ``--for-learner`` in
@@ -81,9 +87,15 @@ def learner_overrides(args: argparse.Namespace) -> dict[str, dict[str, Any]]:
     stale = getattr(args, "stale_gradient", None)
     if stale is not None:
         out["rtu-ppo"] = {"stale_gradient": stale}
-    for name, settings in getattr(args, "for_learner", None) or []:
+    for name, settings in _learner_items(getattr(args, "for_learner", None)):
         out[name] = {**out.get(name, {}), **settings}
     return out
+
+
+def _learner_items(given: Any) -> list[tuple[str, Mapping[str, Any]]]:
+    """``--for-learner``'s ``(learner, settings)`` pairs, as parsed (a list) or validated (a
+    mapping)."""
+    return list(given.items()) if isinstance(given, Mapping) else list(given or [])
 
 
 def parse_gene_ranges(items: Sequence[str], genes: Mapping[str, Range]) -> dict[str, Range]:
@@ -113,44 +125,54 @@ def parse_gene_ranges(items: Sequence[str], genes: Mapping[str, Range]) -> dict[
     return out
 
 
-def learner_space_from_args(args: argparse.Namespace, ppo: PPOConfig) -> LearnerSpace:
+def learner_space_from_args(args: Options, ppo: PPOConfig) -> LearnerSpace:
     """The gene space of a learner with genes; the encoder's flags are refused."""
     from ermrl.learners import get_learner
+    from ermrl.runner._evolve_options import encoder_settings
 
-    for dest, (flag, default) in getattr(args, "encoder_flags", {}).items():
-        if getattr(args, dest, default) != default:
+    for name, (flag, default) in encoder_settings(args).items():
+        value = getattr(args, name, default)
+        if _listed(value) != _listed(default):
             raise ConfigError(
                 f"{flag} sets an evolved encoder; --learner {ppo.learner} has none (evolution "
                 "shapes its genes: see --gene)"
             )
     learner = get_learner(ppo.learner)
-    return learner.gene_space(ppo, parse_gene_ranges(getattr(args, "gene", []), learner.genes))
+    genes = words_of(getattr(args, "gene", None))
+    return learner.gene_space(ppo, parse_gene_ranges(genes, learner.genes))
 
 
-def space_from_args(args: argparse.Namespace) -> EncoderSpace:
+def _listed(value: Any) -> Any:
+    """A pair as a list (a parsed one is a list, a validated one a tuple)."""
+    return list(value) if isinstance(value, tuple) else value
+
+
+def space_from_args(args: Options) -> EncoderSpace:
     """The search space of the chosen encoder (``--encoder``) from its flags.
 
     Raises:
         ConfigError: a flag of another encoder only, or a bad value.
     """
     encoder = get_encoder(getattr(args, "encoder", reference_encoder().name))
-    own = {flag_dest(f) for f in encoder.cli_flags}
+    own = {s.name for s in encoder.setting_specs()}
     for other in ENCODERS.values():
-        for flag in other.cli_flags:
-            dest = flag_dest(flag)
-            if dest not in own and getattr(args, dest, None) not in (None, flag.get("default")):
-                takers = [  # every encoder that declares the flag (--units: two of them)
-                    e.name for e in ENCODERS.values() if dest in map(flag_dest, e.cli_flags)
+        for spec in other.setting_specs():
+            value = _listed(getattr(args, spec.name, None))
+            if spec.name not in own and value not in (None, _listed(spec.default)):
+                takers = [  # every encoder that declares the setting (--units: two of them)
+                    e.name
+                    for e in ENCODERS.values()
+                    if spec.name in {s.name for s in e.setting_specs()}
                 ]
                 raise ConfigError(
-                    f"{flag['flags'][0]} applies to --encoder {' or '.join(takers)}, not to "
+                    f"{spec.flag} applies to --encoder {' or '.join(takers)}, not to "
                     f"--encoder {encoder.name}"
                 )
     space: EncoderSpace = encoder.space_from_args(args)
     return space
 
 
-def encoder_from_args(args: argparse.Namespace, space: EncoderSpace) -> EncoderConfig:
+def encoder_from_args(args: Options, space: EncoderSpace) -> EncoderConfig:
     return EncoderConfig(
         reservoirs=space.default_reservoirs(),
         skip_connection=args.skip_connection,
@@ -163,7 +185,7 @@ def encoder_from_args(args: argparse.Namespace, space: EncoderSpace) -> EncoderC
     )
 
 
-def budget_from_args(args: argparse.Namespace) -> BudgetConfig:
+def budget_from_args(args: Options) -> BudgetConfig:
     return BudgetConfig(
         training_steps=args.training_steps,
         fitness=args.fitness,
@@ -173,7 +195,7 @@ def budget_from_args(args: argparse.Namespace) -> BudgetConfig:
     )
 
 
-def search_from_args(args: argparse.Namespace) -> SearchConfig:
+def search_from_args(args: Options) -> SearchConfig:
     return SearchConfig(
         sampler=args.sampler,
         sampler_seed=args.sampler_seed,
@@ -197,7 +219,7 @@ def validate_task(env_id: str, observe: str) -> None:
     observation_indices(env_id, observe)  # type: ignore[arg-type]
 
 
-def learner_flags(args: argparse.Namespace, learner: str) -> dict[str, Any]:
+def learner_flags(args: Options, learner: str) -> dict[str, Any]:
     """The learner-specific flags' settings for ``learner``, the study's learner.
 
     Raises:
@@ -218,7 +240,7 @@ def learner_flags(args: argparse.Namespace, learner: str) -> dict[str, Any]:
 
 
 def config_from_args(
-    args: argparse.Namespace, *, build_agent: bool = True, notes: list[str] | None = None
+    args: Options, *, build_agent: bool = True, notes: list[str] | None = None
 ) -> EvolveConfig:
     """Build and validate the run's configuration (raises ConfigError / env errors).
 
@@ -238,7 +260,7 @@ def config_from_args(
     learner = getattr(args, "learner", "ppo")
     ppo = resolve_ppo_config(
         args.env_id,
-        {**parse_overrides(args.ppo, learner), **learner_flags(args, learner)},
+        {**parse_overrides(words_of(args.ppo), learner), **learner_flags(args, learner)},
         n_envs=args.n_envs,
         table_path=args.hyperparams,
         torch_threads=args.torch_threads,
@@ -260,7 +282,7 @@ def config_from_args(
     if not evolves_encoder:
         space, encoder = learner_space_from_args(args, ppo), None
     else:
-        if getattr(args, "gene", []):
+        if getattr(args, "gene", None):
             raise ConfigError(f"--gene evolves a learner's genes; learner {learner!r} has none")
         space = space_from_args(args)
         encoder = encoder_from_args(args, space)
@@ -294,7 +316,7 @@ def config_from_args(
     return config
 
 
-def check_tensorboard(args: argparse.Namespace) -> None:
+def check_tensorboard(args: Options) -> None:
     """``--tensorboard`` needs the tensorboard package (on either backend).
 
     Raises:
@@ -328,13 +350,13 @@ def stored_backend(storage: str, study_name: str) -> str | None:
 
 
 def keep_study_backend(
-    args: argparse.Namespace,
+    args: Options,
     config: EvolveConfig,
     storage: str,
     study_name: str,
-    build: Callable[[argparse.Namespace], EvolveConfig],
+    build: Callable[[Options], EvolveConfig],
     notes: list[str],
-) -> tuple[argparse.Namespace, EvolveConfig]:
+) -> tuple[Options, EvolveConfig]:
     """A resumed study keeps the backend it was created with when ``--backend`` is left out.
 
     Args:
@@ -354,12 +376,22 @@ def keep_study_backend(
     kept = stored_backend(storage, study_name)
     if kept is None or kept == config.problem.ppo.backend:
         return args, config
-    args = argparse.Namespace(**{**vars(args), "backend": kept})
+    args = _replaced(args, backend=kept)
     notes[:] = [f"study {study_name!r} was created with it (a study never mixes backends)"]
     return args, build(args)
 
 
-def test_options(args: argparse.Namespace) -> TestOptions:
+def _replaced(args: Options, **changes: Any) -> Options:
+    """The options (parsed, or a dataclass of them) with ``changes``."""
+    if dataclasses.is_dataclass(args) and not isinstance(args, type):
+        return dataclasses.replace(args, **changes)
+    out = copy.copy(args)
+    for name, value in changes.items():
+        setattr(out, name, value)
+    return out
+
+
+def test_options(args: Options) -> TestOptions:
     """The parsed options of ``ermrl test`` or ``ermrl test-generalization`` as the library's
     [`TestOptions`][ermrl.test_phase.TestOptions]: its fields, each parsed under its own name
     (``--ppo`` words kept: they are read, and refused, where the command always read them)."""
@@ -380,7 +412,7 @@ def test_options(args: argparse.Namespace) -> TestOptions:
 
 
 def generalization_config_from_args(
-    args: argparse.Namespace, *, build_agent: bool = True, notes: list[str] | None = None
+    args: Options, *, build_agent: bool = True, notes: list[str] | None = None
 ) -> EvolveConfig:
     """Build and validate a multi-task configuration (raises ConfigError / env errors).
 
@@ -397,7 +429,10 @@ def generalization_config_from_args(
 
     env_ids, suite = _suite_env_ids(args)
     _refuse_learner_genes(args.learner)
-    overrides = {**parse_overrides(args.ppo, args.learner), **learner_flags(args, args.learner)}
+    overrides = {
+        **parse_overrides(words_of(args.ppo), args.learner),
+        **learner_flags(args, args.learner),
+    }
     tasks = generalization_tasks(
         env_ids,
         observe=args.observe,
@@ -436,7 +471,7 @@ def generalization_config_from_args(
     return config
 
 
-def _suite_env_ids(args: argparse.Namespace) -> tuple[Sequence[str], str | None]:
+def _suite_env_ids(args: Options) -> tuple[Sequence[str], str | None]:
     """The evolution tasks' env ids and the suite they come from (``None``: ``--env-ids``).
 
     Raises:
@@ -468,7 +503,7 @@ def _refuse_learner_genes(learner: str) -> None:
 
 
 def _one_backend(
-    tasks: Sequence[GeneralizationTask], args: argparse.Namespace, notes: list[str] | None
+    tasks: Sequence[GeneralizationTask], args: Options, notes: list[str] | None
 ) -> tuple[GeneralizationTask, ...]:
     """The tasks with one backend for all: population where it applies to every task, else sb3.
 

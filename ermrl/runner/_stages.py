@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
+from ermrl._schema import to_argv, validate
 from ermrl.config import ConfigError
 from ermrl.storage import DEFAULT_STORAGE
 
@@ -171,7 +172,8 @@ def evolve_config(
 
     The options are the command's, spelled as in an experiment file's ``evolve`` stage
     (``n_trials=20`` for ``--n-trials 20``, ``ppo={"n_steps": 128}``, ``fixed_input_scaling=True``);
-    they are checked by the command's own parser and configuration code.
+    they are checked by the command's own schema (types, ranges, unknown keywords: one
+    line, before anything is written) and configuration code.
 
     Args:
         env_id: The gymnasium env id.
@@ -204,19 +206,23 @@ def _evolve_config_and_argv(
     options: Mapping[str, Any],
 ) -> tuple[EvolveConfig, list[str]]:
     from ermrl.envs import UnknownEnvError, UnsupportedObserveError
-    from ermrl.runner._experiment import ExperimentError, options_to_argv, parse_checked
-    from ermrl.runner._parsers import build_evolve_parser
+    from ermrl.runner._evolve_options import evolve_options
+    from ermrl.runner._experiment import ExperimentError
     from ermrl.runner._resolve import config_from_args, keep_study_backend
 
     where = f"evolve {env_id}"
     reserved = sorted(set(options) & _NOT_CONFIG)
     if reserved:
         raise ExperimentError(f"{where}: {reserved[0]} is not an option of the configuration")
-    parser = build_evolve_parser()
-    argv = ["--env-id", env_id, *options_to_argv(parser, options, where)]
-    args = parse_checked(parser, argv, where)
+    cls = evolve_options()
+    try:
+        values = validate(cls, options, where)
+    except ConfigError as err:
+        raise ExperimentError(str(err)) from None
+    args = cls(env_id=env_id, **values)
     if tensorboard:
-        args.tensorboard = "<tensorboard>"
+        args = dataclasses.replace(args, tensorboard="<tensorboard>")
+    argv = ["--env-id", env_id, *to_argv(cls, options, values)]
     try:
         config = config_from_args(args)
         if storage is not None:
@@ -343,11 +349,11 @@ def _resolved_config(
     elif options:
         raise TypeError(f"evolve() got options {sorted(options)} with a configuration object")
     elif tensorboard is not None:
-        import argparse
+        from types import SimpleNamespace
 
         from ermrl.runner._resolve import check_tensorboard
 
-        check_tensorboard(argparse.Namespace(tensorboard=str(tensorboard)))
+        check_tensorboard(SimpleNamespace(tensorboard=str(tensorboard)))
     if config.generalization is not None:
         raise ConfigError(
             "a configuration evolved on several tasks runs from an experiment file "
