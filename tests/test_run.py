@@ -1077,3 +1077,14 @@ def _only_study(db: Path) -> str:
     main = [n for n in names if not n.endswith(".reeval")]
     assert len(main) == 1, names
     return main[0]
+
+
+def test_a_test_stage_without_progress_shows_progress_for_where_stdout_goes() -> None:
+    """The plan resolves a test stage's progress as ``ermrl test`` does (lines when stdout is
+    not a terminal), not the library's quiet default: ``ermrl run`` must still print them."""
+    from ermrl._progress import default_mode
+    from ermrl.runner import experiment_plan, load_experiment
+
+    steps = experiment_plan(load_experiment(ROOT / "experiments" / "demo.yaml"), build_agents=False)
+    (test,) = [s for s in steps if s.stage == "test"]
+    assert test.request.options.progress == default_mode() != "none"

@@ -739,6 +739,10 @@ def _test_step(
         (TestOptions, TestGeneralizationRequest), given, values={**values, **own}
     )
     argv += ["--storage", exp.storage, "--study-name", study_name, "--out", str(folder)]
+    if values.get("progress") is None:  # as the test command resolves it: for where stdout goes
+        from ermrl._progress import default_mode
+
+        values["progress"] = default_mode()
     options = _config_error(exp, where, lambda: TestOptions(**values, out=str(folder)))
     if exp.tensorboard:  # (a test phase logs for TensorBoard on either backend)
         options = dataclasses.replace(options, tensorboard=_TENSORBOARD_IN_PLAN)
